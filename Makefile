@@ -1,0 +1,30 @@
+# The two commands: `make run` (the gateway against the built-in simulators) and `make test`.
+# Both create .venv and install the project into it on first use.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+CONFIG ?=
+
+.PHONY: run test lint mbpoll
+
+$(VENV)/.installed: pyproject.toml
+	python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test]'
+	touch $@
+
+run: $(VENV)/.installed
+	$(VENV)/bin/slc-gateway run $(CONFIG)
+
+# mbpoll is the second, independent Modbus client of the end-to-end tests (Debian package).
+mbpoll:
+	@command -v mbpoll >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq mbpoll >/dev/null; \
+	  elif command -v sudo >/dev/null 2>&1; then sudo apt-get update -qq && sudo apt-get install -y -qq mbpoll >/dev/null; \
+	  else echo "mbpoll not installed: its end-to-end tests will be skipped"; fi; }
+
+test: $(VENV)/.installed mbpoll
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+lint: $(VENV)/.installed
+	$(VENV)/bin/ruff check gateway tests bench
+	$(VENV)/bin/mypy --strict gateway

@@ -1,0 +1,221 @@
+"""Command-line interface of slc-gateway.
+
+Commands: run, check-config, simulate, probe, read, write, mode, upload, download.
+
+Exit status 0 on success; 1 with a one-line reason on stderr on any failure; 2 for usage errors.
+No protocol logic lives here: the commands call the drivers, the simulators and the app.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import signal
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from gateway import __version__
+from gateway.errors import GatewayError
+
+__all__ = ["main"]
+
+log = logging.getLogger("gateway")
+
+DEMO_CONFIG = Path(__file__).with_name("demo.toml")
+
+
+def _add_link_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("url", help="port URL: /dev/ttyUSB0, socket://host:port, rfc2217://host:port, sim://slc150")
+    parser.add_argument(
+        "--protocol", choices=("slc-ascii", "df1"), default="slc-ascii",
+        help="slc-ascii (SLC 100/150, default) or df1 (SLC 500 / PLC-5)",
+    )
+    parser.add_argument("--baudrate", type=int, help="default: 9600 (slc-ascii), 19200 (df1)")
+    parser.add_argument("--timeout", type=float, help="seconds per reply (default: 0.3 slc-ascii, 1.0 df1)")
+    parser.add_argument("--retries", type=int, default=3, help="retries per transaction (default 3)")
+    parser.add_argument("--station", type=int, default=1, help="df1: destination node (default 1)")
+    parser.add_argument("--source", type=int, default=0, help="df1: our node (default 0)")
+    parser.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc (default crc)")
+    parser.add_argument("--processor", default="slc5/04", help="df1: processor family (default slc5/04)")
+    parser.add_argument("--trace", type=Path, help="record every byte on the link to this file")
+    parser.add_argument("--json", action="store_true", help="print JSON")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="slc-gateway",
+        description="Modbus TCP gateway for Allen-Bradley SLC 100/150 and SLC 500 controllers.",
+    )
+    parser.add_argument("--version", action="version", version=f"slc-gateway {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("run", help="run the gateway (default: the built-in demo with simulators)")
+    p.add_argument("config", nargs="?", type=Path, help=f"config file (default: the demo, {DEMO_CONFIG.name})")
+
+    p = sub.add_parser("check-config", help="validate a config file, print the resolved config and Modbus map")
+    p.add_argument("config", type=Path)
+
+    p = sub.add_parser("simulate", help="serve a simulated controller over TCP or a pseudo-terminal")
+    p.add_argument("model", choices=("slc150", "slc100", "slc504"))
+    p.add_argument("--listen", default="127.0.0.1:7001", help="host:port (default 127.0.0.1:7001)")
+    p.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal instead; prints its path")
+    p.add_argument("--garble", type=int, default=0, metavar="N", help="corrupt 1 in N replies")
+    p.add_argument("--drop", type=int, default=0, metavar="N", help="drop 1 in N replies")
+    p.add_argument("--delay", type=float, default=0.0, metavar="S", help="add S seconds to every reply")
+    p.add_argument("--power-cycle-every", type=int, default=0, metavar="N", help="power-cycle every N commands")
+    p.add_argument("--fault-every", type=int, default=0, metavar="N", help="emit ;T every N commands (slc100/150)")
+    p.add_argument("--withhold-ack", type=int, default=0, metavar="N", help="df1: withhold 1 in N ACKs")
+    p.add_argument("--duplicate", type=int, default=0, metavar="N", help="df1: send 1 in N replies twice")
+    p.add_argument("--noise", type=int, default=0, metavar="N", help="df1: garbage between frames, 1 in N")
+    p.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc")
+    p.add_argument("--station", type=int, default=1, help="df1: our node number (default 1)")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--no-ladder", action="store_true", help="freeze the ladder: values change only when written")
+    p.add_argument("--paced", action="store_true", help="pace characters at --baudrate (a real line's speed)")
+    p.add_argument("--baudrate", type=int, help="line speed for --paced (default 9600 / 19200 for slc504)")
+    p.add_argument("--turnaround", type=float, default=0.0, metavar="S", help="controller turnaround delay")
+
+    p = sub.add_parser("probe", help="print the controller type and firmware revision")
+    _add_link_options(p)
+
+    p = sub.add_parser("read", help="read items: 901.ACC 901.PRE 701 11 @0x84 (df1: N7:0 T4:1.ACC F8:2)")
+    _add_link_options(p)
+    p.add_argument("items", nargs="+", metavar="ITEM")
+
+    p = sub.add_parser("write", help="write items: 905.PRE=1234 701=1 (df1: N7:0=5 B3:0/3=1)")
+    _add_link_options(p)
+    p.add_argument("assignments", nargs="+", metavar="ITEM=VALUE")
+
+    p = sub.add_parser("mode", help="change the controller mode")
+    _add_link_options(p)
+    p.add_argument("mode", choices=("run", "program", "test", "save"))
+
+    p = sub.add_parser("upload", help="back up the controller's program to FILE (program mode)")
+    _add_link_options(p)
+    p.add_argument("file", type=Path)
+
+    p = sub.add_parser("download", help="restore the program in FILE to the controller (program mode)")
+    _add_link_options(p)
+    p.add_argument("file", type=Path)
+    return parser
+
+
+def _setup_logging(verbose: int) -> None:
+    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    command: str = args.command
+    if command == "run":
+        _setup_logging(max(args.verbose, 1))
+    else:
+        _setup_logging(args.verbose)
+    try:
+        if command == "run":
+            return _run(args.config)
+        if command == "check-config":
+            return _check_config(args.config)
+        if command == "simulate":
+            return asyncio.run(_simulate(args))
+        from gateway import tools
+
+        return asyncio.run(tools.run_tool(command, args))
+    except GatewayError as exc:
+        print(f"slc-gateway {command}: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:
+        print(f"slc-gateway {command}: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+def _run(config_path: Path | None) -> int:
+    from gateway.app import run_gateway
+    from gateway.config import load_config
+
+    config = load_config(config_path or DEMO_CONFIG)
+    if config_path is None:
+        log.info("no config file given: running the demo (%s) against the built-in simulators", DEMO_CONFIG)
+    return asyncio.run(run_gateway(config))
+
+
+def _check_config(path: Path) -> int:
+    from gateway.app import describe_map
+    from gateway.config import load_config
+
+    config = load_config(path)
+    print(config.describe())
+    print()
+    print(describe_map(config))
+    return 0
+
+
+async def _simulate(args: argparse.Namespace) -> int:
+    from gateway.config import parse_listen
+    from gateway.sim import create_simulator
+    from gateway.sim.serve import serve_pty, serve_tcp
+    from gateway.transport import SerialSettings
+
+    options: dict[str, str] = {"seed": str(args.seed)}
+    for key in ("garble", "drop", "power_cycle_every", "fault_every"):
+        value = getattr(args, key)
+        if value:
+            options[key] = str(value)
+    if args.delay:
+        options["delay"] = str(args.delay)
+    if args.model == "slc504":
+        options.pop("power_cycle_every", None)
+        options.pop("fault_every", None)
+        options["checksum"] = args.checksum
+        options["station"] = str(args.station)
+        for key in ("withhold_ack", "duplicate", "noise"):
+            if getattr(args, key):
+                options[key] = str(getattr(args, key))
+    if args.no_ladder:
+        options["ladder"] = "0"
+    try:
+        device = create_simulator(args.model, options)
+    except ValueError as exc:
+        raise GatewayError(str(exc)) from exc
+    df1 = args.model == "slc504"
+    baud = args.baudrate or (19200 if df1 else 9600)
+    settings = SerialSettings(baud, 8, "N", 1) if df1 else SerialSettings(baud, 7, "E", 1)
+    paced = settings if args.paced else None
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError):
+            loop.add_signal_handler(sig, stop.set)
+    if args.pty:
+        pty = serve_pty(device, settings=paced, turnaround=args.turnaround)
+        print(f"simulated {args.model} on {pty.path}", flush=True)
+        try:
+            await stop.wait()
+        finally:
+            pty.close()
+        return 0
+    host, port = parse_listen(args.listen)
+    server = await serve_tcp(device, host, port, settings=paced, turnaround=args.turnaround)
+    bound = server.sockets[0].getsockname()
+    print(f"simulated {args.model} listening on {bound[0]}:{bound[1]} (socket://{bound[0]}:{bound[1]})", flush=True)
+    async with server:
+        await stop.wait()
+    return 0
+
+
+def print_result(result: dict[str, Any], as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(result))
+        return
+    for key, value in result.items():
+        print(f"{key} = {value}")

@@ -1,0 +1,321 @@
+"""What every link driver shares: the byte stream, reconnecting, one request at a time, state.
+
+A driver owns one byte stream opened from a URL.  Requests are queued with a priority (writes
+before polls) and run one at a time on the line by a worker task.  A reader task feeds the
+protocol core with every byte that arrives.  When the stream is lost the driver reopens it by
+itself with capped exponential backoff and jitter; meanwhile requests fail at once with
+``LinkDown`` (never a hang).  The driver logs when the link goes down and when it recovers,
+not every retry.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import enum
+import itertools
+import logging
+import random
+from abc import ABC, abstractmethod
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+from gateway.errors import GatewayError, LinkDown, LinkError, LinkTimeout
+from gateway.transport import ByteStream, SerialSettings, describe_url, open_stream
+
+__all__ = ["LinkCounters", "LinkDriver", "OpenStream", "Priority"]
+
+log = logging.getLogger("gateway.link")
+
+T = TypeVar("T")
+OpenStream = Callable[..., Awaitable[ByteStream]]
+
+
+class Priority(enum.IntEnum):
+    """Lower goes first: writes jump ahead of polls."""
+
+    WRITE = 0
+    POLL = 1
+
+
+@dataclass
+class LinkCounters:
+    """Counters of one link.  ``retries`` is the sum of the protocol's retry kinds."""
+
+    transactions: int = 0
+    errors: int = 0
+    timeouts: int = 0
+    crc_errors: int = 0
+    retransmits: int = 0  # SLC ;Z sent
+    id_resyncs: int = 0  # SLC ;I handled
+    enq_sent: int = 0  # DF1 ENQ sent
+    nak_received: int = 0  # DF1 NAK received
+    refusals: int = 0
+    faults: int = 0
+    reconnects: int = 0
+    bytes_sent: int = 0
+    bytes_received: int = 0
+
+    @property
+    def retries(self) -> int:
+        return self.retransmits + self.id_resyncs + self.enq_sent + self.nak_received
+
+
+@dataclass(order=True)
+class _Job:
+    priority: int
+    seq: int
+    op: Callable[[], Awaitable[Any]] = field(compare=False)
+    future: asyncio.Future[Any] = field(compare=False)
+
+
+class LinkDriver(ABC):
+    """Base of the protocol drivers.  Subclasses implement the protocol hooks."""
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        name: str = "",
+        settings: SerialSettings | None = None,
+        trace: Path | None = None,
+        reconnect_min: float = 0.5,
+        reconnect_max: float = 30.0,
+        connect_timeout: float = 5.0,
+        opener: OpenStream = open_stream,
+    ) -> None:
+        self.url = url
+        self.name = name or describe_url(url)
+        self.settings = settings or SerialSettings()
+        self.counters = LinkCounters()
+        self.last_error = ""
+        self._trace = trace
+        self._reconnect_min = reconnect_min
+        self._reconnect_max = reconnect_max
+        self._connect_timeout = connect_timeout
+        self._opener = opener
+        self._stream: ByteStream | None = None
+        self._queue: asyncio.PriorityQueue[_Job] = asyncio.PriorityQueue()
+        self._seq = itertools.count()
+        self._connected = asyncio.Event()
+        self._first_attempt_done = asyncio.Event()
+        self._lost: asyncio.Future[None] | None = None
+        self._responding = True  # the controller answered the last transaction
+        self._down_logged = False
+        self._listeners: list[Callable[[LinkDriver], None]] = []
+        self._run_task: asyncio.Task[None] | None = None
+        self._closing = False
+
+    # --- public state -----------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        return self._stream is not None
+
+    @property
+    def available(self) -> bool:
+        """The port is open and the controller answered the last transaction."""
+        return self._stream is not None and self._responding
+
+    def add_listener(self, callback: Callable[[LinkDriver], None]) -> None:
+        """``callback(driver)`` runs whenever ``available`` changes."""
+        self._listeners.append(callback)
+
+    def _set_state(self, *, responding: bool | None = None, error: str = "") -> None:
+        before = self.available
+        if responding is not None:
+            self._responding = responding
+        if error:
+            self.last_error = error
+        after = self.available
+        if before == after:
+            return
+        if after:
+            log.info("link %s: up (%s)", self.name, describe_url(self.url))
+            self._down_logged = False
+        elif not self._down_logged:
+            log.warning("link %s: down: %s", self.name, self.last_error or "unknown reason")
+            self._down_logged = True
+        for callback in self._listeners:
+            callback(self)
+
+    # --- life cycle -------------------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Keep the link open until cancelled: connect, serve requests, reconnect on loss."""
+        delay = self._reconnect_min
+        attempt = 0
+        while not self._closing:
+            try:
+                stream = await self._opener(
+                    self.url,
+                    self.settings,
+                    connect_timeout=self._connect_timeout,
+                    trace=self._trace,
+                    link_name=self.name,
+                )
+            except LinkDown as exc:
+                self._fail_attempt(str(exc))
+                self._first_attempt_done.set()
+                attempt += 1
+                await asyncio.sleep(delay * random.uniform(0.8, 1.2))
+                delay = min(delay * 2, self._reconnect_max)
+                continue
+            if attempt or self.counters.transactions:
+                self.counters.reconnects += 1
+            delay, attempt = self._reconnect_min, 0
+            await self._serve(stream)
+
+    def _fail_attempt(self, reason: str) -> None:
+        self.last_error = reason
+        if not self._down_logged:
+            log.warning("link %s: down: %s", self.name, reason)
+            self._down_logged = True
+            self._responding = False
+            for callback in self._listeners:
+                callback(self)
+        self._responding = False
+
+    async def _serve(self, stream: ByteStream) -> None:
+        loop = asyncio.get_running_loop()
+        self._stream = stream
+        self._lost = loop.create_future()
+        self.on_connect()
+        self._responding = True
+        self._connected.set()
+        self._first_attempt_done.set()
+        self._set_state(error="")
+        reader = asyncio.create_task(self._read_loop(stream), name=f"{self.name}-reader")
+        worker = asyncio.create_task(self._work_loop(), name=f"{self.name}-worker")
+        try:
+            await self._lost
+        finally:
+            reader.cancel()
+            worker.cancel()
+            with contextlib.suppress(asyncio.CancelledError, GatewayError):
+                await reader
+            with contextlib.suppress(asyncio.CancelledError, GatewayError):
+                await worker
+            self._stream = None
+            self._connected.clear()
+            await stream.close()
+            self._fail_queued(LinkDown(f"link {self.name} is down: {self.last_error}"))
+            self._set_state()
+
+    def _connection_lost(self, reason: str) -> None:
+        self.last_error = reason
+        if self._lost is not None and not self._lost.done():
+            self._lost.set_result(None)
+
+    async def _read_loop(self, stream: ByteStream) -> None:
+        while True:
+            try:
+                data = await stream.read()
+            except LinkDown as exc:
+                self._connection_lost(str(exc))
+                return
+            self.counters.bytes_received += len(data)
+            self.data_received(data)
+
+    async def _work_loop(self) -> None:
+        while True:
+            job = await self._queue.get()
+            if job.future.done():
+                continue
+            try:
+                result = await job.op()
+            except asyncio.CancelledError:
+                if not job.future.done():
+                    job.future.set_exception(LinkDown(f"link {self.name} is down: {self.last_error}"))
+                raise
+            except GatewayError as exc:
+                if not job.future.done():
+                    job.future.set_exception(exc)
+                continue
+            except Exception as exc:  # a bug: fail the caller, keep the link alive
+                log.exception("link %s: unexpected error", self.name)
+                if not job.future.done():
+                    job.future.set_exception(LinkError(f"link {self.name}: internal error: {exc!r}"))
+                continue
+            if not job.future.done():
+                job.future.set_result(result)
+
+    def _fail_queued(self, exc: GatewayError) -> None:
+        while not self._queue.empty():
+            job = self._queue.get_nowait()
+            if not job.future.done():
+                job.future.set_exception(exc)
+
+    async def start(self, wait: float | None = None) -> None:
+        """Run in the background and wait for the first connection attempt (for the CLI).
+
+        Raises ``LinkDown`` when the first attempt failed.
+        """
+        self._run_task = asyncio.create_task(self.run(), name=f"{self.name}-run")
+        await asyncio.wait_for(self._first_attempt_done.wait(), wait or self._connect_timeout + 1)
+        if not self.connected:
+            await self.close()
+            raise LinkDown(self.last_error or f"{self.url}: cannot open")
+
+    async def close(self) -> None:
+        self._closing = True
+        if self._run_task is not None:
+            self._run_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._run_task
+            self._run_task = None
+        if self._stream is not None:
+            await self._stream.close()
+            self._stream = None
+        self._fail_queued(LinkDown(f"link {self.name} is closed"))
+
+    async def __aenter__(self) -> LinkDriver:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    # --- requests ---------------------------------------------------------------------------
+
+    async def submit(self, op: Callable[[], Awaitable[T]], priority: Priority = Priority.POLL) -> T:
+        """Run ``op`` with exclusive use of the line; fails at once with ``LinkDown`` when down."""
+        if self._stream is None:
+            raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
+        future: asyncio.Future[T] = asyncio.get_running_loop().create_future()
+        self._queue.put_nowait(_Job(int(priority), next(self._seq), op, future))
+        return await future
+
+    def send(self, data: bytes) -> None:
+        """Write bytes to the line (from inside an ``op``)."""
+        stream = self._stream
+        if stream is None:
+            raise LinkDown(f"link {self.name} is down")
+        self.counters.bytes_sent += len(data)
+        stream.write(data)
+
+    def note_result(self, ok: bool, error: str = "") -> None:
+        """Record whether the controller answered (drives ``available`` and the up/down log)."""
+        if ok:
+            self.counters.transactions += 1
+            if not self._responding:
+                self._set_state(responding=True, error="")
+        else:
+            self.counters.errors += 1
+            self._set_state(responding=False, error=error)
+
+    # --- protocol hooks ---------------------------------------------------------------------
+
+    @abstractmethod
+    def on_connect(self) -> None:
+        """A new stream is open: reset the protocol state (e.g. message IDs)."""
+
+    @abstractmethod
+    def data_received(self, data: bytes) -> None:
+        """Bytes from the controller."""
+
+
+def timeout_error(name: str, what: str, seconds: float, tries: int) -> LinkTimeout:
+    return LinkTimeout(f"link {name}: no valid answer to {what} within {seconds:g} s after {tries} tries")

@@ -1,0 +1,90 @@
+"""Per link: scan the read plan, fast class continuously and slow class every few seconds.
+
+Every block is one request on the driver's queue at poll priority, so a write waits at most
+for the one poll transaction already on the line.  A block that fails keeps its last value
+in the cache and ages.  While the link is down the poller waits for it instead of spinning.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import random
+from collections.abc import Awaitable, Callable, Sequence
+
+from gateway.cache import BlockCache
+from gateway.errors import GatewayError, LinkDown
+from gateway.modbus.mapping import Block, Scan
+
+__all__ = ["Poller"]
+
+log = logging.getLogger("gateway.poller")
+
+ReadBlock = Callable[[Block], Awaitable[bytes]]
+
+
+class Poller:
+    def __init__(
+        self,
+        name: str,
+        blocks: Sequence[Block],
+        cache: BlockCache,
+        read_block: ReadBlock,
+        *,
+        fast_interval: float = 0.0,
+        slow_interval: float = 10.0,
+        down_wait: float = 0.2,
+        stagger: float = 0.0,
+    ) -> None:
+        self.name = name
+        self.blocks = list(blocks)
+        self.cache = cache
+        self.fast = [i for i, b in enumerate(self.blocks) if b.scan is Scan.FAST]
+        self.slow = [i for i, b in enumerate(self.blocks) if b.scan is Scan.SLOW]
+        self._read_block = read_block
+        self.fast_interval = fast_interval
+        self.slow_interval = slow_interval
+        self._down_wait = down_wait
+        self._stagger = stagger
+        self.scans = 0
+        self.block_errors = 0
+
+    async def _scan(self, indexes: Sequence[int]) -> bool:
+        """Read ``indexes``; False when the link is down (stop the scan early)."""
+        loop = asyncio.get_running_loop()
+        for index in indexes:
+            try:
+                data = await self._read_block(self.blocks[index])
+            except LinkDown:
+                return False
+            except GatewayError as exc:
+                self.block_errors += 1
+                log.debug("link %s: block %s failed: %s", self.name, self.blocks[index].label, exc)
+                continue
+            self.cache.store(index, data, loop.time())
+        return True
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        if self._stagger:
+            await asyncio.sleep(random.uniform(0, self._stagger))
+        next_slow = loop.time()
+        while True:
+            started = loop.time()
+            ok = True
+            if started >= next_slow and self.slow:
+                ok = await self._scan(self.slow)
+                if ok:
+                    next_slow = started + self.slow_interval
+            if ok:
+                ok = await self._scan(self.fast)
+            if not ok:
+                await asyncio.sleep(self._down_wait)
+                continue
+            self.scans += 1
+            if self.fast_interval > 0:
+                await asyncio.sleep(max(0.0, started + self.fast_interval - loop.time()))
+            elif not self.fast:
+                await asyncio.sleep(max(0.0, next_slow - loop.time()))
+            else:
+                await asyncio.sleep(0)  # let other links and the server run

@@ -1,0 +1,399 @@
+"""DF1 full-duplex link layer: one transmitter and one receiver working at the same time.
+
+Manual: "S4516-DF1 Program Development Manual" §2.4 *How the Transmitter Operates*,
+§2.5 *How the Receiver Operates* (after A-B 1770-6.5.16, chapter 2, full-duplex protocol).
+
+Receiver::
+
+    valid frame       -> DLE ACK, deliver (unless it duplicates the last delivered message)
+    damaged frame     -> DLE NAK, drop
+    DLE ENQ           -> repeat the last response symbol (DLE NAK until a frame has been answered)
+
+Transmitter (one frame outstanding at a time)::
+
+    IDLE --send--> AWAIT_ACK --DLE ACK--> IDLE (SendComplete)
+                   AWAIT_ACK --DLE NAK--> AWAIT_ACK, the SAME frame again       (at most max_nak times)
+                   AWAIT_ACK --timeout--> AWAIT_ACK, DLE ENQ                    (at most max_enq times)
+                   then                              IDLE (SendFailed)
+
+Once a frame has been ACKed the link reports :class:`SendComplete` and never sends it again.
+A DLE ACK / DLE NAK that arrives while the current frame has not yet been taken by
+:meth:`Df1Link.data_to_send` answers an older frame (for instance the second ACK of a duplicated
+frame) and is ignored, so it cannot complete a frame the peer never saw.
+Known limit of the protocol: if a whole frame is lost and the peer answers our ENQ with the ACK
+of the previous frame, the frame is reported complete although it never arrived; the
+application layer (PCCC reply timeout) covers that.  To narrow the window, the receiver treats
+evidence of a truncated frame (DLE ETX without DLE STX, DLE ENQ inside a frame) as a damaged
+frame, so its last response becomes DLE NAK.
+
+Usage (the caller owns the port and the clock)::
+
+    link = Df1Link(checksum=Checksum.CRC, ack_timeout=0.2)
+    handle = link.send(packet, now)
+    port.write(link.data_to_send())
+    link.receive_data(port.read(), now)
+    while (event := link.next_event()) is not NEED_DATA: ...
+    if (deadline := link.next_deadline()) is not None and now >= deadline:
+        link.handle_timeout(now)
+
+This module does no I/O.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections import deque
+from dataclasses import dataclass
+from typing import Final
+
+from gateway.errors import InvalidRequest
+from gateway.protocols.df1.framing import (
+    ACK_SYMBOL,
+    DEFAULT_MAX_MESSAGE,
+    ENQ_SYMBOL,
+    NAK_SYMBOL,
+    NEED_DATA,
+    AckReceived,
+    BadFrame,
+    Checksum,
+    EnqReceived,
+    Frame,
+    FrameDecoder,
+    NakReceived,
+    NeedData,
+    encode_frame,
+)
+
+__all__ = [
+    "Df1Link",
+    "LinkCounters",
+    "LinkEvent",
+    "MessageReceived",
+    "SendComplete",
+    "SendFailed",
+    "SendFailure",
+    "TxState",
+]
+
+
+# --------------------------------------------------------------------------------------- events
+
+
+@dataclass(frozen=True, slots=True)
+class MessageReceived:
+    """A new application message (PCCC packet, DST .. data) arrived and was ACKed."""
+
+    payload: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class SendComplete:
+    """The frame queued as ``handle`` was acknowledged with DLE ACK."""
+
+    handle: int
+
+
+class SendFailure(enum.Enum):
+    """Why the link gave up on a frame (S4516-DF1 sfunc11 return codes 3 and 4/5)."""
+
+    NAK_LIMIT = "DLE NAK received after every retransmission"
+    NO_RESPONSE = "no DLE ACK after every DLE ENQ"
+    LINK_RESET = "the link was reset before the frame was acknowledged"
+
+
+@dataclass(frozen=True, slots=True)
+class SendFailed:
+    """The frame queued as ``handle`` was not acknowledged; ``reason`` says why."""
+
+    handle: int
+    reason: SendFailure
+
+
+LinkEvent = MessageReceived | SendComplete | SendFailed
+
+
+@dataclass(slots=True)
+class LinkCounters:
+    """Link statistics, as in the DF1 full-duplex diagnostic counters (notes §7.7)."""
+
+    frames_sent: int = 0  #: every frame written, retransmissions included
+    frames_received: int = 0  #: frames with a valid check, duplicates included
+    messages_delivered: int = 0
+    acks_sent: int = 0
+    acks_received: int = 0
+    naks_sent: int = 0
+    naks_received: int = 0
+    enqs_sent: int = 0
+    enqs_received: int = 0
+    retransmissions: int = 0
+    bad_frames: int = 0
+    duplicates: int = 0
+    send_failures: int = 0
+
+
+# ---------------------------------------------------------------------------------- transmitter
+
+
+class TxState(enum.Enum):
+    """Transmitter state (manual §2.4)."""
+
+    IDLE = "idle"
+    AWAIT_ACK = "waiting for DLE ACK"
+
+
+class _TxInput(enum.Enum):
+    SEND = "a frame is queued"
+    ACK = "DLE ACK received"
+    NAK = "DLE NAK received, retransmissions left"
+    NAK_LIMIT = "DLE NAK received, no retransmission left"
+    TIMEOUT = "ACK timer expired, ENQs left"
+    TIMEOUT_LIMIT = "ACK timer expired, no ENQ left"
+    STALE = "DLE ACK / DLE NAK before our frame left data_to_send(): an answer to an older frame"
+
+
+class _TxAction(enum.Enum):
+    TRANSMIT = "send the next queued frame, start the ACK timer"
+    COMPLETE = "report SendComplete"
+    RETRANSMIT = "send the same frame again, restart the ACK timer"
+    ENQUIRE = "send DLE ENQ, restart the ACK timer"
+    FAIL_NAK = "report SendFailed(NAK_LIMIT)"
+    FAIL_NO_RESPONSE = "report SendFailed(NO_RESPONSE)"
+    IGNORE = "nothing (stray symbol or nothing to do)"
+
+
+#: (state, input) -> (action, next state).  Inputs missing from the table cannot happen.
+_TX_TRANSITIONS: Final[dict[tuple[TxState, _TxInput], tuple[_TxAction, TxState]]] = {
+    (TxState.IDLE, _TxInput.SEND): (_TxAction.TRANSMIT, TxState.AWAIT_ACK),
+    (TxState.IDLE, _TxInput.ACK): (_TxAction.IGNORE, TxState.IDLE),
+    (TxState.IDLE, _TxInput.NAK): (_TxAction.IGNORE, TxState.IDLE),
+    (TxState.IDLE, _TxInput.NAK_LIMIT): (_TxAction.IGNORE, TxState.IDLE),
+    (TxState.IDLE, _TxInput.STALE): (_TxAction.IGNORE, TxState.IDLE),
+    (TxState.AWAIT_ACK, _TxInput.STALE): (_TxAction.IGNORE, TxState.AWAIT_ACK),
+    (TxState.AWAIT_ACK, _TxInput.SEND): (_TxAction.IGNORE, TxState.AWAIT_ACK),
+    (TxState.AWAIT_ACK, _TxInput.ACK): (_TxAction.COMPLETE, TxState.IDLE),
+    (TxState.AWAIT_ACK, _TxInput.NAK): (_TxAction.RETRANSMIT, TxState.AWAIT_ACK),
+    (TxState.AWAIT_ACK, _TxInput.NAK_LIMIT): (_TxAction.FAIL_NAK, TxState.IDLE),
+    (TxState.AWAIT_ACK, _TxInput.TIMEOUT): (_TxAction.ENQUIRE, TxState.AWAIT_ACK),
+    (TxState.AWAIT_ACK, _TxInput.TIMEOUT_LIMIT): (_TxAction.FAIL_NO_RESPONSE, TxState.IDLE),
+}
+
+
+# ----------------------------------------------------------------------------------------- link
+
+
+class Df1Link:
+    """Sans-I/O DF1 full-duplex link: frames and ACK/NAK/ENQ in, events and bytes out."""
+
+    def __init__(
+        self,
+        *,
+        checksum: Checksum = Checksum.BCC,
+        ack_timeout: float = 1.0,
+        max_enq: int = 3,
+        max_nak: int = 3,
+        duplicate_detect: bool = True,
+        max_message: int = DEFAULT_MAX_MESSAGE,
+    ) -> None:
+        if ack_timeout <= 0:
+            raise ValueError("ack_timeout must be positive")
+        if max_enq < 0 or max_nak < 0:
+            raise ValueError("max_enq and max_nak must not be negative")
+        self.checksum: Final = checksum
+        self.ack_timeout: Final = ack_timeout
+        self.max_enq: Final = max_enq
+        self.max_nak: Final = max_nak
+        self.duplicate_detect: Final = duplicate_detect
+        self.max_message: Final = max_message
+        self.counters = LinkCounters()
+        self._decoder = FrameDecoder(checksum, max_message=max_message)
+        self._events: deque[LinkEvent] = deque()
+        self._out = bytearray()
+        # receiver
+        self._last_response = NAK_SYMBOL
+        self._last_delivered: bytes | None = None
+        # transmitter
+        self._tx_state = TxState.IDLE
+        self._queue: deque[tuple[int, bytes]] = deque()
+        self._current: tuple[int, bytes, bytes] | None = None  # handle, payload, encoded frame
+        self._nak_count = 0
+        self._enq_count = 0
+        self._deadline: float | None = None
+        self._next_handle = 1
+        # True while the current frame still sits in the output buffer: the peer cannot have
+        # answered it yet, so a DLE ACK / DLE NAK arriving then belongs to an older frame.
+        self._frame_unsent = False
+
+    # ------------------------------------------------------------------------------ public API
+
+    @property
+    def tx_state(self) -> TxState:
+        return self._tx_state
+
+    @property
+    def pending(self) -> int:
+        """Frames queued or awaiting their ACK."""
+        return len(self._queue) + (self._current is not None)
+
+    def send(self, payload: bytes, now: float) -> int:
+        """Queue ``payload`` (a PCCC packet) for transmission; returns its handle."""
+        if not payload:
+            raise InvalidRequest("DF1: cannot send an empty message")
+        if len(payload) > self.max_message:
+            raise InvalidRequest(f"DF1: message of {len(payload)} bytes exceeds {self.max_message}")
+        handle = self._next_handle
+        self._next_handle += 1
+        self._queue.append((handle, bytes(payload)))
+        self._tx_input(_TxInput.SEND, now)
+        return handle
+
+    def receive_data(self, data: bytes, now: float) -> None:
+        """Feed bytes read from the port."""
+        self._decoder.feed(data)
+        while (event := self._decoder.next_event()) is not NEED_DATA:
+            match event:
+                case Frame(message=message):
+                    self._on_frame(message)
+                case BadFrame():
+                    self.counters.bad_frames += 1
+                    self._respond(NAK_SYMBOL)
+                case AckReceived():
+                    self.counters.acks_received += 1
+                    self._tx_input(_TxInput.STALE if self._frame_unsent else _TxInput.ACK, now)
+                case NakReceived():
+                    self.counters.naks_received += 1
+                    if self._frame_unsent:
+                        self._tx_input(_TxInput.STALE, now)
+                    elif self._nak_count >= self.max_nak:
+                        self._tx_input(_TxInput.NAK_LIMIT, now)
+                    else:
+                        self._tx_input(_TxInput.NAK, now)
+                case EnqReceived(aborted_frame=aborted):
+                    self.counters.enqs_received += 1
+                    if aborted:
+                        self.counters.bad_frames += 1
+                        self._last_response = NAK_SYMBOL
+                    self._respond(self._last_response)
+
+    def next_event(self) -> LinkEvent | NeedData:
+        """The next :class:`MessageReceived`, :class:`SendComplete`, :class:`SendFailed` or NEED_DATA."""
+        if self._events:
+            return self._events.popleft()
+        return NEED_DATA
+
+    def data_to_send(self) -> bytes:
+        """Bytes to write to the port (frames and response symbols), in order."""
+        out = bytes(self._out)
+        self._out.clear()
+        self._frame_unsent = False
+        return out
+
+    def next_deadline(self) -> float | None:
+        """When :meth:`handle_timeout` must be called, or None without a running timer."""
+        return self._deadline
+
+    def handle_timeout(self, now: float) -> None:
+        """Call at or after :meth:`next_deadline`; early calls do nothing."""
+        if self._deadline is None or now < self._deadline:
+            return
+        limit = self._enq_count >= self.max_enq
+        self._tx_input(_TxInput.TIMEOUT_LIMIT if limit else _TxInput.TIMEOUT, now)
+
+    def reset(self) -> None:
+        """Forget the line state (port reopened): fail every queued frame, clear buffers."""
+        failed = [self._current[0]] if self._current is not None else []
+        failed += [handle for handle, _ in self._queue]
+        self._queue.clear()
+        self._current = None
+        self._tx_state = TxState.IDLE
+        self._deadline = None
+        self._nak_count = self._enq_count = 0
+        self._decoder.reset()
+        self._out.clear()
+        self._frame_unsent = False
+        self._last_response = NAK_SYMBOL
+        self._last_delivered = None
+        for handle in failed:
+            self.counters.send_failures += 1
+            self._events.append(SendFailed(handle, SendFailure.LINK_RESET))
+
+    # ------------------------------------------------------------------------------- receiver
+
+    def _respond(self, symbol: bytes) -> None:
+        self._last_response = symbol
+        self._out += symbol
+        if symbol == ACK_SYMBOL:
+            self.counters.acks_sent += 1
+        else:
+            self.counters.naks_sent += 1
+
+    def _is_duplicate(self, message: bytes) -> bool:
+        """Same SRC, CMD and TNS as the last delivered message (1770-6.5.16 duplicate detection).
+
+        Messages too short to hold a PCCC header are compared whole.
+        """
+        last = self._last_delivered
+        if last is None:
+            return False
+        if len(message) < 6 or len(last) < 6:
+            return message == last
+        return message[1:3] == last[1:3] and message[4:6] == last[4:6]
+
+    def _on_frame(self, message: bytes) -> None:
+        self.counters.frames_received += 1
+        if self.duplicate_detect and self._is_duplicate(message):
+            self.counters.duplicates += 1
+        else:
+            self._last_delivered = message
+            self.counters.messages_delivered += 1
+            self._events.append(MessageReceived(message))
+        self._respond(ACK_SYMBOL)
+
+    # ---------------------------------------------------------------------------- transmitter
+
+    def _tx_input(self, tx_input: _TxInput, now: float) -> None:
+        action, next_state = _TX_TRANSITIONS[self._tx_state, tx_input]
+        self._tx_state = next_state
+        match action:
+            case _TxAction.IGNORE:
+                pass
+            case _TxAction.TRANSMIT:
+                handle, payload = self._queue.popleft()
+                self._current = (handle, payload, encode_frame(payload, self.checksum))
+                self._nak_count = self._enq_count = 0
+                self._write_current(now)
+            case _TxAction.RETRANSMIT:
+                self._nak_count += 1
+                self.counters.retransmissions += 1
+                self._write_current(now)
+            case _TxAction.ENQUIRE:
+                self._enq_count += 1
+                self.counters.enqs_sent += 1
+                self._out += ENQ_SYMBOL
+                self._deadline = now + self.ack_timeout
+            case _TxAction.COMPLETE:
+                self._finish(SendComplete(self._take_current()), now)
+            case _TxAction.FAIL_NAK:
+                self._finish(SendFailed(self._take_current(), SendFailure.NAK_LIMIT), now)
+            case _TxAction.FAIL_NO_RESPONSE:
+                self._finish(SendFailed(self._take_current(), SendFailure.NO_RESPONSE), now)
+
+    def _write_current(self, now: float) -> None:
+        assert self._current is not None
+        self._out += self._current[2]
+        self._frame_unsent = True
+        self.counters.frames_sent += 1
+        self._deadline = now + self.ack_timeout
+
+    def _take_current(self) -> int:
+        assert self._current is not None
+        handle = self._current[0]
+        self._current = None
+        self._deadline = None
+        return handle
+
+    def _finish(self, event: SendComplete | SendFailed, now: float) -> None:
+        if isinstance(event, SendFailed):
+            self.counters.send_failures += 1
+        self._events.append(event)
+        if self._queue:
+            self._tx_input(_TxInput.SEND, now)

@@ -1,0 +1,411 @@
+"""SLC 100/150 ASCII protocol framing: CRC, frame encoding, streaming decoding, message IDs.
+
+Manual: "SLC Programmable Controller Communications Protocol", *Format of Transmission*.
+
+Frames, all ASCII, hexadecimal upper case when we send them::
+
+    host -> controller    #  <count:2> <code:2> <params:2n> <ID:2> <CRC:2> CR     (count = 1 + n bytes)
+                          ;Z <ID:2> <CRC:2> CR                                     (retransmit request)
+    controller -> host    :  <body> <ID:2> <CRC:2> CR                              (data reply)
+                          ;R <ID:2> <CRC:2> CR   acknowledge
+                          ;E <ID:2> <CRC:2> CR   command illegal (refused, not executed)
+                          ;T <ID:2> <CRC:2> CR   fault (unsolicited; the ID is meaningless)
+                          ;I <id:2> <CRC:2> CR   unexpected message ID; id = the last valid ID
+
+The leading character (``#``, ``:``, ``;``) is not part of the CRC; the CRC covers every
+character after it up to and including the ID.  The CRC is the manual's BASIC program with
+its 16-entry nibble table, which is normative (the printed polynomial, implemented MSB-first,
+gives other values).
+
+This module does no I/O.  Decoders are fed bytes and hand out events, or ``NEED_DATA``.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Final
+
+from gateway.protocols.slc_ascii.commands import Command
+
+__all__ = [
+    "CR",
+    "MAX_FRAME",
+    "NEED_DATA",
+    "Ack",
+    "CommandDecoder",
+    "CommandFrame",
+    "DataReply",
+    "Fault",
+    "Garbled",
+    "HostEvent",
+    "IdMismatch",
+    "IdSequencer",
+    "NeedData",
+    "Refused",
+    "ReplyDecoder",
+    "ReplyEvent",
+    "RetransmitRequest",
+    "crc",
+    "encode_ack",
+    "encode_command",
+    "encode_data_reply",
+    "encode_fault",
+    "encode_id_mismatch",
+    "encode_refused",
+    "encode_retransmit",
+]
+
+CR: Final = 0x0D
+LF: Final = 0x0A
+#: Longest line we accept (a download block is 1 + 2 + 4 + 30 + 4 = 41 characters plus CR).
+MAX_FRAME: Final = 96
+#: The highest message ID; after it the sequence rolls over to 01 (never back to 00).
+MAX_ID: Final = 0x7F
+
+# The manual's BASIC program: DATA 0, 23, 46, 57, 92, 75, 114, 101, 184, 175, 150, 129, 228, 243, 202, 221
+_CRC_NIBBLE_TABLE: Final = (0, 23, 46, 57, 92, 75, 114, 101, 184, 175, 150, 129, 228, 243, 202, 221)
+_HEX_DIGITS: Final = frozenset(b"0123456789ABCDEFabcdef")
+
+
+def _crc_table() -> tuple[int, ...]:
+    """The BASIC loop processes two nibbles per character; precompute it per (checksum ^ char) byte."""
+    table = []
+    for value in range(256):
+        checksum, char = 0, value
+        for _ in range(2):
+            index = (checksum ^ char) & 0x0F
+            checksum = (checksum >> 4) ^ _CRC_NIBBLE_TABLE[index]
+            char >>= 4
+        table.append(checksum)
+    return tuple(table)
+
+
+_CRC_BYTE_TABLE: Final = _crc_table()
+
+
+def crc(data: bytes) -> int:
+    """The SLC CRC byte of ``data`` (characters after the leading character, through the ID).
+
+    >>> f"{crc(b'010800'):02X}", f"{crc(b'R03'):02X}"
+    ('A3', '8D')
+    """
+    checksum = 0
+    table = _CRC_BYTE_TABLE
+    for char in data:
+        # Both nibble steps depend only on (checksum ^ char) in the low byte, and the checksum
+        # is always 8 bits, so one table look-up per character does the BASIC program's inner loop.
+        checksum = table[checksum ^ char]
+    return checksum
+
+
+def _hex2(value: int) -> bytes:
+    return b"%02X" % value
+
+
+def _check_id(msg_id: int) -> None:
+    if not 0 <= msg_id <= MAX_ID:
+        raise ValueError(f"message ID {msg_id} out of range 0..{MAX_ID}")
+
+
+def _frame(lead: bytes, text: bytes) -> bytes:
+    return b"%s%s%02X\r" % (lead, text, crc(text))
+
+
+def encode_command(command: Command, msg_id: int) -> bytes:
+    """``#<count><code><params><ID><CRC>CR`` for ``command`` with message ``msg_id``."""
+    _check_id(msg_id)
+    text = b"%02X%02X%s%02X" % (1 + len(command.params), command.code, command.params.hex().upper().encode(), msg_id)
+    return _frame(b"#", text)
+
+
+def encode_retransmit(msg_id: int) -> bytes:
+    """``;Z<ID><CRC>CR``: ask the controller to repeat its last reply.  Does not use up an ID."""
+    _check_id(msg_id)
+    return _frame(b";", b"Z" + _hex2(msg_id))
+
+
+def encode_data_reply(body_hex: str, msg_id: int) -> bytes:
+    """Controller side: ``:<body><ID><CRC>CR``."""
+    _check_id(msg_id)
+    return _frame(b":", body_hex.upper().encode("ascii") + _hex2(msg_id))
+
+
+def encode_ack(msg_id: int) -> bytes:
+    """Controller side: ``;R<ID><CRC>CR``."""
+    _check_id(msg_id)
+    return _frame(b";", b"R" + _hex2(msg_id))
+
+
+def encode_refused(msg_id: int) -> bytes:
+    """Controller side: ``;E<ID><CRC>CR``."""
+    _check_id(msg_id)
+    return _frame(b";", b"E" + _hex2(msg_id))
+
+
+def encode_fault(msg_id: int = 0) -> bytes:
+    """Controller side: ``;T<ID><CRC>CR`` (the ID is meaningless)."""
+    _check_id(msg_id)
+    return _frame(b";", b"T" + _hex2(msg_id))
+
+
+def encode_id_mismatch(last_valid_id: int) -> bytes:
+    """Controller side: ``;I<id><CRC>CR`` where ``id`` is the last valid ID."""
+    _check_id(last_valid_id)
+    return _frame(b";", b"I" + _hex2(last_valid_id))
+
+
+class IdSequencer:
+    """Message IDs: 00 first (after opening a link or any resync), then 01, 02 ... 7F, 01, 02 ...
+
+    ID 00 is always accepted by the controller and restarts its numbering; the roll-over
+    skips 00 "to eliminate unintended resynchronization".  ``;Z`` does not use up an ID.
+    """
+
+    __slots__ = ("_next",)
+
+    def __init__(self) -> None:
+        self._next = 0
+
+    def take(self) -> int:
+        """The ID for the next message (not ``;Z``)."""
+        msg_id = self._next
+        self._next = 1 if msg_id >= MAX_ID else msg_id + 1
+        return msg_id
+
+    def reset(self) -> None:
+        """Resynchronise: the next message uses ID 00."""
+        self._next = 0
+
+    @property
+    def peek(self) -> int:
+        return self._next
+
+
+# --- events ---------------------------------------------------------------------------------
+
+
+class NeedData(enum.Enum):
+    """The decoder has no complete frame yet; feed it more bytes."""
+
+    NEED_DATA = "NEED_DATA"
+
+
+NEED_DATA: Final = NeedData.NEED_DATA
+
+
+@dataclass(frozen=True, slots=True)
+class DataReply:
+    """``:`` data reply.  ``body_hex`` is the upper-case hex text between ``:`` and the ID."""
+
+    body_hex: str
+    msg_id: int
+
+
+@dataclass(frozen=True, slots=True)
+class Ack:
+    """``;R``: the command was valid and executed."""
+
+    msg_id: int
+
+
+@dataclass(frozen=True, slots=True)
+class Refused:
+    """``;E``: the command or its parameters were illegal (mode or range); not executed."""
+
+    msg_id: int
+
+
+@dataclass(frozen=True, slots=True)
+class Fault:
+    """``;T``: the controller detected a fault; read bytes 84H-85H for the reason."""
+
+    msg_id: int
+
+
+@dataclass(frozen=True, slots=True)
+class IdMismatch:
+    """``;I``: the message had an unexpected ID and was not executed; ``last_valid_id`` as reported."""
+
+    last_valid_id: int
+
+
+@dataclass(frozen=True, slots=True)
+class Garbled:
+    """A line that is not a valid frame (CRC, format, length).  The caller treats it as a missing reply."""
+
+    raw: bytes
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class CommandFrame:
+    """Controller side: a ``#`` command as received."""
+
+    code: int
+    params: bytes
+    msg_id: int
+
+
+@dataclass(frozen=True, slots=True)
+class RetransmitRequest:
+    """Controller side: ``;Z``."""
+
+    msg_id: int
+
+
+ReplyEvent = DataReply | Ack | Refused | Fault | IdMismatch | Garbled
+HostEvent = CommandFrame | RetransmitRequest | Garbled
+
+_SEMICOLON_REPLIES: Final[dict[int, type[Ack] | type[Refused] | type[Fault]]] = {
+    ord("R"): Ack,
+    ord("E"): Refused,
+    ord("T"): Fault,
+}
+
+
+# --- decoders -------------------------------------------------------------------------------
+
+
+class _LineSplitter:
+    """Cuts a byte stream into candidate frames: from a leading character up to CR.
+
+    Liberal in what it accepts: bit 7 is masked (parity seen as data on a port set to 8 bits),
+    LF is ignored, bytes before a leading character are discarded, a leading character in the
+    middle of a line starts a new frame (the partial one before it is reported garbled), and a
+    line longer than MAX_FRAME is dropped.
+    """
+
+    __slots__ = ("_buffer", "_leads", "_pending")
+
+    def __init__(self, leads: bytes) -> None:
+        self._leads = frozenset(leads)
+        self._buffer = bytearray()
+        self._pending: list[tuple[bytes, str]] = []  # (line, "") or (raw, garble reason)
+
+    def feed(self, data: bytes) -> None:
+        buffer = self._buffer
+        leads = self._leads
+        for byte in data:
+            byte &= 0x7F
+            if byte == LF:
+                continue
+            if byte in leads:
+                if buffer:
+                    self._pending.append((bytes(buffer), "frame interrupted by a new leading character"))
+                buffer.clear()
+                buffer.append(byte)
+            elif byte == CR:
+                if buffer:
+                    self._pending.append((bytes(buffer), ""))
+                    buffer.clear()
+                # A CR outside a frame is line noise: ignore it.
+            elif buffer:
+                if len(buffer) >= MAX_FRAME:
+                    self._pending.append((bytes(buffer), "line too long"))
+                    buffer.clear()
+                else:
+                    buffer.append(byte)
+            # else: a byte outside any frame (noise before a leading character): discard.
+
+    def next_line(self) -> tuple[bytes, str] | None:
+        if self._pending:
+            return self._pending.pop(0)
+        return None
+
+    @property
+    def buffered(self) -> int:
+        return len(self._buffer)
+
+
+def _split_checked(line: bytes) -> tuple[bytes, int] | str:
+    """``line`` is lead + text + CRC.  Returns (text upper-cased, ID) or a reason it is garbled."""
+    text = line[1:]
+    if len(text) < 5:  # at least one letter or count digit, 2 ID, 2 CRC
+        return "frame too short"
+    received_crc, text = text[-2:], text[:-2]
+    if not all(c in _HEX_DIGITS for c in received_crc):
+        return "CRC is not hex"
+    if crc(text.upper()) != int(received_crc, 16) and crc(text) != int(received_crc, 16):
+        return f"CRC mismatch (received {received_crc.decode('ascii', 'replace')}, computed {crc(text):02X})"
+    id_text = text[-2:]
+    if not all(c in _HEX_DIGITS for c in id_text):
+        return "message ID is not hex"
+    msg_id = int(id_text, 16)
+    if msg_id > MAX_ID:
+        return f"message ID {msg_id:02X} out of range"
+    return text.upper(), msg_id
+
+
+class ReplyDecoder:
+    """Host side: bytes from the controller -> ``ReplyEvent`` or ``NEED_DATA``."""
+
+    __slots__ = ("_lines",)
+
+    def __init__(self) -> None:
+        self._lines = _LineSplitter(b":;")
+
+    def receive_data(self, data: bytes) -> None:
+        self._lines.feed(data)
+
+    def next_event(self) -> ReplyEvent | NeedData:
+        item = self._lines.next_line()
+        if item is None:
+            return NEED_DATA
+        line, reason = item
+        if reason:
+            return Garbled(line, reason)
+        checked = _split_checked(line)
+        if isinstance(checked, str):
+            return Garbled(line, checked)
+        text, msg_id = checked
+        if line[0] == ord(":"):
+            body = text[:-2]
+            if not body or len(body) % 2 or not all(c in _HEX_DIGITS for c in body):
+                return Garbled(line, "data reply body is not whole hex bytes")
+            return DataReply(body.decode("ascii"), msg_id)
+        if len(text) != 3:
+            return Garbled(line, "reply has the wrong length")
+        letter = text[0]
+        if letter == ord("I"):
+            return IdMismatch(msg_id)
+        kind = _SEMICOLON_REPLIES.get(letter)
+        if kind is None:
+            return Garbled(line, f"unknown reply ;{chr(letter)}")
+        return kind(msg_id)
+
+
+class CommandDecoder:
+    """Controller side: bytes from the host -> ``HostEvent`` or ``NEED_DATA`` (used by the simulator)."""
+
+    __slots__ = ("_lines",)
+
+    def __init__(self) -> None:
+        self._lines = _LineSplitter(b"#;")
+
+    def receive_data(self, data: bytes) -> None:
+        self._lines.feed(data)
+
+    def next_event(self) -> HostEvent | NeedData:
+        item = self._lines.next_line()
+        if item is None:
+            return NEED_DATA
+        line, reason = item
+        if reason:
+            return Garbled(line, reason)
+        checked = _split_checked(line)
+        if isinstance(checked, str):
+            return Garbled(line, checked)
+        text, msg_id = checked
+        if line[0] == ord(";"):
+            if text[0] == ord("Z") and len(text) == 3:
+                return RetransmitRequest(msg_id)
+            return Garbled(line, "unknown ; command")
+        fields = text[:-2]
+        if len(fields) < 4 or len(fields) % 2 or not all(c in _HEX_DIGITS for c in fields):
+            return Garbled(line, "command is not whole hex bytes")
+        raw = bytes.fromhex(fields.decode("ascii"))
+        count, code, params = raw[0], raw[1], raw[2:]
+        if count != 1 + len(params):
+            return Garbled(line, f"byte count {count:02X} does not match {1 + len(params)} bytes")
+        return CommandFrame(code, params, msg_id)

@@ -1,0 +1,92 @@
+"""Controller simulators, written from the manuals, with fault injection.
+
+``sim://MODEL[?options]`` URLs open an in-process simulator.  Models: ``slc150``, ``slc100``
+(SLC 100/150 ASCII protocol) and ``slc504`` (SLC 5/04, DF1 full duplex).  Options:
+
+=====================  ==========================================================================
+``garble=N``           corrupt 1 in N replies
+``drop=N``             drop 1 in N replies
+``delay=S``            add S seconds to every reply
+``power_cycle_every``  (SLC 100/150) power-cycle before every N-th command
+``fault_every=N``      (SLC 100/150) emit ``;T`` after every N-th command
+``seed=N``             seed of the fault generator (reproducible runs)
+``ladder=0``           freeze the ladder (values change only when written)
+``paced=1``            pace every character at the link's baud rate (a real line's speed)
+``turnaround=S``       controller turnaround before each reply, seconds (with or without pacing)
+``instance=NAME``      a separate controller for each name (default: one per URL)
+=====================  ==========================================================================
+
+The same URL always reaches the same simulated controller within a process, so a reconnecting
+driver finds the controller as it left it, and tests can inspect it with ``get_simulator(url)``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+from urllib.parse import parse_qsl, urlsplit
+
+from gateway.errors import LinkDown
+from gateway.sim.serve import SimDevice, SimStream
+from gateway.transport import SerialSettings
+
+__all__ = ["MODELS", "create_simulator", "get_simulator", "open_sim_stream", "parse_sim_url", "reset_simulators"]
+
+MODELS = ("slc150", "slc100", "slc504")
+_STREAM_OPTIONS = ("paced", "turnaround", "instance", "ladder")
+_registry: dict[str, Any] = {}
+
+
+def parse_sim_url(url: str) -> tuple[str, dict[str, str]]:
+    """``sim://slc150?drop=7`` -> ("slc150", {"drop": "7"}).  Raises ValueError with a reason."""
+    parts = urlsplit(url)
+    if parts.scheme != "sim":
+        raise ValueError(f"{url}: not a sim:// URL")
+    model = (parts.netloc or parts.path.lstrip("/")).lower()
+    if model not in MODELS:
+        raise ValueError(f"{url}: unknown simulator {model!r} (choose from {', '.join(MODELS)})")
+    options = dict(parse_qsl(parts.query, keep_blank_values=True))
+    return model, options
+
+
+def create_simulator(model: str, options: dict[str, str]) -> SimDevice:
+    """A new simulated controller.  ``options`` are the fault/ladder options (see module doc)."""
+    fault_options = {k: v for k, v in options.items() if k not in _STREAM_OPTIONS}
+    ladder = options.get("ladder", "1") not in ("0", "false", "no")
+    if model in ("slc150", "slc100"):
+        from gateway.protocols.slc_ascii.commands import ControllerType
+        from gateway.sim.slc_ascii import FaultPlan, SlcAsciiSimulator
+
+        return SlcAsciiSimulator(
+            ControllerType.SLC150 if model == "slc150" else ControllerType.SLC100,
+            faults=FaultPlan.from_options(fault_options),
+            ladder=ladder,
+        )
+    from gateway.sim.slc500 import Slc500Simulator
+
+    return Slc500Simulator.from_options(fault_options, ladder=ladder)
+
+
+def get_simulator(url: str) -> Any:
+    """The in-process simulator behind ``url`` (created on first use)."""
+    device = _registry.get(url)
+    if device is None:
+        model, options = parse_sim_url(url)
+        device = create_simulator(model, options)
+        _registry[url] = device
+    return device
+
+
+def reset_simulators() -> None:
+    """Forget every in-process simulator (tests)."""
+    _registry.clear()
+
+
+def open_sim_stream(url: str, settings: SerialSettings) -> SimStream:
+    try:
+        _, options = parse_sim_url(url)
+        device = get_simulator(url)
+        turnaround = float(options.get("turnaround", "0") or 0)
+    except ValueError as exc:
+        raise LinkDown(str(exc)) from exc
+    paced = options.get("paced", "0") not in ("0", "false", "no", "")
+    return SimStream(device, settings if paced else None, turnaround)

@@ -1,0 +1,226 @@
+"""Run a simulated controller in-process, on a TCP port or on a pseudo-terminal.
+
+A simulated device is sans-I/O: ``receive(data, now) -> [Output(delay, data)]``.  This module
+moves its bytes, optionally through a *line model* that paces every character at the line's
+baud rate (``bits_per_char / baudrate`` seconds each, both directions independent, as on a
+full-duplex serial line) plus the device's turnaround delay.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import tty
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+from gateway.errors import LinkDown
+from gateway.transport import ByteStream, SerialSettings
+
+__all__ = ["LineModel", "SimDevice", "SimOutput", "SimStream", "serve_pty", "serve_tcp"]
+
+log = logging.getLogger(__name__)
+
+
+class SimOutput(Protocol):
+    @property
+    def delay(self) -> float: ...
+    @property
+    def data(self) -> bytes: ...
+
+
+class SimDevice(Protocol):
+    def receive(self, data: bytes, now: float) -> Sequence[SimOutput]: ...
+
+
+@dataclass
+class LineModel:
+    """One direction of a serial line: characters leave one after another at ``char_time``."""
+
+    char_time: float = 0.0  # 0: unpaced
+    free_at: float = 0.0
+
+    def schedule(self, ready: float, length: int) -> float:
+        """Bytes ready to go at ``ready`` arrive completely at the returned time."""
+        if self.char_time <= 0:
+            return ready
+        start = max(ready, self.free_at)
+        self.free_at = start + length * self.char_time
+        return self.free_at
+
+
+def _line_models(settings: SerialSettings | None) -> tuple[LineModel, LineModel]:
+    char_time = settings.char_time if settings is not None else 0.0
+    return LineModel(char_time), LineModel(char_time)
+
+
+class _Wire:
+    """Delivers device bytes to ``sink`` and host bytes to the device, through the line models."""
+
+    def __init__(
+        self,
+        device: SimDevice,
+        sink: Callable[[bytes], None],
+        settings: SerialSettings | None,
+        turnaround: float = 0.0,
+    ) -> None:
+        self._device = device
+        self._sink = sink
+        self._to_device, self._to_host = _line_models(settings)
+        self._turnaround = turnaround
+        self._loop = asyncio.get_running_loop()
+        self._handles: set[asyncio.TimerHandle] = set()
+        self.closed = False
+
+    def _later(self, when: float, callback: Callable[[bytes], None], data: bytes) -> None:
+        now = self._loop.time()
+        if when <= now:
+            callback(data)
+            return
+        handle: asyncio.TimerHandle
+
+        def fire() -> None:
+            self._handles.discard(handle)
+            callback(data)
+
+        handle = self._loop.call_at(when, fire)
+        self._handles.add(handle)
+
+    def from_host(self, data: bytes) -> None:
+        if self.closed:
+            return
+        arrival = self._to_device.schedule(self._loop.time(), len(data))
+        self._later(arrival, self._into_device, data)
+
+    def _into_device(self, data: bytes) -> None:
+        if self.closed:
+            return
+        now = self._loop.time()
+        for out in self._device.receive(data, now):
+            arrival = self._to_host.schedule(now + self._turnaround + out.delay, len(out.data))
+            self._later(arrival, self._out_to_host, out.data)
+
+    def _out_to_host(self, data: bytes) -> None:
+        if not self.closed:
+            self._sink(data)
+
+    def close(self) -> None:
+        self.closed = True
+        for handle in self._handles:
+            handle.cancel()
+        self._handles.clear()
+
+
+class SimStream(ByteStream):
+    """An in-process byte stream to a simulated device (``sim://`` URLs)."""
+
+    def __init__(self, device: SimDevice, settings: SerialSettings | None = None, turnaround: float = 0.0):
+        self._queue: asyncio.Queue[bytes] = asyncio.Queue()
+        self._wire = _Wire(device, self._queue.put_nowait, settings, turnaround)
+
+    async def read(self) -> bytes:
+        if self._wire.closed and self._queue.empty():
+            raise LinkDown("simulator stream closed")
+        data = await self._queue.get()
+        if not data:
+            raise LinkDown("simulator stream closed")
+        # Coalesce what is already there, as a serial driver's read would.
+        while not self._queue.empty():
+            more = self._queue.get_nowait()
+            if not more:
+                self._queue.put_nowait(b"")
+                break
+            data += more
+        return data
+
+    def write(self, data: bytes) -> None:
+        if self._wire.closed:
+            raise LinkDown("simulator stream closed")
+        self._wire.from_host(data)
+
+    async def close(self) -> None:
+        if not self._wire.closed:
+            self._wire.close()
+            self._queue.put_nowait(b"")
+
+
+class _TcpDeviceProtocol(asyncio.Protocol):
+    def __init__(self, device: SimDevice, settings: SerialSettings | None, turnaround: float) -> None:
+        self._device = device
+        self._settings = settings
+        self._turnaround = turnaround
+        self._wire: _Wire | None = None
+        self._transport: asyncio.Transport | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self._transport = transport
+        self._wire = _Wire(self._device, self._send, self._settings, self._turnaround)
+        log.info("simulator: client connected from %s", transport.get_extra_info("peername"))
+
+    def _send(self, data: bytes) -> None:
+        if self._transport is not None and not self._transport.is_closing():
+            self._transport.write(data)
+
+    def data_received(self, data: bytes) -> None:
+        if self._wire is not None:
+            self._wire.from_host(data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self._wire is not None:
+            self._wire.close()
+        log.info("simulator: client disconnected")
+
+
+async def serve_tcp(
+    device: SimDevice,
+    host: str,
+    port: int,
+    *,
+    settings: SerialSettings | None = None,
+    turnaround: float = 0.0,
+) -> asyncio.Server:
+    """Serve ``device`` on a TCP port, as a serial device server in raw mode would."""
+    loop = asyncio.get_running_loop()
+    return await loop.create_server(lambda: _TcpDeviceProtocol(device, settings, turnaround), host, port)
+
+
+class PtyServer:
+    """``device`` on a pseudo-terminal: a serial client opens ``path`` as if it were a port."""
+
+    def __init__(self, device: SimDevice, settings: SerialSettings | None, turnaround: float) -> None:
+        self._master, slave = os.openpty()
+        tty.setraw(slave)
+        self.path = os.ttyname(slave)
+        self._slave = slave  # kept open so the pty survives clients closing and reopening it
+        os.set_blocking(self._master, False)
+        self._wire = _Wire(device, self._send, settings, turnaround)
+        self._loop = asyncio.get_running_loop()
+        self._loop.add_reader(self._master, self._readable)
+
+    def _readable(self) -> None:
+        try:
+            data = os.read(self._master, 4096)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            return
+        if data:
+            self._wire.from_host(data)
+
+    def _send(self, data: bytes) -> None:
+        with contextlib.suppress(OSError):
+            os.write(self._master, data)
+
+    def close(self) -> None:
+        self._loop.remove_reader(self._master)
+        self._wire.close()
+        os.close(self._master)
+        os.close(self._slave)
+
+
+def serve_pty(device: SimDevice, *, settings: SerialSettings | None = None, turnaround: float = 0.0) -> PtyServer:
+    return PtyServer(device, settings, turnaround)

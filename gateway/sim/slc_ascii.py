@@ -1,0 +1,433 @@
+"""Simulated SLC 150 and SLC 100 controllers speaking the ASCII protocol, with fault injection.
+
+Written from the manual ("SLC Programmable Controller Communications Protocol"):
+
+* message IDs: 00 is always accepted and restarts numbering; otherwise the ID must be the
+  next in sequence (01..7F, rolling over to 01) or the answer is ``;I<last valid ID>`` and the
+  command is not executed.  After power-up the controller expects 00.
+* ``;Z`` repeats the most recent reply (acknowledge, data, refusal or ID mismatch) with the
+  ID it carried.  It does not use up an ID.
+* reads and data writes only in run or continuous-test mode; upload/download only in program
+  mode; mode selection in any mode; a transfer, once begun, must finish before a mode change.
+* write word: even address 00-7E, value < 10000, the word overwritten must not be protected.
+* write byte: 0xA6-0xB4 (relays 701-820) only, or 0x0101 (the mode byte: mode selection).
+* a small ladder keeps some timers, a counter and inputs changing.
+
+This class does no I/O: ``receive(data, now)`` returns the replies to send, each with a delay.
+``gateway.sim.serve`` runs it in-process, over TCP or on a pty.
+"""
+
+from __future__ import annotations
+
+import random
+from dataclasses import dataclass, field
+from typing import Final
+
+from gateway.protocols.slc_ascii import framing
+from gateway.protocols.slc_ascii.commands import ControllerType, Mode
+from gateway.protocols.slc_ascii.framing import (
+    NEED_DATA,
+    CommandFrame,
+    Garbled,
+    RetransmitRequest,
+)
+from gateway.protocols.slc_ascii.memory_map import is_readable
+
+__all__ = ["FaultPlan", "Output", "SlcAsciiSimulator"]
+
+#: Firmware revision the simulators report (FRN 5 for the SLC 100, the first the protocol supports).
+SIMULATED_FRN: Final = {ControllerType.SLC100: 0x05, ControllerType.SLC150: 0x47}
+
+MODE_ADDRESS: Final = 0x0101
+ERROR_BITS: Final = 0x84
+MEMORY_SIZE: Final = 0x113
+
+
+@dataclass(frozen=True, slots=True)
+class Output:
+    """Bytes to put on the line after ``delay`` seconds of controller turnaround."""
+
+    delay: float
+    data: bytes
+
+
+@dataclass
+class FaultPlan:
+    """Fault injection.  ``1 in N`` faults are drawn at random from a seeded generator (0 = off)."""
+
+    garble: int = 0  # corrupt 1 in N replies (bad CRC, truncated or noisy)
+    drop: int = 0  # drop 1 in N replies
+    delay: float = 0.0  # added to every reply
+    power_cycle_every: int = 0  # power-cycle before the N-th command frame (# frames, counted)
+    fault_every: int = 0  # emit ;T and set an error bit after every N-th command
+    seed: int = 1
+
+    @classmethod
+    def from_options(cls, options: dict[str, str]) -> FaultPlan:
+        plan = cls()
+        for key, text in options.items():
+            if key not in ("garble", "drop", "delay", "power_cycle_every", "fault_every", "seed"):
+                raise ValueError(f"unknown simulator fault option {key!r}")
+            try:
+                value: float = float(text) if key == "delay" else int(text)
+            except ValueError as exc:
+                raise ValueError(f"simulator option {key}={text!r} is not a number") from exc
+            if value < 0:
+                raise ValueError(f"simulator option {key} must not be negative")
+            setattr(plan, key, value)
+        return plan
+
+
+@dataclass
+class SimCounters:
+    commands: int = 0
+    retransmits: int = 0
+    id_mismatches: int = 0
+    refusals: int = 0
+    garbled_in: int = 0
+    garbled_out: int = 0
+    dropped: int = 0
+    power_cycles: int = 0
+    faults: int = 0
+
+
+@dataclass
+class _Ladder:
+    """A tiny program: timers 901-904 time, counter 905 counts input 1, relays follow timers."""
+
+    enabled: bool = True
+    last: float | None = None
+    tick: float = 0.0
+
+
+@dataclass
+class _Sequencer:
+    counter: int  # user address 901-932
+    presets: list[int] = field(default_factory=list)
+
+
+class SlcAsciiSimulator:
+    """One SLC 100/150 controller.  Not thread-safe; drive it from one event loop."""
+
+    def __init__(
+        self,
+        model: ControllerType = ControllerType.SLC150,
+        *,
+        faults: FaultPlan | None = None,
+        ladder: bool = True,
+    ) -> None:
+        self.model = model
+        self.faults = faults or FaultPlan()
+        self.counters = SimCounters()
+        self.memory = bytearray(MEMORY_SIZE)
+        self.program = bytearray(model.block_count * 15)
+        #: Every write applied, in order: (kind, address or rung, value).  Tests count these.
+        self.applied_writes: list[tuple[str, int, int]] = []
+        self._rng = random.Random(self.faults.seed)
+        self._decoder = framing.CommandDecoder()
+        self._ladder = _Ladder(enabled=ladder)
+        self._frames_seen = 0
+        self._init_memory()
+        self._power_up()
+
+    # --- state ------------------------------------------------------------------------------
+
+    def _init_memory(self) -> None:
+        for n in range(32):
+            self.set_word(0x40 + 2 * n, 100 + 10 * n)  # presets
+        self.set_word(0x40 + 2 * 31, 0x8000 | 500)  # 932: protected preset
+        self.set_word(2 * 31, 0x8000 | 7)  # 932: protected accumulator
+        self.memory[MODE_ADDRESS] = Mode.RUN
+        for n in range(32):
+            self.memory[0xBC + n] = n % 5  # sequencer step counters
+        # A stored program: a recognisable pattern, with the preset table at the end.
+        for i in range(len(self.program)):
+            self.program[i] = (i * 7 + 3) & 0xFF
+        # Rungs holding a sequencer and a reset instruction (for the rung-addressed commands).
+        self.sequencers = {0x0010: _Sequencer(910, [100, 200, 300, 400]), 0x0011: _Sequencer(911, [5, 6, 7])}
+        self.resets = {0x0020: 920, 0x0021: 921}
+
+    def _power_up(self) -> None:
+        self._expected_id: int | None = 0  # expects 00
+        self._last_valid_id = 0
+        self._last_reply: bytes | None = None
+        self._transfer: str | None = None  # "upload" | "download" while a program transfer runs
+        self._next_block = 0
+        self._decoder = framing.CommandDecoder()
+
+    def power_cycle(self) -> None:
+        """Lose the message ID state and the last reply; memory is kept (NVRAM)."""
+        self.counters.power_cycles += 1
+        self._power_up()
+
+    @property
+    def mode(self) -> int:
+        return self.memory[MODE_ADDRESS]
+
+    def word(self, address: int) -> int:
+        return (self.memory[address] << 8) | self.memory[address + 1]
+
+    def set_word(self, address: int, value: int) -> None:
+        self.memory[address] = (value >> 8) & 0xFF
+        self.memory[address + 1] = value & 0xFF
+
+    def set_bit(self, byte_address: int, bit: int, value: bool) -> None:
+        if value:
+            self.memory[byte_address] |= 1 << bit
+        else:
+            self.memory[byte_address] &= ~(1 << bit) & 0xFF
+
+    # --- ladder -----------------------------------------------------------------------------
+
+    def advance(self, now: float) -> None:
+        """Run the ladder up to ``now`` (seconds): 0.1 s time base."""
+        ladder = self._ladder
+        if not ladder.enabled or self.mode not in (Mode.RUN, Mode.CONTINUOUS_TEST):
+            ladder.last = now
+            return
+        if ladder.last is None:
+            ladder.last = now
+            return
+        ladder.tick += now - ladder.last
+        ladder.last = now
+        steps = int(ladder.tick / 0.1)
+        if steps <= 0:
+            return
+        ladder.tick -= steps * 0.1
+        for _ in range(min(steps, 100)):
+            self._scan()
+
+    def _scan(self) -> None:
+        # Timers 901-904: accumulate to the preset, set the done bit, restart.
+        for n in range(4):
+            acc_address, pre_address = 2 * n, 0x40 + 2 * n
+            preset = self.word(pre_address) & 0x7FFF
+            acc = self.word(acc_address) + 1
+            done = acc >= preset
+            self.set_bit(0xDC, n, done)
+            self.set_word(acc_address, 0 if done else min(acc, 9999))
+        # Input 1 toggles every scan; counter 905 counts its rising edges.
+        input_one = not (self.memory[0x9D] & 1)
+        self.set_bit(0x9D, 0, input_one)
+        if input_one:
+            acc = self.word(8) + 1
+            overflow = acc > 9999
+            self.set_bit(0xE0, 4, overflow)
+            self.set_word(8, 0 if overflow else acc)
+            self.set_bit(0xDC, 4, acc >= (self.word(0x48) & 0x7FFF))
+        # Output 11 follows timer 901's done bit; relay 821 (read-only range) follows input 1.
+        self.set_bit(0x96, 0, bool(self.memory[0xDC] & 1))
+        self.set_bit(0xB5, 0, input_one)
+
+    # --- the line ---------------------------------------------------------------------------
+
+    def receive(self, data: bytes, now: float) -> list[Output]:
+        """Bytes from the host -> replies to send."""
+        self.advance(now)
+        self._decoder.receive_data(data)
+        out: list[Output] = []
+        while True:
+            event = self._decoder.next_event()
+            if event is NEED_DATA:
+                break
+            if isinstance(event, Garbled):
+                self.counters.garbled_in += 1  # "The SLC does not respond to ... CRC, or incorrect format"
+                continue
+            if isinstance(event, RetransmitRequest):
+                self.counters.retransmits += 1
+                if self._last_reply is not None:
+                    self._emit(out, self._last_reply)
+                continue
+            assert isinstance(event, CommandFrame)
+            self._frames_seen += 1
+            plan = self.faults
+            if plan.power_cycle_every and self._frames_seen % plan.power_cycle_every == 0:
+                self.power_cycle()
+            reply = self._handle(event)
+            self._last_reply = reply
+            self._emit(out, reply)
+            if plan.fault_every and self.counters.commands % plan.fault_every == 0:
+                self.raise_fault()
+                out.append(Output(plan.delay, framing.encode_fault(0)))
+        return out
+
+    def raise_fault(self, byte: int = ERROR_BITS, bit: int = 3) -> None:
+        """Set an error bit (default 84H bit 3: error 8) as a ``;T`` will report."""
+        self.counters.faults += 1
+        self.set_bit(byte, bit, True)
+
+    def fault_frame(self) -> bytes:
+        return framing.encode_fault(0)
+
+    def _emit(self, out: list[Output], reply: bytes) -> None:
+        plan = self.faults
+        if plan.drop and self._rng.randrange(plan.drop) == 0:
+            self.counters.dropped += 1
+            return
+        if plan.garble and self._rng.randrange(plan.garble) == 0:
+            self.counters.garbled_out += 1
+            reply = self._garble(reply)
+        out.append(Output(plan.delay, reply))
+
+    def _garble(self, reply: bytes) -> bytes:
+        kind = self._rng.randrange(3)
+        body = bytearray(reply)
+        if kind == 0:  # flip a bit in a character after the leading one (CRC catches it)
+            i = self._rng.randrange(1, len(body) - 1)
+            body[i] ^= 1 << self._rng.randrange(4)
+            if body[i] == 0x0D:
+                body[i] = 0x3F
+            return bytes(body)
+        if kind == 1:  # truncated: the CR is lost, the next leading character ends it
+            return bytes(body[: self._rng.randrange(1, len(body) - 1)])
+        return b"\x07" + bytes(body[:-3]) + b"~" + bytes(body[-3:])  # noise: line noise in the frame
+
+    # --- commands ---------------------------------------------------------------------------
+
+    def _handle(self, frame: CommandFrame) -> bytes:
+        msg_id = frame.msg_id
+        if msg_id != 0 and msg_id != self._expected_id:
+            self.counters.id_mismatches += 1
+            return framing.encode_id_mismatch(self._last_valid_id)
+        self._last_valid_id = msg_id
+        self._expected_id = 1 if msg_id >= framing.MAX_ID else msg_id + 1
+        self.counters.commands += 1
+        try:
+            body = self._execute(frame)
+        except _Refuse:
+            self.counters.refusals += 1
+            return framing.encode_refused(msg_id)
+        if body is None:
+            return framing.encode_ack(msg_id)
+        return framing.encode_data_reply(body, msg_id)
+
+    def _require(self, condition: bool) -> None:
+        if not condition:
+            raise _Refuse
+
+    def _require_run(self) -> None:
+        self._require(self.mode in (Mode.RUN, Mode.CONTINUOUS_TEST) and self._transfer is None)
+
+    def _execute(self, frame: CommandFrame) -> str | None:
+        code, params = frame.code, frame.params
+        if code == 0x08 and not params:  # read FRN ID tag, any mode
+            return f"021FFE{self.model.device_type:02X}{SIMULATED_FRN[self.model]:02X}"
+        if code == 0x02 and len(params) == 4:
+            return self._read(int.from_bytes(params[0:2], "big"), int.from_bytes(params[2:4], "big"))
+        if code == 0x03 and len(params) == 3:
+            return self._write_byte(int.from_bytes(params[0:2], "big"), params[2])
+        if code == 0x03 and len(params) == 4:
+            return self._write_word(int.from_bytes(params[0:2], "big"), int.from_bytes(params[2:4], "big"))
+        if code == 0x00 and not params:
+            return self._upload()
+        if code == 0x01 and len(params) == 16:
+            return self._download(params[0], params[1:])
+        if code == 0x04 and len(params) == 3:
+            return self._read_sequencer(int.from_bytes(params[0:2], "big"), params[2])
+        if code == 0x06 and len(params) == 5:
+            rung, step, value = int.from_bytes(params[0:2], "big"), params[2], int.from_bytes(params[3:5], "big")
+            return self._write_sequencer(rung, step, value)
+        if code == 0x05 and len(params) == 2:
+            return self._read_reset(int.from_bytes(params[0:2], "big"))
+        if code == 0x07 and len(params) == 4:
+            return self._write_reset(int.from_bytes(params[0:2], "big"), int.from_bytes(params[2:4], "big"))
+        raise _Refuse
+
+    def _read(self, count: int, address: int) -> str:
+        self._require_run()
+        self._require(count in (1, 2))
+        self._require(is_readable(address, count))
+        data = self.memory[address : address + count]
+        return f"{count:04X}{address:04X}{data.hex().upper()}"
+
+    def _write_byte(self, address: int, value: int) -> str | None:
+        if address == MODE_ADDRESS:
+            self._require(value in tuple(Mode))
+            self._require(self._transfer is None or value == Mode.PROGRAM)
+            self._transfer = None  # re-entering program mode resets a transfer
+            self._next_block = 0
+            self.memory[MODE_ADDRESS] = value
+            self.applied_writes.append(("mode", address, value))
+            return None
+        self._require_run()
+        self._require(0xA6 <= address <= 0xB4)
+        self.memory[address] = value
+        self.applied_writes.append(("byte", address, value))
+        return None
+
+    def _write_word(self, address: int, value: int) -> str | None:
+        self._require_run()
+        self._require(address % 2 == 0 and 0 <= address <= 0x7E)
+        self._require(value < 10000)
+        self._require(not self.memory[address] & 0x80)  # protected
+        self.set_word(address, value)
+        self.applied_writes.append(("word", address, value))
+        return None
+
+    def _upload(self) -> str:
+        self._require(self.mode == Mode.PROGRAM and self._transfer in (None, "upload"))
+        self._transfer = "upload"
+        block = self._next_block
+        data = self.program[block * 15 : block * 15 + 15]
+        if block == self.model.block_count - 1:
+            data = data[:7] + bytes(8)  # last 7 bytes of the preset table plus 8 bytes of fill
+        self._next_block += 1
+        if self._next_block >= self.model.block_count:
+            self._transfer, self._next_block = None, 0
+        return f"{block:02X}{data.hex().upper()}"
+
+    def _download(self, block: int, data: bytes) -> str | None:
+        self._require(self.mode == Mode.PROGRAM and self._transfer in (None, "download"))
+        self._require(block == self._next_block)
+        if self._transfer is None:
+            self.program[:] = bytes(len(self.program))  # a download clears NVRAM
+        self._transfer = "download"
+        self.program[block * 15 : block * 15 + 15] = data
+        self._next_block += 1
+        if self._next_block >= self.model.block_count:
+            self._transfer, self._next_block = None, 0
+            self.applied_writes.append(("program", 0, len(self.program)))
+        return None
+
+    @staticmethod
+    def _user(counter: int) -> str:
+        return f"{counter:04X}"  # "All numbers are in hexadecimal coded binary format"
+
+    def _read_sequencer(self, rung: int, step: int) -> str:
+        self._require_run()
+        seq = self.sequencers.get(rung)
+        self._require(seq is not None and step < len(seq.presets))
+        assert seq is not None
+        return f"02{self._user(seq.counter)}{seq.presets[step]:04X}"
+
+    def _write_sequencer(self, rung: int, step: int, value: int) -> str | None:
+        self._require_run()
+        seq = self.sequencers.get(rung)
+        self._require(seq is not None and step < len(seq.presets))
+        assert seq is not None
+        self._require(0 < value < 10000 and not seq.presets[step] & 0x8000)
+        seq.presets[step] = value
+        self.applied_writes.append(("sequencer", rung * 256 + step, value))
+        return None
+
+    def _read_reset(self, rung: int) -> str:
+        self._require_run()
+        counter = self.resets.get(rung)
+        self._require(counter is not None)
+        assert counter is not None
+        return f"02{self._user(counter)}{self.word(2 * (counter - 901)):04X}"
+
+    def _write_reset(self, rung: int, value: int) -> str | None:
+        self._require_run()
+        counter = self.resets.get(rung)
+        self._require(counter is not None and value < 10000)
+        assert counter is not None
+        address = 2 * (counter - 901)
+        self._require(not self.memory[address] & 0x80)
+        self.set_word(address, value)
+        self.applied_writes.append(("reset", rung, value))
+        return None
+
+
+class _Refuse(Exception):
+    """Internal: answer ;E."""

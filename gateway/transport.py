@@ -1,0 +1,200 @@
+"""Open a byte stream to a controller from a URL.  The only module that opens serial ports.
+
+URLs:
+
+* ``/dev/ttyUSB0``, ``/dev/ttyS0``, ``COM3`` - a local serial port (pyserial-asyncio-fast).
+  DTR is asserted and RTS is not, as the 1745-PCC interface converter needs.
+* ``socket://host:port`` - a serial device server in raw TCP mode (plain asyncio TCP).
+* ``rfc2217://host:port`` - a serial device server speaking RFC 2217 (pyserial's client).
+* ``sim://slc150``, ``sim://slc100``, ``sim://slc504`` - an in-process simulator
+  (see ``gateway.sim``); options may follow as a query: ``sim://slc150?garble=5&drop=7``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Final
+from urllib.parse import urlsplit
+
+from gateway.errors import LinkDown
+
+__all__ = ["ByteStream", "SerialSettings", "StreamPair", "TracingStream", "describe_url", "open_stream"]
+
+_READ_SIZE: Final = 4096
+
+
+@dataclass(frozen=True, slots=True)
+class SerialSettings:
+    """Line settings.  Used for local and RFC 2217 ports, and by simulators to pace bytes."""
+
+    baudrate: int = 9600
+    bytesize: int = 7
+    parity: str = "E"
+    stopbits: int = 1
+
+    @property
+    def bits_per_char(self) -> int:
+        """Start bit + data bits + parity bit + stop bits (10 for both 7E1 and 8N1)."""
+        return 1 + self.bytesize + (0 if self.parity == "N" else 1) + self.stopbits
+
+    @property
+    def char_time(self) -> float:
+        """Seconds one character takes on the line."""
+        return self.bits_per_char / self.baudrate
+
+
+class ByteStream(ABC):
+    """A bidirectional byte stream.  ``read`` raises ``LinkDown`` when the stream ends."""
+
+    @abstractmethod
+    async def read(self) -> bytes:
+        """Some bytes (at least one).  Raises ``LinkDown`` at end of stream or on an I/O error."""
+
+    @abstractmethod
+    def write(self, data: bytes) -> None:
+        """Queue ``data`` for sending.  Raises ``LinkDown`` if the stream is closed."""
+
+    @abstractmethod
+    async def close(self) -> None:
+        """Close the stream; idempotent."""
+
+
+class StreamPair(ByteStream):
+    """An asyncio ``StreamReader``/``StreamWriter`` pair (TCP or serial)."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, name: str) -> None:
+        self._reader = reader
+        self._writer = writer
+        self._name = name
+
+    async def read(self) -> bytes:
+        try:
+            data = await self._reader.read(_READ_SIZE)
+        except OSError as exc:
+            raise LinkDown(f"{self._name}: {exc}") from exc
+        if not data:
+            raise LinkDown(f"{self._name}: connection closed by the other side")
+        return data
+
+    def write(self, data: bytes) -> None:
+        if self._writer.is_closing():
+            raise LinkDown(f"{self._name}: port is closed")
+        try:
+            self._writer.write(data)
+        except OSError as exc:
+            raise LinkDown(f"{self._name}: {exc}") from exc
+
+    async def close(self) -> None:
+        if not self._writer.is_closing():
+            self._writer.close()
+        try:
+            await asyncio.wait_for(self._writer.wait_closed(), 1.0)
+        except (OSError, TimeoutError):
+            pass
+
+
+class TracingStream(ByteStream):
+    """Records every byte in both directions with a timestamp, for troubleshooting.
+
+    One line per chunk: ``<unix time> <link> <TX|RX> <hex bytes>  |<printable ASCII>|``.
+    """
+
+    def __init__(self, inner: ByteStream, trace: IO[str], link: str) -> None:
+        self._inner = inner
+        self._trace = trace
+        self._link = link
+
+    def _record(self, direction: str, data: bytes) -> None:
+        printable = "".join(chr(b) if 32 <= b < 127 else "." for b in data)
+        self._trace.write(f"{time.time():.6f} {self._link} {direction} {data.hex(' ')}  |{printable}|\n")
+        self._trace.flush()
+
+    async def read(self) -> bytes:
+        data = await self._inner.read()
+        self._record("RX", data)
+        return data
+
+    def write(self, data: bytes) -> None:
+        self._record("TX", data)
+        self._inner.write(data)
+
+    async def close(self) -> None:
+        await self._inner.close()
+
+
+def describe_url(url: str) -> str:
+    """A URL with any query options removed, for log lines."""
+    return url.split("?", 1)[0]
+
+
+async def open_stream(
+    url: str,
+    settings: SerialSettings,
+    *,
+    connect_timeout: float = 5.0,
+    trace: Path | None = None,
+    link_name: str = "",
+) -> ByteStream:
+    """Open ``url``.  Raises ``LinkDown`` with a one-line reason when it cannot be opened."""
+    stream = await _open(url, settings, connect_timeout)
+    if trace is not None:
+        return TracingStream(stream, trace.open("a", encoding="ascii"), link_name or describe_url(url))
+    return stream
+
+
+async def _open(url: str, settings: SerialSettings, connect_timeout: float) -> ByteStream:
+    parts = urlsplit(url)
+    scheme = parts.scheme.lower() if "://" in url else ""
+    if scheme == "sim":
+        from gateway.sim import open_sim_stream
+
+        return open_sim_stream(url, settings)
+    if scheme == "socket":
+        if not parts.hostname or parts.port is None:
+            raise LinkDown(f"{url}: expected socket://host:port")
+        try:
+            reader, writer = await asyncio.wait_for(
+                asyncio.open_connection(parts.hostname, parts.port), connect_timeout
+            )
+        except TimeoutError as exc:
+            raise LinkDown(f"{url}: no answer from the device server within {connect_timeout:g} s") from exc
+        except OSError as exc:
+            raise LinkDown(f"{url}: {exc.strerror or exc}") from exc
+        return StreamPair(reader, writer, describe_url(url))
+    if scheme in ("", "rfc2217", "file") or url.upper().startswith("COM"):
+        return await _open_serial(url, settings, connect_timeout)
+    raise LinkDown(f"{url}: unsupported port URL (use /dev/tty..., socket://, rfc2217:// or sim://)")
+
+
+async def _open_serial(url: str, settings: SerialSettings, connect_timeout: float) -> ByteStream:
+    import serial
+    import serial_asyncio_fast
+
+    try:
+        reader, writer = await asyncio.wait_for(
+            serial_asyncio_fast.open_serial_connection(
+                url=url,
+                baudrate=settings.baudrate,
+                bytesize=settings.bytesize,
+                parity=settings.parity,
+                stopbits=settings.stopbits,
+            ),
+            connect_timeout,
+        )
+    except TimeoutError as exc:
+        raise LinkDown(f"{url}: port did not open within {connect_timeout:g} s") from exc
+    except (OSError, ValueError, serial.SerialException) as exc:
+        raise LinkDown(f"{url}: {exc}") from exc
+    port = writer.transport.get_extra_info("serial")
+    if port is not None:
+        try:
+            # 1745-PCC: DTR to the SPACING condition (asserted), RTS to MARKING (not asserted).
+            port.dtr = True
+            port.rts = False
+        except (OSError, ValueError, serial.SerialException):
+            pass  # pseudo-terminals and some device servers have no modem lines
+    return StreamPair(reader, writer, url)

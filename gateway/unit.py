@@ -1,0 +1,306 @@
+"""One controller served as one Modbus unit: driver + read plan + cache + poller + access rules.
+
+Reads are answered from the cache (exception 0x0B when the data is older than ``stale_after``);
+writes go through to the controller and are answered only after it confirmed them.
+
+Error translation (controller -> Modbus exception):
+
+=================================================  =====
+unmapped address, read-only point, ``read_only``    0x02
+value out of range (e.g. > 9999 on an SLC 100/150)  0x03
+controller refused (``;E``, PCCC STS), protected     0x04
+no answer, link down, stale data                     0x0B
+=================================================  =====
+"""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+from abc import ABC, abstractmethod
+from collections.abc import Awaitable, Sequence
+from typing import cast
+
+from gateway.cache import BlockCache
+from gateway.drivers.base import LinkDriver
+from gateway.drivers.slc_ascii import SlcAsciiDriver
+from gateway.errors import (
+    ControllerRefused,
+    GatewayError,
+    InvalidRequest,
+    LinkError,
+    ModbusExceptionReply,
+    ProtocolError,
+)
+from gateway.modbus.mapping import (
+    STATUS_BASE,
+    STATUS_REGISTERS,
+    Block,
+    Codec,
+    Plan,
+    RegisterPoint,
+    SlcBitWrite,
+    SlcWordWrite,
+    Table,
+    slc_ascii_plan,
+)
+from gateway.poller import Poller
+
+__all__ = ["SlcAsciiUnit", "Unit", "WritableRange"]
+
+ILLEGAL_ADDRESS = ModbusExceptionReply.ILLEGAL_DATA_ADDRESS
+ILLEGAL_VALUE = ModbusExceptionReply.ILLEGAL_DATA_VALUE
+DEVICE_FAILURE = ModbusExceptionReply.SERVER_DEVICE_FAILURE
+TARGET_FAILED = ModbusExceptionReply.GATEWAY_TARGET_FAILED
+
+WritableRange = tuple[Table, int, int]  # table, first, last
+
+
+def _decode(point: RegisterPoint, data: bytearray) -> int:
+    o = point.offset
+    codec = point.codec
+    if codec is Codec.U16_BE_MASKED:
+        return ((data[o] & 0x7F) << 8) | data[o + 1]
+    if codec is Codec.U16_BE:
+        return (data[o] << 8) | data[o + 1]
+    if codec is Codec.U16_LE:
+        return data[o] | (data[o + 1] << 8)
+    if codec is Codec.U8:
+        return data[o]
+    # PCCC float32: 4 bytes little-endian; registers carry its high and low 16-bit halves.
+    raw: int = struct.unpack_from("<I", data, o)[0]
+    return (raw >> 16) if codec is Codec.F32_HIGH else (raw & 0xFFFF)
+
+
+class Unit(ABC):
+    """A link as a Modbus unit.  Subclasses: the protocol's plan, block reads and writes."""
+
+    def __init__(
+        self,
+        *,
+        unit_id: int,
+        name: str,
+        driver: LinkDriver,
+        plan: Plan,
+        stale_after: float = 5.0,
+        read_only: bool = False,
+        writable: Sequence[WritableRange] = (),
+        fast_interval: float = 0.0,
+        slow_interval: float = 10.0,
+    ) -> None:
+        self.unit_id = unit_id
+        self.name = name
+        self.driver = driver
+        self.plan = plan
+        self.stale_after = stale_after
+        self.read_only = read_only
+        self.writable = tuple(writable)
+        self.cache = BlockCache([block.size for block in plan.blocks])
+        self.poller = Poller(
+            name,
+            plan.blocks,
+            self.cache,
+            self.read_block,
+            fast_interval=fast_interval,
+            slow_interval=slow_interval,
+        )
+        self.write_requests = 0
+        self.write_failures = 0
+
+    # --- protocol hooks ---------------------------------------------------------------------
+
+    @abstractmethod
+    async def read_block(self, block: Block) -> bytes: ...
+
+    @abstractmethod
+    async def _write_register(self, target: object, value: int) -> None: ...
+
+    @abstractmethod
+    async def _write_registers(self, targets: Sequence[object], values: Sequence[int]) -> None:
+        """Write several registers that belong together (e.g. the two halves of a float)."""
+
+    @abstractmethod
+    async def _write_bit(self, target: object, value: bool) -> None: ...
+
+    @property
+    @abstractmethod
+    def last_fault_number(self) -> int: ...
+
+    @property
+    def id_resyncs(self) -> int:
+        return self.driver.counters.id_resyncs
+
+    # --- reads ------------------------------------------------------------------------------
+
+    def read_registers(self, table: Table, address: int, count: int) -> list[int]:
+        now = asyncio.get_running_loop().time()
+        if table is Table.INPUT and address >= STATUS_BASE:
+            return self._status(address, count, now)
+        points = self.plan.registers(table)
+        cache = self.cache
+        stamps, data = cache.stamps, cache.data
+        oldest = now - self.stale_after
+        out: list[int] = []
+        for a in range(address, address + count):
+            point = points.get(a)
+            if point is None:
+                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} register {a} is not mapped")
+            if stamps[point.block] < oldest:
+                raise ModbusExceptionReply(TARGET_FAILED, f"{self.name}: data older than {self.stale_after:g} s")
+            out.append(_decode(point, data[point.block]))
+        return out
+
+    def read_bits(self, table: Table, address: int, count: int) -> list[bool]:
+        now = asyncio.get_running_loop().time()
+        points = self.plan.bits(table)
+        stamps, data = self.cache.stamps, self.cache.data
+        oldest = now - self.stale_after
+        out: list[bool] = []
+        for a in range(address, address + count):
+            point = points.get(a)
+            if point is None:
+                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} {a} is not mapped")
+            if stamps[point.block] < oldest:
+                raise ModbusExceptionReply(TARGET_FAILED, f"{self.name}: data older than {self.stale_after:g} s")
+            out.append(bool(data[point.block][point.offset] >> point.bit & 1))
+        return out
+
+    def status_values(self, now: float) -> dict[str, int]:
+        counters = self.driver.counters
+        fast = self.poller.fast
+        age = self.cache.oldest_age(fast, now) if fast else 0.0
+        return {
+            "link_up": 1 if self.driver.available else 0,
+            "data_age": min(65535, int(age * 10)) if age != float("inf") else 65535,
+            "last_fault": self.last_fault_number,
+            "transactions": counters.transactions,
+            "errors": counters.errors,
+            "retries": counters.retries,
+            "id_resyncs": self.id_resyncs,
+        }
+
+    def _status(self, address: int, count: int, now: float) -> list[int]:
+        values = self.status_values(now)
+        registers: list[int] = []
+        for key, width in STATUS_REGISTERS:
+            value = values[key] & 0xFFFFFFFF
+            registers.extend([value >> 16, value & 0xFFFF] if width == 2 else [min(value, 0xFFFF)])
+        first = address - STATUS_BASE
+        if first + count > len(registers):
+            raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"status block is input registers {STATUS_BASE}-"
+                                       f"{STATUS_BASE + len(registers) - 1}")
+        return registers[first : first + count]
+
+    # --- writes -----------------------------------------------------------------------------
+
+    def _check_writable(self, table: Table, address: int, count: int) -> None:
+        if self.read_only:
+            raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{self.name} is read only")
+        if self.writable and not any(
+            t is table and first <= address and address + count - 1 <= last for t, first, last in self.writable
+        ):
+            raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} {address} is not in a writable range")
+
+    async def _through(self, write: Awaitable[None]) -> None:
+        """Await a write coroutine, translating controller errors to Modbus exceptions."""
+        self.write_requests += 1
+        try:
+            await write
+        except ControllerRefused as exc:
+            self.write_failures += 1
+            raise ModbusExceptionReply(DEVICE_FAILURE, str(exc)) from exc
+        except InvalidRequest as exc:
+            self.write_failures += 1
+            raise ModbusExceptionReply(ILLEGAL_VALUE, str(exc)) from exc
+        except (LinkError, ProtocolError) as exc:
+            self.write_failures += 1
+            raise ModbusExceptionReply(TARGET_FAILED, str(exc)) from exc
+        except GatewayError as exc:
+            self.write_failures += 1
+            raise ModbusExceptionReply(DEVICE_FAILURE, str(exc)) from exc
+
+    async def write_registers(self, address: int, values: Sequence[int]) -> None:
+        self._check_writable(Table.HOLDING, address, len(values))
+        points = self.plan.holding
+        checked: list[tuple[RegisterPoint, int]] = []
+        for i, value in enumerate(values):
+            point = points.get(address + i)
+            if point is None or point.write is None:
+                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"holding register {address + i} is not writable")
+            if value > point.max_value:
+                raise ModbusExceptionReply(ILLEGAL_VALUE, f"holding register {address + i}: {value} > "
+                                           f"{point.max_value}")
+            checked.append((point, value))
+        i = 0
+        while i < len(checked):
+            point, value = checked[i]
+            if point.codec in (Codec.F32_HIGH, Codec.F32_LOW):
+                if i + 1 >= len(checked) or checked[i + 1][0].write != point.write:
+                    raise ModbusExceptionReply(ILLEGAL_ADDRESS, "a float32 takes both of its registers in one write")
+                pair = checked[i : i + 2]
+                await self._through(self._write_registers([p.write for p, _ in pair], [v for _, v in pair]))
+                for p, v in pair:
+                    self._patch(p, v)
+                i += 2
+                continue
+            await self._through(self._write_register(point.write, value))
+            self._patch(point, value)
+            i += 1
+
+    def _patch(self, point: RegisterPoint, value: int) -> None:
+        data = self.cache.data[point.block]
+        o = point.offset
+        if point.codec in (Codec.U16_BE, Codec.U16_BE_MASKED):
+            self.cache.patch(point.block, o, value.to_bytes(2, "big"))
+        elif point.codec is Codec.U16_LE:
+            self.cache.patch(point.block, o, value.to_bytes(2, "little"))
+        elif point.codec is Codec.F32_HIGH:
+            self.cache.patch(point.block, o + 2, value.to_bytes(2, "little"))
+        elif point.codec is Codec.F32_LOW:
+            self.cache.patch(point.block, o, value.to_bytes(2, "little"))
+        else:
+            data[o] = value & 0xFF
+
+    async def write_bits(self, address: int, values: Sequence[bool]) -> None:
+        self._check_writable(Table.COIL, address, len(values))
+        points = self.plan.coils
+        for i in range(len(values)):
+            point = points.get(address + i)
+            if point is None or point.write is None:
+                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"coil {address + i} is not writable")
+        for i, value in enumerate(values):
+            point = points[address + i]
+            await self._through(self._write_bit(point.write, value))
+            byte = self.cache.data[point.block][point.offset]
+            byte = byte | (1 << point.bit) if value else byte & ~(1 << point.bit)
+            self.cache.patch(point.block, point.offset, bytes([byte & 0xFF]))
+
+
+class SlcAsciiUnit(Unit):
+    """An SLC 100/150 with the default map."""
+
+    driver: SlcAsciiDriver
+
+    def __init__(self, *, driver: SlcAsciiDriver, **kwargs: object) -> None:
+        super().__init__(driver=driver, plan=slc_ascii_plan(), **kwargs)  # type: ignore[arg-type]
+
+    async def read_block(self, block: Block) -> bytes:
+        address, count = cast(tuple[int, int], block.request)
+        return await self.driver.read(address, count)
+
+    async def _write_register(self, target: object, value: int) -> None:
+        assert isinstance(target, SlcWordWrite)
+        await self.driver.write_word(target.address, value)
+
+    async def _write_registers(self, targets: Sequence[object], values: Sequence[int]) -> None:
+        for target, value in zip(targets, values, strict=True):
+            await self._write_register(target, value)
+
+    async def _write_bit(self, target: object, value: bool) -> None:
+        assert isinstance(target, SlcBitWrite)
+        await self.driver.update_byte(target.address, target.bit, value)
+
+    @property
+    def last_fault_number(self) -> int:
+        fault = self.driver.last_fault
+        return fault.errors[0] if fault is not None and fault.errors else 0
