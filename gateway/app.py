@@ -12,6 +12,7 @@ from typing import Any
 from gateway.config import GatewayConfig, LinkConfig, parse_listen
 from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import ModbusExceptionReply
+from gateway.metrics import MetricsServer
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Table
 from gateway.modbus.server import ModbusTcpServer, make_tls_context
 from gateway.transport import SerialSettings
@@ -114,10 +115,8 @@ class Gateway:
             self.servers.append(
                 ModbusTcpServer(self.backend, tls_host, tls_port, ssl_context=context, name="modbus-tls", **common)
             )
-        self.metrics: Any = None
+        self.metrics: MetricsServer | None = None
         if config.metrics is not None:
-            from gateway.metrics import MetricsServer
-
             self.metrics = MetricsServer(self, config.metrics.listen)
         self._task: asyncio.Task[None] | None = None
         self._started = asyncio.Event()

@@ -17,12 +17,14 @@ NEVER = float("-inf")
 class BlockCache:
     """Bytes and read times of the blocks of a read plan, by block index."""
 
-    __slots__ = ("data", "stamps")
+    __slots__ = ("data", "newest", "stamps")
 
     def __init__(self, sizes: Sequence[int]) -> None:
         self.data = [bytearray(size) for size in sizes]
         #: loop time of the last successful read of each block; NEVER before the first
         self.stamps = [NEVER] * len(sizes)
+        #: loop time of the last successful read of any block (the controller last answered)
+        self.newest = NEVER
 
     def store(self, block: int, data: bytes, now: float) -> None:
         target = self.data[block]
@@ -30,6 +32,7 @@ class BlockCache:
             raise ValueError(f"block {block}: {len(data)} bytes read, {len(target)} expected")
         target[:] = data
         self.stamps[block] = now
+        self.newest = max(self.newest, now)
 
     def patch(self, block: int, offset: int, data: bytes) -> None:
         """Apply a write the controller confirmed."""

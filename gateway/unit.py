@@ -1,7 +1,13 @@
 """One controller served as one Modbus unit: driver + read plan + cache + poller + access rules.
 
-Reads are answered from the cache (exception 0x0B when the data is older than ``stale_after``);
-writes go through to the controller and are answered only after it confirmed them.
+Reads are answered from the cache; writes go through to the controller and are answered only
+after it confirmed them.
+
+A value is stale (exception 0x0B) when the controller has not answered a poll for ``stale_after``
+seconds, or when its own block was last read longer ago than ``stale_after`` plus the period of
+its scan class (``fast_interval`` or ``slow_interval``): a slow-class value read every 10 s is not
+stale 5 s after its read while the link is up, and no value outlives a silent link by more than
+``stale_after``.
 
 Error translation (controller -> Modbus exception):
 
@@ -39,6 +45,7 @@ from gateway.modbus.mapping import (
     Codec,
     Plan,
     RegisterPoint,
+    Scan,
     SlcBitWrite,
     SlcWordWrite,
     Table,
@@ -96,6 +103,9 @@ class Unit(ABC):
         self.read_only = read_only
         self.writable = tuple(writable)
         self.cache = BlockCache([block.size for block in plan.blocks])
+        period = {Scan.FAST: fast_interval, Scan.SLOW: slow_interval}
+        #: per block: the largest age at which its bytes are still served
+        self._max_age = [stale_after + period[block.scan] for block in plan.blocks]
         self.poller = Poller(
             name,
             plan.blocks,
@@ -115,9 +125,9 @@ class Unit(ABC):
     @abstractmethod
     async def _write_register(self, target: object, value: int) -> None: ...
 
-    @abstractmethod
-    async def _write_registers(self, targets: Sequence[object], values: Sequence[int]) -> None:
-        """Write several registers that belong together (e.g. the two halves of a float)."""
+    async def _write_float(self, target: object, raw: int) -> None:
+        """Write the 32 bits of a float (both of its registers at once)."""
+        raise ModbusExceptionReply(ILLEGAL_ADDRESS, "this unit has no float registers")
 
     @abstractmethod
     async def _write_bit(self, target: object, value: bool) -> None: ...
@@ -137,33 +147,39 @@ class Unit(ABC):
         if table is Table.INPUT and address >= STATUS_BASE:
             return self._status(address, count, now)
         points = self.plan.registers(table)
-        cache = self.cache
-        stamps, data = cache.stamps, cache.data
-        oldest = now - self.stale_after
+        stamps, data, max_age = self.cache.stamps, self.cache.data, self._max_age
+        silent = self._silent(now)
         out: list[int] = []
         for a in range(address, address + count):
             point = points.get(a)
             if point is None:
                 raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} register {a} is not mapped")
-            if stamps[point.block] < oldest:
-                raise ModbusExceptionReply(TARGET_FAILED, f"{self.name}: data older than {self.stale_after:g} s")
+            if silent or now - stamps[point.block] > max_age[point.block]:
+                raise self._stale()
             out.append(_decode(point, data[point.block]))
         return out
 
     def read_bits(self, table: Table, address: int, count: int) -> list[bool]:
         now = asyncio.get_running_loop().time()
         points = self.plan.bits(table)
-        stamps, data = self.cache.stamps, self.cache.data
-        oldest = now - self.stale_after
+        stamps, data, max_age = self.cache.stamps, self.cache.data, self._max_age
+        silent = self._silent(now)
         out: list[bool] = []
         for a in range(address, address + count):
             point = points.get(a)
             if point is None:
                 raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} {a} is not mapped")
-            if stamps[point.block] < oldest:
-                raise ModbusExceptionReply(TARGET_FAILED, f"{self.name}: data older than {self.stale_after:g} s")
+            if silent or now - stamps[point.block] > max_age[point.block]:
+                raise self._stale()
             out.append(bool(data[point.block][point.offset] >> point.bit & 1))
         return out
+
+    def _silent(self, now: float) -> bool:
+        """The controller answered no poll for ``stale_after`` seconds: everything is stale."""
+        return now - self.cache.newest > self.stale_after
+
+    def _stale(self) -> ModbusExceptionReply:
+        return ModbusExceptionReply(TARGET_FAILED, f"{self.name}: no fresh data (stale after {self.stale_after:g} s)")
 
     def status_values(self, now: float) -> dict[str, int]:
         counters = self.driver.counters
@@ -238,7 +254,11 @@ class Unit(ABC):
                 if i + 1 >= len(checked) or checked[i + 1][0].write != point.write:
                     raise ModbusExceptionReply(ILLEGAL_ADDRESS, "a float32 takes both of its registers in one write")
                 pair = checked[i : i + 2]
-                await self._through(self._write_registers([p.write for p, _ in pair], [v for _, v in pair]))
+                halves = {p.codec: v for p, v in pair}
+                if set(halves) != {Codec.F32_HIGH, Codec.F32_LOW}:
+                    raise ModbusExceptionReply(ILLEGAL_ADDRESS, "a float32 takes both of its registers in one write")
+                raw = halves[Codec.F32_HIGH] << 16 | halves[Codec.F32_LOW]
+                await self._through(self._write_float(point.write, raw))
                 for p, v in pair:
                     self._patch(p, v)
                 i += 2
@@ -291,10 +311,6 @@ class SlcAsciiUnit(Unit):
     async def _write_register(self, target: object, value: int) -> None:
         assert isinstance(target, SlcWordWrite)
         await self.driver.write_word(target.address, value)
-
-    async def _write_registers(self, targets: Sequence[object], values: Sequence[int]) -> None:
-        for target, value in zip(targets, values, strict=True):
-            await self._write_register(target, value)
 
     async def _write_bit(self, target: object, value: bool) -> None:
         assert isinstance(target, SlcBitWrite)

@@ -85,10 +85,19 @@ class Pair:
         return [e.payload for e in self.a_events if isinstance(e, MessageReceived)]
 
 
-def make_pair(checksum: Checksum = Checksum.CRC, **kwargs: object) -> Pair:
-    options: dict[str, object] = {"checksum": checksum, "ack_timeout": 0.2}
-    options.update(kwargs)
-    return Pair(Df1Link(**options), Df1Link(**options))  # type: ignore[arg-type]
+def make_pair(
+    checksum: Checksum = Checksum.CRC, *, max_nak: int = 3, max_enq: int = 3, duplicate_detect: bool = True
+) -> Pair:
+    def link() -> Df1Link:
+        return Df1Link(
+            checksum=checksum,
+            ack_timeout=0.2,
+            max_nak=max_nak,
+            max_enq=max_enq,
+            duplicate_detect=duplicate_detect,
+        )
+
+    return Pair(link(), link())
 
 
 class DropFirst:
@@ -454,9 +463,7 @@ class RandomFaults:
         return bytes(out)
 
 
-def check_exactly_once(
-    sent: list[bytes], handles: list[int], events: list[LinkEvent], delivered: list[bytes]
-) -> None:
+def check_exactly_once(sent: list[bytes], handles: list[int], events: list[LinkEvent], delivered: list[bytes]) -> None:
     # Every send resolves exactly once.
     resolved = [e.handle for e in events if isinstance(e, SendComplete | SendFailed)]
     assert sorted(resolved) == sorted(handles)

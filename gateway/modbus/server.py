@@ -25,10 +25,24 @@ stream cannot be resynchronised). A partial frame is kept until it is complete.
 
 Per connection, requests are handled concurrently: each complete frame becomes one
 task, created in arrival order, whose first step is the backend call, so the backend
-sees requests in arrival order; the reply is written (one ``transport.write``) when
-the task completes. At ``max_in_flight_per_connection`` the connection stops reading
-(frames already received wait in the buffer); it also stops reading while the
-transport's write buffer is above its high-water mark.
+sees requests in arrival order; the task writes its reply (one ``transport.write``)
+as soon as the backend answers. Requests refused before the backend (bad count,
+unknown unit or function) are answered at once, without a task. At
+``max_in_flight_per_connection`` the connection stops reading (frames already
+received wait in the buffer); it also stops reading while the transport's write
+buffer is above its high-water mark, so a client that never reads its replies
+cannot make the server buffer without bound.
+
+Connections: the allow list and ``max_connections`` are checked when the TCP
+connection is accepted, before any TLS handshake (TLS is started per connection with
+``loop.start_tls``); a refused connection is aborted and the first refusal of a burst
+is logged (the burst ends with the next accepted connection). The idle timer only
+runs while no request is in flight.
+
+A backend exception other than ``ModbusExceptionReply`` is answered 0x04 and logged
+with its traceback: at ERROR the first time its type is seen, at DEBUG afterwards
+(a failing backend would otherwise log every poll); ``counters.backend_errors``
+counts them all.
 
 Where pymodbus is used, and where struct is used instead
 --------------------------------------------------------
@@ -79,6 +93,7 @@ from gateway.errors import ModbusExceptionReply
 
 __all__ = [
     "FunctionCode",
+    "IPNetwork",
     "ModbusBackend",
     "ModbusServerCounters",
     "ModbusTcpServer",
@@ -148,6 +163,13 @@ class ModbusServerCounters:
     backend_errors: int = 0
 
 
+_REGISTER_READS: Final = frozenset({FunctionCode.READ_HOLDING_REGISTERS, FunctionCode.READ_INPUT_REGISTERS})
+_BIT_READS: Final = frozenset({FunctionCode.READ_COILS, FunctionCode.READ_DISCRETE_INPUTS})
+_SINGLE_WRITES: Final = frozenset({FunctionCode.WRITE_SINGLE_COIL, FunctionCode.WRITE_SINGLE_REGISTER})
+_MULTIPLE_WRITES: Final = frozenset(
+    {FunctionCode.WRITE_MULTIPLE_COILS, FunctionCode.WRITE_MULTIPLE_REGISTERS}
+)
+
 # Protocol limits (Modbus Application Protocol Specification V1.1b3, 6.1-6.12).
 _MAX_READ_BITS: Final = 2000
 _MAX_READ_REGISTERS: Final = 125
@@ -174,7 +196,10 @@ _EXCEPTION_FRAME: Final = struct.Struct(">HHHBBB")  # MBAP, fc | 0x80, exception
 _REGISTER_FRAMES: Final = [struct.Struct(f">HHHBBB{n}H") for n in range(_MAX_READ_REGISTERS + 1)]
 
 _decoder: Final = DecodePDU(is_server=True)
-_BIT_RESPONSES: Final = {1: ReadCoilsResponse, 2: ReadDiscreteInputsResponse}
+_BIT_RESPONSES: Final[dict[int, type[ReadCoilsResponse]]] = {
+    FunctionCode.READ_COILS: ReadCoilsResponse,
+    FunctionCode.READ_DISCRETE_INPUTS: ReadDiscreteInputsResponse,
+}
 
 _Reply: TypeAlias = bytes | Coroutine[Any, Any, bytes]
 
@@ -257,7 +282,7 @@ class ModbusTcpServer:
         self._requested_port = port
         self._server: asyncio.Server | None = None
         self._connections: set[_Connection] = set()
-        self._tasks: set[asyncio.Task[bytes]] = set()
+        self._tasks: set[asyncio.Task[None]] = set()
         self._closing = False
         self._stopped_event = asyncio.Event()
         self._all_connections_closed: asyncio.Future[None] | None = None
@@ -326,7 +351,7 @@ class ModbusTcpServer:
                         len(pending),
                         grace,
                     )
-                    await asyncio.wait(pending)
+                    await asyncio.wait(pending, timeout=grace)
             if self._connections:
                 self._all_connections_closed = asyncio.get_running_loop().create_future()
                 for connection in list(self._connections):
@@ -430,7 +455,7 @@ class ModbusTcpServer:
             return self._exception(tid, unit, function_code, _GATEWAY_PATH_UNAVAILABLE)
 
         size = len(pdu)
-        if function_code == 3 or function_code == 4:
+        if function_code in _REGISTER_READS:
             if size != 5:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_VALUE)
             address, count = _ADDRESS_COUNT.unpack_from(pdu, 1)
@@ -440,7 +465,7 @@ class ModbusTcpServer:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_ADDRESS)
             return self._read_registers(tid, unit, function_code, address, count)
 
-        if function_code == 1 or function_code == 2:
+        if function_code in _BIT_READS:
             if size != 5:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_VALUE)
             address, count = _ADDRESS_COUNT.unpack_from(pdu, 1)
@@ -450,21 +475,22 @@ class ModbusTcpServer:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_ADDRESS)
             return self._read_bits(tid, unit, function_code, address, count)
 
-        if function_code == 5 or function_code == 6:
+        if function_code in _SINGLE_WRITES:
             if size != 5:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_VALUE)
             address, value = _ADDRESS_COUNT.unpack_from(pdu, 1)
-            if function_code == 5:
-                if value != _COIL_ON and value != _COIL_OFF:
-                    return self._exception(tid, unit, function_code, _ILLEGAL_DATA_VALUE)
-                return self._write_coils(tid, unit, pdu, address, (value == _COIL_ON,))
-            return self._write_registers(tid, unit, pdu, address, (value,))
+            if function_code == FunctionCode.WRITE_SINGLE_REGISTER:
+                return self._write_registers(tid, unit, pdu, address, (value,))
+            if value != _COIL_ON and value != _COIL_OFF:
+                return self._exception(tid, unit, function_code, _ILLEGAL_DATA_VALUE)
+            return self._write_coils(tid, unit, pdu, address, (value == _COIL_ON,))
 
-        if function_code == 15 or function_code == 16:
+        if function_code in _MULTIPLE_WRITES:
             if size < 6:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_VALUE)
             address, count, byte_count = _ADDRESS_COUNT_BYTES.unpack_from(pdu, 1)
-            if function_code == 15:
+            coils = function_code == FunctionCode.WRITE_MULTIPLE_COILS
+            if coils:
                 valid = 1 <= count <= _MAX_WRITE_BITS and byte_count == (count + 7) // 8
             else:
                 valid = 1 <= count <= _MAX_WRITE_REGISTERS and byte_count == 2 * count
@@ -475,7 +501,7 @@ class ModbusTcpServer:
             decoded = _decoder.decode(pdu)
             if decoded is None:  # not expected after the checks above
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_VALUE)
-            if function_code == 15:
+            if coils:
                 return self._write_coils(tid, unit, pdu[:5], address, decoded.bits[:count])
             return self._write_registers(tid, unit, pdu[:5], address, decoded.registers)
 
@@ -487,7 +513,7 @@ class ModbusTcpServer:
         self, tid: int, unit: int, function_code: int, address: int, count: int
     ) -> bytes:
         try:
-            if function_code == 3:
+            if function_code == FunctionCode.READ_HOLDING_REGISTERS:
                 values = await self.backend.read_holding_registers(unit, address, count)
             else:
                 values = await self.backend.read_input_registers(unit, address, count)
@@ -502,7 +528,7 @@ class ModbusTcpServer:
 
     async def _read_bits(self, tid: int, unit: int, function_code: int, address: int, count: int) -> bytes:
         try:
-            if function_code == 1:
+            if function_code == FunctionCode.READ_COILS:
                 bits = await self.backend.read_coils(unit, address, count)
             else:
                 bits = await self.backend.read_discrete_inputs(unit, address, count)
@@ -630,9 +656,9 @@ class _Connection(asyncio.Protocol):
 
     def eof_received(self) -> bool | None:
         self._eof = True
-        if self._in_flight:
+        if self._in_flight and self._server.ssl_context is None:
             return True  # keep the transport open to send the replies still in flight
-        return None
+        return None  # close (TLS transports always do)
 
     def connection_lost(self, exc: Exception | None) -> None:
         if self._open:
@@ -753,10 +779,10 @@ class _Connection(asyncio.Protocol):
             if isinstance(reply, bytes):
                 transport.write(reply)
             else:
-                task = self._loop.create_task(reply)
-                server._tasks.add(task)
-                task.add_done_callback(self._request_done)
                 self._in_flight += 1
+                task = self._loop.create_task(self._serve(reply))
+                server._tasks.add(task)
+                task.add_done_callback(server._tasks.discard)
         if position == size:
             self._buffer = b""
             self._offset = 0
@@ -767,14 +793,14 @@ class _Connection(asyncio.Protocol):
             return
         self._update_reading()
 
-    def _request_done(self, task: asyncio.Task[bytes]) -> None:
-        self._server._tasks.discard(task)
-        self._in_flight -= 1
-        if task.cancelled():
-            return
-        reply = task.result()
+    async def _serve(self, reply: Coroutine[Any, Any, bytes]) -> None:
+        """Await one backend call and write its reply at once (no done-callback round trip)."""
+        try:
+            frame = await reply
+        finally:
+            self._in_flight -= 1
         if self._transport is not None and self._ready:
-            self._transport.write(reply)
+            self._transport.write(frame)
             if self._buffer or self._read_paused or self._eof:
                 self._process()
 

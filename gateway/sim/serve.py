@@ -33,7 +33,17 @@ class SimOutput(Protocol):
 
 
 class SimDevice(Protocol):
+    """A simulated controller.  ``receive`` gets host bytes; ``poll`` runs its timers.
+
+    ``next_deadline()`` says when ``poll(now)`` must be called next (None: no timer running);
+    devices without timers return None and an empty list.
+    """
+
     def receive(self, data: bytes, now: float) -> Sequence[SimOutput]: ...
+
+    def poll(self, now: float) -> Sequence[SimOutput]: ...
+
+    def next_deadline(self) -> float | None: ...
 
 
 @dataclass
@@ -73,6 +83,7 @@ class _Wire:
         self._turnaround = turnaround
         self._loop = asyncio.get_running_loop()
         self._handles: set[asyncio.TimerHandle] = set()
+        self._timer: asyncio.TimerHandle | None = None
         self.closed = False
 
     def _later(self, when: float, callback: Callable[[bytes], None], data: bytes) -> None:
@@ -99,9 +110,29 @@ class _Wire:
         if self.closed:
             return
         now = self._loop.time()
-        for out in self._device.receive(data, now):
+        self._emit(now, self._device.receive(data, now))
+
+    def _emit(self, now: float, outputs: Sequence[SimOutput]) -> None:
+        for out in outputs:
             arrival = self._to_host.schedule(now + self._turnaround + out.delay, len(out.data))
             self._later(arrival, self._out_to_host, out.data)
+        self._arm_timer()
+
+    def _arm_timer(self) -> None:
+        deadline = self._device.next_deadline()
+        if self._timer is not None:
+            if deadline is not None and self._timer.when() == deadline:
+                return
+            self._timer.cancel()
+            self._timer = None
+        if deadline is not None and not self.closed:
+            self._timer = self._loop.call_at(deadline, self._on_timer)
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        if not self.closed:
+            now = self._loop.time()
+            self._emit(now, self._device.poll(now))
 
     def _out_to_host(self, data: bytes) -> None:
         if not self.closed:
@@ -109,6 +140,8 @@ class _Wire:
 
     def close(self) -> None:
         self.closed = True
+        if self._timer is not None:
+            self._timer.cancel()
         for handle in self._handles:
             handle.cancel()
         self._handles.clear()

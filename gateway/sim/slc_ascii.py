@@ -251,6 +251,13 @@ class SlcAsciiSimulator:
                 out.append(Output(plan.delay, framing.encode_fault(0)))
         return out
 
+    def poll(self, now: float) -> list[Output]:
+        """No timers: the SLC 100/150 only ever answers."""
+        return []
+
+    def next_deadline(self) -> float | None:
+        return None
+
     def raise_fault(self, byte: int = ERROR_BITS, bit: int = 3) -> None:
         """Set an error bit (default 84H bit 3: error 8) as a ``;T`` will report."""
         self.counters.faults += 1

@@ -80,7 +80,8 @@ from gateway.protocols.df1.pccc import (
     encode_type_data,
     encode_typed_data,
     reply_matches,
-    slc_request_for,
+    slc_read_request,
+    slc_write_request,
 )
 
 __all__ = [
@@ -154,5 +155,6 @@ __all__ = [
     "encode_typed_data",
     "parse_address",
     "reply_matches",
-    "slc_request_for",
+    "slc_read_request",
+    "slc_write_request",
 ]

@@ -242,7 +242,7 @@ def _build(match: re.Match[str]) -> SlcAddress:
     member, bit_text = match["member"], match["bit"]
     if file_type in (FileType.INPUT, FileType.OUTPUT):
         if member is not None and not member.isdigit():
-            raise AddressError(f"{member!r}: I/O words are numbers ({letter}:slot.word/bit)")
+            raise AddressError(f"I/O words are numbers ({letter}:slot.word/bit)")
         word = int(member) if member is not None else 0
         return SlcAddress(file_type, file_number, element, word, _numeric_bit(bit_text))
     if file_type in _STRUCTURES:
@@ -253,7 +253,7 @@ def _build(match: re.Match[str]) -> SlcAddress:
             if file_type is FileType.FLOAT
             else (f"{_name(file_type)} elements have no sub-elements")
         )
-        raise AddressError(f".{member}: {what}")
+        raise AddressError(what)
     return SlcAddress(file_type, file_number, element, 0, _numeric_bit(bit_text))
 
 
@@ -285,7 +285,7 @@ def _numeric_bit(text: str | None) -> int | None:
     if text is None:
         return None
     if not text.isdigit():
-        raise AddressError(f"/{text}: bit must be a number 0-15")
+        raise AddressError("bit must be a number 0-15")
     bit = int(text)
     if bit > 15:
         raise AddressError("bit must be 0-15")
@@ -328,8 +328,8 @@ def _structure(
             raise AddressError(f"{bit_text} is a bit of word 0; write /{bit_text} without .{member}")
         if bit_text in words:
             raise AddressError(f"/{bit_text} is a word; write .{bit_text}")
-        raise AddressError(f"/{bit_text}: unknown bit; {noun} have {', '.join(bits)}")
+        raise AddressError(f"unknown bit; {noun} have {', '.join(bits)}")
     bit = _numeric_bit(bit_text)
     if member is None and file_type is not FileType.CONTROL:
-        raise AddressError(f"/{bit_text}: {noun} have bits {', '.join(bits)} in word 0")
+        raise AddressError(f"{noun} have bits {', '.join(bits)} in word 0 (numbered bits: .PRE/n, .ACC/n)")
     return SlcAddress(file_type, file_number, element, sub_element, bit)

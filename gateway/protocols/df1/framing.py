@@ -253,7 +253,10 @@ def _build_table() -> dict[tuple[_State, _Class], tuple[_Act, _State]]:
             (_State.IDLE_DLE, _Class.NAK): (_Act.NAK, _State.IDLE),
             (_State.IDLE_DLE, _Class.ENQ): (_Act.ENQ, _State.IDLE),
             (_State.IDLE_DLE, _Class.ETX): (_Act.MISSING_START, _State.IDLE),
-            (_State.IDLE_DLE, _Class.DLE): (_Act.DISCARD, _State.IDLE),  # a data DLE DLE pair
+            # DLE DLE outside a frame: the first DLE is noise (or the tail of a lost frame); keep
+            # the second as a possible start of DLE STX rather than pairing them, so a stray DLE
+            # (e.g. of a damaged DLE ENQ) cannot swallow the next frame's start.
+            (_State.IDLE_DLE, _Class.DLE): (_Act.NONE, _State.IDLE_DLE),
             (_State.IDLE_DLE, _Class.OTHER): (_Act.DISCARD, _State.IDLE),
             # DLE <x> inside a frame
             (_State.IN_FRAME_DLE, _Class.DLE): (_Act.APPEND_DLE, _State.IN_FRAME),

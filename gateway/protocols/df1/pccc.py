@@ -79,7 +79,8 @@ __all__ = [
     "encode_type_data",
     "encode_typed_data",
     "reply_matches",
-    "slc_request_for",
+    "slc_read_request",
+    "slc_write_request",
 ]
 
 #: CMD bit 6: 0 in a command, 1 in a reply (S4516-DF1 manual, Appendix B block 1).
@@ -817,11 +818,7 @@ class WordRangeRead:
         return self.total if self.total is not None else (self.size + 1) // 2
 
     def encode_params(self) -> bytes:
-        return (
-            struct.pack("<HH", self.packet_offset, self.total_words)
-            + self.address.encode()
-            + bytes((self.size,))
-        )
+        return struct.pack("<HH", self.packet_offset, self.total_words) + self.address.encode() + bytes((self.size,))
 
     @classmethod
     def decode_params(cls, reader: _Reader) -> WordRangeRead:
@@ -992,18 +989,21 @@ _REQUEST_TYPES: Final[dict[tuple[int, int], type[Request]]] = {
 }
 
 
-def slc_request_for(address: SlcAddress, *, write: bytes | None = None, size: int | None = None) -> Request:
-    """A protected typed logical read (``size`` bytes, default the address's own size) or write."""
-    if write is not None:
-        return ProtectedTypedLogicalWrite(
-            address.file_type, address.file_number, address.element, address.sub_element, write
-        )
+def slc_read_request(address: SlcAddress, size: int | None = None) -> ProtectedTypedLogicalRead:
+    """Protected typed logical read of ``address``; ``size`` bytes, default the address's own size."""
     return ProtectedTypedLogicalRead(
         address.file_type,
         address.file_number,
         address.element,
         address.sub_element,
         address.byte_count if size is None else size,
+    )
+
+
+def slc_write_request(address: SlcAddress, data: bytes) -> ProtectedTypedLogicalWrite:
+    """Protected typed logical write of ``data`` starting at ``address``."""
+    return ProtectedTypedLogicalWrite(
+        address.file_type, address.file_number, address.element, address.sub_element, data
     )
 
 

@@ -1,0 +1,383 @@
+"""HTTP ``/metrics`` (Prometheus text format) and ``/healthz`` for the running gateway.
+
+The values are read from the live gateway objects at scrape time: a custom collector on a private
+:class:`~prometheus_client.CollectorRegistry` turns the links' and Modbus servers' counters into
+metric families when Prometheus asks, so nothing runs in the background and nothing is copied.
+
+Metrics (every name starts with ``slc_gateway_``)::
+
+    per link, labels link="<name>", unit="<Modbus unit id>"
+      link_up                       gauge    1 = port open and the controller answered the last transaction
+      link_connected                gauge    1 = the port / socket / simulator stream is open
+      data_age_seconds              gauge    age of the oldest fast-class value (+Inf before the first read)
+      stale_after_seconds           gauge    the link's ``stale_after``: older data is not served
+      transactions_total            counter  transactions the controller answered
+      errors_total                  counter  failed transactions
+      timeouts_total                counter
+      crc_errors_total              counter
+      retries_total{kind}           counter  kind = retransmit (SLC ;Z) | id_resync (SLC ;I) | enq | nak (DF1)
+      refusals_total                counter  requests the controller refused (;E, PCCC STS)
+      faults_total                  counter  controller faults reported
+      reconnects_total              counter
+      bytes_total{direction}        counter  direction = tx | rx, on the line
+      write_requests_total          counter  Modbus writes passed through to the controller
+      write_failures_total          counter  ... of which failed (answered with an exception)
+    per Modbus server, label server="modbus" | "modbus-tls"
+      modbus_requests_total{function_code}    counter  requests by function code (decimal, unknown ones too)
+      modbus_exceptions_total{exception_code} counter  exception replies by exception code (decimal)
+      modbus_backend_errors_total             counter  backend failures (each also counted as exception 4)
+      modbus_connections                      gauge    connections open now
+      modbus_connections_accepted_total       counter
+      modbus_connections_refused_total        counter  outside ``allow`` or over ``max_connections``
+      modbus_connections_dropped_total        counter  closed by the server: bad framing, idle, TLS failure
+
+``/healthz`` answers 200 when every link is up and its fast-class data is younger than its
+``stale_after``, 503 otherwise, with a JSON body naming each link's state (no paths, no
+configuration beyond the link names and unit ids).
+
+The HTTP side is deliberately tiny: one request per connection (``Connection: close``), ``GET``
+and ``HEAD`` only, a bounded request head, timeouts on reading and writing, a cap on concurrent
+connections.  It is meant for a Prometheus scraper and a container health check, not for browsers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import re
+from collections.abc import Iterator, Sequence
+from typing import TYPE_CHECKING, Final, Protocol
+
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
+from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric
+
+from gateway.config import parse_listen
+
+if TYPE_CHECKING:
+    from gateway.modbus.server import ModbusTcpServer
+    from gateway.unit import Unit
+
+__all__ = ["GatewayView", "MetricsServer", "health"]
+
+log = logging.getLogger("gateway.metrics")
+
+PREFIX: Final = "slc_gateway_"
+
+_MAX_HEAD: Final = 8192
+"""Largest request head (request line + headers) accepted; larger gets 431."""
+_MAX_CONNECTIONS: Final = 32
+"""Concurrent HTTP connections; more are closed at once."""
+_JSON: Final = "application/json"
+_TEXT: Final = "text/plain; charset=utf-8"
+_REASONS: Final = {
+    200: "OK",
+    400: "Bad Request",
+    404: "Not Found",
+    405: "Method Not Allowed",
+    408: "Request Timeout",
+    431: "Request Header Fields Too Large",
+    500: "Internal Server Error",
+    503: "Service Unavailable",
+    505: "HTTP Version Not Supported",
+}
+_REQUEST_LINE: Final = re.compile(rb"([A-Z]{1,16}) (\S{1,2048}) HTTP/(\d)\.(\d)")
+_USERINFO: Final = re.compile(r"(?<=://)[^/@\s]*@")
+_MAX_ERROR_TEXT: Final = 300
+
+
+class GatewayView(Protocol):
+    """What the metrics server reads from the gateway (:class:`gateway.app.Gateway` has it)."""
+
+    @property
+    def units(self) -> Sequence[Unit]: ...
+
+    @property
+    def servers(self) -> Sequence[ModbusTcpServer]: ...
+
+
+# --------------------------------------------------------------------------------------------
+# Prometheus
+
+
+def _counter(name: str, documentation: str, labels: Sequence[str]) -> CounterMetricFamily:
+    return CounterMetricFamily(PREFIX + name, documentation, labels=labels)
+
+
+def _gauge(name: str, documentation: str, labels: Sequence[str]) -> GaugeMetricFamily:
+    return GaugeMetricFamily(PREFIX + name, documentation, labels=labels)
+
+
+class _GatewayCollector:
+    """Reads the gateway's links and servers at scrape time (runs on the event loop thread)."""
+
+    def __init__(self, gateway: GatewayView) -> None:
+        self._gateway = gateway
+
+    def describe(self) -> Iterator[Metric]:
+        # The families without samples: lets the registry check names at registration.
+        yield from self._link_families((), 0.0)
+        yield from self._server_families(())
+
+    def collect(self) -> Iterator[Metric]:
+        # Called by generate_latest() on the event loop thread, where the counters live.
+        yield from self._link_families(self._gateway.units, asyncio.get_running_loop().time())
+        yield from self._server_families(self._gateway.servers)
+
+    @staticmethod
+    def _link_families(units: Sequence[Unit], now: float) -> list[Metric]:
+        link = ("link", "unit")
+        link_up = _gauge("link_up", "1 if the link is open and the controller answered the last transaction.", link)
+        connected = _gauge("link_connected", "1 if the link's port or socket is open.", link)
+        age = _gauge("data_age_seconds", "Age of the oldest fast-class value in the cache (+Inf: never read).", link)
+        stale = _gauge("stale_after_seconds", "Data older than this is not served (stale_after).", link)
+        plain = {
+            "transactions": _counter("transactions", "Transactions the controller answered.", link),
+            "errors": _counter("errors", "Transactions that failed.", link),
+            "timeouts": _counter("timeouts", "Transactions that timed out.", link),
+            "crc_errors": _counter("crc_errors", "Replies with a bad CRC or BCC.", link),
+            "refusals": _counter("refusals", "Requests the controller refused.", link),
+            "faults": _counter("faults", "Faults the controller reported.", link),
+            "reconnects": _counter("reconnects", "Times the link was reopened.", link),
+        }
+        retries = _counter(
+            "retries",
+            "Protocol retries by kind (retransmit: SLC ;Z, id_resync: SLC ;I, enq, nak: DF1).",
+            (*link, "kind"),
+        )
+        byte_count = _counter("bytes", "Bytes on the link by direction.", (*link, "direction"))
+        writes = _counter("write_requests", "Modbus writes passed through to the controller.", link)
+        write_failures = _counter("write_failures", "Modbus writes that failed.", link)
+        for unit in units:
+            labels = (unit.name, str(unit.unit_id))
+            driver = unit.driver
+            counters = driver.counters
+            link_up.add_metric(labels, 1.0 if driver.available else 0.0)
+            connected.add_metric(labels, 1.0 if driver.connected else 0.0)
+            age.add_metric(labels, _data_age(unit, now))
+            stale.add_metric(labels, unit.stale_after)
+            for field, family in plain.items():
+                family.add_metric(labels, getattr(counters, field))
+            retries.add_metric((*labels, "retransmit"), counters.retransmits)
+            retries.add_metric((*labels, "id_resync"), counters.id_resyncs)
+            retries.add_metric((*labels, "enq"), counters.enq_sent)
+            retries.add_metric((*labels, "nak"), counters.nak_received)
+            byte_count.add_metric((*labels, "tx"), counters.bytes_sent)
+            byte_count.add_metric((*labels, "rx"), counters.bytes_received)
+            writes.add_metric(labels, unit.write_requests)
+            write_failures.add_metric(labels, unit.write_failures)
+        return [link_up, connected, age, stale, *plain.values(), retries, byte_count, writes, write_failures]
+
+    @staticmethod
+    def _server_families(servers: Sequence[ModbusTcpServer]) -> list[Metric]:
+        server_label = ("server",)
+        requests = _counter("modbus_requests", "Modbus requests by function code.", (*server_label, "function_code"))
+        exceptions = _counter(
+            "modbus_exceptions", "Modbus exception replies by exception code.", (*server_label, "exception_code")
+        )
+        backend_errors = _counter("modbus_backend_errors", "Backend failures answered with exception 4.", server_label)
+        connections = _gauge("modbus_connections", "Modbus TCP connections open now.", server_label)
+        accepted = _counter("modbus_connections_accepted", "Modbus TCP connections accepted.", server_label)
+        refused = _counter(
+            "modbus_connections_refused", "Connections refused (allow list, max_connections).", server_label
+        )
+        dropped = _counter(
+            "modbus_connections_dropped", "Connections closed by the server (framing, idle, TLS).", server_label
+        )
+        for server in servers:
+            name = server.name
+            counters = server.counters
+            for function_code, count in sorted(counters.requests.items()):
+                requests.add_metric((name, str(function_code)), count)
+            for code, count in sorted(counters.exceptions.items()):
+                exceptions.add_metric((name, str(code)), count)
+            backend_errors.add_metric((name,), counters.backend_errors)
+            connections.add_metric((name,), server.connection_count)
+            accepted.add_metric((name,), counters.connections_accepted)
+            refused.add_metric((name,), counters.connections_refused)
+            dropped.add_metric((name,), counters.connections_dropped)
+        return [requests, exceptions, backend_errors, connections, accepted, refused, dropped]
+
+
+def _data_age(unit: Unit, now: float) -> float:
+    """Seconds since the oldest fast-class block was read; +Inf if one never was."""
+    return max(0.0, unit.cache.oldest_age(unit.poller.fast, now))
+
+
+# --------------------------------------------------------------------------------------------
+# Health
+
+
+def _public_error(text: str) -> str:
+    """``last_error`` for the health page: user:password@ removed from URLs, length capped."""
+    text = _USERINFO.sub("", text)
+    return text if len(text) <= _MAX_ERROR_TEXT else text[: _MAX_ERROR_TEXT - 3] + "..."
+
+
+def health(gateway: GatewayView, now: float) -> tuple[bool, dict[str, object]]:
+    """``(healthy, body)`` of ``/healthz`` at loop time ``now``."""
+    links: dict[str, object] = {}
+    healthy = True
+    for unit in gateway.units:
+        age = _data_age(unit, now)
+        up = unit.driver.available
+        fresh = age < unit.stale_after
+        healthy = healthy and up and fresh
+        links[unit.name] = {
+            "unit": unit.unit_id,
+            "up": up,
+            "fresh": fresh,
+            "age_seconds": round(age, 3) if math.isfinite(age) else None,
+            "last_error": _public_error(unit.driver.last_error),
+        }
+    return healthy, {"status": "ok" if healthy else "degraded", "links": links}
+
+
+# --------------------------------------------------------------------------------------------
+# HTTP
+
+
+class _HttpError(Exception):
+    def __init__(self, status: int, message: str = "") -> None:
+        super().__init__(message or _REASONS[status])
+        self.status = status
+
+
+class MetricsServer:
+    """The ``[metrics]`` listener: ``/metrics`` and ``/healthz`` over HTTP/1.1, one request per connection.
+
+    ``request_timeout``: seconds a client has to send its request head, and again to take the reply.
+    """
+
+    def __init__(self, gateway: GatewayView, listen: str, *, request_timeout: float = 5.0) -> None:
+        self.gateway = gateway
+        self.host, self._requested_port = parse_listen(listen)
+        self.request_timeout = request_timeout
+        self.registry = CollectorRegistry(auto_describe=False)
+        self.registry.register(_GatewayCollector(gateway))
+        self._server: asyncio.Server | None = None
+        self._handlers: set[asyncio.Task[None]] = set()
+
+    @property
+    def port(self) -> int:
+        """The bound TCP port (the actual one when 0 was asked for)."""
+        if self._server is None or not self._server.sockets:
+            raise RuntimeError("metrics: server not started")
+        port: int = self._server.sockets[0].getsockname()[1]
+        return port
+
+    async def start(self) -> None:
+        """Bind and start answering."""
+        if self._server is not None:
+            raise RuntimeError("metrics: server already started")
+        self._server = await asyncio.start_server(
+            self._handle, self.host, self._requested_port, limit=_MAX_HEAD, reuse_address=True
+        )
+        log.info(
+            "metrics: serving /metrics and /healthz on http://%s",
+            ", ".join(_format_address(sock.getsockname()) for sock in self._server.sockets),
+        )
+
+    async def close(self) -> None:
+        """Stop accepting and end the connections still open (idempotent)."""
+        server, self._server = self._server, None
+        if server is None:
+            return
+        server.close()
+        for task in list(self._handlers):
+            task.cancel()
+        if self._handlers:
+            await asyncio.wait(set(self._handlers))
+        await server.wait_closed()
+
+    # -- one connection ----------------------------------------------------------------
+
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        if task is None or len(self._handlers) >= _MAX_CONNECTIONS:
+            writer.transport.abort()
+            return
+        self._handlers.add(task)
+        try:
+            await self._exchange(reader, writer)
+        except (ConnectionError, TimeoutError):
+            pass
+        finally:
+            self._handlers.discard(task)
+            writer.transport.abort()  # a no-op after a clean close
+
+    async def _exchange(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        head_only = False
+        try:
+            async with asyncio.timeout(self.request_timeout):
+                head = await _read_head(reader)
+            method, path = _parse_head(head)
+            head_only = method == "HEAD"
+            status, content_type, body, extra = self._route(method, path)
+        except _HttpError as error:
+            status, content_type, body = error.status, _TEXT, f"{error}\n".encode()
+            extra = [("Allow", "GET, HEAD")] if error.status == 405 else []
+        except TimeoutError:
+            status, content_type, body, extra = 408, _TEXT, b"request timeout\n", []
+        headers = [
+            ("Content-Type", content_type),
+            ("Content-Length", str(len(body))),
+            ("Cache-Control", "no-store"),
+            ("Connection", "close"),
+            *extra,
+        ]
+        lines = [f"HTTP/1.1 {status} {_REASONS[status]}", *(f"{k}: {v}" for k, v in headers), "", ""]
+        writer.write("\r\n".join(lines).encode("latin-1"))
+        if not head_only:
+            writer.write(body)
+        async with asyncio.timeout(self.request_timeout):
+            await writer.drain()
+            writer.close()
+            await writer.wait_closed()
+
+    def _route(self, method: str, path: str) -> tuple[int, str, bytes, list[tuple[str, str]]]:
+        if path not in ("/metrics", "/healthz"):
+            raise _HttpError(404)
+        if method not in ("GET", "HEAD"):
+            raise _HttpError(405)
+        if path == "/metrics":
+            try:
+                body = generate_latest(self.registry)
+            except Exception:
+                log.exception("metrics: collecting failed")
+                raise _HttpError(500) from None
+            return 200, CONTENT_TYPE_LATEST, body, []
+        healthy, document = health(self.gateway, asyncio.get_running_loop().time())
+        body = (json.dumps(document, separators=(",", ":")) + "\n").encode()
+        return (200 if healthy else 503), _JSON, body, []
+
+
+async def _read_head(reader: asyncio.StreamReader) -> bytes:
+    """The request line and headers, up to the blank line (the reader's limit bounds the size)."""
+    try:
+        return await reader.readuntil(b"\r\n\r\n")
+    except asyncio.LimitOverrunError:
+        raise _HttpError(431) from None
+    except asyncio.IncompleteReadError:
+        raise ConnectionResetError("client closed before the end of its request") from None
+
+
+def _parse_head(head: bytes) -> tuple[str, str]:
+    """``(method, path)`` of a request head; the query string is ignored."""
+    request_line = head.split(b"\r\n", 1)[0]
+    match = _REQUEST_LINE.fullmatch(request_line)
+    if match is None:
+        raise _HttpError(400, "malformed request line")
+    method, target, major, _ = match.groups()
+    if major != b"1":
+        raise _HttpError(505)
+    path = target.split(b"?", 1)[0].decode("ascii", "replace")
+    return method.decode("ascii"), path
+
+
+def _format_address(address: object) -> str:
+    if isinstance(address, tuple) and len(address) >= 2:
+        host, port = address[0], address[1]
+        return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
+    return str(address)

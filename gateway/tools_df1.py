@@ -1,0 +1,144 @@
+"""The diagnostic commands of the CLI for DF1 links (``--protocol df1``): probe, read, write, mode.
+
+Items are SLC 500 logical addresses: ``N7:0`` (signed 16-bit), ``B3:0/3`` (a bit), ``F8:2``
+(a float), ``T4:1.ACC``, ``C5:0/DN``, ``I:1.0``, ``S:1/5``; a whole structure (``T4:1``) reads
+as its three words.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import struct
+from typing import Any
+
+from gateway.drivers.df1 import DF1_SETTINGS, Df1Driver
+from gateway.errors import InvalidRequest
+from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
+from gateway.protocols.df1.framing import Checksum
+from gateway.protocols.df1.pccc import (
+    ProcessorMode,
+    ProtectedTypedLogicalMaskedWrite,
+    ProtectedTypedLogicalRead,
+    ProtectedTypedLogicalWrite,
+    SetProcessorMode,
+)
+from gateway.transport import SerialSettings
+from gateway.unit_df1 import PROCESSORS
+
+__all__ = ["decode_value", "encode_value", "run_df1_tool"]
+
+
+def decode_value(address: SlcAddress, data: bytes) -> Any:
+    """The value of ``address`` from the bytes a typed read returned."""
+    if address.file_type is FileType.FLOAT:
+        return struct.unpack("<f", data[:4])[0]
+    words = [int.from_bytes(data[i : i + 2], "little") for i in range(0, len(data), 2)]
+    if address.bit is not None:
+        return bool(words[0] >> address.bit & 1)
+    if len(words) > 1:
+        return words
+    signed = address.file_type in (FileType.INTEGER, FileType.TIMER, FileType.COUNTER, FileType.CONTROL)
+    return words[0] - 0x10000 if signed and words[0] & 0x8000 else words[0]
+
+
+def encode_value(address: SlcAddress, text: str) -> tuple[bytes, int | None]:
+    """(data, mask) for writing ``text`` to ``address``; mask is set for bit writes."""
+    if address.file_type is FileType.FLOAT:
+        try:
+            return struct.pack("<f", float(text)), None
+        except ValueError as exc:
+            raise InvalidRequest(f"{address}={text}: not a number") from exc
+    try:
+        value = int(text, 0)
+    except ValueError as exc:
+        raise InvalidRequest(f"{address}={text}: not a whole number") from exc
+    if address.bit is not None:
+        if value not in (0, 1):
+            raise InvalidRequest(f"{address}={text}: a bit takes 0 or 1")
+        mask = 1 << address.bit
+        return (mask if value else 0).to_bytes(2, "little"), mask
+    if address.is_structure:
+        raise InvalidRequest(f"{address}: write a member (.PRE, .ACC ...), not the whole structure")
+    if not -0x8000 <= value <= 0xFFFF:
+        raise InvalidRequest(f"{address}={text}: a word takes -32768..65535")
+    return (value & 0xFFFF).to_bytes(2, "little"), None
+
+
+def _print(result: dict[str, Any], as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(result))
+    else:
+        for key, value in result.items():
+            print(f"{key} = {str(value).lower() if isinstance(value, bool) else value}")
+
+
+async def run_df1_tool(command: str, args: argparse.Namespace) -> int:
+    if args.processor not in PROCESSORS:
+        raise InvalidRequest(f"--processor {args.processor}: choose from {', '.join(PROCESSORS)}")
+    settings = DF1_SETTINGS
+    if args.baudrate:
+        settings = SerialSettings(args.baudrate, 8, "N", 1)
+    if command == "read":
+        items = [(text, parse_address(text)) for text in args.items]
+    elif command == "write":
+        writes = []
+        for text in args.assignments:
+            name, sep, value = text.partition("=")
+            if not sep or not value:
+                raise InvalidRequest(f"{text!r}: expected ADDRESS=VALUE, e.g. N7:0=5 or B3:0/3=1")
+            address = parse_address(name)
+            writes.append((name, address, value, *encode_value(address, value)))
+    elif command not in ("probe", "mode"):
+        raise InvalidRequest(f"{command} is not available for DF1 links")
+    driver = Df1Driver(
+        args.url,
+        settings=settings,
+        checksum=Checksum.CRC if args.checksum == "crc" else Checksum.BCC,
+        station=args.station,
+        source=args.source,
+        family=PROCESSORS[args.processor],
+        timeout=args.timeout or 1.0,
+        retries=args.retries,
+        trace=args.trace,
+        reconnect_min=60.0,
+    )
+    async with driver:
+        if command == "probe":
+            info = await driver.probe()
+            family = info.family
+            _print({
+                "processor": family.value if family else f"unknown (type 0x{info.processor_type or 0:02X})",
+                "catalog": info.catalog,
+                "series": info.series,
+                "frn": info.frn,
+            }, args.json)
+        elif command == "read":
+            result: dict[str, Any] = {}
+            for text, address in items:
+                request = ProtectedTypedLogicalRead(
+                    address.file_type, address.file_number, address.element, address.sub_element, address.byte_count
+                )
+                reply = await driver.execute(request, f"read {address}")
+                result[text] = decode_value(address, reply.data)
+            _print(result, args.json)
+        elif command == "write":
+            for name, a, _, data, mask in writes:
+                if mask is None:
+                    await driver.execute(
+                        ProtectedTypedLogicalWrite(a.file_type, a.file_number, a.element, a.sub_element, data),
+                        f"write {name}",
+                    )
+                else:
+                    masked = ProtectedTypedLogicalMaskedWrite(
+                        a.file_type, a.file_number, a.element, a.sub_element, mask, data
+                    )
+                    await driver.execute(masked, f"write {name}")
+            _print({name: value for name, _, value, _, _ in writes}, args.json)
+        else:
+            modes = {"run": ProcessorMode.RUN, "program": ProcessorMode.PROGRAM, "test": ProcessorMode.TEST_CONTINUOUS}
+            if args.mode not in modes:
+                raise InvalidRequest(f"DF1 mode: choose run, program or test, not {args.mode}")
+            await driver.execute(SetProcessorMode(modes[args.mode]), f"mode {args.mode}", write=True)
+            _print({"mode": args.mode}, args.json)
+    return 0

@@ -1,0 +1,502 @@
+"""PCCC packets: vectors from the S4516-DF1 manual and the SLC 500 command notes."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gateway.errors import ControllerRefused, InvalidRequest, ProtocolError
+from gateway.protocols.df1.address import FileType, parse_address
+from gateway.protocols.df1.pccc import (
+    Command,
+    DataType,
+    DiagnosticStatus,
+    DiagnosticStatusInfo,
+    FileInfo,
+    Function,
+    LogicalBinaryAddress,
+    PcccError,
+    PcccFormatError,
+    PcccHeader,
+    ProcessorFamily,
+    ProcessorMode,
+    ProtectedTypedLogicalMaskedWrite,
+    ProtectedTypedLogicalRead,
+    ProtectedTypedLogicalWrite,
+    ReadFileInfo,
+    Request,
+    SetProcessorMode,
+    SizeLimits,
+    Sts,
+    TnsAllocator,
+    TypeData,
+    TypedData,
+    TypedRead,
+    TypedWrite,
+    WordRangeRead,
+    WordRangeWrite,
+    decode_command,
+    decode_reply,
+    decode_type_data,
+    decode_typed_data,
+    describe_status,
+    encode_command,
+    encode_reply,
+    encode_type_data,
+    encode_typed_data,
+    reply_matches,
+    slc_read_request,
+    slc_write_request,
+)
+
+H = bytes.fromhex
+
+# ------------------------------------------------------------------ SLC 500 typed logical
+
+
+def test_brief_vector_protected_typed_logical_read() -> None:
+    request = ProtectedTypedLogicalRead(FileType.INTEGER, 7, 0, 0, 10)
+    packet = encode_command(request, dst=1, src=0, tns=1)
+    assert packet == H("01 00 0F 00 01 00 A2 0A 07 89 00 00")
+    command = decode_command(packet)
+    assert command.header == PcccHeader(1, 0, 0x0F, 0, 1)
+    assert command.request == request
+
+
+def test_s4516_sample_slc_read_with_encoded_element() -> None:
+    # Appendix B, DF1_AppData block 2: DST 5, SRC 0, TNS 1, 110 elements of N7 from element 40;
+    # the sample always encodes the element as FF lo hi; 14 bytes (B3015 = 14).
+    packet = H("05 00 0F 00 01 00 A2 DC 07 89 FF 28 00 00")
+    command = decode_command(packet)
+    assert command.request == ProtectedTypedLogicalRead(0x89, 7, 40, 0, 220)
+    assert command.header.dst == 5 and command.header.tns == 1
+    # File type of the sample: file number + 0x82 -> N7 = 0x89.
+    assert 7 + 0x82 == FileType.INTEGER
+    # We encode the element in one byte (0-254).
+    assert encode_command(command.request, dst=5, src=0, tns=1) == H("05 00 0F 00 01 00 A2 DC 07 89 28 00")
+
+
+def test_s4516_sample_slc_write() -> None:
+    data = bytes(range(220))
+    packet = H("05 00 0F 00 01 00 AA DC 07 89 FF 28 00 00") + data
+    assert len(packet) == 2 * 110 + 14  # B3015 = 2*B3010 + 14
+    command = decode_command(packet)
+    assert command.request == ProtectedTypedLogicalWrite(0x89, 7, 40, 0, data)
+
+
+def test_three_byte_fields_low_byte_first() -> None:
+    # Notes §7.3: "257 decimal expands to FF hex, 01 hex, 01 hex (low byte then high byte)".
+    request = ProtectedTypedLogicalRead(FileType.INTEGER, 257, 300, 255, 2)
+    packet = encode_command(request, dst=1, src=0, tns=0x1234)
+    assert packet == H("01 00 0F 00 34 12 A2 02 FF 01 01 89 FF 2C 01 FF FF 00")
+    assert decode_command(packet).request == request
+    assert request.expanded_fields == 3
+    assert ProtectedTypedLogicalRead(FileType.INTEGER, 254, 254, 0, 2).expanded_fields == 0
+
+
+def test_masked_write_layout() -> None:
+    # Notes §4.36: FNC AB, size, file, type, element, sub-element, mask lo/hi, data lo/hi.
+    request = ProtectedTypedLogicalMaskedWrite(FileType.BIT, 3, 2, 0, 0x0200, H("00 02"))
+    packet = encode_command(request, dst=1, src=0, tns=2)
+    assert packet == H("01 00 0F 00 02 00 AB 02 03 85 02 00 00 02 00 02")
+    assert decode_command(packet).request == request
+
+
+def test_slc_request_for_address() -> None:
+    timer = parse_address("T4:3")
+    assert slc_read_request(timer) == ProtectedTypedLogicalRead(FileType.TIMER, 4, 3, 0, 6)
+    acc = parse_address("T4:3.ACC")
+    assert slc_read_request(acc) == ProtectedTypedLogicalRead(FileType.TIMER, 4, 3, 2, 2)
+    assert slc_read_request(parse_address("N7:10"), size=20).size == 20
+    assert slc_write_request(parse_address("O:5.1"), H("01 00")) == ProtectedTypedLogicalWrite(
+        FileType.OUTPUT, 0, 5, 1, H("01 00")
+    )
+
+
+# --------------------------------------------------------------------- PLC-5 word range
+
+
+def test_s4516_sample_plc5_word_range_read() -> None:
+    # Appendix B block 1: DST 3, mask 0F, level 1 = 0, file 7, element FF 28 00, level 4 = 0,
+    # 110 elements, size 220 bytes; 19 bytes (B3015 = 19).
+    packet = H("03 00 0F 00 01 00 01 00 00 6E 00 0F 00 07 FF 28 00 00 DC")
+    request = decode_command(packet).request
+    assert request == WordRangeRead(LogicalBinaryAddress(0x0F, (0, 7, 40, 0)), 220, 0, 110)
+    assert encode_command(request, dst=3, src=0, tns=1) == H("03 00 0F 00 01 00 01 00 00 6E 00 0F 00 07 28 00 DC")
+
+
+def test_s4516_sample_plc5_word_range_write() -> None:
+    data = bytes(220)
+    packet = H("03 00 0F 00 01 00 00 00 00 6E 00 0F 00 07 FF 28 00 00") + data
+    assert len(packet) == 2 * 110 + 18  # B3002 = 2*B3010 + 18
+    request = decode_command(packet).request
+    assert request == WordRangeWrite(LogicalBinaryAddress.for_element(7, 40), data, 0, 110)
+
+
+def test_logical_binary_address_notes_vector() -> None:
+    # Notes §6.0: T4:2.ACC for a PLC-5 = 00001111 / 0 / 4 / 2 / 2.
+    assert LogicalBinaryAddress.of(0, 4, 2, 2).encode() == H("0F 00 04 02 02")
+    assert LogicalBinaryAddress.from_slc(parse_address("T4:2.ACC")).encode() == H("0F 00 04 02 02")
+    assert LogicalBinaryAddress.for_element(300, 1000).encode() == H("0F 00 FF 2C 01 FF E8 03 00")
+    with pytest.raises(InvalidRequest):
+        LogicalBinaryAddress(0x0F, (0, 1))
+
+
+def test_word_range_read_defaults_and_validation() -> None:
+    request = WordRangeRead(LogicalBinaryAddress.for_element(7, 0), 20)
+    assert request.total == 10
+    with pytest.raises(InvalidRequest):
+        WordRangeRead(LogicalBinaryAddress.for_element(7, 0), 0)
+    with pytest.raises(InvalidRequest):
+        WordRangeWrite(LogicalBinaryAddress.for_element(7, 0), b"\x01")
+
+
+# ---------------------------------------------------------------------- other commands
+
+
+def test_read_file_info_vector() -> None:
+    # Notes §7.5: cmd, sts, tnsw, fnc, 06h, 80h, xxh.
+    packet = encode_command(ReadFileInfo(7), dst=1, src=0, tns=3)
+    assert packet == H("01 00 0F 00 03 00 94 06 80 07")
+    assert decode_command(packet).request == ReadFileInfo(7)
+    info = FileInfo(size_bytes=512, element_count=256, file_type=FileType.INTEGER)
+    assert info.encode() == H("00 02 00 00 00 01 00 89")
+    assert FileInfo.decode(info.encode()) == info
+    assert info.known_type is FileType.INTEGER
+    assert FileInfo(0, 0, 0x8F).known_type is None
+    with pytest.raises(PcccFormatError):
+        FileInfo.decode(b"\x00")
+
+
+def test_set_processor_mode_vector() -> None:
+    # Notes §7.6: one parameter, the mode byte; 01 program, 06 run, 07-09 test.
+    packet = encode_command(SetProcessorMode(ProcessorMode.RUN), dst=1, src=0, tns=4)
+    assert packet == H("01 00 0F 00 04 00 80 06")
+    assert decode_command(packet).request == SetProcessorMode(6)
+    assert [int(m) for m in ProcessorMode] == [0x01, 0x06, 0x07, 0x08, 0x09]
+
+
+def test_diagnostic_status() -> None:
+    packet = encode_command(DiagnosticStatus(), dst=1, src=0, tns=5)
+    assert packet == H("01 00 06 00 05 00 03")
+    assert decode_command(packet).request == DiagnosticStatus()
+    info = DiagnosticStatusInfo.build(processor_type=0x5B, series="C", frn=4, catalog="1747-L541")
+    assert info.processor_type == 0x5B
+    assert info.family is ProcessorFamily.SLC5_04
+    assert info.series == "C" and info.frn == 4
+    assert info.catalog == "1747-L541"
+    # Notes §6.0: bits 0-4 = 0 for FRN1, bits 5-7 = 0 for series A.
+    assert DiagnosticStatusInfo(bytes((0, 0xEE, 0, 0x49, 0x21))).series == "B"
+    assert DiagnosticStatusInfo(bytes((0, 0xEE, 0, 0x49, 0x21))).frn == 2
+    assert DiagnosticStatusInfo(b"").family is None
+
+
+# --------------------------------------------------------------- type/data parameters
+
+
+@pytest.mark.parametrize("encoded", [H("43"), H("49 03"), H("4A 03 00")])
+def test_type_data_three_equivalent_encodings(encoded: bytes) -> None:
+    # Notes, "Important type/data parameter note": ID 4, size 3 in all three cases.
+    assert decode_type_data(encoded) == (TypeData(4, 3), len(encoded))
+
+
+def test_type_data_encoding() -> None:
+    assert encode_type_data(4, 3) == H("43")
+    assert encode_type_data(DataType.INTEGER, 2) == H("42")
+    assert encode_type_data(DataType.ARRAY, 5) == H("95 09")  # ID 9 > 7 needs a byte
+    assert decode_type_data(H("99 09 05")) == (TypeData(DataType.ARRAY, 5), 3)
+    assert encode_type_data(DataType.STRING, 84) == H("99 1E 54")
+    assert encode_type_data(4, 300) == H("4A 2C 01")
+    assert decode_type_data(H("FF 00") + encode_type_data(0x1E, 84), 2) == (TypeData(0x1E, 84), 5)
+    with pytest.raises(PcccFormatError):
+        decode_type_data(H("4A 03"))
+
+
+def test_typed_data_array_and_bare() -> None:
+    data = H("01 00 02 00")
+    encoded = encode_typed_data(DataType.INTEGER, 2, data)
+    assert encoded == H("95 09 42") + data
+    assert decode_typed_data(encoded) == TypedData(DataType.INTEGER, 2, data)
+    assert decode_typed_data(H("99 09 05 42") + data) == TypedData(DataType.INTEGER, 2, data)
+    assert decode_typed_data(encode_typed_data(DataType.INTEGER, 2, H("07 00"))) == TypedData(4, 2, H("07 00"))
+    assert encode_typed_data(DataType.INTEGER, 2, H("07 00")) == H("42 07 00")
+    # The element descriptor inside an array in its padded forms.
+    assert decode_typed_data(H("99 09 06 49 02") + data) == TypedData(4, 2, data)
+    assert decode_typed_data(H("99 09 07 4A 02 00") + data) == TypedData(4, 2, data)
+    assert decode_typed_data(H("9A 09 06 00 49 02") + data).count == 2
+    with pytest.raises(PcccFormatError):
+        decode_typed_data(H("99 09 09 42") + data)  # array longer than the bytes
+    with pytest.raises(PcccFormatError):
+        decode_typed_data(H("99 09 04 42 01 00 02"))
+
+
+def test_typed_read_and_write_packets() -> None:
+    address = LogicalBinaryAddress.for_element(7, 0)
+    read = TypedRead(address, 2)
+    packet = encode_command(read, dst=1, src=0, tns=6)
+    assert packet == H("01 00 0F 00 06 00 68 00 00 02 00 0F 00 07 00 00 02 00")
+    assert decode_command(packet).request == read
+    write = TypedWrite(address, DataType.INTEGER, 2, H("01 00 02 00"))
+    packet = encode_command(write, dst=1, src=0, tns=7)
+    assert packet == H("01 00 0F 00 07 00 67 00 00 02 00 0F 00 07 00 00 95 09 42 01 00 02 00")
+    assert decode_command(packet).request == write
+    # Typed write accepts any equivalent type/data encoding.
+    padded = H("01 00 0F 00 07 00 67 00 00 02 00 0F 00 07 00 00 9A 09 07 00 4A 02 00 01 00 02 00")
+    assert decode_command(padded).request == write
+    with pytest.raises(InvalidRequest):
+        TypedWrite(address, DataType.INTEGER, 2, H("01"))
+
+
+# ------------------------------------------------------------------------------ replies
+
+
+def test_reply_to_sample_command_with_ext_sts() -> None:
+    # Appendix B block 2: address out of range -> STS F0, EXT STS 06, 7 bytes.
+    command = decode_command(H("05 00 0F 00 2A 00 A2 DC 07 89 FF 28 00 00")).header
+    reply_packet = encode_reply(command, sts=0xF0, ext_sts=0x06)
+    assert reply_packet == H("00 05 4F F0 2A 00 06")
+    reply = decode_reply(reply_packet)
+    assert reply.sts == Sts.EXTENDED and reply.ext_sts == 0x06 and reply.data == b""
+    assert reply_matches(command, reply)
+    error = reply.error(command="N7:40")
+    assert isinstance(error, PcccError) and isinstance(error, ControllerRefused)
+    assert error.description == "Address doesn't point to something usable"
+    assert error.reason == error.description
+    assert error.sts == 0xF0 and error.ext_sts == 0x06 and error.code == 0xF0
+    assert "N7:40" in str(error) and "EXT STS 0x06" in str(error)
+    with pytest.raises(PcccError):
+        reply.raise_for_status()
+
+
+def test_successful_read_reply() -> None:
+    command = PcccHeader(1, 0, 0x0F, 0, 0x0102)
+    packet = encode_reply(command, data=H("34 12 78 56"))
+    assert packet == H("00 01 4F 00 02 01 34 12 78 56")
+    reply = decode_reply(packet)
+    assert reply.ok and reply.data == H("34 12 78 56") and reply.command == 0x0F
+    assert reply.error() is None
+    reply.raise_for_status()
+    assert not reply_matches(PcccHeader(1, 0, 0x0F, 0, 0x0103), reply)
+    assert not reply_matches(PcccHeader(1, 0, 0x06, 0, 0x0102), reply)
+    assert reply_matches(encode_command(ReadFileInfo(7), dst=1, src=0, tns=0x0102), reply)
+
+
+def test_owner_node_after_ext_sts_1a() -> None:
+    # Notes §4.36: F0 1A = file already open + node address of file owner (1 byte).
+    reply = decode_reply(H("00 01 4F F0 09 00 1A 05"))
+    assert reply.ext_sts == 0x1A and reply.owner_node == 5
+    error = reply.error()
+    assert error is not None and error.owner_node == 5
+    assert "owner node 5" in str(error)
+    assert encode_reply(PcccHeader(1, 0, 0x0F, 0, 9), sts=0xF0, ext_sts=0x1A, owner_node=5) == H(
+        "00 01 4F F0 09 00 1A 05"
+    )
+
+
+def test_remote_sts_without_ext_sts() -> None:
+    reply = decode_reply(H("00 01 4F 10 01 00"))
+    assert reply.ext_sts is None
+    error = reply.error()
+    assert error is not None and error.description == "Illegal command or format"
+
+
+@pytest.mark.parametrize(
+    ("sts", "ext", "text"),
+    [
+        (0x00, None, "Success - no error"),
+        (0x02, None, "Cannot guarantee delivery: link layer"),
+        (0x05, None, "Application layer timed out waiting for a response"),
+        (0x10, None, "Illegal command or format"),
+        (0x50, None, "Addressing problem or memory protect rungs"),
+        (0x70, None, "Processor is in program mode"),
+        (0xF0, 0x0B, "Access denied, improper privilege"),
+        (0xF0, 0x11, "Illegal data type"),
+        (0xF0, 0x1B, "Another node is the program owner"),
+        (0xF0, 0x7E, "Unknown extended status 0x7E"),
+    ],
+)
+def test_status_descriptions(sts: int, ext: int | None, text: str) -> None:
+    assert describe_status(sts, ext) == text
+
+
+def test_status_descriptions_per_command() -> None:
+    assert describe_status(0xF0, 0x07, cmd=0x0E) == "Invalid address"
+    assert describe_status(0xF0, 0x07, cmd=0x4F) == "File is wrong size"
+    keyswitch = describe_status(0xF0, 0x0C, fnc=Function.SET_PROCESSOR_MODE)
+    assert keyswitch.startswith("Condition cannot be generated")
+    assert describe_status(0x50, fnc=Function.READ_FILE_INFO) == "Bad address; file doesn't exist"
+    assert describe_status(0x12) == "Cannot guarantee delivery: link layer; Illegal command or format"
+    assert "missing" in describe_status(0xF0)
+
+
+def test_reply_format_errors() -> None:
+    with pytest.raises(PcccFormatError):
+        decode_reply(H("00 01 4F 00 01"))
+    with pytest.raises(PcccFormatError):
+        decode_reply(H("00 01 0F 00 01 00"))  # a command
+    with pytest.raises(PcccFormatError):
+        decode_reply(H("00 01 4F F0 01 00"))  # EXT STS missing
+    with pytest.raises(InvalidRequest):
+        encode_reply(PcccHeader(1, 0, 0x0F, 0, 1), sts=0xF0)
+
+
+# --------------------------------------------------------------------- controller side
+
+
+def test_decode_command_errors_carry_the_header() -> None:
+    with pytest.raises(PcccFormatError) as info:
+        decode_command(H("01 00 0F 00 01 00 55"))
+    assert info.value.header == PcccHeader(1, 0, 0x0F, 0, 1)
+    assert isinstance(info.value, ProtocolError)
+    with pytest.raises(PcccFormatError) as info:
+        decode_command(H("01 00 0F 00 01 00 A2 0A 07"))  # truncated
+    assert info.value.header is not None
+    with pytest.raises(PcccFormatError):
+        decode_command(H("01 00 0F 00 01 00 A2 0A 07 89 00 00 99"))  # trailing byte
+    with pytest.raises(PcccFormatError):
+        decode_command(H("01 00 0F 00 01 00 A2 00 07 89 00 00"))  # size 0
+    with pytest.raises(PcccFormatError):
+        decode_command(H("01 00 4F 00 01 00"))  # a reply
+    with pytest.raises(PcccFormatError) as info:
+        decode_command(H("01 00"))
+    assert info.value.header is None
+    with pytest.raises(PcccFormatError):
+        decode_command(H("01 00 0F 00 01 00 AA 04 07 89 00 00 01 00"))  # fewer data bytes than size
+
+
+def test_controller_answers_a_read() -> None:
+    packet = encode_command(ProtectedTypedLogicalRead(FileType.INTEGER, 7, 0, 0, 4), dst=1, src=0, tns=77)
+    command = decode_command(packet)
+    reply = decode_reply(encode_reply(command.header, data=H("01 00 02 00")))
+    assert (reply.dst, reply.src, reply.cmd, reply.tns) == (0, 1, 0x4F, 77)
+    assert reply_matches(packet, reply)
+
+
+requests = st.one_of(
+    st.builds(
+        ProtectedTypedLogicalRead,
+        st.sampled_from(list(FileType)),
+        st.integers(0, 0xFFFF),
+        st.integers(0, 0xFFFF),
+        st.integers(0, 0xFFFF),
+        st.integers(1, 255),
+    ),
+    st.builds(
+        ProtectedTypedLogicalWrite,
+        st.sampled_from(list(FileType)),
+        st.integers(0, 0xFFFF),
+        st.integers(0, 0xFFFF),
+        st.integers(0, 0xFFFF),
+        st.binary(min_size=1, max_size=255),
+    ),
+    st.builds(
+        ProtectedTypedLogicalMaskedWrite,
+        st.sampled_from(list(FileType)),
+        st.integers(0, 300),
+        st.integers(0, 300),
+        st.integers(0, 2),
+        st.integers(0, 0xFFFF),
+        st.binary(max_size=82),
+    ),
+    st.builds(ReadFileInfo, st.integers(0, 0xFFFF)),
+    st.builds(SetProcessorMode, st.sampled_from(list(ProcessorMode))),
+    st.just(DiagnosticStatus()),
+    st.builds(
+        WordRangeRead,
+        st.builds(LogicalBinaryAddress.for_element, st.integers(0, 999), st.integers(0, 999)),
+        st.integers(1, 255),
+        st.integers(0, 0xFFFF),
+        st.integers(0, 0xFFFF),
+    ),
+    st.builds(
+        WordRangeWrite,
+        st.builds(LogicalBinaryAddress.for_element, st.integers(0, 999), st.integers(0, 999)),
+        st.binary(min_size=1, max_size=100).map(lambda b: b + b),
+    ),
+    st.builds(
+        TypedRead,
+        st.builds(LogicalBinaryAddress.for_element, st.integers(0, 999), st.integers(0, 999)),
+        st.integers(1, 1000),
+    ),
+    st.builds(
+        TypedWrite,
+        st.builds(LogicalBinaryAddress.for_element, st.integers(0, 999), st.integers(0, 999)),
+        st.sampled_from(list(DataType)).filter(lambda t: t != DataType.ARRAY),
+        st.just(2),
+        st.binary(min_size=1, max_size=60).map(lambda b: b + b),
+    ),
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(requests, st.integers(0, 255), st.integers(0, 255), st.integers(0, 0xFFFF))
+def test_every_request_round_trips(request: Request, dst: int, src: int, tns: int) -> None:
+    packet = encode_command(request, dst=dst, src=src, tns=tns)
+    command = decode_command(packet)
+    assert command.request == request
+    assert command.header == PcccHeader(dst, src, request.CMD, 0, tns)
+    assert packet[2] in (Command.DIAGNOSTIC, Command.EXTENDED)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=40))
+def test_decode_command_never_raises_anything_else(packet: bytes) -> None:
+    try:
+        decode_command(packet)
+    except PcccFormatError:
+        pass
+
+
+# ---------------------------------------------------------------------------- TNS, limits
+
+
+def test_tns_allocator() -> None:
+    tns = TnsAllocator(start=0xFFFE)
+    first, second, third = tns.allocate(), tns.allocate(), tns.allocate()
+    assert (first, second, third) == (0xFFFE, 0xFFFF, 0x0000)
+    tns.release(0xFFFF)
+    assert tns.outstanding == {0xFFFE, 0x0000}
+    allocator = TnsAllocator(start=5)
+    a = allocator.allocate()
+    for _ in range(0xFFFF):
+        allocator.release(allocator.allocate())
+    assert a == 5 and allocator.allocate() != 5  # the outstanding TNS is skipped on wrap-around
+
+
+def test_tns_allocator_exhausted() -> None:
+    allocator = TnsAllocator()
+    for _ in range(0x10000):
+        allocator.allocate()
+    with pytest.raises(InvalidRequest):
+        allocator.allocate()
+
+
+def test_processor_family_limits() -> None:
+    for family in (ProcessorFamily.SLC500_FIXED, ProcessorFamily.SLC5_01, ProcessorFamily.SLC5_02):
+        assert (family.max_read_bytes, family.max_write_bytes) == (82, 82)
+    for family in (ProcessorFamily.SLC5_03, ProcessorFamily.SLC5_04, ProcessorFamily.SLC5_05):
+        assert (family.max_read_bytes, family.max_write_bytes) == (236, 228)
+    assert (ProcessorFamily.PLC5.max_read_bytes, ProcessorFamily.PLC5.max_write_bytes) == (230, 222)
+    # Notes §4.36 example: 5/03 without Internet field, file and sub-element in 3-byte form -> 224.
+    assert ProcessorFamily.SLC5_03.limits.write_limit(expanded_fields=2) == 224
+    assert ProcessorFamily.SLC5_04.limits.max_read_elements(6) == 39  # timers: 39 (read table)
+    assert ProcessorFamily.SLC5_04.limits.max_write_elements(2) == 114
+    assert ProcessorFamily.from_processor_type(0x49) is ProcessorFamily.SLC5_03
+    assert ProcessorFamily.from_processor_type(0x18) is ProcessorFamily.SLC5_01
+    assert ProcessorFamily.from_processor_type(0x77) is None
+    custom = SizeLimits(max_read_bytes=120, max_write_bytes=100)
+    assert custom.max_read_elements(2) == 60
+    with pytest.raises(ValueError):
+        SizeLimits(0, 10)
+
+
+def test_request_validation() -> None:
+    with pytest.raises(InvalidRequest):
+        ProtectedTypedLogicalRead(FileType.INTEGER, 7, 0, 0, 256)
+    with pytest.raises(InvalidRequest):
+        ProtectedTypedLogicalWrite(FileType.INTEGER, 7, 0, 0, b"")
+    with pytest.raises(InvalidRequest):
+        ProtectedTypedLogicalRead(FileType.INTEGER, 0x10000, 0, 0, 2)
+    with pytest.raises(InvalidRequest):
+        encode_command(DiagnosticStatus(), dst=256, src=0, tns=0)

@@ -1,0 +1,543 @@
+"""SLC 100/150 ASCII framing: CRC vectors from the manual, frame encoding, the streaming decoders.
+
+Source: docs/slc100-150-ascii-protocol.md, "Format of Transmission".  The CRC is cross-checked
+against a literal transcription of the manual's BASIC program, written here independently of the
+implementation's byte table.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gateway.protocols.slc_ascii import commands as cmds
+from gateway.protocols.slc_ascii.commands import Command, ReplyKind, TimeoutClass
+from gateway.protocols.slc_ascii.framing import (
+    MAX_FRAME,
+    MAX_ID,
+    NEED_DATA,
+    Ack,
+    CommandDecoder,
+    CommandFrame,
+    DataReply,
+    Fault,
+    Garbled,
+    HostEvent,
+    IdMismatch,
+    IdSequencer,
+    Refused,
+    ReplyDecoder,
+    ReplyEvent,
+    RetransmitRequest,
+    crc,
+    encode_ack,
+    encode_command,
+    encode_data_reply,
+    encode_fault,
+    encode_id_mismatch,
+    encode_refused,
+    encode_retransmit,
+)
+
+# ---------------------------------------------------------------------------------------------
+# The manual's BASIC program, transcribed line by line (IBM BASIC: INT(x / 16) on a non-negative
+# number is an integer division; XOR and AND are bitwise).
+#
+#   10 DIM G(16) / 20-40 READ G(I) / 180-190 DATA ...
+#   60 CHECKSUM=0
+#   70 FOR COUNT=1 TO LEN(A$)
+#   80 CHAR=ASC (MID$(A$, COUNT, 1))
+#   90 FOR J=1 TO 2
+#   100 INDEX=(CHECKSUM XOR CHAR) AND &HF
+#   110 CHECKSUM=INT (CHECKSUM / 16)
+#   120 CHECKSUM=CHECKSUM XOR G (INDEX)
+#   130 CHAR=INT (CHAR / 16)
+#   140 NEXT J
+#   150 NEXT COUNT
+
+BASIC_DATA = [0, 23, 46, 57, 92, 75, 114, 101, 184, 175, 150, 129, 228, 243, 202, 221]
+
+
+def basic_crc(a_string: str) -> int:
+    g = list(BASIC_DATA)  # 10-40, 180-190
+    checksum = 0  # 60
+    for count in range(1, len(a_string) + 1):  # 70
+        char = ord(a_string[count - 1 : count])  # 80
+        for _j in range(1, 3):  # 90
+            index = (checksum ^ char) & 0xF  # 100
+            checksum = int(checksum / 16)  # 110
+            checksum = checksum ^ g[index]  # 120
+            char = int(char / 16)  # 130
+    return checksum  # 160 PRINT HEX$(CHECKSUM)
+
+
+def msb_first_polynomial_crc(data: bytes) -> int:
+    """The printed polynomial X^8+X^6+X^5+X^4+1 done the 'obvious' way (MSB first, init 0)."""
+    checksum = 0
+    for byte in data:
+        checksum ^= byte
+        for _ in range(8):
+            checksum = ((checksum << 1) ^ 0x171) & 0xFF if checksum & 0x80 else (checksum << 1) & 0xFF
+    return checksum
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+
+
+def drain(decoder: ReplyDecoder | CommandDecoder) -> list[ReplyEvent | HostEvent]:
+    events: list[ReplyEvent | HostEvent] = []
+    while (event := decoder.next_event()) is not NEED_DATA:
+        events.append(event)
+    return events
+
+
+Feeder = Callable[[ReplyDecoder | CommandDecoder, bytes], list[ReplyEvent | HostEvent]]
+
+
+def feed_whole(decoder: ReplyDecoder | CommandDecoder, data: bytes) -> list[ReplyEvent | HostEvent]:
+    decoder.receive_data(data)
+    return drain(decoder)
+
+
+def feed_bytewise(decoder: ReplyDecoder | CommandDecoder, data: bytes) -> list[ReplyEvent | HostEvent]:
+    events: list[ReplyEvent | HostEvent] = []
+    for i in range(len(data)):
+        decoder.receive_data(data[i : i + 1])
+        events += drain(decoder)
+    return events
+
+
+def feed_chunks_of_3(decoder: ReplyDecoder | CommandDecoder, data: bytes) -> list[ReplyEvent | HostEvent]:
+    events: list[ReplyEvent | HostEvent] = []
+    for i in range(0, len(data), 3):
+        decoder.receive_data(data[i : i + 3])
+        events += drain(decoder)
+    return events
+
+
+FEEDERS: Sequence[Feeder] = (feed_whole, feed_bytewise, feed_chunks_of_3)
+FEEDER_IDS = ("whole", "byte-by-byte", "chunks-of-3")
+
+#: Trailing bytes after a frame: the start of the next frame, line noise, a stray CR/LF.
+TRAILERS = (b"", b";R0", b":0002", b"\n", b"\r", b"\x00\x7f", b"\r\n;E")
+
+
+def decode_replies(data: bytes, feeder: Feeder = feed_whole) -> list[ReplyEvent]:
+    events = feeder(ReplyDecoder(), data)
+    return [e for e in events if not isinstance(e, (CommandFrame, RetransmitRequest))]
+
+
+def decode_commands(data: bytes, feeder: Feeder = feed_whole) -> list[HostEvent]:
+    events = feeder(CommandDecoder(), data)
+    return [e for e in events if isinstance(e, (CommandFrame, RetransmitRequest, Garbled))]
+
+
+def set_bit7(data: bytes) -> bytes:
+    return bytes(b | 0x80 for b in data)
+
+
+# ---------------------------------------------------------------------------------------------
+# CRC
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("010800", 0xA3),  # #0108 with ID 00 (read FRN)
+        ("R03", 0x8D),  # ;R acknowledge with ID 03
+    ],
+)
+def test_crc_manual_vectors(text: str, expected: int) -> None:
+    assert basic_crc(text) == expected
+    assert crc(text.encode("ascii")) == expected
+
+
+@pytest.mark.parametrize(
+    "text",
+    ["", "0", "Z09", "E07", "T00", "I12", "0502000200840102", "04030101067F", "021FFE154700",
+     "1101" + "00" + "0F" * 15 + "7F", "000200400064", "abcdef", "~!\x7f\x00"],
+)
+def test_crc_agrees_with_the_basic_program(text: str) -> None:
+    assert crc(text.encode("latin-1")) == basic_crc(text)
+
+
+@given(st.text(alphabet=st.characters(min_codepoint=0, max_codepoint=127), max_size=60))
+def test_crc_agrees_with_the_basic_program_on_any_ascii(text: str) -> None:
+    assert crc(text.encode("ascii")) == basic_crc(text)
+
+
+def test_crc_is_not_the_naive_msb_first_polynomial() -> None:
+    # docs/ARCHITECTURE.md: the BASIC table is normative; the printed polynomial done MSB-first differs.
+    assert msb_first_polynomial_crc(b"010800") != 0xA3
+    assert msb_first_polynomial_crc(b"R03") != 0x8D
+
+
+def test_crc_is_always_one_byte() -> None:
+    for value in range(256):
+        assert 0 <= crc(bytes([value]) * 3) <= 0xFF
+
+
+# ---------------------------------------------------------------------------------------------
+# Encoding: full frames, each checked against the BASIC CRC
+
+
+def frame_of(lead: str, text: str) -> bytes:
+    return f"{lead}{text}{basic_crc(text):02X}\r".encode("ascii")
+
+
+@pytest.mark.parametrize(
+    ("encoded", "lead", "text"),
+    [
+        (encode_command(cmds.read_frn(), 0), "#", "010800"),
+        (encode_command(cmds.read_bytes(0x84, 2), 1), "#", "0502" "0002" "0084" "01"),
+        (encode_command(cmds.write_word(0x40, 1234), 2), "#", "0503" "0040" "04D2" "02"),
+        (encode_command(cmds.write_byte(0xA6, 0x55), 0x7F), "#", "0403" "00A6" "55" "7F"),
+        (encode_command(cmds.set_mode(cmds.Mode.PROGRAM), 0x10), "#", "04030101" "06" "10"),
+        (encode_command(cmds.upload_block(), 5), "#", "0100" "05"),
+        (encode_command(cmds.download_block(3, bytes(range(15)), controller=cmds.ControllerType.SLC150), 6),
+         "#", "1101" "03" + bytes(range(15)).hex().upper() + "06"),
+        (encode_retransmit(9), ";", "Z09"),
+        (encode_ack(3), ";", "R03"),
+        (encode_refused(7), ";", "E07"),
+        (encode_fault(), ";", "T00"),
+        (encode_id_mismatch(0x12), ";", "I12"),
+        (encode_data_reply("021FFE1547", 0), ":", "021FFE1547" "00"),
+        (encode_data_reply("000200400064", 0x7F), ":", "000200400064" "7F"),
+        (encode_data_reply("0aff", 1), ":", "0AFF" "01"),  # upper case on the wire
+    ],
+)
+def test_encoded_frames(encoded: bytes, lead: str, text: str) -> None:
+    assert encoded == frame_of(lead, text)
+
+
+def test_manual_frames_literally() -> None:
+    assert encode_command(cmds.read_frn(), 0) == b"#010800A3\r"
+    assert encode_ack(3) == b";R038D\r"
+
+
+@pytest.mark.parametrize(
+    "encode",
+    [
+        lambda i: encode_ack(i),
+        lambda i: encode_refused(i),
+        lambda i: encode_fault(i),
+        lambda i: encode_id_mismatch(i),
+        lambda i: encode_retransmit(i),
+        lambda i: encode_data_reply("00", i),
+        lambda i: encode_command(cmds.read_frn(), i),
+    ],
+)
+@pytest.mark.parametrize("bad_id", [-1, MAX_ID + 1, 0xFF])
+def test_encoders_refuse_ids_out_of_range(encode: Callable[[int], bytes], bad_id: int) -> None:
+    with pytest.raises(ValueError):
+        encode(bad_id)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reply decoding: every kind, fed whole, byte by byte and with trailing bytes
+
+REPLY_SAMPLES: list[tuple[bytes, ReplyEvent]] = [
+    (b";R038D\r", Ack(3)),
+    (frame_of(";", "R00"), Ack(0)),
+    (frame_of(";", "R7F"), Ack(0x7F)),
+    (frame_of(";", "E07"), Refused(7)),
+    (frame_of(";", "T00"), Fault(0)),
+    (frame_of(";", "T5A"), Fault(0x5A)),
+    (frame_of(";", "I12"), IdMismatch(0x12)),
+    (frame_of(";", "I00"), IdMismatch(0)),
+    # FRN reply: 2-digit byte count, device type 15 (SLC 150), FRN 47
+    (frame_of(":", "021FFE1547" "00"), DataReply("021FFE1547", 0)),
+    # read reply with a 4-digit count (as the read command sends it) and with a 2-digit count
+    (frame_of(":", "0002" "0040" "0064" "05"), DataReply("000200400064", 5)),
+    (frame_of(":", "02" "0040" "0064" "05"), DataReply("0200400064", 5)),
+    (frame_of(":", "0001" "0084" "08" "2A"), DataReply("0001008408", 0x2A)),
+    # upload block: <block #> <15 bytes>
+    (frame_of(":", "A4" + "11" * 7 + "00" * 8 + "33"), DataReply("A4" + "11" * 7 + "00" * 8, 0x33)),
+]
+
+
+@pytest.mark.parametrize("feeder", FEEDERS, ids=FEEDER_IDS)
+@pytest.mark.parametrize("trailer", TRAILERS)
+@pytest.mark.parametrize(("frame", "expected"), REPLY_SAMPLES)
+def test_reply_kinds(frame: bytes, expected: ReplyEvent, trailer: bytes, feeder: Feeder) -> None:
+    assert decode_replies(frame + trailer, feeder) == [expected]
+
+
+@pytest.mark.parametrize("feeder", FEEDERS, ids=FEEDER_IDS)
+@pytest.mark.parametrize(("frame", "expected"), REPLY_SAMPLES)
+def test_reply_with_bit7_set_on_every_byte(frame: bytes, expected: ReplyEvent, feeder: Feeder) -> None:
+    # Even parity read by a port set to 8 data bits: bit 7 is the parity bit, masked away.
+    assert decode_replies(set_bit7(frame), feeder) == [expected]
+
+
+@pytest.mark.parametrize("feeder", FEEDERS, ids=FEEDER_IDS)
+def test_stray_line_feeds_are_ignored(feeder: Feeder) -> None:
+    data = b"\n;R0\n38D\r\n\n" + frame_of(":", "021FFE1547" "01").replace(b"FE", b"F\nE") + b"\n"
+    assert decode_replies(data, feeder) == [Ack(3), DataReply("021FFE1547", 1)]
+
+
+@pytest.mark.parametrize("feeder", FEEDERS, ids=FEEDER_IDS)
+def test_noise_before_a_frame_is_discarded(feeder: Feeder) -> None:
+    assert decode_replies(b"\x00\x07garbage 123\r\r" + b";R038D\r", feeder) == [Ack(3)]
+
+
+@pytest.mark.parametrize("feeder", FEEDERS, ids=FEEDER_IDS)
+def test_a_stream_of_replies(feeder: Feeder) -> None:
+    data = b"".join(frame for frame, _ in REPLY_SAMPLES)
+    assert decode_replies(data, feeder) == [event for _, event in REPLY_SAMPLES]
+
+
+@pytest.mark.parametrize("feeder", FEEDERS, ids=FEEDER_IDS)
+def test_lower_case_hex_is_accepted(feeder: Feeder) -> None:
+    text = "021ffe1547" "0a"
+    frame = f":{text}{crc(text.encode()):02x}\r".encode()
+    assert decode_replies(frame, feeder) == [DataReply("021FFE1547", 0x0A)]
+
+
+def test_two_and_four_digit_counts_parse_to_the_same_data() -> None:
+    four = decode_replies(frame_of(":", "0002" "0040" "0064" "05"))
+    two = decode_replies(frame_of(":", "02" "0040" "0064" "05"))
+    assert isinstance(four[0], DataReply)
+    assert isinstance(two[0], DataReply)
+    assert cmds.parse_read_reply(0x40, 2, four[0].body_hex) == b"\x00\x64"
+    assert cmds.parse_read_reply(0x40, 2, two[0].body_hex) == b"\x00\x64"
+    frn = decode_replies(frame_of(":", "021FFE1547" "00"))[0]
+    assert isinstance(frn, DataReply)
+    info = cmds.parse_frn_reply(frn.body_hex)
+    assert (info.controller, info.frn) == (cmds.ControllerType.SLC150, 47)
+    frn4 = decode_replies(frame_of(":", "00021FFE1005" "00"))[0]
+    assert isinstance(frn4, DataReply)
+    assert cmds.parse_frn_reply(frn4.body_hex).controller is cmds.ControllerType.SLC100
+
+
+# ---------------------------------------------------------------------------------------------
+# Garbled replies, and recovery for the next frame
+
+GOOD = b";R04C0\r"
+assert GOOD == frame_of(";", "R04")
+
+GARBLED_SAMPLES: list[tuple[str, bytes]] = [
+    ("bad CRC", b";R038E\r"),
+    ("CRC not hex", b";R03X8\r"),
+    ("data reply bad CRC", frame_of(":", "021FFE1547" "00").replace(b"47", b"46")),
+    ("truncated with CR", b";R0\r"),
+    ("only the lead", b":\r"),
+    ("data reply odd body", frame_of(":", "021FFE154" "00")),
+    ("data reply empty body", frame_of(":", "00")),
+    ("data reply non-hex body", frame_of(":", "02GG" "00")),
+    ("reply too long", frame_of(";", "R0300")),
+    ("unknown reply letter", frame_of(";", "X03")),
+    ("ID not hex", frame_of(";", "RZZ")),
+    ("ID out of range", frame_of(";", "R80")),
+    ("too long", b":" + b"0" * (MAX_FRAME + 10) + b"\r"),
+]
+
+
+@pytest.mark.parametrize("feeder", FEEDERS, ids=FEEDER_IDS)
+@pytest.mark.parametrize(("name", "bad"), GARBLED_SAMPLES, ids=[name for name, _ in GARBLED_SAMPLES])
+def test_garbled_reply_then_recovery(name: str, bad: bytes, feeder: Feeder) -> None:
+    events = decode_replies(bad + GOOD, feeder)
+    assert len(events) == 2, events
+    assert isinstance(events[0], Garbled)
+    assert events[0].reason
+    assert events[1] == Ack(4)
+
+
+@pytest.mark.parametrize("feeder", FEEDERS, ids=FEEDER_IDS)
+def test_frame_interrupted_by_a_new_leading_character(feeder: Feeder) -> None:
+    # The CR of the first reply was lost: the next leading character ends it.
+    events = decode_replies(b";R03" + b":021FFE" + GOOD, feeder)
+    assert [type(e) for e in events] == [Garbled, Garbled, Ack]
+    assert isinstance(events[0], Garbled)
+    assert events[0].raw == b";R03"
+    assert events[-1] == Ack(4)
+
+
+@pytest.mark.parametrize("feeder", FEEDERS, ids=FEEDER_IDS)
+def test_long_garbage_without_cr_is_dropped_and_the_next_frame_decodes(feeder: Feeder) -> None:
+    events = decode_replies(b";" + b"5" * (3 * MAX_FRAME) + GOOD, feeder)
+    assert all(isinstance(e, Garbled) for e in events[:-1])
+    assert len(events) >= 2
+    assert events[-1] == Ack(4)
+
+
+def test_longest_real_frame_fits() -> None:
+    block = cmds.download_block(0xA4, bytes(7) + bytes(8), controller=cmds.ControllerType.SLC150)
+    frame = encode_command(block, 0x7F)
+    assert len(frame) - 1 <= MAX_FRAME
+    assert decode_commands(frame) == [CommandFrame(block.code, block.params, 0x7F)]
+
+
+def test_a_partial_frame_is_need_data() -> None:
+    decoder = ReplyDecoder()
+    decoder.receive_data(b";R038")
+    assert decoder.next_event() is NEED_DATA
+    decoder.receive_data(b"D")
+    assert decoder.next_event() is NEED_DATA
+    decoder.receive_data(b"\r")
+    assert decoder.next_event() == Ack(3)
+    assert decoder.next_event() is NEED_DATA
+
+
+def test_reply_decoder_ignores_host_frames_leading_character() -> None:
+    # '#' is not a reply leading character: an echoed command is line noise to the host.
+    assert decode_replies(b"#010800A3\r" + GOOD) == [Ack(4)]
+
+
+# ---------------------------------------------------------------------------------------------
+# Command decoding (the simulator's side)
+
+COMMAND_SAMPLES: list[tuple[bytes, HostEvent]] = [
+    (b"#010800A3\r", CommandFrame(0x08, b"", 0)),
+    (encode_command(cmds.read_bytes(0x84, 2), 1), CommandFrame(0x02, bytes.fromhex("00020084"), 1)),
+    (encode_command(cmds.write_word(0x40, 1234), 0x7F), CommandFrame(0x03, bytes.fromhex("004004D2"), 0x7F)),
+    (encode_command(cmds.set_mode(cmds.Mode.RUN), 2), CommandFrame(0x03, bytes.fromhex("010180"), 2)),
+    (encode_retransmit(9), RetransmitRequest(9)),
+]
+
+
+@pytest.mark.parametrize("feeder", FEEDERS, ids=FEEDER_IDS)
+@pytest.mark.parametrize("trailer", (b"", b"#01", b"\n", b"\x00", b";Z"))
+@pytest.mark.parametrize(("frame", "expected"), COMMAND_SAMPLES)
+def test_command_frames(frame: bytes, expected: HostEvent, trailer: bytes, feeder: Feeder) -> None:
+    assert decode_commands(frame + trailer, feeder) == [expected]
+    assert decode_commands(set_bit7(frame), feeder) == [expected]
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        frame_of("#", "0208" "00"),  # byte count 2, but only the code follows
+        frame_of("#", "0108" "AA" "00"),  # byte count 1, one parameter byte too many
+        frame_of("#", "01" "00"),  # no command code
+        frame_of("#", "010" "00"),  # odd number of hex digits
+        frame_of(";", "Q01"),  # unknown ; command
+        frame_of(";", "Z0101"),  # ;Z too long
+        b"#010800A4\r",  # bad CRC
+    ],
+)
+@pytest.mark.parametrize("feeder", FEEDERS, ids=FEEDER_IDS)
+def test_garbled_commands_then_recovery(bad: bytes, feeder: Feeder) -> None:
+    events = decode_commands(bad + b"#010800A3\r", feeder)
+    assert len(events) == 2
+    assert isinstance(events[0], Garbled)
+    assert events[1] == CommandFrame(0x08, b"", 0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Message IDs
+
+
+def test_id_sequence_starts_at_00_and_rolls_over_to_01() -> None:
+    ids = IdSequencer()
+    assert ids.peek == 0
+    taken = [ids.take() for _ in range(1 + 0x7F + 3)]
+    assert taken == [0, *range(1, 0x80), 1, 2, 3]
+    assert 0 not in taken[1:]
+
+
+def test_id_sequence_reset_restarts_at_00() -> None:
+    ids = IdSequencer()
+    for _ in range(10):
+        ids.take()
+    ids.reset()
+    assert ids.peek == 0
+    assert [ids.take(), ids.take()] == [0, 1]
+
+
+# ---------------------------------------------------------------------------------------------
+# Properties
+
+ids_strategy = st.integers(min_value=0, max_value=MAX_ID)
+
+reply_strategy = st.one_of(
+    st.builds(Ack, ids_strategy),
+    st.builds(Refused, ids_strategy),
+    st.builds(Fault, ids_strategy),
+    st.builds(IdMismatch, ids_strategy),
+    st.builds(
+        DataReply,
+        st.binary(min_size=1, max_size=(MAX_FRAME - 5) // 2).map(lambda b: b.hex().upper()),
+        ids_strategy,
+    ),
+)
+
+
+def encode_reply(event: ReplyEvent) -> bytes:
+    if isinstance(event, Ack):
+        return encode_ack(event.msg_id)
+    if isinstance(event, Refused):
+        return encode_refused(event.msg_id)
+    if isinstance(event, Fault):
+        return encode_fault(event.msg_id)
+    if isinstance(event, IdMismatch):
+        return encode_id_mismatch(event.last_valid_id)
+    assert isinstance(event, DataReply)
+    return encode_data_reply(event.body_hex, event.msg_id)
+
+
+@settings(max_examples=200)
+@given(st.lists(reply_strategy, min_size=1, max_size=8), st.integers(min_value=1, max_value=7), st.booleans())
+def test_reply_round_trip(events: list[ReplyEvent], chunk: int, parity_bit: bool) -> None:
+    data = b"".join(encode_reply(e) for e in events)
+    if parity_bit:
+        data = set_bit7(data)
+    decoder = ReplyDecoder()
+    decoded: list[ReplyEvent | HostEvent] = []
+    for i in range(0, len(data), chunk):
+        decoder.receive_data(data[i : i + chunk])
+        decoded += drain(decoder)
+    assert decoded == events
+
+
+command_strategy = st.builds(
+    lambda code, params: Command(code, params, "test", ReplyKind.ACK, TimeoutClass.NORMAL, False),
+    st.integers(min_value=0, max_value=0xFF),
+    st.binary(max_size=(MAX_FRAME - 9) // 2),
+)
+
+
+@settings(max_examples=200)
+@given(command_strategy, ids_strategy, st.integers(min_value=1, max_value=7))
+def test_command_round_trip(command: Command, msg_id: int, chunk: int) -> None:
+    data = encode_command(command, msg_id) + encode_retransmit(msg_id)
+    decoder = CommandDecoder()
+    decoded: list[ReplyEvent | HostEvent] = []
+    for i in range(0, len(data), chunk):
+        decoder.receive_data(data[i : i + chunk])
+        decoded += drain(decoder)
+    assert decoded == [CommandFrame(command.code, command.params, msg_id), RetransmitRequest(msg_id)]
+
+
+@settings(max_examples=300)
+@given(st.binary(max_size=300), reply_strategy)
+def test_random_bytes_never_raise_and_the_next_frame_decodes(noise: bytes, event: ReplyEvent) -> None:
+    decoder = ReplyDecoder()
+    decoder.receive_data(noise)
+    for item in drain(decoder):
+        assert isinstance(item, (DataReply, Ack, Refused, Fault, IdMismatch, Garbled))
+    decoder.receive_data(encode_reply(event))
+    assert drain(decoder)[-1] == event
+
+
+@settings(max_examples=300)
+@given(st.binary(max_size=300))
+def test_random_bytes_never_raise_in_the_command_decoder(noise: bytes) -> None:
+    decoder = CommandDecoder()
+    decoder.receive_data(noise)
+    for item in drain(decoder):
+        assert isinstance(item, (CommandFrame, RetransmitRequest, Garbled))
+    decoder.receive_data(b"#010800A3\r")
+    assert drain(decoder)[-1] == CommandFrame(0x08, b"", 0)
+
+
+@settings(max_examples=200)
+@given(st.lists(st.sampled_from(b"#;:RETIZ0123456789ABCDEF\r\n"), max_size=200).map(bytes))
+def test_protocol_alphabet_soup_never_raises(soup: bytes) -> None:
+    for decoder in (ReplyDecoder(), CommandDecoder()):
+        decoder.receive_data(soup)
+        drain(decoder)
