@@ -18,8 +18,8 @@ run: $(VENV)/.installed
 # mbpoll is the second, independent Modbus client of the end-to-end tests (Debian package).
 mbpoll:
 	@command -v mbpoll >/dev/null 2>&1 || { \
-	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq mbpoll >/dev/null; \
-	  elif command -v sudo >/dev/null 2>&1; then sudo apt-get update -qq && sudo apt-get install -y -qq mbpoll >/dev/null; \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq mbpoll openssl >/dev/null; \
+	  elif command -v sudo >/dev/null 2>&1; then sudo apt-get update -qq && sudo apt-get install -y -qq mbpoll openssl >/dev/null; \
 	  else echo "mbpoll not installed: its end-to-end tests will be skipped"; fi; }
 
 test: $(VENV)/.installed mbpoll

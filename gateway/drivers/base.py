@@ -30,6 +30,9 @@ __all__ = ["LinkCounters", "LinkDriver", "OpenStream", "Priority"]
 log = logging.getLogger("gateway.link")
 
 T = TypeVar("T")
+
+#: A connection that lasted less than this (seconds) counts as a failed attempt for the backoff.
+_STABLE_CONNECTION = 5.0
 OpenStream = Callable[..., Awaitable[ByteStream]]
 
 
@@ -165,8 +168,16 @@ class LinkDriver(ABC):
                 continue
             if attempt or self.counters.transactions:
                 self.counters.reconnects += 1
-            delay, attempt = self._reconnect_min, 0
+            attempt = 0
+            opened = asyncio.get_running_loop().time()
             await self._serve(stream)
+            if asyncio.get_running_loop().time() - opened < _STABLE_CONNECTION:
+                # Opened, then lost at once (a device server that accepts and hangs up, a flaky
+                # USB adapter): back off as for a failed open instead of reconnecting in a loop.
+                await asyncio.sleep(delay * random.uniform(0.8, 1.2))
+                delay = min(delay * 2, self._reconnect_max)
+            else:
+                delay = self._reconnect_min
 
     def _fail_attempt(self, reason: str) -> None:
         self.last_error = reason
