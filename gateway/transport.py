@@ -26,6 +26,13 @@ __all__ = ["ByteStream", "SerialSettings", "StreamPair", "TracingStream", "descr
 
 _READ_SIZE: Final = 4096
 
+try:
+    import termios
+
+    _TERMIOS_ERRORS: tuple[type[Exception], ...] = (termios.error,)
+except ImportError:  # Windows
+    _TERMIOS_ERRORS = ()
+
 
 @dataclass(frozen=True, slots=True)
 class SerialSettings:
@@ -187,8 +194,10 @@ async def _open_serial(url: str, settings: SerialSettings, connect_timeout: floa
         )
     except TimeoutError as exc:
         raise LinkDown(f"{url}: port did not open within {connect_timeout:g} s") from exc
-    except (OSError, ValueError, serial.SerialException) as exc:
-        raise LinkDown(f"{url}: {exc}") from exc
+    except (OSError, ValueError, serial.SerialException, *_TERMIOS_ERRORS) as exc:
+        # termios.error (not an OSError): the port refused the line settings, e.g. 7E1 on a pty
+        raise LinkDown(f"{url}: cannot open with {settings.baudrate} {settings.bytesize}{settings.parity}"
+                       f"{settings.stopbits}: {exc}") from exc
     port = writer.transport.get_extra_info("serial")
     if port is not None:
         try:
