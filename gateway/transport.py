@@ -181,7 +181,7 @@ async def _open_serial(url: str, settings: SerialSettings, connect_timeout: floa
     import serial
     import serial_asyncio_fast
 
-    _OPEN_ERRORS: tuple[type[Exception], ...] = (OSError, ValueError, serial.SerialException, *_TERMIOS_ERRORS)
+    open_errors: tuple[type[Exception], ...] = (OSError, ValueError, serial.SerialException, *_TERMIOS_ERRORS)
 
     try:
         reader, writer = await asyncio.wait_for(
@@ -196,7 +196,7 @@ async def _open_serial(url: str, settings: SerialSettings, connect_timeout: floa
         )
     except TimeoutError as exc:
         raise LinkDown(f"{url}: port did not open within {connect_timeout:g} s") from exc
-    except _OPEN_ERRORS as exc:
+    except open_errors as exc:
         # termios.error (not an OSError): the port refused the line settings, e.g. 7E1 on a pty
         raise LinkDown(f"{url}: cannot open with {settings.baudrate} {settings.bytesize}{settings.parity}"
                        f"{settings.stopbits}: {exc}") from exc
