@@ -13,7 +13,7 @@ from gateway.config import GatewayConfig, LinkConfig, parse_listen
 from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import ModbusExceptionReply
 from gateway.metrics import MetricsServer
-from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Table
+from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Block, Table
 from gateway.modbus.server import ModbusTcpServer, make_tls_context
 from gateway.transport import SerialSettings
 from gateway.unit import SlcAsciiUnit, Unit, WritableRange
@@ -119,6 +119,7 @@ class Gateway:
         if config.metrics is not None:
             self.metrics = MetricsServer(self, config.metrics.listen)
         self._task: asyncio.Task[None] | None = None
+        self._links: list[asyncio.Task[None]] = []
         self._started = asyncio.Event()
 
     @property
@@ -134,8 +135,9 @@ class Gateway:
             await self.metrics.start()
         try:
             async with asyncio.TaskGroup() as group:
+                self._links = []
                 for unit in self.units:
-                    group.create_task(unit.driver.run(), name=f"{unit.name}-link")
+                    self._links.append(group.create_task(unit.driver.run(), name=f"{unit.name}-link"))
                     group.create_task(unit.poller.run(), name=f"{unit.name}-poller")
                 for server in self.servers:
                     group.create_task(server.serve_forever(), name=f"{server.name}-server")
@@ -148,8 +150,12 @@ class Gateway:
 
     async def _shutdown(self) -> None:
         # Stop accepting; requests in flight finish (a write waiting for its controller gets
-        # its answer, or 0x0B when the link closes under it); then close the links.
+        # its answer, or 0x0B when the link closes under it); then close the links.  A driver
+        # runs until cancelled: cancel it first, so that closing its port cannot send it into a
+        # reconnect backoff that SIGTERM would have to wait out.
         await asyncio.gather(*(server.close() for server in self.servers))
+        for task in self._links:
+            task.cancel()
         for unit in self.units:
             await unit.driver.close()
         if self.metrics is not None:
@@ -209,6 +215,27 @@ def describe_map(config: GatewayConfig) -> str:
         status_last = STATUS_BASE + sum(width for _, width in STATUS_REGISTERS) - 1
         lines.append(f"  {'status':9} input {STATUS_BASE}-{status_last}")
         lines.append(f"  read plan: {len(plan.blocks)} blocks ({fast} fast, {len(plan.blocks) - fast} slow)")
-        for block in plan.blocks:
-            lines.append(f"    {block.scan.value:4} {block.label}")
+        lines.extend(f"    {line}" for line in _plan_lines(plan.blocks))
     return "\n".join(lines)
+
+
+def _plan_lines(blocks: Sequence[Block]) -> list[str]:
+    """One line per block; SLC 100/150 byte reads are summarised as address ranges per class."""
+    lines: list[str] = []
+    byte_reads: dict[str, list[tuple[int, int]]] = {}
+    for block in blocks:
+        request = block.request
+        if isinstance(request, tuple):
+            byte_reads.setdefault(block.scan.value, []).append((request[0], request[1]))
+        else:
+            lines.append(f"{block.scan.value:4} {block.label}")
+    for scan, reads in byte_reads.items():
+        runs: list[list[int]] = []
+        for start, count in sorted(reads):
+            if runs and runs[-1][1] == start:
+                runs[-1][1] = start + count
+            else:
+                runs.append([start, start + count])
+        text = ", ".join(f"0x{a:04X}-0x{b - 1:04X}" for a, b in runs)
+        lines.append(f"{scan:4} {len(reads)} reads of 1-2 bytes covering {text}")
+    return lines

@@ -2,7 +2,8 @@
 
 Every block is one request on the driver's queue at poll priority, so a write waits at most
 for the one poll transaction already on the line.  A block that fails keeps its last value
-in the cache and ages.  While the link is down the poller waits for it instead of spinning.
+in the cache and ages.  While the link is down the poller waits for it instead of spinning;
+when it comes back the slow class is read at once.
 """
 
 from __future__ import annotations
@@ -79,6 +80,9 @@ class Poller:
             if ok:
                 ok = await self._scan(self.fast)
             if not ok:
+                # The link was lost: the controller may come back power-cycled or replaced, so
+                # read the slow class first when it returns instead of serving pre-loss values.
+                next_slow = loop.time()
                 await asyncio.sleep(self._down_wait)
                 continue
             self.scans += 1

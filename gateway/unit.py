@@ -3,11 +3,11 @@
 Reads are answered from the cache; writes go through to the controller and are answered only
 after it confirmed them.
 
-A value is stale (exception 0x0B) when the controller has not answered a poll for ``stale_after``
-seconds, or when its own block was last read longer ago than ``stale_after`` plus the period of
-its scan class (``fast_interval`` or ``slow_interval``): a slow-class value read every 10 s is not
-stale 5 s after its read while the link is up, and no value outlives a silent link by more than
-``stale_after``.
+A value is stale (exception 0x0B) when its own block was last read longer ago than
+``stale_after`` plus the period of its scan class (``fast_interval`` or ``slow_interval``), or when
+the controller has answered no poll for ``stale_after`` plus the shortest scan period: a
+slow-class value read every 10 s is not stale 5 s after its read while the link is up, and no
+value outlives a silent link by more than ``stale_after`` (plus ``fast_interval``).
 
 Error translation (controller -> Modbus exception):
 
@@ -106,6 +106,9 @@ class Unit(ABC):
         period = {Scan.FAST: fast_interval, Scan.SLOW: slow_interval}
         #: per block: the largest age at which its bytes are still served
         self._max_age = [stale_after + period[block.scan] for block in plan.blocks]
+        #: the controller is silent after this long without an answer to a poll (the poller asks
+        #: every fast_interval, or only every slow_interval when the plan has no fast class)
+        self._silent_after = min(self._max_age, default=stale_after)
         self.poller = Poller(
             name,
             plan.blocks,
@@ -175,8 +178,8 @@ class Unit(ABC):
         return out
 
     def _silent(self, now: float) -> bool:
-        """The controller answered no poll for ``stale_after`` seconds: everything is stale."""
-        return now - self.cache.newest > self.stale_after
+        """The controller answered no poll for ``stale_after`` seconds past its scan period."""
+        return now - self.cache.newest > self._silent_after
 
     def _stale(self) -> ModbusExceptionReply:
         return ModbusExceptionReply(TARGET_FAILED, f"{self.name}: no fresh data (stale after {self.stale_after:g} s)")

@@ -11,7 +11,6 @@ not every retry.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import enum
 import itertools
 import logging
@@ -105,8 +104,8 @@ class LinkDriver(ABC):
         self._connected = asyncio.Event()
         self._first_attempt_done = asyncio.Event()
         self._lost: asyncio.Future[None] | None = None
-        self._responding = True  # the controller answered the last transaction
-        self._down_logged = False
+        #: None until the controller first answers or the link first fails; then up (True) or down.
+        self._state: bool | None = None
         self._listeners: list[Callable[[LinkDriver], None]] = []
         self._run_task: asyncio.Task[None] | None = None
         self._closing = False
@@ -120,27 +119,24 @@ class LinkDriver(ABC):
     @property
     def available(self) -> bool:
         """The port is open and the controller answered the last transaction."""
-        return self._stream is not None and self._responding
+        return self._stream is not None and self._state is True
 
     def add_listener(self, callback: Callable[[LinkDriver], None]) -> None:
-        """``callback(driver)`` runs whenever ``available`` changes."""
+        """``callback(driver)`` runs whenever the link goes up or down (``available`` changes)."""
         self._listeners.append(callback)
 
-    def _set_state(self, *, responding: bool | None = None, error: str = "") -> None:
-        before = self.available
-        if responding is not None:
-            self._responding = responding
-        if error:
-            self.last_error = error
-        after = self.available
-        if before == after:
+    def _report(self, up: bool, reason: str = "") -> None:
+        """Record the link state; log and tell the listeners only when it changes."""
+        if reason:
+            self.last_error = reason
+        if self._state is up:
             return
-        if after:
+        self._state = up
+        if up:
+            self.last_error = ""
             log.info("link %s: up (%s)", self.name, describe_url(self.url))
-            self._down_logged = False
-        elif not self._down_logged:
+        else:
             log.warning("link %s: down: %s", self.name, self.last_error or "unknown reason")
-            self._down_logged = True
         for callback in self._listeners:
             callback(self)
 
@@ -160,7 +156,7 @@ class LinkDriver(ABC):
                     link_name=self.name,
                 )
             except LinkDown as exc:
-                self._fail_attempt(str(exc))
+                self._report(False, str(exc))
                 self._first_attempt_done.set()
                 attempt += 1
                 await asyncio.sleep(delay * random.uniform(0.8, 1.2))
@@ -171,6 +167,8 @@ class LinkDriver(ABC):
             attempt = 0
             opened = asyncio.get_running_loop().time()
             await self._serve(stream)
+            if self._closing:
+                return
             if asyncio.get_running_loop().time() - opened < _STABLE_CONNECTION:
                 # Opened, then lost at once (a device server that accepts and hangs up, a flaky
                 # USB adapter): back off as for a failed open instead of reconnecting in a loop.
@@ -179,25 +177,14 @@ class LinkDriver(ABC):
             else:
                 delay = self._reconnect_min
 
-    def _fail_attempt(self, reason: str) -> None:
-        self.last_error = reason
-        if not self._down_logged:
-            log.warning("link %s: down: %s", self.name, reason)
-            self._down_logged = True
-            self._responding = False
-            for callback in self._listeners:
-                callback(self)
-        self._responding = False
-
     async def _serve(self, stream: ByteStream) -> None:
         loop = asyncio.get_running_loop()
         self._stream = stream
         self._lost = loop.create_future()
         self.on_connect()
-        self._responding = True
         self._connected.set()
         self._first_attempt_done.set()
-        self._set_state(error="")
+        # "up" is reported when the controller first answers, not when the port opens.
         reader = asyncio.create_task(self._read_loop(stream), name=f"{self.name}-reader")
         worker = asyncio.create_task(self._work_loop(), name=f"{self.name}-worker")
         try:
@@ -205,15 +192,16 @@ class LinkDriver(ABC):
         finally:
             reader.cancel()
             worker.cancel()
-            with contextlib.suppress(asyncio.CancelledError, GatewayError):
-                await reader
-            with contextlib.suppress(asyncio.CancelledError, GatewayError):
-                await worker
             self._stream = None
             self._connected.clear()
-            await stream.close()
-            self._fail_queued(LinkDown(f"link {self.name} is down: {self.last_error}"))
-            self._set_state()
+            self._fail_queued(LinkDown(f"link {self.name} is down: {self.last_error or 'closed'}"))
+            if not self._closing:
+                self._report(False, self.last_error or "connection lost")
+            try:
+                # Not wrapped in suppress(CancelledError): a cancellation of this task must go on.
+                await asyncio.wait([reader, worker])
+            finally:
+                await stream.close()
 
     def _connection_lost(self, reason: str) -> None:
         self.last_error = reason
@@ -274,8 +262,7 @@ class LinkDriver(ABC):
         self._closing = True
         if self._run_task is not None:
             self._run_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._run_task
+            await asyncio.wait([self._run_task])  # a cancellation of close() itself still propagates
             self._run_task = None
         if self._stream is not None:
             await self._stream.close()
@@ -311,11 +298,11 @@ class LinkDriver(ABC):
         """Record whether the controller answered (drives ``available`` and the up/down log)."""
         if ok:
             self.counters.transactions += 1
-            if not self._responding:
-                self._set_state(responding=True, error="")
+            if self._state is not True:
+                self._report(True)
         else:
             self.counters.errors += 1
-            self._set_state(responding=False, error=error)
+            self._report(False, error)
 
     # --- protocol hooks ---------------------------------------------------------------------
 

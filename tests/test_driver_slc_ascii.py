@@ -1,0 +1,481 @@
+"""The SLC 100/150 ASCII driver paired with the simulator: in-process (``sim://``) and over TCP.
+
+The acceptance test of issue 2 is ``test_heavy_fault_injection_gives_correct_values_and_exactly_once_writes``:
+under heavy fault injection every value read is right, every acknowledged write was applied exactly
+once, a write that timed out was applied at most once, and nothing hangs.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import random
+from collections import Counter
+from collections.abc import AsyncIterator, Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from gateway.drivers.base import Priority
+from gateway.drivers.slc_ascii import SlcAsciiDriver
+from gateway.errors import ControllerRefused, LinkDown, LinkTimeout, ProtocolError
+from gateway.protocols.slc_ascii import commands as cmds
+from gateway.protocols.slc_ascii.commands import ControllerType, Mode
+from gateway.protocols.slc_ascii.framing import DataReply
+from gateway.sim import get_simulator, reset_simulators
+from gateway.sim.serve import close_tcp, serve_tcp
+from gateway.sim.slc_ascii import SlcAsciiSimulator
+from gateway.transport import SerialSettings
+
+#: Word addresses a test may write: accumulators and presets 901-931 (932 is protected).
+WORD_ADDRESSES = [*range(0x00, 0x3E, 2), *range(0x40, 0x7E, 2)]
+
+
+@pytest.fixture(autouse=True)
+def fresh_simulators() -> Iterator[None]:
+    reset_simulators()
+    yield
+    reset_simulators()
+
+
+def simulator(url: str) -> SlcAsciiSimulator:
+    sim = get_simulator(url)
+    assert isinstance(sim, SlcAsciiSimulator)
+    return sim
+
+
+@pytest.fixture
+async def quiet() -> AsyncIterator[tuple[SlcAsciiDriver, SlcAsciiSimulator]]:
+    """A driver on a fault-free simulator with a frozen ladder."""
+    url = "sim://slc150?ladder=0"
+    driver = SlcAsciiDriver(url, timeout=0.05)
+    async with driver:
+        yield driver, simulator(url)
+
+
+async def wait_for(condition: Callable[[], bool], seconds: float = 3.0) -> None:
+    """Poll ``condition`` (the driver's public state) until it holds."""
+    for _ in range(int(seconds / 0.005)):
+        if condition():
+            return
+        await asyncio.sleep(0.005)
+    raise AssertionError(f"condition not met within {seconds} s")
+
+
+# ---------------------------------------------------------------------------------------------
+# THE acceptance test
+
+
+async def test_heavy_fault_injection_gives_correct_values_and_exactly_once_writes() -> None:
+    await heavy_fault_run(fault_seed=1, op_seed=20240501)
+
+
+async def heavy_fault_run(fault_seed: int, op_seed: int) -> None:
+    """2,000 mixed reads and writes: garble 1 in 5 replies, drop 1 in 7, power cycle every 50 frames."""
+    url = f"sim://slc150?garble=5&drop=7&power_cycle_every=50&seed={fault_seed}&ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.01, retries=8)
+    rng = random.Random(op_seed)
+    values = rng.sample(range(10_000), 1_000)  # unique written values
+    # What each word may hold: one value once known, two while a timed-out write's fate is unknown.
+    possible: dict[int, set[int]] = {a: {sim.word(a)} for a in WORD_ADDRESSES}
+    acknowledged: list[tuple[int, int]] = []
+    timed_out: list[tuple[int, int]] = []
+    reads_ok = 0
+    errors: list[Exception] = []
+    async with asyncio.timeout(45), driver:
+        for op in range(2_000):
+            address = rng.choice(WORD_ADDRESSES)
+            if op % 2 == 0 and values:
+                value = values.pop()
+                try:
+                    await driver.write_word(address, value)
+                except (LinkTimeout, ProtocolError) as exc:  # outcome unknown: applied at most once
+                    timed_out.append((address, value))
+                    possible[address].add(value)
+                    errors.append(exc)
+                else:
+                    acknowledged.append((address, value))
+                    possible[address] = {value}
+            else:
+                try:
+                    data = await driver.read(address, 2)
+                except (LinkTimeout, ProtocolError) as exc:
+                    errors.append(exc)
+                    continue
+                value = int.from_bytes(data, "big")
+                assert value == sim.word(address), f"read 0x{address:02X}: got {value}, sim holds {sim.word(address)}"
+                assert value in possible[address], f"read 0x{address:02X}: got {value}, expected {possible[address]}"
+                possible[address] = {value}
+                reads_ok += 1
+
+    applied = Counter((address, value) for kind, address, value in sim.applied_writes if kind == "word")
+    for write in acknowledged:
+        assert applied[write] == 1, f"acknowledged write {write} applied {applied[write]} times"
+    for write in timed_out:
+        assert applied[write] <= 1, f"timed-out write {write} applied {applied[write]} times"
+    assert set(applied) <= set(acknowledged) | set(timed_out)
+    assert sum(applied.values()) == len(applied)  # nothing applied twice
+    # the faults really happened, and the driver got through nearly everything
+    assert sim.counters.garbled_out > 200
+    assert sim.counters.dropped > 150
+    assert sim.counters.power_cycles > 30
+    assert len(acknowledged) + len(timed_out) == 1_000
+    # A power cycle whose ;I00 is lost leaves ;Z unanswered (nothing accepted since power-up):
+    # the driver cannot know whether the command ran before it, so it gives LinkTimeout.
+    assert len(errors) < 40, errors[:5]
+    assert reads_ok > 950
+    # every ;Z the driver sent reached the simulator (in-process, the host-to-controller side is clean)
+    assert driver.counters.retransmits == sim.counters.retransmits
+    assert driver.counters.id_resyncs > 0
+    assert driver.counters.crc_errors > 0
+    assert driver.counters.timeouts >= sim.counters.dropped
+
+
+# ---------------------------------------------------------------------------------------------
+# Exactly-once in the corner cases
+
+
+async def test_a_write_whose_every_reply_is_lost_times_out_and_is_applied_once() -> None:
+    url = "sim://slc150?ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.01, retries=3)
+    async with asyncio.timeout(5), driver:
+        await driver.read(0x40, 2)
+        sim.faults.drop = 1  # from now on every reply is lost
+        with pytest.raises(LinkTimeout):
+            await driver.write_word(0x40, 4321)
+        assert not driver.available
+        assert "no valid answer" in driver.last_error
+        assert driver.counters.retransmits == 3 == sim.counters.retransmits
+        assert driver.counters.timeouts == 4
+        assert driver.counters.errors == 1
+    # never resent: the driver had no proof that the controller had not executed it
+    assert sim.applied_writes == [("word", 0x40, 4321)]
+
+
+async def test_a_silent_controller_gives_link_timeout_and_nothing_is_written() -> None:
+    url = "sim://slc150?drop=1&ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.01, retries=2)
+    async with asyncio.timeout(5), driver:
+        with pytest.raises(LinkTimeout):
+            await driver.write_word(0x40, 4321)
+        with pytest.raises(LinkTimeout):
+            await driver.read(0x40, 2)
+    # The first message after connecting is the harmless ID 00 resync read, never the write:
+    # nothing was ever answered, so the write was never sent.
+    assert sim.applied_writes == []
+    assert sim.counters.retransmits == 0
+
+
+async def test_replies_later_than_the_timeout_never_apply_a_write_twice() -> None:
+    # A slow controller (every reply 1.5 timeouts late) that also power-cycles and loses replies:
+    # late replies are taken for answers to later messages, yet no write may be applied twice.
+    url = "sim://slc150?delay=0.03&power_cycle_every=7&drop=6&seed=3&ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.02, retries=8)
+    acknowledged: list[int] = []
+    async with asyncio.timeout(30), driver:
+        for value in range(1, 41):
+            try:
+                await driver.write_word(0x40, value)
+            except (LinkTimeout, ProtocolError):
+                continue
+            acknowledged.append(value)
+    applied = Counter(value for _, _, value in sim.applied_writes)
+    assert all(count == 1 for count in applied.values()), {v: n for v, n in applied.items() if n > 1}
+    assert all(applied[value] == 1 for value in acknowledged)
+    assert len(acknowledged) > 25
+    assert sim.counters.power_cycles > 3
+
+
+async def test_non_idempotent_upload_survives_lost_and_garbled_replies() -> None:
+    # #0100 moves the controller to the next block: a lost reply must be fetched with ;Z, never resent.
+    url = "sim://slc150?garble=4&drop=6&seed=3&ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.01, slow_timeout=0.01, retries=8)
+    program = bytes((i * 31 + 7) & 0xFF for i in range(ControllerType.SLC150.block_count * 15 - 8)) + bytes(8)
+    async with asyncio.timeout(20), driver:
+        await driver.set_mode(Mode.PROGRAM)
+        uploaded = await driver.upload_program(ControllerType.SLC150)
+        assert uploaded[:-8] == sim.program[:-8]
+        assert uploaded[-8:] == bytes(8)
+        await driver.download_program(ControllerType.SLC150, program)
+        assert bytes(sim.program) == program
+        await driver.set_mode(Mode.RUN)
+    assert sim.counters.dropped > 10
+    assert sim.counters.garbled_out > 10
+    assert [w for w in sim.applied_writes if w[0] == "program"] == [("program", 0, len(program))]
+    assert [w[2] for w in sim.applied_writes if w[0] == "mode"] == [Mode.PROGRAM, Mode.RUN]
+
+
+async def test_power_cycle_is_followed_by_a_resync_with_id_00() -> None:
+    url = "sim://slc150?power_cycle_every=4&ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.05)
+    async with asyncio.timeout(5), driver:
+        for value in range(1, 11):
+            await driver.write_word(0x50, value)
+            assert sim.word(0x50) == value
+    assert sim.counters.power_cycles >= 2
+    assert driver.counters.id_resyncs == sim.counters.id_mismatches >= 2
+    assert [w[2] for w in sim.applied_writes] == list(range(1, 11))
+    assert driver.counters.timeouts == 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Refusals and faults
+
+
+async def test_refusal_raises_controller_refused_without_retry(quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator]) -> None:
+    driver, sim = quiet
+    with pytest.raises(ControllerRefused) as info:
+        await driver.write_word(0x7E, 5)  # 932.PRE is protected
+    assert info.value.command == "write word 5 to 0x007E"
+    assert sim.counters.commands == 2  # the ID 00 resync read after connecting, then the write
+    assert sim.counters.refusals == 1
+    assert sim.counters.retransmits == 0
+    assert driver.counters.refusals == 1
+    assert driver.counters.retransmits == 0
+    assert driver.counters.errors == 0
+    assert driver.available  # the controller answered
+    assert sim.word(0x7E) == 0x8000 | 500
+    # mode rule: no reads in program mode
+    await driver.set_mode(Mode.PROGRAM)
+    with pytest.raises(ControllerRefused):
+        await driver.read(0x40, 2)
+    assert driver.counters.refusals == 2
+    assert sim.counters.commands == 4
+
+
+async def test_fault_report_is_read_and_recorded() -> None:
+    url = "sim://slc150?fault_every=3&ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.05)
+    async with asyncio.timeout(5), driver:
+        assert driver.last_fault is None
+        for _ in range(3):
+            await driver.read(0x40, 2)
+        await wait_for(lambda: driver.last_fault is not None)
+        assert driver.counters.faults == 1
+        assert driver.last_fault is not None
+        assert driver.last_fault.errors == (8,)  # 84H bit 3
+        assert "error 8" in str(driver.last_fault)
+        # the ;T is not taken for the answer of any request: reads still return the right data
+        assert await driver.read(0x40, 2) == (100).to_bytes(2, "big")
+    assert sim.counters.faults >= 1
+
+
+# ---------------------------------------------------------------------------------------------
+# Counters
+
+
+async def test_counters_on_a_clean_line(quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator]) -> None:
+    driver, _ = quiet
+    for _ in range(10):
+        await driver.read(0x40, 2)
+    c = driver.counters
+    assert c.transactions == 10
+    # after connecting, one read FRN with ID 00 restarts the controller's numbering
+    assert c.bytes_sent == len(b"#010800A3\r") + 10 * len(b"#0502000200400100\r")
+    assert c.bytes_received == len(b":021FFE15470031\r") + 10 * len(b":00020040006400XX\r")
+    assert (c.errors, c.timeouts, c.crc_errors, c.retransmits, c.id_resyncs, c.refusals, c.faults) == (0,) * 7
+    assert c.retries == 0
+    assert c.reconnects == 0
+
+
+async def test_counters_follow_dropped_and_garbled_replies() -> None:
+    url = "sim://slc150?drop=4&garble=4&seed=11&ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.01, retries=8)
+    async with asyncio.timeout(10), driver:
+        for _ in range(100):
+            await driver.read(0x84, 2)
+    c = driver.counters
+    assert c.transactions == 100
+    assert c.retransmits == sim.counters.retransmits > 0
+    # each lost or garbled reply costs exactly one wait to the deadline, and one ;Z
+    assert c.timeouts == sim.counters.dropped + sim.counters.garbled_out
+    assert c.retransmits == c.timeouts
+    assert c.retries == c.retransmits + c.id_resyncs
+    assert c.crc_errors >= sim.counters.garbled_out - 1  # the last truncated one may still be pending
+
+
+# ---------------------------------------------------------------------------------------------
+# Priorities
+
+
+async def test_writes_go_before_polls(quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator]) -> None:
+    driver, sim = quiet
+    gate = asyncio.Event()
+    order: list[str] = []
+
+    async def hold_the_line() -> None:
+        await gate.wait()
+
+    async def poll(n: int) -> int:
+        value = int.from_bytes(await driver.read(0x40, 2), "big")
+        order.append(f"poll{n}")
+        return value
+
+    async def write() -> None:
+        await driver.write_word(0x40, 4321)
+        order.append("write")
+
+    blocker = asyncio.create_task(driver.submit(hold_the_line, Priority.POLL))
+    polls = [asyncio.create_task(poll(n)) for n in range(3)]
+    await asyncio.sleep(0.01)  # the polls are queued first
+    writer = asyncio.create_task(write())
+    await asyncio.sleep(0.01)
+    assert order == []
+    gate.set()
+    await asyncio.wait_for(asyncio.gather(blocker, writer, *polls), 5)
+    assert order == ["write", "poll0", "poll1", "poll2"]
+    assert [p.result() for p in polls] == [4321] * 3  # the polls ran after the write
+    assert sim.applied_writes == [("word", 0x40, 4321)]
+
+
+# ---------------------------------------------------------------------------------------------
+# Typed operations
+
+
+async def test_probe_relay_bits_and_sequencer(quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator]) -> None:
+    driver, sim = quiet
+    info = await driver.probe()
+    assert (info.controller, info.frn, info.device_type) == (ControllerType.SLC150, 47, 0x15)
+    sim.memory[0xA6] = 0b1000_0000
+    assert await driver.update_byte(0xA6, 0, True) == 0b1000_0001  # relay 701 on, 708 kept
+    assert sim.memory[0xA6] == 0b1000_0001
+    assert await driver.update_byte(0xA6, 7, False) == 0b0000_0001
+    answer = await driver.execute(cmds.read_sequencer_preset(0x10, 1))
+    assert isinstance(answer, DataReply)
+    assert cmds.parse_word_reply(answer.body_hex) == cmds.WordReply(910, 200, False)
+
+
+async def test_an_8n1_port_sends_the_even_parity_bit_as_bit_7(tmp_path: Path) -> None:
+    # 8 data bits, no parity, bit 7 = even parity of the other 7: the same bits on the wire as 7E1.
+    url = "sim://slc150?ladder=0"
+    trace = tmp_path / "trace.txt"
+    driver = SlcAsciiDriver(url, timeout=0.05, settings=SerialSettings(9600, 8, "N", 1), trace=trace)
+    async with asyncio.timeout(5), driver:
+        assert (await driver.probe()).controller is ControllerType.SLC150
+        await driver.write_word(0x40, 1234)
+    assert simulator(url).word(0x40) == 1234
+    sent = b"".join(
+        bytes.fromhex(line.split(" TX ", 1)[1].split("  |", 1)[0])
+        for line in trace.read_text().splitlines()
+        if " TX " in line
+    )
+    assert sent
+    assert all(bin(byte).count("1") % 2 == 0 for byte in sent)
+    assert any(byte & 0x80 for byte in sent)
+    assert bytes(byte & 0x7F for byte in sent).startswith(b"#010800A3\r")
+
+
+# ---------------------------------------------------------------------------------------------
+# Link down and reconnect over TCP
+
+
+async def test_link_down_fails_fast_and_the_driver_reconnects() -> None:
+    sim = SlcAsciiSimulator(ControllerType.SLC150, ladder=False)
+    server = await serve_tcp(sim, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    driver = SlcAsciiDriver(f"socket://127.0.0.1:{port}", timeout=0.05, reconnect_min=0.02, reconnect_max=0.1)
+    loop = asyncio.get_running_loop()
+    try:
+        async with asyncio.timeout(10):
+            await driver.start()
+            await driver.write_word(0x40, 1111)
+            assert driver.available
+
+            await close_tcp(server)  # the device server goes away, and its connections with it
+            await wait_for(lambda: not driver.connected)
+            assert not driver.available
+            for _ in range(3):
+                started = loop.time()
+                with pytest.raises(LinkDown):
+                    await driver.read(0x40, 2)
+                assert loop.time() - started < 0.05  # at once, not after a timeout
+            await asyncio.sleep(0.2)  # a few failed reconnect attempts
+            assert not driver.connected
+
+            server = await serve_tcp(sim, "127.0.0.1", port)  # back on the same port
+            await wait_for(lambda: driver.connected)
+            assert await driver.read(0x40, 2) == (1111).to_bytes(2, "big")
+            await driver.write_word(0x40, 2222)
+            assert driver.available
+            assert driver.counters.reconnects == 1
+    finally:
+        await driver.close()
+        await close_tcp(server)
+    assert [w for w in sim.applied_writes] == [("word", 0x40, 1111), ("word", 0x40, 2222)]
+
+
+async def test_listeners_hear_the_link_go_down_and_come_back() -> None:
+    sim = SlcAsciiSimulator(ControllerType.SLC150, ladder=False)
+    server = await serve_tcp(sim, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    driver = SlcAsciiDriver(f"socket://127.0.0.1:{port}", timeout=0.05, reconnect_min=0.02, reconnect_max=0.1)
+    changes: list[bool] = []
+    driver.add_listener(lambda d: changes.append(d.available))
+    try:
+        async with asyncio.timeout(5):
+            await driver.start()
+            await driver.read(0x40, 2)
+            await close_tcp(server)
+            await wait_for(lambda: not driver.connected)
+            server = await serve_tcp(sim, "127.0.0.1", port)
+            await wait_for(lambda: driver.connected)
+            await driver.read(0x40, 2)
+            assert changes == [True, False, True]  # up at the first answer, down at the loss, up again
+    finally:
+        await driver.close()
+        await close_tcp(server)
+
+
+async def test_a_request_in_flight_when_the_link_drops_fails_with_link_down() -> None:
+    sim = SlcAsciiSimulator(ControllerType.SLC150, ladder=False)
+    server = await serve_tcp(sim, "127.0.0.1", 0, turnaround=0.2)  # slow replies: the drop comes first
+    port = server.sockets[0].getsockname()[1]
+    driver = SlcAsciiDriver(f"socket://127.0.0.1:{port}", timeout=1.0, reconnect_min=0.05)
+    try:
+        async with asyncio.timeout(5):
+            await driver.start()
+            request = asyncio.create_task(driver.read(0x40, 2))
+            await asyncio.sleep(0.05)
+            await close_tcp(server)
+            with pytest.raises(LinkDown):
+                await request
+            assert sim.counters.commands <= 1  # the resync read at most; the read never got there
+    finally:
+        await driver.close()
+
+
+async def test_close_is_prompt_right_after_the_link_drops() -> None:
+    sim = SlcAsciiSimulator(ControllerType.SLC150, ladder=False)
+    server = await serve_tcp(sim, "127.0.0.1", 0, turnaround=0.2)
+    port = server.sockets[0].getsockname()[1]
+    driver = SlcAsciiDriver(f"socket://127.0.0.1:{port}", timeout=1.0, reconnect_min=0.6)
+    await driver.start()
+    request = asyncio.create_task(driver.read(0x40, 2))
+    await asyncio.sleep(0.05)
+    await close_tcp(server)
+    with pytest.raises(LinkDown):
+        await request
+    loop = asyncio.get_running_loop()
+    started = loop.time()
+    closing = asyncio.create_task(driver.close())
+    done, _ = await asyncio.wait([closing], timeout=0.3)
+    if not done:
+        await closing  # let it finish (it does, after the backoff) before failing
+    assert loop.time() - started < 0.3
+
+
+async def test_start_fails_with_link_down_when_nothing_listens() -> None:
+    server = await serve_tcp(SlcAsciiSimulator(ladder=False), "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    await close_tcp(server)
+    driver = SlcAsciiDriver(f"socket://127.0.0.1:{port}", timeout=0.05)
+    async with asyncio.timeout(5):
+        with pytest.raises(LinkDown):
+            await driver.start()
