@@ -26,6 +26,7 @@ import ipaddress
 import json
 import os
 import re
+import ssl
 import stat
 import tomllib
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -330,6 +331,27 @@ class TlsConfig(_Model):
     @classmethod
     def _existing_file(cls, value: object, info: ValidationInfo) -> Path:
         return _resolve_path(value, info, must_exist=True)
+
+    @model_validator(mode="after")
+    def _usable(self) -> TlsConfig:
+        """Load the certificate, key and CA now, so a bad file fails check-config, not run."""
+        context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+        try:
+            context.load_cert_chain(self.cert, self.key)
+        except (ssl.SSLError, OSError) as exc:
+            raise ValueError(
+                f"cert {self.cert.name} / key {self.key.name}: not a usable PEM certificate and matching key "
+                f"({exc.__class__.__name__}: {getattr(exc, 'reason', None) or exc})"
+            ) from None
+        if self.client_ca is not None:
+            try:
+                context.load_verify_locations(cafile=self.client_ca)
+            except (ssl.SSLError, OSError) as exc:
+                raise ValueError(
+                    f"client_ca {self.client_ca.name}: not a usable PEM CA certificate "
+                    f"({getattr(exc, 'reason', None) or exc})"
+                ) from None
+        return self
 
     @property
     def address(self) -> tuple[str, int]:

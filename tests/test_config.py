@@ -30,6 +30,38 @@ from gateway.config import (
 )
 from gateway.errors import ConfigError
 
+
+_PEM_CACHE: dict[str, bytes] = {}
+
+
+def _pem() -> dict[str, bytes]:
+    """A real self-signed certificate and key (made once with the openssl command)."""
+    if not _PEM_CACHE:
+        import shutil
+        import subprocess
+        import tempfile
+
+        if shutil.which("openssl") is None:
+            pytest.skip("the openssl command is needed to make test certificates")
+        with tempfile.TemporaryDirectory() as work:
+            subprocess.run(
+                ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", "/CN=test",
+                 "-keyout", f"{work}/key.pem", "-out", f"{work}/cert.pem"],
+                check=True, capture_output=True,
+            )
+            _PEM_CACHE["cert"] = Path(work, "cert.pem").read_bytes()
+            _PEM_CACHE["key"] = Path(work, "key.pem").read_bytes()
+    return _PEM_CACHE
+
+
+def write_tls(cert: Path, key: Path, ca: Path | None = None) -> None:
+    """Real PEM files at these paths (the CA is the self-signed certificate itself)."""
+    pem = _pem()
+    cert.write_bytes(pem["cert"])
+    key.write_bytes(pem["key"])
+    if ca is not None:
+        ca.write_bytes(pem["cert"])
+
 HERE = Path(__file__).resolve().parent
 EXAMPLE = HERE.parent / "config" / "example-full.toml"
 
@@ -198,8 +230,7 @@ DF1_BCC = DF1_LINK.replace('port = "sim://slc504"', 'port = "rfc2217://10.0.0.5:
 
 
 def test_a_full_configuration_round_trips_through_describe(tmp_path: Path) -> None:
-    for name in ("server.pem", "server.key", "ca.pem"):
-        (tmp_path / name).write_text("x")
+    write_tls(tmp_path / "server.pem", tmp_path / "server.key", tmp_path / "ca.pem")
     (tmp_path / "traces").mkdir()
     text = f"""
 [modbus]
@@ -913,8 +944,7 @@ def test_float32_end_counts_two_registers() -> None:
     ],
 )
 def test_listeners_need_their_own_ports(tmp_path: Path, sections: str, path: str, collides_with: str) -> None:
-    (tmp_path / "c").write_text("x")
-    (tmp_path / "k").write_text("x")
+    write_tls(tmp_path / "c", tmp_path / "k")
     error = error_of(sections + ASCII_LINK, base_dir=tmp_path)
     assert f"{path}: " in error
     assert f"collides with {collides_with} (" in error
@@ -930,8 +960,7 @@ def test_listeners_on_different_hosts_or_port_0_are_fine() -> None:
 
 def test_tls_files_are_relative_to_the_config_file(tmp_path: Path) -> None:
     (tmp_path / "tls").mkdir()
-    (tmp_path / "tls" / "server.pem").write_text("x")
-    (tmp_path / "tls" / "server.key").write_text("x")
+    write_tls(tmp_path / "tls" / "server.pem", tmp_path / "tls" / "server.key")
     path = tmp_path / "gateway.toml"
     path.write_text(
         '[modbus.tls]\ncert = "tls/server.pem"\nkey = "tls/server.key"\nclient_ca = "tls/ca.pem"\n'
@@ -942,7 +971,10 @@ def test_tls_files_are_relative_to_the_config_file(tmp_path: Path) -> None:
     assert str(info.value) == (
         f"{path}:4: modbus.tls.client_ca: file not found: {tmp_path / 'tls' / 'ca.pem'}"
     )
-    (tmp_path / "tls" / "ca.pem").write_text("x")
+    (tmp_path / "tls" / "ca.pem").write_text("not a certificate")
+    with pytest.raises(ConfigError, match=r"client_ca ca.pem: not a usable PEM CA certificate"):
+        load_config(path)
+    write_tls(tmp_path / "tls" / "server.pem", tmp_path / "tls" / "server.key", tmp_path / "tls" / "ca.pem")
     tls = load_config(path).modbus.tls
     assert tls is not None
     assert (tls.cert, tls.key, tls.client_ca) == (
@@ -1196,3 +1228,10 @@ def test_fuzz_mutations_of_a_valid_file(text: str) -> None:
 def test_fuzz_base_is_valid() -> None:
     config = parse_config(FUZZ_BASE)
     assert len(config.link[1].map) == 3
+
+
+def test_tls_files_that_are_not_pem_are_refused_by_name(tmp_path: Path) -> None:
+    (tmp_path / "cert.pem").write_text("garbage\n")
+    (tmp_path / "key.pem").write_text("garbage\n")
+    error = error_of('[modbus.tls]\ncert = "cert.pem"\nkey = "key.pem"\n' + ASCII_LINK, base_dir=tmp_path)
+    assert "modbus.tls" in error and "cert.pem" in error and "not a usable PEM certificate" in error
