@@ -30,7 +30,6 @@ from gateway.config import (
 )
 from gateway.errors import ConfigError
 
-
 _PEM_CACHE: dict[str, bytes] = {}
 
 
