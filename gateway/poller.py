@@ -36,6 +36,7 @@ class Poller:
         slow_interval: float = 10.0,
         down_wait: float = 0.2,
         stagger: float = 0.0,
+        responding: Callable[[], bool] | None = None,
     ) -> None:
         self.name = name
         self.blocks = list(blocks)
@@ -47,6 +48,7 @@ class Poller:
         self.slow_interval = slow_interval
         self._down_wait = down_wait
         self._stagger = stagger
+        self._responding = responding
         self.scans = 0
         self.block_errors = 0
 
@@ -61,6 +63,10 @@ class Poller:
             except GatewayError as exc:
                 self.block_errors += 1
                 log.debug("link %s: block %s failed: %s", self.name, self.blocks[index].label, exc)
+                if self._responding is not None and not self._responding():
+                    # The controller stopped answering: probe it with one block per round
+                    # instead of waiting out the full retries of every block in the plan.
+                    return False
                 continue
             self.cache.store(index, data, loop.time())
         return True

@@ -116,6 +116,7 @@ class Unit(ABC):
             self.read_block,
             fast_interval=fast_interval,
             slow_interval=slow_interval,
+            responding=lambda: driver.available,
         )
         self.write_requests = 0
         self.write_failures = 0
