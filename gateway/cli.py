@@ -36,6 +36,12 @@ def _add_link_options(parser: argparse.ArgumentParser) -> None:
         help="slc-ascii (SLC 100/150, default) or df1 (SLC 500 / PLC-5)",
     )
     parser.add_argument("--baudrate", type=int, help="default: 9600 (slc-ascii), 19200 (df1)")
+    parser.add_argument(
+        "--bytesize", type=int, choices=(7, 8),
+        help="slc-ascii: data bits (default 7); with 8 and --parity N the even parity bit is sent as bit 7, "
+        "the same bits on the wire as 7E1, for ports that cannot do 7E1 (e.g. a pseudo-terminal)",
+    )
+    parser.add_argument("--parity", choices=("E", "O", "N"), help="slc-ascii: parity (default E)")
     parser.add_argument("--timeout", type=float, help="seconds per reply (default: 0.3 slc-ascii, 1.0 df1)")
     parser.add_argument("--retries", type=int, default=3, help="retries per transaction (default 3)")
     parser.add_argument("--station", type=int, default=1, help="df1: destination node (default 1)")
@@ -106,8 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _setup_logging(verbose: int) -> None:
-    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+def _setup_logging(verbose: int, quiet_level: int = logging.WARNING) -> None:
+    level = quiet_level if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
@@ -117,8 +123,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     command: str = args.command
     if command == "run":
         _setup_logging(max(args.verbose, 1))
-    else:
+    elif command in ("simulate", "check-config"):
         _setup_logging(args.verbose)
+    else:
+        # One-shot tools report a failure once, as the one-line reason below (the link's "down"
+        # warning would say it twice); -v shows the link log.
+        _setup_logging(args.verbose, logging.ERROR)
     try:
         if command == "run":
             return _run(args.config)
@@ -132,8 +142,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except GatewayError as exc:
         print(f"slc-gateway {command}: {exc}", file=sys.stderr)
         return 1
-    except OSError as exc:
-        print(f"slc-gateway {command}: {exc}", file=sys.stderr)
+    except OSError as exc:  # TimeoutError is one, and may carry no message
+        print(f"slc-gateway {command}: {exc or type(exc).__name__}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130
@@ -163,7 +173,7 @@ def _check_config(path: Path) -> int:
 async def _simulate(args: argparse.Namespace) -> int:
     from gateway.config import parse_listen
     from gateway.sim import create_simulator
-    from gateway.sim.serve import serve_pty, serve_tcp
+    from gateway.sim.serve import close_tcp, serve_pty, serve_tcp
     from gateway.transport import SerialSettings
 
     options: dict[str, str] = {"seed": str(args.seed)}
@@ -208,8 +218,10 @@ async def _simulate(args: argparse.Namespace) -> int:
     server = await serve_tcp(device, host, port, settings=paced, turnaround=args.turnaround)
     bound = server.sockets[0].getsockname()
     print(f"simulated {args.model} listening on {bound[0]}:{bound[1]} (socket://{bound[0]}:{bound[1]})", flush=True)
-    async with server:
+    try:
         await stop.wait()
+    finally:
+        await close_tcp(server)  # drop connected clients too, so that we exit while one is connected
     return 0
 
 

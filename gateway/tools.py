@@ -44,9 +44,13 @@ async def run_tool(command: str, args: argparse.Namespace) -> int:
         from gateway.tools_df1 import run_df1_tool
 
         return await run_df1_tool(command, args)
-    settings = SLC_ASCII_SETTINGS
-    if args.baudrate:
-        settings = SerialSettings(args.baudrate, settings.bytesize, settings.parity, settings.stopbits)
+    defaults = SLC_ASCII_SETTINGS
+    settings = SerialSettings(
+        args.baudrate or defaults.baudrate,
+        args.bytesize or defaults.bytesize,
+        args.parity or defaults.parity,
+        defaults.stopbits,
+    )
     # Validate everything the user typed before opening the port.
     if command == "read":
         items = [parse_item(text) for text in args.items]

@@ -69,6 +69,10 @@ class ByteStream(ABC):
     async def close(self) -> None:
         """Close the stream; idempotent."""
 
+    def char_time(self, settings: SerialSettings) -> float:
+        """Seconds one character takes on this stream's line (0: no serial line to wait for)."""
+        return settings.char_time
+
 
 class StreamPair(ByteStream):
     """An asyncio ``StreamReader``/``StreamWriter`` pair (TCP or serial)."""
@@ -131,6 +135,9 @@ class TracingStream(ByteStream):
 
     async def close(self) -> None:
         await self._inner.close()
+
+    def char_time(self, settings: SerialSettings) -> float:
+        return self._inner.char_time(settings)
 
 
 def describe_url(url: str) -> str:

@@ -93,6 +93,8 @@ class LinkDriver(ABC):
         self.settings = settings or SerialSettings()
         self.counters = LinkCounters()
         self.last_error = ""
+        #: seconds per character on the current stream's line (0 for an unpaced simulator)
+        self.char_time = self.settings.char_time
         self._trace = trace
         self._reconnect_min = reconnect_min
         self._reconnect_max = reconnect_max
@@ -180,6 +182,7 @@ class LinkDriver(ABC):
     async def _serve(self, stream: ByteStream) -> None:
         loop = asyncio.get_running_loop()
         self._stream = stream
+        self.char_time = stream.char_time(self.settings)
         self._lost = loop.create_future()
         self.on_connect()
         self._connected.set()

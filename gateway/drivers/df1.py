@@ -43,6 +43,10 @@ _WRITE_TYPES: Final = ("ProtectedTypedLogicalWrite", "ProtectedTypedLogicalMaske
                        "WordRangeWrite", "SetProcessorMode")
 
 
+#: Characters of the longest DF1 frame: 6 header + 4 + 236 data bytes, framing, CRC, some DLE doubling.
+_LONGEST_FRAME: Final = 280
+
+
 class WriteOutcomeUnknown(LinkTimeout):
     """The controller acknowledged the write's frame but its reply never came."""
 
@@ -95,7 +99,8 @@ class Df1Driver(LinkDriver):
     def _new_link(self) -> Df1Link:
         return Df1Link(
             checksum=self.checksum,
-            ack_timeout=self.ack_timeout,
+            # the ACK comes after our whole frame has gone out: allow for the longest frame's time
+            ack_timeout=self.ack_timeout + _LONGEST_FRAME * self.char_time,
             max_enq=self.retries,
             max_nak=self.retries,
         )
@@ -189,7 +194,7 @@ class Df1Driver(LinkDriver):
             failure = await sent
             if failure is not None:
                 return failure
-            async with asyncio.timeout(self.timeout):
+            async with asyncio.timeout(self.timeout + _LONGEST_FRAME * self.char_time):
                 return await reply
         finally:
             self._replies.pop(tns, None)

@@ -6,7 +6,7 @@ One transaction (manual, *Format of Transmission*)::
       reply with ID n (;R, :data, ;E)          -> our answer
       ;I<last>  (not executed)                 -> last == n: an earlier copy of our command was
                                                   executed, ask ;Z for its answer; otherwise
-                                                  resync (ID 00 is always accepted) and resend
+                                                  resync and resend with ID 01
       nothing / garbled within the timeout     -> ;Z: the controller repeats its last reply;
           reply to ;Z with ID n                -> our answer
           reply to ;Z with an older ID         -> our command never arrived: resend it, same ID
@@ -15,6 +15,12 @@ One transaction (manual, *Format of Transmission*)::
 A write is sent again only when the controller proved it did not execute it (an older ID in
 answer to ``;Z``, or ``;I``), so it is never applied twice; when no proof comes within the
 retries the caller gets ``LinkTimeout`` (the outcome is then unknown, never silently dropped).
+
+Resync: ID 00 "is always accepted", so a command sent with ID 00 is not protected by the ID
+check.  Only a harmless read (``#0108``, read FRN) is ever sent with ID 00: it restarts the
+controller's numbering, and the command follows with ID 01.  A reply that arrives after its
+timeout and is taken for the answer to a later message can then cause a resend, but never a
+second execution.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from gateway.errors import ControllerFault, ControllerRefused, GatewayError, Pro
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command, ControllerType, FrnInfo, Mode, TimeoutClass
 from gateway.protocols.slc_ascii.framing import (
+    MAX_ID,
     NEED_DATA,
     Ack,
     DataReply,
@@ -59,6 +66,13 @@ DEFAULT_SLOW_TIMEOUT: Final = 3.0
 MAX_RESENDS: Final = 8
 
 Answer = Ack | DataReply
+
+#: Characters of the longest reply: an upload block ``:<block><15 bytes><ID><CRC>CR``.
+_LONGEST_REPLY: Final = 1 + 2 + 30 + 2 + 2 + 1
+
+#: 7-bit character -> the same character with its even parity bit as bit 7.  On a port set to
+#: 8 data bits and no parity this puts on the wire exactly what 7E1 would.
+_EVEN_PARITY: Final = bytes((b & 0x7F) | ((bin(b & 0x7F).count("1") & 1) << 7) for b in range(256))
 
 
 class SlcAsciiDriver(LinkDriver):
@@ -96,11 +110,17 @@ class SlcAsciiDriver(LinkDriver):
         self._events: deque[ReplyEvent] = deque()
         self._waiter: asyncio.Future[None] | None = None
         self._fault_pending = False
+        # A port that cannot do 7E1 (some adapters, pseudo-terminals) can run at 8N1 with the
+        # parity bit computed here; replies are read with bit 7 masked either way.
+        self._software_parity = settings.bytesize == 8 and settings.parity == "N"
+
+    def _send_frame(self, frame: bytes) -> None:
+        self.send(frame.translate(_EVEN_PARITY) if self._software_parity else frame)
 
     # --- protocol hooks ---------------------------------------------------------------------
 
     def on_connect(self) -> None:
-        # "The first message after opening a link ... uses ID 00."
+        # Upon power up the controller expects ID 00: the first transaction resynchronises.
         self._ids.reset()
         self._decoder = ReplyDecoder()
         self._events.clear()
@@ -143,9 +163,14 @@ class SlcAsciiDriver(LinkDriver):
     async def _transaction(self, command: Command) -> Answer:
         loop = asyncio.get_running_loop()
         timeout = self.slow_timeout if command.timeout_class is TimeoutClass.SLOW else self.timeout
+        # The manual's 0.3 s is the controller's answer time; the characters of the command and
+        # of the longest reply (an upload block, 38 characters) take their own time on the line.
+        timeout += (2 * command.byte_count + 9 + _LONGEST_REPLY) * self.char_time
         self._events.clear()  # late replies to an earlier transaction are of no use now
+        if self._ids.peek == 0:
+            await self._resync(timeout)
         msg_id = self._ids.take()
-        self.send(encode_command(command, msg_id))
+        self._send_frame(encode_command(command, msg_id))
         z_sent = 0  # ;Z sent since the last (re)send of the command
         resends = 0
         awaiting_z = False
@@ -160,24 +185,28 @@ class SlcAsciiDriver(LinkDriver):
                     resends += 1
                     if resends > MAX_RESENDS:
                         raise ProtocolError(f"link {self.name}: {command.name}: controller keeps ignoring it")
-                    self.send(encode_command(command, msg_id))
+                    self._send_frame(encode_command(command, msg_id))
                     awaiting_z, z_sent = False, 0
                     deadline = loop.time() + timeout
                 continue  # a stale reply to an earlier transaction: ignore it
             if isinstance(event, IdMismatch):
+                if event.last_valid_id != 0 and _next_id(event.last_valid_id) == msg_id:
+                    # A controller whose last valid ID precedes ours accepts ours: this ;I
+                    # answers an earlier message (a reply that came after its timeout).
+                    continue
                 self.counters.id_resyncs += 1
                 resends += 1
                 if resends > MAX_RESENDS:
                     raise ProtocolError(f"link {self.name}: {command.name}: message IDs do not resynchronise")
-                if event.last_valid_id == msg_id and msg_id != 0:
+                if event.last_valid_id == msg_id:
                     # An earlier copy of this very message was accepted: fetch its answer.
                     self.counters.retransmits += 1
-                    self.send(encode_retransmit(msg_id))
+                    self._send_frame(encode_retransmit(msg_id))
                     awaiting_z = True
                 else:
-                    self._ids.reset()  # ID 00 is always accepted and restarts the numbering
+                    await self._resync(timeout)
                     msg_id = self._ids.take()
-                    self.send(encode_command(command, msg_id))
+                    self._send_frame(encode_command(command, msg_id))
                     awaiting_z, z_sent = False, 0
                 deadline = loop.time() + timeout
                 continue
@@ -190,7 +219,7 @@ class SlcAsciiDriver(LinkDriver):
                 raise timeout_error(self.name, command.name, timeout, z_sent + 1)
             z_sent += 1
             self.counters.retransmits += 1
-            self.send(encode_retransmit(msg_id))
+            self._send_frame(encode_retransmit(msg_id))
             awaiting_z = True
             deadline = loop.time() + timeout
         if isinstance(event, Refused):
@@ -201,6 +230,29 @@ class SlcAsciiDriver(LinkDriver):
                 reason="illegal command or parameters for the current mode",
             )
         return event
+
+    async def _resync(self, reply_time: float) -> None:
+        """Restart the controller's message numbering with a harmless read: ``#0108`` with ID 00.
+
+        ID 00 "is always accepted", so a command sent with it would be executed again by any
+        copy of it (a resend after a reply that came too late to be recognised).  Only this
+        read, which may run any number of times, ever uses ID 00; the command then goes with
+        ID 01, and the controller's ID check answers a second copy of it with ``;I`` instead
+        of executing it.  The line keeps the order, so the read is handled before the command.
+        """
+        loop = asyncio.get_running_loop()
+        self._ids.reset()
+        probe = encode_command(cmds.read_frn(), self._ids.take())
+        for _ in range(self.retries + 1):
+            self._send_frame(probe)
+            deadline = loop.time() + reply_time
+            while (event := await self._next_event(deadline)) is not None:
+                if isinstance(event, DataReply) and event.msg_id == 0:
+                    return
+                # anything else answers an earlier message
+            self.counters.timeouts += 1
+        self._ids.reset()
+        raise timeout_error(self.name, "read FRN with ID 00 (message ID resync)", reply_time, self.retries + 1)
 
     async def _run_command(self, command: Command) -> Answer:
         try:
@@ -308,6 +360,11 @@ class SlcAsciiDriver(LinkDriver):
                 await self._run_command(command)
 
         await self.submit(op, Priority.WRITE)
+
+
+def _next_id(msg_id: int) -> int:
+    """The ID that follows ``msg_id`` (01..7F, then 01 again)."""
+    return 1 if msg_id >= MAX_ID else msg_id + 1
 
 
 def _wake(waiter: asyncio.Future[None]) -> None:

@@ -13,6 +13,7 @@ import contextlib
 import logging
 import os
 import tty
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
@@ -20,7 +21,7 @@ from typing import Protocol
 from gateway.errors import LinkDown
 from gateway.transport import ByteStream, SerialSettings
 
-__all__ = ["LineModel", "SimDevice", "SimOutput", "SimStream", "serve_pty", "serve_tcp"]
+__all__ = ["LineModel", "SimDevice", "SimOutput", "SimStream", "close_tcp", "serve_pty", "serve_tcp"]
 
 log = logging.getLogger(__name__)
 
@@ -151,6 +152,7 @@ class SimStream(ByteStream):
     """An in-process byte stream to a simulated device (``sim://`` URLs)."""
 
     def __init__(self, device: SimDevice, settings: SerialSettings | None = None, turnaround: float = 0.0):
+        self._paced = settings is not None
         self._queue: asyncio.Queue[bytes] = asyncio.Queue()
         self._wire = _Wire(device, self._queue.put_nowait, settings, turnaround)
 
@@ -169,6 +171,9 @@ class SimStream(ByteStream):
             data += more
         return data
 
+    def char_time(self, settings: SerialSettings) -> float:
+        return settings.char_time if self._paced else 0.0  # unpaced: bytes arrive at once
+
     def write(self, data: bytes) -> None:
         if self._wire.closed:
             raise LinkDown("simulator stream closed")
@@ -181,16 +186,24 @@ class SimStream(ByteStream):
 
 
 class _TcpDeviceProtocol(asyncio.Protocol):
-    def __init__(self, device: SimDevice, settings: SerialSettings | None, turnaround: float) -> None:
+    def __init__(
+        self,
+        device: SimDevice,
+        settings: SerialSettings | None,
+        turnaround: float,
+        clients: set[asyncio.Transport],
+    ) -> None:
         self._device = device
         self._settings = settings
         self._turnaround = turnaround
+        self._clients = clients
         self._wire: _Wire | None = None
         self._transport: asyncio.Transport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self._transport = transport
+        self._clients.add(transport)
         self._wire = _Wire(self._device, self._send, self._settings, self._turnaround)
         log.info("simulator: client connected from %s", transport.get_extra_info("peername"))
 
@@ -203,9 +216,15 @@ class _TcpDeviceProtocol(asyncio.Protocol):
             self._wire.from_host(data)
 
     def connection_lost(self, exc: Exception | None) -> None:
+        if self._transport is not None:
+            self._clients.discard(self._transport)
         if self._wire is not None:
             self._wire.close()
         log.info("simulator: client disconnected")
+
+
+#: The client connections of each server made by serve_tcp (closed by close_tcp).
+_tcp_clients: weakref.WeakKeyDictionary[asyncio.Server, set[asyncio.Transport]] = weakref.WeakKeyDictionary()
 
 
 async def serve_tcp(
@@ -218,7 +237,25 @@ async def serve_tcp(
 ) -> asyncio.Server:
     """Serve ``device`` on a TCP port, as a serial device server in raw mode would."""
     loop = asyncio.get_running_loop()
-    return await loop.create_server(lambda: _TcpDeviceProtocol(device, settings, turnaround), host, port)
+    clients: set[asyncio.Transport] = set()
+    server = await loop.create_server(
+        lambda: _TcpDeviceProtocol(device, settings, turnaround, clients), host, port
+    )
+    _tcp_clients[server] = clients
+    return server
+
+
+async def close_tcp(server: asyncio.Server) -> None:
+    """Stop a server made by :func:`serve_tcp` and drop its client connections.
+
+    ``asyncio.Server.close()`` only stops listening: the clients would go on talking to the
+    simulator (and from Python 3.12 ``wait_closed()`` waits for them).  A device server that is
+    switched off drops them, and so does this.
+    """
+    server.close()
+    for transport in list(_tcp_clients.get(server, ())):
+        transport.abort()
+    await server.wait_closed()
 
 
 class PtyServer:

@@ -5,8 +5,9 @@ Written from the manual ("SLC Programmable Controller Communications Protocol"):
 * message IDs: 00 is always accepted and restarts numbering; otherwise the ID must be the
   next in sequence (01..7F, rolling over to 01) or the answer is ``;I<last valid ID>`` and the
   command is not executed.  After power-up the controller expects 00.
-* ``;Z`` repeats the most recent reply (acknowledge, data, refusal or ID mismatch) with the
-  ID it carried.  It does not use up an ID.
+* ``;Z`` repeats the most recent reply to an accepted message (acknowledge, data or refusal)
+  with the ID it carried, not a ``;I``; after power-up there is none, and ``;Z`` gets no answer.
+  It does not use up an ID.
 * reads and data writes only in run or continuous-test mode; upload/download only in program
   mode; mode selection in any mode; a transfer, once begun, must finish before a mode change.
 * write word: even address 00-7E, value < 10000, the word overwritten must not be protected.
@@ -243,10 +244,14 @@ class SlcAsciiSimulator:
             plan = self.faults
             if plan.power_cycle_every and self._frames_seen % plan.power_cycle_every == 0:
                 self.power_cycle()
+            executed_before = self.counters.commands
             reply = self._handle(event)
-            self._last_reply = reply
+            if executed_before != self.counters.commands:
+                # ;Z repeats "its most recent acknowledge or data message" (or ;E): not ;I.
+                self._last_reply = reply
             self._emit(out, reply)
-            if plan.fault_every and self.counters.commands % plan.fault_every == 0:
+            executed = self.counters.commands != executed_before  # not for a frame answered ;I
+            if plan.fault_every and executed and self.counters.commands % plan.fault_every == 0:
                 self.raise_fault()
                 out.append(Output(plan.delay, framing.encode_fault(0)))
         return out

@@ -1,0 +1,302 @@
+"""The command-line tools against ``slc-gateway simulate`` run as a real subprocess.
+
+Over TCP (``socket://127.0.0.1:PORT``, a serial device server in raw mode) and over a
+pseudo-terminal (the simulator prints its ``/dev/pts/N``; the CLI opens it as a serial port).
+Everything stays on this machine: 127.0.0.1 and a pty.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import selectors
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+CLI = [sys.executable, "-m", "gateway"]
+TIMEOUT = 30  # seconds for any one command; each normally takes well under one
+
+
+def start_simulator(*args: str) -> tuple[subprocess.Popen[str], str]:
+    """Run ``slc-gateway simulate ARGS`` and return it with the first line it prints."""
+    process = subprocess.Popen(
+        [*CLI, "simulate", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert process.stdout is not None
+    with selectors.DefaultSelector() as selector:
+        selector.register(process.stdout, selectors.EVENT_READ)
+        if not selector.select(timeout=TIMEOUT):
+            stop(process)
+            raise AssertionError(f"simulate {' '.join(args)} printed nothing within {TIMEOUT} s")
+    line = process.stdout.readline().strip()
+    if not line:
+        stop(process)
+        _, err = process.communicate(timeout=5)
+        raise AssertionError(f"simulate {' '.join(args)} exited: {err}")
+    return process, line
+
+
+def stop(process: subprocess.Popen[str]) -> None:
+    if process.poll() is None:
+        process.terminate()
+        try:
+            process.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(timeout=5)
+    for stream in (process.stdout, process.stderr):
+        if stream is not None:
+            stream.close()
+
+
+def tcp_simulator(model: str) -> Iterator[str]:
+    process, line = start_simulator(model, "--listen", "127.0.0.1:0", "--no-ladder")
+    try:
+        match = re.fullmatch(rf"simulated {model} listening on (127\.0\.0\.1):(\d+) \((socket://\S+)\)", line)
+        assert match, line
+        assert match.group(3) == f"socket://127.0.0.1:{match.group(2)}"
+        assert int(match.group(2)) > 0
+        yield match.group(3)
+    finally:
+        stop(process)
+
+
+@pytest.fixture
+def slc150() -> Iterator[str]:
+    """URL of a simulated SLC 150 over TCP, for one test that changes it."""
+    yield from tcp_simulator("slc150")
+
+
+@pytest.fixture(scope="module")
+def shared_slc150() -> Iterator[str]:
+    """URL of a simulated SLC 150 over TCP, shared by the tests that change nothing in it."""
+    yield from tcp_simulator("slc150")
+
+
+@pytest.fixture
+def slc100() -> Iterator[str]:
+    """URL of a simulated SLC 100 over TCP."""
+    yield from tcp_simulator("slc100")
+
+
+@pytest.fixture
+def pty_slc150() -> Iterator[str]:
+    """Path of a pseudo-terminal with a simulated SLC 150 behind it."""
+    process, line = start_simulator("slc150", "--pty", "--no-ladder")
+    try:
+        match = re.fullmatch(r"simulated slc150 on (/dev/\S+)", line)
+        assert match, line
+        assert os.path.exists(match.group(1))
+        yield match.group(1)
+    finally:
+        stop(process)
+
+
+def cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=TIMEOUT, check=False)
+
+
+def ok(*args: str) -> str:
+    result = cli(*args)
+    assert result.returncode == 0, f"{args}: exit {result.returncode}: {result.stderr}"
+    assert result.stderr == ""
+    return result.stdout
+
+
+def ok_json(*args: str) -> Any:
+    lines = ok(*args, "--json").splitlines()
+    assert len(lines) == 1, lines  # one object
+    return json.loads(lines[0])
+
+
+def fails(*args: str, status: int = 1) -> str:
+    """Run a command that must fail; return its one-line reason."""
+    result = cli(*args)
+    assert result.returncode == status, f"{args}: exit {result.returncode}: {result.stdout} {result.stderr}"
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, f"{args}: not a one-line reason: {result.stderr!r}"
+    assert "Traceback" not in result.stderr
+    return lines[0]
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+    return port
+
+
+# ---------------------------------------------------------------------------------------------
+# Over TCP
+
+
+def test_probe(shared_slc150: str) -> None:
+    assert ok_json("probe", shared_slc150) == {"controller": "SLC150", "device_type": 0x15, "frn": 47}
+    text = ok("probe", shared_slc150)
+    assert text.splitlines() == ["controller = SLC150", "device_type = 21", "frn = 47"]
+
+
+def test_read_json_gives_one_object(shared_slc150: str) -> None:
+    result = ok_json("read", shared_slc150, "901.PRE", "701", "932.PRE", "932.PROTECTED", "@0x84", "901.STEP")
+    assert result == {"901.PRE": 100, "701": False, "932.PRE": 500, "932.PROTECTED": True, "@0x84": 0, "901.STEP": 0}
+
+
+def test_write_then_read_back(slc150: str) -> None:
+    assert ok("write", slc150, "905.PRE=1234", "701=1", "903.ACC=0x10").splitlines() == [
+        "905.PRE = 1234", "701 = 1", "903.ACC = 16"]
+    assert ok_json("read", slc150, "905.PRE", "701", "702", "903.ACC") == {
+        "905.PRE": 1234, "701": True, "702": False, "903.ACC": 16}
+    assert ok("read", slc150, "701", "905.PRE").splitlines() == ["701 = true", "905.PRE = 1234"]
+    ok("write", slc150, "701=0", "708=1")
+    assert ok_json("read", slc150, "701", "708", "@A6") == {"701": False, "708": True, "@A6": 0x80}
+
+
+def test_mode_upload_and_download_back(slc150: str, tmp_path: Path) -> None:
+    backup = tmp_path / "slc150.json"
+    assert ok_json("mode", slc150, "program") == {"mode": "program"}
+    assert ok_json("upload", slc150, str(backup)) == {"file": str(backup), "controller": "SLC150", "blocks": 0xA5}
+    document = json.loads(backup.read_text())
+    assert document["format"] == "slc-gateway-program/1"
+    assert document["controller"] == "SLC150"
+    assert len(document["blocks"]) == 0xA5
+    assert all(len(block) == 30 for block in document["blocks"])
+    assert document["blocks"][0] == bytes((i * 7 + 3) & 0xFF for i in range(15)).hex().upper()
+    assert document["blocks"][-1].endswith("00" * 8)  # fill
+    assert ok_json("download", slc150, str(backup))["blocks"] == 0xA5
+    # the program read back is the same
+    again = tmp_path / "again.json"
+    ok("upload", slc150, str(again))
+    assert json.loads(again.read_text())["blocks"] == document["blocks"]
+    # reads are refused in program mode; back to run mode they work
+    assert "refused" in fails("read", slc150, "901.PRE")
+    ok("mode", slc150, "run")
+    assert ok_json("read", slc150, "901.PRE") == {"901.PRE": 100}
+
+
+def test_upload_outside_program_mode_is_refused(shared_slc150: str, tmp_path: Path) -> None:
+    reason = fails("upload", shared_slc150, str(tmp_path / "x.json"))
+    assert reason.startswith("slc-gateway upload: ")
+    assert "refused" in reason
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_download_refuses_a_program_for_another_controller(slc100: str, slc150: str, tmp_path: Path) -> None:
+    backup = tmp_path / "slc100.json"
+    ok("mode", slc100, "program")
+    ok("upload", slc100, str(backup))
+    assert json.loads(backup.read_text())["controller"] == "SLC100"
+    assert len(json.loads(backup.read_text())["blocks"]) == 0x7B
+    ok("mode", slc150, "program")
+    reason = fails("download", slc150, str(backup))
+    assert reason.startswith("slc-gateway download: ")
+    assert "SLC100" in reason and "SLC150" in reason
+    # nothing was downloaded: the SLC 150 still has its own program
+    after = tmp_path / "after.json"
+    ok("upload", slc150, str(after))
+    assert json.loads(after.read_text())["blocks"][0] == bytes((i * 7 + 3) & 0xFF for i in range(15)).hex().upper()
+
+
+def test_download_refuses_a_damaged_file(slc150: str, tmp_path: Path) -> None:
+    backup = tmp_path / "p.json"
+    ok("mode", slc150, "program")
+    ok("upload", slc150, str(backup))
+    document = json.loads(backup.read_text())
+    document["blocks"][3] = "FF" * 15
+    backup.write_text(json.dumps(document))
+    assert "checksum" in fails("download", slc150, str(backup))
+    backup.write_text("not json")
+    assert "not a program backup file" in fails("download", slc150, str(backup))
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (("read", "{url}", "999.FOO"), "999"),
+        (("read", "{url}", "901.FOO"), "suffix"),
+        (("read", "{url}", "@0x80"), "0x80"),
+        (("write", "{url}", "901.PRE"), "ITEM=VALUE"),
+        (("write", "{url}", "901.PRE=abc"), "not a whole number"),
+        (("write", "{url}", "901.PRE=10000"), "0-9999"),
+        (("write", "{url}", "11=1"), "read only"),  # an output
+        (("write", "{url}", "701=2"), "0 or 1"),
+        (("write", "{url}", "932.PRE=5"), "refused"),  # protected preset: the controller says ;E
+    ],
+)
+def test_failures_exit_non_zero_with_a_one_line_reason(shared_slc150: str, args: tuple[str, ...], words: str) -> None:
+    reason = fails(*(a.format(url=shared_slc150) for a in args))
+    assert reason.startswith(f"slc-gateway {args[0]}: ")
+    assert words in reason
+
+
+def test_a_refused_write_changes_nothing(shared_slc150: str) -> None:
+    fails("write", shared_slc150, "932.PRE=5")
+    assert ok_json("read", shared_slc150, "932.PRE", "932.PROTECTED") == {"932.PRE": 500, "932.PROTECTED": True}
+
+
+def test_unreachable_port() -> None:
+    url = f"socket://127.0.0.1:{free_port()}"
+    reason = fails("probe", url)
+    assert reason.startswith("slc-gateway probe: ")
+    assert f"127.0.0.1:{url.rsplit(':', 1)[1]}" in reason
+    assert fails("read", "/dev/does-not-exist", "901.PRE").startswith("slc-gateway read: ")
+
+
+def test_usage_errors_exit_2() -> None:
+    result = cli("read", "socket://127.0.0.1:1")  # no items
+    assert result.returncode == 2
+    result = cli("mode", "socket://127.0.0.1:1", "sideways")
+    assert result.returncode == 2
+
+
+def test_simulate_stops_on_sigterm_with_a_client_connected() -> None:
+    process, line = start_simulator("slc150", "--listen", "127.0.0.1:0")
+    try:
+        match = re.search(r"listening on 127\.0\.0\.1:(\d+)", line)
+        assert match, line
+        with socket.create_connection(("127.0.0.1", int(match.group(1))), timeout=5) as client:
+            client.sendall(b"#010800A3\r")
+            assert client.recv(64).startswith(b":021FFE1547")
+            process.terminate()
+            assert process.wait(timeout=5) == 0
+            assert client.recv(64) == b""  # the simulator closed the connection
+    finally:
+        stop(process)
+
+
+# ---------------------------------------------------------------------------------------------
+# Over a pseudo-terminal, as over a serial port
+
+
+#: This machine's pseudo-terminals refuse 7 data bits and parity (termios EINVAL), as some USB
+#: adapters do: 8N1 with the parity bit sent as bit 7 puts the same bits on a real wire as 7E1.
+PTY_LINE = ("--bytesize", "8", "--parity", "N")
+
+
+def test_over_a_pty(pty_slc150: str, tmp_path: Path) -> None:
+    result = cli("probe", pty_slc150)  # 7E1, the protocol's own settings
+    if result.returncode != 0:  # refused by this pty: a one-line reason naming the port, no traceback
+        assert result.returncode == 1
+        assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+        assert pty_slc150 in result.stderr
+    assert ok_json("probe", pty_slc150, *PTY_LINE) == {"controller": "SLC150", "device_type": 0x15, "frn": 47}
+    ok("write", pty_slc150, *PTY_LINE, "910.PRE=4321", "720=1")
+    assert ok_json("read", pty_slc150, *PTY_LINE, "910.PRE", "720", "901.PRE") == {
+        "910.PRE": 4321, "720": True, "901.PRE": 100}
+    assert "refused" in fails("write", pty_slc150, *PTY_LINE, "932.PRE=5")
+    backup = tmp_path / "pty.json"
+    ok("mode", pty_slc150, *PTY_LINE, "program")
+    ok("upload", pty_slc150, *PTY_LINE, str(backup))
+    ok("download", pty_slc150, *PTY_LINE, str(backup))
+    ok("mode", pty_slc150, *PTY_LINE, "run")
+    assert len(json.loads(backup.read_text())["blocks"]) == 0xA5
+    assert fails("probe", "/dev/pts/999999", *PTY_LINE).startswith("slc-gateway probe: ")
