@@ -63,6 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="run the gateway (default: the built-in demo with simulators)")
     p.add_argument("config", nargs="?", type=Path, help=f"config file (default: the demo, {DEMO_CONFIG.name})")
+    p.add_argument(
+        "--trace", type=Path, metavar="FILE",
+        help="record every byte on every link, with timestamps and direction, to FILE (troubleshooting)",
+    )
 
     p = sub.add_parser("check-config", help="validate a config file, print the resolved config and Modbus map")
     p.add_argument("config", type=Path)
@@ -131,7 +135,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _setup_logging(args.verbose, logging.ERROR)
     try:
         if command == "run":
-            return _run(args.config)
+            return _run(args.config, args.trace)
         if command == "check-config":
             return _check_config(args.config)
         if command == "simulate":
@@ -149,11 +153,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
 
 
-def _run(config_path: Path | None) -> int:
+def _run(config_path: Path | None, trace: Path | None = None) -> int:
     from gateway.app import run_gateway
     from gateway.config import load_config
 
     config = load_config(config_path or DEMO_CONFIG)
+    if trace is not None:
+        links = tuple(link.model_copy(update={"trace": trace}) for link in config.link)
+        config = config.model_copy(update={"link": links})
+        log.info("recording every byte on every link to %s", trace)
     if config_path is None:
         log.info("no config file given: running the demo (%s) against the built-in simulators", DEMO_CONFIG)
     return asyncio.run(run_gateway(config))

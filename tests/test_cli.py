@@ -14,6 +14,7 @@ import selectors
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -300,3 +301,37 @@ def test_over_a_pty(pty_slc150: str, tmp_path: Path) -> None:
     ok("mode", pty_slc150, *PTY_LINE, "run")
     assert len(json.loads(backup.read_text())["blocks"]) == 0xA5
     assert fails("probe", "/dev/pts/999999", *PTY_LINE).startswith("slc-gateway probe: ")
+
+
+def test_run_trace_records_every_byte_of_every_link(tmp_path: Path) -> None:
+    config = tmp_path / "gateway.toml"
+    config.write_text(
+        '[modbus]\nlisten = "127.0.0.1:0"\n'
+        '[[link]]\nname = "ascii"\nprotocol = "slc-ascii"\nport = "sim://slc150?ladder=0"\nunit = 1\n'
+        '[[link]]\nname = "df1"\nprotocol = "df1"\nport = "sim://slc504?ladder=0"\nunit = 2\n'
+        '[[link.map]]\ntable = "holding"\nstart = 0\naddress = "N7:0"\ncount = 4\n'
+    )
+    trace = tmp_path / "links.trace"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "gateway", "run", str(config), "--trace", str(trace)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )
+    def traced() -> bool:
+        text = trace.read_text() if trace.exists() else ""
+        return " df1 RX " in text and " ascii RX " in text
+
+    try:
+        deadline = time.monotonic() + 10
+        while not traced() and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+    finally:
+        process.terminate()
+        _, err = process.communicate(timeout=10)
+    assert process.returncode == 0, err
+    lines = trace.read_text().splitlines()
+    # "<unix time> <link> <TX|RX> <hex bytes>  |<printable>|"
+    pattern = re.compile(r"^\d+\.\d{6} (ascii|df1) (TX|RX) [0-9a-f]{2}( [0-9a-f]{2})*  \|.*\|$")
+    assert lines and all(pattern.match(line) for line in lines), lines[:3]
+    assert any(line.split()[1:3] == ["ascii", "TX"] and "|#010800A3.|" in line for line in lines)  # ID 00 resync
+    directions = {tuple(line.split()[1:3]) for line in lines}
+    assert directions == {("ascii", "TX"), ("ascii", "RX"), ("df1", "TX"), ("df1", "RX")}
