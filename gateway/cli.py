@@ -11,13 +11,11 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import json
 import logging
 import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from gateway import __version__
 from gateway.errors import GatewayError
@@ -232,10 +230,3 @@ async def _simulate(args: argparse.Namespace) -> int:
         await close_tcp(server)  # drop connected clients too, so that we exit while one is connected
     return 0
 
-
-def print_result(result: dict[str, Any], as_json: bool) -> None:
-    if as_json:
-        print(json.dumps(result))
-        return
-    for key, value in result.items():
-        print(f"{key} = {value}")

@@ -25,13 +25,14 @@ from gateway.protocols.slc_ascii.commands import ControllerType, Mode
 from gateway.protocols.slc_ascii.memory_map import parse_item
 from gateway.transport import SerialSettings
 
-__all__ = ["PROGRAM_FORMAT", "load_program_file", "run_tool", "save_program_file"]
+__all__ = ["PROGRAM_FORMAT", "load_program_file", "print_result", "run_tool", "save_program_file"]
 
 PROGRAM_FORMAT = "slc-gateway-program/1"
 _MODES = {"run": Mode.RUN, "program": Mode.PROGRAM, "test": Mode.CONTINUOUS_TEST, "save": Mode.SAVE_TO_EEPROM}
 
 
-def _print(result: dict[str, Any], as_json: bool) -> None:
+def print_result(result: dict[str, Any], as_json: bool) -> None:
+    """``key = value`` lines, or one JSON object with ``--json``."""
     if as_json:
         print(json.dumps(result))
     else:
@@ -68,12 +69,12 @@ async def run_tool(command: str, args: argparse.Namespace) -> int:
         if command == "probe":
             info = await driver.probe()
             kind = info.controller.name if info.controller else f"unknown (device type 0x{info.device_type:02X})"
-            _print({"controller": kind, "device_type": info.device_type, "frn": info.frn}, args.json)
+            print_result({"controller": kind, "device_type": info.device_type, "frn": info.frn}, args.json)
         elif command == "read":
             result: dict[str, Any] = {}
             for text, item in zip(args.items, items, strict=True):
                 result[text] = item.decode(await driver.read(item.read_address, item.read_count))
-            _print(result, args.json)
+            print_result(result, args.json)
         elif command == "write":
             for item_text, item, value in writes:
                 if item.read_modify_write:
@@ -85,25 +86,29 @@ async def run_tool(command: str, args: argparse.Namespace) -> int:
                     await driver.update_byte(item.read_address, item.bit, bool(value))
                 else:
                     await driver.execute(item.encode_write(value))
-            _print({text: value for text, _, value in writes}, args.json)
+            print_result({text: value for text, _, value in writes}, args.json)
         elif command == "mode":
             await driver.set_mode(_MODES[args.mode])
-            _print({"mode": args.mode}, args.json)
+            print_result({"mode": args.mode}, args.json)
         elif command == "upload":
             info = await driver.probe()
             controller = _known(info.controller, info.device_type)
             program = await driver.upload_program(controller)
             save_program_file(args.file, controller, info.frn, program)
-            _print({"file": str(args.file), "controller": controller.name, "blocks": controller.block_count}, args.json)
+            print_result(_transfer_summary(args.file, controller), args.json)
         elif command == "download":
             info = await driver.probe()
             controller = _known(info.controller, info.device_type)
             program = load_program_file(args.file, controller)
             await driver.download_program(controller, program)
-            _print({"file": str(args.file), "controller": controller.name, "blocks": controller.block_count}, args.json)
+            print_result(_transfer_summary(args.file, controller), args.json)
         else:
             raise InvalidRequest(f"unknown command {command}")
     return 0
+
+
+def _transfer_summary(path: Path, controller: ControllerType) -> dict[str, Any]:
+    return {"file": str(path), "controller": controller.name, "blocks": controller.block_count}
 
 
 def _parse_assignment(text: str) -> tuple[str, Any, int]:

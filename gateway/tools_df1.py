@@ -8,7 +8,6 @@ as its three words.
 from __future__ import annotations
 
 import argparse
-import json
 import struct
 from typing import Any
 
@@ -23,6 +22,7 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalWrite,
     SetProcessorMode,
 )
+from gateway.tools import print_result
 from gateway.transport import SerialSettings
 from gateway.unit_df1 import PROCESSORS
 
@@ -65,14 +65,6 @@ def encode_value(address: SlcAddress, text: str) -> tuple[bytes, int | None]:
     return (value & 0xFFFF).to_bytes(2, "little"), None
 
 
-def _print(result: dict[str, Any], as_json: bool) -> None:
-    if as_json:
-        print(json.dumps(result))
-    else:
-        for key, value in result.items():
-            print(f"{key} = {str(value).lower() if isinstance(value, bool) else value}")
-
-
 async def run_df1_tool(command: str, args: argparse.Namespace) -> int:
     if args.processor not in PROCESSORS:
         raise InvalidRequest(f"--processor {args.processor}: choose from {', '.join(PROCESSORS)}")
@@ -107,7 +99,7 @@ async def run_df1_tool(command: str, args: argparse.Namespace) -> int:
         if command == "probe":
             info = await driver.probe()
             family = info.family
-            _print({
+            print_result({
                 "processor": family.value if family else f"unknown (type 0x{info.processor_type or 0:02X})",
                 "catalog": info.catalog,
                 "series": info.series,
@@ -121,7 +113,7 @@ async def run_df1_tool(command: str, args: argparse.Namespace) -> int:
                 )
                 reply = await driver.execute(request, f"read {address}")
                 result[text] = decode_value(address, reply.data)
-            _print(result, args.json)
+            print_result(result, args.json)
         elif command == "write":
             for name, a, _, data, mask in writes:
                 if mask is None:
@@ -134,11 +126,11 @@ async def run_df1_tool(command: str, args: argparse.Namespace) -> int:
                         a.file_type, a.file_number, a.element, a.sub_element, mask, data
                     )
                     await driver.execute(masked, f"write {name}")
-            _print({name: value for name, _, value, _, _ in writes}, args.json)
+            print_result({name: value for name, _, value, _, _ in writes}, args.json)
         else:
             modes = {"run": ProcessorMode.RUN, "program": ProcessorMode.PROGRAM, "test": ProcessorMode.TEST_CONTINUOUS}
             if args.mode not in modes:
                 raise InvalidRequest(f"DF1 mode: choose run, program or test, not {args.mode}")
             await driver.execute(SetProcessorMode(modes[args.mode]), f"mode {args.mode}", write=True)
-            _print({"mode": args.mode}, args.json)
+            print_result({"mode": args.mode}, args.json)
     return 0

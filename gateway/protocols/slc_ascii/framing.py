@@ -337,18 +337,21 @@ def _split_checked(line: bytes) -> tuple[bytes, int] | str:
     return text.upper(), msg_id
 
 
-class ReplyDecoder:
-    """Host side: bytes from the controller -> ``ReplyEvent`` or ``NEED_DATA``."""
+class _Decoder:
+    """Cuts lines, checks CRC and ID; subclasses turn a checked line into an event."""
 
     __slots__ = ("_lines",)
 
+    LEADS = b""
+
     def __init__(self) -> None:
-        self._lines = _LineSplitter(b":;")
+        self._lines = _LineSplitter(self.LEADS)
 
     def receive_data(self, data: bytes) -> None:
         self._lines.feed(data)
 
-    def next_event(self) -> ReplyEvent | NeedData:
+    def _next_checked(self) -> tuple[bytes, bytes, int] | Garbled | NeedData:
+        """(line, upper-cased text through the ID, ID), a Garbled line, or NEED_DATA."""
         item = self._lines.next_line()
         if item is None:
             return NEED_DATA
@@ -358,7 +361,21 @@ class ReplyDecoder:
         checked = _split_checked(line)
         if isinstance(checked, str):
             return Garbled(line, checked)
-        text, msg_id = checked
+        return line, checked[0], checked[1]
+
+
+class ReplyDecoder(_Decoder):
+    """Host side: bytes from the controller -> ``ReplyEvent`` or ``NEED_DATA``."""
+
+    __slots__ = ()
+
+    LEADS = b":;"
+
+    def next_event(self) -> ReplyEvent | NeedData:
+        checked = self._next_checked()
+        if not isinstance(checked, tuple):
+            return checked
+        line, text, msg_id = checked
         if line[0] == ord(":"):
             body = text[:-2]
             if not body or len(body) % 2 or not all(c in _HEX_DIGITS for c in body):
@@ -375,28 +392,18 @@ class ReplyDecoder:
         return kind(msg_id)
 
 
-class CommandDecoder:
+class CommandDecoder(_Decoder):
     """Controller side: bytes from the host -> ``HostEvent`` or ``NEED_DATA`` (used by the simulator)."""
 
-    __slots__ = ("_lines",)
+    __slots__ = ()
 
-    def __init__(self) -> None:
-        self._lines = _LineSplitter(b"#;")
-
-    def receive_data(self, data: bytes) -> None:
-        self._lines.feed(data)
+    LEADS = b"#;"
 
     def next_event(self) -> HostEvent | NeedData:
-        item = self._lines.next_line()
-        if item is None:
-            return NEED_DATA
-        line, reason = item
-        if reason:
-            return Garbled(line, reason)
-        checked = _split_checked(line)
-        if isinstance(checked, str):
-            return Garbled(line, checked)
-        text, msg_id = checked
+        checked = self._next_checked()
+        if not isinstance(checked, tuple):
+            return checked
+        line, text, msg_id = checked
         if line[0] == ord(";"):
             if text[0] == ord("Z") and len(text) == 3:
                 return RetransmitRequest(msg_id)
