@@ -26,5 +26,5 @@ test: $(VENV)/.installed mbpoll
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 lint: $(VENV)/.installed
-	$(VENV)/bin/ruff check gateway tests bench
+	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy --strict gateway
