@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import asyncio
 import enum
+import heapq
 import itertools
 import logging
 import random
 from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -65,12 +66,47 @@ class LinkCounters:
         return self.retransmits + self.id_resyncs + self.enq_sent + self.nak_received
 
 
-@dataclass(order=True)
-class _Job:
-    priority: int
-    seq: int
-    op: Callable[[], Awaitable[Any]] = field(compare=False)
-    future: asyncio.Future[Any] = field(compare=False)
+class _Line:
+    """Exclusive use of the line, granted by priority (then arrival order).
+
+    Free: the caller takes it at once and runs its request in its own task (no hand-over to a
+    worker task, so a poller's next request leaves as soon as the previous answer is in).
+    Busy: callers wait in a heap; ``release`` hands the line to the most urgent one.
+    """
+
+    __slots__ = ("_seq", "_waiters", "busy")
+
+    def __init__(self) -> None:
+        self.busy = False
+        self._waiters: list[tuple[int, int, asyncio.Future[None]]] = []
+        self._seq = itertools.count()
+
+    async def acquire(self, priority: int) -> None:
+        if not self.busy and not self._waiters:
+            self.busy = True
+            return
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        heapq.heappush(self._waiters, (priority, next(self._seq), future))
+        try:
+            await future
+        except asyncio.CancelledError:
+            if future.done() and not future.cancelled() and future.exception() is None:
+                self.release()  # handed the line just as the caller gave up: pass it on
+            raise
+
+    def release(self) -> None:
+        while self._waiters:
+            _, _, future = heapq.heappop(self._waiters)
+            if not future.done():
+                future.set_result(None)  # the line stays busy: it is theirs now
+                return
+        self.busy = False
+
+    def fail_waiting(self, exc: BaseException) -> None:
+        while self._waiters:
+            _, _, future = heapq.heappop(self._waiters)
+            if not future.done():
+                future.set_exception(exc)
 
 
 class LinkDriver(ABC):
@@ -101,8 +137,7 @@ class LinkDriver(ABC):
         self._connect_timeout = connect_timeout
         self._opener = opener
         self._stream: ByteStream | None = None
-        self._queue: asyncio.PriorityQueue[_Job] = asyncio.PriorityQueue()
-        self._seq = itertools.count()
+        self._line = _Line()
         self._connected = asyncio.Event()
         self._first_attempt_done = asyncio.Event()
         self._lost: asyncio.Future[None] | None = None
@@ -189,20 +224,18 @@ class LinkDriver(ABC):
         self._first_attempt_done.set()
         # "up" is reported when the controller first answers, not when the port opens.
         reader = asyncio.create_task(self._read_loop(stream), name=f"{self.name}-reader")
-        worker = asyncio.create_task(self._work_loop(), name=f"{self.name}-worker")
         try:
             await self._lost
         finally:
             reader.cancel()
-            worker.cancel()
             self._stream = None
             self._connected.clear()
-            self._fail_queued(LinkDown(f"link {self.name} is down: {self.last_error or 'closed'}"))
+            self._fail_pending(LinkDown(f"link {self.name} is down: {self.last_error or 'closed'}"))
             if not self._closing:
                 self._report(False, self.last_error or "connection lost")
             try:
                 # Not wrapped in suppress(CancelledError): a cancellation of this task must go on.
-                await asyncio.wait([reader, worker])
+                await asyncio.wait([reader])
             finally:
                 await stream.close()
 
@@ -221,34 +254,10 @@ class LinkDriver(ABC):
             self.counters.bytes_received += len(data)
             self.data_received(data)
 
-    async def _work_loop(self) -> None:
-        while True:
-            job = await self._queue.get()
-            if job.future.done():
-                continue
-            try:
-                result = await job.op()
-            except asyncio.CancelledError:
-                if not job.future.done():
-                    job.future.set_exception(LinkDown(f"link {self.name} is down: {self.last_error}"))
-                raise
-            except GatewayError as exc:
-                if not job.future.done():
-                    job.future.set_exception(exc)
-                continue
-            except Exception as exc:  # a bug: fail the caller, keep the link alive
-                log.exception("link %s: unexpected error", self.name)
-                if not job.future.done():
-                    job.future.set_exception(LinkError(f"link {self.name}: internal error: {exc!r}"))
-                continue
-            if not job.future.done():
-                job.future.set_result(result)
-
-    def _fail_queued(self, exc: GatewayError) -> None:
-        while not self._queue.empty():
-            job = self._queue.get_nowait()
-            if not job.future.done():
-                job.future.set_exception(exc)
+    def _fail_pending(self, exc: GatewayError) -> None:
+        """The link is gone: the request on the line and every waiting one fail with ``exc``."""
+        self.abort(exc)
+        self._line.fail_waiting(exc)
 
     async def start(self, wait: float | None = None) -> None:
         """Run in the background and wait for the first connection attempt (for the CLI).
@@ -270,7 +279,7 @@ class LinkDriver(ABC):
         if self._stream is not None:
             await self._stream.close()
             self._stream = None
-        self._fail_queued(LinkDown(f"link {self.name} is closed"))
+        self._fail_pending(LinkDown(f"link {self.name} is closed"))
 
     async def __aenter__(self) -> LinkDriver:
         await self.start()
@@ -282,12 +291,34 @@ class LinkDriver(ABC):
     # --- requests ---------------------------------------------------------------------------
 
     async def submit(self, op: Callable[[], Awaitable[T]], priority: Priority = Priority.POLL) -> T:
-        """Run ``op`` with exclusive use of the line; fails at once with ``LinkDown`` when down."""
+        """Run ``op`` with exclusive use of the line; fails at once with ``LinkDown`` when down.
+
+        Writes run in a task of their own, shielded: a write on the line goes on to its answer
+        even when its caller gives up (a SCADA client that disconnects, a request cancelled),
+        so the controller is never left with a write half done by us.
+        """
         if self._stream is None:
             raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
-        future: asyncio.Future[T] = asyncio.get_running_loop().create_future()
-        self._queue.put_nowait(_Job(int(priority), next(self._seq), op, future))
-        return await future
+        await self._line.acquire(int(priority))
+        if priority is Priority.WRITE:
+            task = asyncio.ensure_future(self._run_on_line(op))
+            task.add_done_callback(_observe)
+            return await asyncio.shield(task)
+        return await self._run_on_line(op)
+
+    async def _run_on_line(self, op: Callable[[], Awaitable[T]]) -> T:
+        """Run ``op`` holding the line; release it however ``op`` ends."""
+        try:
+            if self._stream is None:
+                raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
+            return await op()
+        except (GatewayError, asyncio.CancelledError):
+            raise
+        except Exception as exc:  # a bug: fail the caller, keep the link alive
+            log.exception("link %s: unexpected error", self.name)
+            raise LinkError(f"link {self.name}: internal error: {exc!r}") from exc
+        finally:
+            self._line.release()
 
     def send(self, data: bytes) -> None:
         """Write bytes to the line (from inside an ``op``)."""
@@ -316,6 +347,16 @@ class LinkDriver(ABC):
     @abstractmethod
     def data_received(self, data: bytes) -> None:
         """Bytes from the controller."""
+
+    @abstractmethod
+    def abort(self, exc: GatewayError) -> None:
+        """The link is gone: make the request on the line (waiting for an answer) fail with ``exc``."""
+
+
+def _observe(task: asyncio.Future[Any]) -> None:
+    """Retrieve a shielded write's outcome, so an abandoned one logs no 'never retrieved'."""
+    if not task.cancelled():
+        task.exception()
 
 
 def timeout_error(name: str, what: str, seconds: float, tries: int) -> LinkTimeout:

@@ -119,6 +119,14 @@ class Df1Driver(LinkDriver):
         self._sends.clear()
         self._replies.clear()
 
+    def abort(self, exc: GatewayError) -> None:
+        for send in self._sends.values():
+            if not send.done():
+                send.set_exception(exc)
+        for reply in self._replies.values():
+            if not reply.done():
+                reply.set_exception(exc)
+
     def data_received(self, data: bytes) -> None:
         self._link.receive_data(data, asyncio.get_running_loop().time())
         self._pump()

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Final
 
 from gateway.drivers.base import LinkDriver, OpenStream, Priority, timeout_error
-from gateway.errors import ControllerFault, ControllerRefused, GatewayError, ProtocolError
+from gateway.errors import ControllerFault, ControllerRefused, GatewayError, LinkDown, ProtocolError
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command, ControllerType, FrnInfo, Mode, TimeoutClass
 from gateway.protocols.slc_ascii.framing import (
@@ -125,6 +125,11 @@ class SlcAsciiDriver(LinkDriver):
         self._decoder = ReplyDecoder()
         self._events.clear()
 
+    def abort(self, exc: GatewayError) -> None:
+        waiter = self._waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_exception(exc)
+
     def data_received(self, data: bytes) -> None:
         decoder = self._decoder
         decoder.receive_data(data)
@@ -147,6 +152,8 @@ class SlcAsciiDriver(LinkDriver):
         """The next reply event, or None at ``deadline``."""
         if self._events:
             return self._events.popleft()
+        if not self.connected:
+            raise LinkDown(f"link {self.name} is down: {self.last_error or 'closed'}")
         loop = asyncio.get_running_loop()
         waiter = loop.create_future()
         self._waiter = waiter
