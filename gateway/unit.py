@@ -24,7 +24,9 @@ from __future__ import annotations
 import asyncio
 import struct
 from abc import ABC, abstractmethod
+from bisect import bisect_right
 from collections.abc import Awaitable, Sequence
+from dataclasses import dataclass
 from typing import cast
 
 from gateway.cache import BlockCache
@@ -61,6 +63,42 @@ DEVICE_FAILURE = ModbusExceptionReply.SERVER_DEVICE_FAILURE
 TARGET_FAILED = ModbusExceptionReply.GATEWAY_TARGET_FAILED
 
 WritableRange = tuple[Table, int, int]  # table, first, last
+
+
+_U16_LE = Codec.U16_LE
+_U16_BE = Codec.U16_BE
+_U16_BE_MASKED = Codec.U16_BE_MASKED
+_STRIDE_2 = (_U16_LE, _U16_BE, _U16_BE_MASKED)
+
+
+@dataclass(frozen=True, slots=True)
+class _Run:
+    """Registers first..last: same block and codec, each word 2 bytes after the one before."""
+
+    first: int
+    last: int
+    block: int
+    offset: int
+    codec: Codec
+
+
+def _register_runs(points: dict[int, RegisterPoint]) -> tuple[list[int], list[_Run]]:
+    runs: list[_Run] = []
+    for address in sorted(points):
+        p = points[address]
+        if runs:
+            r = runs[-1]
+            if (
+                p.codec in _STRIDE_2
+                and r.codec is p.codec
+                and r.block == p.block
+                and r.last == address - 1
+                and p.offset == r.offset + 2 * (address - r.first)
+            ):
+                runs[-1] = _Run(r.first, address, r.block, r.offset, r.codec)
+                continue
+        runs.append(_Run(address, address, p.block, p.offset, p.codec))
+    return [r.first for r in runs], runs
 
 
 def _decode(point: RegisterPoint, data: bytearray) -> int:
@@ -109,6 +147,8 @@ class Unit(ABC):
         #: the controller is silent after this long without an answer to a poll (the poller asks
         #: every fast_interval, or only every slow_interval when the plan has no fast class)
         self._silent_after = min(self._max_age, default=stale_after)
+        #: per register table: start addresses and runs of registers decoded together
+        self._runs = {table: _register_runs(plan.registers(table)) for table in (Table.HOLDING, Table.INPUT)}
         self.poller = Poller(
             name,
             plan.blocks,
@@ -152,30 +192,56 @@ class Unit(ABC):
             return self._status(address, count, now)
         points = self.plan.registers(table)
         stamps, data, max_age = self.cache.stamps, self.cache.data, self._max_age
-        silent = self._silent(now)
-        out: list[int] = []
-        for a in range(address, address + count):
-            point = points.get(a)
-            if point is None:
-                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} register {a} is not mapped")
-            if silent or now - stamps[point.block] > max_age[point.block]:
+        if self._silent(now):
+            if all(a in points for a in range(address, address + count)):
                 raise self._stale()
-            out.append(_decode(point, data[point.block]))
+        starts, runs = self._runs[table]
+        out: list[int] = []
+        a, end = address, address + count
+        i = bisect_right(starts, a) - 1
+        # Hot path (every SCADA read): whole runs of neighbouring registers in one unpack.
+        while a < end:
+            if i < 0 or i >= len(runs) or runs[i].last < a:
+                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} register {a} is not mapped")
+            run = runs[i]
+            block = run.block
+            if now - stamps[block] > max_age[block]:
+                raise self._stale()
+            n = min(end, run.last + 1) - a
+            offset = run.offset + 2 * (a - run.first)
+            if run.codec is _U16_LE:
+                out.extend(struct.unpack_from(f"<{n}H", data[block], offset))
+            elif run.codec is _U16_BE_MASKED:
+                out.extend(v & 0x7FFF for v in struct.unpack_from(f">{n}H", data[block], offset))
+            elif run.codec is _U16_BE:
+                out.extend(struct.unpack_from(f">{n}H", data[block], offset))
+            else:
+                out.append(_decode(points[a], data[block]))
+            a += n
+            i += 1
         return out
 
     def read_bits(self, table: Table, address: int, count: int) -> list[bool]:
         now = asyncio.get_running_loop().time()
         points = self.plan.bits(table)
         stamps, data, max_age = self.cache.stamps, self.cache.data, self._max_age
-        silent = self._silent(now)
+        if self._silent(now):
+            if all(a in points for a in range(address, address + count)):
+                raise self._stale()
         out: list[bool] = []
+        append = out.append
+        block = -1
+        raw = bytearray()
         for a in range(address, address + count):
             point = points.get(a)
             if point is None:
                 raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} {a} is not mapped")
-            if silent or now - stamps[point.block] > max_age[point.block]:
-                raise self._stale()
-            out.append(bool(data[point.block][point.offset] >> point.bit & 1))
+            if point.block != block:
+                block = point.block
+                if now - stamps[block] > max_age[block]:
+                    raise self._stale()
+                raw = data[block]
+            append(bool(raw[point.offset] >> point.bit & 1))
         return out
 
     def _silent(self, now: float) -> bool:
