@@ -15,16 +15,15 @@ from __future__ import annotations
 import asyncio
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Final
+from typing import IO
 from urllib.parse import urlsplit
 
 from gateway.errors import LinkDown
 
-__all__ = ["ByteStream", "SerialSettings", "StreamPair", "TracingStream", "describe_url", "open_stream"]
-
-_READ_SIZE: Final = 4096
+__all__ = ["ByteStream", "ProtocolStream", "SerialSettings", "TracingStream", "describe_url", "open_stream"]
 
 try:
     import termios
@@ -73,39 +72,92 @@ class ByteStream(ABC):
         """Seconds one character takes on this stream's line (0: no serial line to wait for)."""
         return settings.char_time
 
+    def start_push(self, receive: Callable[[bytes], None], lost: Callable[[str], None]) -> bool:
+        """From now on hand every chunk to ``receive`` and a loss to ``lost`` (no more ``read``).
 
-class StreamPair(ByteStream):
-    """An asyncio ``StreamReader``/``StreamWriter`` pair (TCP or serial)."""
+        Returns False when this stream can only be ``read``.
+        """
+        return False
 
-    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, name: str) -> None:
-        self._reader = reader
-        self._writer = writer
+
+class ProtocolStream(ByteStream, asyncio.Protocol):
+    """A TCP connection or serial port as an asyncio protocol.
+
+    Bytes are handed to the receiver straight from the transport's callback once
+    ``start_push`` was called (no reader task in between: one event-loop pass less per reply),
+    or buffered for ``read``.
+    """
+
+    def __init__(self, name: str) -> None:
         self._name = name
+        self._transport: asyncio.Transport | None = None
+        self._buffer = bytearray()
+        self._closed_reason = ""
+        self._wakeup: asyncio.Future[None] | None = None
+        self._receive: Callable[[bytes], None] | None = None
+        self._lost: Callable[[str], None] | None = None
 
+    # asyncio.Protocol
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._transport = transport  # type: ignore[assignment]
+
+    def data_received(self, data: bytes) -> None:
+        if self._receive is not None:
+            self._receive(data)
+            return
+        self._buffer += data
+        self._wake()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._closed_reason = str(exc) if exc else "connection closed by the other side"
+        if self._lost is not None:
+            self._lost(f"{self._name}: {self._closed_reason}")
+        self._wake()
+
+    def eof_received(self) -> bool | None:
+        return False  # close the transport: connection_lost follows
+
+    def _wake(self) -> None:
+        if self._wakeup is not None and not self._wakeup.done():
+            self._wakeup.set_result(None)
+
+    # ByteStream
     async def read(self) -> bytes:
-        try:
-            data = await self._reader.read(_READ_SIZE)
-        except OSError as exc:
-            raise LinkDown(f"{self._name}: {exc}") from exc
-        if not data:
-            raise LinkDown(f"{self._name}: connection closed by the other side")
+        while not self._buffer:
+            if self._closed_reason:
+                raise LinkDown(f"{self._name}: {self._closed_reason}")
+            self._wakeup = asyncio.get_running_loop().create_future()
+            await self._wakeup
+        data = bytes(self._buffer)
+        self._buffer.clear()
         return data
 
+    def start_push(self, receive: Callable[[bytes], None], lost: Callable[[str], None]) -> bool:
+        if self._buffer:
+            receive(bytes(self._buffer))
+            self._buffer.clear()
+        self._receive, self._lost = receive, lost
+        if self._closed_reason:
+            lost(f"{self._name}: {self._closed_reason}")
+        return True
+
     def write(self, data: bytes) -> None:
-        if self._writer.is_closing():
+        transport = self._transport
+        if transport is None or transport.is_closing():
             raise LinkDown(f"{self._name}: port is closed")
         try:
-            self._writer.write(data)
+            transport.write(data)
         except OSError as exc:
             raise LinkDown(f"{self._name}: {exc}") from exc
 
     async def close(self) -> None:
-        if not self._writer.is_closing():
-            self._writer.close()
-        try:
-            await asyncio.wait_for(self._writer.wait_closed(), 1.0)
-        except (OSError, TimeoutError):
-            pass
+        self._receive = self._lost = None
+        if self._transport is not None and not self._transport.is_closing():
+            self._transport.close()
+
+    @property
+    def transport(self) -> asyncio.Transport | None:
+        return self._transport
 
 
 class TracingStream(ByteStream):
@@ -135,6 +187,13 @@ class TracingStream(ByteStream):
 
     async def close(self) -> None:
         await self._inner.close()
+
+    def start_push(self, receive: Callable[[bytes], None], lost: Callable[[str], None]) -> bool:
+        def traced(data: bytes) -> None:
+            self._record("RX", data)
+            receive(data)
+
+        return self._inner.start_push(traced, lost)
 
     def char_time(self, settings: SerialSettings) -> float:
         return self._inner.char_time(settings)
@@ -170,15 +229,17 @@ async def _open(url: str, settings: SerialSettings, connect_timeout: float) -> B
     if scheme == "socket":
         if not parts.hostname or parts.port is None:
             raise LinkDown(f"{url}: expected socket://host:port")
+        stream = ProtocolStream(describe_url(url))
         try:
-            reader, writer = await asyncio.wait_for(
-                asyncio.open_connection(parts.hostname, parts.port), connect_timeout
+            await asyncio.wait_for(
+                asyncio.get_running_loop().create_connection(lambda: stream, parts.hostname, parts.port),
+                connect_timeout,
             )
         except TimeoutError as exc:
             raise LinkDown(f"{url}: no answer from the device server within {connect_timeout:g} s") from exc
         except OSError as exc:
             raise LinkDown(f"{url}: {exc.strerror or exc}") from exc
-        return StreamPair(reader, writer, describe_url(url))
+        return stream
     if scheme in ("", "rfc2217", "file") or url.upper().startswith("COM"):
         return await _open_serial(url, settings, connect_timeout)
     raise LinkDown(f"{url}: unsupported port URL (use /dev/tty..., socket://, rfc2217:// or sim://)")
@@ -190,10 +251,13 @@ async def _open_serial(url: str, settings: SerialSettings, connect_timeout: floa
 
     open_errors: tuple[type[Exception], ...] = (OSError, ValueError, serial.SerialException, *_TERMIOS_ERRORS)
 
+    stream = ProtocolStream(url)
     try:
-        reader, writer = await asyncio.wait_for(
-            serial_asyncio_fast.open_serial_connection(
-                url=url,
+        transport, _ = await asyncio.wait_for(
+            serial_asyncio_fast.create_serial_connection(
+                asyncio.get_running_loop(),
+                lambda: stream,
+                url,
                 baudrate=settings.baudrate,
                 bytesize=settings.bytesize,
                 parity=settings.parity,
@@ -207,12 +271,12 @@ async def _open_serial(url: str, settings: SerialSettings, connect_timeout: floa
         # termios.error (not an OSError): the port refused the line settings, e.g. 7E1 on a pty
         raise LinkDown(f"{url}: cannot open with {settings.baudrate} {settings.bytesize}{settings.parity}"
                        f"{settings.stopbits}: {exc}") from exc
-    port = writer.transport.get_extra_info("serial")
-    if port is not None:
+    port = transport.get_extra_info("serial")
+    if isinstance(port, serial.SerialBase):
         try:
             # 1745-PCC: DTR to the SPACING condition (asserted), RTS to MARKING (not asserted).
             port.dtr = True
             port.rts = False
         except (OSError, ValueError, serial.SerialException):
             pass  # pseudo-terminals and some device servers have no modem lines
-    return StreamPair(reader, writer, url)
+    return stream

@@ -223,11 +223,14 @@ class LinkDriver(ABC):
         self._connected.set()
         self._first_attempt_done.set()
         # "up" is reported when the controller first answers, not when the port opens.
-        reader = asyncio.create_task(self._read_loop(stream), name=f"{self.name}-reader")
+        reader: asyncio.Task[None] | None = None
+        if not stream.start_push(self._bytes_in, self._connection_lost):
+            reader = asyncio.create_task(self._read_loop(stream), name=f"{self.name}-reader")
         try:
             await self._lost
         finally:
-            reader.cancel()
+            if reader is not None:
+                reader.cancel()
             self._stream = None
             self._connected.clear()
             self._fail_pending(LinkDown(f"link {self.name} is down: {self.last_error or 'closed'}"))
@@ -235,7 +238,8 @@ class LinkDriver(ABC):
                 self._report(False, self.last_error or "connection lost")
             try:
                 # Not wrapped in suppress(CancelledError): a cancellation of this task must go on.
-                await asyncio.wait([reader])
+                if reader is not None:
+                    await asyncio.wait([reader])
             finally:
                 await stream.close()
 
@@ -251,8 +255,15 @@ class LinkDriver(ABC):
             except LinkDown as exc:
                 self._connection_lost(str(exc))
                 return
-            self.counters.bytes_received += len(data)
+            self._bytes_in(data)
+
+    def _bytes_in(self, data: bytes) -> None:
+        """Bytes from the line, straight from the transport (push) or from the reader task."""
+        self.counters.bytes_received += len(data)
+        try:
             self.data_received(data)
+        except Exception:  # a bug in a protocol core must not kill the transport's callback
+            log.exception("link %s: error handling %d received bytes", self.name, len(data))
 
     def _fail_pending(self, exc: GatewayError) -> None:
         """The link is gone: the request on the line and every waiting one fail with ``exc``."""

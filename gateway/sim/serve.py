@@ -154,7 +154,28 @@ class SimStream(ByteStream):
     def __init__(self, device: SimDevice, settings: SerialSettings | None = None, turnaround: float = 0.0):
         self._paced = settings is not None
         self._queue: asyncio.Queue[bytes] = asyncio.Queue()
-        self._wire = _Wire(device, self._queue.put_nowait, settings, turnaround)
+        self._receive: Callable[[bytes], None] | None = None
+        self._loop = asyncio.get_running_loop()
+        self._wire = _Wire(device, self._deliver, settings, turnaround)
+
+    def _deliver(self, data: bytes) -> None:
+        if self._receive is None:
+            self._queue.put_nowait(data)
+        else:
+            # never re-entrantly inside the driver's write(): an unpaced device answers at once
+            self._loop.call_soon(self._push, data)
+
+    def _push(self, data: bytes) -> None:
+        if self._receive is not None and not self._wire.closed:
+            self._receive(data)
+
+    def start_push(self, receive: Callable[[bytes], None], lost: Callable[[str], None]) -> bool:
+        while not self._queue.empty():
+            data = self._queue.get_nowait()
+            if data:
+                receive(data)
+        self._receive = receive
+        return True
 
     async def read(self) -> bytes:
         if self._wire.closed and self._queue.empty():
@@ -180,6 +201,7 @@ class SimStream(ByteStream):
         self._wire.from_host(data)
 
     async def close(self) -> None:
+        self._receive = None
         if not self._wire.closed:
             self._wire.close()
             self._queue.put_nowait(b"")
