@@ -541,3 +541,63 @@ def test_protocol_alphabet_soup_never_raises(soup: bytes) -> None:
     for decoder in (ReplyDecoder(), CommandDecoder()):
         decoder.receive_data(soup)
         drain(decoder)
+
+
+class _ByteByByteSplitter:
+    """The first, byte-at-a-time line splitter, kept as the reference for the run-copying one."""
+
+    def __init__(self, leads: bytes) -> None:
+        self.leads = frozenset(leads)
+        self.buffer = bytearray()
+        self.pending: list[tuple[bytes, str]] = []
+
+    def feed(self, data: bytes) -> None:
+        from gateway.protocols.slc_ascii.framing import MAX_FRAME
+
+        for byte in data:
+            byte &= 0x7F
+            if byte == 0x0A:
+                continue
+            if byte in self.leads:
+                if self.buffer:
+                    self.pending.append((bytes(self.buffer), "frame interrupted by a new leading character"))
+                self.buffer.clear()
+                self.buffer.append(byte)
+            elif byte == 0x0D:
+                if self.buffer:
+                    self.pending.append((bytes(self.buffer), ""))
+                    self.buffer.clear()
+            elif self.buffer:
+                if len(self.buffer) >= MAX_FRAME:
+                    self.pending.append((bytes(self.buffer), "line too long"))
+                    self.buffer.clear()
+                else:
+                    self.buffer.append(byte)
+
+
+_LINE_BYTES = st.lists(
+    st.one_of(
+        st.sampled_from([b"#", b":", b";", b"\r", b"\n", b"\x8d", b"\xa3", b";R038D\r", b":0002008412340A"]),
+        st.binary(min_size=0, max_size=120),
+        st.just(b"A" * 100),
+    ),
+    max_size=12,
+)
+
+
+@given(_LINE_BYTES, st.integers(min_value=1, max_value=17))
+@settings(max_examples=400)
+def test_line_splitter_matches_the_byte_by_byte_reference(chunks: list[bytes], size: int) -> None:
+    from gateway.protocols.slc_ascii.framing import _LineSplitter
+
+    stream = b"".join(chunks)
+    for leads in (b":;", b"#;"):
+        fast, reference = _LineSplitter(leads), _ByteByByteSplitter(leads)
+        for i in range(0, len(stream), size):
+            fast.feed(stream[i : i + size])
+            reference.feed(stream[i : i + size])
+        lines = []
+        while (line := fast.next_line()) is not None:
+            lines.append(line)
+        assert lines == reference.pending
+        assert fast.buffered == len(reference.buffer)

@@ -23,6 +23,8 @@ This module does no I/O.  Decoders are fed bytes and hand out events, or ``NEED_
 from __future__ import annotations
 
 import enum
+import re
+from collections import deque
 from dataclasses import dataclass
 from typing import Final
 
@@ -66,6 +68,8 @@ MAX_ID: Final = 0x7F
 # The manual's BASIC program: DATA 0, 23, 46, 57, 92, 75, 114, 101, 184, 175, 150, 129, 228, 243, 202, 221
 _CRC_NIBBLE_TABLE: Final = (0, 23, 46, 57, 92, 75, 114, 101, 184, 175, 150, 129, 228, 243, 202, 221)
 _HEX_DIGITS: Final = frozenset(b"0123456789ABCDEFabcdef")
+#: Bit 7 cleared: a port set to 8 data bits hands over the parity bit as bit 7.
+_MASK_BIT_7: Final = bytes(b & 0x7F for b in range(256))
 
 
 def _crc_table() -> tuple[int, ...]:
@@ -276,41 +280,52 @@ class _LineSplitter:
     line longer than MAX_FRAME is dropped.
     """
 
-    __slots__ = ("_buffer", "_leads", "_pending")
+    __slots__ = ("_buffer", "_pending", "_special")
 
     def __init__(self, leads: bytes) -> None:
-        self._leads = frozenset(leads)
+        # the bytes that end a run of frame characters: a leading character or CR
+        self._special = re.compile(b"[" + re.escape(leads) + b"\r]")
         self._buffer = bytearray()
-        self._pending: list[tuple[bytes, str]] = []  # (line, "") or (raw, garble reason)
+        self._pending: deque[tuple[bytes, str]] = deque()  # (line, "") or (raw, garble reason)
 
     def feed(self, data: bytes) -> None:
+        # Whole runs of ordinary characters are copied at once; only the leading characters and
+        # CR are looked at one by one.
+        data = data.translate(_MASK_BIT_7).replace(b"\n", b"")
         buffer = self._buffer
-        leads = self._leads
-        for byte in data:
-            byte &= 0x7F
-            if byte == LF:
-                continue
-            if byte in leads:
-                if buffer:
-                    self._pending.append((bytes(buffer), "frame interrupted by a new leading character"))
-                buffer.clear()
-                buffer.append(byte)
-            elif byte == CR:
+        position = 0
+        for match in self._special.finditer(data):
+            at = match.start()
+            if buffer and at > position:
+                self._append(data[position:at])
+            if data[at] == CR:
                 if buffer:
                     self._pending.append((bytes(buffer), ""))
                     buffer.clear()
                 # A CR outside a frame is line noise: ignore it.
-            elif buffer:
-                if len(buffer) >= MAX_FRAME:
-                    self._pending.append((bytes(buffer), "line too long"))
+            else:
+                if buffer:
+                    self._pending.append((bytes(buffer), "frame interrupted by a new leading character"))
                     buffer.clear()
-                else:
-                    buffer.append(byte)
-            # else: a byte outside any frame (noise before a leading character): discard.
+                buffer.append(data[at])
+            position = at + 1
+        if buffer and position < len(data):
+            self._append(data[position:])
+        # Bytes outside any frame (noise before a leading character) are discarded.
+
+    def _append(self, run: bytes) -> None:
+        buffer = self._buffer
+        room = MAX_FRAME - len(buffer)
+        if len(run) <= room:
+            buffer += run
+            return
+        buffer += run[:room]
+        self._pending.append((bytes(buffer), "line too long"))
+        buffer.clear()  # the rest of the line is dropped up to the next leading character
 
     def next_line(self) -> tuple[bytes, str] | None:
         if self._pending:
-            return self._pending.pop(0)
+            return self._pending.popleft()
         return None
 
     @property
