@@ -1,0 +1,1 @@
+"""Fault soak of both protocols through a fault-injecting proxy (quick by default, long with --soak)."""
