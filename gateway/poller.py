@@ -14,7 +14,7 @@ import random
 from collections.abc import Awaitable, Callable, Sequence
 
 from gateway.cache import BlockCache
-from gateway.errors import GatewayError, LinkDown
+from gateway.errors import ControllerRefused, GatewayError, LinkDown
 from gateway.modbus.mapping import Block, Scan
 
 __all__ = ["Poller"]
@@ -22,6 +22,11 @@ __all__ = ["Poller"]
 log = logging.getLogger("gateway.poller")
 
 ReadBlock = Callable[[Block], Awaitable[bytes]]
+
+#: Seconds before a block the controller refused is tried again (at most the slow interval).
+_REFUSED_RETRY = 5.0
+#: Refused blocks logged one by one (program mode refuses every read: one line is enough).
+_REFUSALS_LOGGED = 3
 
 
 class Poller:
@@ -51,15 +56,30 @@ class Poller:
         self._responding = responding
         self.scans = 0
         self.block_errors = 0
+        #: blocks the controller refuses to read (a file too short, program mode ...): the
+        #: refusal and when it came; retried every slow_interval, not every scan
+        self.refused: dict[int, tuple[ControllerRefused, float]] = {}
 
     async def _scan(self, indexes: Sequence[int]) -> bool:
         """Read ``indexes``; False when the link is down (stop the scan early)."""
         loop = asyncio.get_running_loop()
         for index in indexes:
+            refused = self.refused.get(index)
+            if refused is not None and loop.time() - refused[1] < min(self.slow_interval, _REFUSED_RETRY):
+                continue
             try:
                 data = await self._read_block(self.blocks[index])
             except LinkDown:
                 return False
+            except ControllerRefused as exc:
+                self.block_errors += 1
+                if refused is None and len(self.refused) < _REFUSALS_LOGGED:
+                    log.warning("link %s: the controller refuses to read %s: %s", self.name,
+                                self.blocks[index].label, exc)
+                elif refused is None and len(self.refused) == _REFUSALS_LOGGED:
+                    log.warning("link %s: more blocks refused; not logging each", self.name)
+                self.refused[index] = (exc, loop.time())
+                continue
             except GatewayError as exc:
                 self.block_errors += 1
                 log.debug("link %s: block %s failed: %s", self.name, self.blocks[index].label, exc)
@@ -68,6 +88,9 @@ class Poller:
                     # instead of waiting out the full retries of every block in the plan.
                     return False
                 continue
+            if refused is not None:
+                del self.refused[index]
+                log.info("link %s: %s is read again", self.name, self.blocks[index].label)
             self.cache.store(index, data, loop.time())
         return True
 

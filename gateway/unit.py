@@ -201,12 +201,12 @@ class Unit(ABC):
         i = bisect_right(starts, a) - 1
         # Hot path (every SCADA read): whole runs of neighbouring registers in one unpack.
         while a < end:
-            if i < 0 or i >= len(runs) or runs[i].last < a:
+            if i < 0 or i >= len(runs) or runs[i].last < a or runs[i].first > a:
                 raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} register {a} is not mapped")
             run = runs[i]
             block = run.block
             if now - stamps[block] > max_age[block]:
-                raise self._stale()
+                raise self._stale(block)
             n = min(end, run.last + 1) - a
             offset = run.offset + 2 * (a - run.first)
             if run.codec is _U16_LE:
@@ -239,7 +239,7 @@ class Unit(ABC):
             if point.block != block:
                 block = point.block
                 if now - stamps[block] > max_age[block]:
-                    raise self._stale()
+                    raise self._stale(block)
                 raw = data[block]
             append(bool(raw[point.offset] >> point.bit & 1))
         return out
@@ -248,8 +248,15 @@ class Unit(ABC):
         """The controller answered no poll for ``stale_after`` seconds past its scan period."""
         return now - self.cache.newest > self._silent_after
 
-    def _stale(self) -> ModbusExceptionReply:
+    def _stale(self, block: int | None = None) -> ModbusExceptionReply:
+        refused = self.poller.refused.get(block) if block is not None else None
+        if refused is not None:
+            return self.refusal_exception(refused[0])
         return ModbusExceptionReply(TARGET_FAILED, f"{self.name}: no fresh data (stale after {self.stale_after:g} s)")
+
+    def refusal_exception(self, error: ControllerRefused) -> ModbusExceptionReply:
+        """The Modbus answer for data the controller refuses to give (its reason in the message)."""
+        return ModbusExceptionReply(DEVICE_FAILURE, f"{self.name}: {error}")
 
     def status_values(self, now: float) -> dict[str, int]:
         counters = self.driver.counters
@@ -292,6 +299,9 @@ class Unit(ABC):
         self.write_requests += 1
         try:
             await write
+        except ModbusExceptionReply:
+            self.write_failures += 1
+            raise  # already translated (e.g. a PCCC address problem: 0x02)
         except ControllerRefused as exc:
             self.write_failures += 1
             raise ModbusExceptionReply(DEVICE_FAILURE, str(exc)) from exc

@@ -17,7 +17,7 @@ from typing import Any, cast
 
 from gateway.config import LinkConfig
 from gateway.drivers.df1 import Df1Driver, WriteOutcomeUnknown
-from gateway.errors import ModbusExceptionReply, ProtocolError
+from gateway.errors import ControllerRefused, ModbusExceptionReply, ProtocolError
 from gateway.modbus.mapping import Block
 from gateway.modbus.mapping_df1 import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, plan_df1
 from gateway.protocols.df1.address import SlcAddress
@@ -111,6 +111,11 @@ class Df1Unit(Unit):
         data = (mask if value else 0).to_bytes(2, "little")
         request = ProtectedTypedLogicalMaskedWrite(a.file_type, a.file_number, a.element, a.sub_element, mask, data)
         await self._write(request, a, data, mask)
+
+    def refusal_exception(self, error: ControllerRefused) -> ModbusExceptionReply:
+        if isinstance(error, PcccError):
+            return pccc_exception(error)
+        return super().refusal_exception(error)
 
     @property
     def last_fault_number(self) -> int:

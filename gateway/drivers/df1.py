@@ -14,6 +14,7 @@ retried.
 from __future__ import annotations
 
 import asyncio
+import random
 from pathlib import Path
 from typing import Final
 
@@ -89,7 +90,9 @@ class Df1Driver(LinkDriver):
         self.ack_timeout = ack_timeout or timeout
         self.retries = retries
         self.last_sts = 0
-        self._tns = TnsAllocator()
+        # A random first TNS: a new session (CLI run, gateway restart) must not repeat the last
+        # session's SRC/CMD/TNS, or the controller's duplicate detection would discard it.
+        self._tns = TnsAllocator(random.randrange(1, 0x10000))
         self._link = self._new_link()
         self._link_base = (0, 0, 0)  # enq, nak, bad frames of links before this one
         self._sends: dict[int, asyncio.Future[SendFailure | None]] = {}
@@ -126,6 +129,7 @@ class Df1Driver(LinkDriver):
         for reply in self._replies.values():
             if not reply.done():
                 reply.set_exception(exc)
+                reply.exception()  # awaited only after its send: mark it retrieved either way
 
     def data_received(self, data: bytes) -> None:
         self._link.receive_data(data, asyncio.get_running_loop().time())
