@@ -323,11 +323,14 @@ def _compile_table() -> tuple[tuple[int, int], ...]:
     """:data:`_TRANSITIONS` keyed by plain ints: entry ``state << 8 | byte`` is (action, next state).
 
     Enum members hash in Python code; the decoder only ever indexes this tuple with ints.
+    CHECK, the last state, has no row (a missing pair for any other state fails here, at import).
     """
     steps: list[tuple[int, int]] = []
     for state in _State:
+        if state is _State.CHECK:
+            continue
         for byte in range(256):
-            action, next_state = _TRANSITIONS.get((state, _CLASS_OF[byte]), (_Act.NONE, state))
+            action, next_state = _TRANSITIONS[state, _CLASS_OF[byte]]
             steps.append((int(action), int(next_state)))
     return tuple(steps)
 
@@ -386,7 +389,9 @@ class FrameDecoder:
     The state machine is :data:`_TRANSITIONS`, applied through its int-keyed form
     :data:`_STEP` one byte at a time after a DLE.  Between DLEs (hunting for a frame, or inside
     one) every byte takes the same transition, so such a run is skipped or copied with one
-    ``bytes.find`` and one slice (see :func:`_verify_fast_paths`).
+    ``bytes.find`` and one slice (see :func:`_verify_fast_paths`); a read that lies wholly
+    inside a frame's data is appended in one step.  The events are exactly those of feeding
+    the table one byte at a time (``tests/test_df1_framing_equivalence.py``).
     """
 
     def __init__(self, checksum: Checksum, *, max_message: int = DEFAULT_MAX_MESSAGE) -> None:
@@ -404,7 +409,7 @@ class FrameDecoder:
     @property
     def in_frame(self) -> bool:
         """True while part of a frame has been received."""
-        return self._state >= _IN_FRAME
+        return self._state >= _IN_FRAME  # IN_FRAME, IN_FRAME_DLE or CHECK
 
     def reset(self) -> None:
         """Forget any partial frame and pending events."""
@@ -418,10 +423,13 @@ class FrameDecoder:
         """Consume ``data``; complete frames and symbols are queued for :meth:`next_event`."""
         if type(data) is not bytes:
             data = bytes(data)
-        end = len(data)
-        pos = 0
         state = self._state
         message = self._message
+        if state == _IN_FRAME and _DLE not in data and len(message) + len(data) <= self.max_message:
+            message += data  # the common case of a small read: nothing but message data
+            return
+        end = len(data)
+        pos = 0
         find = data.find
         while pos < end:
             if state == _IN_FRAME:
