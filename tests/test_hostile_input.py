@@ -220,10 +220,12 @@ class WellBehavedClient:
 
 
 def gateway_toml(*, max_connections: int = 1200, idle_timeout: float = 0.0, read_only: bool = True) -> str:
-    url = f"sim://slc150?ladder=0&instance={uuid.uuid4().hex}"
+    # A paced line (as a real one): an unpaced simulator makes the poller spin flat out, and the
+    # CPU it burns (with tracemalloc on) would be measured as the well-behaved client's latency.
+    url = f"sim://slc150?ladder=0&paced=1&instance={uuid.uuid4().hex}"
     return (
         f'[modbus]\nlisten = "127.0.0.1:0"\nmax_connections = {max_connections}\nidle_timeout = {idle_timeout}\n\n'
-        f'[[link]]\nname = "press"\nprotocol = "slc-ascii"\nport = "{url}"\nunit = {UNIT}\n'
+        f'[[link]]\nname = "press"\nprotocol = "slc-ascii"\nport = "{url}"\nunit = {UNIT}\nbaudrate = 38400\n'
         f"read_only = {'true' if read_only else 'false'}\n"
     )
 
