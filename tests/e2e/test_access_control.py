@@ -335,7 +335,8 @@ def test_check_config_prints_no_key_material(pki: Pki, tmp_path: Path) -> None:
     path = tmp_path / "gateway.toml"
     path.write_text(modbus_toml() + tls_toml(pki, client_ca=True) + link_toml(1, "sim://slc150"))
     result = subprocess.run(
-        [sys.executable, "-m", "gateway", "check-config", str(path)], capture_output=True, text=True, timeout=60, check=False
+        [sys.executable, "-m", "gateway", "check-config", str(path)],
+        capture_output=True, text=True, timeout=60, check=False,
     )
     assert result.returncode == 0, result.stderr
     assert str(pki.server_key) in result.stdout  # the path, which is not a secret
