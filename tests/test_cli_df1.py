@@ -7,52 +7,23 @@ T4:1.PRE = 20, B3:0 = 0) with its ladder frozen (``--no-ladder``).
 
 from __future__ import annotations
 
-import json
 import re
-import selectors
 import socket
-import subprocess
-import sys
 import threading
 from collections.abc import Iterator
-from typing import Any
 
 import pytest
+from cli_support import fails, ok, ok_json, start_simulator, stop
 
-CLI = [sys.executable, "-m", "gateway"]
 DF1 = ("--protocol", "df1")
-TIMEOUT = 30  # seconds for any one command; each normally takes well under one
-
-
-def stop(process: subprocess.Popen[str]) -> None:
-    if process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(timeout=5)
-    for stream in (process.stdout, process.stderr):
-        if stream is not None:
-            stream.close()
 
 
 def simulate_slc504(*args: str) -> Iterator[str]:
     """Run ``slc-gateway simulate slc504 --listen 127.0.0.1:0 ARGS``; yield its socket:// URL."""
-    process = subprocess.Popen(
-        [*CLI, "simulate", "slc504", "--listen", "127.0.0.1:0", *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    process, line = start_simulator("slc504", "--listen", "127.0.0.1:0", *args)
     try:
-        assert process.stdout is not None
-        with selectors.DefaultSelector() as selector:
-            selector.register(process.stdout, selectors.EVENT_READ)
-            assert selector.select(timeout=TIMEOUT), f"simulate slc504 printed nothing within {TIMEOUT} s"
-        line = process.stdout.readline().strip()
         match = re.fullmatch(r"simulated slc504 listening on (127\.0\.0\.1):(\d+) \((socket://\S+)\)", line)
-        assert match, (line, process.stderr.read() if process.poll() is not None and process.stderr else "")
+        assert match, line
         assert match.group(3) == f"socket://127.0.0.1:{match.group(2)}" and int(match.group(2)) > 0
         yield match.group(3)
     finally:
@@ -69,33 +40,6 @@ def slc504() -> Iterator[str]:
 def shared_slc504() -> Iterator[str]:
     """A simulated SLC 5/04 over TCP shared by the tests that change nothing in it."""
     yield from simulate_slc504("--no-ladder")
-
-
-def cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=TIMEOUT, check=False)
-
-
-def ok(*args: str) -> str:
-    result = cli(*args)
-    assert result.returncode == 0, f"{args}: exit {result.returncode}: {result.stderr}"
-    assert result.stderr == ""
-    return result.stdout
-
-
-def ok_json(*args: str) -> Any:
-    lines = ok(*args, "--json").splitlines()
-    assert len(lines) == 1, lines  # one object
-    return json.loads(lines[0])
-
-
-def fails(*args: str, status: int = 1) -> str:
-    """Run a command that must fail; return its one-line reason."""
-    result = cli(*args)
-    assert result.returncode == status, f"{args}: exit {result.returncode}: {result.stdout} {result.stderr}"
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1, f"{args}: not a one-line reason: {result.stderr!r}"
-    assert "Traceback" not in result.stderr
-    return lines[0]
 
 
 # ---------------------------------------------------------------------------------------------
