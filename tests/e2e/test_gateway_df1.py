@@ -24,10 +24,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
 import random
 import re
-import shutil
 import struct
 import uuid
 from collections import Counter
@@ -37,6 +35,7 @@ from typing import Any
 from urllib.parse import urlencode
 
 import pytest
+from modbus_support import connect, exception_code, mbpoll_path
 from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
@@ -112,23 +111,13 @@ async def plant() -> AsyncIterator[Plant]:
     sim, read_only_sim = get_simulator(main_url), get_simulator(read_only_url)
     assert isinstance(sim, Slc500Simulator) and isinstance(read_only_sim, Slc500Simulator)
     async with Gateway(parse_config(config_text(main_url, read_only_url))) as gw:
-        async with connect(gw.port) as client:
+        async with connect(gw.port, reply_timeout=5) as client:
             await until_ready(client)
         yield Plant(gw, sim, read_only_sim)
 
 
 # --------------------------------------------------------------------------------------------
 # Modbus helpers
-
-
-@contextlib.asynccontextmanager
-async def connect(port: int) -> AsyncIterator[AsyncModbusTcpClient]:
-    client = AsyncModbusTcpClient(HOST, port=port, timeout=5, retries=0)
-    assert await client.connect(), f"cannot connect to the gateway on port {port}"
-    try:
-        yield client
-    finally:
-        client.close()
 
 
 async def until_ready(client: AsyncModbusTcpClient, deadline: float = 10.0) -> None:
@@ -146,10 +135,6 @@ async def until_ready(client: AsyncModbusTcpClient, deadline: float = 10.0) -> N
             if not any(reply.isError() for reply in replies):
                 return
             await asyncio.sleep(0.02)
-
-
-def exception_code(reply: Any) -> int | None:
-    return reply.exception_code if reply.isError() else None
 
 
 def float_registers(value: float) -> list[int]:
@@ -301,7 +286,7 @@ async def test_2000_requests_through_a_faulty_link_values_right_writes_exactly_o
     model = Model(sim)
     values = iter(range(1000, 60000))  # unique values: each write is recognisable in applied_writes
     async with asyncio.timeout(60), contextlib.AsyncExitStack() as stack:
-        clients = [await stack.enter_async_context(connect(plant.port)) for _ in range(WORKERS)]
+        clients = [await stack.enter_async_context(connect(plant.port, reply_timeout=5)) for _ in range(WORKERS)]
         await asyncio.gather(*(worker(client, model, n, OPERATIONS, values) for n, client in enumerate(clients)))
 
     # Writes: only successes and 0x0B (the outcome of a write whose reply was lost is unknown).
@@ -339,15 +324,6 @@ async def test_2000_requests_through_a_faulty_link_values_right_writes_exactly_o
 
 # ============================================================================================
 # mbpoll, through the same faulty link
-
-
-def mbpoll_path() -> str:
-    path = shutil.which("mbpoll")
-    if path is None:
-        if os.environ.get("SLC_GATEWAY_REQUIRE_MBPOLL") == "1":
-            pytest.fail("mbpoll is not installed and SLC_GATEWAY_REQUIRE_MBPOLL=1 (apt-get install mbpoll)")
-        pytest.skip("mbpoll is not installed (Debian package mbpoll); set SLC_GATEWAY_REQUIRE_MBPOLL=1 to fail instead")
-    return path
 
 
 async def mbpoll_read(port: int, unit: int, kind: str, address: int, count: int) -> dict[int, int]:
@@ -388,7 +364,7 @@ async def test_mbpoll_reads_the_simulators_values_through_the_faulty_link(plant:
 
 
 async def test_unmapped_addresses_answer_0x02(plant: Plant) -> None:
-    async with connect(plant.port) as client:
+    async with connect(plant.port, reply_timeout=5) as client:
         assert exception_code(await client.read_holding_registers(100, count=1, device_id=MAIN)) == ILLEGAL_ADDRESS
         assert exception_code(await client.read_holding_registers(150, count=1, device_id=MAIN)) == ILLEGAL_ADDRESS
         assert exception_code(await client.write_register(120, 1, device_id=MAIN)) == ILLEGAL_ADDRESS
@@ -399,7 +375,7 @@ async def test_unmapped_addresses_answer_0x02(plant: Plant) -> None:
 
 
 async def test_a_read_running_off_the_end_of_a_mapped_run_answers_0x02(plant: Plant) -> None:
-    async with connect(plant.port) as client:
+    async with connect(plant.port, reply_timeout=5) as client:
         # input 0-7 are I:1.0-7; 8-149 are not mapped; 150-151 are N7:50-51
         reply = await client.read_input_registers(INPUT_WORDS - 2, count=4, device_id=MAIN)
         assert exception_code(reply) == ILLEGAL_ADDRESS, reply.registers
@@ -408,7 +384,7 @@ async def test_a_read_running_off_the_end_of_a_mapped_run_answers_0x02(plant: Pl
 
 
 async def test_writes_to_read_only_points_answer_0x02(plant: Plant) -> None:
-    async with connect(plant.port) as client:
+    async with connect(plant.port, reply_timeout=5) as client:
         # input registers 150-151 are N7:50-51; holding 150 is not mapped: the input table is not writable
         assert await client.read_input_registers(HOLDING_OF_INPUTS, count=2, device_id=MAIN) is not None
         assert exception_code(await client.write_register(HOLDING_OF_INPUTS, 7, device_id=MAIN)) == ILLEGAL_ADDRESS
@@ -426,7 +402,7 @@ async def test_writes_to_read_only_points_answer_0x02(plant: Plant) -> None:
 async def test_pccc_address_error_reads_never_return_data(plant: Plant) -> None:
     """Holding 300-303 map N10:100-103, past the end of the simulator's N10 (100 words): the
     controller refuses every read (STS F0, EXT STS 06).  The gateway never invents values."""
-    async with connect(plant.port) as client:
+    async with connect(plant.port, reply_timeout=5) as client:
         for address in (PAST_END, PAST_END + 3, VALID_THEN_PAST_END + 5):
             code = exception_code(await client.read_holding_registers(address, count=1, device_id=MAIN))
             assert code in (ILLEGAL_ADDRESS, TARGET_FAILED), (address, code)
@@ -434,13 +410,13 @@ async def test_pccc_address_error_reads_never_return_data(plant: Plant) -> None:
 
 
 async def test_write_to_an_address_the_controller_refuses_answers_0x02(plant: Plant) -> None:
-    async with connect(plant.port) as client:
+    async with connect(plant.port, reply_timeout=5) as client:
         code = exception_code(await client.write_register(PAST_END, 7, device_id=MAIN))  # N10:100: F0/06
     assert plant.sim.applied_writes == []
     assert code == ILLEGAL_ADDRESS
 
 
 async def test_read_of_an_address_the_controller_refuses_answers_0x02(plant: Plant) -> None:
-    async with connect(plant.port) as client:
+    async with connect(plant.port, reply_timeout=5) as client:
         code = exception_code(await client.read_holding_registers(PAST_END, count=4, device_id=MAIN))
     assert code == ILLEGAL_ADDRESS

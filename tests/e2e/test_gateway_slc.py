@@ -31,6 +31,7 @@ from typing import Any
 from urllib.parse import urlencode
 
 import pytest
+from modbus_support import connect, exception_code, mbpoll_path
 from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
@@ -222,16 +223,6 @@ async def plant(request: pytest.FixtureRequest) -> AsyncIterator[Plant]:
 # Modbus helpers
 
 
-@contextlib.asynccontextmanager
-async def connect(port: int) -> AsyncIterator[AsyncModbusTcpClient]:
-    client = AsyncModbusTcpClient(HOST, port=port, timeout=3, retries=0)
-    assert await client.connect(), f"cannot connect to the gateway on port {port}"
-    try:
-        yield client
-    finally:
-        client.close()
-
-
 async def until_ready(client: AsyncModbusTcpClient, unit: int, deadline: float = 5.0) -> None:
     """Wait until a whole scan is cached: the slow class is read first, the 951-982 block last."""
     async with asyncio.timeout(deadline):
@@ -267,21 +258,8 @@ async def read_bits(client: AsyncModbusTcpClient, table: str, address: int, coun
     return list(reply.bits[:count])
 
 
-def exception_code(reply: Any) -> int | None:
-    return reply.exception_code if reply.isError() else None
-
-
 # --------------------------------------------------------------------------------------------
 # mbpoll
-
-
-def mbpoll_path() -> str:
-    path = shutil.which("mbpoll")
-    if path is None:
-        if os.environ.get("SLC_GATEWAY_REQUIRE_MBPOLL") == "1":
-            pytest.fail("mbpoll is not installed and SLC_GATEWAY_REQUIRE_MBPOLL=1 (apt-get install mbpoll)")
-        pytest.skip("mbpoll is not installed (Debian package mbpoll); set SLC_GATEWAY_REQUIRE_MBPOLL=1 to fail instead")
-    return path
 
 
 @dataclass
