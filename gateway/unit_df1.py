@@ -16,8 +16,8 @@ import struct
 from typing import Any, cast
 
 from gateway.config import LinkConfig
-from gateway.drivers.df1 import Df1Driver, WriteOutcomeUnknown
-from gateway.errors import ControllerRefused, ModbusExceptionReply, ProtocolError
+from gateway.drivers.df1 import Df1Driver, WriteOutcomeUnknown, check_reply_size
+from gateway.errors import ControllerRefused, ModbusExceptionReply
 from gateway.modbus.mapping import Block
 from gateway.modbus.mapping_df1 import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, plan_df1
 from gateway.protocols.df1.address import SlcAddress
@@ -64,9 +64,7 @@ class Df1Unit(Unit):
         read = cast(Df1Read, block.request)
         request = ProtectedTypedLogicalRead(read.file_type, read.file_number, read.element, read.sub_element, read.size)
         reply = await self.driver.execute(request, f"read {block.label}")
-        if len(reply.data) != read.size:
-            raise ProtocolError(f"read {block.label}: {len(reply.data)} bytes in the reply, {read.size} expected")
-        return reply.data
+        return check_reply_size(reply, read.size, f"read {block.label}")
 
     async def _read_word_bytes(self, address: SlcAddress, size: int) -> bytes:
         request = ProtectedTypedLogicalRead(
