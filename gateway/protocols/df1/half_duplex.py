@@ -31,8 +31,9 @@ What the core does
 * Echo suppression (2-wire RS-485): with ``echo`` the master expects to hear its own bytes first and
   strips them; a byte that differs is a collision, counted, and the exchange runs into its timeout.
 
-The driver loop: ``receive_data(data, now)``; ``data_to_send()``; set RTS from ``rts``; sleep until
-``next_deadline()``; ``handle_timeout(now)``; ``next_event()`` until ``NEED_DATA``.
+The driver loop: ``start(now)`` once; then ``receive_data(data, now)``; ``data_to_send()``; set RTS
+from ``rts``; sleep until ``next_deadline()``; ``handle_timeout(now)``; ``next_event()`` until
+``NEED_DATA``.
 
 This module does no I/O.
 """
@@ -320,6 +321,12 @@ class HalfDuplexMaster:
     def is_active(self, station: int) -> bool:
         return self._stations[station].active
 
+    def start(self, now: float, *, link_reset: bool = False) -> None:
+        """Begin polling.  ``link_reset``: first send DLE NAK, as a master does at power-up (Table 2.C)."""
+        if link_reset:
+            self._reset_pending = True
+        self._kick(now)
+
     def submit(self, station: int, message: bytes, now: float) -> int:
         """Queue a command packet for ``station``; returns the request id used in its events."""
         target = self._stations.get(station)
@@ -435,6 +442,7 @@ class HalfDuplexMaster:
         end = now + len(data) * self.line.char_time
         self._rts_off_at = end + self.line.rts_off_delay
         self._quiet_until = max(self._quiet_until, self._rts_off_at)
+        self._update_rts(now)
         self._state = self._after
         self._grace_used = False
         self._deadline = None if self._state is LineState.IDLE else end + self._answer_timeout()
@@ -465,7 +473,7 @@ class HalfDuplexMaster:
         self._take_request()
         station.counters.timeouts += 1
         self._events.append(RequestFailed(request.request_id, request.station, FailReason.NO_ACK, True))
-        self._failed(station)
+        self._failed(station, now)
         self._state = LineState.IDLE
 
     def _on_eot(self, now: float) -> None:
@@ -513,7 +521,7 @@ class HalfDuplexMaster:
         station = self._polled()
         station.counters.timeouts += 1
         self._poll_again = station.active
-        self._failed(station)
+        self._failed(station, now)
         self._state = LineState.IDLE
 
     # ------------------------------------------------------------------------------ helpers
@@ -535,10 +543,11 @@ class HalfDuplexMaster:
             station.next_poll_at = 0.0
             self._events.append(StationRestored(station.config.station))
 
-    def _failed(self, station: _Station) -> None:
+    def _failed(self, station: _Station, now: float) -> None:
         station.failures += 1
         if station.active and station.failures >= station.config.retries:
             station.active = False
+            station.next_poll_at = now + station.config.slow_poll_interval
             station.counters.demotions += 1
             self._poll_again = False
             self._events.append(StationDemoted(station.config.station))
