@@ -185,7 +185,7 @@ def test_packet_limits() -> None:
     address = encode_logical_binary(parse_plc5_address("N7:0"))
     with pytest.raises(AddressError, match="even"):
         WordRangeRead(address, 3).encode()
-    with pytest.raises(AddressError, match="2..244"):
+    with pytest.raises(AddressError, match=r"2\.\.244"):
         WordRangeRead(address, 246).encode()
     with pytest.raises(AddressError, match="239"):
         WordRangeWrite(address, bytes(236)).encode()
