@@ -11,6 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from gateway.protocols.df1 import pccc
+from gateway.protocols.df1.half_duplex_framing import Checksum, encode_slave_message
 from gateway.protocols.df1.plc5_address import (
     AddressError,
     Plc5Address,
@@ -195,3 +196,32 @@ def test_packet_limits() -> None:
         ReadModifyWrite(((address, 0, 0),) * 31).encode()
     with pytest.raises(AddressError, match="truncated"):
         ReadModifyWrite.decode(address + b"\xff")
+
+
+# ------------------------------------------------------------- 1785-KE printed frames (p. 5-5, 5-6)
+
+
+def test_1785ke_5_5_word_range_write_logical_binary_n10_15() -> None:
+    """1785-KE manual p. 5-5: write 4 words to N10:15 of PLC-5 node 51 (octal), and the reply."""
+    frame = bytes.fromhex("10 02 29 20 0F 00 46 01 00 00 00 04 00 0F 00 0A 0F 00 22 11 44 33 66 55 88 77 10 03 D1")
+    address = bytes.fromhex("0F 00 0A 0F 00")  # mask 0F: data table 0, file 10, element 15, sub 0
+    assert decode_logical_binary(address) == ((0, 10, 15, 0), 5)
+    write = WordRangeWrite(address, bytes.fromhex("22 11 44 33 66 55 88 77"))
+    header = bytes.fromhex("29 20 0F 00 46 01 00")  # DST SRC CMD STS TNS(2) FNC 00
+    assert encode_slave_message(header + write.encode(), Checksum.BCC) == frame
+    assert WordRangeWrite.decode(write.encode()) == WordRangeWrite(address, write.data, 0, 4)
+    reply = bytes.fromhex("10 02 20 29 4F 00 46 01 10 03 21")
+    assert encode_slave_message(bytes.fromhex("20 29 4F 00 46 01"), Checksum.BCC) == reply
+
+
+def test_1785ke_5_6_word_range_read_logical_ascii_n10_15() -> None:
+    """1785-KE manual p. 5-6: read the same 4 words by the logical ASCII address $N10:15."""
+    frame = bytes.fromhex("10 02 29 20 0F 00 47 01 01 00 00 04 00 00 24 4E 31 30 3A 31 35 00 08 10 03 E0")
+    address = encode_logical_ascii(parse_plc5_address("N10:15"))
+    assert address == bytes.fromhex("00 24 4E 31 30 3A 31 35 00")
+    read = WordRangeRead(address, size=8)
+    header = bytes.fromhex("29 20 0F 00 47 01 01")
+    assert encode_slave_message(header + read.encode(), Checksum.BCC) == frame
+    assert WordRangeRead.decode(read.encode()) == WordRangeRead(address, 8, 0, 4)
+    reply = bytes.fromhex("10 02 20 29 4F 00 47 01 22 11 44 33 66 55 88 77 10 03 BC")
+    assert encode_slave_message(bytes.fromhex("20 29 4F 00 47 01 22 11 44 33 66 55 88 77"), Checksum.BCC) == reply
