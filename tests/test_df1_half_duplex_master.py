@@ -7,7 +7,7 @@ docs/df1-half-duplex-notes.md; section numbers below refer to it.
 from __future__ import annotations
 
 import random
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -365,6 +365,14 @@ class Faults:
         return data
 
 
+def slow(slave: HalfDuplexSlave, plc: Plc, polls: int) -> Callable[[bytes], bytes]:
+    def handler(cmd: bytes) -> bytes:
+        slave.busy = polls
+        return plc(cmd)
+
+    return handler
+
+
 def run(master: HalfDuplexMaster, slaves: list[HalfDuplexSlave], faults: Faults, until: float) -> float:
     """Move bytes between the master and the slaves on a fake clock until ``until``."""
     now = 0.0
@@ -413,8 +421,11 @@ def test_three_live_one_absent_all_readings_clean_line() -> None:
     seed=st.integers(0, 2**32 - 1),
     checksum=st.sampled_from(list(Checksum)),
     choice=st.sampled_from(list(variant_matrix(VARIANTS))),
+    busy_polls=st.integers(0, 2),
 )
-def test_noisy_line_exactly_once_and_right_station(seed: int, checksum: Checksum, choice: dict[str, str]) -> None:
+def test_noisy_line_exactly_once_and_right_station(
+    seed: int, checksum: Checksum, choice: dict[str, str], busy_polls: int
+) -> None:
     """1 in 6 slave transmissions corrupted, 1 in 10 master transmissions unheard (issue #12).
 
     With duplicate detection on, no command is executed twice; under every reading, no reply is
@@ -423,6 +434,8 @@ def test_noisy_line_exactly_once_and_right_station(seed: int, checksum: Checksum
     variant = SlaveVariant.from_choices(choice)
     plcs = {n: Plc(n) for n in (1, 2, 3)}
     slaves = [HalfDuplexSlave(n, checksum, plcs[n], variant) for n in (1, 2, 3)]
+    for slave in slaves:  # a slow CPU: the reply is ready only after ``busy_polls`` more polls (§5 row 5)
+        slave.handler = slow(slave, plcs[slave.station], busy_polls)
     master = make(1, 2, 3, 4, checksum=checksum, poll_timeout=0.05, poll_interval=0.5, retries=4)
     rng = random.Random(seed)
     requests: dict[int, tuple[int, bytes]] = {}
