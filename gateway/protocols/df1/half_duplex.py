@@ -21,8 +21,9 @@ What the core does
   (KA p. 11-17).  A bad slave frame is not acknowledged (never NAKed: on half duplex DLE NAK is the
   master's global link reset, Table 2.C) and the station is polled again (KA Figure 11.8).
 * Between commands every station is polled every ``poll_interval`` for the messages it initiates.
-  ``retries`` answerless polls or unacknowledged messages in a row demote a station: its requests
-  fail at once and it is polled every ``slow_poll_interval`` until it answers (Kepware's
+  An answerless poll, or a command still unacknowledged after all its resends, is one failure;
+  ``retries`` failures in a row (no answer of any kind between them) demote a station: its
+  requests fail at once and it is polled every ``slow_poll_interval`` until it answers (Kepware's
   auto-demotion; KA p. 11-9 "poll the inactive slaves occasionally").
 * Timing: the line is quiet ``pre_transmit_delay`` after the last byte heard before the master
   transmits; ``rts`` goes true ``rts_send_delay`` before the first byte and false ``rts_off_delay``
