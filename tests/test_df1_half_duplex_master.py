@@ -462,3 +462,24 @@ def test_noisy_line_exactly_once_and_right_station(
             assert len(plc.executed) == len(set(plc.executed)), choice
     # The absent station never got a command executed anywhere.
     assert all(cmd[0] == plc.station for plc in plcs.values() for cmd in plc.executed)
+
+
+def test_answer_in_progress_at_the_deadline_is_allowed_to_finish_once() -> None:
+    """A slow answer straddling the poll timeout is not met by the next exchange (wrong station)."""
+    master = make(1, 2, poll_timeout=0.1, poll_interval=100.0)
+    assert master.data_to_send() == encode_poll(1)
+    initiated = bytes((GATEWAY, 1, 0x0F, 0x00, 0x05, 0x00, 0x42))
+    frame = encode_slave_message(initiated, Checksum.BCC)
+    master.receive_data(frame[:5], 0.09)
+    master.handle_timeout(0.1)  # the deadline, mid-frame: extended once
+    assert master.data_to_send() == b""
+    master.receive_data(frame[5:], 0.15)
+    assert master.data_to_send() == ACK + encode_poll(1)
+    assert events(master) == [SlaveInitiated(1, initiated)]
+    master.receive_data(EOT, 0.16)
+    assert master.data_to_send() == encode_poll(2)
+    master.receive_data(frame[:5], 0.2)  # a frame that never ends: the grace is used once only
+    master.handle_timeout(0.26)
+    master.handle_timeout(0.36)
+    assert master.counters(2).timeouts == 1
+    assert master.data_to_send() == encode_poll(2)  # retried; the stale half frame was dropped
