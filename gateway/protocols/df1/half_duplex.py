@@ -1,0 +1,692 @@
+"""DF1 half-duplex master: one master owns one line and polls several slave stations (sans-I/O).
+
+Manual: A-B 1770-6.5.16 chapter 3 and p. 5-2; 1775-KA p. 11-9 .. 11-17 and 1770-KF2 p. 4-26 .. 4-33
+(the same chapter); SLC 500 1747-RM001 p. 13-56 .. 13-68 (master parameters).  The reading, and
+every point the manuals leave open, is in ``docs/df1-half-duplex-notes.md``.
+
+What the core does
+------------------
+* A command (a PCCC packet ``DST SRC CMD STS TNS ...``) submitted for a station is sent as a master
+  message ``DLE SOH STN DLE STX ... DLE ETX check``; without a ``DLE ACK`` within the ACK timeout the
+  *identical* bytes are sent again (same TNS, so a slave with duplicate detection executes it once),
+  at most ``message_retries`` times.
+* After the ACK the master waits ``reply_wait`` and polls the station (``DLE ENQ STN BCC``) until
+  the reply comes: a slave message whose CMD is the command's with the reply bit, whose TNS is the
+  command's and whose DST/SRC are swapped.  Each ``DLE EOT`` counts one poll; after ``max_polls``
+  polls, or ``reply_timeout`` after the ACK, the request fails.  A reply is only ever matched against
+  the requests of the station that was polled, so it cannot be attributed to another station.
+* Every good slave message is acknowledged with ``DLE ACK`` and the station is polled again (up to
+  ``max_messages_per_turn``), until it answers ``DLE EOT``.  A repeat of the last message's first six
+  bytes before an EOT is the slave resending because our ACK was lost: ACKed and discarded
+  (KA p. 11-17).  A bad slave frame is not acknowledged (never NAKed: on half duplex DLE NAK is the
+  master's global link reset, Table 2.C) and the station is polled again (KA Figure 11.8).
+* Between commands every station is polled every ``poll_interval`` for the messages it initiates.
+  An answerless poll, or a command still unacknowledged after all its resends, is one failure;
+  ``retries`` failures in a row (no answer of any kind between them) demote a station: its
+  requests fail at once and it is polled every ``slow_poll_interval`` until it answers (Kepware's
+  auto-demotion; KA p. 11-9 "poll the inactive slaves occasionally").
+* Timing: the line is quiet ``pre_transmit_delay`` after the last byte heard before the master
+  transmits; ``rts`` goes true ``rts_send_delay`` before the first byte and false ``rts_off_delay``
+  after the last one (transmission time = bytes x ``char_time``); answer timers start when the last
+  byte has left.  These are deadlines, never sleeps.
+* Echo suppression (2-wire RS-485): with ``echo`` the master expects to hear its own bytes first and
+  strips them; a byte that differs is a collision, counted, and the exchange runs into its timeout.
+
+The driver loop: ``start(now)`` once; then ``receive_data(data, now)``; ``data_to_send()``; set RTS
+from ``rts``; sleep until ``next_deadline()``; ``handle_timeout(now)``; ``next_event()`` until
+``NEED_DATA``.
+
+This module does no I/O.
+"""
+
+from __future__ import annotations
+
+import enum
+import itertools
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Final
+
+from gateway.protocols.df1.half_duplex_framing import (
+    ACK,
+    NAK,
+    NEED_DATA,
+    AckReceived,
+    BadFrame,
+    Checksum,
+    EotReceived,
+    HalfDuplexDecoder,
+    MasterMessage,
+    NakReceived,
+    NeedData,
+    Poll,
+    SlaveMessage,
+    encode_master_message,
+    encode_poll,
+)
+
+__all__ = [
+    "NEED_DATA",
+    "FailReason",
+    "HalfDuplexMaster",
+    "LineConfig",
+    "LineState",
+    "MasterEvent",
+    "ReplyReceived",
+    "RequestFailed",
+    "SlaveInitiated",
+    "StationConfig",
+    "StationCounters",
+    "StationDemoted",
+    "StationRestored",
+    "StrayReply",
+    "is_reply_to",
+]
+
+#: PCCC CMD bit that marks a reply (1770-6.5.16 chapter 6: reply CMD = command CMD + 40 hex).
+_REPLY_BIT: Final = 0x40
+#: The first six bytes of a message (DST SRC CMD STS TNS) identify it for duplicate detection.
+_HEAD: Final = 6
+
+
+def is_reply_to(command: bytes, message: bytes) -> bool:
+    """Whether ``message`` is the reply to ``command``: DST/SRC swapped, CMD + 40 hex, same TNS."""
+    return (
+        len(message) >= _HEAD
+        and len(command) >= _HEAD
+        and message[0] == command[1]
+        and message[1] == command[0]
+        and message[2] == command[2] | _REPLY_BIT
+        and message[4:6] == command[4:6]
+    )
+
+
+# ---------------------------------------------------------------------------------- configuration
+
+
+def _positive(name: str, value: float, *, allow_zero: bool = True) -> None:
+    if value < 0 or (value == 0 and not allow_zero):
+        raise ValueError(f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {value}")
+
+
+@dataclass(frozen=True, slots=True)
+class StationConfig:
+    """Tunables of one slave station (seconds)."""
+
+    station: int
+    poll_timeout: float = 0.5  #: wait for the answer to a poll (RM p. 13-61: the ACK timeout)
+    reply_timeout: float = 5.0  #: from the ACK of a command to its reply
+    reply_wait: float = 0.0  #: after the ACK, before the first poll for the reply (RM p. 13-67)
+    max_polls: int = 20  #: DLE EOT answers tolerated while waiting for one reply
+    retries: int = 3  #: answerless polls / unacknowledged messages in a row before demotion
+    poll_interval: float = 1.0  #: background poll period for slave-initiated messages
+    slow_poll_interval: float = 10.0  #: poll period of a demoted station
+    max_outstanding: int = 1  #: commands delivered and awaiting their reply at once
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.station <= 0xFE:
+            raise ValueError(f"station must be 0..254 (255 is broadcast), got {self.station}")
+        _positive("poll_timeout", self.poll_timeout, allow_zero=False)
+        _positive("reply_timeout", self.reply_timeout, allow_zero=False)
+        _positive("reply_wait", self.reply_wait)
+        _positive("poll_interval", self.poll_interval, allow_zero=False)
+        _positive("slow_poll_interval", self.slow_poll_interval, allow_zero=False)
+        if self.max_polls < 1 or self.retries < 1 or self.max_outstanding < 1:
+            raise ValueError("max_polls, retries and max_outstanding must be at least 1")
+
+
+@dataclass(frozen=True, slots=True)
+class LineConfig:
+    """Tunables of the line (seconds)."""
+
+    checksum: Checksum
+    ack_timeout: float = 0.5  #: wait for DLE ACK after a master message
+    message_retries: int = 3  #: resends of an unacknowledged master message
+    char_time: float = 0.0  #: time of one character on the wire (11 bits / baud); 0 = instantaneous
+    pre_transmit_delay: float = 0.0  #: quiet time after the last byte heard before transmitting
+    rts_send_delay: float = 0.0  #: RTS on to first byte (modem key-up, RM p. 13-59)
+    rts_off_delay: float = 0.0  #: last byte to RTS off (RM p. 13-59)
+    echo: bool = False  #: 2-wire RS-485: the master hears its own bytes
+    max_messages_per_turn: int = 8  #: polls of one station in a row while it has messages
+
+    def __post_init__(self) -> None:
+        _positive("ack_timeout", self.ack_timeout, allow_zero=False)
+        for name in ("char_time", "pre_transmit_delay", "rts_send_delay", "rts_off_delay"):
+            _positive(name, getattr(self, name))
+        if self.message_retries < 0 or self.max_messages_per_turn < 1:
+            raise ValueError("message_retries must be >= 0 and max_messages_per_turn >= 1")
+
+
+# ------------------------------------------------------------------------------------------ events
+
+
+class FailReason(enum.Enum):
+    NO_ACK = "the station never acknowledged the command"
+    NO_REPLY = "the station acknowledged the command but its reply never came"
+    STATION_DEMOTED = "the station does not answer polls (demoted to slow poll)"
+    LINK_RESET = "the link was reset"
+
+
+@dataclass(frozen=True, slots=True)
+class ReplyReceived:
+    request_id: int
+    station: int
+    message: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class RequestFailed:
+    """``may_have_executed``: the slave may have received (and executed) the command."""
+
+    request_id: int
+    station: int
+    reason: FailReason
+    may_have_executed: bool
+
+
+@dataclass(frozen=True, slots=True)
+class SlaveInitiated:
+    """A command the slave sent on its own (an MSG instruction), already acknowledged."""
+
+    station: int
+    message: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class StrayReply:
+    """A reply matching no request of the polled station (late after a failure): discarded."""
+
+    station: int
+    message: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class StationDemoted:
+    station: int
+
+
+@dataclass(frozen=True, slots=True)
+class StationRestored:
+    station: int
+
+
+MasterEvent = ReplyReceived | RequestFailed | SlaveInitiated | StrayReply | StationDemoted | StationRestored
+
+
+@dataclass(slots=True)
+class StationCounters:
+    polls: int = 0
+    eots: int = 0
+    messages_sent: int = 0
+    messages_received: int = 0
+    retries: int = 0
+    timeouts: int = 0
+    bad_frames: int = 0
+    duplicates: int = 0
+    demotions: int = 0
+
+
+# ------------------------------------------------------------------------------- state machine
+
+
+class LineState(enum.Enum):
+    IDLE = "idle"  #: nothing on the line; the scheduler picks the next exchange
+    TRANSMIT = "transmit"  #: bytes waiting for the line to be quiet and RTS key-up
+    WAIT_ACK = "wait-ack"  #: master message sent, waiting for DLE ACK
+    WAIT_POLL = "wait-poll"  #: poll sent, waiting for a message or DLE EOT
+
+
+class Input(enum.Enum):
+    TX_READY = "tx-ready"
+    TIMEOUT = "timeout"
+    ACK = "ack"
+    NAK = "nak"
+    EOT = "eot"
+    MESSAGE = "message"
+    BAD = "bad"
+
+
+@dataclass(slots=True)
+class _Request:
+    request_id: int
+    station: int
+    message: bytes
+    frame: bytes
+    sends: int = 0
+    polls: int = 0
+    poll_at: float = 0.0
+    reply_deadline: float = 0.0
+
+
+@dataclass(slots=True)
+class _Station:
+    config: StationConfig
+    active: bool = True
+    failures: int = 0
+    queue: deque[_Request] = field(default_factory=deque)
+    awaiting: list[_Request] = field(default_factory=list)
+    next_poll_at: float = 0.0
+    last_head: bytes | None = None
+    counters: StationCounters = field(default_factory=StationCounters)
+
+
+class HalfDuplexMaster:
+    """The master side of a DF1 half-duplex line (see the module docstring)."""
+
+    def __init__(self, line: LineConfig, stations: list[StationConfig]) -> None:
+        numbers = [s.station for s in stations]
+        if len(set(numbers)) != len(numbers):
+            raise ValueError(f"station numbers must be unique on a line, got {sorted(numbers)}")
+        if not stations:
+            raise ValueError("a half-duplex line needs at least one station")
+        self.line: Final = line
+        self._stations: dict[int, _Station] = {s.station: _Station(s) for s in stations}
+        self._order: Final = numbers
+        self._decoder = HalfDuplexDecoder(line.checksum)
+        self._state = LineState.IDLE
+        self._out = bytearray()
+        self._events: deque[MasterEvent] = deque()
+        self._ids = itertools.count(1)
+        self._echo = bytearray()
+        self._quiet_until = float("-inf")
+        self._pending: bytes = b""  #: bytes of the exchange in TRANSMIT
+        self._after: LineState = LineState.IDLE  #: state once _pending is on the wire
+        self._tx_at = 0.0
+        self._deadline: float | None = None
+        self._wake: float | None = None  #: IDLE: when the scheduler has something due
+        self._rts_on_at: float | None = None
+        self._rts_off_at: float | None = None
+        self.rts = False
+        self._current: int | None = None  #: station of the exchange in progress
+        self._request: _Request | None = None  #: master message in progress
+        self._turn_station: int | None = None
+        self._turn_polls = 0
+        self._poll_again = False
+        self._reset_pending = False
+        self._rr = 0
+        self._message = b""  #: the slave message being handled
+        self._grace_used = False  #: the answer deadline was extended once for a frame in progress
+        self.collisions = 0
+        self.ignored = 0
+
+    # ----------------------------------------------------------------------------- public API
+
+    @property
+    def state(self) -> LineState:
+        return self._state
+
+    def counters(self, station: int) -> StationCounters:
+        return self._stations[station].counters
+
+    def is_active(self, station: int) -> bool:
+        return self._stations[station].active
+
+    def start(self, now: float, *, link_reset: bool = False) -> None:
+        """Begin polling.  ``link_reset``: first send DLE NAK, as a master does at power-up (Table 2.C)."""
+        if link_reset:
+            self._reset_pending = True
+        self._kick(now)
+
+    def submit(self, station: int, message: bytes, now: float) -> int:
+        """Queue a command packet for ``station``; returns the request id used in its events."""
+        target = self._stations.get(station)
+        if target is None:
+            raise ValueError(f"station {station} is not on this line (stations: {self._order})")
+        if len(message) < _HEAD:
+            raise ValueError("a command packet has at least DST SRC CMD STS TNS (6 bytes)")
+        tns = message[4:6]
+        for other in self._stations.values():
+            if any(r.message[4:6] == tns for r in itertools.chain(other.queue, other.awaiting)):
+                raise ValueError(f"TNS {tns.hex()} is already in use on this line; allocate TNS per line")
+        if self._request is not None and self._request.message[4:6] == tns:
+            raise ValueError(f"TNS {tns.hex()} is already in use on this line; allocate TNS per line")
+        request_id = next(self._ids)
+        if not target.active:
+            self._events.append(RequestFailed(request_id, station, FailReason.STATION_DEMOTED, False))
+            return request_id
+        frame = encode_master_message(station, message, self.line.checksum)
+        target.queue.append(_Request(request_id, station, message, frame))
+        self._kick(now)
+        return request_id
+
+    def reset_link(self, now: float) -> None:
+        """Send DLE NAK, the global link reset (Table 2.C): slaves drop their queued messages."""
+        self._reset_pending = True
+        self._kick(now)
+
+    def data_to_send(self) -> bytes:
+        data = bytes(self._out)
+        self._out.clear()
+        return data
+
+    def next_event(self) -> MasterEvent | NeedData:
+        return self._events.popleft() if self._events else NEED_DATA
+
+    def next_deadline(self) -> float | None:
+        times = [t for t in (self._rts_on_at, self._rts_off_at) if t is not None]
+        if self._state is LineState.TRANSMIT:
+            times.append(self._tx_at)
+        elif self._state is LineState.IDLE:
+            if self._wake is not None:
+                times.append(self._wake)
+        elif self._deadline is not None:
+            times.append(self._deadline)
+        return min(times) if times else None
+
+    def handle_timeout(self, now: float) -> None:
+        self._update_rts(now)
+        if self._state is LineState.TRANSMIT and now >= self._tx_at:
+            self._step(Input.TX_READY, now)
+        elif self._state in (LineState.WAIT_ACK, LineState.WAIT_POLL):
+            if self._deadline is not None and now >= self._deadline:
+                if self._decoder.in_frame and not self._grace_used:
+                    # An answer is arriving: let it finish rather than meet it in the next exchange.
+                    self._grace_used = True
+                    self._deadline = now + self._answer_timeout()
+                    return
+                self._decoder.reset()
+                self._step(Input.TIMEOUT, now)
+        elif self._state is LineState.IDLE:
+            self._schedule(now)
+
+    def receive_data(self, data: bytes, now: float) -> None:
+        if self._echo:
+            same = 0
+            limit = min(len(data), len(self._echo))
+            while same < limit and data[same] == self._echo[same]:
+                same += 1
+            if same < limit:  # our own bytes came back different: a collision
+                self.collisions += 1
+                self._echo.clear()
+            else:
+                del self._echo[:same]
+            data = data[same:]
+        if not data:
+            return
+        self._quiet_until = max(self._quiet_until, now + self.line.pre_transmit_delay)
+        if self._state is LineState.TRANSMIT:
+            self._tx_at = max(self._tx_at, self._quiet_until + self.line.rts_send_delay)
+        self._decoder.feed(data)
+        while (event := self._decoder.next_event()) is not NEED_DATA:
+            if isinstance(event, SlaveMessage):
+                self._message = event.message
+                self._step(Input.MESSAGE, now)
+            elif isinstance(event, EotReceived):
+                self._step(Input.EOT, now)
+            elif isinstance(event, AckReceived):
+                self._step(Input.ACK, now)
+            elif isinstance(event, NakReceived):
+                self._step(Input.NAK, now)
+            elif isinstance(event, BadFrame) and not event.master:
+                self._step(Input.BAD, now)
+            elif isinstance(event, Poll | MasterMessage | BadFrame):
+                self.ignored += 1  # another master's frame, or our own echo without echo mode
+
+    # --------------------------------------------------------------------------- the table
+
+    def _step(self, what: Input, now: float) -> None:
+        handler = _TRANSITIONS.get((self._state, what))
+        if handler is None:
+            self.ignored += 1
+            return
+        handler(self, now)
+        if self._state is LineState.IDLE:
+            self._schedule(now)
+
+    def _on_tx_ready(self, now: float) -> None:
+        data = self._pending
+        self._pending = b""
+        self._out += data
+        if self.line.echo:
+            self._echo += data
+        end = now + len(data) * self.line.char_time
+        self._rts_off_at = end + self.line.rts_off_delay
+        self._quiet_until = max(self._quiet_until, self._rts_off_at)
+        self._update_rts(now)
+        self._state = self._after
+        self._grace_used = False
+        self._deadline = None if self._state is LineState.IDLE else end + self._answer_timeout()
+
+    def _answer_timeout(self) -> float:
+        if self._state is LineState.WAIT_ACK:
+            return self.line.ack_timeout
+        assert self._current is not None
+        return self._stations[self._current].config.poll_timeout
+
+    def _on_acked(self, now: float) -> None:
+        request = self._take_request()
+        station = self._stations[request.station]
+        self._answered(station)
+        request.poll_at = now + station.config.reply_wait
+        request.reply_deadline = now + station.config.reply_timeout
+        station.awaiting.append(request)
+        self._state = LineState.IDLE
+
+    def _on_not_acked(self, now: float) -> None:
+        request = self._request
+        assert request is not None
+        station = self._stations[request.station]
+        if request.sends <= self.line.message_retries:
+            station.counters.retries += 1
+            self._send_message(request, now)  # the identical bytes: same TNS
+            return
+        self._take_request()
+        station.counters.timeouts += 1
+        self._events.append(RequestFailed(request.request_id, request.station, FailReason.NO_ACK, True))
+        self._failed(station, now)
+        self._state = LineState.IDLE
+
+    def _on_eot(self, now: float) -> None:
+        station = self._polled()
+        station.counters.eots += 1
+        self._answered(station)
+        station.last_head = None  # no resend can follow an EOT (KA p. 11-17)
+        for request in list(station.awaiting):
+            request.polls += 1
+            if request.polls >= station.config.max_polls:
+                self._fail_awaiting(station, request, FailReason.NO_REPLY)
+        self._poll_again = False
+        self._state = LineState.IDLE
+
+    def _on_message(self, now: float) -> None:
+        station = self._polled()
+        message = self._message
+        self._answered(station)
+        self._poll_again = True
+        self._transmit(ACK, LineState.IDLE, now)
+        head = message[:_HEAD]
+        if head == station.last_head:
+            station.counters.duplicates += 1
+            return
+        station.last_head = head
+        station.counters.messages_received += 1
+        number = station.config.station
+        if len(message) > 2 and message[2] & _REPLY_BIT:
+            for request in station.awaiting:
+                if is_reply_to(request.message, message):
+                    station.awaiting.remove(request)
+                    self._events.append(ReplyReceived(request.request_id, number, message))
+                    return
+            self._events.append(StrayReply(number, message))
+        else:
+            self._events.append(SlaveInitiated(number, message))
+
+    def _on_bad_answer(self, now: float) -> None:
+        station = self._polled()
+        station.counters.bad_frames += 1
+        self._poll_again = True  # not acknowledged: the slave resends at the next poll
+        self._state = LineState.IDLE
+
+    def _on_poll_timeout(self, now: float) -> None:
+        station = self._polled()
+        station.counters.timeouts += 1
+        self._poll_again = station.active
+        self._failed(station, now)
+        self._state = LineState.IDLE
+
+    # ------------------------------------------------------------------------------ helpers
+
+    def _polled(self) -> _Station:
+        assert self._current is not None
+        return self._stations[self._current]
+
+    def _take_request(self) -> _Request:
+        request = self._request
+        assert request is not None
+        self._request = None
+        return request
+
+    def _answered(self, station: _Station) -> None:
+        station.failures = 0
+        if not station.active:
+            station.active = True
+            station.next_poll_at = 0.0
+            self._events.append(StationRestored(station.config.station))
+
+    def _failed(self, station: _Station, now: float) -> None:
+        station.failures += 1
+        if station.active and station.failures >= station.config.retries:
+            station.active = False
+            station.next_poll_at = now + station.config.slow_poll_interval
+            station.counters.demotions += 1
+            self._poll_again = False
+            self._events.append(StationDemoted(station.config.station))
+            while station.queue:
+                request = station.queue.popleft()
+                self._events.append(
+                    RequestFailed(request.request_id, request.station, FailReason.STATION_DEMOTED, False)
+                )
+            for request in list(station.awaiting):
+                self._fail_awaiting(station, request, FailReason.STATION_DEMOTED)
+
+    def _fail_awaiting(self, station: _Station, request: _Request, reason: FailReason) -> None:
+        station.awaiting.remove(request)
+        self._events.append(RequestFailed(request.request_id, request.station, reason, True))
+
+    def _update_rts(self, now: float) -> None:
+        if self._rts_off_at is not None and now >= self._rts_off_at:
+            self.rts = False
+            self._rts_off_at = None
+        if self._rts_on_at is not None and now >= self._rts_on_at:
+            self.rts = True
+            self._rts_on_at = None
+
+    def _transmit(self, data: bytes, after: LineState, now: float) -> None:
+        start = max(now, self._quiet_until)
+        self._pending = data
+        self._after = after
+        self._state = LineState.TRANSMIT
+        self._deadline = None
+        self._tx_at = start + self.line.rts_send_delay
+        if start <= now:
+            self.rts = True
+            self._rts_off_at = None
+        else:
+            self._rts_on_at = start  # after the previous RTS off (start >= quiet_until >= it)
+        if self._tx_at <= now:
+            self._on_tx_ready(now)
+
+    def _send_poll(self, number: int, now: float, *, again: bool = False) -> None:
+        station = self._stations[number]
+        station.counters.polls += 1
+        interval = station.config.poll_interval if station.active else station.config.slow_poll_interval
+        station.next_poll_at = now + interval
+        if not again or self._turn_station != number:
+            self._turn_station = number
+            self._turn_polls = 0
+        self._turn_polls += 1
+        self._current = number
+        self._transmit(encode_poll(number), LineState.WAIT_POLL, now)
+
+    def _send_message(self, request: _Request, now: float) -> None:
+        request.sends += 1
+        self._stations[request.station].counters.messages_sent += 1
+        self._request = request
+        self._current = request.station
+        self._transmit(request.frame, LineState.WAIT_ACK, now)
+
+    def _kick(self, now: float) -> None:
+        if self._state is LineState.IDLE:
+            self._schedule(now)
+
+    def _rotation(self) -> list[_Station]:
+        order = self._order[self._rr :] + self._order[: self._rr]
+        return [self._stations[number] for number in order]
+
+    def _serve(self, station: _Station) -> None:
+        self._rr = (self._order.index(station.config.station) + 1) % len(self._order)
+
+    def _schedule(self, now: float) -> None:
+        """IDLE: pick the next exchange.
+
+        Priority: a pending link reset; the station of this turn again while it has messages; then,
+        round robin over the stations, a due poll for a reply or a queued command (so a slow
+        station's reply polls cannot starve the others); then background polls.
+        """
+        while self._state is LineState.IDLE:
+            self._wake = None
+            self._current = None
+            for station in self._stations.values():
+                for request in list(station.awaiting):
+                    if now >= request.reply_deadline:
+                        self._fail_awaiting(station, request, FailReason.NO_REPLY)
+            if self._reset_pending:
+                self._reset_pending = False
+                self._reset_all()
+                self._transmit(NAK, LineState.IDLE, now)
+                continue
+            if not self._pick(now):
+                return
+
+    def _pick(self, now: float) -> bool:
+        turn = self._turn_station
+        again = self._poll_again
+        self._poll_again = False
+        if again and turn is not None and self._turn_polls < self.line.max_messages_per_turn:
+            self._send_poll(turn, now, again=True)
+            return True
+        wake: list[float] = []
+        for station in self._rotation():
+            due = [r.poll_at for r in station.awaiting]
+            wake += due + [r.reply_deadline for r in station.awaiting]
+            if due and min(due) <= now:
+                self._serve(station)
+                self._send_poll(station.config.station, now)
+                return True
+            if station.active and station.queue and len(station.awaiting) < station.config.max_outstanding:
+                self._serve(station)
+                self._send_message(station.queue.popleft(), now)
+                return True
+        for station in self._rotation():
+            if station.next_poll_at <= now:
+                self._serve(station)
+                self._send_poll(station.config.station, now)
+                return True
+            wake.append(station.next_poll_at)
+        self._wake = min(wake) if wake else None
+        return False
+
+    def _reset_all(self) -> None:
+        """After DLE NAK the slaves' queues are empty: requests awaiting a reply will get none."""
+        for station in self._stations.values():
+            station.last_head = None
+            for request in list(station.awaiting):
+                self._fail_awaiting(station, request, FailReason.LINK_RESET)
+
+
+_Handler = Callable[[HalfDuplexMaster, float], None]
+
+#: (state, input) -> handler.  Pairs not listed are ignored (counted in ``ignored``): an ACK while
+#: polling, a slave message while waiting for an ACK (a slave must not send unpolled), and so on.
+_TRANSITIONS: Final[dict[tuple[LineState, Input], _Handler]] = {
+    (LineState.TRANSMIT, Input.TX_READY): HalfDuplexMaster._on_tx_ready,
+    (LineState.WAIT_ACK, Input.ACK): HalfDuplexMaster._on_acked,
+    (LineState.WAIT_ACK, Input.NAK): HalfDuplexMaster._on_not_acked,
+    (LineState.WAIT_ACK, Input.TIMEOUT): HalfDuplexMaster._on_not_acked,
+    (LineState.WAIT_POLL, Input.EOT): HalfDuplexMaster._on_eot,
+    (LineState.WAIT_POLL, Input.MESSAGE): HalfDuplexMaster._on_message,
+    (LineState.WAIT_POLL, Input.BAD): HalfDuplexMaster._on_bad_answer,
+    (LineState.WAIT_POLL, Input.NAK): HalfDuplexMaster._on_bad_answer,
+    (LineState.WAIT_POLL, Input.TIMEOUT): HalfDuplexMaster._on_poll_timeout,
+}

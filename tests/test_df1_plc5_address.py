@@ -1,0 +1,227 @@
+"""PLC-5 addresses, word range read/write and read-modify-write packets.
+
+Vectors are the ones printed in A-B 1770-6.5.16 (DF1) chapter 13 and the 1770-KF2 manual (KF2);
+see docs/df1-half-duplex-notes.md section 6.
+"""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from gateway.protocols.df1 import pccc
+from gateway.protocols.df1.half_duplex_framing import Checksum, encode_slave_message
+from gateway.protocols.df1.plc5_address import (
+    AddressError,
+    Plc5Address,
+    ReadModifyWrite,
+    WordRangeRead,
+    WordRangeWrite,
+    decode_logical_ascii,
+    decode_logical_binary,
+    encode_logical_ascii,
+    encode_logical_binary,
+    parse_plc5_address,
+)
+
+# ------------------------------------------------------------------------- printed vectors
+
+
+def test_df1_13_12_n7_30() -> None:
+    """DF1 p. 13-12: N7:30 -> mask (3 levels) 00 07 1E."""
+    address = parse_plc5_address("N7:30")
+    assert encode_logical_binary(address) == bytes.fromhex("07 00 07 1E")
+    assert decode_logical_binary(bytes.fromhex("07 00 07 1E")) == ((0, 7, 30), 4)
+
+
+def test_df1_13_12_b3_300() -> None:
+    """DF1 p. 13-12: B3:300 -> mask 06 (level 1 defaulted), 03, FF 2C 01."""
+    address = parse_plc5_address("B3:300")
+    assert encode_logical_binary(address, compact=True) == bytes.fromhex("06 03 FF 2C 01")
+    assert decode_logical_binary(bytes.fromhex("06 03 FF 2C 01")) == ((0, 3, 300), 5)
+    assert encode_logical_binary(address) == bytes.fromhex("07 00 03 FF 2C 01")
+
+
+def test_df1_13_12_t4_2_acc() -> None:
+    """DF1 p. 13-12: T4:2.ACC -> mask 0F, 00 04 02 02 (sub-element 2 = accumulated)."""
+    address = parse_plc5_address("T4:2.ACC")
+    assert encode_logical_binary(address) == bytes.fromhex("0F 00 04 02 02")
+    assert decode_logical_binary(bytes.fromhex("0F 00 04 02 02")) == ((0, 4, 2, 2), 5)
+
+
+def test_df1_13_12_pd12_10_sp_decodes() -> None:
+    """DF1 p. 13-12: PD12:10.SP -> 0F 00 0C 0A 02 (PD files are not served; the bytes decode)."""
+    assert decode_logical_binary(bytes.fromhex("0F 00 0C 0A 02")) == ((0, 12, 10, 2), 5)
+
+
+def test_df1_13_15_logical_ascii_n10_360() -> None:
+    """DF1 p. 13-15 and KF2 p. 6-13 Figure 6.9: NUL $ N10:360 NUL."""
+    wire = bytes.fromhex("00 24 4E 31 30 3A 33 36 30 00")
+    assert encode_logical_ascii(parse_plc5_address("N10:360")) == wire
+    assert decode_logical_ascii(wire + b"\x99") == ("N10:360", 10)
+
+
+def test_df1_13_11_levels_of_255_and_more_use_ff() -> None:
+    """p. 13-11: "greater than or equal to 255" -> FF lo hi; 254 is still one byte."""
+    assert encode_logical_binary(Plc5Address("N", 7, 254)) == bytes.fromhex("07 00 07 FE")
+    assert encode_logical_binary(Plc5Address("N", 7, 255)) == bytes.fromhex("07 00 07 FF FF 00")
+    assert encode_logical_binary(Plc5Address("N", 300, 0)) == bytes.fromhex("07 00 FF 2C 01 00")
+
+
+def test_s4516_sample_mask_0f_decodes_to_the_same_word() -> None:
+    """S4516 §2.6.1 sample: mask 0F with level 4 = 0 addresses the same word as mask 07."""
+    assert decode_logical_binary(bytes.fromhex("0F 00 07 1E 00"))[0][:3] == (0, 7, 30)
+
+
+# ------------------------------------------------------------------------------ parsing
+
+
+@pytest.mark.parametrize(
+    ("text", "expected", "words"),
+    [
+        ("N7:0", Plc5Address("N", 7, 0), 1),
+        ("F8:2", Plc5Address("F", 8, 2), 2),
+        ("B3:300", Plc5Address("B", 3, 300), 1),
+        ("B3/5", Plc5Address("B", 3, 0, bit=5), 1),
+        ("B3/37", Plc5Address("B", 3, 2, bit=5), 1),
+        ("N7:0/3", Plc5Address("N", 7, 0, bit=3), 1),
+        ("T4:1.ACC", Plc5Address("T", 4, 1, 2), 1),
+        ("T4:2.PRE", Plc5Address("T", 4, 2, 1), 1),
+        ("T4:1", Plc5Address("T", 4, 1), 3),
+        ("T4:1/DN", Plc5Address("T", 4, 1, 0, 13), 1),
+        ("T4:1.DN", Plc5Address("T", 4, 1, 0, 13), 1),
+        ("C5:0.ACC", Plc5Address("C", 5, 0, 2), 1),
+        ("C5:0/CU", Plc5Address("C", 5, 0, 0, 15), 1),
+        ("R6:0.POS", Plc5Address("R", 6, 0, 2), 1),
+        ("S:3", Plc5Address("S", 2, 3), 1),
+        ("O:0", Plc5Address("O", 0, 0), 1),
+        ("I:017/17", Plc5Address("I", 1, 0o17, bit=0o17), 1),
+        ("n7:30", Plc5Address("N", 7, 30), 1),
+        ("$N7:30", Plc5Address("N", 7, 30), 1),
+    ],
+)
+def test_parse_the_forms_users_type(text: str, expected: Plc5Address, words: int) -> None:
+    address = parse_plc5_address(text)
+    assert address == expected
+    assert address.words == words
+    assert parse_plc5_address(str(address)) == address
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("N:0", "file number"),
+        ("X7:0", "unknown file type"),
+        ("N7/5", "only for binary"),
+        ("I:018", "octal"),
+        ("T4:1.LEN", "no member"),
+        ("T4:1/3", "name the word"),
+        ("N7:0/16", "out of range"),
+        ("N7", "not a PLC-5 address"),
+        ("B3/16000", "beyond 15999"),
+        ("C5:0/EN", "no status bit"),
+    ],
+)
+def test_bad_addresses_say_what_is_wrong(text: str, message: str) -> None:
+    with pytest.raises(AddressError, match=message):
+        parse_plc5_address(text)
+
+
+def test_truncated_and_invalid_binary_addresses() -> None:
+    for data in (b"", b"\x07\x00", b"\x07\x00\x07\xff\x01", b"\x00", b"\x1f\x00"):
+        with pytest.raises(AddressError):
+            decode_logical_binary(data)
+    with pytest.raises(AddressError, match="NUL"):
+        decode_logical_ascii(b"\x00$N7:0")
+
+
+@given(
+    file_number=st.integers(0, 999),
+    element=st.integers(0, 0xFFFF),
+    sub=st.none() | st.integers(0, 0xFFFF),
+    compact=st.booleans(),
+)
+def test_logical_binary_round_trip(file_number: int, element: int, sub: int | None, compact: bool) -> None:
+    address = Plc5Address("N", file_number, element, sub)
+    wire = encode_logical_binary(address, compact=compact)
+    assert decode_logical_binary(wire + b"\xaa") == (address.levels, len(wire))
+
+
+# ------------------------------------------------------------------------------ packets
+
+
+def test_word_range_read_layout_matches_kf2_5_57_and_the_pccc_codec() -> None:
+    """KF2 p. 5-57: PACKET OFFSET(2) TOTAL TRANS(2) ADDRESS SIZE(1), low byte first."""
+    address = encode_logical_binary(parse_plc5_address("N7:30"))
+    read = WordRangeRead(address, size=20)
+    assert read.encode() == bytes.fromhex("00 00 0A 00 07 00 07 1E 14")
+    assert WordRangeRead.decode(read.encode()) == WordRangeRead(address, 20, 0, 10)
+    legacy = pccc.WordRangeRead(pccc.LogicalBinaryAddress.of(0, 7, 30), 20)
+    assert legacy.encode_params() == read.encode()
+
+
+def test_word_range_write_layout() -> None:
+    address = encode_logical_binary(parse_plc5_address("B3:300"), compact=True)
+    write = WordRangeWrite(address, bytes.fromhex("34 12 78 56"), packet_offset=0)
+    assert write.encode() == bytes.fromhex("00 00 02 00 06 03 FF 2C 01 34 12 78 56")
+    assert WordRangeWrite.decode(write.encode()) == WordRangeWrite(address, bytes.fromhex("34 12 78 56"), 0, 2)
+    ascii_address = encode_logical_ascii("N7:0")
+    assert WordRangeWrite.decode(WordRangeWrite(ascii_address, b"\x01\x00").encode()).address == ascii_address
+
+
+def test_read_modify_write_is_the_coil_write() -> None:
+    """p. 7-20: AND mask 0 resets a bit, OR mask 1 sets it; masks low byte first."""
+    address = encode_logical_binary(parse_plc5_address("B3:0"))
+    on = ReadModifyWrite.set_bit(address, 5)
+    assert on.encode() == address + bytes.fromhex("FF FF 20 00")
+    off = ReadModifyWrite.reset_bit(address, 15)
+    assert off.encode() == address + bytes.fromhex("FF 7F 00 00")
+    assert on.apply(0x0000) == 0x0020 and off.apply(0xFFFF) == 0x7FFF
+    assert ReadModifyWrite.decode(on.encode() + off.encode()).sets == on.sets + off.sets
+    assert ReadModifyWrite(((address, 0x5555, 0xA00F),)).apply(0xF0F0) == 0xF05F  # (F0F0 & 5555) | A00F
+
+
+def test_packet_limits() -> None:
+    address = encode_logical_binary(parse_plc5_address("N7:0"))
+    with pytest.raises(AddressError, match="even"):
+        WordRangeRead(address, 3).encode()
+    with pytest.raises(AddressError, match=r"2\.\.244"):
+        WordRangeRead(address, 246).encode()
+    with pytest.raises(AddressError, match="239"):
+        WordRangeWrite(address, bytes(236)).encode()
+    with pytest.raises(AddressError, match="whole number"):
+        WordRangeWrite(address, b"\x01").encode()
+    with pytest.raises(AddressError, match="243"):
+        ReadModifyWrite(((address, 0, 0),) * 31).encode()
+    with pytest.raises(AddressError, match="truncated"):
+        ReadModifyWrite.decode(address + b"\xff")
+
+
+# ------------------------------------------------------------- 1785-KE printed frames (p. 5-5, 5-6)
+
+
+def test_1785ke_5_5_word_range_write_logical_binary_n10_15() -> None:
+    """1785-KE manual p. 5-5: write 4 words to N10:15 of PLC-5 node 51 (octal), and the reply."""
+    frame = bytes.fromhex("10 02 29 20 0F 00 46 01 00 00 00 04 00 0F 00 0A 0F 00 22 11 44 33 66 55 88 77 10 03 D1")
+    address = bytes.fromhex("0F 00 0A 0F 00")  # mask 0F: data table 0, file 10, element 15, sub 0
+    assert decode_logical_binary(address) == ((0, 10, 15, 0), 5)
+    write = WordRangeWrite(address, bytes.fromhex("22 11 44 33 66 55 88 77"))
+    header = bytes.fromhex("29 20 0F 00 46 01 00")  # DST SRC CMD STS TNS(2) FNC 00
+    assert encode_slave_message(header + write.encode(), Checksum.BCC) == frame
+    assert WordRangeWrite.decode(write.encode()) == WordRangeWrite(address, write.data, 0, 4)
+    reply = bytes.fromhex("10 02 20 29 4F 00 46 01 10 03 21")
+    assert encode_slave_message(bytes.fromhex("20 29 4F 00 46 01"), Checksum.BCC) == reply
+
+
+def test_1785ke_5_6_word_range_read_logical_ascii_n10_15() -> None:
+    """1785-KE manual p. 5-6: read the same 4 words by the logical ASCII address $N10:15."""
+    frame = bytes.fromhex("10 02 29 20 0F 00 47 01 01 00 00 04 00 00 24 4E 31 30 3A 31 35 00 08 10 03 E0")
+    address = encode_logical_ascii(parse_plc5_address("N10:15"))
+    assert address == bytes.fromhex("00 24 4E 31 30 3A 31 35 00")
+    read = WordRangeRead(address, size=8)
+    header = bytes.fromhex("29 20 0F 00 47 01 01")
+    assert encode_slave_message(header + read.encode(), Checksum.BCC) == frame
+    assert WordRangeRead.decode(read.encode()) == WordRangeRead(address, 8, 0, 4)
+    reply = bytes.fromhex("10 02 20 29 4F 00 47 01 22 11 44 33 66 55 88 77 10 03 BC")
+    assert encode_slave_message(bytes.fromhex("20 29 4F 00 47 01 22 11 44 33 66 55 88 77"), Checksum.BCC) == reply
