@@ -57,8 +57,11 @@ _NETWORK_ERRORS = re.compile(
 
 
 def dockerfile_stages(path: Path = ROOT / "Dockerfile") -> list[list[tuple[str, str]]]:
-    """Instructions per stage: ``[(INSTRUCTION, arguments), ...]`` (continuations joined)."""
-    stages: list[list[tuple[str, str]]] = []
+    """Instructions per stage: ``[(INSTRUCTION, arguments), ...]`` (continuations joined).
+
+    Stage 0 holds what comes before the first FROM (global ARGs); the stages follow.
+    """
+    stages: list[list[tuple[str, str]]] = [[]]
     pending = ""
     for raw in path.read_text(encoding="utf-8").splitlines():
         line = raw.strip()
@@ -372,10 +375,18 @@ def test_installed_healthcheck_fails_when_nothing_listens(installed: Installed) 
 
 
 def test_dockerfile() -> None:
-    stages = dockerfile_stages()
+    preamble, *stages = dockerfile_stages()
     assert len(stages) == 2
     build, runtime = ({i: [a for j, a in stage if j == i] for i, _ in stage} for stage in stages)
-    assert all(image.startswith("python:3.11-slim") for image in build["FROM"] + runtime["FROM"])
+    # The base image is an ARG (CI builds on a local Debian base, .ci/base-image); the default
+    # stays the official image.
+    assert preamble == [("ARG", "BASE=python:3.11-slim")]
+    assert build["FROM"] == ["${BASE} AS build"]
+    assert runtime["FROM"] == ["${BASE}"]
+    # The runtime stage installs the build stage's wheel and wheelhouse, without the package index.
+    (install,) = (a for a in runtime["RUN"] if "pip install" in a)
+    assert "--mount=type=bind,from=build,source=/wheels,target=/wheels" in install
+    assert "--no-index --find-links /wheels slc-gateway" in install
     # The build stage copies what test_packaging builds the wheel from.
     copied = {source for arguments in build["COPY"] for source in shlex.split(arguments)[:-1]}
     assert copied == set(BUILD_INPUTS)
