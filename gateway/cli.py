@@ -65,6 +65,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--trace", type=Path, metavar="FILE",
         help="record every byte on every link, with timestamps and direction, to FILE (troubleshooting)",
     )
+    p.add_argument(
+        "--listen", metavar="HOST:PORT",
+        help="serve Modbus TCP here instead of the config's [modbus] listen (e.g. when 5020 is taken)",
+    )
 
     p = sub.add_parser("check-config", help="validate a config file, print the resolved config and Modbus map")
     p.add_argument("config", type=Path)
@@ -133,7 +137,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _setup_logging(args.verbose, logging.ERROR)
     try:
         if command == "run":
-            return _run(args.config, args.trace)
+            return _run(args.config, args.trace, args.listen)
         if command == "check-config":
             return _check_config(args.config)
         if command == "simulate":
@@ -151,11 +155,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
 
 
-def _run(config_path: Path | None, trace: Path | None = None) -> int:
+def _run(config_path: Path | None, trace: Path | None = None, listen: str | None = None) -> int:
     from gateway.app import run_gateway
-    from gateway.config import load_config
+    from gateway.config import load_config, parse_listen
 
     config = load_config(config_path or DEMO_CONFIG)
+    if listen is not None:
+        try:
+            parse_listen(listen)
+        except ValueError as exc:
+            raise GatewayError(f"--listen: {exc}") from exc
+        config = config.model_copy(update={"modbus": config.modbus.model_copy(update={"listen": listen})})
     if trace is not None:
         links = tuple(link.model_copy(update={"trace": trace}) for link in config.link)
         config = config.model_copy(update={"link": links})
