@@ -30,8 +30,8 @@ DEMO_CONFIG = Path(__file__).with_name("demo.toml")
 def _add_link_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("url", help="port URL: /dev/ttyUSB0, socket://host:port, rfc2217://host:port, sim://slc150")
     parser.add_argument(
-        "--protocol", choices=("slc-ascii", "df1"), default="slc-ascii",
-        help="slc-ascii (SLC 100/150, default) or df1 (SLC 500 / PLC-5)",
+        "--protocol", choices=("slc-ascii", "df1"),
+        help="slc-ascii (SLC 100/150, default) or df1 (SLC 500 / PLC-5); a sim:// URL's controller sets it",
     )
     parser.add_argument("--baudrate", type=int, help="default: 9600 (slc-ascii), 19200 (df1)")
     parser.add_argument(
@@ -41,7 +41,7 @@ def _add_link_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--parity", choices=("E", "O", "N"), help="slc-ascii: parity (default E)")
     parser.add_argument("--timeout", type=float, help="seconds per reply (default: 0.3 slc-ascii, 1.0 df1)")
-    parser.add_argument("--retries", type=int, default=3, help="retries per transaction (default 3)")
+    parser.add_argument("--retries", type=int, help="retries per transaction (default 3; probe: 1, to fail fast)")
     parser.add_argument("--station", type=int, default=1, help="df1: destination node (default 1)")
     parser.add_argument("--source", type=int, default=0, help="df1: our node (default 0)")
     parser.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc (default crc)")
