@@ -416,6 +416,10 @@ def test_compose_file_maps_the_serial_port_and_the_config() -> None:
     assert re.search(r"^\s+- /dev/ttyUSB0:/dev/ttyUSB0$", text, re.MULTILINE)
     assert re.search(r"^\s+- \./config/gateway\.toml:/etc/slc-gateway/gateway\.toml:ro$", text, re.MULTILINE)
     assert re.search(r'^\s+- "5020:5020"', text, re.MULTILINE)
+    # The stricter health policy, shown: the image's check plus --require-link.
+    test = re.search(r"^\s+test: (\[.*\])$", text, re.MULTILINE)
+    assert test is not None
+    assert exec_form(test[1]) == ["CMD", *healthcheck_command(), "--require-link"]
 
 
 def test_systemd_unit(tmp_path: Path) -> None:
@@ -436,3 +440,18 @@ def test_systemd_unit(tmp_path: Path) -> None:
     copy.write_text(unit.replace(exec_start[1].split()[0], shutil.which("true") or "/bin/true"))
     result = subprocess.run([analyze, "verify", str(copy)], capture_output=True, text=True, timeout=60, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_readme_and_dockerfile_quote_pwd() -> None:
+    """``-v $PWD/...`` breaks in a directory whose path has a space: every $PWD is inside quotes."""
+    for name in ("README.md", "Dockerfile"):
+        for line in (ROOT / name).read_text(encoding="utf-8").splitlines():
+            for match in re.finditer(r"\$PWD", line):
+                assert line[: match.start()].count('"') % 2 == 1, f"{name}: unquoted $PWD in {line!r}"
+
+
+def test_license_is_an_spdx_string() -> None:
+    """setuptools deprecates the TOML table form (``{ text = "MIT" }``) and warns on every build."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+    assert project["project"]["license"] == "MIT"
+    assert any(r.startswith("setuptools>=77") for r in project["build-system"]["requires"])
