@@ -8,26 +8,44 @@
 # The image runs `slc-gateway run /etc/slc-gateway/gateway.toml` (config/gateway.toml is built in
 # as an example; mount your own over it).  `docker run slc-gateway check-config /etc/...` checks a
 # file, `docker run slc-gateway --help` lists the other commands.  See docker-compose.yml.
+#
+# BASE is any image with Python 3.11 and its venv module (python3 -m venv) and useradd: the
+# official python:3.11-slim by default, or a Debian bookworm root filesystem with python3,
+# python3-venv and passwd where no registry can be reached (.ci/base-image builds one; CI builds
+# this file with `buildah bud --format docker --build-arg BASE=...`, see tests/e2e/test_image.py).
+ARG BASE=python:3.11-slim
 
-# ---- build: the wheel, from the same files a source checkout has --------------------------------
-FROM python:3.11-slim AS build
+# ---- build: the wheel, from the same files a source checkout has, and a wheelhouse --------------
+FROM ${BASE} AS build
+ENV PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY config ./config
 COPY gateway ./gateway
-RUN python -m pip wheel --no-cache-dir --no-deps --wheel-dir /wheels .
+# The project's wheel, then the wheels of its pinned dependencies beside it (the only step that
+# reaches the package index): the runtime stage installs from /wheels alone, offline.
+RUN python3 -m venv /tmp/pip \
+ && /tmp/pip/bin/python -m pip wheel --no-deps --wheel-dir /wheels . \
+ && /tmp/pip/bin/python -m pip wheel --wheel-dir /wheels /wheels/slc_gateway-*.whl
 
 # ---- runtime ------------------------------------------------------------------------------------
-FROM python:3.11-slim
+FROM ${BASE}
 
+# The gateway lives in its own virtual environment, first on PATH: `slc-gateway` and `python`
+# (the HEALTHCHECK's) are its own, whichever Python the base image has.
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
-    PIP_DISABLE_PIP_VERSION_CHECK=1
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    PATH=/opt/slc-gateway/bin:$PATH
 
-# The package and its pinned dependencies (pyproject.toml), then nothing else of the build.
+# The package and its pinned dependencies (pyproject.toml) from the build stage's wheelhouse, with
+# no package index: nothing else of the build.
 RUN --mount=type=bind,from=build,source=/wheels,target=/wheels \
-    python -m pip install /wheels/*.whl
+    python3 -m venv /opt/slc-gateway \
+ && /opt/slc-gateway/bin/python -m pip install --no-index --find-links /wheels slc-gateway \
+ && /opt/slc-gateway/bin/python -m pip uninstall --yes --quiet pip
 
 # An unprivileged user in the "dialout" group, which owns serial ports on Debian hosts.
 RUN useradd --system --uid 10001 --gid dialout --no-create-home --home-dir /nonexistent \

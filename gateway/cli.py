@@ -30,8 +30,8 @@ DEMO_CONFIG = Path(__file__).with_name("demo.toml")
 def _add_link_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("url", help="port URL: /dev/ttyUSB0, socket://host:port, rfc2217://host:port, sim://slc150")
     parser.add_argument(
-        "--protocol", choices=("slc-ascii", "df1"), default="slc-ascii",
-        help="slc-ascii (SLC 100/150, default) or df1 (SLC 500 / PLC-5)",
+        "--protocol", choices=("slc-ascii", "df1"),
+        help="slc-ascii (SLC 100/150, default) or df1 (SLC 500 / PLC-5); a sim:// URL's controller sets it",
     )
     parser.add_argument("--baudrate", type=int, help="default: 9600 (slc-ascii), 19200 (df1)")
     parser.add_argument(
@@ -41,7 +41,7 @@ def _add_link_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--parity", choices=("E", "O", "N"), help="slc-ascii: parity (default E)")
     parser.add_argument("--timeout", type=float, help="seconds per reply (default: 0.3 slc-ascii, 1.0 df1)")
-    parser.add_argument("--retries", type=int, default=3, help="retries per transaction (default 3)")
+    parser.add_argument("--retries", type=int, help="retries per transaction (default 3; probe: 1, to fail fast)")
     parser.add_argument("--station", type=int, default=1, help="df1: destination node (default 1)")
     parser.add_argument("--source", type=int, default=0, help="df1: our node (default 0)")
     parser.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc (default crc)")
@@ -64,6 +64,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--trace", type=Path, metavar="FILE",
         help="record every byte on every link, with timestamps and direction, to FILE (troubleshooting)",
+    )
+    p.add_argument(
+        "--listen", metavar="HOST:PORT",
+        help="serve Modbus TCP here instead of the config's [modbus] listen (e.g. when 5020 is taken)",
     )
 
     p = sub.add_parser("check-config", help="validate a config file, print the resolved config and Modbus map")
@@ -133,7 +137,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _setup_logging(args.verbose, logging.ERROR)
     try:
         if command == "run":
-            return _run(args.config, args.trace)
+            return _run(args.config, args.trace, args.listen)
         if command == "check-config":
             return _check_config(args.config)
         if command == "simulate":
@@ -151,11 +155,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
 
 
-def _run(config_path: Path | None, trace: Path | None = None) -> int:
+def _run(config_path: Path | None, trace: Path | None = None, listen: str | None = None) -> int:
     from gateway.app import run_gateway
-    from gateway.config import load_config
+    from gateway.config import load_config, parse_listen
 
     config = load_config(config_path or DEMO_CONFIG)
+    if listen is not None:
+        try:
+            parse_listen(listen)
+        except ValueError as exc:
+            raise GatewayError(f"--listen: {exc}") from exc
+        config = config.model_copy(update={"modbus": config.modbus.model_copy(update={"listen": listen})})
     if trace is not None:
         links = tuple(link.model_copy(update={"trace": trace}) for link in config.link)
         config = config.model_copy(update={"link": links})

@@ -29,6 +29,7 @@ __all__ = [
     "LinkTimeout",
     "ModbusExceptionReply",
     "ProtocolError",
+    "format_seconds",
 ]
 
 
@@ -91,3 +92,8 @@ class ModbusExceptionReply(GatewayError):
     def __init__(self, code: int, message: str = ""):
         super().__init__(message or f"Modbus exception 0x{code:02X}")
         self.code = code
+
+
+def format_seconds(value: float) -> str:
+    """A duration for people, to 10 ms: ``0.359375`` -> ``"0.36"``, ``3.05729`` -> ``"3.06"``, ``1.0`` -> ``"1"``."""
+    return f"{value:.2f}".rstrip("0").rstrip(".") if value >= 0.005 else f"{value:.2g}"

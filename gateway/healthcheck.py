@@ -6,11 +6,17 @@
 
 Sends function 4 (read input registers), address 1000 (the status block's ``link_up``), count 1,
 to unit ``UNIT`` (default 1) at ``HOST:PORT`` (default 127.0.0.1:5020) and exits 0 on a normal
-reply: the gateway accepts connections and its Modbus server answers.  The status block is served
-whether or not the controller answers, so a controller that is off does not make the container
-unhealthy (restarting the gateway would not bring it back); ``--require-link`` also demands
-``link_up = 1``.  Exits 1, with the reason on stderr, on a refused connection, no reply within
-``--timeout`` seconds (default 3), an exception reply or a malformed reply.
+reply: the gateway accepts connections and its Modbus server answers.  Two policies:
+
+* ``serving`` (default, the image's HEALTHCHECK): the status block is served whether or not the
+  controller answers, so a controller that is off or a serial link that is down does not make the
+  container unhealthy (restarting the gateway would not bring the controller back).
+* ``link`` (``--require-link``): also demands ``link_up = 1``, the same condition under which the
+  gateway's ``/healthz`` answers 503 for a link that is down.
+
+Every line printed names the policy applied.  Exits 1, with the reason on stderr, on a refused
+connection, no reply within ``--timeout`` seconds (default 3), an exception reply, a malformed
+reply, or (``--require-link``) a link that is down.
 
 Standard library only, a plain socket: no Modbus library, nothing to start but the interpreter.
 """
@@ -23,9 +29,12 @@ import struct
 import sys
 from collections.abc import Sequence
 
-__all__ = ["check", "main"]
+__all__ = ["POLICY_LINK", "POLICY_SERVING", "check", "main"]
 
 STATUS_LINK_UP = 1000
+#: What each policy demands, as printed on every line of output.
+POLICY_SERVING = "policy serving: the Modbus server answers; the link's state does not count (--require-link: it does)"
+POLICY_LINK = "policy link (--require-link): the Modbus server answers and the controller link is up"
 _MBAP = struct.Struct(">HHHB")  # transaction id, protocol id (0), length, unit id
 _TID = 0x4843  # "HC"
 
@@ -77,20 +86,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("address", nargs="?", type=_address, default=("127.0.0.1", 5020), metavar="HOST:PORT")
     parser.add_argument("unit", nargs="?", type=_unit, default=1, metavar="UNIT")
-    parser.add_argument("--require-link", action="store_true", help="also fail when the controller is not answering")
+    parser.add_argument(
+        "--require-link", action="store_true",
+        help="also fail when the controller link is down (as /healthz does); default: only the gateway must answer",
+    )
     parser.add_argument("--timeout", type=float, default=3.0, help="seconds to wait (default 3)")
     args = parser.parse_args(argv)
     host, port = args.address
+    policy = POLICY_LINK if args.require_link else POLICY_SERVING
     try:
         link_up = check(host, port, args.unit, args.timeout)
     except (OSError, ValueError) as exc:
-        print(f"unhealthy: {host}:{port} unit {args.unit}: {exc}", file=sys.stderr)
+        print(f"unhealthy: {host}:{port} unit {args.unit}: {exc}; {policy}", file=sys.stderr)
         return 1
     state = "up" if link_up == 1 else "down"
     if args.require_link and link_up != 1:
-        print(f"unhealthy: {host}:{port} unit {args.unit}: link {state}", file=sys.stderr)
+        print(f"unhealthy: {host}:{port} unit {args.unit}: link {state}; {policy}", file=sys.stderr)
         return 1
-    print(f"healthy: {host}:{port} unit {args.unit}: link {state}")
+    print(f"healthy: {host}:{port} unit {args.unit}: link {state}; {policy}")
     return 0
 
 

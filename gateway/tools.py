@@ -15,17 +15,29 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from gateway.drivers.slc_ascii import DEFAULT_TIMEOUT, SLC_ASCII_SETTINGS, SlcAsciiDriver
-from gateway.errors import GatewayError, InvalidRequest
+from gateway.errors import ControllerRefused, GatewayError, InvalidRequest, LinkTimeout
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import ControllerType, Mode
 from gateway.protocols.slc_ascii.memory_map import parse_item
-from gateway.transport import SerialSettings
+from gateway.transport import ByteStream, SerialSettings, open_stream
 
-__all__ = ["PROGRAM_FORMAT", "load_program_file", "print_result", "run_tool", "save_program_file"]
+__all__ = [
+    "PROGRAM_FORMAT",
+    "ReceivedBytes",
+    "load_program_file",
+    "print_result",
+    "resolve_protocol",
+    "resolve_retries",
+    "run_tool",
+    "save_program_file",
+    "wrong_protocol_hint",
+]
 
 PROGRAM_FORMAT = "slc-gateway-program/1"
 _MODES = {"run": Mode.RUN, "program": Mode.PROGRAM, "test": Mode.CONTINUOUS_TEST, "save": Mode.SAVE_TO_EEPROM}
@@ -40,11 +52,138 @@ def print_result(result: dict[str, Any], as_json: bool) -> None:
             print(f"{key} = {str(value).lower() if isinstance(value, bool) else value}")
 
 
-async def run_tool(command: str, args: argparse.Namespace) -> int:
-    if args.protocol == "df1":
-        from gateway.tools_df1 import run_df1_tool
+#: Retries per transaction when --retries is not given.  A probe asks "does anything answer?":
+#: with one retry it gives up within a few seconds on either protocol (DF1: 2 tries of 2 ACK waits).
+DEFAULT_RETRIES = 3
+PROBE_RETRIES = 1
 
-        return await run_df1_tool(command, args)
+
+def resolve_retries(command: str, retries: int | None) -> int:
+    if retries is not None:
+        return retries
+    return PROBE_RETRIES if command == "probe" else DEFAULT_RETRIES
+
+
+def resolve_protocol(url: str, protocol: str | None) -> str:
+    """``--protocol``, or the one a ``sim://`` URL's controller speaks; slc-ascii by default."""
+    if not url.lower().startswith("sim://"):
+        return protocol or "slc-ascii"
+    from gateway.sim import parse_sim_url
+
+    try:
+        model, _ = parse_sim_url(url)
+    except ValueError as exc:
+        raise InvalidRequest(str(exc)) from exc
+    spoken = "slc-ascii" if model in ("slc100", "slc150") else "df1"  # every other simulator is DF1
+    if protocol is not None and protocol != spoken:
+        raise InvalidRequest(
+            f"{url} simulates an {model}, which speaks {spoken}, not {protocol}: "
+            f"leave out --protocol (a sim:// URL names its controller) or give --protocol {spoken}"
+        )
+    return spoken
+
+
+class ReceivedBytes:
+    """An opener for a driver that keeps the first bytes the controller sent (for hints)."""
+
+    LIMIT = 4096
+
+    def __init__(self) -> None:
+        self.data = bytearray()
+
+    async def opener(self, url: str, settings: SerialSettings, **kwargs: Any) -> ByteStream:
+        return _Recording(await open_stream(url, settings, **kwargs), self)
+
+    def keep(self, data: bytes) -> None:
+        if len(self.data) < self.LIMIT:
+            self.data += data[: self.LIMIT - len(self.data)]
+
+
+class _Recording(ByteStream):
+    def __init__(self, inner: ByteStream, received: ReceivedBytes) -> None:
+        self._inner = inner
+        self._received = received
+
+    async def read(self) -> bytes:
+        data = await self._inner.read()
+        self._received.keep(data)
+        return data
+
+    def write(self, data: bytes) -> None:
+        self._inner.write(data)
+
+    async def close(self) -> None:
+        await self._inner.close()
+
+    def start_push(self, receive: Callable[[bytes], None], lost: Callable[[str], None]) -> bool:
+        def kept(data: bytes) -> None:
+            self._received.keep(data)
+            receive(data)
+
+        return self._inner.start_push(kept, lost)
+
+    def char_time(self, settings: SerialSettings) -> float:
+        return self._inner.char_time(settings)
+
+
+#: DF1 link-layer symbols: DLE followed by STX, ETX, ENQ, ACK or NAK (1770-6.5.16, full duplex).
+_DLE_FRAMED = re.compile(rb"\x10[\x02\x03\x05\x06\x15]")
+#: SLC 100/150 ASCII replies: ":" data / acknowledge or ";" status lines ending in CR.
+_ASCII_REPLY = re.compile(rb"[:;][0-9A-Fa-f?]{1,80}\r")
+_LOW_7_BITS = bytes(b & 0x7F for b in range(256))
+
+
+def wrong_protocol_hint(protocol: str, received: bytes) -> str:
+    """What to try after no valid answer came on a link run with ``protocol``; "" if nothing to say."""
+    if protocol == "slc-ascii":
+        if _DLE_FRAMED.search(received):
+            return ("the bytes that came back look like DF1 (DLE-framed): an SLC 500 or PLC-5? "
+                    "try --protocol df1 (see --trace FILE for the bytes)")
+        if not received:
+            return ("nothing came back: check the cable, baud rate and parity (SLC 100/150: 9600 7E1), "
+                    "or try --protocol df1 for an SLC 500 or PLC-5")
+        return ""
+    # A 7E1 talker read at 8N1 arrives with its parity bit as bit 7.
+    if _ASCII_REPLY.search(received.translate(_LOW_7_BITS)):
+        return ("the bytes that came back look like the SLC 100/150 ASCII protocol (':'/';' lines): "
+                "try --protocol slc-ascii (see --trace FILE for the bytes)")
+    if not received:
+        return ("nothing came back: check the cable, baud rate, --checksum and --station, "
+                "or try --protocol slc-ascii for an SLC 100 or 150")
+    return ""
+
+
+def _sim_is_fresh(url: str) -> str:
+    model = url.split("://", 1)[1].split("?", 1)[0].strip("/")
+    return (
+        "a sim:// URL is a fresh simulated controller, in run mode, for every command, so 'mode program' "
+        f"does not carry over; for work in several steps run 'slc-gateway simulate {model} --listen "
+        "127.0.0.1:7001' and use socket://127.0.0.1:7001"
+    )
+
+
+async def run_tool(command: str, args: argparse.Namespace) -> int:
+    protocol = resolve_protocol(args.url, args.protocol)
+    received = ReceivedBytes()
+    try:
+        if protocol == "df1":
+            from gateway.tools_df1 import run_df1_tool
+
+            return await run_df1_tool(command, args, opener=received.opener)
+        return await _run_slc_ascii_tool(command, args, received)
+    except LinkTimeout as exc:
+        hint = wrong_protocol_hint(protocol, bytes(received.data))
+        if hint:
+            raise LinkTimeout(f"{exc}; {hint}") from exc
+        raise
+    except ControllerRefused as exc:
+        if command in ("upload", "download") and args.url.lower().startswith("sim://"):
+            raise ControllerRefused(f"{exc}; {_sim_is_fresh(args.url)}", command=exc.command, reason=exc.reason,
+                                    code=exc.code) from exc
+        raise
+
+
+async def _run_slc_ascii_tool(command: str, args: argparse.Namespace, received: ReceivedBytes) -> int:
     defaults = SLC_ASCII_SETTINGS
     settings = SerialSettings(
         args.baudrate or defaults.baudrate,
@@ -61,9 +200,10 @@ async def run_tool(command: str, args: argparse.Namespace) -> int:
         args.url,
         settings=settings,
         timeout=args.timeout or DEFAULT_TIMEOUT,
-        retries=args.retries,
+        retries=resolve_retries(command, args.retries),
         trace=args.trace,
         reconnect_min=60.0,
+        opener=received.opener,
     )
     async with driver:
         if command == "probe":

@@ -11,6 +11,7 @@ import argparse
 import struct
 from typing import Any
 
+from gateway.drivers.base import OpenStream
 from gateway.drivers.df1 import DF1_SETTINGS, Df1Driver
 from gateway.errors import InvalidRequest
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
@@ -22,8 +23,8 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalWrite,
     SetProcessorMode,
 )
-from gateway.tools import print_result
-from gateway.transport import SerialSettings
+from gateway.tools import print_result, resolve_retries
+from gateway.transport import SerialSettings, open_stream
 from gateway.unit_df1 import PROCESSORS
 
 __all__ = ["decode_value", "encode_value", "run_df1_tool"]
@@ -65,7 +66,7 @@ def encode_value(address: SlcAddress, text: str) -> tuple[bytes, int | None]:
     return (value & 0xFFFF).to_bytes(2, "little"), None
 
 
-async def run_df1_tool(command: str, args: argparse.Namespace) -> int:
+async def run_df1_tool(command: str, args: argparse.Namespace, opener: OpenStream = open_stream) -> int:
     if args.processor not in PROCESSORS:
         raise InvalidRequest(f"--processor {args.processor}: choose from {', '.join(PROCESSORS)}")
     settings = DF1_SETTINGS
@@ -91,9 +92,10 @@ async def run_df1_tool(command: str, args: argparse.Namespace) -> int:
         source=args.source,
         family=PROCESSORS[args.processor],
         timeout=args.timeout or 1.0,
-        retries=args.retries,
+        retries=resolve_retries(command, args.retries),
         trace=args.trace,
         reconnect_min=60.0,
+        opener=opener,
     )
     async with driver:
         if command == "probe":

@@ -13,6 +13,7 @@ URLs:
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -23,7 +24,17 @@ from urllib.parse import urlsplit
 
 from gateway.errors import LinkDown
 
-__all__ = ["ByteStream", "ProtocolStream", "SerialSettings", "TracingStream", "describe_url", "open_stream"]
+__all__ = [
+    "ByteStream",
+    "ProtocolStream",
+    "SerialSettings",
+    "SoftwareParityStream",
+    "TracingStream",
+    "describe_url",
+    "open_stream",
+]
+
+log = logging.getLogger(__name__)
 
 try:
     import termios
@@ -199,6 +210,47 @@ class TracingStream(ByteStream):
         return self._inner.char_time(settings)
 
 
+def _parity_table(odd: bool) -> bytes:
+    """``bytes.translate`` table: the low 7 bits of each byte, with the parity bit as bit 7."""
+    return bytes((b & 0x7F) | ((bin(b & 0x7F).count("1") + odd) & 1) << 7 for b in range(256))
+
+
+_EVEN, _ODD = _parity_table(False), _parity_table(True)
+_LOW_7_BITS = bytes(b & 0x7F for b in range(256))
+
+
+class SoftwareParityStream(ByteStream):
+    """7 data bits with parity over a port opened at 8N1: the parity bit is computed here and sent
+    as bit 7, so the wire carries the same bits as 7E1 (7O1); bit 7 of what arrives is dropped.
+
+    For ports that refuse 7 data bits with parity (pseudo-terminals, some USB adapters).  A
+    received character's parity is not checked (the protocols check their own CRC / BCC).
+    """
+
+    def __init__(self, inner: ByteStream, parity: str) -> None:
+        self._inner = inner
+        self._table = _ODD if parity == "O" else _EVEN
+
+    async def read(self) -> bytes:
+        return (await self._inner.read()).translate(_LOW_7_BITS)
+
+    def write(self, data: bytes) -> None:
+        self._inner.write(data.translate(self._table))
+
+    async def close(self) -> None:
+        await self._inner.close()
+
+    def start_push(self, receive: Callable[[bytes], None], lost: Callable[[str], None]) -> bool:
+        return self._inner.start_push(lambda data: receive(data.translate(_LOW_7_BITS)), lost)
+
+    def char_time(self, settings: SerialSettings) -> float:
+        return self._inner.char_time(settings)
+
+
+#: Ports already reported as refusing 7 data bits with parity (reported once per process).
+_SOFTWARE_PARITY_LOGGED: set[str] = set()
+
+
 def describe_url(url: str) -> str:
     """A URL with any query options removed, for log lines."""
     return url.split("?", 1)[0]
@@ -246,6 +298,32 @@ async def _open(url: str, settings: SerialSettings, connect_timeout: float) -> B
 
 
 async def _open_serial(url: str, settings: SerialSettings, connect_timeout: float) -> ByteStream:
+    if settings.bytesize != 7 or settings.parity not in ("E", "O"):
+        return await _open_serial_as(url, settings, connect_timeout)
+    try:
+        return await _open_serial_as(url, settings, connect_timeout)
+    except _LineSettingsRefused as refused:
+        # 7E1 refused (a pseudo-terminal, some USB adapters): 8N1 with the parity bit as bit 7
+        # puts the same bits on the wire.
+        eight = SerialSettings(settings.baudrate, 8, "N", settings.stopbits)
+        try:
+            stream = await _open_serial_as(url, eight, connect_timeout)
+        except _LineSettingsRefused:
+            raise LinkDown(str(refused)) from refused
+        if url not in _SOFTWARE_PARITY_LOGGED:
+            _SOFTWARE_PARITY_LOGGED.add(url)
+            log.info(
+                "%s refuses %s%s%s: using 8N1 with the parity bit computed in software (the same bits on the wire)",
+                url, settings.bytesize, settings.parity, settings.stopbits,
+            )
+        return SoftwareParityStream(stream, settings.parity)
+
+
+class _LineSettingsRefused(LinkDown):
+    """The port exists but refused the line settings (termios EINVAL)."""
+
+
+async def _open_serial_as(url: str, settings: SerialSettings, connect_timeout: float) -> ByteStream:
     import serial
     import serial_asyncio_fast
 
@@ -269,8 +347,9 @@ async def _open_serial(url: str, settings: SerialSettings, connect_timeout: floa
         raise LinkDown(f"{url}: port did not open within {connect_timeout:g} s") from exc
     except open_errors as exc:
         # termios.error (not an OSError): the port refused the line settings, e.g. 7E1 on a pty
-        raise LinkDown(f"{url}: cannot open with {settings.baudrate} {settings.bytesize}{settings.parity}"
-                       f"{settings.stopbits}: {exc}") from exc
+        error = _LineSettingsRefused if isinstance(exc, _TERMIOS_ERRORS) else LinkDown
+        raise error(f"{url}: cannot open with {settings.baudrate} {settings.bytesize}{settings.parity}"
+                    f"{settings.stopbits}: {exc}") from exc
     port = transport.get_extra_info("serial")
     if isinstance(port, serial.SerialBase):
         try:

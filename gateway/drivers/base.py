@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from gateway.errors import GatewayError, LinkDown, LinkError, LinkTimeout
+from gateway.errors import GatewayError, LinkDown, LinkError, LinkTimeout, format_seconds
 from gateway.transport import ByteStream, SerialSettings, describe_url, open_stream
 
 __all__ = ["LinkCounters", "LinkDriver", "OpenStream", "Priority"]
@@ -371,4 +371,4 @@ def _observe(task: asyncio.Future[Any]) -> None:
 
 
 def timeout_error(name: str, what: str, seconds: float, tries: int) -> LinkTimeout:
-    return LinkTimeout(f"link {name}: no valid answer to {what} within {seconds:g} s after {tries} tries")
+    return LinkTimeout(f"link {name}: no valid answer to {what} within {format_seconds(seconds)} s after {tries} tries")

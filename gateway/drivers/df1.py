@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Final
 
 from gateway.drivers.base import LinkDriver, OpenStream, Priority
-from gateway.errors import ControllerRefused, GatewayError, LinkTimeout, ProtocolError
+from gateway.errors import ControllerRefused, GatewayError, LinkTimeout, ProtocolError, format_seconds
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete, SendFailed, SendFailure
 from gateway.protocols.df1.pccc import (
@@ -223,7 +223,7 @@ class Df1Driver(LinkDriver):
                 if is_write:
                     raise WriteOutcomeUnknown(
                         f"link {self.name}: {name}: the controller took the frame but its reply did not come "
-                        f"within {self.timeout:g} s; the write may or may not have been applied"
+                        f"within {format_seconds(self.timeout)} s; the write may or may not have been applied"
                     ) from None
                 continue
             if isinstance(result, SendFailure):

@@ -13,7 +13,7 @@ import pytest
 
 from gateway.app import Gateway
 from gateway.config import parse_config
-from gateway.healthcheck import check, main
+from gateway.healthcheck import POLICY_LINK, POLICY_SERVING, check, main
 from gateway.sim import reset_simulators
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -72,24 +72,29 @@ async def run_main(*argv: str) -> int:
 
 async def test_healthy_when_the_status_block_answers(gateway: Gateway, capsys: pytest.CaptureFixture[str]) -> None:
     assert await run_main(f"{HOST}:{gateway.port}") == 0
-    assert "healthy" in capsys.readouterr().out
+    assert capsys.readouterr().out == f"healthy: {HOST}:{gateway.port} unit 1: link up; {POLICY_SERVING}\n"
     assert await run_main(f"{HOST}:{gateway.port}", "1", "--require-link") == 0
+    assert capsys.readouterr().out == f"healthy: {HOST}:{gateway.port} unit 1: link up; {POLICY_LINK}\n"
 
 
 async def test_a_silent_controller_is_healthy_unless_the_link_is_required(
     gateway: Gateway, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    """Each policy says which it applied: the default one passes with the link down, --require-link fails."""
     assert await run_main(f"{HOST}:{gateway.port}", "2") == 0
-    assert "link down" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "link down" in out and "policy serving" in out and "--require-link" in out
     assert await run_main(f"{HOST}:{gateway.port}", "2", "--require-link") == 1
-    assert "link down" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "link down" in err and POLICY_LINK in err
 
 
 async def test_unhealthy_on_exception_reply_or_no_server(gateway: Gateway, capsys: pytest.CaptureFixture[str]) -> None:
     assert await run_main(f"{HOST}:{gateway.port}", "9") == 1  # unknown unit: exception 0x0A
     assert "exception 0x0A" in capsys.readouterr().err
     assert await run_main(f"{HOST}:{closed_port()}", "1", "--timeout", "1") == 1
-    assert "unhealthy" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith("unhealthy:") and POLICY_SERVING in err
 
 
 async def test_unhealthy_when_the_server_never_answers(capsys: pytest.CaptureFixture[str]) -> None:
