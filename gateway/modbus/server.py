@@ -905,7 +905,7 @@ class _Connection(asyncio.Protocol):
                 break
             tid, protocol, length, unit = _MBAP.unpack_from(buffer, position)
             if protocol != 0 or not _MIN_LENGTH <= length <= _MAX_LENGTH:
-                self._drop(f"bad MBAP header (protocol id {protocol}, length {length})")
+                self._drop(f"bad MBAP header (protocol id {protocol}, length {length})", cause="bad MBAP headers")
                 return
             end = position + 6 + length
             if end > size:
