@@ -435,7 +435,10 @@ def test_repeat_log_counts_per_cause_and_interval(caplog: pytest.LogCaptureFixtu
     now[0] = 10.5
     log.flush()
     messages = [r.getMessage() for r in caplog.records]
-    assert messages[:2] == ["first a (repeats are summarised every 10 s)", "first b (repeats are summarised every 10 s)"]
+    assert messages[:2] == [
+        "first a (repeats are summarised every 10 s)",
+        "first b (repeats are summarised every 10 s)",
+    ]
     assert messages[2].startswith("a: 21 more in the last 10 s, from 10.0.0.1 (2), ")
     assert "and 12 other addresses (12)" in messages[2]
     assert len(messages) == 3  # b had no repeats: no summary
@@ -444,5 +447,6 @@ def test_repeat_log_counts_per_cause_and_interval(caplog: pytest.LogCaptureFixtu
 
 def test_redact_url() -> None:
     assert redact_url("socket://user:secret@10.0.0.5:4001") == "socket://***@10.0.0.5:4001"
-    assert redact_url("link x: rfc2217://admin:pw@host:2217?timeout=1 down") == "link x: rfc2217://***@host:2217?timeout=1 down"
+    text = "link x: rfc2217://admin:pw@host:2217?timeout=1 down"
+    assert redact_url(text) == "link x: rfc2217://***@host:2217?timeout=1 down"
     assert redact_url("socket://10.0.0.5:4001") == "socket://10.0.0.5:4001"
