@@ -36,13 +36,18 @@ Metrics (every name starts with ``slc_gateway_``)::
 configuration beyond the link names and unit ids).
 
 The HTTP side is deliberately tiny: one request per connection (``Connection: close``), ``GET``
-and ``HEAD`` only, a bounded request head, timeouts on reading and writing, a cap on concurrent
-connections.  It is meant for a Prometheus scraper and a container health check, not for browsers.
+and ``HEAD`` only, HTTP/1.0 and HTTP/1.1 only (others get 505), a bounded request head, timeouts
+on reading and writing, an ``allow`` list of client networks (others are closed at accept, before
+a byte is read) and a cap on concurrent connections (``max_connections``; more are closed at
+once). Refusals are logged: the first of each cause at once, then a count per interval with the
+addresses (:class:`gateway.logutil.RepeatLog`). It is meant for a Prometheus scraper and a
+container health check, not for browsers.
 """
 
 from __future__ import annotations
 
 import asyncio
+import ipaddress
 import json
 import logging
 import math
@@ -54,6 +59,8 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_l
 from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric
 
 from gateway.config import parse_listen
+from gateway.logutil import RepeatLog
+from gateway.modbus.admission import IPNetwork, peer_host
 
 if TYPE_CHECKING:
     from gateway.modbus.server import ModbusTcpServer
@@ -68,7 +75,7 @@ PREFIX: Final = "slc_gateway_"
 _MAX_HEAD: Final = 8192
 """Largest request head (request line + headers) accepted; larger gets 431."""
 _MAX_CONNECTIONS: Final = 32
-"""Concurrent HTTP connections; more are closed at once."""
+"""Concurrent HTTP connections by default; more are closed at once."""
 _JSON: Final = "application/json"
 _TEXT: Final = "text/plain; charset=utf-8"
 _REASONS: Final = {
@@ -250,10 +257,23 @@ class MetricsServer:
     ``request_timeout``: seconds a client has to send its request head, and again to take the reply.
     """
 
-    def __init__(self, gateway: GatewayView, listen: str, *, request_timeout: float = 5.0) -> None:
+    def __init__(
+        self,
+        gateway: GatewayView,
+        listen: str,
+        *,
+        request_timeout: float = 5.0,
+        allow: Sequence[IPNetwork] | None = None,
+        max_connections: int = _MAX_CONNECTIONS,
+        log_interval: float = 60.0,
+    ) -> None:
         self.gateway = gateway
         self.host, self._requested_port = parse_listen(listen)
         self.request_timeout = request_timeout
+        self.allow = None if allow is None else tuple(allow)
+        self.max_connections = max_connections
+        self.refused = 0
+        self.repeat_log = RepeatLog(log, log_interval)
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(_GatewayCollector(gateway))
         self._server: asyncio.Server | None = None
@@ -295,9 +315,26 @@ class MetricsServer:
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
-        if task is None or len(self._handlers) >= _MAX_CONNECTIONS:
+        peer = writer.get_extra_info("peername")
+        host = peer_host(peer)
+        reason = None
+        if self.allow is not None and (host is None or not any(_ip(host) in n for n in self.allow)):
+            reason = "peer not in the allowed networks"
+        elif task is None or len(self._handlers) >= self.max_connections:
+            reason = f"already {self.max_connections} connections (max_connections)"
+        if reason is not None:
+            self.refused += 1
+            self.repeat_log.log(
+                logging.WARNING,
+                f"metrics: connection refused, {reason}",
+                host,
+                "metrics: refused connection from %s: %s",
+                _format_address(peer),
+                reason,
+            )
             writer.transport.abort()
             return
+        assert task is not None
         self._handlers.add(task)
         try:
             await self._exchange(reader, writer)
@@ -369,11 +406,15 @@ def _parse_head(head: bytes) -> tuple[str, str]:
     match = _REQUEST_LINE.fullmatch(request_line)
     if match is None:
         raise _HttpError(400, "malformed request line")
-    method, target, major, _ = match.groups()
-    if major != b"1":
+    method, target, major, minor = match.groups()
+    if major != b"1" or minor not in (b"0", b"1"):
         raise _HttpError(505)
     path = target.split(b"?", 1)[0].decode("ascii", "replace")
     return method.decode("ascii"), path
+
+
+def _ip(host: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address:
+    return ipaddress.ip_address(host)
 
 
 def _format_address(address: object) -> str:

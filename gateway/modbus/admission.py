@@ -2,7 +2,8 @@
 
 Admission (:class:`Admission`), checked when a TCP connection is accepted, before any TLS byte:
 
-1. the ``allow`` list (networks);
+1. the ``allow`` list (networks); with ``loopback_reads`` a loopback peer outside it is let in
+   with read rights only (the container health check reads through it whatever ``allow`` says);
 2. ``max_connections_per_address``: connections from one IP address, TLS handshakes included, so
    that one host cannot take every slot;
 3. on a TLS listener, ``max_handshakes``: handshakes in progress have their own budget, separate
@@ -283,6 +284,7 @@ class Admission:
         max_per_address: int | None = None,
         max_handshakes: int | None = None,
         allow: Sequence[IPNetwork] | None = None,
+        loopback_reads: bool = False,
         repeat_log: RepeatLog | None = None,
     ) -> None:
         self.name = name
@@ -290,6 +292,7 @@ class Admission:
         self.max_per_address = max_per_address
         self.max_handshakes = max_handshakes
         self.allow = None if allow is None else tuple(allow)
+        self.loopback_reads = loopback_reads
         self.log = repeat_log or RepeatLog(logger)
         self.refused = 0
         self.evicted = 0
@@ -311,7 +314,7 @@ class Admission:
         ``handshake_started``: loop time, for a TLS connection whose handshake starts now.
         """
         host = peer_host(peer)
-        if self.allow is not None and not _allowed(host, self.allow):
+        if self.allow is not None and not _allowed(host, self.allow) and not self.read_only(peer):
             return self._refuse("peer not in the allowed networks", peer, host)
         if (
             self.max_per_address is not None
@@ -331,6 +334,13 @@ class Admission:
         if host is not None:
             self._per_address[host] = self._per_address.get(host, 0) + 1
         return True
+
+    def read_only(self, peer: object) -> bool:
+        """Whether ``peer`` is let in only for reads: loopback outside ``allow`` with ``loopback_reads``."""
+        if not self.loopback_reads or self.allow is None:
+            return False
+        host = peer_host(peer)
+        return host is not None and ipaddress.ip_address(host).is_loopback and not _allowed(host, self.allow)
 
     def handshake_done(self, slot: Slot, peer: object) -> bool:
         """Move a TLS connection from the handshake budget to the connection slots (False: refused)."""

@@ -76,6 +76,7 @@ Write replies are echoes of the request bytes, as the specification defines them
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import ipaddress
 import logging
 import os
@@ -271,6 +272,7 @@ class ModbusTcpServer:
         max_handshakes: int = 16,
         roles: RolePolicy | None = None,
         log_interval: float = 60.0,
+        loopback_reads: bool = False,
     ) -> None:
         if max_connections < 1:
             raise ValueError(f"max_connections must be at least 1, not {max_connections}")
@@ -303,6 +305,7 @@ class ModbusTcpServer:
             max_per_address=max_connections_per_address,
             max_handshakes=max_handshakes if ssl_context is not None else None,
             allow=self.allow,
+            loopback_reads=loopback_reads,
             repeat_log=self.repeat_log,
         )
         self._requested_port = port
@@ -642,12 +645,15 @@ class _Connection(asyncio.Protocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._transport = cast(asyncio.Transport, transport)
         self._peer = transport.get_extra_info("peername")
+        server = self._server
         self.client = ClientIdentity(_format_address(self._peer))
-        if not self._server._admit(self, self._peer, handshake=self._server.ssl_context is not None):
+        if not server._admit(self, self._peer, handshake=server.ssl_context is not None):
             self._released = True
             self._transport.abort()
             self._transport = None
             return
+        if server.admission.read_only(self._peer):
+            self.client = ClientIdentity(self.client.address, can_write=False)
         self._open = True
         self._last_received = self._connected_at = self._loop.time()
         if self._server.idle_timeout is not None:
@@ -866,7 +872,8 @@ class _Connection(asyncio.Protocol):
             self._release()
             return
         if server.roles is not None:
-            self.client = server.roles.identify(self.client.address, transport.get_extra_info("ssl_object"))
+            identity = server.roles.identify(self.client.address, transport.get_extra_info("ssl_object"))
+            self.client = dataclasses.replace(identity, can_write=identity.can_write and self.client.can_write)
         logger.debug("%s: %s connected", server.name, self.client)
         self._ready = True
         self._process()
