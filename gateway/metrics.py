@@ -28,8 +28,10 @@ Metrics (every name starts with ``slc_gateway_``)::
       modbus_backend_errors_total             counter  backend failures (each also counted as exception 4)
       modbus_connections                      gauge    connections open now
       modbus_connections_accepted_total       counter
-      modbus_connections_refused_total        counter  outside ``allow`` or over ``max_connections``
+      modbus_connections_refused_total        counter  outside ``allow``, over a connection cap
       modbus_connections_dropped_total        counter  closed by the server: bad framing, idle, TLS failure
+      modbus_connections_evicted_total        counter  stalled connections closed to make room (also dropped)
+      modbus_tls_handshakes                   gauge    TLS handshakes in progress now
 
 ``/healthz`` answers 200 when every link is up and its fast-class data is younger than its
 ``stale_after``, 503 otherwise, with a JSON body naming each link's state (no paths, no
@@ -192,6 +194,12 @@ class _GatewayCollector:
         dropped = _counter(
             "modbus_connections_dropped", "Connections closed by the server (framing, idle, TLS).", server_label
         )
+        evicted = _counter(
+            "modbus_connections_evicted",
+            "Stalled connections closed to make room (max_connections, max_handshakes).",
+            server_label,
+        )
+        handshakes = _gauge("modbus_tls_handshakes", "TLS handshakes in progress now.", server_label)
         for server in servers:
             name = server.name
             counters = server.counters
@@ -204,7 +212,9 @@ class _GatewayCollector:
             accepted.add_metric((name,), counters.connections_accepted)
             refused.add_metric((name,), counters.connections_refused)
             dropped.add_metric((name,), counters.connections_dropped)
-        return [requests, exceptions, backend_errors, connections, accepted, refused, dropped]
+            evicted.add_metric((name,), server.admission.evicted)
+            handshakes.add_metric((name,), server.admission.handshaking)
+        return [requests, exceptions, backend_errors, connections, accepted, refused, dropped, evicted, handshakes]
 
 
 def _data_age(unit: Unit, now: float) -> float:

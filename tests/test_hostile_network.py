@@ -352,6 +352,18 @@ async def test_operator_certificate_writes_and_the_write_path_knows_who(pki: Pat
     assert str(client).startswith("O=plant,CN=operator (127.0.0.1:")
 
 
+async def test_tls_client_is_named_by_its_certificate_without_roles(pki: Path) -> None:
+    backend = AuditBackend()
+    async with serving(backend, ssl_context=tls_context(pki)) as modbus:
+        reader, writer = await connect(modbus, _client_context(pki, "viewer"))
+        try:
+            assert await _ask(reader, writer, 1, WRITES[0x06]) == WRITES[0x06]  # no roles: may write
+        finally:
+            await close_writer(writer)
+    client = backend.writers[0]
+    assert client is not None and client.subject == "O=plant,CN=viewer" and client.role == "viewer"
+
+
 async def test_plain_tcp_client_identity_is_its_address() -> None:
     backend = AuditBackend()
     async with serving(backend) as modbus:

@@ -165,6 +165,8 @@ async def test_metrics_report_the_link_and_the_modbus_server(gateway: Gateway) -
     assert value(found, "slc_gateway_modbus_connections", **server) == 1  # the client above, still open
     assert value(found, "slc_gateway_modbus_connections_accepted_total", **server) == 1
     assert value(found, "slc_gateway_modbus_connections_refused_total", **server) == 0
+    assert value(found, "slc_gateway_modbus_connections_evicted_total", **server) == 0
+    assert value(found, "slc_gateway_modbus_tls_handshakes", **server) == 0
     assert value(found, "slc_gateway_modbus_connections_dropped_total", **server) == 0
 
     # Read at scrape time: the counters move between two scrapes, the client is gone.

@@ -192,6 +192,7 @@ _GATEWAY_PATH_UNAVAILABLE: Final = ModbusExceptionReply.GATEWAY_PATH_UNAVAILABLE
 # Function codes that change data (Modbus Application Protocol V1.1b3, 6.5, 6.6, 6.11, 6.12, 6.16,
 # 6.17): a client without write rights gets 0x01 for each, before anything else is checked.
 _WRITE_FUNCTION_CODES: Final = frozenset({0x05, 0x06, 0x0F, 0x10, 0x16, 0x17})
+_EVERYONE_WRITES: Final = RolePolicy({}, "read-write")  # TLS without [modbus.tls.roles]
 
 _MBAP: Final = struct.Struct(">HHHB")  # tid, protocol id, length, unit
 _ADDRESS_COUNT: Final = struct.Struct(">HH")  # from PDU offset 1: address, count or value
@@ -871,9 +872,11 @@ class _Connection(asyncio.Protocol):
             self._transport = None
             self._release()
             return
-        if server.roles is not None:
-            identity = server.roles.identify(self.client.address, transport.get_extra_info("ssl_object"))
-            self.client = dataclasses.replace(identity, can_write=identity.can_write and self.client.can_write)
+        # The certificate's subject and role name the client in audit lines even without roles.
+        identity = (server.roles or _EVERYONE_WRITES).identify(
+            self.client.address, transport.get_extra_info("ssl_object")
+        )
+        self.client = dataclasses.replace(identity, can_write=identity.can_write and self.client.can_write)
         logger.debug("%s: %s connected", server.name, self.client)
         self._ready = True
         self._process()
