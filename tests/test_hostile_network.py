@@ -462,3 +462,20 @@ def test_redact_url() -> None:
     text = "link x: rfc2217://admin:pw@host:2217?timeout=1 down"
     assert redact_url(text) == "link x: rfc2217://***@host:2217?timeout=1 down"
     assert redact_url("socket://10.0.0.5:4001") == "socket://10.0.0.5:4001"
+
+
+async def test_partial_frame_behind_the_in_flight_limit_is_not_timed() -> None:
+    """The frame clock stops while the server does not read (requests in flight at the limit)."""
+    backend = DictBackend()
+    backend.write_gate = asyncio.Event()
+    async with serving(backend, idle_timeout=30.0, frame_timeout=0.3, max_in_flight_per_connection=2) as modbus:
+        reader, writer = await connect(modbus)
+        write = frame(1, WRITES[0x06])
+        writer.write(write + frame(2, WRITES[0x06]) + read_request(3, 3, 0, 1)[:4])  # 2 writes wait
+        await asyncio.sleep(1.0)  # beyond frame_timeout while the server is not reading
+        assert modbus.counters.connections_dropped == 0
+        writer.write(read_request(3, 3, 0, 1)[4:])
+        backend.write_gate.set()
+        tids = sorted([(await read_reply(reader))[0] for _ in range(3)])
+        assert tids == [1, 2, 3]
+        await close_writer(writer)

@@ -813,6 +813,11 @@ class _Connection(asyncio.Protocol):
         if timeout is None or not self._open:
             return
         pending = len(self._buffer) - self._offset
+        if self._read_paused:
+            # Not reading (requests in flight at the limit, or replies not taken): the rest of
+            # the frame cannot arrive, so its clock restarts when reading resumes.
+            self._partial_position = -1
+            return
         incomplete = 0 < pending and (
             pending < 7 or 6 + _MBAP.unpack_from(self._buffer, self._offset)[2] > pending
         )
@@ -878,6 +883,7 @@ class _Connection(asyncio.Protocol):
         )
         self.client = dataclasses.replace(identity, can_write=identity.can_write and self.client.can_write)
         logger.debug("%s: %s connected", server.name, self.client)
+        self._connected_at = self._loop.time()  # stalled_since counts from the end of the handshake
         self._ready = True
         self._process()
 
