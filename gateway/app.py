@@ -118,7 +118,7 @@ class Gateway:
         set_trace_limits(config.logging.trace_max_bytes, config.logging.trace_backups)
         common: dict[str, Any] = dict(
             max_connections=modbus.max_connections,
-            max_connections_per_address=modbus.max_connections_per_address,
+            max_connections_per_address=modbus.per_address_cap,
             idle_timeout=modbus.idle_timeout or None,
             frame_timeout=modbus.frame_timeout,
             allow=list(modbus.allow) or None,

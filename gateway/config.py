@@ -408,7 +408,7 @@ class ModbusConfig(_Model):
 
     listen: str = "0.0.0.0:5020"
     max_connections: int = Field(64, ge=1, le=10000)
-    max_connections_per_address: int = Field(16, ge=1, le=10000)
+    max_connections_per_address: int = Field(0, ge=0, le=10000)
     idle_timeout: float = Field(300.0, ge=0)
     frame_timeout: float = Field(5.0, gt=0, le=3600)
     allow: tuple[IPv4Network | IPv6Network, ...] = ()
@@ -427,6 +427,11 @@ class ModbusConfig(_Model):
         if not self.listen and self.tls is None:
             raise _Problems((("listen",), 'listen = "" turns the plain listener off: configure [modbus.tls] too'))
         return self
+
+    @property
+    def per_address_cap(self) -> int:
+        """``max_connections_per_address``, 0 meaning half of ``max_connections`` (at least 1)."""
+        return self.max_connections_per_address or max(1, self.max_connections // 2)
 
     @property
     def plain_enabled(self) -> bool:

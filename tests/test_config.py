@@ -1277,6 +1277,9 @@ def test_roles_and_new_modbus_keys(tmp_path: Path) -> None:
     assert (tls.handshake_timeout, tls.max_handshakes, tls.default_rights) == (2.5, 8, "read-write")
     modbus = config.modbus
     assert (modbus.max_connections_per_address, modbus.frame_timeout, modbus.loopback_reads) == (4, 2.0, False)
+    assert modbus.per_address_cap == 4
+    assert parse_config(ASCII_LINK).modbus.per_address_cap == 32  # 0: half of max_connections (64)
+    assert parse_config("[modbus]\nmax_connections = 1\n" + ASCII_LINK).modbus.per_address_cap == 1
     described = config.describe()
     assert 'roles = { "operator" = "read-write", "viewer" = "read" }' in described
     assert parse_config(described) == config
