@@ -33,11 +33,22 @@ received wait in the buffer); it also stops reading while the transport's write
 buffer is above its high-water mark, so a client that never reads its replies
 cannot make the server buffer without bound.
 
-Connections: the allow list and ``max_connections`` are checked when the TCP
-connection is accepted, before any TLS handshake (TLS is started per connection with
-``loop.start_tls``); a refused connection is aborted and the first refusal of a burst
-is logged (the burst ends with the next accepted connection). The idle timer only
-runs while no request is in flight.
+Connections (the rules are in :mod:`gateway.modbus.admission`): the allow list, the
+per-address cap and, on a TLS listener, the handshake budget are checked when the TCP
+connection is accepted, before any TLS byte (TLS is started per connection with
+``loop.start_tls``, under its own ``handshake_timeout``); ``max_connections`` counts
+established connections and, when full, makes room by closing the longest-stalled one.
+A refused connection is aborted. Refusals, drops and evictions are logged through a
+:class:`~gateway.logutil.RepeatLog`: the first of each cause at once, then one count per
+interval with the addresses. The idle timer only runs while no request is in flight; the
+frame timer (``frame_timeout``) runs while an incomplete frame waits at the head of the
+buffer and the server is reading. Nothing is written to a transport that is closing (a
+client that pipelines and resets would otherwise make asyncio log one warning per reply).
+
+Rights: a client without write rights (``connection.client.can_write``; roles from TLS
+client certificates, or loopback let in past ``allow`` for reads) gets 0x01 for every
+write function code before the request is looked at further; ``admission.current_client``
+names the client while its requests are handled, for the write path's audit log.
 
 A backend exception other than ``ModbusExceptionReply`` is answered 0x04 and logged
 with its traceback: at ERROR the first time its type is seen, at DEBUG afterwards
