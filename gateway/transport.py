@@ -328,7 +328,7 @@ async def _open_serial(url: str, settings: SerialSettings, connect_timeout: floa
 
     open_errors: tuple[type[Exception], ...] = (OSError, ValueError, serial.SerialException, *_TERMIOS_ERRORS)
 
-    stream = ProtocolStream(url)
+    stream = ProtocolStream(redact_url(url))
     try:
         transport, _ = await asyncio.wait_for(
             serial_asyncio_fast.create_serial_connection(
