@@ -479,3 +479,29 @@ async def test_partial_frame_behind_the_in_flight_limit_is_not_timed() -> None:
         tids = sorted([(await read_reply(reader))[0] for _ in range(3)])
         assert tids == [1, 2, 3]
         await close_writer(writer)
+
+
+def test_handshake_eviction_picks_the_host_with_the_most_handshakes() -> None:
+    from gateway.modbus.admission import Admission
+
+    class FakeSlot:
+        def __init__(self) -> None:
+            self.evicted = ""
+
+        def stalled_since(self) -> float | None:
+            return 0.0
+
+        def evict(self, reason: str) -> None:
+            self.evicted = reason
+
+    admission = Admission("t", max_connections=10, max_handshakes=3)
+    good = FakeSlot()
+    assert admission.admit(good, ("10.0.0.1", 1), handshake_started=0.0)  # the oldest
+    attackers = [FakeSlot() for _ in range(20)]
+    for index, slot in enumerate(attackers):
+        assert admission.admit(slot, ("10.0.0.66", index), handshake_started=1.0 + index)
+    assert good.evicted == ""  # the attacker's churn only ever aborts its own handshakes
+    assert sum(1 for slot in attackers if slot.evicted) == 18
+    assert admission.handshaking == 3 and admission.evicted == 18
+    assert admission.handshake_done(good, ("10.0.0.1", 1))
+    assert admission.established == 1 and admission.handshaking == 2

@@ -7,9 +7,9 @@ Admission (:class:`Admission`), checked when a TCP connection is accepted, befor
 2. ``max_connections_per_address``: connections from one IP address, TLS handshakes included, so
    that one host cannot take every slot;
 3. on a TLS listener, ``max_handshakes``: handshakes in progress have their own budget, separate
-   from ``max_connections``; when it is full the *oldest* handshake is aborted to make room (a
-   handshake takes milliseconds; only a peer that opens connections and stays silent is ever the
-   oldest);
+   from ``max_connections``; when it is full the oldest handshake *of the address with the most
+   handshakes in progress* is aborted to make room (a handshake takes milliseconds; a host that
+   opens connections and stays silent holds the most, however fast it reconnects);
 4. ``max_connections``: established connections (plain ones at accept, TLS ones when their
    handshake completes). When it is full, the connection that *holds its slot without using it*
    the longest is closed to make room: one stalled in the middle of a frame, or one that has not
@@ -324,8 +324,7 @@ class Admission:
             return self._refuse(f"over max_connections_per_address ({self.max_per_address})", peer, host)
         if handshake_started is not None and self.max_handshakes is not None:
             if len(self._handshaking) >= self.max_handshakes:
-                oldest = min(self._handshaking, key=lambda s: self._handshaking[s][0])
-                self._evict(oldest, f"TLS handshakes at max_handshakes ({self.max_handshakes}), oldest aborted")
+                self._evict(self._handshake_victim(), f"TLS handshakes at max_handshakes ({self.max_handshakes})")
             self._handshaking[slot] = (handshake_started, host)
         else:
             if not self._make_room():
@@ -369,6 +368,21 @@ class Admission:
             self._per_address[host] = left
         else:
             self._per_address.pop(host, None)
+
+    def _handshake_victim(self) -> Slot:
+        """The oldest handshake of the address with the most handshakes in progress.
+
+        A host that opens connections and stays silent always has the most, so a client from
+        another address is not aborted by its churn, however fast it reconnects.
+        """
+        by_host: dict[str | None, int] = {}
+        for _, host in self._handshaking.values():
+            by_host[host] = by_host.get(host, 0) + 1
+        most = max(by_host.values())
+        return min(
+            (slot for slot, (_, host) in self._handshaking.items() if by_host[host] == most),
+            key=lambda slot: self._handshaking[slot][0],
+        )
 
     def _make_room(self) -> bool:
         """True if an established slot is free, evicting the longest-stalled connection if needed."""
