@@ -505,3 +505,33 @@ def test_handshake_eviction_picks_the_host_with_the_most_handshakes() -> None:
     assert admission.handshaking == 3 and admission.evicted == 18
     assert admission.handshake_done(good, ("10.0.0.1", 1))
     assert admission.established == 1 and admission.handshaking == 2
+
+
+def test_slot_eviction_picks_a_stalled_connection_of_the_busiest_host() -> None:
+    from gateway.modbus.admission import Admission
+
+    class FakeSlot:
+        def __init__(self, since: float | None) -> None:
+            self.since = since
+            self.evicted = ""
+
+        def stalled_since(self) -> float | None:
+            return self.since
+
+        def evict(self, reason: str) -> None:
+            self.evicted = reason
+
+    admission = Admission("t", max_connections=4)
+    polling = FakeSlot(None)  # completed requests, no partial frame: never evicted
+    newcomer = FakeSlot(0.0)  # connected first, no request yet
+    assert admission.admit(polling, ("10.0.0.2", 1))
+    assert admission.admit(newcomer, ("10.0.0.1", 1))
+    attackers = [FakeSlot(1.0 + index) for index in range(10)]
+    for index, slot in enumerate(attackers):
+        assert admission.admit(slot, ("10.0.0.66", index))
+    assert polling.evicted == "" and newcomer.evicted == ""
+    assert sum(1 for slot in attackers if slot.evicted) == 8
+    everyone_busy = Admission("t", max_connections=1)
+    assert everyone_busy.admit(FakeSlot(None), ("10.0.0.2", 1))
+    assert not everyone_busy.admit(FakeSlot(0.0), ("10.0.0.3", 1))  # nobody stalled: refused
+    assert everyone_busy.refused == 1

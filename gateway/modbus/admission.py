@@ -13,7 +13,8 @@ Admission (:class:`Admission`), checked when a TCP connection is accepted, befor
 4. ``max_connections``: established connections (plain ones at accept, TLS ones when their
    handshake completes). When it is full, the connection that *holds its slot without using it*
    the longest is closed to make room: one stalled in the middle of a frame, or one that has not
-   completed a single request since it connected. A connection that has completed a request and
+   completed a single request since it connected (among those, one of the host holding the most
+   stalled connections). A connection that has completed a request and
    holds no partial frame is never evicted; if every slot is held by such connections, the new
    one is refused.
 
@@ -387,10 +388,20 @@ class Admission:
     def _make_room(self) -> bool:
         """True if an established slot is free, evicting the longest-stalled connection if needed."""
         while len(self._established) >= self.max_connections:
-            stalled = [(since, slot) for slot in self._established if (since := slot.stalled_since()) is not None]
+            stalled = [
+                (since, slot, self._established[slot])
+                for slot in self._established
+                if (since := slot.stalled_since()) is not None
+            ]
             if not stalled:
                 return False
-            _, victim = min(stalled, key=lambda item: item[0])
+            # The longest-stalled connection of the host holding the most stalled ones: a host that
+            # churns connections evicts its own, not a client from elsewhere that just connected.
+            by_host: dict[str | None, int] = {}
+            for _, _, host in stalled:
+                by_host[host] = by_host.get(host, 0) + 1
+            most = max(by_host.values())
+            _, victim, _ = min((item for item in stalled if by_host[item[2]] == most), key=lambda item: item[0])
             self._evict(victim, "stalled mid-frame or no request yet, closed to make room")
         return True
 
