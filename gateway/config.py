@@ -15,7 +15,8 @@ The models are pydantic v2 models (frozen, unknown keys forbidden, strict types:
 per-protocol serial defaults are filled in, paths are made absolute (relative to the directory of
 the config file), ``listen`` strings are normalised and ``writable`` ranges and ``allow`` networks
 are parsed. ``GatewayConfig.describe()`` prints every key with its effective value, as TOML that
-loads back to the same configuration.
+loads back to the same configuration (except credentials in port URLs, shown as ``***``), and
+``GatewayConfig.warnings()`` lists valid settings that are probably not what was meant.
 """
 
 from __future__ import annotations

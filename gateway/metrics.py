@@ -320,6 +320,7 @@ class MetricsServer:
         if self._handlers:
             await asyncio.wait(set(self._handlers))
         await server.wait_closed()
+        self.repeat_log.flush_all()
 
     # -- one connection ----------------------------------------------------------------
 

@@ -204,6 +204,7 @@ _GATEWAY_PATH_UNAVAILABLE: Final = ModbusExceptionReply.GATEWAY_PATH_UNAVAILABLE
 # 6.17): a client without write rights gets 0x01 for each, before anything else is checked.
 _WRITE_FUNCTION_CODES: Final = frozenset({0x05, 0x06, 0x0F, 0x10, 0x16, 0x17})
 _EVERYONE_WRITES: Final = RolePolicy({}, "read-write")  # TLS without [modbus.tls.roles]
+_STALL_GRACE: Final = 1.0  # seconds before a connection without a request can be evicted
 
 _MBAP: Final = struct.Struct(">HHHB")  # tid, protocol id, length, unit
 _ADDRESS_COUNT: Final = struct.Struct(">HH")  # from PDU offset 1: address, count or value
@@ -752,16 +753,22 @@ class _Connection(asyncio.Protocol):
     def stalled_since(self) -> float | None:
         """Since when this connection holds its slot without using it (None: it uses it).
 
-        Stalled: an incomplete frame is waiting for its end, or no complete request has come
-        since the connection was made (or its TLS handshake is still running).
+        Stalled: an incomplete frame has waited for its end, or no complete request has come
+        since the connection was made (or its TLS handshake ended), for at least a grace period
+        (1 s, or half of ``frame_timeout`` if shorter): a client that has just connected, or
+        whose frame is split across TCP segments, is not stalled.
         """
         if not self._open:
             return None
         if self._partial_position >= 0:
-            return self._partial_since
-        if not self._served:
-            return self._connected_at
-        return None
+            since = self._partial_since
+        elif not self._served:
+            since = self._connected_at
+        else:
+            return None
+        timeout = self._server.frame_timeout
+        grace = min(_STALL_GRACE, timeout / 2) if timeout is not None else _STALL_GRACE
+        return since if self._loop.time() - since >= grace else None
 
     def evict(self, reason: str) -> None:
         """Close to make room for a new connection."""
