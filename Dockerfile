@@ -59,7 +59,9 @@ EXPOSE 5020 802 9108
 
 # One Modbus read of unit 1's status block (input register 1000) on the Modbus port; answered
 # whether or not the controller is up, so it tells that the gateway serves.  Adjust the address
-# and unit if your config listens elsewhere (python -m gateway.healthcheck --help).
+# and unit if your config listens elsewhere (python -m gateway.healthcheck --help).  It connects
+# from 127.0.0.1, which [modbus] loopback_reads = true (the default) lets in for reads whatever
+# "allow" says.  With TLS only (listen = ""), keep a plain listener on "127.0.0.1:5020" for it.
 HEALTHCHECK --interval=30s --timeout=5s --start-period=10s --retries=3 \
     CMD ["python", "-m", "gateway.healthcheck", "127.0.0.1:5020", "1"]
 

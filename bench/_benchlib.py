@@ -203,7 +203,11 @@ def df1_link(name: str, port: str, unit: int, entries: Sequence[dict[str, object
 
 
 def gateway_config(links: Sequence[str], listen: str = f"{HOST}:0", max_connections: int = 256) -> str:
-    head = f'[modbus]\nlisten = "{listen}"\nmax_connections = {max_connections}\n\n[logging]\nlevel = "WARNING"\n\n'
+    # Every load-generator connection comes from 127.0.0.1: the per-address cap is the total one.
+    head = (
+        f'[modbus]\nlisten = "{listen}"\nmax_connections = {max_connections}\n'
+        f"max_connections_per_address = {max_connections}\n\n[logging]\nlevel = \"WARNING\"\n\n"
+    )
     return head + "\n".join(links)
 
 

@@ -13,9 +13,10 @@ from gateway.config import GatewayConfig, LinkConfig, parse_listen
 from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import ModbusExceptionReply
 from gateway.metrics import MetricsServer
+from gateway.modbus.admission import RolePolicy
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Block, Table
 from gateway.modbus.server import ModbusTcpServer, make_tls_context
-from gateway.transport import SerialSettings
+from gateway.transport import SerialSettings, describe_url, set_trace_limits
 from gateway.unit import SlcAsciiUnit, Unit, WritableRange
 
 __all__ = ["Gateway", "GatewayBackend", "build_unit", "describe_map", "run_gateway"]
@@ -30,7 +31,20 @@ def _settings(link: LinkConfig) -> SerialSettings:
 
 
 def _writable(link: LinkConfig) -> list[WritableRange]:
-    return [(_TABLES[r.table], r.first, r.last) for r in link.writable]
+    """The link's ``writable`` ranges, overlapping and adjacent ones merged.
+
+    A write is checked against one range at a time, so FC16 across ``holding:40-41`` and
+    ``holding:42-43`` is allowed only once they are one range ``holding:40-43``.
+    """
+    merged: list[list[int]] = []
+    tables: list[str] = []
+    for r in sorted(link.writable, key=lambda r: (r.table, r.first)):
+        if merged and tables[-1] == r.table and r.first <= merged[-1][1] + 1:
+            merged[-1][1] = max(merged[-1][1], r.last)
+        else:
+            merged.append([r.first, r.last])
+            tables.append(r.table)
+    return [(_TABLES[table], first, last) for table, (first, last) in zip(tables, merged, strict=True)]
 
 
 def build_unit(link: LinkConfig) -> Unit:
@@ -101,23 +115,47 @@ class Gateway:
         self.units = [build_unit(link) for link in config.link]
         self.backend = GatewayBackend(self.units)
         modbus = config.modbus
-        host, port = parse_listen(modbus.listen)
+        set_trace_limits(config.logging.trace_max_bytes, config.logging.trace_backups)
         common: dict[str, Any] = dict(
             max_connections=modbus.max_connections,
+            max_connections_per_address=modbus.per_address_cap,
             idle_timeout=modbus.idle_timeout or None,
+            frame_timeout=modbus.frame_timeout,
             allow=list(modbus.allow) or None,
+            loopback_reads=modbus.loopback_reads,
+            log_interval=config.logging.repeat_interval,
         )
-        self.servers = [ModbusTcpServer(self.backend, host, port, name="modbus", **common)]
+        self.servers: list[ModbusTcpServer] = []
+        if modbus.plain_enabled:  # listen = "": TLS only
+            host, port = parse_listen(modbus.listen)
+            self.servers.append(ModbusTcpServer(self.backend, host, port, name="modbus", **common))
         if modbus.tls is not None:
             tls = modbus.tls
             context = make_tls_context(str(tls.cert), str(tls.key), str(tls.client_ca) if tls.client_ca else None)
             tls_host, tls_port = parse_listen(tls.listen)
+            roles = RolePolicy(dict(tls.roles), tls.default_rights) if tls.roles else None
             self.servers.append(
-                ModbusTcpServer(self.backend, tls_host, tls_port, ssl_context=context, name="modbus-tls", **common)
+                ModbusTcpServer(
+                    self.backend,
+                    tls_host,
+                    tls_port,
+                    ssl_context=context,
+                    name="modbus-tls",
+                    handshake_timeout=tls.handshake_timeout,
+                    max_handshakes=tls.max_handshakes,
+                    roles=roles,
+                    **common,
+                )
             )
         self.metrics: MetricsServer | None = None
         if config.metrics is not None:
-            self.metrics = MetricsServer(self, config.metrics.listen)
+            self.metrics = MetricsServer(
+                self,
+                config.metrics.listen,
+                allow=list(config.metrics.allow) or None,
+                max_connections=config.metrics.max_connections,
+                log_interval=config.logging.repeat_interval,
+            )
         self._task: asyncio.Task[None] | None = None
         self._links: list[asyncio.Task[None]] = []
         self._started = asyncio.Event()
@@ -191,9 +229,11 @@ async def run_gateway(config: GatewayConfig) -> int:
         with contextlib.suppress(NotImplementedError):
             loop.add_signal_handler(sig, stop.set)
     gateway = Gateway(config)
+    for warning in config.warnings():
+        log.warning("configuration: %s", warning)
     for unit in gateway.units:
         log.info("link %s: %s on %s as Modbus unit %d", unit.name, type(unit.driver).__name__,
-                 unit.driver.url.split("?", 1)[0], unit.unit_id)
+                 describe_url(unit.driver.url), unit.unit_id)
     await gateway.run(stop)
     log.info("stopped")
     return 0
@@ -206,7 +246,7 @@ def describe_map(config: GatewayConfig) -> str:
         unit = build_unit(link)
         plan = unit.plan
         fast = sum(1 for b in plan.blocks if b.scan.value == "fast")
-        lines.append(f"unit {link.unit} ({link.name}, {link.protocol}, {link.port}):")
+        lines.append(f"unit {link.unit} ({link.name}, {link.protocol}, {describe_url(link.port)}):")
         for table in Table:
             runs = plan.ranges(table)
             if runs:

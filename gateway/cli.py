@@ -180,6 +180,8 @@ def _check_config(path: Path) -> int:
     from gateway.config import load_config
 
     config = load_config(path)
+    for warning in config.warnings():
+        print(f"slc-gateway check-config: warning: {warning}", file=sys.stderr)
     print(config.describe())
     print()
     print(describe_map(config))

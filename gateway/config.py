@@ -15,7 +15,8 @@ The models are pydantic v2 models (frozen, unknown keys forbidden, strict types:
 per-protocol serial defaults are filled in, paths are made absolute (relative to the directory of
 the config file), ``listen`` strings are normalised and ``writable`` ranges and ``allow`` networks
 are parsed. ``GatewayConfig.describe()`` prints every key with its effective value, as TOML that
-loads back to the same configuration.
+loads back to the same configuration (except credentials in port URLs, shown as ``***``), and
+``GatewayConfig.warnings()`` lists valid settings that are probably not what was meant.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ from pydantic import (
 from pydantic_core import ErrorDetails
 
 from gateway.errors import ConfigError
+from gateway.logutil import redact_url
 
 __all__ = [
     "DF1_ONLY_KEYS",
@@ -71,6 +73,7 @@ __all__ = [
 ]
 
 LinkProtocol = Literal["slc-ascii", "df1"]
+Rights = Literal["read", "read-write"]
 Table = Literal["holding", "input", "coil", "discrete"]
 WritableTable = Literal["holding", "coil"]
 ValueType = Literal["int16", "uint16", "float32", "bool"]
@@ -317,6 +320,31 @@ def _listen_validator(value: object) -> object:
     return value
 
 
+def _optional_listen_validator(value: object) -> object:
+    """``listen`` of the plain Modbus listener: ``""`` turns it off (TLS-only operation)."""
+    if isinstance(value, str) and not value.strip():
+        return ""
+    return _listen_validator(value)
+
+
+def _parse_networks(value: object) -> tuple[IPv4Network | IPv6Network, ...]:
+    networks: list[IPv4Network | IPv6Network] = []
+    problems: list[tuple[Loc, str]] = []
+    for index, item in enumerate(_array(value)):
+        if isinstance(item, (IPv4Network, IPv6Network)):
+            networks.append(item)
+        elif not isinstance(item, str):
+            problems.append(((index,), f'must be a string such as "10.0.0.0/8" (got {_show(item)})'))
+        else:
+            try:
+                networks.append(ipaddress.ip_network(item.strip()))
+            except ValueError as exc:
+                problems.append(((index,), f"not a CIDR network such as 10.0.0.0/8: {exc}"))
+    if problems:
+        raise _Problems(*problems)
+    return tuple(networks)
+
+
 class TlsConfig(_Model):
     """``[modbus.tls]``: Modbus/TCP Security (Modbus over TLS)."""
 
@@ -324,8 +352,21 @@ class TlsConfig(_Model):
     cert: Path
     key: Path
     client_ca: Path | None = None
+    handshake_timeout: float = Field(5.0, gt=0, le=60)
+    max_handshakes: int = Field(16, ge=1, le=10000)
+    roles: dict[str, Rights] = Field(default_factory=dict)
+    default_rights: Rights = "read"
 
     _check_listen = field_validator("listen", mode="before")(_listen_validator)
+
+    @field_validator("roles", mode="before")
+    @classmethod
+    def _check_roles(cls, value: object) -> object:
+        if isinstance(value, dict):
+            for name in value:
+                if not isinstance(name, str) or not name or len(name) > 128:
+                    raise ValueError(f"{_show(name)}: a role name is 1 to 128 characters")
+        return value
 
     @field_validator("cert", "key", "client_ca", mode="before")
     @classmethod
@@ -343,6 +384,10 @@ class TlsConfig(_Model):
                 f"cert {self.cert.name} / key {self.key.name}: not a usable PEM certificate and matching key "
                 f"({exc.__class__.__name__}: {getattr(exc, 'reason', None) or exc})"
             ) from None
+        if self.roles and self.client_ca is None:
+            raise ValueError(
+                "roles come from client certificates: set client_ca (or remove [modbus.tls.roles])"
+            )
         if self.client_ca is not None:
             try:
                 context.load_verify_locations(cafile=self.client_ca)
@@ -364,34 +409,39 @@ class ModbusConfig(_Model):
 
     listen: str = "0.0.0.0:5020"
     max_connections: int = Field(64, ge=1, le=10000)
+    max_connections_per_address: int = Field(0, ge=0, le=10000)
     idle_timeout: float = Field(300.0, ge=0)
+    frame_timeout: float = Field(5.0, gt=0, le=3600)
     allow: tuple[IPv4Network | IPv6Network, ...] = ()
+    loopback_reads: bool = True
     tls: TlsConfig | None = None
 
-    _check_listen = field_validator("listen", mode="before")(_listen_validator)
+    _check_listen = field_validator("listen", mode="before")(_optional_listen_validator)
 
     @field_validator("allow", mode="before")
     @classmethod
     def _parse_allow(cls, value: object) -> object:
-        networks: list[IPv4Network | IPv6Network] = []
-        problems: list[tuple[Loc, str]] = []
-        for index, item in enumerate(_array(value)):
-            if isinstance(item, (IPv4Network, IPv6Network)):
-                networks.append(item)
-            elif not isinstance(item, str):
-                problems.append(((index,), f'must be a string such as "10.0.0.0/8" (got {_show(item)})'))
-            else:
-                try:
-                    networks.append(ipaddress.ip_network(item.strip()))
-                except ValueError as exc:
-                    problems.append(((index,), f"not a CIDR network such as 10.0.0.0/8: {exc}"))
-        if problems:
-            raise _Problems(*problems)
-        return tuple(networks)
+        return _parse_networks(value)
+
+    @model_validator(mode="after")
+    def _some_listener(self) -> ModbusConfig:
+        if not self.listen and self.tls is None:
+            raise _Problems((("listen",), 'listen = "" turns the plain listener off: configure [modbus.tls] too'))
+        return self
+
+    @property
+    def per_address_cap(self) -> int:
+        """``max_connections_per_address``, 0 meaning half of ``max_connections`` (at least 1)."""
+        return self.max_connections_per_address or max(1, self.max_connections // 2)
+
+    @property
+    def plain_enabled(self) -> bool:
+        """False with ``listen = ""`` (TLS-only operation)."""
+        return bool(self.listen)
 
     @property
     def address(self) -> tuple[str, int]:
-        """``listen`` as ``(host, port)``."""
+        """``listen`` as ``(host, port)`` (a ``ValueError`` when the plain listener is off)."""
         return parse_listen(self.listen)
 
     def is_allowed(self, client: str) -> bool:
@@ -411,8 +461,15 @@ class MetricsConfig(_Model):
     """``[metrics]``: HTTP ``/metrics`` (Prometheus) and ``/healthz``."""
 
     listen: str = "127.0.0.1:9108"
+    allow: tuple[IPv4Network | IPv6Network, ...] = ()
+    max_connections: int = Field(32, ge=1, le=1000)
 
     _check_listen = field_validator("listen", mode="before")(_listen_validator)
+
+    @field_validator("allow", mode="before")
+    @classmethod
+    def _parse_allow(cls, value: object) -> object:
+        return _parse_networks(value)
 
     @property
     def address(self) -> tuple[str, int]:
@@ -424,6 +481,9 @@ class LoggingConfig(_Model):
     """``[logging]``."""
 
     level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    repeat_interval: float = Field(60.0, gt=0, le=86400)
+    trace_max_bytes: int = Field(10_000_000, ge=4096)
+    trace_backups: int = Field(3, ge=0, le=100)
 
     @field_validator("level", mode="before")
     @classmethod
@@ -762,7 +822,9 @@ class GatewayConfig(_Model):
                     )
                 )
             units.setdefault(link.unit, index)
-        listeners: list[tuple[Loc, str]] = [(("modbus", "listen"), self.modbus.listen)]
+        listeners: list[tuple[Loc, str]] = []
+        if self.modbus.plain_enabled:
+            listeners.append((("modbus", "listen"), self.modbus.listen))
         if self.modbus.tls is not None:
             listeners.append((("modbus", "tls", "listen"), self.modbus.tls.listen))
         if self.metrics is not None:
@@ -787,8 +849,31 @@ class GatewayConfig(_Model):
         """The ``[[link]]`` tables, in file order."""
         return self.link
 
+    def warnings(self) -> list[str]:
+        """Valid but probably not what was meant (``check-config`` prints them, ``run`` logs them)."""
+        found: list[str] = []
+        tls = self.modbus.tls
+        if tls is not None and tls.client_ca is not None and self.modbus.plain_enabled:
+            host, _ = self.modbus.address
+            if not _is_loopback(host):
+                found.append(
+                    f"[modbus.tls] requires client certificates, but the plain listener "
+                    f"(listen = {_show(self.modbus.listen)}) serves anyone who can reach it without one: "
+                    'set listen = "" for TLS-only operation (or "127.0.0.1:5020" to keep it for local '
+                    "health checks only)"
+                )
+        if self.metrics is not None and not self.metrics.allow and not _is_loopback(self.metrics.address[0]):
+            found.append(
+                f"[metrics] listens on {self.metrics.listen} with no allow list: anyone who can reach it "
+                "reads /metrics and /healthz (set allow = [the scraper's network])"
+            )
+        return found
+
     def describe(self) -> str:
-        """Every key with its effective value, as TOML (``slc-gateway check-config`` prints it)."""
+        """Every key with its effective value, as TOML (``slc-gateway check-config`` prints it).
+
+        Credentials in port URLs (``socket://user:password@...``) are shown as ``***``.
+        """
         lines = ["# slc-gateway configuration, resolved: every key with its effective value", ""]
         lines += _table_lines("[modbus]", self.modbus, skip=("tls",))
         if self.modbus.tls is None:
@@ -809,6 +894,15 @@ class GatewayConfig(_Model):
                 lines += _table_lines("[[link]]", link, skip=DF1_ONLY_KEYS)
                 lines[-1:-1] = ["# map: the fixed SLC 100/150 default map"]
         return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def _same_socket(first: str, second: str) -> bool:
@@ -853,7 +947,9 @@ def _toml_value(value: object) -> str:
     if isinstance(value, (int, float)):
         return repr(value)
     if isinstance(value, str):
-        return _toml_string(value)
+        return _toml_string(redact_url(value))
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{_toml_string(str(k))} = {_toml_value(v)}" for k, v in value.items()) + " }"
     if isinstance(value, (Path, IPv4Network, IPv6Network, WritableRange)):
         return _toml_string(str(value))
     if isinstance(value, (list, tuple)):

@@ -28,21 +28,28 @@ Metrics (every name starts with ``slc_gateway_``)::
       modbus_backend_errors_total             counter  backend failures (each also counted as exception 4)
       modbus_connections                      gauge    connections open now
       modbus_connections_accepted_total       counter
-      modbus_connections_refused_total        counter  outside ``allow`` or over ``max_connections``
+      modbus_connections_refused_total        counter  outside ``allow``, over a connection cap
       modbus_connections_dropped_total        counter  closed by the server: bad framing, idle, TLS failure
+      modbus_connections_evicted_total        counter  stalled connections closed to make room (also dropped)
+      modbus_tls_handshakes                   gauge    TLS handshakes in progress now
 
 ``/healthz`` answers 200 when every link is up and its fast-class data is younger than its
 ``stale_after``, 503 otherwise, with a JSON body naming each link's state (no paths, no
 configuration beyond the link names and unit ids).
 
 The HTTP side is deliberately tiny: one request per connection (``Connection: close``), ``GET``
-and ``HEAD`` only, a bounded request head, timeouts on reading and writing, a cap on concurrent
-connections.  It is meant for a Prometheus scraper and a container health check, not for browsers.
+and ``HEAD`` only, HTTP/1.0 and HTTP/1.1 only (others get 505), a bounded request head, timeouts
+on reading and writing, an ``allow`` list of client networks (others are closed at accept, before
+a byte is read) and a cap on concurrent connections (``max_connections``; more are closed at
+once). Refusals are logged: the first of each cause at once, then a count per interval with the
+addresses (:class:`gateway.logutil.RepeatLog`). It is meant for a Prometheus scraper and a
+container health check, not for browsers.
 """
 
 from __future__ import annotations
 
 import asyncio
+import ipaddress
 import json
 import logging
 import math
@@ -54,6 +61,8 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_l
 from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric
 
 from gateway.config import parse_listen
+from gateway.logutil import RepeatLog
+from gateway.modbus.admission import IPNetwork, peer_host
 
 if TYPE_CHECKING:
     from gateway.modbus.server import ModbusTcpServer
@@ -68,7 +77,7 @@ PREFIX: Final = "slc_gateway_"
 _MAX_HEAD: Final = 8192
 """Largest request head (request line + headers) accepted; larger gets 431."""
 _MAX_CONNECTIONS: Final = 32
-"""Concurrent HTTP connections; more are closed at once."""
+"""Concurrent HTTP connections by default; more are closed at once."""
 _JSON: Final = "application/json"
 _TEXT: Final = "text/plain; charset=utf-8"
 _REASONS: Final = {
@@ -185,6 +194,12 @@ class _GatewayCollector:
         dropped = _counter(
             "modbus_connections_dropped", "Connections closed by the server (framing, idle, TLS).", server_label
         )
+        evicted = _counter(
+            "modbus_connections_evicted",
+            "Stalled connections closed to make room (max_connections, max_handshakes).",
+            server_label,
+        )
+        handshakes = _gauge("modbus_tls_handshakes", "TLS handshakes in progress now.", server_label)
         for server in servers:
             name = server.name
             counters = server.counters
@@ -197,7 +212,9 @@ class _GatewayCollector:
             accepted.add_metric((name,), counters.connections_accepted)
             refused.add_metric((name,), counters.connections_refused)
             dropped.add_metric((name,), counters.connections_dropped)
-        return [requests, exceptions, backend_errors, connections, accepted, refused, dropped]
+            evicted.add_metric((name,), server.admission.evicted)
+            handshakes.add_metric((name,), server.admission.handshaking)
+        return [requests, exceptions, backend_errors, connections, accepted, refused, dropped, evicted, handshakes]
 
 
 def _data_age(unit: Unit, now: float) -> float:
@@ -250,10 +267,23 @@ class MetricsServer:
     ``request_timeout``: seconds a client has to send its request head, and again to take the reply.
     """
 
-    def __init__(self, gateway: GatewayView, listen: str, *, request_timeout: float = 5.0) -> None:
+    def __init__(
+        self,
+        gateway: GatewayView,
+        listen: str,
+        *,
+        request_timeout: float = 5.0,
+        allow: Sequence[IPNetwork] | None = None,
+        max_connections: int = _MAX_CONNECTIONS,
+        log_interval: float = 60.0,
+    ) -> None:
         self.gateway = gateway
         self.host, self._requested_port = parse_listen(listen)
         self.request_timeout = request_timeout
+        self.allow = None if allow is None else tuple(allow)
+        self.max_connections = max_connections
+        self.refused = 0
+        self.repeat_log = RepeatLog(log, log_interval)
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(_GatewayCollector(gateway))
         self._server: asyncio.Server | None = None
@@ -290,14 +320,32 @@ class MetricsServer:
         if self._handlers:
             await asyncio.wait(set(self._handlers))
         await server.wait_closed()
+        self.repeat_log.flush_all()
 
     # -- one connection ----------------------------------------------------------------
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
-        if task is None or len(self._handlers) >= _MAX_CONNECTIONS:
+        peer = writer.get_extra_info("peername")
+        host = peer_host(peer)
+        reason = None
+        if self.allow is not None and (host is None or not any(_ip(host) in n for n in self.allow)):
+            reason = "peer not in the allowed networks"
+        elif task is None or len(self._handlers) >= self.max_connections:
+            reason = f"already {self.max_connections} connections (max_connections)"
+        if reason is not None:
+            self.refused += 1
+            self.repeat_log.log(
+                logging.WARNING,
+                f"metrics: connection refused, {reason}",
+                host,
+                "metrics: refused connection from %s: %s",
+                _format_address(peer),
+                reason,
+            )
             writer.transport.abort()
             return
+        assert task is not None
         self._handlers.add(task)
         try:
             await self._exchange(reader, writer)
@@ -369,11 +417,15 @@ def _parse_head(head: bytes) -> tuple[str, str]:
     match = _REQUEST_LINE.fullmatch(request_line)
     if match is None:
         raise _HttpError(400, "malformed request line")
-    method, target, major, _ = match.groups()
-    if major != b"1":
+    method, target, major, minor = match.groups()
+    if major != b"1" or minor not in (b"0", b"1"):
         raise _HttpError(505)
     path = target.split(b"?", 1)[0].decode("ascii", "replace")
     return method.decode("ascii"), path
+
+
+def _ip(host: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address:
+    return ipaddress.ip_address(host)
 
 
 def _format_address(address: object) -> str:

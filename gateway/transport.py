@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -23,6 +24,7 @@ from typing import IO
 from urllib.parse import urlsplit
 
 from gateway.errors import LinkDown
+from gateway.logutil import redact_url
 
 __all__ = [
     "ByteStream",
@@ -171,13 +173,75 @@ class ProtocolStream(ByteStream, asyncio.Protocol):
         return self._transport
 
 
+_trace_max_bytes = 10_000_000
+_trace_backups = 3
+
+
+def set_trace_limits(max_bytes: int, backups: int) -> None:
+    """Size cap of a trace file and rotated copies kept (``[logging] trace_max_bytes``, ``trace_backups``)."""
+    global _trace_max_bytes, _trace_backups
+    if max_bytes < 1 or backups < 0:
+        raise ValueError(f"trace limits must be positive (got {max_bytes}, {backups})")
+    _trace_max_bytes, _trace_backups = max_bytes, backups
+
+
+class TraceFile:
+    """An append-only trace file created 0600, rotated at ``max_bytes`` (``path.1`` .. ``path.N``).
+
+    A busy link writes about 0.6 MB/s of trace: without a cap a forgotten trace fills the disk.
+    With ``backups = 0`` the file is truncated when full. The file holds what went over the line
+    (values, and passwords if a controller is sent any), hence owner-only permissions; an existing
+    file's permissions are tightened to 0600 too.
+    """
+
+    def __init__(self, path: Path, max_bytes: int | None = None, backups: int | None = None) -> None:
+        self.path = path
+        self.max_bytes = _trace_max_bytes if max_bytes is None else max_bytes
+        self.backups = _trace_backups if backups is None else backups
+        self._file = self._open()
+        self._size = self._file.tell()
+
+    def _open(self) -> IO[str]:
+        descriptor = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+        try:
+            os.fchmod(descriptor, 0o600)
+        except OSError:
+            pass
+        trace = os.fdopen(descriptor, "a", encoding="ascii")
+        trace.seek(0, os.SEEK_END)
+        return trace
+
+    def write(self, line: str) -> None:
+        if self._size + len(line) > self.max_bytes and self._size:
+            self._rotate()
+        self._file.write(line)
+        self._file.flush()
+        self._size += len(line)
+
+    def _rotate(self) -> None:
+        self._file.close()
+        if self.backups:
+            for index in range(self.backups - 1, 0, -1):
+                older = self.path.with_name(f"{self.path.name}.{index}")
+                if older.exists():
+                    os.replace(older, self.path.with_name(f"{self.path.name}.{index + 1}"))
+            os.replace(self.path, self.path.with_name(f"{self.path.name}.1"))
+        else:
+            os.truncate(self.path, 0)
+        self._file = self._open()
+        self._size = 0
+
+    def close(self) -> None:
+        self._file.close()
+
+
 class TracingStream(ByteStream):
     """Records every byte in both directions with a timestamp, for troubleshooting.
 
     One line per chunk: ``<unix time> <link> <TX|RX> <hex bytes>  |<printable ASCII>|``.
     """
 
-    def __init__(self, inner: ByteStream, trace: IO[str], link: str) -> None:
+    def __init__(self, inner: ByteStream, trace: TraceFile | IO[str], link: str) -> None:
         self._inner = inner
         self._trace = trace
         self._link = link
@@ -185,7 +249,8 @@ class TracingStream(ByteStream):
     def _record(self, direction: str, data: bytes) -> None:
         printable = "".join(chr(b) if 32 <= b < 127 else "." for b in data)
         self._trace.write(f"{time.time():.6f} {self._link} {direction} {data.hex(' ')}  |{printable}|\n")
-        self._trace.flush()
+        if not isinstance(self._trace, TraceFile):
+            self._trace.flush()
 
     async def read(self) -> bytes:
         data = await self._inner.read()
@@ -198,6 +263,7 @@ class TracingStream(ByteStream):
 
     async def close(self) -> None:
         await self._inner.close()
+        self._trace.close()
 
     def start_push(self, receive: Callable[[bytes], None], lost: Callable[[str], None]) -> bool:
         def traced(data: bytes) -> None:
@@ -252,8 +318,8 @@ _SOFTWARE_PARITY_LOGGED: set[str] = set()
 
 
 def describe_url(url: str) -> str:
-    """A URL with any query options removed, for log lines."""
-    return url.split("?", 1)[0]
+    """A URL with any query options and credentials (``user:password@``) removed, for log lines."""
+    return redact_url(url.split("?", 1)[0])
 
 
 async def open_stream(
@@ -265,9 +331,20 @@ async def open_stream(
     link_name: str = "",
 ) -> ByteStream:
     """Open ``url``.  Raises ``LinkDown`` with a one-line reason when it cannot be opened."""
-    stream = await _open(url, settings, connect_timeout)
+    try:
+        stream = await _open(url, settings, connect_timeout)
+    except LinkDown as exc:
+        redacted = redact_url(str(exc))
+        if redacted == str(exc):
+            raise
+        raise LinkDown(redacted) from exc.__cause__
     if trace is not None:
-        return TracingStream(stream, trace.open("a", encoding="ascii"), link_name or describe_url(url))
+        try:
+            trace_file = TraceFile(trace)
+        except OSError as exc:
+            await stream.close()
+            raise LinkDown(f"{link_name or describe_url(url)}: cannot open trace file {trace}: {exc}") from exc
+        return TracingStream(stream, trace_file, link_name or describe_url(url))
     return stream
 
 
@@ -329,7 +406,7 @@ async def _open_serial_as(url: str, settings: SerialSettings, connect_timeout: f
 
     open_errors: tuple[type[Exception], ...] = (OSError, ValueError, serial.SerialException, *_TERMIOS_ERRORS)
 
-    stream = ProtocolStream(url)
+    stream = ProtocolStream(redact_url(url))
     try:
         transport, _ = await asyncio.wait_for(
             serial_asyncio_fast.create_serial_connection(

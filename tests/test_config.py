@@ -1234,3 +1234,109 @@ def test_tls_files_that_are_not_pem_are_refused_by_name(tmp_path: Path) -> None:
     (tmp_path / "key.pem").write_text("garbage\n")
     error = error_of('[modbus.tls]\ncert = "cert.pem"\nkey = "key.pem"\n' + ASCII_LINK, base_dir=tmp_path)
     assert "modbus.tls" in error and "cert.pem" in error and "not a usable PEM certificate" in error
+
+
+# ----------------------------------------------------------------------------------------------
+# Issue 14: the network edge
+
+
+def _tls_text(tmp_path: Path, *, client_ca: bool = True, extra: str = "") -> str:
+    write_tls(tmp_path / "server.pem", tmp_path / "server.key", tmp_path / "ca.pem")
+    text = '\n[modbus.tls]\nlisten = "0.0.0.0:802"\ncert = "server.pem"\nkey = "server.key"\n'
+    if client_ca:
+        text += 'client_ca = "ca.pem"\n'
+    return text + extra
+
+
+def test_listen_empty_turns_the_plain_listener_off(tmp_path: Path) -> None:
+    """Issue 14: listen = "" failed check-config, so TLS could not be the only way in."""
+    config = parse_config('[modbus]\nlisten = ""\n' + _tls_text(tmp_path) + ASCII_LINK, base_dir=tmp_path)
+    assert not config.modbus.plain_enabled
+    assert config.warnings() == []
+    assert parse_config(config.describe()) == config
+    with pytest.raises(ConfigError, match=r'listen = "" turns the plain listener off: configure \[modbus.tls\]'):
+        parse_config('[modbus]\nlisten = ""\n' + ASCII_LINK)
+
+
+def test_tls_with_client_ca_and_a_plain_listener_warns(tmp_path: Path) -> None:
+    config = parse_config('[modbus]\nlisten = "0.0.0.0:5020"\n' + _tls_text(tmp_path) + ASCII_LINK, base_dir=tmp_path)
+    (warning,) = config.warnings()
+    assert "plain listener" in warning and 'listen = ""' in warning
+    no_ca = parse_config(_tls_text(tmp_path, client_ca=False) + ASCII_LINK, base_dir=tmp_path)
+    assert no_ca.warnings() == []  # TLS without client certificates gates nothing: no false promise
+
+
+def test_roles_and_new_modbus_keys(tmp_path: Path) -> None:
+    extra = 'handshake_timeout = 2.5\nmax_handshakes = 8\ndefault_rights = "read-write"\n'
+    extra += '[modbus.tls.roles]\noperator = "read-write"\nviewer = "read"\n'
+    text = '[modbus]\nlisten = ""\nmax_connections_per_address = 4\nframe_timeout = 2.0\nloopback_reads = false\n'
+    config = parse_config(text + _tls_text(tmp_path, extra=extra) + ASCII_LINK, base_dir=tmp_path)
+    tls = config.modbus.tls
+    assert tls is not None
+    assert tls.roles == {"operator": "read-write", "viewer": "read"}
+    assert (tls.handshake_timeout, tls.max_handshakes, tls.default_rights) == (2.5, 8, "read-write")
+    modbus = config.modbus
+    assert (modbus.max_connections_per_address, modbus.frame_timeout, modbus.loopback_reads) == (4, 2.0, False)
+    assert modbus.per_address_cap == 4
+    assert parse_config(ASCII_LINK).modbus.per_address_cap == 32  # 0: half of max_connections (64)
+    assert parse_config("[modbus]\nmax_connections = 1\n" + ASCII_LINK).modbus.per_address_cap == 1
+    described = config.describe()
+    assert 'roles = { "operator" = "read-write", "viewer" = "read" }' in described
+    assert parse_config(described) == config
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        ('[modbus.tls.roles]\nadmin = "write"\n', "modbus.tls.roles.admin"),
+        ('default_rights = "all"\n', "modbus.tls.default_rights"),
+        ("handshake_timeout = 0\n", "modbus.tls.handshake_timeout"),
+        ("max_handshakes = 0\n", "modbus.tls.max_handshakes"),
+    ],
+)
+def test_bad_tls_keys(tmp_path: Path, extra: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        parse_config(_tls_text(tmp_path, extra=extra) + ASCII_LINK, base_dir=tmp_path)
+
+
+def test_roles_need_client_certificates(tmp_path: Path) -> None:
+    extra = '[modbus.tls.roles]\noperator = "read-write"\n'
+    with pytest.raises(ConfigError, match="roles come from client certificates: set client_ca"):
+        parse_config(_tls_text(tmp_path, client_ca=False, extra=extra) + ASCII_LINK, base_dir=tmp_path)
+
+
+def test_metrics_allow_and_cap() -> None:
+    text = '[metrics]\nlisten = "0.0.0.0:9108"\nallow = ["10.1.0.0/16"]\nmax_connections = 4\n'
+    config = parse_config(text + ASCII_LINK)
+    assert config.metrics is not None
+    assert config.metrics.allow == (ipaddress.ip_network("10.1.0.0/16"),)
+    assert config.metrics.max_connections == 4
+    assert config.warnings() == []
+    (warning,) = parse_config('[metrics]\nlisten = "0.0.0.0:9108"\n' + ASCII_LINK).warnings()
+    assert "[metrics] listens on 0.0.0.0:9108 with no allow list" in warning
+    assert parse_config('[metrics]\nlisten = "127.0.0.1:9108"\n' + ASCII_LINK).warnings() == []
+
+
+def test_shipped_gateway_toml_binds_metrics_to_loopback() -> None:
+    config = parse_config((HERE.parent / "config" / "gateway.toml").read_text(), base_dir=HERE.parent / "config")
+    assert config.metrics is not None
+    assert ipaddress.ip_address(config.metrics.address[0]).is_loopback
+    assert config.warnings() == []
+
+
+def test_describe_redacts_credentials_in_port_urls() -> None:
+    """Issue 14: credentials in port URLs appeared in full in check-config output."""
+    text = ASCII_LINK.replace("sim://slc150", "socket://plc:s3cret@10.0.0.5:4001")
+    config = parse_config(text)
+    assert config.link[0].port == "socket://plc:s3cret@10.0.0.5:4001"  # the link still uses them
+    described = config.describe()
+    assert "s3cret" not in described
+    assert 'port = "socket://***@10.0.0.5:4001"' in described
+
+
+def test_trace_limits_and_repeat_interval() -> None:
+    config = parse_config("[logging]\ntrace_max_bytes = 65536\ntrace_backups = 0\nrepeat_interval = 5.0\n" + ASCII_LINK)
+    assert (config.logging.trace_max_bytes, config.logging.trace_backups) == (65536, 0)
+    assert config.logging.repeat_interval == 5.0
+    with pytest.raises(ConfigError, match=r"logging\.trace_max_bytes"):
+        parse_config("[logging]\ntrace_max_bytes = 10\n" + ASCII_LINK)

@@ -224,7 +224,9 @@ def gateway_toml(*, max_connections: int = 1200, idle_timeout: float = 0.0, read
     # CPU it burns (with tracemalloc on) would be measured as the well-behaved client's latency.
     url = f"sim://slc150?ladder=0&paced=1&instance={uuid.uuid4().hex}"
     return (
-        f'[modbus]\nlisten = "127.0.0.1:0"\nmax_connections = {max_connections}\nidle_timeout = {idle_timeout}\n\n'
+        f'[modbus]\nlisten = "127.0.0.1:0"\nmax_connections = {max_connections}\nidle_timeout = {idle_timeout}\n'
+        # Every test client comes from 127.0.0.1: no per-address cap below the total one here.
+        f"max_connections_per_address = {max_connections}\n\n"
         f'[[link]]\nname = "press"\nprotocol = "slc-ascii"\nport = "{url}"\nunit = {UNIT}\nbaudrate = 38400\n'
         f"read_only = {'true' if read_only else 'false'}\n"
     )

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import ipaddress
 import json
+import logging
 import math
 import urllib.error
 import urllib.request
@@ -162,6 +165,8 @@ async def test_metrics_report_the_link_and_the_modbus_server(gateway: Gateway) -
     assert value(found, "slc_gateway_modbus_connections", **server) == 1  # the client above, still open
     assert value(found, "slc_gateway_modbus_connections_accepted_total", **server) == 1
     assert value(found, "slc_gateway_modbus_connections_refused_total", **server) == 0
+    assert value(found, "slc_gateway_modbus_connections_evicted_total", **server) == 0
+    assert value(found, "slc_gateway_modbus_tls_handshakes", **server) == 0
     assert value(found, "slc_gateway_modbus_connections_dropped_total", **server) == 0
 
     # Read at scrape time: the counters move between two scrapes, the client is gone.
@@ -238,6 +243,8 @@ async def test_healthz_503_names_the_link_that_never_answers() -> None:
         (b"POST /metrics HTTP/1.1\r\nContent-Length: 0\r\n\r\n", 405),
         (b"DELETE /healthz HTTP/1.1\r\n\r\n", 405),
         (b"GET /metrics HTTP/2.0\r\n\r\n", 505),
+        (b"GET /metrics HTTP/1.9\r\n\r\n", 505),  # issue 14: was accepted
+        (b"GET /metrics HTTP/1.2\r\n\r\n", 505),
         (b"GET /metrics\r\n\r\n", 400),
         (b"\x16\x03\x01\x02\x00\x01\x00\x01\xfc\x03\x03\r\n\r\n", 400),
         (b"GET /metrics HTTP/1.1\r\nX-Long: " + b"a" * 10000 + b"\r\n\r\n", 431),
@@ -248,6 +255,66 @@ async def test_other_requests_are_refused(gateway: Gateway, request_bytes: bytes
     assert response.status == status
     if status == 405:
         assert response.headers["allow"] == "GET, HEAD"
+
+
+async def test_http_1_0_is_answered(gateway: Gateway) -> None:
+    assert (await http(gateway.metrics.port, b"GET /healthz HTTP/1.0\r\n\r\n")).status in (200, 503)
+
+
+async def closed_without_reply(port: int) -> bool:
+    reader, writer = await asyncio.open_connection(HOST, port)
+    try:
+        with contextlib.suppress(ConnectionError):
+            writer.write(b"GET /healthz HTTP/1.1\r\n\r\n")
+            await writer.drain()
+        async with asyncio.timeout(2):
+            try:
+                return await reader.read() == b""
+            except ConnectionError:
+                return True
+    finally:
+        writer.close()
+
+
+async def test_allow_list_refuses_other_networks_and_logs_once_per_interval(
+    gateway: Gateway, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 14: the metrics listener had no allow list."""
+    caplog.set_level(logging.WARNING, logger="gateway.metrics")
+    server = MetricsServer(gateway, "127.0.0.1:0", allow=[ipaddress.ip_network("10.0.0.0/8")], log_interval=0.5)
+    await server.start()
+    try:
+        for _ in range(4):
+            assert await closed_without_reply(server.port)
+        assert server.refused == 4
+        await asyncio.sleep(0.7)
+    finally:
+        await server.close()
+    lines = [r.getMessage() for r in caplog.records if "metrics" in r.getMessage()]
+    assert len(lines) == 2, lines
+    assert "refused connection from 127.0.0.1" in lines[0] and "not in the allowed networks" in lines[0]
+    assert "3 more in the last 0.5 s, from 127.0.0.1 (3)" in lines[1]
+
+
+async def test_connection_cap_is_logged(gateway: Gateway, caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 14: connections over the cap were closed silently."""
+    caplog.set_level(logging.WARNING, logger="gateway.metrics")
+    server = MetricsServer(gateway, "127.0.0.1:0", max_connections=2)
+    await server.start()
+    held = []
+    try:
+        for _ in range(2):
+            _, writer = await asyncio.open_connection(HOST, server.port)
+            writer.write(b"GET /metr")  # incomplete: holds its handler
+            held.append(writer)
+        await until(lambda: len(server._handlers) == 2)
+        assert await closed_without_reply(server.port)
+        assert server.refused == 1
+        assert any("already 2 connections (max_connections)" in r.getMessage() for r in caplog.records)
+    finally:
+        for writer in held:
+            writer.close()
+        await server.close()
 
 
 async def test_head_gives_headers_only(gateway: Gateway) -> None:

@@ -33,11 +33,22 @@ received wait in the buffer); it also stops reading while the transport's write
 buffer is above its high-water mark, so a client that never reads its replies
 cannot make the server buffer without bound.
 
-Connections: the allow list and ``max_connections`` are checked when the TCP
-connection is accepted, before any TLS handshake (TLS is started per connection with
-``loop.start_tls``); a refused connection is aborted and the first refusal of a burst
-is logged (the burst ends with the next accepted connection). The idle timer only
-runs while no request is in flight.
+Connections (the rules are in :mod:`gateway.modbus.admission`): the allow list, the
+per-address cap and, on a TLS listener, the handshake budget are checked when the TCP
+connection is accepted, before any TLS byte (TLS is started per connection with
+``loop.start_tls``, under its own ``handshake_timeout``); ``max_connections`` counts
+established connections and, when full, makes room by closing the longest-stalled one.
+A refused connection is aborted. Refusals, drops and evictions are logged through a
+:class:`~gateway.logutil.RepeatLog`: the first of each cause at once, then one count per
+interval with the addresses. The idle timer only runs while no request is in flight; the
+frame timer (``frame_timeout``) runs while an incomplete frame waits at the head of the
+buffer and the server is reading. Nothing is written to a transport that is closing (a
+client that pipelines and resets would otherwise make asyncio log one warning per reply).
+
+Rights: a client without write rights (``connection.client.can_write``; roles from TLS
+client certificates, or loopback let in past ``allow`` for reads) gets 0x01 for every
+write function code before the request is looked at further; ``admission.current_client``
+names the client while its requests are handled, for the write path's audit log.
 
 A backend exception other than ``ModbusExceptionReply`` is answered 0x04 and logged
 with its traceback: at ERROR the first time its type is seen, at DEBUG afterwards
@@ -76,6 +87,7 @@ Write replies are echoes of the request bytes, as the specification defines them
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import ipaddress
 import logging
 import os
@@ -90,6 +102,8 @@ from pymodbus.pdu import DecodePDU
 from pymodbus.pdu.bit_message import ReadCoilsResponse, ReadDiscreteInputsResponse
 
 from gateway.errors import ModbusExceptionReply
+from gateway.logutil import RepeatLog
+from gateway.modbus.admission import Admission, ClientIdentity, RolePolicy, current_client, peer_host
 
 __all__ = [
     "FunctionCode",
@@ -186,7 +200,11 @@ _ILLEGAL_DATA_VALUE: Final = ModbusExceptionReply.ILLEGAL_DATA_VALUE
 _SERVER_DEVICE_FAILURE: Final = ModbusExceptionReply.SERVER_DEVICE_FAILURE
 _GATEWAY_PATH_UNAVAILABLE: Final = ModbusExceptionReply.GATEWAY_PATH_UNAVAILABLE
 
-_TLS_HANDSHAKE_TIMEOUT: Final = 10.0
+# Function codes that change data (Modbus Application Protocol V1.1b3, 6.5, 6.6, 6.11, 6.12, 6.16,
+# 6.17): a client without write rights gets 0x01 for each, before anything else is checked.
+_WRITE_FUNCTION_CODES: Final = frozenset({0x05, 0x06, 0x0F, 0x10, 0x16, 0x17})
+_EVERYONE_WRITES: Final = RolePolicy({}, "read-write")  # TLS without [modbus.tls.roles]
+_STALL_GRACE: Final = 1.0  # seconds before a connection without a request can be evicted
 
 _MBAP: Final = struct.Struct(">HHHB")  # tid, protocol id, length, unit
 _ADDRESS_COUNT: Final = struct.Struct(">HH")  # from PDU offset 1: address, count or value
@@ -261,6 +279,13 @@ class ModbusTcpServer:
         ssl_context: ssl.SSLContext | None = None,
         max_in_flight_per_connection: int = 16,
         name: str = "modbus",
+        max_connections_per_address: int | None = None,
+        frame_timeout: float | None = 5.0,
+        handshake_timeout: float = 5.0,
+        max_handshakes: int = 16,
+        roles: RolePolicy | None = None,
+        log_interval: float = 60.0,
+        loopback_reads: bool = False,
     ) -> None:
         if max_connections < 1:
             raise ValueError(f"max_connections must be at least 1, not {max_connections}")
@@ -270,6 +295,10 @@ class ModbusTcpServer:
             )
         if idle_timeout is not None and idle_timeout <= 0:
             raise ValueError(f"idle_timeout must be positive or None, not {idle_timeout}")
+        if frame_timeout is not None and frame_timeout <= 0:
+            raise ValueError(f"frame_timeout must be positive or None, not {frame_timeout}")
+        if handshake_timeout <= 0 or max_handshakes < 1:
+            raise ValueError("handshake_timeout must be positive and max_handshakes at least 1")
         self.backend = backend
         self.host = host
         self.name = name
@@ -278,7 +307,20 @@ class ModbusTcpServer:
         self.allow = None if allow is None else tuple(allow)
         self.ssl_context = ssl_context
         self.max_in_flight_per_connection = max_in_flight_per_connection
+        self.frame_timeout = frame_timeout
+        self.handshake_timeout = handshake_timeout
+        self.roles = roles
         self.counters = ModbusServerCounters()
+        self.repeat_log = RepeatLog(logger, log_interval)
+        self.admission = Admission(
+            name,
+            max_connections=max_connections,
+            max_per_address=max_connections_per_address,
+            max_handshakes=max_handshakes if ssl_context is not None else None,
+            allow=self.allow,
+            loopback_reads=loopback_reads,
+            repeat_log=self.repeat_log,
+        )
         self._requested_port = port
         self._server: asyncio.Server | None = None
         self._connections: set[_Connection] = set()
@@ -286,8 +328,6 @@ class ModbusTcpServer:
         self._closing = False
         self._stopped_event = asyncio.Event()
         self._all_connections_closed: asyncio.Future[None] | None = None
-        self._refusing: set[str] = set()
-        self._refusals_suppressed = 0
         self._logged_errors: set[type[BaseException]] = set()
 
     # -- lifecycle ---------------------------------------------------------------------
@@ -365,46 +405,26 @@ class ModbusTcpServer:
                 await self._server.wait_closed()
         finally:
             self._stopped_event.set()
+            self.repeat_log.flush_all()
         logger.info("%s: closed", self.name)
 
     # -- called by connections ---------------------------------------------------------
 
-    def _admit(self, connection: _Connection, peer: object) -> bool:
-        """Count a new connection in, or refuse it (the caller then aborts it)."""
+    def _admit(self, connection: _Connection, peer: object, *, handshake: bool) -> bool:
+        """Count a new connection in, or refuse it (the caller then aborts it); see admission.py."""
         if self._closing:
             return False
-        if self.allow is not None and not _peer_allowed(peer, self.allow):
-            self._refuse("peer not in the allowed networks", peer)
-            return False
-        if len(self._connections) >= self.max_connections:
-            self._refuse(f"already {self.max_connections} connections", peer)
+        started = asyncio.get_running_loop().time() if handshake else None
+        if not self.admission.admit(connection, peer, handshake_started=started):
+            self.counters.connections_refused += 1
             return False
         self._connections.add(connection)
         self.counters.connections_accepted += 1
-        if self._refusing:
-            self._refusing.clear()
-            if self._refusals_suppressed:
-                logger.info("%s: %d more connections were refused", self.name, self._refusals_suppressed)
-                self._refusals_suppressed = 0
         logger.debug("%s: connection from %s", self.name, _format_address(peer))
         return True
 
-    def _refuse(self, reason: str, peer: object) -> None:
-        self.counters.connections_refused += 1
-        if reason in self._refusing:
-            self._refusals_suppressed += 1
-            logger.debug("%s: refused connection from %s: %s", self.name, _format_address(peer), reason)
-            return
-        self._refusing.add(reason)
-        logger.warning(
-            "%s: refused connection from %s: %s (further refusals are not logged until "
-            "a connection is accepted)",
-            self.name,
-            _format_address(peer),
-            reason,
-        )
-
     def _forget(self, connection: _Connection) -> None:
+        self.admission.release(connection)
         self._connections.discard(connection)
         if (
             not self._connections
@@ -571,11 +591,18 @@ class ModbusTcpServer:
 
 
 class _Connection(asyncio.Protocol):
-    """One client connection: MBAP framing, one task per request, backpressure, idle timer."""
+    """One client connection: MBAP framing, one task per request, backpressure, idle timer.
+
+    ``client`` (a :class:`~gateway.modbus.admission.ClientIdentity`) says who is connected and
+    with which rights; it is also the value of ``admission.current_client`` while this
+    connection's requests are handled (tasks created for them inherit it), for audit logging.
+    """
 
     __slots__ = (
         "_buffer",
+        "_connected_at",
         "_eof",
+        "_frame_handle",
         "_idle_handle",
         "_in_flight",
         "_last_received",
@@ -583,15 +610,20 @@ class _Connection(asyncio.Protocol):
         "_loop",
         "_offset",
         "_open",
+        "_partial_position",
+        "_partial_since",
         "_peer",
         "_read_paused",
         "_ready",
+        "_received_total",
         "_released",
+        "_served",
         "_server",
         "_stopped",
         "_tls_task",
         "_transport",
         "_write_paused",
+        "client",
     )
 
     def __init__(self, server: ModbusTcpServer) -> None:
@@ -613,19 +645,30 @@ class _Connection(asyncio.Protocol):
         self._last_received = 0.0
         self._idle_handle: asyncio.TimerHandle | None = None
         self._tls_task: asyncio.Task[None] | None = None
+        self.client = ClientIdentity("?")
+        self._connected_at = 0.0
+        self._served = False  # a complete request has been taken from this connection
+        self._received_total = 0  # bytes received since connect
+        self._partial_position = -1  # stream offset of the incomplete frame being timed
+        self._partial_since = 0.0
+        self._frame_handle: asyncio.TimerHandle | None = None
 
     # -- asyncio.Protocol --------------------------------------------------------------
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._transport = cast(asyncio.Transport, transport)
         self._peer = transport.get_extra_info("peername")
-        if not self._server._admit(self, self._peer):
+        server = self._server
+        self.client = ClientIdentity(_format_address(self._peer))
+        if not server._admit(self, self._peer, handshake=server.ssl_context is not None):
             self._released = True
             self._transport.abort()
             self._transport = None
             return
+        if server.admission.read_only(self._peer):
+            self.client = ClientIdentity(self.client.address, can_write=False)
         self._open = True
-        self._last_received = self._loop.time()
+        self._last_received = self._connected_at = self._loop.time()
         if self._server.idle_timeout is not None:
             self._idle_handle = self._loop.call_at(
                 self._last_received + self._server.idle_timeout, self._check_idle
@@ -644,6 +687,7 @@ class _Connection(asyncio.Protocol):
         if not self._open:
             return
         self._last_received = self._loop.time()
+        self._received_total += len(data)
         if self._offset:
             self._buffer = self._buffer[self._offset :] + data
             self._offset = 0
@@ -690,9 +734,7 @@ class _Connection(asyncio.Protocol):
         """Close after sending what is buffered; replies still in flight are dropped."""
         self._open = False
         self._ready = False
-        if self._idle_handle is not None:
-            self._idle_handle.cancel()
-            self._idle_handle = None
+        self._cancel_timers()
         if self._tls_task is not None and not self._tls_task.done():
             self._tls_task.cancel()  # aborts the handshake and releases
         elif self._transport is not None:
@@ -706,31 +748,122 @@ class _Connection(asyncio.Protocol):
             self._transport = None
         self._release()
 
+    # -- used by admission (gateway.modbus.admission.Slot) --------------------------------
+
+    def stalled_since(self) -> float | None:
+        """Since when this connection holds its slot without using it (None: it uses it).
+
+        Stalled: an incomplete frame has waited for its end, or no complete request has come
+        since the connection was made (or its TLS handshake ended), for at least a grace period
+        (1 s, or half of ``frame_timeout`` if shorter): a client that has just connected, or
+        whose frame is split across TCP segments, is not stalled.
+        """
+        if not self._open:
+            return None
+        if self._partial_position >= 0:
+            since = self._partial_since
+        elif not self._served:
+            since = self._connected_at
+        else:
+            return None
+        timeout = self._server.frame_timeout
+        grace = min(_STALL_GRACE, timeout / 2) if timeout is not None else _STALL_GRACE
+        return since if self._loop.time() - since >= grace else None
+
+    def evict(self, reason: str) -> None:
+        """Close to make room for a new connection."""
+        if self._open:
+            self._drop(reason, cause="connections closed to make room")
+
     # -- internals ---------------------------------------------------------------------
 
-    def _release(self) -> None:
-        """Forget the connection (idempotent)."""
+    def _cancel_timers(self) -> None:
         if self._idle_handle is not None:
             self._idle_handle.cancel()
             self._idle_handle = None
+        if self._frame_handle is not None:
+            self._frame_handle.cancel()
+            self._frame_handle = None
+
+    def _release(self) -> None:
+        """Forget the connection (idempotent)."""
+        self._cancel_timers()
         self._buffer = b""
         self._offset = 0
         if not self._released:
             self._released = True
             self._server._forget(self)
 
-    def _drop(self, reason: str) -> None:
-        """Close a connection that broke the protocol, timed out or failed its TLS handshake."""
-        logger.warning(
-            "%s: closing connection from %s: %s", self._server.name, _format_address(self._peer), reason
+    def _drop(self, reason: str, cause: str | None = None) -> None:
+        """Close a connection that broke the protocol, timed out or failed its TLS handshake.
+
+        Logged at most once per ``cause`` (default: ``reason``) and interval, then summarised.
+        """
+        server = self._server
+        server.repeat_log.log(
+            logging.WARNING,
+            f"{server.name}: {cause or reason}",
+            peer_host(self._peer),
+            "%s: closing connection from %s: %s",
+            server.name,
+            _format_address(self._peer),
+            reason,
         )
-        self._server.counters.connections_dropped += 1
+        server.counters.connections_dropped += 1
         self.close()
+
+    def _send(self, frame: bytes) -> bool:
+        """Write one reply unless the transport is closing (False then: stop processing).
+
+        Writing to a transport that lost its connection makes asyncio log "socket.send() raised
+        exception." for every write after the fifth: a client that pipelines requests and resets
+        would make the server log one line per request.
+        """
+        transport = self._transport
+        if transport is None or transport.is_closing():
+            return False
+        transport.write(frame)
+        return True
+
+    def _time_partial_frame(self) -> None:
+        """Start, keep or stop the clock of the incomplete frame at the head of the buffer."""
+        timeout = self._server.frame_timeout
+        if timeout is None or not self._open:
+            return
+        pending = len(self._buffer) - self._offset
+        if self._read_paused:
+            # Not reading (requests in flight at the limit, or replies not taken): the rest of
+            # the frame cannot arrive, so its clock restarts when reading resumes.
+            self._partial_position = -1
+            return
+        incomplete = 0 < pending and (
+            pending < 7 or 6 + _MBAP.unpack_from(self._buffer, self._offset)[2] > pending
+        )
+        if not incomplete:
+            self._partial_position = -1
+            return
+        position = self._received_total - pending
+        if position != self._partial_position:
+            self._partial_position = position
+            self._partial_since = self._loop.time()
+            if self._frame_handle is None:
+                self._frame_handle = self._loop.call_at(self._partial_since + timeout, self._check_frame)
+
+    def _check_frame(self) -> None:
+        self._frame_handle = None
+        timeout = self._server.frame_timeout
+        if not self._open or timeout is None or self._partial_position < 0:
+            return
+        deadline = self._partial_since + timeout
+        if deadline <= self._loop.time():
+            self._drop(f"incomplete frame for {timeout:g} s", cause="incomplete frames timed out")
+            return
+        self._frame_handle = self._loop.call_at(deadline, self._check_frame)
 
     async def _start_tls(self, raw: asyncio.Transport, context: ssl.SSLContext) -> None:
         try:
             transport = await self._loop.start_tls(
-                raw, self, context, server_side=True, ssl_handshake_timeout=_TLS_HANDSHAKE_TIMEOUT
+                raw, self, context, server_side=True, ssl_handshake_timeout=self._server.handshake_timeout
             )
         except asyncio.CancelledError:
             self._tls_task = None
@@ -743,7 +876,7 @@ class _Connection(asyncio.Protocol):
             self._tls_task = None
             self._transport = None
             if self._open:
-                self._drop(f"TLS handshake failed: {error!r}")
+                self._drop(f"TLS handshake failed: {error!r}", cause="TLS handshakes failed")
             self._release()
             return
         self._tls_task = None
@@ -754,11 +887,48 @@ class _Connection(asyncio.Protocol):
             self._release()
             return
         self._transport = transport
+        server = self._server
+        if not server.admission.handshake_done(self, self._peer):
+            server.counters.connections_refused += 1
+            self._open = False
+            transport.abort()
+            self._transport = None
+            self._release()
+            return
+        # The certificate's subject and role name the client in audit lines even without roles.
+        identity = (server.roles or _EVERYONE_WRITES).identify(
+            self.client.address, transport.get_extra_info("ssl_object")
+        )
+        self.client = dataclasses.replace(identity, can_write=identity.can_write and self.client.can_write)
+        logger.debug("%s: %s connected", server.name, self.client)
+        self._connected_at = self._loop.time()  # stalled_since counts from the end of the handshake
         self._ready = True
         self._process()
 
     def _process(self) -> None:
-        """Start the complete requests in the buffer, as many as the limits allow."""
+        """Start the complete requests in the buffer, as many as the limits allow.
+
+        ``current_client`` is this connection's client meanwhile: the tasks created for the
+        requests inherit it.
+        """
+        token = current_client.set(self.client)
+        try:
+            self._process_frames()
+        finally:
+            current_client.reset(token)
+        self._time_partial_frame()
+
+    def _request(self, tid: int, unit: int, pdu: bytes) -> _Reply:
+        """One request of this client: refused with 0x01 if it writes without the right to."""
+        self._served = True
+        if not self.client.can_write and pdu[0] in _WRITE_FUNCTION_CODES:
+            server = self._server
+            requests = server.counters.requests
+            requests[pdu[0]] = requests.get(pdu[0], 0) + 1
+            return server._exception(tid, unit, pdu[0], _ILLEGAL_FUNCTION)
+        return self._server._request(tid, unit, pdu)
+
+    def _process_frames(self) -> None:
         buffer = self._buffer
         size = len(buffer)
         position = self._offset
@@ -769,15 +939,16 @@ class _Connection(asyncio.Protocol):
                 break
             tid, protocol, length, unit = _MBAP.unpack_from(buffer, position)
             if protocol != 0 or not _MIN_LENGTH <= length <= _MAX_LENGTH:
-                self._drop(f"bad MBAP header (protocol id {protocol}, length {length})")
+                self._drop(f"bad MBAP header (protocol id {protocol}, length {length})", cause="bad MBAP headers")
                 return
             end = position + 6 + length
             if end > size:
                 break
-            reply = server._request(tid, unit, buffer[position + 7 : end])
+            reply = self._request(tid, unit, buffer[position + 7 : end])
             position = end
             if isinstance(reply, bytes):
-                transport.write(reply)
+                if not self._send(reply):
+                    break
             else:
                 self._in_flight += 1
                 task = self._loop.create_task(self._serve(reply))
@@ -791,6 +962,8 @@ class _Connection(asyncio.Protocol):
         if self._eof and not self._in_flight and transport is not None:
             transport.close()
             return
+        if transport is not None and transport.is_closing():
+            return
         self._update_reading()
 
     async def _serve(self, reply: Coroutine[Any, Any, bytes]) -> None:
@@ -799,8 +972,7 @@ class _Connection(asyncio.Protocol):
             frame = await reply
         finally:
             self._in_flight -= 1
-        if self._transport is not None and self._ready:
-            self._transport.write(frame)
+        if self._ready and self._send(frame):
             if self._buffer or self._read_paused or self._eof:
                 self._process()
 

@@ -31,6 +31,7 @@ from typing import Any
 import pytest
 from pymodbus.client import AsyncModbusTcpClient, AsyncModbusTlsClient
 
+from gateway import healthcheck
 from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.sim import get_simulator, reset_simulators
@@ -38,6 +39,7 @@ from gateway.sim.slc_ascii import SlcAsciiSimulator
 
 HOST = "127.0.0.1"
 ILLEGAL_ADDRESS = 0x02
+ROLE_OID = "1.3.6.1.4.1.50316.802.1"  # Modbus/TCP Security role extension (MB-TCP-Security-v36, R-21)
 
 
 @pytest.fixture(autouse=True)
@@ -57,7 +59,7 @@ def link_toml(unit: int, url: str, **keys: Any) -> str:
 
 
 def modbus_toml(**keys: Any) -> str:
-    lines = ["[modbus]", 'listen = "127.0.0.1:0"']
+    lines = ["[modbus]"] + ([] if "listen" in keys else ['listen = "127.0.0.1:0"'])
     lines += [f"{key} = {json.dumps(value)}" for key, value in keys.items()]
     return "\n".join(lines) + "\n"
 
@@ -165,7 +167,7 @@ async def refused_at_connect(port: int) -> bool:
 
 
 async def test_allow_list_refuses_a_client_outside_it() -> None:
-    config = parse_config(modbus_toml(allow=["10.0.0.0/8"]) + link_toml(1, sim_url()))
+    config = parse_config(modbus_toml(allow=["10.0.0.0/8"], loopback_reads=False) + link_toml(1, sim_url()))
     async with Gateway(config) as gw:
         assert await refused_at_connect(gw.port)
         client = AsyncModbusTcpClient(HOST, port=gw.port, timeout=1, retries=0)
@@ -188,6 +190,44 @@ async def test_allow_list_serves_a_client_inside_it() -> None:
         await until_ready(client, 1)
         assert gw.servers[0].counters.connections_refused == 0
         assert not await refused_at_connect(gw.port)
+
+
+async def test_health_check_works_with_an_allow_list_without_loopback() -> None:
+    """Issue 14: the container health check connects from 127.0.0.1; an allow list without
+    loopback made the container unhealthy. Loopback outside allow is now let in for reads only."""
+    url = sim_url()
+    sim = get_simulator(url)
+    assert isinstance(sim, SlcAsciiSimulator)
+    config = parse_config(modbus_toml(allow=["10.0.0.0/8"]) + link_toml(1, url))
+    async with Gateway(config) as gw:
+        assert await asyncio.to_thread(healthcheck.check, HOST, gw.port, 1) in (0, 1)
+        async with tcp_client(gw.port) as client:
+            await until_ready(client, 1)
+            for reply in (
+                await client.write_register(0, 5, device_id=1),
+                await client.write_registers(0, [1, 2], device_id=1),
+                await client.write_coil(701, True, device_id=1),
+                await client.write_coils(701, [True, False], device_id=1),
+            ):
+                assert code(reply) == 0x01
+        assert gw.units[0].write_requests == 0
+    assert sim.applied_writes == []
+
+
+async def test_adjacent_writable_ranges_are_merged() -> None:
+    """Issue 14: FC16 across holding:0-1 and holding:2-3 answered 0x02."""
+    url = sim_url()
+    sim = get_simulator(url)
+    assert isinstance(sim, SlcAsciiSimulator)
+    writable = ["holding:2-3", "holding:0-1", "coil:701-702", "coil:703-704"]
+    config = parse_config(modbus_toml() + link_toml(1, url, writable=writable))
+    async with Gateway(config) as gw, tcp_client(gw.port) as client:
+        await until_ready(client, 1)
+        assert code(await client.write_registers(0, [11, 22, 33, 44], device_id=1)) is None
+        assert code(await client.write_coils(701, [True] * 4, device_id=1)) is None
+        assert code(await client.write_registers(3, [1, 2], device_id=1)) == ILLEGAL_ADDRESS  # 4 is outside
+        reply = await client.read_holding_registers(0, count=4, device_id=1)
+        assert reply.registers == [11, 22, 33, 44]
 
 
 # --------------------------------------------------------------------------------------------
@@ -232,15 +272,19 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> Pki:
     make_cert(directory, "server", "ca", "subjectAltName=IP:127.0.0.1\nextendedKeyUsage=serverAuth\n")
     make_cert(directory, "client", "ca", "extendedKeyUsage=clientAuth\n")
     make_cert(directory, "rogue", "rogue-ca", "extendedKeyUsage=clientAuth\n")
+    for role in ("operator", "viewer"):
+        make_cert(directory, role, "ca", f"extendedKeyUsage=clientAuth\n{ROLE_OID}=ASN1:UTF8String:{role}\n")
     d = directory
     return Pki(d / "ca.pem", d / "server.pem", d / "server.key", d / "client.pem", d / "client.key",
                d / "rogue.pem", d / "rogue.key")
 
 
-def tls_toml(pki: Pki, *, client_ca: bool) -> str:
+def tls_toml(pki: Pki, *, client_ca: bool, roles: dict[str, str] | None = None) -> str:
     text = f'\n[modbus.tls]\nlisten = "127.0.0.1:0"\ncert = "{pki.server_cert}"\nkey = "{pki.server_key}"\n'
     if client_ca:
         text += f'client_ca = "{pki.ca}"\n'
+    if roles:
+        text += "[modbus.tls.roles]\n" + "".join(f"{name} = {json.dumps(r)}\n" for name, r in roles.items())
     return text + "\n"
 
 
@@ -321,6 +365,80 @@ async def test_tls_without_client_ca_serves_any_client(pki: Pki) -> None:
             writer.close()
             with contextlib.suppress(ConnectionError):
                 await writer.wait_closed()
+
+
+async def test_tls_only_configuration_refuses_plain_tcp(pki: Pki) -> None:
+    """Issue 14: with TLS and client_ca the plain listener stayed open and took a plain FC6."""
+    url = sim_url()
+    sim = get_simulator(url)
+    assert isinstance(sim, SlcAsciiSimulator)
+    config = parse_config(modbus_toml(listen="") + tls_toml(pki, client_ca=True) + link_toml(1, url))
+    assert config.warnings() == []
+    async with Gateway(config) as gw:
+        assert [server.name for server in gw.servers] == ["modbus-tls"]
+        tls_port = gw.port
+        # Plain Modbus to the TLS port: no Modbus reply (a TLS alert or a close), nothing written.
+        reader, writer = await asyncio.open_connection(HOST, tls_port)
+        try:
+            writer.write(mbap(1, 1, struct.pack(">BHH", 6, 1, 777)))
+            await writer.drain()
+            async with asyncio.timeout(12):
+                data = await reader.read(100)
+            assert data == b"" or data[0] == 0x15, data
+        finally:
+            writer.close()
+            with contextlib.suppress(ConnectionError):
+                await writer.wait_closed()
+        answer = await tls_exchange(tls_port, client_context(pki, pki.client_cert, pki.client_key))
+        assert answer[:2] == struct.pack(">H", 7)
+    assert sim.applied_writes == []
+
+
+def test_tls_with_client_ca_beside_a_plain_listener_warns(pki: Pki, tmp_path: Path) -> None:
+    path = tmp_path / "gateway.toml"
+    path.write_text(modbus_toml(listen="0.0.0.0:0") + tls_toml(pki, client_ca=True) + link_toml(1, "sim://slc150"))
+    result = subprocess.run(
+        [sys.executable, "-m", "gateway", "check-config", str(path)],
+        capture_output=True, text=True, timeout=60, check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "warning: [modbus.tls] requires client certificates, but the plain listener" in result.stderr
+    assert 'listen = ""' in result.stderr
+    loopback = modbus_toml(listen="127.0.0.1:0") + tls_toml(pki, client_ca=True) + link_toml(1, "sim://slc150")
+    assert parse_config(loopback).warnings() == []  # plain on loopback only: for local health checks
+
+
+async def test_roles_from_certificates_end_to_end(pki: Pki, caplog: pytest.LogCaptureFixture) -> None:
+    url = sim_url()
+    sim = get_simulator(url)
+    assert isinstance(sim, SlcAsciiSimulator)
+    roles = {"operator": "read-write", "viewer": "read"}
+    config = parse_config(modbus_toml(listen="") + tls_toml(pki, client_ca=True, roles=roles) + link_toml(1, url))
+    async with Gateway(config) as gw:
+        port = gw.port
+        for name, cert, key, can_write in (
+            ("viewer", pki.ca.parent / "viewer.pem", pki.ca.parent / "viewer.key", False),
+            ("no role", pki.client_cert, pki.client_key, False),
+            ("operator", pki.ca.parent / "operator.pem", pki.ca.parent / "operator.key", True),
+        ):
+            client = AsyncModbusTlsClient(
+                HOST, port=port, sslctx=client_context(pki, cert, key), timeout=3, retries=0
+            )
+            assert await client.connect(), name
+            try:
+                await until_ready(client, 1)
+                writes = [
+                    await client.write_register(0, 5, device_id=1),
+                    await client.write_registers(0, [6, 7], device_id=1),
+                    await client.write_coil(701, True, device_id=1),
+                    await client.write_coils(701, [True, False], device_id=1),
+                ]
+                expected = None if can_write else 0x01
+                assert [code(reply) for reply in writes] == [expected] * 4, name
+                assert code(await client.read_holding_registers(0, count=2, device_id=1)) is None
+            finally:
+                client.close()
+    assert [w for w in sim.applied_writes if w[0] == "word"] == [("word", 0, 5), ("word", 0, 6), ("word", 2, 7)]
 
 
 def assert_no_secrets(log_text: str, pki: Pki) -> None:

@@ -314,7 +314,7 @@ def test_entry_command_serves_and_stops_cleanly(installed: Installed, start: Sta
     for pattern, replacement in (
         (r'^port = "/dev/ttyUSB0"$', 'port = "sim://slc150?ladder=0"'),
         (r'^listen = "0\.0\.0\.0:5020"$', f'listen = "{HOST}:{port}"'),
-        (r'^listen = "0\.0\.0\.0:9108"$', f'listen = "{HOST}:{metrics_port}"'),
+        (r'^listen = "127\.0\.0\.1:9108"$', f'listen = "{HOST}:{metrics_port}"'),
     ):
         config, n = re.subn(pattern, replacement, config, flags=re.MULTILINE)
         assert n == 1, pattern
