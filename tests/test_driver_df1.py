@@ -319,7 +319,8 @@ async def test_every_acknowledged_write_applied_exactly_once_under_faults(transp
         assert set(applied) <= set(acked) | set(unknown)
         assert len(acked) + len(unknown) == 180
         assert len(acked) >= 150, (len(acked), len(unknown))
-        assert unknown  # some replies were dropped after the write was executed: the property was exercised
+        # some replies were dropped after the write was executed: the read-back proved them applied
+        assert driver.transaction_counters.verified > 0
         # the faults did happen
         counters = sim.counters
         assert counters.corrupted and counters.dropped and counters.withheld_acks
