@@ -67,7 +67,25 @@ Fault injection (``1 in N`` drawn from a seeded generator; 0 = off):
 * ``duplicate=N``: an outgoing frame goes on the wire twice;
 * ``noise=N``: an output is preceded by 1-8 random bytes without DLE, which a receiver
   hunting for DLE STX discards;
-* ``delay=S``: replies are queued on the link S seconds after the command arrived.
+* ``delay=S``: replies are queued on the link S seconds after the command arrived;
+* ``lose_in=N``: a frame from the host is lost whole on the way in (the controller never sees
+  it; a DLE ENQ then gets the last response, the ACK of the previous frame);
+* ``corrupt_in=N``: a frame from the host arrives damaged (its check fails): the controller
+  answers as its ``bad_frame`` variant says.
+
+Variants (``variants={"name": "value"}``, ``--variant name=value``; the first value is the
+default; docs/controller-variants.md gives the manuals' words for each):
+
+* ``duplicate_detect`` ``on`` | ``off``: a frame with the SRC, CMD and TNS of the last one is
+  ACKed and dropped, or (off, as the S4516-DF1 manual tells users to set it) executed again;
+* ``duplicate_reply`` ``ack_only`` | ``resend``: with detection on, a duplicate is only ACKed,
+  or its last reply is sent again;
+* ``ack_order`` ``ack_first`` | ``reply_first``: the DLE ACK of a command goes before its reply,
+  or just after it;
+* ``bad_frame`` ``nak`` | ``silence`` | ``ignore``: a damaged frame is answered DLE NAK, not
+  answered (a DLE ENQ then gets DLE NAK), or not answered at all (ENQ gets the last response);
+* ``enq_answer`` ``last`` | ``nak``: DLE ENQ is answered with the last response symbol, or
+  always with DLE NAK ("a request for retransmission").
 
 Known limit: a duplicated frame is ACKed twice by the host; if the second ACK arrives after
 the next reply frame left, the link takes it for that frame's ACK (see ``gateway.protocols.df1.link``).
@@ -86,12 +104,19 @@ import struct
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Final
+from typing import ClassVar, Final
 
 from gateway.errors import GatewayError
 from gateway.protocols.df1.address import AddressError, FileType, SlcAddress
 from gateway.protocols.df1.framing import ACK_SYMBOL, NEED_DATA, Checksum, Symbol
-from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete, SendFailed
+from gateway.protocols.df1.link import (
+    BadFrameAnswer,
+    Df1Link,
+    EnqAnswer,
+    MessageReceived,
+    SendComplete,
+    SendFailed,
+)
 from gateway.protocols.df1.pccc import (
     DataType,
     DiagnosticStatus,
@@ -115,6 +140,7 @@ from gateway.protocols.df1.pccc import (
     encode_reply,
     encode_typed_data,
 )
+from gateway.sim.variants import resolve_variants
 
 __all__ = ["ExtSts", "Output", "Slc500Counters", "Slc500Options", "Slc500Simulator"]
 
@@ -166,7 +192,7 @@ class Output:
 
 # ------------------------------------------------------------------------------------ options
 
-_ONE_IN_OPTIONS: Final = ("corrupt", "drop", "withhold_ack", "duplicate", "noise")
+_ONE_IN_OPTIONS: Final = ("corrupt", "drop", "withhold_ack", "duplicate", "noise", "lose_in", "corrupt_in")
 _OPTION_NAMES: Final = (*_ONE_IN_OPTIONS, "checksum", "station", "delay", "seed", "link_ack_timeout", "garble")
 
 
@@ -184,6 +210,8 @@ class Slc500Options:
     delay: float = 0.0  #: turnaround before each reply, seconds
     seed: int = 1  #: seed of the fault generator
     link_ack_timeout: float = 0.5  #: our link's ACK timeout (then DLE ENQ), seconds
+    lose_in: int = 0  #: lose 1 in N frames from the host whole
+    corrupt_in: int = 0  #: damage 1 in N frames from the host
 
     def __post_init__(self) -> None:
         if not 0 <= self.station <= 254:
@@ -221,6 +249,8 @@ class Slc500Options:
             delay=_float_option(options, "delay", 0.0),
             seed=_int_option(options, "seed", 1),
             link_ack_timeout=_float_option(options, "link_ack_timeout", 0.5),
+            lose_in=one_in["lose_in"],
+            corrupt_in=one_in["corrupt_in"],
         )
 
 
@@ -270,6 +300,9 @@ class Slc500Counters:
     withheld_acks: int = 0
     duplicates: int = 0  #: frames sent twice
     noise: int = 0
+    lost_in: int = 0  #: frames from the host lost whole (``lose_in``)
+    corrupted_in: int = 0  #: frames from the host damaged (``corrupt_in``)
+    replies_resent: int = 0  #: replies sent again for a duplicate (``duplicate_reply=resend``)
     commands: dict[str, int] = field(default_factory=dict)  #: by kind: "read", "write", ...
 
 
@@ -376,15 +409,38 @@ def _signed(value: int) -> int:
 class Slc500Simulator:
     """One SLC 5/04 on a DF1 full-duplex link.  Not thread-safe; drive it from one event loop."""
 
-    def __init__(self, options: Slc500Options | None = None, *, ladder: bool = True) -> None:
+    #: One switch per reading of the manuals (module docstring); the first value is the default.
+    VARIANTS: ClassVar[dict[str, tuple[str, ...]]] = {
+        "duplicate_detect": ("on", "off"),
+        "duplicate_reply": ("ack_only", "resend"),
+        "ack_order": ("ack_first", "reply_first"),
+        "bad_frame": tuple(answer.value for answer in BadFrameAnswer),
+        "enq_answer": tuple(answer.value for answer in EnqAnswer),
+    }
+
+    def __init__(
+        self,
+        options: Slc500Options | None = None,
+        *,
+        ladder: bool = True,
+        variants: Mapping[str, str] | None = None,
+    ) -> None:
         self.options = options or Slc500Options()
         self.ladder = ladder
+        self.variants = resolve_variants("slc504", self.VARIANTS, variants or {})
         self.counters = Slc500Counters()
         self.link = Df1Link(
             checksum=self.options.checksum,
             ack_timeout=self.options.link_ack_timeout,
-            duplicate_detect=True,
+            duplicate_detect=self.variants["duplicate_detect"] == "on",
+            bad_frame=BadFrameAnswer(self.variants["bad_frame"]),
+            enq_answer=EnqAnswer(self.variants["enq_answer"]),
         )
+        self._reply_first = self.variants["ack_order"] == "reply_first"
+        self._resend_reply = self.variants["duplicate_reply"] == "resend"
+        self._rx = bytearray()  # bytes from the host not yet a whole frame or symbol
+        self._last_reply: bytes | None = None  # the reply to the last message delivered
+        self._held_acks = 0  # DLE ACKs owed, to go right after the next reply (reply_first)
         #: Every write executed, in order: (kind, address of the first element, data).
         #: Kinds: "write" (FNC AA), "masked_write" (AB), "typed_write" (67), "mode" (80).
         self.applied_writes: list[tuple[str, str, bytes]] = []
@@ -397,9 +453,11 @@ class Slc500Simulator:
         self.reset_data()
 
     @classmethod
-    def from_options(cls, fault_options: Mapping[str, str], *, ladder: bool = True) -> Slc500Simulator:
-        """From ``sim://slc504?...`` options; ValueError for an unknown option or a bad value."""
-        return cls(Slc500Options.from_options(fault_options), ladder=ladder)
+    def from_options(
+        cls, fault_options: Mapping[str, str], *, ladder: bool = True, variants: Mapping[str, str] | None = None
+    ) -> Slc500Simulator:
+        """From ``sim://slc504?...`` options; ValueError for an unknown option, variant or bad value."""
+        return cls(Slc500Options.from_options(fault_options), ladder=ladder, variants=variants)
 
     # --- data table -------------------------------------------------------------------------
 
@@ -538,19 +596,93 @@ class Slc500Simulator:
         self.advance(now)
         out: list[Output] = []
         link = self.link
-        for index in range(len(data)):
-            frames_before = link.counters.frames_received
-            duplicates_before = link.counters.duplicates
-            link.receive_data(data[index : index + 1], now)
-            new_frame = link.counters.frames_received > frames_before
-            if new_frame:
-                self.counters.frames_received += 1
-                self.counters.duplicates_received += link.counters.duplicates - duplicates_before
-            self._emit(out, link.data_to_send(), withhold=new_frame and self._one_in(self.options.withhold_ack))
-            self._drain_events(now)
-            self._send_due(now)
-            self._emit(out, link.data_to_send())
+        self._rx += data
+        for token in self._incoming_tokens():
+            for index in range(len(token)):
+                frames_before = link.counters.frames_received
+                duplicates_before = link.counters.duplicates
+                link.receive_data(token[index : index + 1], now)
+                new_frame = link.counters.frames_received > frames_before
+                duplicate = link.counters.duplicates > duplicates_before
+                if new_frame:
+                    self.counters.frames_received += 1
+                    self.counters.duplicates_received += duplicate
+                response = link.data_to_send()
+                hold = new_frame and self._reply_first and response == ACK_SYMBOL
+                withhold = new_frame and self._one_in(self.options.withhold_ack)
+                replies_before = self.counters.replies_sent
+                if hold:
+                    self._held_acks += 1
+                    if withhold:  # the held ACK is the one lost
+                        self._held_acks -= 1
+                        self.counters.withheld_acks += 1
+                else:
+                    self._emit(out, response, withhold=withhold)
+                self._drain_events(now)
+                if duplicate and self._resend_reply and self._last_reply is not None:
+                    self.counters.replies_resent += 1
+                    self._pending.append((now + self.options.delay, self._last_reply))
+                self._send_due(now)
+                self._emit(out, link.data_to_send())
+                if hold and self.counters.replies_sent == replies_before and not self._pending:
+                    self._release_acks(out)  # nothing to answer (dropped, ignored, duplicate): ACK now
+            # held ACKs follow the reply that went out in this step
+            if self._held_acks and not self._pending:
+                self._release_acks(out)
         return out
+
+    def _release_acks(self, out: list[Output]) -> None:
+        for _ in range(self._held_acks):
+            out.append(Output(0.0, ACK_SYMBOL))
+        self._held_acks = 0
+
+    def _incoming_tokens(self) -> list[bytes]:
+        """Whole frames and symbols from ``_rx`` (a partial one stays), after the inbound faults."""
+        tokens: list[bytes] = []
+        rx = self._rx
+        check = self.options.checksum.size
+        i = 0
+        while i < len(rx):
+            if rx[i] != Symbol.DLE:  # garbage between frames: the link skips it
+                j = i
+                while j < len(rx) and rx[j] != Symbol.DLE:
+                    j += 1
+                tokens.append(bytes(rx[i:j]))
+                i = j
+                continue
+            if i + 1 >= len(rx):
+                break
+            if rx[i + 1] != Symbol.STX:
+                tokens.append(bytes(rx[i : i + 2]))
+                i += 2
+                continue
+            j, end, aborted = i + 2, None, False
+            while j + 1 < len(rx):
+                if rx[j] != Symbol.DLE:
+                    j += 1
+                elif rx[j + 1] == Symbol.DLE:
+                    j += 2
+                elif rx[j + 1] == Symbol.ETX:
+                    end = j + 2 + check if j + 2 + check <= len(rx) else None
+                    break
+                else:  # DLE STX / DLE ENQ ... inside the frame: let the link judge it as it is
+                    end, aborted = j, True
+                    break
+            if end is None:
+                break  # not whole yet
+            frame = bytes(rx[i:end])
+            i = end
+            if aborted:
+                tokens.append(frame)
+            elif self._one_in(self.options.lose_in):
+                self.counters.lost_in += 1
+            elif self._one_in(self.options.corrupt_in):
+                self.counters.corrupted_in += 1
+                tokens.append(self._corrupt(frame))
+            else:
+                tokens.append(frame)
+        del rx[:i]
+        return tokens
 
     def poll(self, now: float) -> list[Output]:
         """Run the timers: the link's ACK timer and replies waiting for their turnaround."""
@@ -562,6 +694,8 @@ class Slc500Simulator:
         self._drain_events(now)
         self._send_due(now)
         self._emit(out, self.link.data_to_send())
+        if self._held_acks and not self._pending:
+            self._release_acks(out)
         return out
 
     def next_deadline(self) -> float | None:
@@ -575,6 +709,7 @@ class Slc500Simulator:
             match event:
                 case MessageReceived(payload=payload):
                     reply = self._handle(payload)
+                    self._last_reply = reply
                     if reply is None:
                         continue
                     if self._one_in(self.options.drop):

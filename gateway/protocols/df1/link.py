@@ -21,7 +21,9 @@ Transmitter (one frame outstanding at a time)::
                    AWAIT_ACK --timeout--> AWAIT_ACK, DLE ENQ                    (at most max_enq times)
                    then                              IDLE (SendFailed)
                    AWAIT_ACK --confirm()--> IDLE (SendComplete): the application saw the reply, so
-                                            the peer has the frame (its ACK may come later or never)
+                                            the peer has the frame (its ACK may come later or never);
+                                            the next DLE ACK / NAK is taken as the answer owed to that
+                                            frame or to our last DLE ENQ, never as the next frame's
 
 A frame sent with ``idempotent=False`` (a write) is never retransmitted on a DLE NAK that answers
 our DLE ENQ: under one reading of the manual (:attr:`EnqAnswer.NAK`) that NAK says nothing about
@@ -272,6 +274,9 @@ class Df1Link:
         # True while the current frame still sits in the output buffer: the peer cannot have
         # answered it yet, so a DLE ACK / DLE NAK arriving then belongs to an older frame.
         self._frame_unsent = False
+        # After confirm(): the next DLE ACK / DLE NAK most likely answers the confirmed frame (its
+        # ACK after its reply) or our last DLE ENQ, not the next frame: it is taken as stale.
+        self._answer_owed = False
 
     # ------------------------------------------------------------------------------ public API
 
@@ -314,10 +319,14 @@ class Df1Link:
                         self._last_response = NAK_SYMBOL
                 case AckReceived():
                     self.counters.acks_received += 1
-                    self._tx_input(_TxInput.STALE if self._frame_unsent else _TxInput.ACK, now)
+                    stale = self._frame_unsent or self._answer_owed
+                    self._answer_owed = False
+                    self._tx_input(_TxInput.STALE if stale else _TxInput.ACK, now)
                 case NakReceived():
                     self.counters.naks_received += 1
-                    if self._frame_unsent:
+                    stale = self._frame_unsent or self._answer_owed
+                    self._answer_owed = False
+                    if stale:
                         self._tx_input(_TxInput.STALE, now)
                     elif self._enq_since_frame and self._current is not None and not self._current[3]:
                         self._tx_input(_TxInput.NAK_AFTER_ENQ, now)
@@ -367,6 +376,7 @@ class Df1Link:
         Does nothing unless ``handle`` is the frame awaiting its ACK.
         """
         if self._current is not None and self._current[0] == handle and not self._frame_unsent:
+            self._answer_owed = True
             self._tx_input(_TxInput.CONFIRM, now)
 
     def reset(self) -> None:
@@ -382,6 +392,7 @@ class Df1Link:
         self._decoder.reset()
         self._out.clear()
         self._frame_unsent = False
+        self._answer_owed = False
         self._last_response = NAK_SYMBOL
         self._last_delivered = None
         for handle in failed:
