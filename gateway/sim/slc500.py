@@ -71,7 +71,9 @@ Fault injection (``1 in N`` drawn from a seeded generator; 0 = off):
 * ``lose_in=N``: a frame from the host is lost whole on the way in (the controller never sees
   it; a DLE ENQ then gets the last response, the ACK of the previous frame);
 * ``corrupt_in=N``: a frame from the host arrives damaged (its check fails): the controller
-  answers as its ``bad_frame`` variant says.
+  answers as its ``bad_frame`` variant says;
+* ``faults_on=writes``: ``drop``, ``lose_in`` and ``corrupt_in`` strike only commands that
+  write (with N = 1: every write's reply lost after execution, or every write frame lost).
 
 Variants (``variants={"name": "value"}``, ``--variant name=value``; the first value is the
 default; docs/controller-variants.md gives the manuals' words for each):
@@ -108,7 +110,7 @@ from typing import ClassVar, Final
 
 from gateway.errors import GatewayError
 from gateway.protocols.df1.address import AddressError, FileType, SlcAddress
-from gateway.protocols.df1.framing import ACK_SYMBOL, NEED_DATA, Checksum, Symbol
+from gateway.protocols.df1.framing import ACK_SYMBOL, NEED_DATA, Checksum, Frame, FrameDecoder, Symbol
 from gateway.protocols.df1.link import (
     BadFrameAnswer,
     Df1Link,
@@ -193,7 +195,12 @@ class Output:
 # ------------------------------------------------------------------------------------ options
 
 _ONE_IN_OPTIONS: Final = ("corrupt", "drop", "withhold_ack", "duplicate", "noise", "lose_in", "corrupt_in")
-_OPTION_NAMES: Final = (*_ONE_IN_OPTIONS, "checksum", "station", "delay", "seed", "link_ack_timeout", "garble")
+_OPTION_NAMES: Final = (
+    *_ONE_IN_OPTIONS, "checksum", "station", "delay", "seed", "link_ack_timeout", "garble", "faults_on"
+)
+#: FNC of the CMD 0F commands that change the controller: typed logical write (AA), masked
+#: write (AB), typed write (67), word range write (00), set processor mode (80).
+_WRITE_FUNCTIONS: Final = frozenset({0xAA, 0xAB, 0x67, 0x00, 0x80})
 
 
 @dataclass(frozen=True, slots=True)
@@ -212,6 +219,8 @@ class Slc500Options:
     link_ack_timeout: float = 0.5  #: our link's ACK timeout (then DLE ENQ), seconds
     lose_in: int = 0  #: lose 1 in N frames from the host whole
     corrupt_in: int = 0  #: damage 1 in N frames from the host
+    faults_on: str = "all"  #: "writes": drop, lose_in and corrupt_in strike only write commands
+
 
     def __post_init__(self) -> None:
         if not 0 <= self.station <= 254:
@@ -221,6 +230,8 @@ class Slc500Options:
                 raise ValueError(f"simulator option {name}={getattr(self, name)}: 1 in N must not be negative")
         if not (math.isfinite(self.delay) and self.delay >= 0):
             raise ValueError(f"simulator option delay={self.delay}: seconds, 0 or more")
+        if self.faults_on not in ("all", "writes"):
+            raise ValueError(f"simulator option faults_on={self.faults_on!r}: choose all or writes")
         if not (math.isfinite(self.link_ack_timeout) and self.link_ack_timeout > 0):
             raise ValueError(f"simulator option link_ack_timeout={self.link_ack_timeout}: seconds, more than 0")
 
@@ -251,6 +262,7 @@ class Slc500Options:
             link_ack_timeout=_float_option(options, "link_ack_timeout", 0.5),
             lose_in=one_in["lose_in"],
             corrupt_in=one_in["corrupt_in"],
+            faults_on=options.get("faults_on", "all").strip().lower(),
         )
 
 
@@ -672,7 +684,7 @@ class Slc500Simulator:
                 break  # not whole yet
             frame = bytes(rx[i:end])
             i = end
-            if aborted:
+            if aborted or not self._strikes(frame):
                 tokens.append(frame)
             elif self._one_in(self.options.lose_in):
                 self.counters.lost_in += 1
@@ -712,7 +724,7 @@ class Slc500Simulator:
                     self._last_reply = reply
                     if reply is None:
                         continue
-                    if self._one_in(self.options.drop):
+                    if self._is_write(payload) and self._one_in(self.options.drop):
                         self.counters.dropped += 1
                         continue
                     self._pending.append((now + self.options.delay, reply))
@@ -728,6 +740,21 @@ class Slc500Simulator:
             self.counters.replies_sent += 1
 
     # --- fault injection --------------------------------------------------------------------
+
+    def _is_write(self, packet: bytes) -> bool:
+        """Do the faults restricted by ``faults_on`` strike this command packet?"""
+        if self.options.faults_on == "all":
+            return True
+        return len(packet) > 6 and packet[2] == 0x0F and packet[6] in _WRITE_FUNCTIONS
+
+    def _strikes(self, frame: bytes) -> bool:
+        """May an inbound fault strike this whole frame (``faults_on``)?"""
+        if self.options.faults_on == "all":
+            return True
+        decoder = FrameDecoder(self.options.checksum)
+        decoder.feed(frame)
+        event = decoder.next_event()
+        return isinstance(event, Frame) and self._is_write(event.message)
 
     def _one_in(self, n: int) -> bool:
         return n > 0 and self._rng.randrange(n) == 0

@@ -25,12 +25,13 @@ Transmitter (one frame outstanding at a time)::
                                             the next DLE ACK / NAK is taken as the answer owed to that
                                             frame or to our last DLE ENQ, never as the next frame's
 
-A frame sent with ``idempotent=False`` (a write) is never retransmitted on a DLE NAK that answers
-our DLE ENQ: under one reading of the manual (:attr:`EnqAnswer.NAK`) that NAK says nothing about
-the frame, which the peer may have received and executed; with duplicate detection off a second
-copy would run again.  The link reports :attr:`SendFailure.AMBIGUOUS_NAK` and the application
-layer decides (read back).  A NAK answering the frame itself is unambiguous (the frame arrived
-damaged, S4516-DF1 manual §2.5) and the frame is sent again.
+A frame sent with ``idempotent=False`` (a write) is never retransmitted: a DLE NAK is not proof
+that the peer discarded it.  Under one reading of the manual (:attr:`EnqAnswer.NAK`) the NAK
+answering our DLE ENQ says nothing about the frame, and on a noisy line a DLE ACK can arrive as
+a DLE NAK (response symbols carry no check).  With duplicate detection off (S4516-DF1 manual
+§5.2) a second copy of a write that did arrive would run again.  The link reports
+:attr:`SendFailure.AMBIGUOUS_NAK` and the application layer reads the target back.  Frames
+sent with ``idempotent=True`` (reads) are retransmitted on DLE NAK as §2.4 describes.
 
 Once a frame has been ACKed the link reports :class:`SendComplete` and never sends it again.
 A DLE ACK / DLE NAK that arrives while the current frame has not yet been taken by
@@ -117,7 +118,7 @@ class SendFailure(enum.Enum):
     NAK_LIMIT = "DLE NAK received after every retransmission"
     NO_RESPONSE = "no DLE ACK after every DLE ENQ"
     LINK_RESET = "the link was reset before the frame was acknowledged"
-    AMBIGUOUS_NAK = "DLE NAK in answer to DLE ENQ: the peer may or may not have the frame"
+    AMBIGUOUS_NAK = "DLE NAK for a frame that must not run twice: the peer may or may not have it"
 
 
 class BadFrameAnswer(enum.Enum):
@@ -186,7 +187,7 @@ class _TxInput(enum.Enum):
     NAK_LIMIT = "DLE NAK received, no retransmission left"
     TIMEOUT = "ACK timer expired, ENQs left"
     TIMEOUT_LIMIT = "ACK timer expired, no ENQ left"
-    NAK_AFTER_ENQ = "DLE NAK in answer to our DLE ENQ, for a frame that must not run twice"
+    NAK_NOT_PROOF = "DLE NAK for a frame that must not run twice (not resent: the NAK is no proof)"
     CONFIRM = "the application layer saw the reply to the frame"
     STALE = "DLE ACK / DLE NAK before our frame left data_to_send(): an answer to an older frame"
 
@@ -218,8 +219,8 @@ _TX_TRANSITIONS: Final[dict[tuple[TxState, _TxInput], tuple[_TxAction, TxState]]
     (TxState.AWAIT_ACK, _TxInput.NAK_LIMIT): (_TxAction.FAIL_NAK, TxState.IDLE),
     (TxState.AWAIT_ACK, _TxInput.TIMEOUT): (_TxAction.ENQUIRE, TxState.AWAIT_ACK),
     (TxState.AWAIT_ACK, _TxInput.TIMEOUT_LIMIT): (_TxAction.FAIL_NO_RESPONSE, TxState.IDLE),
-    (TxState.IDLE, _TxInput.NAK_AFTER_ENQ): (_TxAction.IGNORE, TxState.IDLE),
-    (TxState.AWAIT_ACK, _TxInput.NAK_AFTER_ENQ): (_TxAction.FAIL_AMBIGUOUS, TxState.IDLE),
+    (TxState.IDLE, _TxInput.NAK_NOT_PROOF): (_TxAction.IGNORE, TxState.IDLE),
+    (TxState.AWAIT_ACK, _TxInput.NAK_NOT_PROOF): (_TxAction.FAIL_AMBIGUOUS, TxState.IDLE),
     (TxState.IDLE, _TxInput.CONFIRM): (_TxAction.IGNORE, TxState.IDLE),
     (TxState.AWAIT_ACK, _TxInput.CONFIRM): (_TxAction.COMPLETE, TxState.IDLE),
 }
@@ -268,7 +269,6 @@ class Df1Link:
         self._current: tuple[int, bytes, bytes, bool] | None = None  # handle, payload, frame, idempotent
         self._nak_count = 0
         self._enq_count = 0
-        self._enq_since_frame = False  # a DLE ENQ went out since the current frame was last written
         self._deadline: float | None = None
         self._next_handle = 1
         # True while the current frame still sits in the output buffer: the peer cannot have
@@ -328,8 +328,8 @@ class Df1Link:
                     self._answer_owed = False
                     if stale:
                         self._tx_input(_TxInput.STALE, now)
-                    elif self._enq_since_frame and self._current is not None and not self._current[3]:
-                        self._tx_input(_TxInput.NAK_AFTER_ENQ, now)
+                    elif self._current is not None and not self._current[3]:
+                        self._tx_input(_TxInput.NAK_NOT_PROOF, now)
                     elif self._nak_count >= self.max_nak:
                         self._tx_input(_TxInput.NAK_LIMIT, now)
                     else:
@@ -388,7 +388,6 @@ class Df1Link:
         self._tx_state = TxState.IDLE
         self._deadline = None
         self._nak_count = self._enq_count = 0
-        self._enq_since_frame = False
         self._decoder.reset()
         self._out.clear()
         self._frame_unsent = False
@@ -450,7 +449,6 @@ class Df1Link:
                 self._write_current(now)
             case _TxAction.ENQUIRE:
                 self._enq_count += 1
-                self._enq_since_frame = True
                 self.counters.enqs_sent += 1
                 self._out += ENQ_SYMBOL
                 self._deadline = now + self.ack_timeout
@@ -467,7 +465,6 @@ class Df1Link:
         assert self._current is not None
         self._out += self._current[2]
         self._frame_unsent = True
-        self._enq_since_frame = False
         self.counters.frames_sent += 1
         self._deadline = now + self.ack_timeout
 

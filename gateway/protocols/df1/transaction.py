@@ -11,18 +11,16 @@ Verdicts (events, one per transaction)::
     TransactionRefused  the controller answered STS != 0 (nothing was written)
     OutcomeUnknown      a write the controller may have executed: its frame may have arrived
                         but no answer came, and no read-back proved it applied
-    TransactionFailed   no valid answer after every try; for a write, proof that it was never
-                        accepted (every copy of its frame was DLE NAKed)
+    TransactionFailed   a read got no valid answer after every try
 
 The rules, under every reading of the manuals in docs/controller-variants.md:
 
 * A read is idempotent: on a lost frame or a missing reply it is sent again with a new TNS
   (at most ``retries`` more times).  A late reply to any of its TNS is still a valid answer.
-* A write is sent again only when the link proves it never arrived (every copy DLE NAKed in
-  answer to the frame itself).  Otherwise - no DLE ACK, a DLE NAK after our DLE ENQ, an ACK but
-  no reply - it may have run (with duplicate detection off, S4516-DF1 manual §3.1 / §4.2 / §5.2,
-  "Detect Duplicate Messages should be unchecked", a second copy would run again), so it is
-  never resent: the core reads the target back (protected typed logical read of the same
+* A write is sent once.  Without its reply - no DLE ACK, a DLE NAK (no proof: see ``link.py``),
+  an ACK but no reply - it may have run (with duplicate detection off, S4516-DF1 manual §4.2 /
+  §5.2, "Detect Duplicate Messages should be unchecked", a second copy would run again), so it
+  is never resent: the core reads the target back (protected typed logical read of the same
   bytes).  If the controller holds the written value (under the write's mask) the write is
   done; if the read-back shows anything else, or cannot be made, the outcome is unknown.
   A late reply to the write itself during the read-back settles it (STS 0: done).
@@ -34,8 +32,7 @@ States and transitions (:data:`_TRANSITIONS`; inputs are classified before the l
     IDLE ------start------> SENDING
     SENDING --link ACK----> AWAIT_REPLY (reply timer)
     SENDING / AWAIT_REPLY --reply STS 0--> IDLE (Done)        --reply STS!=0--> IDLE (Refused)
-    SENDING --link NAKed (never arrived)--> SENDING new TNS (retries left) | IDLE (Failed)
-    SENDING --link gave up / AWAIT_REPLY --timeout:
+    SENDING --link gave up (NAKs, no ACK) / AWAIT_REPLY --timeout:
           read:  SENDING new TNS (retries left) | IDLE (Failed)
           write: VERIFY (read-back) if a read-back exists | IDLE (OutcomeUnknown)
     VERIFY --read-back holds--> IDLE (Done, verified)   --differs / refused--> IDLE (OutcomeUnknown)
@@ -229,7 +226,6 @@ for _w in (_READ, _WRITE):
     _TRANSITIONS.update({
         (S.IDLE, K.START, _w): (_Do.SEND, S.SENDING),
         (S.SENDING, K.LINK_ACKED, _w): (_Do.AWAIT, S.AWAIT_REPLY),
-        (S.SENDING, K.LINK_NAKED, _w): (_Do.RETRY, S.SENDING),
         (S.SENDING, K.REPLY_OK, _w): (_Do.DONE, S.IDLE),
         (S.SENDING, K.REPLY_REFUSED, _w): (_Do.REFUSED, S.IDLE),
         (S.AWAIT_REPLY, K.REPLY_OK, _w): (_Do.DONE, S.IDLE),
@@ -237,9 +233,11 @@ for _w in (_READ, _WRITE):
     })
 _TRANSITIONS.update({
     # reads: idempotent, simply sent again
+    (S.SENDING, K.LINK_NAKED, _READ): (_Do.RETRY, S.SENDING),
     (S.SENDING, K.LINK_LOST, _READ): (_Do.RETRY, S.SENDING),
     (S.AWAIT_REPLY, K.TIMEOUT, _READ): (_Do.RETRY, S.SENDING),
     # writes: may have run; find out, never send again
+    (S.SENDING, K.LINK_NAKED, _WRITE): (_Do.VERIFY, S.VERIFY_SENDING),
     (S.SENDING, K.LINK_LOST, _WRITE): (_Do.VERIFY, S.VERIFY_SENDING),
     (S.AWAIT_REPLY, K.TIMEOUT, _WRITE): (_Do.VERIFY, S.VERIFY_SENDING),
     (S.VERIFY_SENDING, K.LINK_ACKED, _WRITE): (_Do.AWAIT, S.VERIFY_AWAIT_REPLY),
