@@ -182,7 +182,14 @@ def test_other_station_number() -> None:
     bench = Bench(station="9")
     assert bench.transact(DiagnosticStatus(), dst=1, timeout=1.0) is None
     assert bench.sim.counters.ignored == 1
-    assert bench.transact(DiagnosticStatus(), dst=9) is not None
+    tns = bench.send(DiagnosticStatus(), dst=9)
+    info = DiagnosticStatusInfo.build(
+        processor_type=0x5B, series="C", frn=3, catalog="1747-L542", mode_status=ProcessorMode.RUN
+    )
+    # the reply, byte for byte: DST 0 (our SRC), SRC 9, CMD 06 | 40, STS 0, our TNS, the status
+    packet = bytes((0x00, 0x09, 0x46, 0x00)) + tns.to_bytes(2, "little") + info.raw
+    assert bench.wire == [ACK_SYMBOL, ACK_SYMBOL, encode_frame(packet, Checksum.CRC)]
+    assert bench.wait(tns) == decode_reply(packet)
 
 
 # ---------------------------------------------------------------------------------------- reads
