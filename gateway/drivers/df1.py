@@ -34,10 +34,10 @@ from gateway.protocols.df1.pccc import (
 from gateway.protocols.df1.transaction import (
     Df1Transactions,
     OutcomeUnknown,
+    TransactionCounters,
     TransactionDone,
     TransactionEvent,
     TransactionFailed,
-    TransactionCounters,
     TransactionRefused,
 )
 from gateway.transport import SerialSettings, open_stream
@@ -79,6 +79,7 @@ class Df1Driver(LinkDriver):
         reconnect_min: float = 0.5,
         reconnect_max: float = 30.0,
         opener: OpenStream = open_stream,
+        first_tns: int | None = None,
     ) -> None:
         super().__init__(
             url,
@@ -99,7 +100,9 @@ class Df1Driver(LinkDriver):
         self.last_sts = 0
         # A random first TNS: a new session (CLI run, gateway restart) must not repeat the last
         # session's SRC/CMD/TNS, or the controller's duplicate detection would discard it.
-        self._core = self._new_core(random.randrange(1, 0x10000))
+        # (``first_tns`` fixes it for replays of recorded traffic.)
+        self._first_tns = random.randrange(1, 0x10000) if first_tns is None else first_tns
+        self._core = self._new_core(self._first_tns)
         self._link_base = (0, 0, 0)  # enq, nak, bad frames of links before this one
         self._waiting: dict[int, asyncio.Future[TransactionEvent]] = {}
         self._timer: asyncio.TimerHandle | None = None
@@ -132,7 +135,8 @@ class Df1Driver(LinkDriver):
         old = self._core.link.counters
         enq, nak, bad = self._link_base
         self._link_base = (enq + old.enqs_sent, nak + old.naks_received, bad + old.bad_frames)
-        self._core = self._new_core(self._core.next_tns)
+        # a reconnect goes on from the last TNS (a new core: the line state is gone)
+        self._core = self._new_core(self._core.next_tns if self._core.counters.started else self._first_tns)
         for waiter in self._waiting.values():
             waiter.cancel()
         self._waiting.clear()
