@@ -869,7 +869,7 @@ def test_variants_table_defaults_and_bad_names() -> None:
     assert Slc500Simulator.VARIANTS == {
         "duplicate_detect": ("on", "off"),
         "duplicate_reply": ("ack_only", "resend"),
-        "ack_order": ("ack_first", "reply_first"),
+        "ack_order": ("ack_first", "reply_first", "embedded"),
         "bad_frame": ("nak", "silence", "ignore"),
         "enq_answer": ("last", "nak"),
     }
@@ -905,12 +905,17 @@ def test_duplicate_reply_resend_answers_a_duplicate_with_the_last_reply_again() 
     assert sim.counters.replies_resent == 1
 
 
-@pytest.mark.parametrize("order", ["ack_first", "reply_first"])
+@pytest.mark.parametrize("order", ["ack_first", "reply_first", "embedded"])
 def test_ack_order(order: str) -> None:
     sim = variant_sim(ack_order=order)
     frame = command_frame(read(N, 7, 5), tns=9)
-    expected = [ACK_SYMBOL, reply_frame(frame, words(5))]
-    assert wire_of(sim.receive(frame, 0.0)) == (expected if order == "ack_first" else expected[::-1])
+    reply = reply_frame(frame, words(5))
+    expected = {
+        "ack_first": [ACK_SYMBOL, reply],
+        "reply_first": [reply, ACK_SYMBOL],
+        "embedded": [reply[:2] + ACK_SYMBOL + reply[2:]],
+    }[order]
+    assert wire_of(sim.receive(frame, 0.0)) == expected
 
 
 def test_reply_first_with_a_dropped_reply_still_acks() -> None:

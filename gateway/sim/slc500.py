@@ -82,8 +82,8 @@ default; docs/controller-variants.md gives the manuals' words for each):
   ACKed and dropped, or (off, as the S4516-DF1 manual tells users to set it) executed again;
 * ``duplicate_reply`` ``ack_only`` | ``resend``: with detection on, a duplicate is only ACKed,
   or its last reply is sent again;
-* ``ack_order`` ``ack_first`` | ``reply_first``: the DLE ACK of a command goes before its reply,
-  or just after it;
+* ``ack_order`` ``ack_first`` | ``reply_first`` | ``embedded``: the DLE ACK of a command goes
+  before its reply, just after it, or inside the reply frame (an embedded response);
 * ``bad_frame`` ``nak`` | ``silence`` | ``ignore``: a damaged frame is answered DLE NAK, not
   answered (a DLE ENQ then gets DLE NAK), or not answered at all (ENQ gets the last response);
 * ``enq_answer`` ``last`` | ``nak``: DLE ENQ is answered with the last response symbol, or
@@ -425,7 +425,7 @@ class Slc500Simulator:
     VARIANTS: ClassVar[dict[str, tuple[str, ...]]] = {
         "duplicate_detect": ("on", "off"),
         "duplicate_reply": ("ack_only", "resend"),
-        "ack_order": ("ack_first", "reply_first"),
+        "ack_order": ("ack_first", "reply_first", "embedded"),
         "bad_frame": tuple(answer.value for answer in BadFrameAnswer),
         "enq_answer": tuple(answer.value for answer in EnqAnswer),
     }
@@ -448,7 +448,8 @@ class Slc500Simulator:
             bad_frame=BadFrameAnswer(self.variants["bad_frame"]),
             enq_answer=EnqAnswer(self.variants["enq_answer"]),
         )
-        self._reply_first = self.variants["ack_order"] == "reply_first"
+        self._reply_first = self.variants["ack_order"] != "ack_first"
+        self._embed_acks = self.variants["ack_order"] == "embedded"
         self._resend_reply = self.variants["duplicate_reply"] == "resend"
         self._rx = bytearray()  # bytes from the host not yet a whole frame or symbol
         self._last_reply: bytes | None = None  # the reply to the last message delivered
@@ -637,16 +638,24 @@ class Slc500Simulator:
                 self._send_due(now)
                 self._emit(out, link.data_to_send())
                 if hold and self.counters.replies_sent == replies_before and not self._pending:
-                    self._release_acks(out)  # nothing to answer (dropped, ignored, duplicate): ACK now
+                    self._release_acks(out, embed=False)  # nothing to answer (dropped, ignored ...): ACK now
             # held ACKs follow the reply that went out in this step
             if self._held_acks and not self._pending:
                 self._release_acks(out)
         return out
 
-    def _release_acks(self, out: list[Output]) -> None:
-        for _ in range(self._held_acks):
-            out.append(Output(0.0, ACK_SYMBOL))
+    def _release_acks(self, out: list[Output], *, embed: bool = True) -> None:
+        acks = ACK_SYMBOL * self._held_acks
         self._held_acks = 0
+        if embed and self._embed_acks and out:
+            # inside the reply frame that just went out, right after its DLE STX
+            # (1770-6.5.16 ch. 4: a receiver may embed its response symbols in a frame it sends)
+            data = out[-1].data
+            start = data.find(bytes((Symbol.DLE, Symbol.STX)))
+            if start >= 0:
+                out[-1] = Output(out[-1].delay, data[: start + 2] + acks + data[start + 2 :])
+                return
+        out.append(Output(0.0, acks))
 
     def _incoming_tokens(self) -> list[bytes]:
         """Whole frames and symbols from ``_rx`` (a partial one stays), after the inbound faults."""
