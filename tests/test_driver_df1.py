@@ -433,7 +433,8 @@ async def test_duplicate_detection_off_and_one_in_five_replies_lost_after_execut
         assert_exactly_once(ctl.sim, acked, unknown)
         # a lost reply of an applied write is proved by the read-back: it is a success, not 0x0B
         assert driver.transaction_counters.verified > 0
-        assert len(acked) + len(unknown) == 60 and not unknown
+        # unknown only when every read-back's reply was lost too (1 in 125 with two retries)
+        assert len(acked) + len(unknown) == 60 and len(unknown) <= 3, unknown
 
 
 @pytest.mark.parametrize("variants", pairwise(Slc500Simulator.VARIANTS), ids=variant_id)
