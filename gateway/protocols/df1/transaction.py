@@ -412,8 +412,9 @@ class Df1Transactions:
         if reply.tns not in txn.tns or reply.cmd != txn.request.CMD | REPLY_BIT:
             return
         if reply.tns != self._current_tns or self._state not in (TxnState.SENDING, TxnState.AWAIT_REPLY):
-            self.counters.late_replies += 1
-        self.link.confirm(txn.frame, now)
+            self.counters.late_replies += 1  # answers an earlier frame, not the one in flight
+        else:
+            self.link.confirm(txn.frame, now)
         self._reply = reply
         self._input(_In.REPLY_OK if reply.ok else _In.REPLY_REFUSED, now)
 
