@@ -92,6 +92,9 @@ default; docs/controller-variants.md gives the manuals' words for each):
 Known limit: a duplicated frame is ACKed twice by the host; if the second ACK arrives after
 the next reply frame left, the link takes it for that frame's ACK (see ``gateway.protocols.df1.link``).
 
+Beside this module: ``slc500_options`` (options, counters), ``slc500_data`` (the data table),
+``slc500_line`` (cutting the wire into frames, the damage faults do).
+
 This class does no I/O: ``receive(data, now)`` / ``poll(now)`` return the bytes to send.
 ``gateway.sim.serve`` runs it in-process, over TCP or on a pty.
 """
@@ -101,16 +104,15 @@ from __future__ import annotations
 import enum
 import math
 import random
-import re
 import struct
 from collections import deque
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import ClassVar, Final
 
 from gateway.errors import GatewayError
-from gateway.protocols.df1.address import AddressError, FileType, SlcAddress
-from gateway.protocols.df1.framing import ACK_SYMBOL, NEED_DATA, Checksum, Frame, FrameDecoder, Symbol
+from gateway.protocols.df1.address import FileType
+from gateway.protocols.df1.framing import ACK_SYMBOL, NEED_DATA, Symbol
 from gateway.protocols.df1.link import (
     BadFrameAnswer,
     Df1Link,
@@ -120,7 +122,6 @@ from gateway.protocols.df1.link import (
     SendFailed,
 )
 from gateway.protocols.df1.pccc import (
-    DataType,
     DiagnosticStatus,
     DiagnosticStatusInfo,
     FileInfo,
@@ -142,6 +143,9 @@ from gateway.protocols.df1.pccc import (
     encode_reply,
     encode_typed_data,
 )
+from gateway.sim.slc500_data import FILE_NAME_RE, SLOTS, TYPED_ID, WORDS_PER_SLOT, DataFile, data_files
+from gateway.sim.slc500_line import corrupt_frame, frame_message, garbage, is_write_packet, split_incoming, split_output
+from gateway.sim.slc500_options import Slc500Counters, Slc500Options
 from gateway.sim.variants import resolve_variants
 
 __all__ = ["ExtSts", "Output", "Slc500Counters", "Slc500Options", "Slc500Simulator"]
@@ -169,8 +173,6 @@ _TT: Final = 1 << 14  # timer timing
 _DN: Final = 1 << 13  # done
 _OV: Final = 1 << 12  # counter overflow
 
-_SLOTS: Final = 4
-_WORDS_PER_SLOT: Final = 8
 
 
 class ExtSts(enum.IntEnum):
@@ -190,212 +192,6 @@ class Output:
 
     delay: float
     data: bytes
-
-
-# ------------------------------------------------------------------------------------ options
-
-_ONE_IN_OPTIONS: Final = ("corrupt", "drop", "withhold_ack", "duplicate", "noise", "lose_in", "corrupt_in")
-_OPTION_NAMES: Final = (
-    *_ONE_IN_OPTIONS, "checksum", "station", "delay", "seed", "link_ack_timeout", "garble", "faults_on"
-)
-#: FNC of the CMD 0F commands that change the controller: typed logical write (AA), masked
-#: write (AB), typed write (67), word range write (00), set processor mode (80).
-_WRITE_FUNCTIONS: Final = frozenset({0xAA, 0xAB, 0x67, 0x00, 0x80})
-
-
-@dataclass(frozen=True, slots=True)
-class Slc500Options:
-    """Link settings and fault injection; ``1 in N`` faults are off at 0."""
-
-    checksum: Checksum = Checksum.CRC
-    station: int = 1  #: our DF1 node address
-    corrupt: int = 0  #: corrupt 1 in N outgoing frames
-    drop: int = 0  #: execute but never answer 1 in N commands
-    withhold_ack: int = 0  #: do not send the DLE ACK of 1 in N received good frames
-    duplicate: int = 0  #: send 1 in N outgoing frames twice
-    noise: int = 0  #: precede 1 in N outputs with garbage bytes
-    delay: float = 0.0  #: turnaround before each reply, seconds
-    seed: int = 1  #: seed of the fault generator
-    link_ack_timeout: float = 0.5  #: our link's ACK timeout (then DLE ENQ), seconds
-    lose_in: int = 0  #: lose 1 in N frames from the host whole
-    corrupt_in: int = 0  #: damage 1 in N frames from the host
-    faults_on: str = "all"  #: "writes": drop, lose_in and corrupt_in strike only write commands
-
-
-    def __post_init__(self) -> None:
-        if not 0 <= self.station <= 254:
-            raise ValueError(f"simulator option station={self.station}: a DF1 node address is 0-254")
-        for name in _ONE_IN_OPTIONS:
-            if getattr(self, name) < 0:
-                raise ValueError(f"simulator option {name}={getattr(self, name)}: 1 in N must not be negative")
-        if not (math.isfinite(self.delay) and self.delay >= 0):
-            raise ValueError(f"simulator option delay={self.delay}: seconds, 0 or more")
-        if self.faults_on not in ("all", "writes"):
-            raise ValueError(f"simulator option faults_on={self.faults_on!r}: choose all or writes")
-        if not (math.isfinite(self.link_ack_timeout) and self.link_ack_timeout > 0):
-            raise ValueError(f"simulator option link_ack_timeout={self.link_ack_timeout}: seconds, more than 0")
-
-    @classmethod
-    def from_options(cls, options: Mapping[str, str]) -> Slc500Options:
-        """Parse ``sim://slc504?...`` options (strings); ValueError names the bad option."""
-        unknown = sorted(set(options) - set(_OPTION_NAMES))
-        if unknown:
-            raise ValueError(
-                f"unknown slc504 simulator option(s) {', '.join(unknown)} (known: {', '.join(sorted(_OPTION_NAMES))})"
-            )
-        if "garble" in options and "corrupt" in options:
-            raise ValueError("simulator options garble and corrupt are the same; give only one")
-        one_in = {
-            name: _int_option(options, "garble" if name == "corrupt" and "garble" in options else name, 0)
-            for name in _ONE_IN_OPTIONS
-        }
-        return cls(
-            checksum=_checksum_option(options.get("checksum", "crc")),
-            station=_int_option(options, "station", 1),
-            corrupt=one_in["corrupt"],
-            drop=one_in["drop"],
-            withhold_ack=one_in["withhold_ack"],
-            duplicate=one_in["duplicate"],
-            noise=one_in["noise"],
-            delay=_float_option(options, "delay", 0.0),
-            seed=_int_option(options, "seed", 1),
-            link_ack_timeout=_float_option(options, "link_ack_timeout", 0.5),
-            lose_in=one_in["lose_in"],
-            corrupt_in=one_in["corrupt_in"],
-            faults_on=options.get("faults_on", "all").strip().lower(),
-        )
-
-
-def _int_option(options: Mapping[str, str], key: str, default: int) -> int:
-    text = options.get(key)
-    if text is None:
-        return default
-    try:
-        return int(text.strip())
-    except ValueError:
-        raise ValueError(f"simulator option {key}={text!r} is not a whole number") from None
-
-
-def _float_option(options: Mapping[str, str], key: str, default: float) -> float:
-    text = options.get(key)
-    if text is None:
-        return default
-    try:
-        return float(text.strip())
-    except ValueError:
-        raise ValueError(f"simulator option {key}={text!r} is not a number") from None
-
-
-def _checksum_option(text: str) -> Checksum:
-    try:
-        return Checksum(text.strip().lower())
-    except ValueError:
-        raise ValueError(f"simulator option checksum={text!r}: choose bcc or crc") from None
-
-
-# ---------------------------------------------------------------------------------- counters
-
-
-@dataclass
-class Slc500Counters:
-    """What the simulator saw and did (the link's own counters are in ``simulator.link.counters``)."""
-
-    frames_received: int = 0  #: good frames, duplicates included
-    duplicates_received: int = 0  #: frames dropped by the link's duplicate detection
-    ignored: int = 0  #: packets not for our station, replies, packets without a PCCC header
-    replies_sent: int = 0  #: reply packets queued on the link
-    replies_acked: int = 0
-    replies_failed: int = 0  #: the link gave up (NAK or ENQ limit)
-    refusals: int = 0  #: replies with STS != 0
-    dropped: int = 0
-    corrupted: int = 0
-    withheld_acks: int = 0
-    duplicates: int = 0  #: frames sent twice
-    noise: int = 0
-    lost_in: int = 0  #: frames from the host lost whole (``lose_in``)
-    corrupted_in: int = 0  #: frames from the host damaged (``corrupt_in``)
-    replies_resent: int = 0  #: replies sent again for a duplicate (``duplicate_reply=resend``)
-    commands: dict[str, int] = field(default_factory=dict)  #: by kind: "read", "write", ...
-
-
-# --------------------------------------------------------------------------------- data table
-
-
-@dataclass
-class _DataFile:
-    """One data file: ``elements`` elements of ``element_words`` words, as a flat byte image."""
-
-    file_type: FileType
-    number: int
-    elements: int
-    element_words: int
-    data: bytearray = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.data = bytearray(self.elements * self.element_words * 2)
-
-    @property
-    def name(self) -> str:
-        return f"{self.file_type.letter}{self.number}"
-
-    @property
-    def element_bytes(self) -> int:
-        return self.element_words * 2
-
-    @property
-    def is_io(self) -> bool:
-        return self.file_type in (FileType.INPUT, FileType.OUTPUT)
-
-    @property
-    def typed_element_bytes(self) -> int:
-        """Element size for typed read / write: I/O images are plain words there."""
-        return 2 if self.is_io else self.element_bytes
-
-    def word(self, offset: int) -> int:
-        return int.from_bytes(self.data[offset : offset + 2], "little")
-
-    def set_word(self, offset: int, value: int) -> None:
-        self.data[offset : offset + 2] = (value & 0xFFFF).to_bytes(2, "little")
-
-    def address_text(self, element: int, sub_element: int) -> str:
-        try:
-            return str(SlcAddress(self.file_type, self.number, element, sub_element))
-        except AddressError:
-            return f"{self.name}:{element}.{sub_element}"
-
-
-#: Type ID of typed read / write per file type (notes §5.0 "Data Type ID for SLC").
-_TYPED_ID: Final = {
-    FileType.OUTPUT: DataType.INTEGER,
-    FileType.INPUT: DataType.INTEGER,
-    FileType.STATUS: DataType.INTEGER,
-    FileType.BIT: DataType.BIT,
-    FileType.TIMER: DataType.TIMER,
-    FileType.COUNTER: DataType.COUNTER,
-    FileType.CONTROL: DataType.CONTROL,
-    FileType.INTEGER: DataType.INTEGER,
-    FileType.FLOAT: DataType.FLOAT,
-}
-
-_FILE_NAME_RE: Final = re.compile(r"(?P<letter>[OISBTCRNF])(?P<number>\d*)")
-
-
-def _data_files() -> dict[int, _DataFile]:
-    files = [
-        _DataFile(FileType.OUTPUT, 0, _SLOTS, _WORDS_PER_SLOT),
-        _DataFile(FileType.INPUT, 1, _SLOTS, _WORDS_PER_SLOT),
-        _DataFile(FileType.STATUS, 2, 164, 1),
-        _DataFile(FileType.BIT, 3, 64, 1),
-        _DataFile(FileType.TIMER, 4, 20, 3),
-        _DataFile(FileType.COUNTER, 5, 20, 3),
-        _DataFile(FileType.CONTROL, 6, 10, 3),
-        _DataFile(FileType.INTEGER, 7, 256, 1),
-        _DataFile(FileType.FLOAT, 8, 64, 2),
-        _DataFile(FileType.INTEGER, 10, 100, 1),
-        _DataFile(FileType.BIT, 12, 16, 1),
-        _DataFile(FileType.FLOAT, 13, 10, 2),
-    ]
-    return {f.number: f for f in files}
 
 
 class _Refuse(Exception):
@@ -458,7 +254,7 @@ class Slc500Simulator:
         #: Kinds: "write" (FNC AA), "masked_write" (AB), "typed_write" (67), "mode" (80).
         self.applied_writes: list[tuple[str, str, bytes]] = []
         self._rng = random.Random(self.options.seed)
-        self._files = _data_files()
+        self._files = data_files()
         self._pending: deque[tuple[float, bytes]] = deque()  # (due, reply packet)
         self._ladder_origin: float | None = None
         self._ladder_ticks = 0
@@ -479,9 +275,9 @@ class Slc500Simulator:
         for data_file in self._files.values():
             data_file.data[:] = bytes(len(data_file.data))
         output, inputs = self._files[0], self._files[1]
-        for slot in range(_SLOTS):
-            for word in range(_WORDS_PER_SLOT):
-                offset = (slot * _WORDS_PER_SLOT + word) * 2
+        for slot in range(SLOTS):
+            for word in range(WORDS_PER_SLOT):
+                offset = (slot * WORDS_PER_SLOT + word) * 2
                 output.set_word(offset, 0x0100 * slot + word)
                 inputs.set_word(offset, 0x1000 + 0x0100 * slot + word)
         self.set_word("S2", 1, _KEYSWITCH_REM | ProcessorMode.RUN)
@@ -502,9 +298,9 @@ class Slc500Simulator:
         for k in range(64):
             self.set_float("F8", k, 1.5 * k)
 
-    def _file(self, name: str) -> _DataFile:
+    def _file(self, name: str) -> DataFile:
         """The file named like ``N7``, ``F8``, ``T4``, ``O0`` / ``O``, ``I1`` / ``I``, ``S2`` / ``S``."""
-        match = _FILE_NAME_RE.fullmatch(name.strip().upper())
+        match = FILE_NAME_RE.fullmatch(name.strip().upper())
         if match is None:
             raise KeyError(f"{name!r}: expected a file name like N7, F8, T4, O0, I1, S2")
         letter, number_text = match["letter"], match["number"]
@@ -514,7 +310,7 @@ class Slc500Simulator:
             raise KeyError(f"{name!r}: no such file in the simulated data table")
         return data_file
 
-    def _offset(self, data_file: _DataFile, element: int, sub: int) -> int:
+    def _offset(self, data_file: DataFile, element: int, sub: int) -> int:
         if not (0 <= element < data_file.elements and 0 <= sub < data_file.element_words):
             raise IndexError(f"{data_file.name}: element {element} sub-element {sub} out of range")
         return element * data_file.element_bytes + sub * 2
@@ -660,49 +456,16 @@ class Slc500Simulator:
     def _incoming_tokens(self) -> list[bytes]:
         """Whole frames and symbols from ``_rx`` (a partial one stays), after the inbound faults."""
         tokens: list[bytes] = []
-        rx = self._rx
-        check = self.options.checksum.size
-        i = 0
-        while i < len(rx):
-            if rx[i] != Symbol.DLE:  # garbage between frames: the link skips it
-                j = i
-                while j < len(rx) and rx[j] != Symbol.DLE:
-                    j += 1
-                tokens.append(bytes(rx[i:j]))
-                i = j
-                continue
-            if i + 1 >= len(rx):
-                break
-            if rx[i + 1] != Symbol.STX:
-                tokens.append(bytes(rx[i : i + 2]))
-                i += 2
-                continue
-            j, end, aborted = i + 2, None, False
-            while j + 1 < len(rx):
-                if rx[j] != Symbol.DLE:
-                    j += 1
-                elif rx[j + 1] == Symbol.DLE:
-                    j += 2
-                elif rx[j + 1] == Symbol.ETX:
-                    end = j + 2 + check if j + 2 + check <= len(rx) else None
-                    break
-                else:  # DLE STX / DLE ENQ ... inside the frame: let the link judge it as it is
-                    end, aborted = j, True
-                    break
-            if end is None:
-                break  # not whole yet
-            frame = bytes(rx[i:end])
-            i = end
-            if aborted or not self._strikes(frame):
-                tokens.append(frame)
+        for token, whole_frame in split_incoming(self._rx, self.options.checksum):
+            if not whole_frame or not self._strikes(token):
+                tokens.append(token)
             elif self._one_in(self.options.lose_in):
                 self.counters.lost_in += 1
             elif self._one_in(self.options.corrupt_in):
                 self.counters.corrupted_in += 1
-                tokens.append(self._corrupt(frame))
+                tokens.append(corrupt_frame(token, self.options.checksum, self._rng))
             else:
-                tokens.append(frame)
-        del rx[:i]
+                tokens.append(token)
         return tokens
 
     def poll(self, now: float) -> list[Output]:
@@ -752,25 +515,21 @@ class Slc500Simulator:
 
     def _is_write(self, packet: bytes) -> bool:
         """Do the faults restricted by ``faults_on`` strike this command packet?"""
-        if self.options.faults_on == "all":
-            return True
-        return len(packet) > 6 and packet[2] == 0x0F and packet[6] in _WRITE_FUNCTIONS
+        return self.options.faults_on == "all" or is_write_packet(packet)
 
     def _strikes(self, frame: bytes) -> bool:
         """May an inbound fault strike this whole frame (``faults_on``)?"""
         if self.options.faults_on == "all":
             return True
-        decoder = FrameDecoder(self.options.checksum)
-        decoder.feed(frame)
-        event = decoder.next_event()
-        return isinstance(event, Frame) and self._is_write(event.message)
+        message = frame_message(frame, self.options.checksum)
+        return message is not None and is_write_packet(message)
 
     def _one_in(self, n: int) -> bool:
         return n > 0 and self._rng.randrange(n) == 0
 
     def _emit(self, out: list[Output], data: bytes, *, withhold: bool = False) -> None:
         """Turn link output into outputs, one per frame or symbol, applying the faults."""
-        for token in _split_output(data, self.options.checksum):
+        for token in split_output(data, self.options.checksum):
             if withhold and token == ACK_SYMBOL:
                 withhold = False
                 self.counters.withheld_acks += 1
@@ -780,33 +539,15 @@ class Slc500Simulator:
                 retransmission, self._last_frame = token == self._last_frame, token
                 if not retransmission and self._one_in(self.options.corrupt):
                     self.counters.corrupted += 1
-                    copies = [self._corrupt(token)]
+                    copies = [corrupt_frame(token, self.options.checksum, self._rng)]
                 elif self._one_in(self.options.duplicate):
                     self.counters.duplicates += 1
                     copies = [token, token]
             for copy in copies:
                 if self._one_in(self.options.noise):
                     self.counters.noise += 1
-                    copy = self._garbage() + copy
+                    copy = garbage(self._rng) + copy
                 out.append(Output(0.0, copy))
-
-    def _corrupt(self, frame: bytes) -> bytes:
-        """Change one message byte (never a DLE, never into a DLE): the check no longer matches."""
-        body = bytearray(frame)
-        end = len(body) - 2 - self.options.checksum.size  # index of the closing DLE
-        candidates = [i for i in range(2, end) if body[i] != Symbol.DLE]
-        if not candidates:  # a message of nothing but DLEs: damage the check instead
-            body[-1] ^= 0x01
-            return bytes(body)
-        index = self._rng.choice(candidates)
-        while True:
-            value = body[index] ^ (1 << self._rng.randrange(8))
-            if value != Symbol.DLE:
-                body[index] = value
-                return bytes(body)
-
-    def _garbage(self) -> bytes:
-        return bytes(self._rng.choice(_NOISE_BYTES) for _ in range(self._rng.randint(1, 8)))
 
     # --- commands ---------------------------------------------------------------------------
 
@@ -875,7 +616,7 @@ class Slc500Simulator:
         request: ProtectedTypedLogicalRead | ProtectedTypedLogicalWrite | ProtectedTypedLogicalMaskedWrite,
         size: int,
         limit: int,
-    ) -> tuple[_DataFile, int]:
+    ) -> tuple[DataFile, int]:
         """(file, byte offset) of a three-address-field command moving ``size`` bytes."""
         if size > limit:
             raise _Refuse(Sts.EXTENDED, ExtSts.TOO_LARGE)
@@ -913,7 +654,7 @@ class Slc500Simulator:
             ("masked_write", data_file.address_text(request.element, request.sub_element), request.data)
         )
 
-    def _typed_target(self, address: LogicalBinaryAddress, packet_offset: int) -> tuple[_DataFile, int]:
+    def _typed_target(self, address: LogicalBinaryAddress, packet_offset: int) -> tuple[DataFile, int]:
         """(file, element) of a logical binary address: levels section, file, element, sub-element."""
         if address.mask & ~0x0F:
             raise _Refuse(Sts.EXTENDED, ExtSts.MORE_LEVELS)
@@ -927,7 +668,7 @@ class Slc500Simulator:
             raise _not_usable()
         return data_file, element + packet_offset
 
-    def _typed_span(self, data_file: _DataFile, element: int, size: int) -> int:
+    def _typed_span(self, data_file: DataFile, element: int, size: int) -> int:
         if size > MAX_READ_BYTES:
             raise _Refuse(Sts.EXTENDED, ExtSts.TOO_LARGE)
         offset = element * data_file.typed_element_bytes
@@ -945,7 +686,7 @@ class Slc500Simulator:
         size = request.count * element_bytes
         offset = self._typed_span(data_file, element, size)
         return encode_typed_data(
-            _TYPED_ID[data_file.file_type], element_bytes, bytes(data_file.data[offset : offset + size])
+            TYPED_ID[data_file.file_type], element_bytes, bytes(data_file.data[offset : offset + size])
         )
 
     def _typed_write(self, request: TypedWrite) -> None:
@@ -955,7 +696,7 @@ class Slc500Simulator:
         if len(request.data) > MAX_WRITE_BYTES:
             raise _Refuse(Sts.EXTENDED, ExtSts.TOO_LARGE)
         element_bytes = data_file.typed_element_bytes
-        if request.data_type != _TYPED_ID[data_file.file_type] or request.element_size != element_bytes:
+        if request.data_type != TYPED_ID[data_file.file_type] or request.element_size != element_bytes:
             raise _Refuse(Sts.EXTENDED, ExtSts.ILLEGAL_DATA_TYPE)
         offset = self._typed_span(data_file, element, len(request.data))
         data_file.data[offset : offset + len(request.data)] = request.data
@@ -976,27 +717,3 @@ class Slc500Simulator:
             raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
         self.set_mode(request.mode)
         self.applied_writes.append(("mode", "S:1", bytes((request.mode,))))
-
-
-_NOISE_BYTES: Final = tuple(b for b in range(256) if b != Symbol.DLE)
-
-
-def _split_output(data: bytes, checksum: Checksum) -> list[bytes]:
-    """Split well-formed link output into frames (``DLE STX .. DLE ETX check``) and ``DLE x`` symbols."""
-    tokens: list[bytes] = []
-    i = 0
-    while i < len(data):
-        if data[i] != Symbol.DLE or i + 1 >= len(data):  # cannot happen with Df1Link output; keep it whole
-            tokens.append(data[i:])
-            break
-        if data[i + 1] != Symbol.STX:
-            tokens.append(data[i : i + 2])
-            i += 2
-            continue
-        j = i + 2
-        while j + 1 < len(data) and not (data[j] == Symbol.DLE and data[j + 1] == Symbol.ETX):
-            j += 2 if data[j] == Symbol.DLE else 1
-        end = min(len(data), j + 2 + checksum.size)
-        tokens.append(data[i:end])
-        i = end
-    return tokens
