@@ -45,7 +45,7 @@ from gateway.modbus.mapping_df1 import MapItem
 from gateway.protocols.df1.framing import NEED_DATA as DF1_NEED_DATA
 from gateway.protocols.df1.framing import Checksum, encode_frame
 from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete
-from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, TnsAllocator, decode_reply
+from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, decode_reply
 from gateway.protocols.df1.pccc import encode_command as encode_pccc
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.framing import NEED_DATA, ReplyDecoder
@@ -215,11 +215,10 @@ def opener_for(stream: CannedStream) -> Callable[..., Any]:
 def make_driver(protocol: str, stream: CannedStream) -> Any:
     if protocol == "slc":
         return SlcAsciiDriver("canned://slc", opener=opener_for(stream))
-    driver = Df1Driver("canned://df1", opener=opener_for(stream), settings=SerialSettings(19200, 8, "N", 1))
     # The driver starts at a random TNS (so that a new session is never taken for a repeat of
     # the last); the replay needs the frames it recorded, so both passes start at TNS 1 here.
-    driver._tns = TnsAllocator(1)
-    return driver
+    return Df1Driver("canned://df1", opener=opener_for(stream), settings=SerialSettings(19200, 8, "N", 1),
+                     first_tns=1)
 
 
 async def driver_level(

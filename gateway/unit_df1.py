@@ -5,9 +5,9 @@ the float); coils with masked writes (0F AB) so that only the written bit change
 read-modify-write race with the ladder.  PCCC errors map to Modbus exceptions: an address
 problem answers 0x02, another refusal 0x04, no answer 0x0B.
 
-When the controller took a write's frame but its reply never came, the outcome is unknown;
-the unit then reads the value back once: if it holds what was written the write succeeded,
-otherwise SCADA gets 0x0B.  A write is never sent twice.
+When a write's frame may have reached the controller but its reply never came, the driver's
+transaction core (``gateway.protocols.df1.transaction``) reads the target back: if it holds
+what was written the write succeeded, otherwise SCADA gets 0x0B.  A write is never sent twice.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import struct
 from typing import Any, cast
 
 from gateway.config import LinkConfig
-from gateway.drivers.df1 import Df1Driver, WriteOutcomeUnknown, check_reply_size
+from gateway.drivers.df1 import Df1Driver, check_reply_size
 from gateway.errors import ControllerRefused, ModbusExceptionReply
 from gateway.modbus.mapping import Block
 from gateway.modbus.mapping_df1 import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, plan_df1
@@ -66,41 +66,25 @@ class Df1Unit(Unit):
         reply = await self.driver.execute(request, f"read {block.label}")
         return check_reply_size(reply, read.size, f"read {block.label}")
 
-    async def _read_word_bytes(self, address: SlcAddress, size: int) -> bytes:
-        request = ProtectedTypedLogicalRead(
-            address.file_type, address.file_number, address.element, address.sub_element, size
-        )
-        reply = await self.driver.execute(request, f"read back {address}", write=True)
-        return reply.data
-
-    async def _write(self, request: Any, address: SlcAddress, expect: bytes, mask: int = 0xFFFF) -> None:
+    async def _write(self, request: Any, address: SlcAddress) -> None:
         try:
             await self.driver.execute(request, f"write {address}")
         except PcccError as exc:
             raise pccc_exception(exc) from exc
-        except WriteOutcomeUnknown:
-            # Find out by reading it back; never send the write again.
-            data = await self._read_word_bytes(address, len(expect))
-            if len(expect) == 2:
-                ok = (int.from_bytes(data[:2], "little") & mask) == (int.from_bytes(expect, "little") & mask)
-            else:
-                ok = data[: len(expect)] == expect
-            if not ok:
-                raise
 
     async def _write_register(self, target: object, value: int) -> None:
         assert isinstance(target, Df1WordWrite)
         a = target.address
         data = value.to_bytes(2, "little")
         request = ProtectedTypedLogicalWrite(a.file_type, a.file_number, a.element, a.sub_element, data)
-        await self._write(request, a, data)
+        await self._write(request, a)
 
     async def _write_float(self, target: object, raw: int) -> None:
         assert isinstance(target, Df1WordWrite)
         a = target.address
         data = struct.pack("<I", raw)
         request = ProtectedTypedLogicalWrite(a.file_type, a.file_number, a.element, a.sub_element, data)
-        await self._write(request, a, data)
+        await self._write(request, a)
 
     async def _write_bit(self, target: object, value: bool) -> None:
         assert isinstance(target, Df1BitWrite)
@@ -108,7 +92,7 @@ class Df1Unit(Unit):
         mask = 1 << target.bit
         data = (mask if value else 0).to_bytes(2, "little")
         request = ProtectedTypedLogicalMaskedWrite(a.file_type, a.file_number, a.element, a.sub_element, mask, data)
-        await self._write(request, a, data, mask)
+        await self._write(request, a)
 
     def refusal_exception(self, error: ControllerRefused) -> ModbusExceptionReply:
         if isinstance(error, PcccError):

@@ -902,20 +902,24 @@ def test_map_entry_type_table_and_address_rules(body: str, key: str, message: st
 
 
 @pytest.mark.parametrize(
-    ("body"),
+    ("body", "table", "address", "value_type"),
     [
-        'table = "coil"\naddress = "N7:0/0"',
-        'table = "coil"\naddress = "B3:0"',
-        'table = "discrete"\naddress = "I:1.0/3"',
-        'table = "discrete"\naddress = "T4:2.DN"',
-        'table = "holding"\naddress = "T4:0.ACC"',
-        'table = "input"\naddress = "S:3"',
-        'table = "holding"\ntype = "uint16"\naddress = "N10:5"',
-        'table = "input"\ntype = "float32"\naddress = "F8:0"',
+        ('table = "coil"\naddress = "N7:0/0"', "coil", "N7:0/0", "bool"),
+        ('table = "coil"\naddress = "B3:0"', "coil", "B3:0", "bool"),
+        ('table = "discrete"\naddress = "I:1.0/3"', "discrete", "I:1.0/3", "bool"),
+        ('table = "discrete"\naddress = "T4:2.DN"', "discrete", "T4:2.DN", "bool"),
+        ('table = "holding"\naddress = "T4:0.ACC"', "holding", "T4:0.ACC", "int16"),
+        ('table = "input"\naddress = "S:3"', "input", "S:3", "int16"),
+        ('table = "holding"\ntype = "uint16"\naddress = "N10:5"', "holding", "N10:5", "uint16"),
+        ('table = "input"\ntype = "float32"\naddress = "F8:0"', "input", "F8:0", "float32"),
     ],
 )
-def test_map_entry_good_combinations(body: str) -> None:
-    parse_config(df1_with_maps(f"start = 0\ncount = 1\n{body}"))
+def test_map_entry_good_combinations(body: str, table: str, address: str, value_type: str) -> None:
+    config = parse_config(df1_with_maps(f"start = 0\ncount = 1\n{body}"))
+    [link] = config.link
+    [entry] = link.map
+    assert (entry.table, entry.address, entry.type, entry.start, entry.count) == (table, address, value_type, 0, 1)
+    assert entry.width == (2 if value_type == "float32" else 1)
 
 
 def test_float32_end_counts_two_registers() -> None:

@@ -189,12 +189,16 @@ def test_never_wedged_by_any_byte_stream(noise: bytes, checksum: Checksum) -> No
     decoder = FrameDecoder(checksum, max_message=128)
     decoder.feed(noise)
     drain(decoder)
-    # Whatever came before, a DLE STX starts a fresh frame that decodes.
+    # Whatever came before, the decoder is back in step within one frame: of three copies of a
+    # frame the last two decode, and the first either decodes too or is judged bad (the noise
+    # had opened a frame, or left a DLE that pairs with the frame's first one) - never lost
+    # silently, never taken for something else.
     frame = encode_frame(VECTOR, checksum)
-    decoder.feed(frame + frame)
+    decoder.feed(frame * 3)
     events = drain(decoder)
-    assert events[-1] == Frame(VECTOR)
-    assert Frame(VECTOR) in events[:-1] or events.count(Frame(VECTOR)) >= 1
+    assert events[-2:] == [Frame(VECTOR), Frame(VECTOR)]
+    first = events[:-2]
+    assert first == [Frame(VECTOR)] or (1 <= len(first) <= 2 and all(isinstance(e, BadFrame) for e in first)), first
 
 
 @settings(max_examples=200, deadline=None)

@@ -522,3 +522,46 @@ def test_soak_both_ways_in_order_without_duplicates(seed: int) -> None:
         assert len(set(delivered)) == len(delivered)
         positions = [sent.index(m) for m in delivered]
         assert positions == sorted(positions)
+
+
+# ------------------------------------------------------- frames that must not run twice (writes)
+
+
+@pytest.mark.parametrize("enquire_first", [False, True])
+def test_a_nak_never_retransmits_a_frame_sent_as_not_idempotent(enquire_first: bool) -> None:
+    link = Df1Link(checksum=Checksum.CRC, ack_timeout=0.5, max_nak=3)
+    handle = link.send(packet(1), 0.0, idempotent=False)
+    frame = link.data_to_send()
+    assert frame == encode_frame(packet(1), Checksum.CRC)
+    if enquire_first:
+        link.handle_timeout(0.5)
+        assert link.data_to_send() == ENQ_SYMBOL
+    link.receive_data(NAK_SYMBOL, 0.6)
+    assert link.data_to_send() == b""  # not sent again: the NAK is no proof it was discarded
+    assert link.next_event() == SendFailed(handle, SendFailure.AMBIGUOUS_NAK)
+    assert link.tx_state is TxState.IDLE and link.counters.retransmissions == 0
+
+
+def test_a_nak_retransmits_an_idempotent_frame() -> None:
+    link = Df1Link(checksum=Checksum.CRC, ack_timeout=0.5)
+    link.send(packet(1), 0.0)
+    frame = link.data_to_send()
+    link.receive_data(NAK_SYMBOL, 0.1)
+    assert link.data_to_send() == frame
+
+
+def test_confirm_completes_the_frame_and_the_next_answer_is_owed_to_it() -> None:
+    link = Df1Link(checksum=Checksum.CRC, ack_timeout=0.5)
+    first = link.send(packet(1), 0.0)
+    link.data_to_send()
+    link.confirm(first + 100, 0.1)  # not the frame in flight: nothing
+    assert link.tx_state is TxState.AWAIT_ACK
+    link.confirm(first, 0.1)
+    assert link.next_event() == SendComplete(first)
+    assert link.next_deadline() is None
+    second = link.send(packet(2), 0.2)
+    link.data_to_send()
+    link.receive_data(ACK_SYMBOL, 0.3)  # the first frame's late ACK
+    assert link.tx_state is TxState.AWAIT_ACK and link.next_event() is NEED_DATA
+    link.receive_data(ACK_SYMBOL, 0.3)
+    assert link.next_event() == SendComplete(second)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import struct
+from typing import Any
 
 import pytest
 from hypothesis import given, settings
@@ -28,6 +29,7 @@ from gateway.protocols.df1.pccc import (
     DiagnosticStatusInfo,
     FileInfo,
     LogicalBinaryAddress,
+    PcccHeader,
     PcccReply,
     ProcessorFamily,
     ProcessorMode,
@@ -44,6 +46,7 @@ from gateway.protocols.df1.pccc import (
     decode_reply,
     decode_typed_data,
     encode_command,
+    encode_reply,
 )
 from gateway.sim import create_simulator
 from gateway.sim.serve import SimStream
@@ -182,7 +185,14 @@ def test_other_station_number() -> None:
     bench = Bench(station="9")
     assert bench.transact(DiagnosticStatus(), dst=1, timeout=1.0) is None
     assert bench.sim.counters.ignored == 1
-    assert bench.transact(DiagnosticStatus(), dst=9) is not None
+    tns = bench.send(DiagnosticStatus(), dst=9)
+    info = DiagnosticStatusInfo.build(
+        processor_type=0x5B, series="C", frn=3, catalog="1747-L542", mode_status=ProcessorMode.RUN
+    )
+    # the reply, byte for byte: DST 0 (our SRC), SRC 9, CMD 06 | 40, STS 0, our TNS, the status
+    packet = bytes((0x00, 0x09, 0x46, 0x00)) + tns.to_bytes(2, "little") + info.raw
+    assert bench.wire == [ACK_SYMBOL, ACK_SYMBOL, encode_frame(packet, Checksum.CRC)]
+    assert bench.wait(tns) == decode_reply(packet)
 
 
 # ---------------------------------------------------------------------------------------- reads
@@ -829,3 +839,147 @@ async def test_through_sim_stream() -> None:
         assert sim.applied_writes == [("write", "N7:50", words(-3))]
     finally:
         await stream.close()
+
+
+# ------------------------------------------------------------------ variants: one per reading
+
+
+NAK = b"\x10\x15"
+
+
+def wire_of(outputs: list[Any]) -> list[bytes]:
+    return [out.data for out in outputs]
+
+
+def command_frame(request: Request, tns: int, checksum: Checksum = Checksum.CRC) -> bytes:
+    return encode_frame(encode_command(request, dst=1, src=0, tns=tns), checksum)
+
+
+def reply_frame(frame: bytes, data: bytes = b"") -> bytes:
+    [event] = decode_wire(frame)
+    assert isinstance(event, WireFrame)
+    return encode_frame(encode_reply(PcccHeader.decode(event.message), data=data), Checksum.CRC)
+
+
+def variant_sim(**variants: str) -> Slc500Simulator:
+    return Slc500Simulator(Slc500Options(link_ack_timeout=0.5), ladder=False, variants=variants)
+
+
+def test_variants_table_defaults_and_bad_names() -> None:
+    assert Slc500Simulator.VARIANTS == {
+        "duplicate_detect": ("on", "off"),
+        "duplicate_reply": ("ack_only", "resend"),
+        "ack_order": ("ack_first", "reply_first", "embedded"),
+        "bad_frame": ("nak", "silence", "ignore"),
+        "enq_answer": ("last", "nak"),
+    }
+    assert variant_sim().variants == {name: values[0] for name, values in Slc500Simulator.VARIANTS.items()}
+    with pytest.raises(ValueError, match="unknown variant 'dup'"):
+        variant_sim(dup="on")
+    with pytest.raises(ValueError, match="is not one of on, off"):
+        variant_sim(duplicate_detect="maybe")
+    sim = Slc500Simulator.from_options({"drop": "3"}, variants={"ack_order": "reply_first"})
+    assert sim.variants["ack_order"] == "reply_first" and sim.options.drop == 3
+
+
+@pytest.mark.parametrize(("detect", "runs"), [("on", 1), ("off", 2)])
+def test_duplicate_detection_on_drops_a_resent_write_off_runs_it_again(detect: str, runs: int) -> None:
+    sim = variant_sim(duplicate_detect=detect)
+    frame = command_frame(write(N, 7, 3, b"\x01\x00"), tns=5)
+    first = wire_of(sim.receive(frame, 0.0))
+    assert first == [ACK_SYMBOL, reply_frame(frame)]
+    sim.receive(ACK_SYMBOL, 0.0)
+    second = wire_of(sim.receive(frame, 0.1))
+    assert second == ([ACK_SYMBOL] if detect == "on" else [ACK_SYMBOL, reply_frame(frame)])
+    assert sim.applied_writes == [("write", "N7:3", b"\x01\x00")] * runs
+    assert sim.counters.duplicates_received == (1 if detect == "on" else 0)
+
+
+def test_duplicate_reply_resend_answers_a_duplicate_with_the_last_reply_again() -> None:
+    sim = variant_sim(duplicate_reply="resend")
+    frame = command_frame(write(N, 7, 3, b"\x01\x00"), tns=5)
+    sim.receive(frame, 0.0)
+    sim.receive(ACK_SYMBOL, 0.0)
+    assert wire_of(sim.receive(frame, 0.1)) == [ACK_SYMBOL, reply_frame(frame)]
+    assert sim.applied_writes == [("write", "N7:3", b"\x01\x00")]  # still executed once
+    assert sim.counters.replies_resent == 1
+
+
+@pytest.mark.parametrize("order", ["ack_first", "reply_first", "embedded"])
+def test_ack_order(order: str) -> None:
+    sim = variant_sim(ack_order=order)
+    frame = command_frame(read(N, 7, 5), tns=9)
+    reply = reply_frame(frame, words(5))
+    expected = {
+        "ack_first": [ACK_SYMBOL, reply],
+        "reply_first": [reply, ACK_SYMBOL],
+        "embedded": [reply[:2] + ACK_SYMBOL + reply[2:]],
+    }[order]
+    assert wire_of(sim.receive(frame, 0.0)) == expected
+
+
+def test_reply_first_with_a_dropped_reply_still_acks() -> None:
+    sim = Slc500Simulator(Slc500Options(drop=1), ladder=False, variants={"ack_order": "reply_first"})
+    assert wire_of(sim.receive(command_frame(read(N, 7, 5), tns=9), 0.0)) == [ACK_SYMBOL]
+
+
+def test_reply_first_with_a_turnaround_acks_after_the_reply() -> None:
+    sim = Slc500Simulator(Slc500Options(delay=0.2), ladder=False, variants={"ack_order": "reply_first"})
+    frame = command_frame(read(N, 7, 5), tns=9)
+    assert wire_of(sim.receive(frame, 0.0)) == []
+    assert wire_of(sim.poll(0.2)) == [reply_frame(frame, words(5)), ACK_SYMBOL]
+
+
+def damaged(frame: bytes) -> bytes:
+    body = bytearray(frame)
+    body[8] ^= 0x01  # a message byte (not a DLE): the CRC no longer matches
+    return bytes(body)
+
+
+@pytest.mark.parametrize(
+    ("answer", "at_once", "on_enq"),
+    [("nak", [NAK], [NAK]), ("silence", [], [NAK]), ("ignore", [], [ACK_SYMBOL])],
+)
+def test_bad_frame_readings(answer: str, at_once: list[bytes], on_enq: list[bytes]) -> None:
+    sim = variant_sim(bad_frame=answer)
+    good = command_frame(read(N, 7, 5), tns=1)
+    sim.receive(good, 0.0)  # the last response is now DLE ACK
+    sim.receive(ACK_SYMBOL, 0.0)
+    bad = damaged(command_frame(write(N, 7, 3, b"\x01\x00"), tns=2))
+    assert wire_of(sim.receive(bad, 0.1)) == at_once
+    assert wire_of(sim.receive(ENQ_SYMBOL, 0.2)) == on_enq
+    assert sim.applied_writes == [] and sim.link.counters.bad_frames == 1
+
+
+@pytest.mark.parametrize(("answer", "expected"), [("last", ACK_SYMBOL), ("nak", NAK)])
+def test_enq_answer(answer: str, expected: bytes) -> None:
+    sim = variant_sim(enq_answer=answer)
+    sim.receive(command_frame(read(N, 7, 5), tns=1), 0.0)
+    sim.receive(ACK_SYMBOL, 0.0)
+    assert wire_of(sim.receive(ENQ_SYMBOL, 0.1)) == [expected]
+
+
+def test_inbound_faults_lose_and_damage_frames_from_the_host() -> None:
+    lose = Slc500Simulator(Slc500Options(lose_in=1), ladder=False)
+    frame = command_frame(write(N, 7, 3, b"\x01\x00"), tns=2)
+    assert wire_of(lose.receive(frame[:5], 0.0)) == []  # a partial frame waits for the rest
+    assert wire_of(lose.receive(frame[5:], 0.0)) == []
+    assert lose.counters.lost_in == 1 and lose.counters.frames_received == 0 and lose.applied_writes == []
+    assert wire_of(lose.receive(ENQ_SYMBOL, 0.1)) == [NAK]  # nothing answered yet: DLE NAK
+    corrupt = Slc500Simulator(Slc500Options(corrupt_in=1), ladder=False)
+    assert wire_of(corrupt.receive(frame, 0.0)) == [NAK]
+    assert corrupt.counters.corrupted_in == 1 and corrupt.link.counters.bad_frames == 1
+
+
+def test_faults_on_writes_spares_reads() -> None:
+    sim = Slc500Simulator.from_options({"drop": "1", "lose_in": "0", "faults_on": "writes"}, ladder=False)
+    read_frame = command_frame(read(N, 7, 5), tns=1)
+    assert wire_of(sim.receive(read_frame, 0.0)) == [ACK_SYMBOL, reply_frame(read_frame, words(5))]
+    sim.receive(ACK_SYMBOL, 0.0)
+    assert wire_of(sim.receive(command_frame(write(N, 7, 3, b"\x01\x00"), tns=2), 0.1)) == [ACK_SYMBOL]
+    assert sim.applied_writes == [("write", "N7:3", b"\x01\x00")] and sim.counters.dropped == 1
+    lose = Slc500Simulator.from_options({"lose_in": "1", "faults_on": "writes"}, ladder=False)
+    assert wire_of(lose.receive(read_frame, 0.0))[0] == ACK_SYMBOL
+    assert wire_of(lose.receive(command_frame(write(N, 7, 3, b"\x01\x00"), tns=2), 0.1)) == []
+    with pytest.raises(ValueError, match="faults_on"):
+        Slc500Simulator.from_options({"faults_on": "reads"})

@@ -1,14 +1,16 @@
-"""Asyncio driver for DF1 full duplex + PCCC (SLC 500, PLC-5): thin around the sans-I/O core.
+"""Asyncio driver for DF1 full duplex + PCCC (SLC 500, PLC-5): a thin loop around the cores.
 
-One transaction: allocate a TNS, queue the command packet on the ``Df1Link`` (which frames it,
-waits for DLE ACK, sends DLE ENQ on timeout and retransmits on DLE NAK), wait for the link's
-verdict, then for the reply with the same TNS and CMD | 0x40.
+The sans-I/O cores decide everything: :class:`~gateway.protocols.df1.link.Df1Link` (DLE ACK /
+NAK / ENQ) under :class:`~gateway.protocols.df1.transaction.Df1Transactions` (TNS, reply
+matching, retries, the exactly-once verdict of a write and its read-back).  This module moves
+bytes, runs the one timer the core asks for (``next_deadline()`` / ``handle_timeout(now)``)
+and turns the core's verdicts into results and exceptions:
 
-Exactly-once writes: a write the link could not deliver because every copy was NAKed was
-never accepted, and is sent again as a new transaction.  A write whose frame the controller
-acknowledged is never sent again: if its reply does not come, the caller gets
-``WriteOutcomeUnknown`` (a ``LinkTimeout``) and may read back to find out.  Reads are simply
-retried.
+* done -> the reply (for a write whose reply was lost but whose read-back showed the written
+  value: a success too);
+* refused -> :class:`~gateway.protocols.df1.pccc.PcccError` with the manual's text;
+* outcome unknown -> :class:`WriteOutcomeUnknown` (Modbus 0x0B); the write was sent once;
+* failed -> :class:`~gateway.errors.LinkTimeout`.
 """
 
 from __future__ import annotations
@@ -19,19 +21,24 @@ from pathlib import Path
 from typing import Final
 
 from gateway.drivers.base import LinkDriver, OpenStream, Priority
-from gateway.errors import ControllerRefused, GatewayError, LinkTimeout, ProtocolError, format_seconds
-from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete, SendFailed, SendFailure
+from gateway.errors import GatewayError, LinkTimeout, ProtocolError
+from gateway.protocols.df1.framing import NEED_DATA, Checksum
+from gateway.protocols.df1.link import Df1Link
 from gateway.protocols.df1.pccc import (
     DiagnosticStatus,
     DiagnosticStatusInfo,
-    PcccFormatError,
     PcccReply,
     ProcessorFamily,
     Request,
-    TnsAllocator,
-    decode_reply,
-    encode_command,
+)
+from gateway.protocols.df1.transaction import (
+    Df1Transactions,
+    OutcomeUnknown,
+    TransactionCounters,
+    TransactionDone,
+    TransactionEvent,
+    TransactionFailed,
+    TransactionRefused,
 )
 from gateway.transport import SerialSettings, open_stream
 
@@ -49,7 +56,7 @@ _LONGEST_FRAME: Final = 280
 
 
 class WriteOutcomeUnknown(LinkTimeout):
-    """The controller acknowledged the write's frame but its reply never came."""
+    """The write may have reached the controller, but neither its reply nor a read-back proved it applied."""
 
 
 class Df1Driver(LinkDriver):
@@ -72,6 +79,7 @@ class Df1Driver(LinkDriver):
         reconnect_min: float = 0.5,
         reconnect_max: float = 30.0,
         opener: OpenStream = open_stream,
+        first_tns: int | None = None,
     ) -> None:
         super().__init__(
             url,
@@ -92,87 +100,74 @@ class Df1Driver(LinkDriver):
         self.last_sts = 0
         # A random first TNS: a new session (CLI run, gateway restart) must not repeat the last
         # session's SRC/CMD/TNS, or the controller's duplicate detection would discard it.
-        self._tns = TnsAllocator(random.randrange(1, 0x10000))
-        self._link = self._new_link()
+        # (``first_tns`` fixes it for replays of recorded traffic.)
+        self._first_tns = random.randrange(1, 0x10000) if first_tns is None else first_tns
+        self._core = self._new_core(self._first_tns)
         self._link_base = (0, 0, 0)  # enq, nak, bad frames of links before this one
-        self._sends: dict[int, asyncio.Future[SendFailure | None]] = {}
-        self._replies: dict[int, asyncio.Future[PcccReply]] = {}
+        self._waiting: dict[int, asyncio.Future[TransactionEvent]] = {}
         self._timer: asyncio.TimerHandle | None = None
 
-    def _new_link(self) -> Df1Link:
-        return Df1Link(
+    def _new_core(self, first_tns: int) -> Df1Transactions:
+        link = Df1Link(
             checksum=self.checksum,
             # the ACK comes after our whole frame has gone out: allow for the longest frame's time
             ack_timeout=self.ack_timeout + _LONGEST_FRAME * self.char_time,
             max_enq=self.retries,
             max_nak=self.retries,
         )
+        return Df1Transactions(
+            link,
+            station=self.station,
+            source=self.source,
+            reply_timeout=self.timeout + _LONGEST_FRAME * self.char_time,
+            retries=self.retries,
+            first_tns=first_tns,
+        )
+
+    @property
+    def transaction_counters(self) -> TransactionCounters:
+        """The transaction core's counters (read-backs, verified writes ...) since the last connect."""
+        return self._core.counters
 
     # --- protocol hooks ---------------------------------------------------------------------
 
     def on_connect(self) -> None:
-        old = self._link.counters
+        old = self._core.link.counters
         enq, nak, bad = self._link_base
         self._link_base = (enq + old.enqs_sent, nak + old.naks_received, bad + old.bad_frames)
-        self._link = self._new_link()
-        for send in self._sends.values():
-            send.cancel()
-        for reply in self._replies.values():
-            reply.cancel()
-        self._sends.clear()
-        self._replies.clear()
+        # a reconnect goes on from the last TNS (a new core: the line state is gone)
+        self._core = self._new_core(self._core.next_tns if self._core.counters.started else self._first_tns)
+        for waiter in self._waiting.values():
+            waiter.cancel()
+        self._waiting.clear()
 
     def abort(self, exc: GatewayError) -> None:
-        for send in self._sends.values():
-            if not send.done():
-                send.set_exception(exc)
-        for reply in self._replies.values():
-            if not reply.done():
-                reply.set_exception(exc)
-                reply.exception()  # awaited only after its send: mark it retrieved either way
+        for waiter in self._waiting.values():
+            if not waiter.done():
+                waiter.set_exception(exc)
 
     def data_received(self, data: bytes) -> None:
-        self._link.receive_data(data, asyncio.get_running_loop().time())
+        self._core.receive_data(data, asyncio.get_running_loop().time())
         self._pump()
 
     def _pump(self) -> None:
-        link = self._link
-        out = link.data_to_send()
-        if out:
+        core = self._core
+        out = core.data_to_send()
+        if out and self.connected:
             self.send(out)
-        while True:
-            event = link.next_event()
-            if isinstance(event, MessageReceived):
-                self._on_message(event.payload)
-            elif isinstance(event, SendComplete):
-                self._settle(event.handle, None)
-            elif isinstance(event, SendFailed):
-                self._settle(event.handle, event.reason)
-            else:
-                break
-        counters = link.counters
+        while (event := core.next_event()) is not NEED_DATA:
+            waiter = self._waiting.pop(event.handle, None)
+            if waiter is not None and not waiter.done():
+                waiter.set_result(event)
+        counters = core.link.counters
         enq, nak, bad = self._link_base
         self.counters.enq_sent = enq + counters.enqs_sent
         self.counters.nak_received = nak + counters.naks_received
         self.counters.crc_errors = bad + counters.bad_frames
         self._arm_timer()
 
-    def _settle(self, handle: int, outcome: SendFailure | None) -> None:
-        future = self._sends.pop(handle, None)
-        if future is not None and not future.done():
-            future.set_result(outcome)
-
-    def _on_message(self, payload: bytes) -> None:
-        try:
-            reply = decode_reply(payload)
-        except PcccFormatError:
-            return  # a command addressed to us, or junk that passed the check: not ours to answer
-        future = self._replies.pop(reply.tns, None)
-        if future is not None and not future.done():
-            future.set_result(reply)
-
     def _arm_timer(self) -> None:
-        deadline = self._link.next_deadline()
+        deadline = self._core.next_deadline()
         timer = self._timer
         if timer is not None:
             if deadline is not None and timer.when() == deadline:
@@ -185,79 +180,55 @@ class Df1Driver(LinkDriver):
     def _on_timer(self) -> None:
         self._timer = None
         if self.connected:
-            self._link.handle_timeout(asyncio.get_running_loop().time())
+            self._core.handle_timeout(asyncio.get_running_loop().time())
             self._pump()
 
     # --- transactions -----------------------------------------------------------------------
 
-    async def _once(self, request: Request, name: str) -> PcccReply | SendFailure:
-        """One attempt: the link's verdict (a SendFailure) or the reply."""
+    async def _run(self, request: Request, name: str, is_write: bool) -> PcccReply:
         loop = asyncio.get_running_loop()
-        tns = self._tns.allocate()
-        packet = encode_command(request, dst=self.station, src=self.source, tns=tns)
-        reply: asyncio.Future[PcccReply] = loop.create_future()
-        sent: asyncio.Future[SendFailure | None] = loop.create_future()
-        self._replies[tns] = reply
+        core = self._core
+        waiter: asyncio.Future[TransactionEvent] = loop.create_future()
+        handle = core.start(request, loop.time(), write=is_write)
+        self._waiting[handle] = waiter
         try:
-            handle = self._link.send(packet, loop.time())
-            self._sends[handle] = sent
             self._pump()
-            # The link's own timers bound this wait (ACK timeout x (ENQ retries + 1)).
-            failure = await sent
-            if failure is not None:
-                return failure
-            async with asyncio.timeout(self.timeout + _LONGEST_FRAME * self.char_time):
-                return await reply
+            event = await waiter
+        except BaseException:
+            if self._core is core:
+                core.abandon("the request was cancelled")  # the line is free again for the next one
+                self._pump()
+            raise
         finally:
-            self._replies.pop(tns, None)
-            self._tns.release(tns)
-
-    async def _transaction(self, request: Request, name: str) -> PcccReply:
-        is_write = type(request).__name__ in _WRITE_TYPES
-        attempts = self.retries + 1
-        for attempt in range(attempts):
-            try:
-                result = await self._once(request, name)
-            except TimeoutError:
-                self.counters.timeouts += 1
-                if is_write:
-                    raise WriteOutcomeUnknown(
-                        f"link {self.name}: {name}: the controller took the frame but its reply did not come "
-                        f"within {format_seconds(self.timeout)} s; the write may or may not have been applied"
-                    ) from None
-                continue
-            if isinstance(result, SendFailure):
-                self.counters.timeouts += 1
-                if is_write and result is not SendFailure.NAK_LIMIT:
-                    raise WriteOutcomeUnknown(f"link {self.name}: {name}: {result.value}; outcome unknown")
-                if attempt + 1 < attempts:
-                    continue
-                raise LinkTimeout(f"link {self.name}: {name}: {result.value}")
-            if not result.ok:
+            self._waiting.pop(handle, None)
+        match event:
+            case TransactionDone(reply=reply):
+                self.note_result(True)
+                return reply
+            case TransactionRefused(reply=reply):
+                self.note_result(True)
                 self.counters.refusals += 1
-                self.last_sts = result.sts
-                result.raise_for_status(command=name, fnc=getattr(request, "FNC", None))
-            return result
-        raise LinkTimeout(f"link {self.name}: no reply to {name} after {attempts} tries of {self.timeout:g} s")
-
-    async def _run(self, request: Request, name: str) -> PcccReply:
-        try:
-            reply = await self._transaction(request, name)
-        except ControllerRefused:
-            self.note_result(True)
-            raise
-        except GatewayError as exc:
-            self.note_result(False, str(exc))
-            raise
-        self.note_result(True)
-        return reply
+                self.last_sts = reply.sts
+                reply.raise_for_status(command=name, fnc=getattr(request, "FNC", None))
+                raise AssertionError("unreachable: a refusal has STS != 0")
+            case OutcomeUnknown(reason=reason):
+                self.counters.timeouts += 1
+                message = f"link {self.name}: {name}: {reason}"
+                self.note_result(False, message)
+                raise WriteOutcomeUnknown(message)
+            case TransactionFailed(reason=reason):
+                self.counters.timeouts += 1
+                message = f"link {self.name}: {name}: {reason}"
+                self.note_result(False, message)
+                raise LinkTimeout(message)
+        raise AssertionError(f"unexpected transaction event {event!r}")
 
     async def execute(self, request: Request, name: str = "", *, write: bool | None = None) -> PcccReply:
         """Send ``request`` and return the (successful) reply.  Writes jump ahead of polls."""
         label = name or type(request).__name__
         is_write = type(request).__name__ in _WRITE_TYPES if write is None else write
         priority = Priority.WRITE if is_write else Priority.POLL
-        return await self.submit(lambda: self._run(request, label), priority)
+        return await self.submit(lambda: self._run(request, label, is_write), priority)
 
     async def probe(self) -> DiagnosticStatusInfo:
         reply = await self.execute(DiagnosticStatus(), "diagnostic status")

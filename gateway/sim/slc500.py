@@ -67,10 +67,33 @@ Fault injection (``1 in N`` drawn from a seeded generator; 0 = off):
 * ``duplicate=N``: an outgoing frame goes on the wire twice;
 * ``noise=N``: an output is preceded by 1-8 random bytes without DLE, which a receiver
   hunting for DLE STX discards;
-* ``delay=S``: replies are queued on the link S seconds after the command arrived.
+* ``delay=S``: replies are queued on the link S seconds after the command arrived;
+* ``lose_in=N``: a frame from the host is lost whole on the way in (the controller never sees
+  it; a DLE ENQ then gets the last response, the ACK of the previous frame);
+* ``corrupt_in=N``: a frame from the host arrives damaged (its check fails): the controller
+  answers as its ``bad_frame`` variant says;
+* ``faults_on=writes``: ``drop``, ``lose_in`` and ``corrupt_in`` strike only commands that
+  write (with N = 1: every write's reply lost after execution, or every write frame lost).
+
+Variants (``variants={"name": "value"}``, ``--variant name=value``; the first value is the
+default; docs/controller-variants.md gives the manuals' words for each):
+
+* ``duplicate_detect`` ``on`` | ``off``: a frame with the SRC, CMD and TNS of the last one is
+  ACKed and dropped, or (off, as the S4516-DF1 manual tells users to set it) executed again;
+* ``duplicate_reply`` ``ack_only`` | ``resend``: with detection on, a duplicate is only ACKed,
+  or its last reply is sent again;
+* ``ack_order`` ``ack_first`` | ``reply_first`` | ``embedded``: the DLE ACK of a command goes
+  before its reply, just after it, or inside the reply frame (an embedded response);
+* ``bad_frame`` ``nak`` | ``silence`` | ``ignore``: a damaged frame is answered DLE NAK, not
+  answered (a DLE ENQ then gets DLE NAK), or not answered at all (ENQ gets the last response);
+* ``enq_answer`` ``last`` | ``nak``: DLE ENQ is answered with the last response symbol, or
+  always with DLE NAK ("a request for retransmission").
 
 Known limit: a duplicated frame is ACKed twice by the host; if the second ACK arrives after
 the next reply frame left, the link takes it for that frame's ACK (see ``gateway.protocols.df1.link``).
+
+Beside this module: ``slc500_options`` (options, counters), ``slc500_data`` (the data table),
+``slc500_line`` (cutting the wire into frames, the damage faults do).
 
 This class does no I/O: ``receive(data, now)`` / ``poll(now)`` return the bytes to send.
 ``gateway.sim.serve`` runs it in-process, over TCP or on a pty.
@@ -81,19 +104,24 @@ from __future__ import annotations
 import enum
 import math
 import random
-import re
 import struct
 from collections import deque
 from collections.abc import Mapping
-from dataclasses import dataclass, field
-from typing import Final
+from dataclasses import dataclass
+from typing import ClassVar, Final
 
 from gateway.errors import GatewayError
-from gateway.protocols.df1.address import AddressError, FileType, SlcAddress
-from gateway.protocols.df1.framing import ACK_SYMBOL, NEED_DATA, Checksum, Symbol
-from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete, SendFailed
+from gateway.protocols.df1.address import FileType
+from gateway.protocols.df1.framing import ACK_SYMBOL, NEED_DATA, Symbol
+from gateway.protocols.df1.link import (
+    BadFrameAnswer,
+    Df1Link,
+    EnqAnswer,
+    MessageReceived,
+    SendComplete,
+    SendFailed,
+)
 from gateway.protocols.df1.pccc import (
-    DataType,
     DiagnosticStatus,
     DiagnosticStatusInfo,
     FileInfo,
@@ -115,6 +143,10 @@ from gateway.protocols.df1.pccc import (
     encode_reply,
     encode_typed_data,
 )
+from gateway.sim.slc500_data import FILE_NAME_RE, SLOTS, TYPED_ID, WORDS_PER_SLOT, DataFile, data_files
+from gateway.sim.slc500_line import corrupt_frame, frame_message, garbage, is_write_packet, split_incoming, split_output
+from gateway.sim.slc500_options import Slc500Counters, Slc500Options
+from gateway.sim.variants import resolve_variants
 
 __all__ = ["ExtSts", "Output", "Slc500Counters", "Slc500Options", "Slc500Simulator"]
 
@@ -141,8 +173,6 @@ _TT: Final = 1 << 14  # timer timing
 _DN: Final = 1 << 13  # done
 _OV: Final = 1 << 12  # counter overflow
 
-_SLOTS: Final = 4
-_WORDS_PER_SLOT: Final = 8
 
 
 class ExtSts(enum.IntEnum):
@@ -162,195 +192,6 @@ class Output:
 
     delay: float
     data: bytes
-
-
-# ------------------------------------------------------------------------------------ options
-
-_ONE_IN_OPTIONS: Final = ("corrupt", "drop", "withhold_ack", "duplicate", "noise")
-_OPTION_NAMES: Final = (*_ONE_IN_OPTIONS, "checksum", "station", "delay", "seed", "link_ack_timeout", "garble")
-
-
-@dataclass(frozen=True, slots=True)
-class Slc500Options:
-    """Link settings and fault injection; ``1 in N`` faults are off at 0."""
-
-    checksum: Checksum = Checksum.CRC
-    station: int = 1  #: our DF1 node address
-    corrupt: int = 0  #: corrupt 1 in N outgoing frames
-    drop: int = 0  #: execute but never answer 1 in N commands
-    withhold_ack: int = 0  #: do not send the DLE ACK of 1 in N received good frames
-    duplicate: int = 0  #: send 1 in N outgoing frames twice
-    noise: int = 0  #: precede 1 in N outputs with garbage bytes
-    delay: float = 0.0  #: turnaround before each reply, seconds
-    seed: int = 1  #: seed of the fault generator
-    link_ack_timeout: float = 0.5  #: our link's ACK timeout (then DLE ENQ), seconds
-
-    def __post_init__(self) -> None:
-        if not 0 <= self.station <= 254:
-            raise ValueError(f"simulator option station={self.station}: a DF1 node address is 0-254")
-        for name in _ONE_IN_OPTIONS:
-            if getattr(self, name) < 0:
-                raise ValueError(f"simulator option {name}={getattr(self, name)}: 1 in N must not be negative")
-        if not (math.isfinite(self.delay) and self.delay >= 0):
-            raise ValueError(f"simulator option delay={self.delay}: seconds, 0 or more")
-        if not (math.isfinite(self.link_ack_timeout) and self.link_ack_timeout > 0):
-            raise ValueError(f"simulator option link_ack_timeout={self.link_ack_timeout}: seconds, more than 0")
-
-    @classmethod
-    def from_options(cls, options: Mapping[str, str]) -> Slc500Options:
-        """Parse ``sim://slc504?...`` options (strings); ValueError names the bad option."""
-        unknown = sorted(set(options) - set(_OPTION_NAMES))
-        if unknown:
-            raise ValueError(
-                f"unknown slc504 simulator option(s) {', '.join(unknown)} (known: {', '.join(sorted(_OPTION_NAMES))})"
-            )
-        if "garble" in options and "corrupt" in options:
-            raise ValueError("simulator options garble and corrupt are the same; give only one")
-        one_in = {
-            name: _int_option(options, "garble" if name == "corrupt" and "garble" in options else name, 0)
-            for name in _ONE_IN_OPTIONS
-        }
-        return cls(
-            checksum=_checksum_option(options.get("checksum", "crc")),
-            station=_int_option(options, "station", 1),
-            corrupt=one_in["corrupt"],
-            drop=one_in["drop"],
-            withhold_ack=one_in["withhold_ack"],
-            duplicate=one_in["duplicate"],
-            noise=one_in["noise"],
-            delay=_float_option(options, "delay", 0.0),
-            seed=_int_option(options, "seed", 1),
-            link_ack_timeout=_float_option(options, "link_ack_timeout", 0.5),
-        )
-
-
-def _int_option(options: Mapping[str, str], key: str, default: int) -> int:
-    text = options.get(key)
-    if text is None:
-        return default
-    try:
-        return int(text.strip())
-    except ValueError:
-        raise ValueError(f"simulator option {key}={text!r} is not a whole number") from None
-
-
-def _float_option(options: Mapping[str, str], key: str, default: float) -> float:
-    text = options.get(key)
-    if text is None:
-        return default
-    try:
-        return float(text.strip())
-    except ValueError:
-        raise ValueError(f"simulator option {key}={text!r} is not a number") from None
-
-
-def _checksum_option(text: str) -> Checksum:
-    try:
-        return Checksum(text.strip().lower())
-    except ValueError:
-        raise ValueError(f"simulator option checksum={text!r}: choose bcc or crc") from None
-
-
-# ---------------------------------------------------------------------------------- counters
-
-
-@dataclass
-class Slc500Counters:
-    """What the simulator saw and did (the link's own counters are in ``simulator.link.counters``)."""
-
-    frames_received: int = 0  #: good frames, duplicates included
-    duplicates_received: int = 0  #: frames dropped by the link's duplicate detection
-    ignored: int = 0  #: packets not for our station, replies, packets without a PCCC header
-    replies_sent: int = 0  #: reply packets queued on the link
-    replies_acked: int = 0
-    replies_failed: int = 0  #: the link gave up (NAK or ENQ limit)
-    refusals: int = 0  #: replies with STS != 0
-    dropped: int = 0
-    corrupted: int = 0
-    withheld_acks: int = 0
-    duplicates: int = 0  #: frames sent twice
-    noise: int = 0
-    commands: dict[str, int] = field(default_factory=dict)  #: by kind: "read", "write", ...
-
-
-# --------------------------------------------------------------------------------- data table
-
-
-@dataclass
-class _DataFile:
-    """One data file: ``elements`` elements of ``element_words`` words, as a flat byte image."""
-
-    file_type: FileType
-    number: int
-    elements: int
-    element_words: int
-    data: bytearray = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.data = bytearray(self.elements * self.element_words * 2)
-
-    @property
-    def name(self) -> str:
-        return f"{self.file_type.letter}{self.number}"
-
-    @property
-    def element_bytes(self) -> int:
-        return self.element_words * 2
-
-    @property
-    def is_io(self) -> bool:
-        return self.file_type in (FileType.INPUT, FileType.OUTPUT)
-
-    @property
-    def typed_element_bytes(self) -> int:
-        """Element size for typed read / write: I/O images are plain words there."""
-        return 2 if self.is_io else self.element_bytes
-
-    def word(self, offset: int) -> int:
-        return int.from_bytes(self.data[offset : offset + 2], "little")
-
-    def set_word(self, offset: int, value: int) -> None:
-        self.data[offset : offset + 2] = (value & 0xFFFF).to_bytes(2, "little")
-
-    def address_text(self, element: int, sub_element: int) -> str:
-        try:
-            return str(SlcAddress(self.file_type, self.number, element, sub_element))
-        except AddressError:
-            return f"{self.name}:{element}.{sub_element}"
-
-
-#: Type ID of typed read / write per file type (notes §5.0 "Data Type ID for SLC").
-_TYPED_ID: Final = {
-    FileType.OUTPUT: DataType.INTEGER,
-    FileType.INPUT: DataType.INTEGER,
-    FileType.STATUS: DataType.INTEGER,
-    FileType.BIT: DataType.BIT,
-    FileType.TIMER: DataType.TIMER,
-    FileType.COUNTER: DataType.COUNTER,
-    FileType.CONTROL: DataType.CONTROL,
-    FileType.INTEGER: DataType.INTEGER,
-    FileType.FLOAT: DataType.FLOAT,
-}
-
-_FILE_NAME_RE: Final = re.compile(r"(?P<letter>[OISBTCRNF])(?P<number>\d*)")
-
-
-def _data_files() -> dict[int, _DataFile]:
-    files = [
-        _DataFile(FileType.OUTPUT, 0, _SLOTS, _WORDS_PER_SLOT),
-        _DataFile(FileType.INPUT, 1, _SLOTS, _WORDS_PER_SLOT),
-        _DataFile(FileType.STATUS, 2, 164, 1),
-        _DataFile(FileType.BIT, 3, 64, 1),
-        _DataFile(FileType.TIMER, 4, 20, 3),
-        _DataFile(FileType.COUNTER, 5, 20, 3),
-        _DataFile(FileType.CONTROL, 6, 10, 3),
-        _DataFile(FileType.INTEGER, 7, 256, 1),
-        _DataFile(FileType.FLOAT, 8, 64, 2),
-        _DataFile(FileType.INTEGER, 10, 100, 1),
-        _DataFile(FileType.BIT, 12, 16, 1),
-        _DataFile(FileType.FLOAT, 13, 10, 2),
-    ]
-    return {f.number: f for f in files}
 
 
 class _Refuse(Exception):
@@ -376,20 +217,44 @@ def _signed(value: int) -> int:
 class Slc500Simulator:
     """One SLC 5/04 on a DF1 full-duplex link.  Not thread-safe; drive it from one event loop."""
 
-    def __init__(self, options: Slc500Options | None = None, *, ladder: bool = True) -> None:
+    #: One switch per reading of the manuals (module docstring); the first value is the default.
+    VARIANTS: ClassVar[dict[str, tuple[str, ...]]] = {
+        "duplicate_detect": ("on", "off"),
+        "duplicate_reply": ("ack_only", "resend"),
+        "ack_order": ("ack_first", "reply_first", "embedded"),
+        "bad_frame": tuple(answer.value for answer in BadFrameAnswer),
+        "enq_answer": tuple(answer.value for answer in EnqAnswer),
+    }
+
+    def __init__(
+        self,
+        options: Slc500Options | None = None,
+        *,
+        ladder: bool = True,
+        variants: Mapping[str, str] | None = None,
+    ) -> None:
         self.options = options or Slc500Options()
         self.ladder = ladder
+        self.variants = resolve_variants("slc504", self.VARIANTS, variants or {})
         self.counters = Slc500Counters()
         self.link = Df1Link(
             checksum=self.options.checksum,
             ack_timeout=self.options.link_ack_timeout,
-            duplicate_detect=True,
+            duplicate_detect=self.variants["duplicate_detect"] == "on",
+            bad_frame=BadFrameAnswer(self.variants["bad_frame"]),
+            enq_answer=EnqAnswer(self.variants["enq_answer"]),
         )
+        self._reply_first = self.variants["ack_order"] != "ack_first"
+        self._embed_acks = self.variants["ack_order"] == "embedded"
+        self._resend_reply = self.variants["duplicate_reply"] == "resend"
+        self._rx = bytearray()  # bytes from the host not yet a whole frame or symbol
+        self._last_reply: bytes | None = None  # the reply to the last message delivered
+        self._held_acks = 0  # DLE ACKs owed, to go right after the next reply (reply_first)
         #: Every write executed, in order: (kind, address of the first element, data).
         #: Kinds: "write" (FNC AA), "masked_write" (AB), "typed_write" (67), "mode" (80).
         self.applied_writes: list[tuple[str, str, bytes]] = []
         self._rng = random.Random(self.options.seed)
-        self._files = _data_files()
+        self._files = data_files()
         self._pending: deque[tuple[float, bytes]] = deque()  # (due, reply packet)
         self._ladder_origin: float | None = None
         self._ladder_ticks = 0
@@ -397,9 +262,11 @@ class Slc500Simulator:
         self.reset_data()
 
     @classmethod
-    def from_options(cls, fault_options: Mapping[str, str], *, ladder: bool = True) -> Slc500Simulator:
-        """From ``sim://slc504?...`` options; ValueError for an unknown option or a bad value."""
-        return cls(Slc500Options.from_options(fault_options), ladder=ladder)
+    def from_options(
+        cls, fault_options: Mapping[str, str], *, ladder: bool = True, variants: Mapping[str, str] | None = None
+    ) -> Slc500Simulator:
+        """From ``sim://slc504?...`` options; ValueError for an unknown option, variant or bad value."""
+        return cls(Slc500Options.from_options(fault_options), ladder=ladder, variants=variants)
 
     # --- data table -------------------------------------------------------------------------
 
@@ -408,9 +275,9 @@ class Slc500Simulator:
         for data_file in self._files.values():
             data_file.data[:] = bytes(len(data_file.data))
         output, inputs = self._files[0], self._files[1]
-        for slot in range(_SLOTS):
-            for word in range(_WORDS_PER_SLOT):
-                offset = (slot * _WORDS_PER_SLOT + word) * 2
+        for slot in range(SLOTS):
+            for word in range(WORDS_PER_SLOT):
+                offset = (slot * WORDS_PER_SLOT + word) * 2
                 output.set_word(offset, 0x0100 * slot + word)
                 inputs.set_word(offset, 0x1000 + 0x0100 * slot + word)
         self.set_word("S2", 1, _KEYSWITCH_REM | ProcessorMode.RUN)
@@ -431,9 +298,9 @@ class Slc500Simulator:
         for k in range(64):
             self.set_float("F8", k, 1.5 * k)
 
-    def _file(self, name: str) -> _DataFile:
+    def _file(self, name: str) -> DataFile:
         """The file named like ``N7``, ``F8``, ``T4``, ``O0`` / ``O``, ``I1`` / ``I``, ``S2`` / ``S``."""
-        match = _FILE_NAME_RE.fullmatch(name.strip().upper())
+        match = FILE_NAME_RE.fullmatch(name.strip().upper())
         if match is None:
             raise KeyError(f"{name!r}: expected a file name like N7, F8, T4, O0, I1, S2")
         letter, number_text = match["letter"], match["number"]
@@ -443,7 +310,7 @@ class Slc500Simulator:
             raise KeyError(f"{name!r}: no such file in the simulated data table")
         return data_file
 
-    def _offset(self, data_file: _DataFile, element: int, sub: int) -> int:
+    def _offset(self, data_file: DataFile, element: int, sub: int) -> int:
         if not (0 <= element < data_file.elements and 0 <= sub < data_file.element_words):
             raise IndexError(f"{data_file.name}: element {element} sub-element {sub} out of range")
         return element * data_file.element_bytes + sub * 2
@@ -538,19 +405,68 @@ class Slc500Simulator:
         self.advance(now)
         out: list[Output] = []
         link = self.link
-        for index in range(len(data)):
-            frames_before = link.counters.frames_received
-            duplicates_before = link.counters.duplicates
-            link.receive_data(data[index : index + 1], now)
-            new_frame = link.counters.frames_received > frames_before
-            if new_frame:
-                self.counters.frames_received += 1
-                self.counters.duplicates_received += link.counters.duplicates - duplicates_before
-            self._emit(out, link.data_to_send(), withhold=new_frame and self._one_in(self.options.withhold_ack))
-            self._drain_events(now)
-            self._send_due(now)
-            self._emit(out, link.data_to_send())
+        self._rx += data
+        for token in self._incoming_tokens():
+            for index in range(len(token)):
+                frames_before = link.counters.frames_received
+                duplicates_before = link.counters.duplicates
+                link.receive_data(token[index : index + 1], now)
+                new_frame = link.counters.frames_received > frames_before
+                duplicate = link.counters.duplicates > duplicates_before
+                if new_frame:
+                    self.counters.frames_received += 1
+                    self.counters.duplicates_received += duplicate
+                response = link.data_to_send()
+                hold = new_frame and self._reply_first and response == ACK_SYMBOL
+                withhold = new_frame and self._one_in(self.options.withhold_ack)
+                replies_before = self.counters.replies_sent
+                if hold:
+                    self._held_acks += 1
+                    if withhold:  # the held ACK is the one lost
+                        self._held_acks -= 1
+                        self.counters.withheld_acks += 1
+                else:
+                    self._emit(out, response, withhold=withhold)
+                self._drain_events(now)
+                if duplicate and self._resend_reply and self._last_reply is not None:
+                    self.counters.replies_resent += 1
+                    self._pending.append((now + self.options.delay, self._last_reply))
+                self._send_due(now)
+                self._emit(out, link.data_to_send())
+                if hold and self.counters.replies_sent == replies_before and not self._pending:
+                    self._release_acks(out, embed=False)  # nothing to answer (dropped, ignored ...): ACK now
+            # held ACKs follow the reply that went out in this step
+            if self._held_acks and not self._pending:
+                self._release_acks(out)
         return out
+
+    def _release_acks(self, out: list[Output], *, embed: bool = True) -> None:
+        acks = ACK_SYMBOL * self._held_acks
+        self._held_acks = 0
+        if embed and self._embed_acks and out:
+            # inside the reply frame that just went out, right after its DLE STX
+            # (1770-6.5.16 ch. 4: a receiver may embed its response symbols in a frame it sends)
+            data = out[-1].data
+            start = data.find(bytes((Symbol.DLE, Symbol.STX)))
+            if start >= 0:
+                out[-1] = Output(out[-1].delay, data[: start + 2] + acks + data[start + 2 :])
+                return
+        out.append(Output(0.0, acks))
+
+    def _incoming_tokens(self) -> list[bytes]:
+        """Whole frames and symbols from ``_rx`` (a partial one stays), after the inbound faults."""
+        tokens: list[bytes] = []
+        for token, whole_frame in split_incoming(self._rx, self.options.checksum):
+            if not whole_frame or not self._strikes(token):
+                tokens.append(token)
+            elif self._one_in(self.options.lose_in):
+                self.counters.lost_in += 1
+            elif self._one_in(self.options.corrupt_in):
+                self.counters.corrupted_in += 1
+                tokens.append(corrupt_frame(token, self.options.checksum, self._rng))
+            else:
+                tokens.append(token)
+        return tokens
 
     def poll(self, now: float) -> list[Output]:
         """Run the timers: the link's ACK timer and replies waiting for their turnaround."""
@@ -562,6 +478,8 @@ class Slc500Simulator:
         self._drain_events(now)
         self._send_due(now)
         self._emit(out, self.link.data_to_send())
+        if self._held_acks and not self._pending:
+            self._release_acks(out)
         return out
 
     def next_deadline(self) -> float | None:
@@ -575,9 +493,10 @@ class Slc500Simulator:
             match event:
                 case MessageReceived(payload=payload):
                     reply = self._handle(payload)
+                    self._last_reply = reply
                     if reply is None:
                         continue
-                    if self._one_in(self.options.drop):
+                    if self._is_write(payload) and self._one_in(self.options.drop):
                         self.counters.dropped += 1
                         continue
                     self._pending.append((now + self.options.delay, reply))
@@ -594,12 +513,23 @@ class Slc500Simulator:
 
     # --- fault injection --------------------------------------------------------------------
 
+    def _is_write(self, packet: bytes) -> bool:
+        """Do the faults restricted by ``faults_on`` strike this command packet?"""
+        return self.options.faults_on == "all" or is_write_packet(packet)
+
+    def _strikes(self, frame: bytes) -> bool:
+        """May an inbound fault strike this whole frame (``faults_on``)?"""
+        if self.options.faults_on == "all":
+            return True
+        message = frame_message(frame, self.options.checksum)
+        return message is not None and is_write_packet(message)
+
     def _one_in(self, n: int) -> bool:
         return n > 0 and self._rng.randrange(n) == 0
 
     def _emit(self, out: list[Output], data: bytes, *, withhold: bool = False) -> None:
         """Turn link output into outputs, one per frame or symbol, applying the faults."""
-        for token in _split_output(data, self.options.checksum):
+        for token in split_output(data, self.options.checksum):
             if withhold and token == ACK_SYMBOL:
                 withhold = False
                 self.counters.withheld_acks += 1
@@ -609,33 +539,15 @@ class Slc500Simulator:
                 retransmission, self._last_frame = token == self._last_frame, token
                 if not retransmission and self._one_in(self.options.corrupt):
                     self.counters.corrupted += 1
-                    copies = [self._corrupt(token)]
+                    copies = [corrupt_frame(token, self.options.checksum, self._rng)]
                 elif self._one_in(self.options.duplicate):
                     self.counters.duplicates += 1
                     copies = [token, token]
             for copy in copies:
                 if self._one_in(self.options.noise):
                     self.counters.noise += 1
-                    copy = self._garbage() + copy
+                    copy = garbage(self._rng) + copy
                 out.append(Output(0.0, copy))
-
-    def _corrupt(self, frame: bytes) -> bytes:
-        """Change one message byte (never a DLE, never into a DLE): the check no longer matches."""
-        body = bytearray(frame)
-        end = len(body) - 2 - self.options.checksum.size  # index of the closing DLE
-        candidates = [i for i in range(2, end) if body[i] != Symbol.DLE]
-        if not candidates:  # a message of nothing but DLEs: damage the check instead
-            body[-1] ^= 0x01
-            return bytes(body)
-        index = self._rng.choice(candidates)
-        while True:
-            value = body[index] ^ (1 << self._rng.randrange(8))
-            if value != Symbol.DLE:
-                body[index] = value
-                return bytes(body)
-
-    def _garbage(self) -> bytes:
-        return bytes(self._rng.choice(_NOISE_BYTES) for _ in range(self._rng.randint(1, 8)))
 
     # --- commands ---------------------------------------------------------------------------
 
@@ -704,7 +616,7 @@ class Slc500Simulator:
         request: ProtectedTypedLogicalRead | ProtectedTypedLogicalWrite | ProtectedTypedLogicalMaskedWrite,
         size: int,
         limit: int,
-    ) -> tuple[_DataFile, int]:
+    ) -> tuple[DataFile, int]:
         """(file, byte offset) of a three-address-field command moving ``size`` bytes."""
         if size > limit:
             raise _Refuse(Sts.EXTENDED, ExtSts.TOO_LARGE)
@@ -742,7 +654,7 @@ class Slc500Simulator:
             ("masked_write", data_file.address_text(request.element, request.sub_element), request.data)
         )
 
-    def _typed_target(self, address: LogicalBinaryAddress, packet_offset: int) -> tuple[_DataFile, int]:
+    def _typed_target(self, address: LogicalBinaryAddress, packet_offset: int) -> tuple[DataFile, int]:
         """(file, element) of a logical binary address: levels section, file, element, sub-element."""
         if address.mask & ~0x0F:
             raise _Refuse(Sts.EXTENDED, ExtSts.MORE_LEVELS)
@@ -756,7 +668,7 @@ class Slc500Simulator:
             raise _not_usable()
         return data_file, element + packet_offset
 
-    def _typed_span(self, data_file: _DataFile, element: int, size: int) -> int:
+    def _typed_span(self, data_file: DataFile, element: int, size: int) -> int:
         if size > MAX_READ_BYTES:
             raise _Refuse(Sts.EXTENDED, ExtSts.TOO_LARGE)
         offset = element * data_file.typed_element_bytes
@@ -774,7 +686,7 @@ class Slc500Simulator:
         size = request.count * element_bytes
         offset = self._typed_span(data_file, element, size)
         return encode_typed_data(
-            _TYPED_ID[data_file.file_type], element_bytes, bytes(data_file.data[offset : offset + size])
+            TYPED_ID[data_file.file_type], element_bytes, bytes(data_file.data[offset : offset + size])
         )
 
     def _typed_write(self, request: TypedWrite) -> None:
@@ -784,7 +696,7 @@ class Slc500Simulator:
         if len(request.data) > MAX_WRITE_BYTES:
             raise _Refuse(Sts.EXTENDED, ExtSts.TOO_LARGE)
         element_bytes = data_file.typed_element_bytes
-        if request.data_type != _TYPED_ID[data_file.file_type] or request.element_size != element_bytes:
+        if request.data_type != TYPED_ID[data_file.file_type] or request.element_size != element_bytes:
             raise _Refuse(Sts.EXTENDED, ExtSts.ILLEGAL_DATA_TYPE)
         offset = self._typed_span(data_file, element, len(request.data))
         data_file.data[offset : offset + len(request.data)] = request.data
@@ -805,27 +717,3 @@ class Slc500Simulator:
             raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
         self.set_mode(request.mode)
         self.applied_writes.append(("mode", "S:1", bytes((request.mode,))))
-
-
-_NOISE_BYTES: Final = tuple(b for b in range(256) if b != Symbol.DLE)
-
-
-def _split_output(data: bytes, checksum: Checksum) -> list[bytes]:
-    """Split well-formed link output into frames (``DLE STX .. DLE ETX check``) and ``DLE x`` symbols."""
-    tokens: list[bytes] = []
-    i = 0
-    while i < len(data):
-        if data[i] != Symbol.DLE or i + 1 >= len(data):  # cannot happen with Df1Link output; keep it whole
-            tokens.append(data[i:])
-            break
-        if data[i + 1] != Symbol.STX:
-            tokens.append(data[i : i + 2])
-            i += 2
-            continue
-        j = i + 2
-        while j + 1 < len(data) and not (data[j] == Symbol.DLE and data[j + 1] == Symbol.ETX):
-            j += 2 if data[j] == Symbol.DLE else 1
-        end = min(len(data), j + 2 + checksum.size)
-        tokens.append(data[i:end])
-        i = end
-    return tokens

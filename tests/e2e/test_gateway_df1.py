@@ -420,3 +420,49 @@ async def test_read_of_an_address_the_controller_refuses_answers_0x02(plant: Pla
     async with connect(plant.port, reply_timeout=5) as client:
         code = exception_code(await client.read_holding_registers(PAST_END, count=4, device_id=MAIN))
     assert code == ILLEGAL_ADDRESS
+
+
+# ============================================================================================
+# The verdict of a write whose reply never came: read back, success only when proved
+
+
+@contextlib.asynccontextmanager
+async def gateway_with(**faults: Any) -> AsyncIterator[tuple[Gateway, Slc500Simulator]]:
+    url = sim_url(**faults, seed=6)
+    sim = get_simulator(url)
+    assert isinstance(sim, Slc500Simulator)
+    text = (
+        '[modbus]\nlisten = "127.0.0.1:0"\n\n'
+        f'[[link]]\nname = "slc504"\nprotocol = "df1"\nport = "{url}"\nunit = {MAIN}\ntimeout = 0.05\n'
+        + map_entry("holding", N7_FIRST, "N7:0", 20)
+        + map_entry("coil", 0, "B3:0/0", 16)
+    )
+    async with Gateway(parse_config(text)) as gw:
+        yield gw, sim
+
+
+async def test_a_write_whose_reply_was_lost_after_it_ran_is_a_success() -> None:
+    """Every write's reply is lost after execution: the read-back proves it, SCADA gets success."""
+    async with gateway_with(drop=1, faults_on="writes") as (gw, sim), connect(gw.port, reply_timeout=5) as client:
+        async with asyncio.timeout(20):
+            assert exception_code(await client.write_register(7, 4321, device_id=MAIN)) is None
+            assert exception_code(await client.write_coil(3, True, device_id=MAIN)) is None
+            assert exception_code(await client.write_registers(10, [11, 12], device_id=MAIN)) is None
+        assert sim.word("N7", 7) == 4321 and sim.word("B3", 0) & 0x0008
+        assert [sim.word("N7", k) for k in (10, 11)] == [11, 12]
+        # each applied once (a two-register write is two word writes), none resent
+        writes = Counter(kind for kind, _, _ in sim.applied_writes)
+        assert writes["masked_write"] == 1 and writes["write"] in (2, 3)
+        assert sim.counters.dropped == len(sim.applied_writes)
+        assert len(set(sim.applied_writes)) == len(sim.applied_writes)
+
+
+async def test_a_write_the_controller_never_ran_is_0x0b_and_the_value_is_unchanged() -> None:
+    """Every write frame is lost on the way in; the ENQ gets the previous frame's ACK: 0x0B."""
+    async with gateway_with(lose_in=1, faults_on="writes") as (gw, sim), connect(gw.port, reply_timeout=5) as client:
+        async with asyncio.timeout(20):
+            assert exception_code(await client.write_register(7, 4321, device_id=MAIN)) == TARGET_FAILED
+            assert exception_code(await client.write_coil(3, True, device_id=MAIN)) == TARGET_FAILED
+        assert sim.applied_writes == []
+        assert sim.word("N7", 7) == 7 and not sim.word("B3", 0) & 0x0008
+        assert sim.counters.lost_in == 2

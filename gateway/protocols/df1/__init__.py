@@ -29,7 +29,9 @@ from gateway.protocols.df1.framing import (
     encode_frame,
 )
 from gateway.protocols.df1.link import (
+    BadFrameAnswer,
     Df1Link,
+    EnqAnswer,
     LinkCounters,
     LinkEvent,
     MessageReceived,
@@ -93,6 +95,7 @@ __all__ = [
     "AckReceived",
     "AddressError",
     "BadFrame",
+    "BadFrameAnswer",
     "BadFrameReason",
     "Checksum",
     "Command",
@@ -101,6 +104,7 @@ __all__ = [
     "DiagnosticFunction",
     "DiagnosticStatus",
     "DiagnosticStatusInfo",
+    "EnqAnswer",
     "EnqReceived",
     "FileInfo",
     "FileType",

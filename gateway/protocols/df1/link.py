@@ -6,8 +6,13 @@ Manual: "S4516-DF1 Program Development Manual" §2.4 *How the Transmitter Operat
 Receiver::
 
     valid frame       -> DLE ACK, deliver (unless it duplicates the last delivered message)
-    damaged frame     -> DLE NAK, drop
-    DLE ENQ           -> repeat the last response symbol (DLE NAK until a frame has been answered)
+    damaged frame     -> DLE NAK, drop                  (``bad_frame``: see :class:`BadFrameAnswer`)
+    DLE ENQ           -> repeat the last response symbol (DLE NAK until a frame has been answered;
+                         ``enq_answer``: see :class:`EnqAnswer`)
+
+The manuals leave two receiver rules open (docs/controller-variants.md); a controller-side link
+(the simulator) picks a reading with ``bad_frame`` and ``enq_answer``, the host side keeps the
+defaults (1770-6.5.16 ch. 2: NAK a damaged frame, answer ENQ with the last response).
 
 Transmitter (one frame outstanding at a time)::
 
@@ -15,6 +20,18 @@ Transmitter (one frame outstanding at a time)::
                    AWAIT_ACK --DLE NAK--> AWAIT_ACK, the SAME frame again       (at most max_nak times)
                    AWAIT_ACK --timeout--> AWAIT_ACK, DLE ENQ                    (at most max_enq times)
                    then                              IDLE (SendFailed)
+                   AWAIT_ACK --confirm()--> IDLE (SendComplete): the application saw the reply, so
+                                            the peer has the frame (its ACK may come later or never);
+                                            the next DLE ACK / NAK is taken as the answer owed to that
+                                            frame or to our last DLE ENQ, never as the next frame's
+
+A frame sent with ``idempotent=False`` (a write) is never retransmitted: a DLE NAK is not proof
+that the peer discarded it.  Under one reading of the manual (:attr:`EnqAnswer.NAK`) the NAK
+answering our DLE ENQ says nothing about the frame, and on a noisy line a DLE ACK can arrive as
+a DLE NAK (response symbols carry no check).  With duplicate detection off (S4516-DF1 manual
+§5.2) a second copy of a write that did arrive would run again.  The link reports
+:attr:`SendFailure.AMBIGUOUS_NAK` and the application layer reads the target back.  Frames
+sent with ``idempotent=True`` (reads) are retransmitted on DLE NAK as §2.4 describes.
 
 Once a frame has been ACKed the link reports :class:`SendComplete` and never sends it again.
 A DLE ACK / DLE NAK that arrives while the current frame has not yet been taken by
@@ -65,7 +82,9 @@ from gateway.protocols.df1.framing import (
 )
 
 __all__ = [
+    "BadFrameAnswer",
     "Df1Link",
+    "EnqAnswer",
     "LinkCounters",
     "LinkEvent",
     "MessageReceived",
@@ -99,6 +118,22 @@ class SendFailure(enum.Enum):
     NAK_LIMIT = "DLE NAK received after every retransmission"
     NO_RESPONSE = "no DLE ACK after every DLE ENQ"
     LINK_RESET = "the link was reset before the frame was acknowledged"
+    AMBIGUOUS_NAK = "DLE NAK for a frame that must not run twice: the peer may or may not have it"
+
+
+class BadFrameAnswer(enum.Enum):
+    """What a receiver does with a damaged frame (manual §2.5 says NAK; some stay silent)."""
+
+    NAK = "nak"  #: DLE NAK at once (S4516-DF1 manual §2.5)
+    SILENCE = "silence"  #: no answer now; the last response becomes DLE NAK (answered on DLE ENQ)
+    IGNORE = "ignore"  #: as if nothing arrived: no answer, the last response is unchanged
+
+
+class EnqAnswer(enum.Enum):
+    """How a receiver answers DLE ENQ."""
+
+    LAST_RESPONSE = "last"  #: repeat the last response symbol (1770-6.5.16 ch. 2)
+    NAK = "nak"  #: always DLE NAK, "a request for retransmission" (S4516-DF1 manual §2.1)
 
 
 @dataclass(frozen=True, slots=True)
@@ -152,6 +187,8 @@ class _TxInput(enum.Enum):
     NAK_LIMIT = "DLE NAK received, no retransmission left"
     TIMEOUT = "ACK timer expired, ENQs left"
     TIMEOUT_LIMIT = "ACK timer expired, no ENQ left"
+    NAK_NOT_PROOF = "DLE NAK for a frame that must not run twice (not resent: the NAK is no proof)"
+    CONFIRM = "the application layer saw the reply to the frame"
     STALE = "DLE ACK / DLE NAK before our frame left data_to_send(): an answer to an older frame"
 
     __hash__ = object.__hash__  # see TxState
@@ -164,6 +201,7 @@ class _TxAction(enum.Enum):
     ENQUIRE = "send DLE ENQ, restart the ACK timer"
     FAIL_NAK = "report SendFailed(NAK_LIMIT)"
     FAIL_NO_RESPONSE = "report SendFailed(NO_RESPONSE)"
+    FAIL_AMBIGUOUS = "report SendFailed(AMBIGUOUS_NAK)"
     IGNORE = "nothing (stray symbol or nothing to do)"
 
 
@@ -181,6 +219,10 @@ _TX_TRANSITIONS: Final[dict[tuple[TxState, _TxInput], tuple[_TxAction, TxState]]
     (TxState.AWAIT_ACK, _TxInput.NAK_LIMIT): (_TxAction.FAIL_NAK, TxState.IDLE),
     (TxState.AWAIT_ACK, _TxInput.TIMEOUT): (_TxAction.ENQUIRE, TxState.AWAIT_ACK),
     (TxState.AWAIT_ACK, _TxInput.TIMEOUT_LIMIT): (_TxAction.FAIL_NO_RESPONSE, TxState.IDLE),
+    (TxState.IDLE, _TxInput.NAK_NOT_PROOF): (_TxAction.IGNORE, TxState.IDLE),
+    (TxState.AWAIT_ACK, _TxInput.NAK_NOT_PROOF): (_TxAction.FAIL_AMBIGUOUS, TxState.IDLE),
+    (TxState.IDLE, _TxInput.CONFIRM): (_TxAction.IGNORE, TxState.IDLE),
+    (TxState.AWAIT_ACK, _TxInput.CONFIRM): (_TxAction.COMPLETE, TxState.IDLE),
 }
 
 
@@ -199,6 +241,8 @@ class Df1Link:
         max_nak: int = 3,
         duplicate_detect: bool = True,
         max_message: int = DEFAULT_MAX_MESSAGE,
+        bad_frame: BadFrameAnswer = BadFrameAnswer.NAK,
+        enq_answer: EnqAnswer = EnqAnswer.LAST_RESPONSE,
     ) -> None:
         if ack_timeout <= 0:
             raise ValueError("ack_timeout must be positive")
@@ -210,6 +254,8 @@ class Df1Link:
         self.max_nak: Final = max_nak
         self.duplicate_detect: Final = duplicate_detect
         self.max_message: Final = max_message
+        self.bad_frame: Final = bad_frame
+        self.enq_answer: Final = enq_answer
         self.counters = LinkCounters()
         self._decoder = FrameDecoder(checksum, max_message=max_message)
         self._events: deque[LinkEvent] = deque()
@@ -219,8 +265,8 @@ class Df1Link:
         self._last_delivered: bytes | None = None
         # transmitter
         self._tx_state = TxState.IDLE
-        self._queue: deque[tuple[int, bytes]] = deque()
-        self._current: tuple[int, bytes, bytes] | None = None  # handle, payload, encoded frame
+        self._queue: deque[tuple[int, bytes, bool]] = deque()  # handle, payload, idempotent
+        self._current: tuple[int, bytes, bytes, bool] | None = None  # handle, payload, frame, idempotent
         self._nak_count = 0
         self._enq_count = 0
         self._deadline: float | None = None
@@ -228,6 +274,9 @@ class Df1Link:
         # True while the current frame still sits in the output buffer: the peer cannot have
         # answered it yet, so a DLE ACK / DLE NAK arriving then belongs to an older frame.
         self._frame_unsent = False
+        # After confirm(): the next DLE ACK / DLE NAK most likely answers the confirmed frame (its
+        # ACK after its reply) or our last DLE ENQ, not the next frame: it is taken as stale.
+        self._answer_owed = False
 
     # ------------------------------------------------------------------------------ public API
 
@@ -240,15 +289,18 @@ class Df1Link:
         """Frames queued or awaiting their ACK."""
         return len(self._queue) + (self._current is not None)
 
-    def send(self, payload: bytes, now: float) -> int:
-        """Queue ``payload`` (a PCCC packet) for transmission; returns its handle."""
+    def send(self, payload: bytes, now: float, *, idempotent: bool = True) -> int:
+        """Queue ``payload`` (a PCCC packet) for transmission; returns its handle.
+
+        ``idempotent=False`` for a command that must not run twice (a write): see the module doc.
+        """
         if not payload:
             raise InvalidRequest("DF1: cannot send an empty message")
         if len(payload) > self.max_message:
             raise InvalidRequest(f"DF1: message of {len(payload)} bytes exceeds {self.max_message}")
         handle = self._next_handle
         self._next_handle += 1
-        self._queue.append((handle, bytes(payload)))
+        self._queue.append((handle, bytes(payload), idempotent))
         self._tx_input(_TxInput.SEND, now)
         return handle
 
@@ -261,14 +313,23 @@ class Df1Link:
                     self._on_frame(message)
                 case BadFrame():
                     self.counters.bad_frames += 1
-                    self._respond(NAK_SYMBOL)
+                    if self.bad_frame is BadFrameAnswer.NAK:
+                        self._respond(NAK_SYMBOL)
+                    elif self.bad_frame is BadFrameAnswer.SILENCE:
+                        self._last_response = NAK_SYMBOL
                 case AckReceived():
                     self.counters.acks_received += 1
-                    self._tx_input(_TxInput.STALE if self._frame_unsent else _TxInput.ACK, now)
+                    stale = self._frame_unsent or self._answer_owed
+                    self._answer_owed = False
+                    self._tx_input(_TxInput.STALE if stale else _TxInput.ACK, now)
                 case NakReceived():
                     self.counters.naks_received += 1
-                    if self._frame_unsent:
+                    stale = self._frame_unsent or self._answer_owed
+                    self._answer_owed = False
+                    if stale:
                         self._tx_input(_TxInput.STALE, now)
+                    elif self._current is not None and not self._current[3]:
+                        self._tx_input(_TxInput.NAK_NOT_PROOF, now)
                     elif self._nak_count >= self.max_nak:
                         self._tx_input(_TxInput.NAK_LIMIT, now)
                     else:
@@ -278,7 +339,10 @@ class Df1Link:
                     if aborted:
                         self.counters.bad_frames += 1
                         self._last_response = NAK_SYMBOL
-                    self._respond(self._last_response)
+                    if self.enq_answer is EnqAnswer.NAK:
+                        self._respond(NAK_SYMBOL)
+                    else:
+                        self._respond(self._last_response)
 
     def next_event(self) -> LinkEvent | NeedData:
         """The next :class:`MessageReceived`, :class:`SendComplete`, :class:`SendFailed` or NEED_DATA."""
@@ -304,10 +368,21 @@ class Df1Link:
         limit = self._enq_count >= self.max_enq
         self._tx_input(_TxInput.TIMEOUT_LIMIT if limit else _TxInput.TIMEOUT, now)
 
+    def confirm(self, handle: int, now: float) -> None:
+        """The application layer has the reply to frame ``handle``: the peer received it.
+
+        A reply can come before the frame's DLE ACK (or instead of it, when the ACK is lost);
+        completing the frame then stops DLE ENQ and, above all, any retransmission of it.
+        Does nothing unless ``handle`` is the frame awaiting its ACK.
+        """
+        if self._current is not None and self._current[0] == handle and not self._frame_unsent:
+            self._answer_owed = True
+            self._tx_input(_TxInput.CONFIRM, now)
+
     def reset(self) -> None:
         """Forget the line state (port reopened): fail every queued frame, clear buffers."""
         failed = [self._current[0]] if self._current is not None else []
-        failed += [handle for handle, _ in self._queue]
+        failed += [handle for handle, _, _ in self._queue]
         self._queue.clear()
         self._current = None
         self._tx_state = TxState.IDLE
@@ -316,6 +391,7 @@ class Df1Link:
         self._decoder.reset()
         self._out.clear()
         self._frame_unsent = False
+        self._answer_owed = False
         self._last_response = NAK_SYMBOL
         self._last_delivered = None
         for handle in failed:
@@ -363,8 +439,8 @@ class Df1Link:
             case _TxAction.IGNORE:
                 pass
             case _TxAction.TRANSMIT:
-                handle, payload = self._queue.popleft()
-                self._current = (handle, payload, encode_frame(payload, self.checksum))
+                handle, payload, idempotent = self._queue.popleft()
+                self._current = (handle, payload, encode_frame(payload, self.checksum), idempotent)
                 self._nak_count = self._enq_count = 0
                 self._write_current(now)
             case _TxAction.RETRANSMIT:
@@ -382,6 +458,8 @@ class Df1Link:
                 self._finish(SendFailed(self._take_current(), SendFailure.NAK_LIMIT), now)
             case _TxAction.FAIL_NO_RESPONSE:
                 self._finish(SendFailed(self._take_current(), SendFailure.NO_RESPONSE), now)
+            case _TxAction.FAIL_AMBIGUOUS:
+                self._finish(SendFailed(self._take_current(), SendFailure.AMBIGUOUS_NAK), now)
 
     def _write_current(self, now: float) -> None:
         assert self._current is not None

@@ -1,0 +1,412 @@
+"""The DF1 transaction core (``gateway.protocols.df1.transaction``): byte scripts, a fake clock.
+
+Part 1 plays the controller by hand: scripted bytes fed whole, byte by byte and with trailing
+garbage, the clock moved by the test.  Part 2 (hypothesis) drives the core against the
+sans-I/O simulated SLC 5/04 under every variant, through a wire that loses or damages what a
+random fault script says, and checks the exactly-once properties.  No real timers anywhere.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from gateway.protocols.df1.address import FileType
+from gateway.protocols.df1.framing import ACK_SYMBOL, ENQ_SYMBOL, NAK_SYMBOL, NEED_DATA, Checksum, encode_frame
+from gateway.protocols.df1.link import Df1Link
+from gateway.protocols.df1.pccc import (
+    PcccHeader,
+    ProtectedTypedLogicalMaskedWrite,
+    ProtectedTypedLogicalRead,
+    ProtectedTypedLogicalWrite,
+    Request,
+    decode_command,
+    encode_reply,
+)
+from gateway.protocols.df1.transaction import (
+    Df1Transactions,
+    OutcomeUnknown,
+    TransactionDone,
+    TransactionEvent,
+    TransactionFailed,
+    TransactionRefused,
+    TxnState,
+    read_back_for,
+)
+from gateway.sim.slc500 import Slc500Options, Slc500Simulator
+from gateway.sim.variants import variant_matrix
+
+N, B = FileType.INTEGER, FileType.BIT
+CRC = Checksum.CRC
+ACK_TIMEOUT, REPLY_TIMEOUT = 0.2, 0.5
+
+
+def read(element: int, size: int = 2) -> ProtectedTypedLogicalRead:
+    return ProtectedTypedLogicalRead(N, 7, element, 0, size)
+
+
+def write(element: int, value: int) -> ProtectedTypedLogicalWrite:
+    return ProtectedTypedLogicalWrite(N, 7, element, 0, value.to_bytes(2, "little"))
+
+
+# ------------------------------------------------------------------------------ scripted peer
+
+
+class Host:
+    """The core with a fake clock; ``peer`` bytes are fed as the test says."""
+
+    def __init__(self, *, retries: int = 2, chunk: int | None = None) -> None:
+        self.now = 0.0
+        self.chunk = chunk
+        link = Df1Link(checksum=CRC, ack_timeout=ACK_TIMEOUT, max_enq=retries, max_nak=retries)
+        self.core = Df1Transactions(link, station=1, source=0, reply_timeout=REPLY_TIMEOUT, retries=retries,
+                                    first_tns=0x1234)
+        self.events: list[TransactionEvent] = []
+
+    def start(self, request: Request, *, is_write: bool) -> tuple[int, bytes]:
+        handle = self.core.start(request, self.now, write=is_write)
+        return handle, self.sent()
+
+    def sent(self) -> bytes:
+        return self.core.data_to_send()
+
+    def feed(self, data: bytes) -> bytes:
+        step = self.chunk or len(data) or 1
+        for i in range(0, len(data), step):
+            self.core.receive_data(data[i : i + step], self.now)
+        self._collect()
+        return self.sent()
+
+    def wait(self, seconds: float) -> bytes:
+        """Move the clock, firing every deadline passed on the way (in order)."""
+        end = self.now + seconds
+        while (deadline := self.core.next_deadline()) is not None and deadline <= end:
+            self.now = max(self.now, deadline)
+            self.core.handle_timeout(self.now)
+        self.now = end
+        self._collect()
+        return self.sent()
+
+    def _collect(self) -> None:
+        while (event := self.core.next_event()) is not NEED_DATA:
+            self.events.append(event)
+
+
+def message_of(frame: bytes) -> bytes:
+    """The message of one CRC frame we sent (no DLE doubling in these tests' packets)."""
+    assert frame.startswith(b"\x10\x02") and frame[-4:-2] == b"\x10\x03", frame.hex(" ")
+    return frame[2:-4].replace(b"\x10\x10", b"\x10")
+
+
+def reply_to(frame: bytes, data: bytes = b"", sts: int = 0, ext_sts: int | None = None) -> bytes:
+    header = PcccHeader.decode(message_of(frame))
+    return encode_frame(encode_reply(header, sts=sts, ext_sts=ext_sts, data=data), CRC)
+
+
+CHUNKS = pytest.mark.parametrize("chunk", [None, 1], ids=["whole", "byte-by-byte"])
+
+
+@CHUNKS
+def test_a_read_is_answered_by_its_reply(chunk: int | None) -> None:
+    host = Host(chunk=chunk)
+    handle, frame = host.start(read(5), is_write=False)
+    command = decode_command(message_of(frame))
+    assert command.header.tns == 0x1234 and command.request == read(5)
+    assert host.feed(ACK_SYMBOL) == b""
+    assert host.feed(reply_to(frame, b"\x05\x00") + b"\x00\xff\x7e") == ACK_SYMBOL  # trailing garbage
+    [done] = host.events
+    assert isinstance(done, TransactionDone) and done.handle == handle
+    assert done.reply.data == b"\x05\x00" and not done.verified
+    assert host.core.state is TxnState.IDLE and host.core.next_deadline() is None
+
+
+@CHUNKS
+def test_a_read_without_reply_is_sent_again_with_a_new_tns_and_a_late_reply_counts(chunk: int | None) -> None:
+    host = Host(chunk=chunk)
+    _, first = host.start(read(5), is_write=False)
+    host.feed(ACK_SYMBOL)
+    second = host.wait(REPLY_TIMEOUT)
+    assert second.startswith(b"\x10\x02")
+    assert decode_command(message_of(second)).header.tns == 0x1235
+    assert host.core.counters.reply_timeouts == 1
+    # the reply to the first attempt comes late: it is a valid answer to the same read
+    host.feed(reply_to(first, b"\x07\x00"))
+    [done] = host.events
+    assert isinstance(done, TransactionDone) and done.reply.data == b"\x07\x00"
+    assert host.core.counters.late_replies == 1
+
+
+def test_a_read_fails_after_every_try() -> None:
+    host = Host(retries=1)
+    host.start(read(5), is_write=False)
+    host.feed(ACK_SYMBOL)
+    host.wait(REPLY_TIMEOUT)
+    host.feed(ACK_SYMBOL)
+    host.wait(REPLY_TIMEOUT)
+    [failed] = host.events
+    assert isinstance(failed, TransactionFailed)
+    assert "after 2 tries" in failed.reason
+    assert host.core.counters.attempts == 2
+
+
+def test_a_refusal_is_reported_with_its_status() -> None:
+    host = Host()
+    _, frame = host.start(write(900, 1), is_write=True)
+    host.feed(ACK_SYMBOL + reply_to(frame, sts=0xF0, ext_sts=0x06))
+    [refused] = host.events
+    assert isinstance(refused, TransactionRefused)
+    assert (refused.reply.sts, refused.reply.ext_sts) == (0xF0, 0x06)
+
+
+@CHUNKS
+def test_a_write_whose_reply_is_lost_is_read_back_and_done_when_it_holds(chunk: int | None) -> None:
+    host = Host(chunk=chunk)
+    _, frame = host.start(write(3, 0x1234), is_write=True)
+    host.feed(ACK_SYMBOL)
+    readback = host.wait(REPLY_TIMEOUT)
+    assert frame not in readback
+    command = decode_command(message_of(readback))
+    assert command.request == read(3)  # the same two bytes, read back; the write is not resent
+    host.feed(ACK_SYMBOL + reply_to(readback, b"\x34\x12"))
+    [done] = host.events
+    assert isinstance(done, TransactionDone) and done.verified
+    assert host.core.counters.verified == 1 and host.core.counters.attempts == 1
+
+
+@CHUNKS
+def test_a_write_whose_read_back_shows_another_value_is_outcome_unknown(chunk: int | None) -> None:
+    host = Host(chunk=chunk)
+    host.start(write(3, 0x1234), is_write=True)
+    host.feed(ACK_SYMBOL)
+    readback = host.wait(REPLY_TIMEOUT)
+    host.feed(ACK_SYMBOL + reply_to(readback, b"\x03\x00"))
+    [unknown] = host.events
+    assert isinstance(unknown, OutcomeUnknown)
+    assert "03 00" in unknown.reason and "may or may not" in unknown.reason
+
+
+def test_a_refused_read_back_is_outcome_unknown() -> None:
+    host = Host()
+    host.start(write(3, 0x1234), is_write=True)
+    host.feed(ACK_SYMBOL)
+    readback = host.wait(REPLY_TIMEOUT)
+    host.feed(ACK_SYMBOL + reply_to(readback, sts=0x10))
+    [unknown] = host.events
+    assert isinstance(unknown, OutcomeUnknown)
+
+
+def test_a_late_write_reply_during_the_read_back_settles_it() -> None:
+    host = Host()
+    _, frame = host.start(write(3, 0x1234), is_write=True)
+    host.feed(ACK_SYMBOL)
+    host.wait(REPLY_TIMEOUT)  # the read-back goes out
+    host.feed(reply_to(frame))
+    [done] = host.events
+    assert isinstance(done, TransactionDone) and not done.verified
+
+
+@pytest.mark.parametrize("when", ["at once", "after our ENQ"])
+def test_a_nak_never_makes_a_write_go_out_twice(when: str) -> None:
+    host = Host()
+    _, frame = host.start(write(3, 0x1234), is_write=True)
+    if when == "after our ENQ":
+        assert host.wait(ACK_TIMEOUT) == ENQ_SYMBOL
+    readback = host.feed(NAK_SYMBOL)
+    assert frame not in readback  # not retransmitted: the NAK is no proof the write was discarded
+    assert decode_command(message_of(readback)).request == read(3)
+    host.feed(ACK_SYMBOL + reply_to(readback, b"\x34\x12"))
+    [done] = host.events
+    assert isinstance(done, TransactionDone) and done.verified
+
+
+def test_a_nak_makes_a_read_go_out_again() -> None:
+    host = Host()
+    _, frame = host.start(read(3), is_write=False)
+    assert host.feed(NAK_SYMBOL) == frame
+
+
+def test_a_reply_before_its_ack_completes_the_frame_and_a_late_nak_is_not_the_next_frames() -> None:
+    host = Host()
+    _, frame = host.start(write(3, 1), is_write=True)
+    host.wait(ACK_TIMEOUT)  # ENQ out, then the reply comes, then the answer to our ENQ: a NAK
+    host.feed(reply_to(frame))
+    [done] = host.events
+    assert isinstance(done, TransactionDone)
+    _, second = host.start(write(4, 2), is_write=True)
+    assert host.feed(NAK_SYMBOL) == b""  # owed to the ENQ: neither a retransmission nor a read-back
+    host.feed(ACK_SYMBOL + reply_to(second))
+    assert isinstance(host.events[-1], TransactionDone)
+    assert host.core.link.counters.frames_sent == 2
+
+
+def test_no_ack_at_all_then_read_back() -> None:
+    host = Host(retries=1)
+    host.start(write(3, 9), is_write=True)
+    assert host.wait(ACK_TIMEOUT) == ENQ_SYMBOL
+    readback = host.wait(ACK_TIMEOUT)  # the ENQ limit: the link gives up, the core reads back
+    assert decode_command(message_of(readback)).request == read(3)
+    host.wait(ACK_TIMEOUT * 10)  # nothing answers the read-backs either
+    [unknown] = host.events
+    assert isinstance(unknown, OutcomeUnknown)
+    assert host.core.counters.read_backs == 2 and host.core.counters.attempts == 1
+
+
+def test_read_back_of_a_masked_write_compares_only_the_masked_bits() -> None:
+    masked = ProtectedTypedLogicalMaskedWrite(B, 3, 1, 0, 0x0102, b"\x00\x01")
+    check = read_back_for(masked)
+    assert check is not None and check.request == ProtectedTypedLogicalRead(B, 3, 1, 0, 2)
+    # mask bytes 02 01: bit 1 of the low byte must be 0, bit 0 of the high byte 1; others are free
+    assert check.holds(b"\xfd\xff") and check.holds(b"\x00\x01")
+    assert not check.holds(b"\x02\x01") and not check.holds(b"\x00\x00") and not check.holds(b"\x00")
+    plain = read_back_for(write(1, 0x0102))
+    assert plain is not None and plain.holds(b"\x02\x01") and not plain.holds(b"\x02\x00")
+
+
+def test_one_transaction_at_a_time_and_bad_settings() -> None:
+    host = Host()
+    host.start(read(1), is_write=False)
+    with pytest.raises(Exception, match="already running"):
+        host.core.start(read(2), 0.0, write=False)
+    with pytest.raises(ValueError):
+        Df1Transactions(Df1Link(), station=1, reply_timeout=0)
+    with pytest.raises(ValueError):
+        Df1Transactions(Df1Link(), station=1, retries=-1)
+
+
+# -------------------------------------------------------------- property: against the simulator
+
+VARIANTS = list(variant_matrix(Slc500Simulator.VARIANTS))
+_DELIVER, _LOSE, _DAMAGE = 0, 1, 2
+LINE_DELAY = 0.002  # seconds each chunk spends on the wire
+
+
+@dataclass
+class Wire:
+    """Chunks in flight, in order; each gets its fate from the fault script as it is sent."""
+
+    script: Iterator[int]
+    damage_at: Iterator[int]
+    queue: list[tuple[float, str, bytes]] = field(default_factory=list)
+
+    def put(self, now: float, to: str, data: bytes) -> None:
+        if not data:
+            return
+        fate = next(self.script, _DELIVER)
+        if fate == _LOSE:
+            return
+        if fate == _DAMAGE:
+            buf = bytearray(data)
+            i = next(self.damage_at, 0) % len(buf)
+            buf[i] ^= 0x5A  # any change: a check catches it in a frame, a symbol becomes another
+            data = bytes(buf)
+        arrive = max([now + LINE_DELAY] + [t for t, d, _ in self.queue if d == to])
+        self.queue.append((arrive, to, data))
+        self.queue.sort(key=lambda item: item[0])
+
+
+def run_against_simulator(
+    variants: dict[str, str], fates: list[int], damage_at: list[int], ops: list[tuple[str, int, int]], sim_faults: int
+) -> None:
+    sim = Slc500Simulator(
+        Slc500Options(checksum=CRC, link_ack_timeout=0.05, drop=sim_faults, withhold_ack=sim_faults,
+                      corrupt=sim_faults, seed=sim_faults),
+        ladder=False,
+        variants=variants,
+    )
+    link = Df1Link(checksum=CRC, ack_timeout=0.05, max_enq=2, max_nak=2)
+    core = Df1Transactions(link, station=1, reply_timeout=0.1, retries=2, first_tns=7)
+    wire = Wire(iter(fates), iter(damage_at))
+    now = 0.0
+    history: dict[int, set[int]] = {k: {sim.word("N7", k)} for k in range(8)}  # values each word has held
+    written: list[tuple[int, bytes, TransactionEvent]] = []
+    value = 1000
+
+    for kind, element, _ in ops:
+        value += 1
+        is_write = kind == "write"
+        request: Request = write(element, value) if is_write else read(element, 4)
+        handle = core.start(request, now, write=is_write)
+        if is_write:
+            history[element].add(value)
+        wire.put(now, "sim", core.data_to_send())
+        verdict: TransactionEvent | None = None
+        for _ in range(10_000):
+            event = core.next_event()
+            if event is not NEED_DATA:
+                assert event.handle == handle
+                verdict = event
+                break
+            # the next thing to happen: a chunk arriving, the core's timer, the simulator's timer
+            times = [t for t, _, _ in wire.queue[:1]]
+            times += [d for d in (core.next_deadline(), sim.next_deadline()) if d is not None]
+            assert times, "nothing left to happen and no verdict"
+            now = max(now, min(times))
+            while wire.queue and wire.queue[0][0] <= now:
+                _, to, data = wire.queue.pop(0)
+                if to == "sim":
+                    for output in sim.receive(data, now):
+                        wire.put(now, "host", output.data)
+                else:
+                    core.receive_data(data, now)
+                    wire.put(now, "sim", core.data_to_send())
+            core.handle_timeout(now)
+            wire.put(now, "sim", core.data_to_send())
+            for output in sim.poll(now):
+                wire.put(now, "host", output.data)
+        assert verdict is not None, "no verdict"
+        if is_write:
+            written.append((element, value.to_bytes(2, "little"), verdict))
+        elif isinstance(verdict, TransactionDone):
+            # no value the controller never held
+            got = verdict.reply.data
+            assert len(got) == 4
+            for i in range(2):
+                assert int.from_bytes(got[2 * i : 2 * i + 2], "little") in history[element + i]
+        else:
+            assert isinstance(verdict, TransactionFailed), verdict
+
+    applied = Counter((address, data) for kind, address, data in sim.applied_writes if kind == "write")
+    for element, data, verdict in written:
+        count = applied[(f"N7:{element}", data)]
+        if isinstance(verdict, TransactionDone):
+            assert count == 1, ("acknowledged write not applied exactly once", element, data, count, verdict)
+        elif isinstance(verdict, TransactionRefused):
+            assert count == 0
+        else:
+            assert isinstance(verdict, OutcomeUnknown), verdict  # a write never simply "fails"
+            assert count <= 1, ("unacknowledged write applied twice", element, data, count)
+    assert sum(applied.values()) == len(sim.applied_writes)
+
+
+ops_strategy = st.lists(
+    st.tuples(st.sampled_from(["write", "write", "read"]), st.integers(0, 6), st.just(0)), min_size=1, max_size=12
+)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    variants=st.sampled_from(VARIANTS),
+    fates=st.lists(st.sampled_from([_DELIVER] * 6 + [_LOSE, _DAMAGE]), max_size=200),
+    damage_at=st.lists(st.integers(0, 300), max_size=50),
+    ops=ops_strategy,
+    sim_faults=st.sampled_from([0, 3, 5]),
+)
+def test_exactly_once_under_every_variant_and_any_fault_script(
+    variants: dict[str, str], fates: list[int], damage_at: list[int], ops: list[tuple[str, int, int]],
+    sim_faults: int,
+) -> None:
+    run_against_simulator(variants, fates, damage_at, ops, sim_faults)
+
+
+@pytest.mark.parametrize("variants", VARIANTS, ids=lambda v: ",".join(f"{k}={x}" for k, x in sorted(v.items())))
+def test_exactly_once_per_variant_on_a_bad_line(variants: dict[str, str]) -> None:
+    """Every variant, a fixed harsh script: 1 in 5 chunks lost or damaged, simulator faults on."""
+    fates = [(_LOSE if i % 10 == 3 else _DAMAGE if i % 10 == 7 else _DELIVER) for i in range(3000)]
+    ops = [("write" if i % 3 else "read", i % 7, 0) for i in range(60)]
+    run_against_simulator(variants, fates, list(range(0, 3000, 7)), ops, 5)
+
