@@ -181,3 +181,37 @@ def test_station_numbers_are_checked() -> None:
         make_driver(line, (1, 1))
     with pytest.raises(ValueError, match="no station 9"):
         make_driver(line, (1, 2)).station(9)
+
+
+@pytest.mark.parametrize("typed_logical", ["refuse", "accept"])
+async def test_plc5_station_read_and_written_with_word_range_commands(typed_logical: str) -> None:
+    """PLC-5 stations on a half-duplex line: word range read / write and the RMW coil write work the
+    same whether the PLC-5 refuses or accepts the SLC typed logical commands (it is never sent one)."""
+    from gateway.protocols.df1.plc5_commands import plc5_bit_write, plc5_read, plc5_write
+
+    options = LineOptions(checksum=Checksum.CRC, stations=(3, 4), model="plc5", corrupt=6, ignore=10, seed=5)
+    line = MultidropLine(options, controller_variants={"typed_logical": typed_logical})
+    driver = make_driver(line, (3, 4))
+    plc, other = driver.station(3), driver.station(4)
+    await plc.start()
+    try:
+        assert (await plc.execute(plc5_read("N7:30"))).data == bytes.fromhex("1E 00")
+        assert (await plc.execute(plc5_read("F8:2"))).data == bytes.fromhex("00 00 40 40")
+        await plc.execute(plc5_write("T4:2.ACC", b"\x07\x00"))
+        assert (await plc.execute(plc5_read("T4:2"))).data == bytes.fromhex("00 00 32 00 07 00")
+        await plc.execute(plc5_bit_write("B3/5", True))
+        await plc.execute(plc5_bit_write("B3:1/0", False))
+        assert (await plc.execute(plc5_read("B3:0", 2))).data == bytes.fromhex("20 00 A4 A5")
+        typed = ProtectedTypedLogicalRead(N, 7, 30, 0, 2)
+        if typed_logical == "accept":
+            assert (await plc.execute(typed)).data == bytes.fromhex("1E 00")
+        else:
+            with pytest.raises(PcccError, match="STS 0x10"):
+                await plc.execute(typed)
+    finally:
+        await plc.close()
+        await other.close()
+    controller = line.controllers[3]
+    assert [kind for kind, _, _ in controller.applied_writes] == [
+        "word_range_write", "read_modify_write", "read_modify_write"]
+    assert line.controllers[4].applied_writes == []

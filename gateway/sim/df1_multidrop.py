@@ -202,7 +202,10 @@ class MultidropLine:
         *,
         variants: Mapping[str, str] | None = None,
         ladder: bool = False,
+        controller_variants: Mapping[str, str] | None = None,
     ) -> None:
+        """``variants``: the slave model's, for every station; ``controller_variants``: the controller
+        model's (e.g. ``{"typed_logical": "accept"}`` for ``model="plc5"``)."""
         self.options = options or LineOptions()
         self.variant = SlaveVariant.from_choices(variants or {})
         self.counters = LineCounters()
@@ -214,9 +217,9 @@ class MultidropLine:
         for number in self.options.stations:
             station_options = Slc500Options(checksum=checksum, station=number)
             controller: SlcStation | Plc5Simulator = (
-                Plc5Simulator(station_options, ladder=ladder)
+                Plc5Simulator(station_options, ladder=ladder, variants=controller_variants)
                 if self.options.model == "plc5"
-                else SlcStation(station_options, ladder=ladder)
+                else SlcStation(station_options, ladder=ladder, variants=controller_variants)
             )
             self.controllers[number] = controller
             if number not in self.options.dead:
@@ -232,9 +235,16 @@ class MultidropLine:
 
     @classmethod
     def from_options(
-        cls, options: Mapping[str, str], *, variants: Mapping[str, str] | None = None, ladder: bool = False
+        cls,
+        options: Mapping[str, str],
+        *,
+        variants: Mapping[str, str] | None = None,
+        ladder: bool = False,
+        controller_variants: Mapping[str, str] | None = None,
     ) -> MultidropLine:
-        return cls(LineOptions.from_options(options), variants=variants, ladder=ladder)
+        return cls(
+            LineOptions.from_options(options), variants=variants, ladder=ladder, controller_variants=controller_variants
+        )
 
     def _handler(self, number: int, controller: SlcStation | Plc5Simulator) -> Callable[[bytes], bytes | None]:
         busy = self.options.busy_polls.get(number, 0)
