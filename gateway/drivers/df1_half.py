@@ -16,6 +16,9 @@ dead or slow station never holds up the others.  Verdicts:
 * a read without an answer -> sent again with a new TNS (``retries`` more times), then
   :class:`~gateway.errors.LinkTimeout`;
 * a station demoted to slow poll -> :class:`~gateway.errors.LinkTimeout` at once (Modbus 0x0B);
+* a write is sent as one master frame; the core resends that identical frame (same TNS) when its
+  DLE ACK does not come, which a slave with duplicate detection (the default) ACKs without running it
+  again.  For slaves without duplicate detection (``duplicate_detect=False``) no frame is ever resent;
 * a write whose master frame may have been executed but whose reply never came -> never sent again:
   a read-back of the target (``read_back_for``) settles it - the written value is there: success;
   anything else :class:`~gateway.drivers.df1.WriteOutcomeUnknown`.  A write the station never
@@ -299,6 +302,7 @@ class Df1HalfDuplexLine(LinkDriver):
         rts_send_delay: float = 0.0,
         rts_off_delay: float = 0.0,
         echo: bool = False,
+        duplicate_detect: bool = True,
         link_reset: bool = True,
         rts: Callable[[bool], None] | None = None,
         station_names: dict[int, str] | None = None,
@@ -318,7 +322,11 @@ class Df1HalfDuplexLine(LinkDriver):
         self.source = source
         self.retries = retries
         self.ack_timeout = ack_timeout
-        self.message_retries = message_retries
+        # Without duplicate detection in the slaves (RM p. 13-59 "Duplicate Packet Detect" unchecked) a
+        # resent master frame whose first copy arrived is executed again: then no frame is ever resent
+        # (reads are retried with a new TNS, writes settled by a read-back), so a write runs once.
+        self.duplicate_detect = duplicate_detect
+        self.message_retries = message_retries if duplicate_detect else 0
         self.pre_transmit_delay = pre_transmit_delay
         self.rts_send_delay = rts_send_delay
         self.rts_off_delay = rts_off_delay

@@ -16,6 +16,8 @@ whose command execution is the SLC 5/04 simulator's (``gateway.sim.slc500``; the
 * ``corrupt=N`` - 1 in N slave message frames is damaged (one message byte changed, the check fails);
   symbols (DLE EOT / DLE ACK) are not;
 * ``ignore=N`` - 1 in N master frames or symbols (polls, messages, DLE ACKs) is heard by no station;
+* ``lose_symbol=N`` - 1 in N slave symbols (DLE ACK, DLE EOT, DLE NAK) never reaches the master: a
+  lost ACK of a master message is what makes a resend reach a slave that already executed it;
 * ``dead`` - stations that are on the configuration but never answer (powered off, cable cut);
 * ``slow`` - extra turnaround per station (a slow modem or CPU); ``busy_polls`` - per station, the
   number of polls after each command before its reply is ready (the slave answers them DLE EOT or
@@ -30,7 +32,7 @@ return what reaches the master, as outputs with no delay (the line keeps its own
 Variants: the slave model's ``VARIANTS`` (``bad_frame_reply``, ``reply_retries``,
 ``duplicate_detect``, ``when_busy``), for every station.  Options as strings (``from_options``):
 ``checksum=bcc|crc stations=1,2,3 dead=4 slow=3:0.2 busy_polls=2:1 turnaround=S latency=S
-char_time=S corrupt=N ignore=N echo=0|1 seed=N model=slc504|plc5``.
+char_time=S corrupt=N ignore=N lose_symbol=N echo=0|1 seed=N model=slc504|plc5``.
 
 No I/O; randomness from one seeded generator.
 """
@@ -56,7 +58,7 @@ __all__ = ["LineCounters", "LineOptions", "MultidropLine", "SlcStation"]
 
 _OPTION_NAMES: Final = (
     "checksum", "stations", "dead", "slow", "busy_polls", "turnaround", "latency", "char_time", "corrupt",
-    "ignore", "echo", "seed", "model",
+    "ignore", "lose_symbol", "echo", "seed", "model",
 )
 _MODELS: Final = ("slc504", "plc5")
 
@@ -83,6 +85,7 @@ class LineOptions:
     char_time: float = 0.0
     corrupt: int = 0
     ignore: int = 0
+    lose_symbol: int = 0
     echo: bool = False
     seed: int = 1
     model: str = "slc504"
@@ -105,8 +108,8 @@ class LineOptions:
                 raise ValueError(f"multi-drop line option {name}={value}: seconds, 0 or more")
         if any(not (math.isfinite(v) and v >= 0) for v in self.slow.values()):
             raise ValueError("multi-drop line option slow: seconds, 0 or more")
-        if any(v < 0 for v in self.busy_polls.values()) or self.corrupt < 0 or self.ignore < 0:
-            raise ValueError("multi-drop line: busy_polls, corrupt and ignore must not be negative")
+        if any(v < 0 for v in self.busy_polls.values()) or min(self.corrupt, self.ignore, self.lose_symbol) < 0:
+            raise ValueError("multi-drop line: busy_polls, corrupt, ignore and lose_symbol must not be negative")
         if self.model not in _MODELS:
             raise ValueError(f"multi-drop line option model={self.model!r}: choose {' or '.join(_MODELS)}")
 
@@ -165,6 +168,7 @@ class LineOptions:
             char_time=float(str(get("char_time", str, "0"))),
             corrupt=int(str(get("corrupt", str, "0"))),
             ignore=int(str(get("ignore", str, "0"))),
+            lose_symbol=int(str(get("lose_symbol", str, "0"))),
             echo=str(get("echo", str, "0")).lower() in ("1", "true", "yes"),
             seed=int(str(get("seed", str, "1"))),
             model=str(get("model", str, "slc504")).lower(),
@@ -178,6 +182,7 @@ class LineCounters:
     collisions: int = 0  #: master transmissions that overlapped a slave's
     ignored: int = 0  #: master frames / symbols no station heard (``ignore``)
     corrupted: int = 0  #: slave frames damaged (``corrupt``)
+    lost_symbols: int = 0  #: slave DLE ACK / EOT / NAK lost on the way (``lose_symbol``)
     busy_time: float = 0.0  #: seconds the medium carried a signal (line efficiency = busy / elapsed)
 
 
@@ -335,6 +340,9 @@ class MultidropLine:
         if len(answer) > 2 and answer[1] == Symbol.STX and self._one_in(options.corrupt):
             self.counters.corrupted += 1
             answer = corrupt_frame(answer, options.checksum, self._rng)
+        elif len(answer) == 2 and self._one_in(options.lose_symbol):
+            self.counters.lost_symbols += 1  # the slave sent it (and acts on it), the master never hears it
+            return
         start = max(heard_at + options.turnaround + options.slow.get(number, 0.0), self._medium_free)
         end = start + len(answer) * options.char_time
         self._medium_free = end
