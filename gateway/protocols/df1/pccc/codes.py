@@ -28,6 +28,7 @@ class Function(enum.IntEnum):
 
     WORD_RANGE_WRITE = 0x00
     WORD_RANGE_READ = 0x01
+    READ_MODIFY_WRITE = 0x26  # PLC-5 (1770-6.5.16 p. 7-20)
     TYPED_WRITE = 0x67
     TYPED_READ = 0x68
     SET_PROCESSOR_MODE = 0x80
