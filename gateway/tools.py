@@ -222,10 +222,10 @@ async def _run_slc_ascii_tool(command: str, args: argparse.Namespace, received: 
                     if value not in (0, 1):
                         raise InvalidRequest(f"{item_text}: a bit takes 0 or 1, not {value}")
                     if not item.writable:
-                        item.encode_bit_write(0, bool(value))  # raises the read-only message
+                        cmds.write_item_bit(item, 0, bool(value))  # raises the read-only message
                     await driver.update_byte(item.read_address, item.bit, bool(value))
                 else:
-                    await driver.execute(item.encode_write(value))
+                    await driver.execute(cmds.write_item(item, value))
             print_result({text: value for text, _, value in writes}, args.json)
         elif command == "mode":
             await driver.set_mode(_MODES[args.mode])
@@ -261,7 +261,7 @@ def _parse_assignment(text: str) -> tuple[str, Any, int]:
     except ValueError as exc:
         raise InvalidRequest(f"{text!r}: {value_text!r} is not a whole number") from exc
     if not item.read_modify_write:
-        item.encode_write(value)  # validate now, before the port is opened
+        cmds.write_item(item, value)  # validate now, before the port is opened
     return name, item, value
 
 
