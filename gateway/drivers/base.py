@@ -11,13 +11,15 @@ not every retry.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import contextvars
 import enum
 import heapq
 import itertools
 import logging
 import random
 from abc import ABC, abstractmethod
-from collections.abc import Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -34,6 +36,21 @@ T = TypeVar("T")
 #: A connection that lasted less than this (seconds) counts as a failed attempt for the backoff.
 _STABLE_CONNECTION = 5.0
 OpenStream = Callable[..., Awaitable[ByteStream]]
+
+
+class _Session:
+    """A run of writes holding the line (``LinkDriver.write_session``)."""
+
+    __slots__ = ("driver", "held", "writes")
+
+    def __init__(self, driver: LinkDriver) -> None:
+        self.driver = driver
+        self.held = False
+        self.writes = 0
+
+
+#: The write session of the current task, if any: its requests run on the line it holds.
+_SESSION: contextvars.ContextVar[_Session | None] = contextvars.ContextVar("gateway_write_session", default=None)
 
 
 class Priority(enum.IntEnum):
@@ -102,6 +119,10 @@ class _Line:
                 return
         self.busy = False
 
+    @property
+    def waiting(self) -> bool:
+        return any(not future.done() for _, _, future in self._waiters)
+
     def fail_waiting(self, exc: BaseException) -> None:
         while self._waiters:
             _, _, future = heapq.heappop(self._waiters)
@@ -146,6 +167,8 @@ class LinkDriver(ABC):
         self._listeners: list[Callable[[LinkDriver], None]] = []
         self._run_task: asyncio.Task[None] | None = None
         self._closing = False
+        #: in a write session, transactions in a row before one waiting poll gets the line
+        self.write_burst = 1
 
     # --- public state -----------------------------------------------------------------------
 
@@ -308,6 +331,9 @@ class LinkDriver(ABC):
         even when its caller gives up (a SCADA client that disconnects, a request cancelled),
         so the controller is never left with a write half done by us.
         """
+        session = _SESSION.get()
+        if session is not None and session.driver is self:
+            return await self._run_in_session(session, op)
         if self._stream is None:
             raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
         await self._line.acquire(int(priority))
@@ -330,6 +356,50 @@ class LinkDriver(ABC):
             raise LinkError(f"link {self.name}: internal error: {exc!r}") from exc
         finally:
             self._line.release()
+
+    @contextlib.asynccontextmanager
+    async def write_session(self) -> AsyncIterator[None]:
+        """Hold the line for a run of writes: ``submit`` calls of this task run on it at once.
+
+        The session takes the line at write priority and keeps it from one write to the next,
+        so queued writes go ahead of polls; but after ``write_burst`` transactions in a row it
+        lets one waiting poll transaction have the line, so the data age stays bounded under any
+        write load.  A write is never interrupted: the line changes hands only between two.
+        """
+        if self._stream is None:
+            raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
+        session = _Session(self)
+        await self._line.acquire(int(Priority.WRITE))
+        session.held = True
+        token = _SESSION.set(session)
+        try:
+            yield
+        finally:
+            _SESSION.reset(token)
+            if session.held:
+                session.held = False
+                self._line.release()
+
+    async def _run_in_session(self, session: _Session, op: Callable[[], Awaitable[T]]) -> T:
+        if session.held and session.writes >= self.write_burst and self._line.waiting:
+            session.held = False
+            self._line.release()  # to the waiting poll
+            session.writes = 0
+        if not session.held:
+            if self._stream is None:
+                raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
+            await self._line.acquire(int(Priority.WRITE))  # LinkDown when the link fails meanwhile
+            session.held = True
+        session.writes += 1
+        try:
+            if self._stream is None:
+                raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
+            return await op()
+        except (GatewayError, asyncio.CancelledError):
+            raise
+        except Exception as exc:  # a bug: fail the caller, keep the link alive
+            log.exception("link %s: unexpected error", self.name)
+            raise LinkError(f"link {self.name}: internal error: {exc!r}") from exc
 
     def send(self, data: bytes) -> None:
         """Write bytes to the line (from inside an ``op``)."""

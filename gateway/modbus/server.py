@@ -76,6 +76,7 @@ Write replies are echoes of the request bytes, as the specification defines them
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import ipaddress
 import logging
 import os
@@ -89,6 +90,7 @@ from typing import Any, Final, Protocol, TypeAlias, cast
 from pymodbus.pdu import DecodePDU
 from pymodbus.pdu.bit_message import ReadCoilsResponse, ReadDiscreteInputsResponse
 
+from gateway.clients import Client, audit_write, current_client
 from gateway.errors import ModbusExceptionReply
 
 __all__ = [
@@ -547,22 +549,30 @@ class ModbusTcpServer:
     ) -> bytes:
         try:
             await self.backend.write_coils(unit, address, values)
-            return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
         except ModbusExceptionReply as reply:
-            return self._exception_reply(tid, unit, echo[0], reply)
+            frame = self._exception_reply(tid, unit, echo[0], reply)
+            audit_write(unit, echo[0], "coil", address, len(values), f"0x{frame[-1]:02X} {reply}")
+            return frame
         except Exception as error:
+            audit_write(unit, echo[0], "coil", address, len(values), f"0x04 {error!r}")
             return self._backend_failed(tid, unit, echo[0], error)
+        audit_write(unit, echo[0], "coil", address, len(values), "ok")
+        return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
 
     async def _write_registers(
         self, tid: int, unit: int, echo: bytes, address: int, values: Sequence[int]
     ) -> bytes:
         try:
             await self.backend.write_registers(unit, address, values)
-            return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
         except ModbusExceptionReply as reply:
-            return self._exception_reply(tid, unit, echo[0], reply)
+            frame = self._exception_reply(tid, unit, echo[0], reply)
+            audit_write(unit, echo[0], "holding", address, len(values), f"0x{frame[-1]:02X} {reply}")
+            return frame
         except Exception as error:
+            audit_write(unit, echo[0], "holding", address, len(values), f"0x04 {error!r}")
             return self._backend_failed(tid, unit, echo[0], error)
+        audit_write(unit, echo[0], "holding", address, len(values), "ok")
+        return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
 
     def _exception_reply(self, tid: int, unit: int, function_code: int, reply: ModbusExceptionReply) -> bytes:
         if not 1 <= reply.code <= 0xFF:
@@ -575,6 +585,8 @@ class _Connection(asyncio.Protocol):
 
     __slots__ = (
         "_buffer",
+        "_client",
+        "_context",
         "_eof",
         "_idle_handle",
         "_in_flight",
@@ -613,12 +625,17 @@ class _Connection(asyncio.Protocol):
         self._last_received = 0.0
         self._idle_handle: asyncio.TimerHandle | None = None
         self._tls_task: asyncio.Task[None] | None = None
+        #: the identity of the client; every request task runs in ``_context``, where it is current
+        self._client = Client("")
+        self._context = contextvars.copy_context()
+        self._context.run(current_client.set, self._client)
 
     # -- asyncio.Protocol --------------------------------------------------------------
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._transport = cast(asyncio.Transport, transport)
         self._peer = transport.get_extra_info("peername")
+        self._client.name = self._identity()
         if not self._server._admit(self, self._peer):
             self._released = True
             self._transport.abort()
@@ -708,6 +725,10 @@ class _Connection(asyncio.Protocol):
 
     # -- internals ---------------------------------------------------------------------
 
+    def _identity(self) -> str:
+        """Who this client is, for the audit log: its address (``host:port``)."""
+        return _format_address(self._peer)
+
     def _release(self) -> None:
         """Forget the connection (idempotent)."""
         if self._idle_handle is not None:
@@ -754,6 +775,7 @@ class _Connection(asyncio.Protocol):
             self._release()
             return
         self._transport = transport
+        self._client.name = self._identity()
         self._ready = True
         self._process()
 
@@ -780,7 +802,7 @@ class _Connection(asyncio.Protocol):
                 transport.write(reply)
             else:
                 self._in_flight += 1
-                task = self._loop.create_task(self._serve(reply))
+                task = self._loop.create_task(self._serve(reply), context=self._context)
                 server._tasks.add(task)
                 task.add_done_callback(server._tasks.discard)
         if position == size:
