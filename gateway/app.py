@@ -44,6 +44,7 @@ def build_unit(link: LinkConfig) -> Unit:
         fast_interval=link.fast_interval,
         slow_interval=link.slow_interval,
         write_burst=link.write_burst,
+        poll_burst=link.poll_burst,
         write_queue_per_client=link.write_queue_per_client,
         write_queue_per_link=link.write_queue_per_link,
     )

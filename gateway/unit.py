@@ -140,6 +140,7 @@ class Unit(ABC):
         fast_interval: float = 0.0,
         slow_interval: float = 10.0,
         write_burst: int = 1,
+        poll_burst: int = 2,
         write_queue_per_client: int = 8,
         write_queue_per_link: int = 32,
     ) -> None:
@@ -173,6 +174,7 @@ class Unit(ABC):
         #: write requests the controller refused after part of them was applied
         self.partial_writes = 0
         driver.write_burst = write_burst
+        driver.poll_burst = poll_burst
         self.writes = WriteQueue(driver, name, per_client=write_queue_per_client, per_link=write_queue_per_link)
 
     # --- protocol hooks ---------------------------------------------------------------------

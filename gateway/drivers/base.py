@@ -91,16 +91,21 @@ class _Line:
     Busy: callers wait in a heap; ``release`` hands the line to the most urgent one.
     """
 
-    __slots__ = ("_seq", "_waiters", "busy")
+    __slots__ = ("_grant_waiters", "_seq", "_waiters", "busy", "grants")
 
     def __init__(self) -> None:
         self.busy = False
         self._waiters: list[tuple[int, int, asyncio.Future[None]]] = []
         self._seq = itertools.count()
+        #: how many times the line was granted (to anyone)
+        self.grants = 0
+        #: (grants to wait for, future): woken when the line was granted that often, or fell idle
+        self._grant_waiters: list[tuple[int, asyncio.Future[None]]] = []
 
     async def acquire(self, priority: int) -> None:
         if not self.busy and not self._waiters:
             self.busy = True
+            self._granted()
             return
         future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         heapq.heappush(self._waiters, (priority, next(self._seq), future))
@@ -116,14 +121,41 @@ class _Line:
             _, _, future = heapq.heappop(self._waiters)
             if not future.done():
                 future.set_result(None)  # the line stays busy: it is theirs now
+                self._granted()
                 return
         self.busy = False
+        self._wake_grant_waiters(idle=True)
+
+    def _granted(self) -> None:
+        self.grants += 1
+        if self._grant_waiters:
+            self._wake_grant_waiters(idle=False)
+
+    def _wake_grant_waiters(self, idle: bool) -> None:
+        keep = []
+        for target, future in self._grant_waiters:
+            if future.done():
+                continue
+            if idle or self.grants >= target:
+                future.set_result(None)
+            else:
+                keep.append((target, future))
+        self._grant_waiters = keep
+
+    async def wait_grants(self, target: int) -> None:
+        """Until the line was granted ``target`` times in all, or nobody uses it."""
+        if self.grants >= target or not self.busy:
+            return
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._grant_waiters.append((target, future))
+        await future
 
     @property
     def waiting(self) -> bool:
         return any(not future.done() for _, _, future in self._waiters)
 
     def fail_waiting(self, exc: BaseException) -> None:
+        self._wake_grant_waiters(idle=True)
         while self._waiters:
             _, _, future = heapq.heappop(self._waiters)
             if not future.done():
@@ -167,8 +199,10 @@ class LinkDriver(ABC):
         self._listeners: list[Callable[[LinkDriver], None]] = []
         self._run_task: asyncio.Task[None] | None = None
         self._closing = False
-        #: in a write session, transactions in a row before one waiting poll gets the line
+        #: in a write session: after ``write_burst`` write transactions in a row, up to
+        #: ``poll_burst`` waiting poll transactions get the line
         self.write_burst = 1
+        self.poll_burst = 2
 
     # --- public state -----------------------------------------------------------------------
 
@@ -363,8 +397,10 @@ class LinkDriver(ABC):
 
         The session takes the line at write priority and keeps it from one write to the next,
         so queued writes go ahead of polls; but after ``write_burst`` transactions in a row it
-        lets one waiting poll transaction have the line, so the data age stays bounded under any
-        write load.  A write is never interrupted: the line changes hands only between two.
+        lets waiting poll transactions have the line (``poll_burst`` of them, fewer if the poller
+        stops asking), so the data age stays bounded under any write load: writes take at most
+        ``write_burst * write / (write_burst * write + poll_burst * poll)`` of the line time.  A
+        write is never interrupted: the line changes hands only between two.
         """
         if self._stream is None:
             raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
@@ -383,8 +419,12 @@ class LinkDriver(ABC):
     async def _run_in_session(self, session: _Session, op: Callable[[], Awaitable[T]]) -> T:
         if session.held and session.writes >= self.write_burst and self._line.waiting:
             session.held = False
-            self._line.release()  # to the waiting poll
             session.writes = 0
+            target = self._line.grants + self.poll_burst
+            self._line.release()  # to the waiting poll
+            # Let the poller's next requests have the line too, up to poll_burst in all; the
+            # last one's release hands the line back here (queued at write priority meanwhile).
+            await self._line.wait_grants(target)
         if not session.held:
             if self._stream is None:
                 raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")

@@ -337,3 +337,72 @@ async def test_every_write_is_audited_with_the_client(caplog: pytest.LogCaptureF
     assert "FC6 holding 40" in lines[0] and "ok" in lines[0], lines[0]
     assert "FC16 holding 60-63" in lines[1] and "0x04" in lines[1], lines[1]
     assert "FC5 coil 701" in lines[2] and "ok" in lines[2], lines[2]
+
+
+# --------------------------------------------------------------------------------------------
+# 3. Fair line time
+
+
+async def flood(port: int, stop: asyncio.Event, in_flight: int = 16) -> dict[str, int]:
+    """One connection keeping ``in_flight`` FC6 writes outstanding until ``stop`` (0x06 answers too)."""
+    reader, writer = await asyncio.open_connection(HOST, port)
+    outcome = {"ok": 0, "busy": 0, "other": 0}
+    tid = 0
+    try:
+        for _ in range(in_flight):
+            tid = (tid + 1) & 0xFFFF
+            writer.write(fc6(tid, tid % 31, tid % 10000))  # accumulators of 901-931 (932 is protected)
+        while not stop.is_set():
+            pdu = (await read_replies(reader, 1)).popitem()[1]
+            key = "ok" if pdu[0] == 6 else "busy" if pdu[1:2] == bytes((SERVER_BUSY,)) else "other"
+            outcome[key] += 1
+            if key == "busy":
+                await asyncio.sleep(0.005)  # a retry a little later, as a master does after 0x06
+            tid = (tid + 1) & 0xFFFF
+            writer.write(fc6(tid, tid % 31, tid % 10000))  # accumulators of 901-931 (932 is protected)
+    finally:
+        writer.close()
+    return outcome
+
+
+async def test_a_write_flood_leaves_the_fast_class_fresh() -> None:
+    """16 writes in flight on a 9600-baud SLC 150: reads never answer 0x0B, and polls go on.
+
+    Without a bound, writes starve the poller and every read answers 0x0B once ``stale_after``
+    (5 s) has passed.  With the defaults (one write, then two polls) a fast round takes
+    55 x (37.5 + 26 / 2) ms = 2.8 s plus its share of the slow class.  The flood runs 11 s, past
+    the periodic slow scan (due 10 s after the first), which used to hold the fast class up
+    for 65 reads at once.
+    """
+    url = slc_url(paced="1")
+    async with gateway(slc_link(url)) as gw:
+        await until_ready(gw, 0, 64)
+        async with connect(gw.port) as client, asyncio.timeout(10):
+            while True:  # the whole first scan: the block of 951-982 is read last
+                if not (await client.read_discrete_inputs(951, count=32, device_id=1)).isError():
+                    break
+                await asyncio.sleep(0.02)
+        unit = gw.units[0]
+        stop = asyncio.Event()
+        flooder = asyncio.create_task(flood(gw.port, stop))
+        codes: list[int | None] = []
+        writes = 0
+        scans = unit.poller.scans
+        async with connect(gw.port) as client:
+            loop = asyncio.get_running_loop()
+            start = loop.time()
+            end = start + 11.0
+            while loop.time() < end:
+                codes.append(exception_code(await client.read_holding_registers(0, count=32, device_id=1)))
+                codes.append(exception_code(await client.read_discrete_inputs(701, count=64, device_id=1)))
+                writes += not (await client.write_register(33, writes % 10000, device_id=1)).isError()
+                await asyncio.sleep(0.1)
+        stop.set()
+        outcome = await flooder
+        scans = unit.poller.scans - scans
+        slow = [unit.cache.stamps[i] for i in unit.poller.slow]
+    assert codes.count(TARGET_FAILED) == 0 and set(codes) == {None}, codes
+    assert outcome["ok"] > 50 and outcome["other"] == 0, outcome  # the flood did reach the line
+    assert scans >= 2, scans  # whole fast scans completed during the flood
+    assert max(slow) > start, "the periodic slow scan did not start during the flood"
+    assert writes > 10
