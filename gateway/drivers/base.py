@@ -124,7 +124,13 @@ class _Line:
                 self._granted()
                 return
         self.busy = False
-        self._wake_grant_waiters(idle=True)
+        if self._grant_waiters:
+            # Idle only if nobody takes it in the same step (a poller asks again at once).
+            asyncio.get_running_loop().call_soon(self._idle_check)
+
+    def _idle_check(self) -> None:
+        if not self.busy:
+            self._wake_grant_waiters(idle=True)
 
     def _granted(self) -> None:
         self.grants += 1
