@@ -31,7 +31,14 @@ unknown unit or function) are answered at once, without a task. At
 ``max_in_flight_per_connection`` the connection stops reading (frames already
 received wait in the buffer); it also stops reading while the transport's write
 buffer is above its high-water mark, so a client that never reads its replies
-cannot make the server buffer without bound.
+cannot make the server buffer without bound. The kernel send buffer is capped
+(64 KiB) so that this happens after about a thousand unread replies, not after
+megabytes of them; a client left paused for ``write_stall_timeout`` seconds is
+dropped.
+
+Every request task runs in its connection's ``contextvars`` context, where
+``gateway.clients.current_client`` is the connection's identity (for the write
+queue's fairness and the audit log: every write is logged on ``gateway.audit``).
 
 Connections: the allow list and ``max_connections`` are checked when the TCP
 connection is accepted, before any TLS handshake (TLS is started per connection with
@@ -76,10 +83,12 @@ Write replies are echoes of the request bytes, as the specification defines them
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import contextvars
 import ipaddress
 import logging
 import os
+import socket
 import ssl
 import struct
 from collections.abc import Coroutine, Sequence
@@ -189,6 +198,10 @@ _SERVER_DEVICE_FAILURE: Final = ModbusExceptionReply.SERVER_DEVICE_FAILURE
 _GATEWAY_PATH_UNAVAILABLE: Final = ModbusExceptionReply.GATEWAY_PATH_UNAVAILABLE
 
 _TLS_HANDSHAKE_TIMEOUT: Final = 10.0
+#: Kernel send buffer of a connection (bytes): replies a client does not read pile up here and
+#: in the transport's buffer (64 KiB) before the connection stops being read; without a cap,
+#: loopback autotuning lets megabytes of replies be computed for a client that never reads.
+_SEND_BUFFER: Final = 64 * 1024
 
 _MBAP: Final = struct.Struct(">HHHB")  # tid, protocol id, length, unit
 _ADDRESS_COUNT: Final = struct.Struct(">HH")  # from PDU offset 1: address, count or value
@@ -262,6 +275,7 @@ class ModbusTcpServer:
         allow: Sequence[IPNetwork] | None = None,
         ssl_context: ssl.SSLContext | None = None,
         max_in_flight_per_connection: int = 16,
+        write_stall_timeout: float | None = 10.0,
         name: str = "modbus",
     ) -> None:
         if max_connections < 1:
@@ -280,6 +294,8 @@ class ModbusTcpServer:
         self.allow = None if allow is None else tuple(allow)
         self.ssl_context = ssl_context
         self.max_in_flight_per_connection = max_in_flight_per_connection
+        #: seconds a client may leave its replies unread (we stopped reading it) before it is dropped
+        self.write_stall_timeout = write_stall_timeout
         self.counters = ModbusServerCounters()
         self._requested_port = port
         self._server: asyncio.Server | None = None
@@ -600,6 +616,7 @@ class _Connection(asyncio.Protocol):
         "_ready",
         "_released",
         "_server",
+        "_stall_handle",
         "_stopped",
         "_tls_task",
         "_transport",
@@ -622,6 +639,7 @@ class _Connection(asyncio.Protocol):
         self._eof = False  # the peer has shut down its sending side
         self._read_paused = False
         self._write_paused = False
+        self._stall_handle: asyncio.TimerHandle | None = None
         self._last_received = 0.0
         self._idle_handle: asyncio.TimerHandle | None = None
         self._tls_task: asyncio.Task[None] | None = None
@@ -636,6 +654,7 @@ class _Connection(asyncio.Protocol):
         self._transport = cast(asyncio.Transport, transport)
         self._peer = transport.get_extra_info("peername")
         self._client.name = self._identity()
+        _cap_send_buffer(transport)
         if not self._server._admit(self, self._peer):
             self._released = True
             self._transport.abort()
@@ -690,9 +709,15 @@ class _Connection(asyncio.Protocol):
     def pause_writing(self) -> None:
         self._write_paused = True
         self._update_reading()
+        timeout = self._server.write_stall_timeout
+        if timeout is not None and self._stall_handle is None:
+            self._stall_handle = self._loop.call_later(timeout, self._stalled)
 
     def resume_writing(self) -> None:
         self._write_paused = False
+        if self._stall_handle is not None:
+            self._stall_handle.cancel()
+            self._stall_handle = None
         if self._ready:
             self._process()
 
@@ -725,6 +750,14 @@ class _Connection(asyncio.Protocol):
 
     # -- internals ---------------------------------------------------------------------
 
+    def _stalled(self) -> None:
+        """Paused (its replies unread) for ``write_stall_timeout``: drop it, buffers and all."""
+        self._stall_handle = None
+        if self._open and self._write_paused:
+            self._drop(f"its replies unread for {self._server.write_stall_timeout:g} s")
+            if self._transport is not None:
+                self._transport.abort()  # close() would wait for the unread replies to drain
+
     def _identity(self) -> str:
         """Who this client is, for the audit log: its address (``host:port``)."""
         return _format_address(self._peer)
@@ -734,6 +767,9 @@ class _Connection(asyncio.Protocol):
         if self._idle_handle is not None:
             self._idle_handle.cancel()
             self._idle_handle = None
+        if self._stall_handle is not None:
+            self._stall_handle.cancel()
+            self._stall_handle = None
         self._buffer = b""
         self._offset = 0
         if not self._released:
@@ -852,6 +888,13 @@ class _Connection(asyncio.Protocol):
                 self._drop(f"idle for {timeout:g} s")
                 return
         self._idle_handle = self._loop.call_at(deadline, self._check_idle)
+
+
+def _cap_send_buffer(transport: asyncio.BaseTransport) -> None:
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _SEND_BUFFER)
 
 
 def _format_address(address: object) -> str:
