@@ -71,6 +71,9 @@ TARGET_FAILED = ModbusExceptionReply.GATEWAY_TARGET_FAILED
 
 WritableRange = tuple[Table, int, int]  # table, first, last
 
+#: Seconds a 0x06 (busy) answer to a write is held before it is sent.
+BUSY_HOLD = 0.1
+
 
 _U16_LE = Codec.U16_LE
 _U16_BE = Codec.U16_BE
@@ -403,7 +406,13 @@ class Unit(ABC):
         """Queue the steps now (arrival order) and wait for them; errors as Modbus exceptions."""
         self.write_requests += 1
         try:
-            future = self.writes.submit(current_client.get(), footprint, partial(self._run_steps, table, steps))
+            try:
+                future = self.writes.submit(current_client.get(), footprint, partial(self._run_steps, table, steps))
+            except ModbusExceptionReply:
+                # Busy: the answer is held a moment, so that a master re-sending at once costs
+                # at most a few answers per second per request it keeps in flight, not a spin.
+                await asyncio.sleep(BUSY_HOLD)
+                raise
             await asyncio.shield(future)
         except ModbusExceptionReply:
             self.write_failures += 1

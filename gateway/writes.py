@@ -5,19 +5,21 @@ queued here the moment it arrives: the server starts one task per request in arr
 nothing awaits before the queue, so queue order is arrival order, across all connections.
 One worker per link runs the jobs one at a time inside a write session of the driver
 (``LinkDriver.write_session``): writes go ahead of polls, and after ``write_burst`` write
-transactions in a row one poll transaction gets the line.
+transactions in a row ``poll_burst`` poll transactions get the line.
 
 Order.  Jobs of one client run in arrival order, always.  Between clients the worker serves
-round robin, so one client's flood never makes another's write wait for more than one of its
-jobs; but a job never overtakes an earlier-arrived job of another client whose *footprint*
-(the controller words it writes) overlaps its own.  So any two writes that touch the same word
+the least recently served first (round robin; a client with nothing queued counts as never
+served), so one client's flood never makes another's write wait for one of its jobs; but a
+job never overtakes an earlier-arrived job of another client whose *footprint* (the
+controller words it writes) overlaps its own.  So any two writes that touch the same word
 reach the controller in the order their requests arrived, whichever connections sent them,
 and a write to 43 acknowledged after an FC16 over 40-43 arrived is never overwritten by it.
 Two writes to disjoint words from two connections have no order a client could observe
 besides their replies, which leave in any order, each with its own transaction id.
 
 Bounds.  At most ``per_client`` jobs of one client and ``per_link`` jobs in all wait here;
-beyond, the request is answered 0x06 (server device busy) at once and nothing is written.
+beyond, the request is answered 0x06 (server device busy) and nothing of it is written (the
+unit holds a busy answer 0.1 s, so that a master re-sending at once cannot make it spin).
 """
 
 from __future__ import annotations
@@ -57,8 +59,11 @@ class WriteQueue:
         self.name = name
         self.per_client = per_client
         self.per_link = per_link
-        #: per client, its waiting jobs in arrival order; dict order is the round-robin order
+        #: per client, its waiting jobs in arrival order
         self._queues: dict[Hashable, deque[_Entry]] = {}
+        #: per client with jobs waiting: when it was last served (round robin by least recent)
+        self._served: dict[Hashable, int] = {}
+        self._serves = 0
         self._waiting = 0
         self._seq = 0
         self._worker: asyncio.Task[None] | None = None
@@ -92,8 +97,11 @@ class WriteQueue:
         return entry.future
 
     def _pick(self) -> _Entry | None:
-        """The next job: round robin over clients, never ahead of an earlier overlapping job."""
-        for client, queue in self._queues.items():
+        """The next job: least recently served client first (one with nothing queued a moment
+        ago counts as never served), never ahead of an earlier overlapping job of another."""
+        served = self._served
+        for client in sorted(self._queues, key=lambda c: served.get(c, -1)):
+            queue = self._queues[client]
             head = queue[0]
             if head.footprint and any(
                 other is not queue and other[0].seq < head.seq and any(
@@ -103,10 +111,13 @@ class WriteQueue:
             ):
                 continue
             queue.popleft()
-            del self._queues[client]
-            if queue:
-                self._queues[client] = queue  # to the end of the round
             self._waiting -= 1
+            if queue:
+                served[client] = self._serves
+                self._serves += 1
+            else:
+                del self._queues[client]
+                served.pop(client, None)
             return head
         return None  # not reached while jobs wait: the earliest job overtakes nothing
 
