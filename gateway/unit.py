@@ -349,6 +349,11 @@ class Unit(ABC):
             i += 1
         return steps
 
+    def _bit_steps(self, checked: list[tuple[int, BitPoint, bool]]) -> list[WriteStep]:
+        """One step per coil; protocols may merge more."""
+        return [WriteStep(a, a, partial(self._write_bit, bit.write, value), bit_patches=[(bit, value)])
+                for a, bit, value in checked]
+
     def check_register_write(self, address: int, values: Sequence[int]) -> list[tuple[int, RegisterPoint, int]]:
         """Validate a whole FC6/FC16: (address, point, value) per register, or the exception."""
         self._check_writable(Table.HOLDING, address, len(values))
@@ -394,11 +399,7 @@ class Unit(ABC):
             point = points.get(address + i)
             if point is None or point.write is None:
                 raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"coil {address + i} is not writable")
-        steps: list[WriteStep] = []
-        for i, value in enumerate(values):
-            bit = points[address + i]
-            steps.append(WriteStep(address + i, address + i, partial(self._write_bit, bit.write, value),
-                               bit_patch=(bit, value)))
+        steps = self._bit_steps([(address + i, points[address + i], value) for i, value in enumerate(values)])
         footprint = frozenset(self._footprint(points[address + i].write) for i in range(len(values)))
         await self._queue_write(Table.COIL, steps, footprint)
 
@@ -429,8 +430,7 @@ class Unit(ABC):
                 raise
             for point, value in step.patches:
                 self._patch(point, value)
-            if step.bit_patch is not None:
-                bit, on = step.bit_patch
+            for bit, on in step.bit_patches:
                 byte = self.cache.data[bit.block][bit.offset]
                 byte = byte | (1 << bit.bit) if on else byte & ~(1 << bit.bit)
                 self.cache.patch(bit.block, bit.offset, bytes([byte & 0xFF]))
@@ -467,7 +467,7 @@ class WriteStep:
     last: int
     run: Callable[[], Awaitable[None]]
     patches: list[tuple[RegisterPoint, int]] = field(default_factory=list)
-    bit_patch: tuple[BitPoint, bool] | None = None
+    bit_patches: list[tuple[BitPoint, bool]] = field(default_factory=list)
 
 
 def _span(first: int, last: int) -> str:

@@ -19,7 +19,7 @@ from typing import Any, cast
 from gateway.config import LinkConfig
 from gateway.drivers.df1 import Df1Driver, WriteOutcomeUnknown, check_reply_size
 from gateway.errors import ControllerRefused, ModbusExceptionReply
-from gateway.modbus.mapping import Block, Codec, RegisterPoint
+from gateway.modbus.mapping import BitPoint, Block, Codec, RegisterPoint
 from gateway.modbus.mapping_df1 import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, plan_df1
 from gateway.protocols.df1.address import FileType, SlcAddress
 from gateway.protocols.df1.framing import Checksum
@@ -58,8 +58,12 @@ def pccc_exception(error: PcccError) -> ModbusExceptionReply:
 class Df1Unit(Unit):
     driver: Df1Driver
 
-    def __init__(self, *, driver: Df1Driver, items: list[MapItem], max_read_bytes: int, **common: Any) -> None:
+    def __init__(
+        self, *, driver: Df1Driver, items: list[MapItem], max_read_bytes: int, max_write_bytes: int = 0, **common: Any
+    ) -> None:
         super().__init__(driver=driver, plan=plan_df1(items, max_read_bytes), **common)
+        #: data bytes of one write command (3-byte address fields take 2 each off it)
+        self.max_write_bytes = max_write_bytes or driver.family.max_write_bytes
 
     async def read_block(self, block: Block) -> bytes:
         read = cast(Df1Read, block.request)
@@ -140,13 +144,46 @@ class Df1Unit(Unit):
             return False
         if (a.file_type, a.file_number) != (b.file_type, b.file_number) or b.element != a.element + 1:
             return False
-        limit = self.driver.family.limits.write_limit(_expanded_fields(first.address))
+        limit = self.max_write_bytes - 2 * _expanded_fields(first.address)
         return sum(len(_step_bytes(step)) for step in group) + size <= limit
     async def _write_words(self, address: SlcAddress, data: bytes) -> None:
         request = ProtectedTypedLogicalWrite(
             address.file_type, address.file_number, address.element, address.sub_element, data
         )
         await self._write(request, address, data)
+
+    def _bit_steps(self, checked: list[tuple[int, BitPoint, bool]]) -> list[WriteStep]:
+        """Consecutive coils of one word in one masked write (CMD 0F, FNC AB: only the bits of the
+        mask change, notes §4.36, §7.3), so an FC15 over B3:0/0-15 is one command."""
+        steps: list[WriteStep] = []
+        word: SlcAddress | None = None
+        for address, bit, value in checked:
+            target = bit.write
+            assert isinstance(target, Df1BitWrite)
+            if steps and target.address == word and steps[-1].last == address - 1:
+                steps[-1].last = address
+                steps[-1].bit_patches.append((bit, value))
+            else:
+                word = target.address
+                write = partial(self._write_bit, target, value)
+                steps.append(WriteStep(address, address, write, bit_patches=[(bit, value)]))
+        for step in steps:
+            if len(step.bit_patches) > 1:
+                first = step.bit_patches[0][0].write
+                assert isinstance(first, Df1BitWrite)
+                bits = [(cast(Df1BitWrite, p.write).bit, v) for p, v in step.bit_patches]
+                step.run = partial(self._write_bits, first.address, bits)
+        return steps
+
+    async def _write_bits(self, a: SlcAddress, bits: list[tuple[int, bool]]) -> None:
+        mask = 0
+        value = 0
+        for bit, on in bits:
+            mask |= 1 << bit
+            value |= (1 << bit) if on else 0
+        data = value.to_bytes(2, "little")
+        request = ProtectedTypedLogicalMaskedWrite(a.file_type, a.file_number, a.element, a.sub_element, mask, data)
+        await self._write(request, a, data, mask)
 
     async def _write_bit(self, target: object, value: bool) -> None:
         assert isinstance(target, Df1BitWrite)
@@ -214,5 +251,5 @@ def build_df1_unit(link: LinkConfig, common: dict[str, Any]) -> Df1Unit:
     items = [
         MapItem(e.table, e.start, e.address, e.count, e.type, e.word_order, e.scan) for e in link.map
     ]
-    return Df1Unit(driver=driver, items=items, max_read_bytes=max_read, **common)
+    return Df1Unit(driver=driver, items=items, max_read_bytes=max_read, max_write_bytes=link.max_write_bytes, **common)
 
