@@ -262,6 +262,8 @@ class ModbusTcpServer:
     ``allow``: peers outside these networks are closed at connect (``None``: everyone).
     ``idle_timeout``: seconds without a byte received (and nothing in flight) after
     which a connection is closed (``None``: never).
+    ``write_stall_timeout``: seconds a client may leave its replies unread (the
+    connection paused, its buffers full) before it is dropped (``None``: never).
     """
 
     def __init__(
