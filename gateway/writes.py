@@ -64,6 +64,8 @@ class WriteQueue:
         #: per client with jobs waiting: when it was last served (round robin by least recent)
         self._served: dict[Hashable, int] = {}
         self._serves = 0
+        #: the job picked last is of a client that was not being served (nothing queued before)
+        self._newcomer = False
         self._waiting = 0
         self._seq = 0
         self._worker: asyncio.Task[None] | None = None
@@ -112,6 +114,7 @@ class WriteQueue:
                 continue
             queue.popleft()
             self._waiting -= 1
+            self._newcomer = client not in served
             if queue:
                 served[client] = self._serves
                 self._serves += 1
@@ -127,6 +130,8 @@ class WriteQueue:
                 try:
                     async with self.driver.write_session():
                         while (entry := self._pick()) is not None:
+                            if self._newcomer:
+                                self.driver.extend_burst()
                             await self._run(entry)
                 except LinkError as exc:
                     # No line for writes (the link is down): every waiting job fails at once.

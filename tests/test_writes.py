@@ -20,6 +20,10 @@ class FakeSessionDriver:
     def __init__(self) -> None:
         self.down = False
         self.sessions = 0
+        self.extended = 0
+
+    def extend_burst(self) -> None:
+        self.extended += 1
 
     @contextlib.asynccontextmanager
     async def write_session(self) -> AsyncIterator[None]:
@@ -157,6 +161,39 @@ async def test_a_write_session_lets_polls_through_after_each_burst(write_burst: 
     expected = ("W" * write_burst + "P" * poll_burst) * 12
     assert during == expected[: len(during)], during
     assert during.count("W") == 12
+
+
+async def test_an_extended_burst_still_owes_its_polls() -> None:
+    """A newcomer's write may follow a burst at once; the polls come after, two per write."""
+    driver = LineDriver()
+    stop = asyncio.Event()
+
+    async def poller() -> None:
+        n = 0
+        while not stop.is_set():
+            await driver.transaction(f"P{n}", Priority.POLL)
+            n += 1
+
+    poll_task = asyncio.create_task(poller())
+    await asyncio.sleep(0.01)
+    async with driver.write_session():
+        for n in range(4):
+            if n == 1:
+                driver.extend_burst()
+            await driver.transaction(f"W{n}", Priority.WRITE)
+    stop.set()
+    await poll_task
+    kinds = "".join(name[0] for name in driver.line_log)
+    assert kinds[kinds.index("W") : kinds.rindex("W") + 1] == "WWPPPPWPPW"
+
+
+async def test_the_queue_extends_the_burst_for_a_client_with_nothing_else_queued() -> None:
+    q, driver, log = queue()
+    futures = [q.submit("flood", frozenset({("flood", n)}), job(log, f"f{n}")) for n in range(4)]
+    await asyncio.sleep(0)
+    futures.append(q.submit("polite", frozenset({"polite"}), job(log, "p")))
+    await asyncio.gather(*futures)
+    assert driver.extended == 2  # the flood's first job (nothing queued before it) and the polite one
 
 
 async def test_without_waiting_polls_a_session_keeps_the_line() -> None:

@@ -41,12 +41,13 @@ OpenStream = Callable[..., Awaitable[ByteStream]]
 class _Session:
     """A run of writes holding the line (``LinkDriver.write_session``)."""
 
-    __slots__ = ("driver", "held", "writes")
+    __slots__ = ("driver", "extend", "held", "writes")
 
     def __init__(self, driver: LinkDriver) -> None:
         self.driver = driver
         self.held = False
         self.writes = 0
+        self.extend = False
 
 
 #: The write session of the current task, if any: its requests run on the line it holds.
@@ -422,13 +423,27 @@ class LinkDriver(ABC):
                 session.held = False
                 self._line.release()
 
+    def extend_burst(self) -> None:
+        """In a write session: the next write may follow the burst before the polls it owes.
+
+        For the write of a client with nothing else queued, so a flood ahead of it does not
+        make it wait for a round of polls too; the polls still come after it, ``poll_burst``
+        for every ``write_burst`` writes, so the share of the line writes take is unchanged.
+        """
+        session = _SESSION.get()
+        if session is not None and session.driver is self:
+            session.extend = True
+
     async def _run_in_session(self, session: _Session, op: Callable[[], Awaitable[T]]) -> T:
-        if session.held and session.writes >= self.write_burst and self._line.waiting:
+        limit = self.write_burst + session.extend
+        session.extend = False
+        if session.held and session.writes >= limit and self._line.waiting:
+            owed = -(-self.poll_burst * session.writes // self.write_burst)
             session.held = False
             session.writes = 0
-            target = self._line.grants + self.poll_burst
+            target = self._line.grants + owed
             self._line.release()  # to the waiting poll
-            # Let the poller's next requests have the line too, up to poll_burst in all; the
+            # Let the poller's next requests have the line too, as many as the writes owe; the
             # last one's release hands the line back here (queued at write priority meanwhile).
             await self._line.wait_grants(target)
         if not session.held:
