@@ -2,6 +2,7 @@
 
     python bench/loadgen.py read  --port P [--unit U] [--address A] [--count N] [--connections C] [--duration S]
     python bench/loadgen.py write --port P [--unit U] [--address A] [--writes N] [--gap-max S]
+    python bench/loadgen.py flood --port P [--unit U] [--in-flight K] [--span N] [--duration S]
 
 ``read``: C connections, each a closed loop (send one FC3 request, await its reply, repeat) for
 S seconds after a short warm-up; prints one JSON line: requests, exception replies, latency
@@ -13,7 +14,11 @@ measurement window, so a parent can sample the server's CPU time at those moment
 a random pause of 0..``gap-max`` seconds (so writes land at random phases of the poll cycle);
 prints one JSON line with every latency (ms) and the exception replies.
 
-Before measuring, both wait until the server answers a read of the register range without an
+``flood``: one connection keeping K FC6 writes in flight for S seconds (a new one the moment a
+reply comes, 0x06 "busy" replies included: a hostile master), to holding registers 0..N-1;
+prints one JSON line with the replies by kind (ok, busy, other).
+
+Before measuring, all wait until the server answers a read of the register range without an
 exception (the gateway serves nothing before its first poll completes).
 """
 
@@ -180,9 +185,33 @@ async def write_load(args: argparse.Namespace) -> dict[str, object]:
             **_pcts(latencies)}
 
 
+async def flood_load(args: argparse.Namespace) -> dict[str, object]:
+    await wait_ready(args.port, args.unit, 0, 1)
+    reader, writer = await asyncio.open_connection(HOST, args.port)
+    outcome = {"ok": 0, "busy": 0, "other": 0}
+    n = 0
+
+    def send() -> None:
+        nonlocal n
+        n += 1
+        writer.write(_WRITE.pack(n & 0xFFFF, 0, 6, args.unit, 6, n % args.span, n % args.modulo))
+
+    for _ in range(args.in_flight):
+        send()
+    end = time.monotonic() + args.duration
+    while time.monotonic() < end:
+        header = await reader.readexactly(6)
+        body = await reader.readexactly((header[4] << 8) | header[5])
+        kind = "ok" if not body[1] & 0x80 else "busy" if body[2] == 0x06 else "other"
+        outcome[kind] += 1
+        send()
+    writer.close()
+    return outcome
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("mode", choices=("read", "write"))
+    parser.add_argument("mode", choices=("read", "write", "flood"))
     parser.add_argument("--port", type=int, required=True)
     parser.add_argument("--unit", type=int, default=1)
     parser.add_argument("--address", type=int, default=0)
@@ -194,9 +223,11 @@ def main() -> None:
     parser.add_argument("--gap-max", type=float, default=0.3)
     parser.add_argument("--modulo", type=int, default=10000)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--in-flight", type=int, default=16, help="flood: writes kept in flight")
+    parser.add_argument("--span", type=int, default=31, help="flood: holding registers 0..span-1")
     parser.add_argument("--marks", action="store_true", help="read: print START / STOP around the window")
     args = parser.parse_args()
-    runner = read_load if args.mode == "read" else write_load
+    runner = {"read": read_load, "write": write_load, "flood": flood_load}[args.mode]
     print(json.dumps(asyncio.run(runner(args))), flush=True)
 
 

@@ -57,6 +57,10 @@ def build_unit(link: LinkConfig) -> Unit:
         writable=_writable(link),
         fast_interval=link.fast_interval,
         slow_interval=link.slow_interval,
+        write_burst=link.write_burst,
+        poll_burst=link.poll_burst,
+        write_queue_per_client=link.write_queue_per_client,
+        write_queue_per_link=link.write_queue_per_link,
     )
     if link.protocol == "df1":
         from gateway.unit_df1 import build_df1_unit

@@ -22,14 +22,17 @@ no answer, link down, stale data                     0x0B
 from __future__ import annotations
 
 import asyncio
+import logging
 import struct
 from abc import ABC, abstractmethod
 from bisect import bisect_right
-from collections.abc import Awaitable, Sequence
-from dataclasses import dataclass
+from collections.abc import Awaitable, Callable, Hashable, Sequence
+from dataclasses import dataclass, field
+from functools import partial
 from typing import cast
 
 from gateway.cache import BlockCache
+from gateway.clients import current_client
 from gateway.drivers.base import LinkDriver
 from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import (
@@ -43,6 +46,7 @@ from gateway.errors import (
 from gateway.modbus.mapping import (
     STATUS_BASE,
     STATUS_REGISTERS,
+    BitPoint,
     Block,
     Codec,
     Plan,
@@ -54,8 +58,11 @@ from gateway.modbus.mapping import (
     slc_ascii_plan,
 )
 from gateway.poller import Poller
+from gateway.writes import WriteQueue
 
-__all__ = ["SlcAsciiUnit", "Unit", "WritableRange"]
+__all__ = ["SlcAsciiUnit", "Unit", "WritableRange", "WriteStep"]
+
+log = logging.getLogger("gateway.unit")
 
 ILLEGAL_ADDRESS = ModbusExceptionReply.ILLEGAL_DATA_ADDRESS
 ILLEGAL_VALUE = ModbusExceptionReply.ILLEGAL_DATA_VALUE
@@ -63,6 +70,9 @@ DEVICE_FAILURE = ModbusExceptionReply.SERVER_DEVICE_FAILURE
 TARGET_FAILED = ModbusExceptionReply.GATEWAY_TARGET_FAILED
 
 WritableRange = tuple[Table, int, int]  # table, first, last
+
+#: Seconds a 0x06 (busy) answer to a write is held before it is sent.
+BUSY_HOLD = 0.1
 
 
 _U16_LE = Codec.U16_LE
@@ -132,6 +142,10 @@ class Unit(ABC):
         writable: Sequence[WritableRange] = (),
         fast_interval: float = 0.0,
         slow_interval: float = 10.0,
+        write_burst: int = 1,
+        poll_burst: int = 2,
+        write_queue_per_client: int = 8,
+        write_queue_per_link: int = 32,
     ) -> None:
         self.unit_id = unit_id
         self.name = name
@@ -160,6 +174,11 @@ class Unit(ABC):
         )
         self.write_requests = 0
         self.write_failures = 0
+        #: write requests the controller refused after part of them was applied
+        self.partial_writes = 0
+        driver.write_burst = write_burst
+        driver.poll_burst = poll_burst
+        self.writes = WriteQueue(driver, name, per_client=write_queue_per_client, per_link=write_queue_per_link)
 
     # --- protocol hooks ---------------------------------------------------------------------
 
@@ -285,6 +304,14 @@ class Unit(ABC):
         return registers[first : first + count]
 
     # --- writes -----------------------------------------------------------------------------
+    #
+    # A write request is validated whole (ranges, ``writable``, value limits, what the image
+    # knows the controller will refuse, float pairing) before anything is queued; then it is
+    # cut into steps, one controller command each (as few as the protocol allows), queued on
+    # the link's write queue in arrival order and run there.  When the controller refuses a
+    # step after earlier ones were applied, the request is answered with the exception, and
+    # the registers written are logged and counted (``partial_writes``): never a success for a
+    # partial write, never a silent one.
 
     def _check_writable(self, table: Table, address: int, count: int) -> None:
         if self.read_only:
@@ -294,31 +321,44 @@ class Unit(ABC):
         ):
             raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} {address} is not in a writable range")
 
-    async def _through(self, write: Awaitable[None]) -> None:
-        """Await a write coroutine, translating controller errors to Modbus exceptions."""
-        self.write_requests += 1
-        try:
-            await write
-        except ModbusExceptionReply:
-            self.write_failures += 1
-            raise  # already translated (e.g. a PCCC address problem: 0x02)
-        except ControllerRefused as exc:
-            self.write_failures += 1
-            raise ModbusExceptionReply(DEVICE_FAILURE, str(exc)) from exc
-        except InvalidRequest as exc:
-            self.write_failures += 1
-            raise ModbusExceptionReply(ILLEGAL_VALUE, str(exc)) from exc
-        except (LinkError, ProtocolError) as exc:
-            self.write_failures += 1
-            raise ModbusExceptionReply(TARGET_FAILED, str(exc)) from exc
-        except GatewayError as exc:
-            self.write_failures += 1
-            raise ModbusExceptionReply(DEVICE_FAILURE, str(exc)) from exc
+    def _refused_by_image(self, point: RegisterPoint) -> str | None:
+        """Why the controller is known (from the image) to refuse a write to ``point``, or None."""
+        return None
 
-    async def write_registers(self, address: int, values: Sequence[int]) -> None:
+    def _footprint(self, target: object) -> Hashable:
+        """The controller word a write target changes (writes to one word stay in arrival order)."""
+        address: Hashable = getattr(target, "address", target)
+        return address
+
+    def _register_steps(self, checked: list[tuple[int, RegisterPoint, int]]) -> list[WriteStep]:
+        """One step per word, one per float (its two registers); protocols may merge more."""
+        steps: list[WriteStep] = []
+        i = 0
+        while i < len(checked):
+            address, point, value = checked[i]
+            if point.codec in (Codec.F32_HIGH, Codec.F32_LOW):
+                pair = checked[i : i + 2]
+                halves = {p.codec: v for _, p, v in pair}
+                raw = halves[Codec.F32_HIGH] << 16 | halves[Codec.F32_LOW]
+                steps.append(WriteStep(address, address + 1, partial(self._write_float, point.write, raw),
+                                   [(p, v) for _, p, v in pair]))
+                i += 2
+                continue
+            write = partial(self._write_register, point.write, value)
+            steps.append(WriteStep(address, address, write, [(point, value)]))
+            i += 1
+        return steps
+
+    def _bit_steps(self, checked: list[tuple[int, BitPoint, bool]]) -> list[WriteStep]:
+        """One step per coil; protocols may merge more."""
+        return [WriteStep(a, a, partial(self._write_bit, bit.write, value), bit_patches=[(bit, value)])
+                for a, bit, value in checked]
+
+    def check_register_write(self, address: int, values: Sequence[int]) -> list[tuple[int, RegisterPoint, int]]:
+        """Validate a whole FC6/FC16: (address, point, value) per register, or the exception."""
         self._check_writable(Table.HOLDING, address, len(values))
         points = self.plan.holding
-        checked: list[tuple[RegisterPoint, int]] = []
+        checked: list[tuple[int, RegisterPoint, int]] = []
         for i, value in enumerate(values):
             point = points.get(address + i)
             if point is None or point.write is None:
@@ -326,26 +366,83 @@ class Unit(ABC):
             if value > point.max_value:
                 raise ModbusExceptionReply(ILLEGAL_VALUE, f"holding register {address + i}: {value} > "
                                            f"{point.max_value}")
-            checked.append((point, value))
+            refused = self._refused_by_image(point)
+            if refused is not None:
+                raise ModbusExceptionReply(DEVICE_FAILURE, f"holding register {address + i}: {refused}; "
+                                           "nothing written")
+            checked.append((address + i, point, value))
         i = 0
         while i < len(checked):
-            point, value = checked[i]
+            point = checked[i][1]
             if point.codec in (Codec.F32_HIGH, Codec.F32_LOW):
-                if i + 1 >= len(checked) or checked[i + 1][0].write != point.write:
-                    raise ModbusExceptionReply(ILLEGAL_ADDRESS, "a float32 takes both of its registers in one write")
                 pair = checked[i : i + 2]
-                halves = {p.codec: v for p, v in pair}
-                if set(halves) != {Codec.F32_HIGH, Codec.F32_LOW}:
-                    raise ModbusExceptionReply(ILLEGAL_ADDRESS, "a float32 takes both of its registers in one write")
-                raw = halves[Codec.F32_HIGH] << 16 | halves[Codec.F32_LOW]
-                await self._through(self._write_float(point.write, raw))
-                for p, v in pair:
-                    self._patch(p, v)
+                if len(pair) < 2 or pair[1][1].write != point.write or {p.codec for _, p, _ in pair} != {
+                    Codec.F32_HIGH, Codec.F32_LOW
+                }:
+                    raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"holding register {checked[i][0]} is half of a "
+                                               "float32: write both of its registers in one request")
                 i += 2
-                continue
-            await self._through(self._write_register(point.write, value))
-            self._patch(point, value)
-            i += 1
+            else:
+                i += 1
+        return checked
+
+    async def write_registers(self, address: int, values: Sequence[int]) -> None:
+        checked = self.check_register_write(address, values)
+        steps = self._register_steps(checked)
+        footprint = frozenset(self._footprint(p.write) for _, p, _ in checked)
+        await self._queue_write(Table.HOLDING, steps, footprint)
+
+    async def write_bits(self, address: int, values: Sequence[bool]) -> None:
+        self._check_writable(Table.COIL, address, len(values))
+        points = self.plan.coils
+        for i in range(len(values)):
+            point = points.get(address + i)
+            if point is None or point.write is None:
+                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"coil {address + i} is not writable")
+        steps = self._bit_steps([(address + i, points[address + i], value) for i, value in enumerate(values)])
+        footprint = frozenset(self._footprint(points[address + i].write) for i in range(len(values)))
+        await self._queue_write(Table.COIL, steps, footprint)
+
+    async def _queue_write(self, table: Table, steps: list[WriteStep], footprint: frozenset[Hashable]) -> None:
+        """Queue the steps now (arrival order) and wait for them; errors as Modbus exceptions."""
+        self.write_requests += 1
+        try:
+            try:
+                future = self.writes.submit(current_client.get(), footprint, partial(self._run_steps, table, steps))
+            except ModbusExceptionReply:
+                # Busy: the answer is held a moment, so that a master re-sending at once costs
+                # at most a few answers per second per request it keeps in flight, not a spin.
+                await asyncio.sleep(BUSY_HOLD)
+                raise
+            await asyncio.shield(future)
+        except ModbusExceptionReply:
+            self.write_failures += 1
+            raise
+
+    async def _run_steps(self, table: Table, steps: list[WriteStep]) -> None:
+        done: list[WriteStep] = []
+        for step in steps:
+            try:
+                await _translated(step.run())
+            except ModbusExceptionReply as exc:
+                if done:
+                    self._partial_write(table, done, step, exc)
+                raise
+            for point, value in step.patches:
+                self._patch(point, value)
+            for bit, on in step.bit_patches:
+                byte = self.cache.data[bit.block][bit.offset]
+                byte = byte | (1 << bit.bit) if on else byte & ~(1 << bit.bit)
+                self.cache.patch(bit.block, bit.offset, bytes([byte & 0xFF]))
+            done.append(step)
+
+    def _partial_write(self, table: Table, done: list[WriteStep], failed: WriteStep, exc: ModbusExceptionReply) -> None:
+        self.partial_writes += 1
+        written = _spans(done)
+        log.warning(
+            "link %s: write partly applied: %s %s written, %s %s and after not (%s); answered 0x%02X",
+            self.name, table.value, written, table.value, _span(failed.first, failed.last), exc, exc.code,
+        )
 
     def _patch(self, point: RegisterPoint, value: int) -> None:
         data = self.cache.data[point.block]
@@ -361,19 +458,46 @@ class Unit(ABC):
         else:
             data[o] = value & 0xFF
 
-    async def write_bits(self, address: int, values: Sequence[bool]) -> None:
-        self._check_writable(Table.COIL, address, len(values))
-        points = self.plan.coils
-        for i in range(len(values)):
-            point = points.get(address + i)
-            if point is None or point.write is None:
-                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"coil {address + i} is not writable")
-        for i, value in enumerate(values):
-            point = points[address + i]
-            await self._through(self._write_bit(point.write, value))
-            byte = self.cache.data[point.block][point.offset]
-            byte = byte | (1 << point.bit) if value else byte & ~(1 << point.bit)
-            self.cache.patch(point.block, point.offset, bytes([byte & 0xFF]))
+
+@dataclass(slots=True)
+class WriteStep:
+    """One controller command of a write request: Modbus addresses first..last."""
+
+    first: int
+    last: int
+    run: Callable[[], Awaitable[None]]
+    patches: list[tuple[RegisterPoint, int]] = field(default_factory=list)
+    bit_patches: list[tuple[BitPoint, bool]] = field(default_factory=list)
+
+
+def _span(first: int, last: int) -> str:
+    return f"{first}" if first == last else f"{first}-{last}"
+
+
+def _spans(steps: list[WriteStep]) -> str:
+    runs: list[list[int]] = []
+    for step in steps:
+        if runs and runs[-1][1] == step.first - 1:
+            runs[-1][1] = step.last
+        else:
+            runs.append([step.first, step.last])
+    return ", ".join(_span(a, b) for a, b in runs)
+
+
+async def _translated(write: Awaitable[None]) -> None:
+    """Await a write, translating controller errors to Modbus exceptions."""
+    try:
+        await write
+    except ModbusExceptionReply:
+        raise  # already translated (e.g. a PCCC address problem: 0x02)
+    except ControllerRefused as exc:
+        raise ModbusExceptionReply(DEVICE_FAILURE, str(exc)) from exc
+    except InvalidRequest as exc:
+        raise ModbusExceptionReply(ILLEGAL_VALUE, str(exc)) from exc
+    except (LinkError, ProtocolError) as exc:
+        raise ModbusExceptionReply(TARGET_FAILED, str(exc)) from exc
+    except GatewayError as exc:
+        raise ModbusExceptionReply(DEVICE_FAILURE, str(exc)) from exc
 
 
 class SlcAsciiUnit(Unit):
@@ -387,6 +511,13 @@ class SlcAsciiUnit(Unit):
     async def read_block(self, block: Block) -> bytes:
         address, count = cast(tuple[int, int], block.request)
         return await self.driver.read(address, count)
+
+    def _refused_by_image(self, point: RegisterPoint) -> str | None:
+        # A preset word with its protect bit set is refused by the controller (``;E``; "The
+        # Memory Map", 40H-7FH): known from the last read of it, so nothing of the request is sent.
+        if point.codec is Codec.U16_BE_MASKED and self.cache.data[point.block][point.offset] & 0x80:
+            return "protected in the controller (protect bit set)"
+        return None
 
     async def _write_register(self, target: object, value: int) -> None:
         assert isinstance(target, SlcWordWrite)

@@ -31,7 +31,14 @@ unknown unit or function) are answered at once, without a task. At
 ``max_in_flight_per_connection`` the connection stops reading (frames already
 received wait in the buffer); it also stops reading while the transport's write
 buffer is above its high-water mark, so a client that never reads its replies
-cannot make the server buffer without bound.
+cannot make the server buffer without bound. The kernel send buffer is capped
+(64 KiB) so that this happens after about a thousand unread replies, not after
+megabytes of them; a client left paused for ``write_stall_timeout`` seconds is
+dropped.
+
+Every request task runs in its connection's ``contextvars`` context, where
+``gateway.clients.current_client`` is the connection's identity (for the write
+queue's fairness and the audit log: every write is logged on ``gateway.audit``).
 
 Connections (the rules are in :mod:`gateway.modbus.admission`): the allow list, the
 per-address cap and, on a TLS listener, the handshake budget are checked when the TCP
@@ -47,8 +54,8 @@ client that pipelines and resets would otherwise make asyncio log one warning pe
 
 Rights: a client without write rights (``connection.client.can_write``; roles from TLS
 client certificates, or loopback let in past ``allow`` for reads) gets 0x01 for every
-write function code before the request is looked at further; ``admission.current_client``
-names the client while its requests are handled, for the write path's audit log.
+write function code before the request is looked at further. Its description (certificate
+subject, or address) names it in the write path's audit log through ``gateway.clients``.
 
 A backend exception other than ``ModbusExceptionReply`` is answered 0x04 and logged
 with its traceback: at ERROR the first time its type is seen, at DEBUG afterwards
@@ -87,10 +94,13 @@ Write replies are echoes of the request bytes, as the specification defines them
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import contextvars
 import dataclasses
 import ipaddress
 import logging
 import os
+import socket
 import ssl
 import struct
 from collections.abc import Coroutine, Sequence
@@ -101,9 +111,10 @@ from typing import Any, Final, Protocol, TypeAlias, cast
 from pymodbus.pdu import DecodePDU
 from pymodbus.pdu.bit_message import ReadCoilsResponse, ReadDiscreteInputsResponse
 
+from gateway.clients import Client, audit_write, current_client
 from gateway.errors import ModbusExceptionReply
 from gateway.logutil import RepeatLog
-from gateway.modbus.admission import Admission, ClientIdentity, RolePolicy, current_client, peer_host
+from gateway.modbus.admission import Admission, ClientIdentity, RolePolicy, peer_host
 
 __all__ = [
     "FunctionCode",
@@ -205,6 +216,10 @@ _GATEWAY_PATH_UNAVAILABLE: Final = ModbusExceptionReply.GATEWAY_PATH_UNAVAILABLE
 _WRITE_FUNCTION_CODES: Final = frozenset({0x05, 0x06, 0x0F, 0x10, 0x16, 0x17})
 _EVERYONE_WRITES: Final = RolePolicy({}, "read-write")  # TLS without [modbus.tls.roles]
 _STALL_GRACE: Final = 1.0  # seconds before a connection without a request can be evicted
+#: Kernel send buffer of a connection (bytes): replies a client does not read pile up here and
+#: in the transport's buffer (64 KiB) before the connection stops being read; without a cap,
+#: loopback autotuning lets megabytes of replies be computed for a client that never reads.
+_SEND_BUFFER: Final = 64 * 1024
 
 _MBAP: Final = struct.Struct(">HHHB")  # tid, protocol id, length, unit
 _ADDRESS_COUNT: Final = struct.Struct(">HH")  # from PDU offset 1: address, count or value
@@ -265,6 +280,8 @@ class ModbusTcpServer:
     ``allow``: peers outside these networks are closed at connect (``None``: everyone).
     ``idle_timeout``: seconds without a byte received (and nothing in flight) after
     which a connection is closed (``None``: never).
+    ``write_stall_timeout``: seconds a client may leave its replies unread (the
+    connection paused, its buffers full) before it is dropped (``None``: never).
     """
 
     def __init__(
@@ -278,6 +295,7 @@ class ModbusTcpServer:
         allow: Sequence[IPNetwork] | None = None,
         ssl_context: ssl.SSLContext | None = None,
         max_in_flight_per_connection: int = 16,
+        write_stall_timeout: float | None = 10.0,
         name: str = "modbus",
         max_connections_per_address: int | None = None,
         frame_timeout: float | None = 5.0,
@@ -310,6 +328,8 @@ class ModbusTcpServer:
         self.frame_timeout = frame_timeout
         self.handshake_timeout = handshake_timeout
         self.roles = roles
+        #: seconds a client may leave its replies unread (we stopped reading it) before it is dropped
+        self.write_stall_timeout = write_stall_timeout
         self.counters = ModbusServerCounters()
         self.repeat_log = RepeatLog(logger, log_interval)
         self.admission = Admission(
@@ -567,22 +587,30 @@ class ModbusTcpServer:
     ) -> bytes:
         try:
             await self.backend.write_coils(unit, address, values)
-            return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
         except ModbusExceptionReply as reply:
-            return self._exception_reply(tid, unit, echo[0], reply)
+            frame = self._exception_reply(tid, unit, echo[0], reply)
+            audit_write(unit, echo[0], "coil", address, len(values), f"0x{frame[-1]:02X} {reply}")
+            return frame
         except Exception as error:
+            audit_write(unit, echo[0], "coil", address, len(values), f"0x04 {error!r}")
             return self._backend_failed(tid, unit, echo[0], error)
+        audit_write(unit, echo[0], "coil", address, len(values), "ok")
+        return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
 
     async def _write_registers(
         self, tid: int, unit: int, echo: bytes, address: int, values: Sequence[int]
     ) -> bytes:
         try:
             await self.backend.write_registers(unit, address, values)
-            return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
         except ModbusExceptionReply as reply:
-            return self._exception_reply(tid, unit, echo[0], reply)
+            frame = self._exception_reply(tid, unit, echo[0], reply)
+            audit_write(unit, echo[0], "holding", address, len(values), f"0x{frame[-1]:02X} {reply}")
+            return frame
         except Exception as error:
+            audit_write(unit, echo[0], "holding", address, len(values), f"0x04 {error!r}")
             return self._backend_failed(tid, unit, echo[0], error)
+        audit_write(unit, echo[0], "holding", address, len(values), "ok")
+        return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
 
     def _exception_reply(self, tid: int, unit: int, function_code: int, reply: ModbusExceptionReply) -> bytes:
         if not 1 <= reply.code <= 0xFF:
@@ -594,13 +622,15 @@ class _Connection(asyncio.Protocol):
     """One client connection: MBAP framing, one task per request, backpressure, idle timer.
 
     ``client`` (a :class:`~gateway.modbus.admission.ClientIdentity`) says who is connected and
-    with which rights; it is also the value of ``admission.current_client`` while this
-    connection's requests are handled (tasks created for them inherit it), for audit logging.
+    with which rights; its description is the name of the connection's
+    :class:`gateway.clients.Client`, current in every request task (for fairness and audit).
     """
 
     __slots__ = (
         "_buffer",
+        "_client",
         "_connected_at",
+        "_context",
         "_eof",
         "_frame_handle",
         "_idle_handle",
@@ -619,6 +649,7 @@ class _Connection(asyncio.Protocol):
         "_released",
         "_served",
         "_server",
+        "_stall_handle",
         "_stopped",
         "_tls_task",
         "_transport",
@@ -642,6 +673,7 @@ class _Connection(asyncio.Protocol):
         self._eof = False  # the peer has shut down its sending side
         self._read_paused = False
         self._write_paused = False
+        self._stall_handle: asyncio.TimerHandle | None = None
         self._last_received = 0.0
         self._idle_handle: asyncio.TimerHandle | None = None
         self._tls_task: asyncio.Task[None] | None = None
@@ -652,6 +684,10 @@ class _Connection(asyncio.Protocol):
         self._partial_position = -1  # stream offset of the incomplete frame being timed
         self._partial_since = 0.0
         self._frame_handle: asyncio.TimerHandle | None = None
+        #: the identity of the client; every request task runs in ``_context``, where it is current
+        self._client = Client("")
+        self._context = contextvars.copy_context()
+        self._context.run(current_client.set, self._client)
 
     # -- asyncio.Protocol --------------------------------------------------------------
 
@@ -660,6 +696,8 @@ class _Connection(asyncio.Protocol):
         self._peer = transport.get_extra_info("peername")
         server = self._server
         self.client = ClientIdentity(_format_address(self._peer))
+        self._client.name = str(self.client)
+        _cap_send_buffer(transport)
         if not server._admit(self, self._peer, handshake=server.ssl_context is not None):
             self._released = True
             self._transport.abort()
@@ -717,9 +755,15 @@ class _Connection(asyncio.Protocol):
     def pause_writing(self) -> None:
         self._write_paused = True
         self._update_reading()
+        timeout = self._server.write_stall_timeout
+        if timeout is not None and self._stall_handle is None:
+            self._stall_handle = self._loop.call_later(timeout, self._stalled)
 
     def resume_writing(self) -> None:
         self._write_paused = False
+        if self._stall_handle is not None:
+            self._stall_handle.cancel()
+            self._stall_handle = None
         if self._ready:
             self._process()
 
@@ -777,6 +821,14 @@ class _Connection(asyncio.Protocol):
 
     # -- internals ---------------------------------------------------------------------
 
+    def _stalled(self) -> None:
+        """Paused (its replies unread) for ``write_stall_timeout``: drop it, buffers and all."""
+        self._stall_handle = None
+        if self._open and self._write_paused:
+            self._drop(f"its replies unread for {self._server.write_stall_timeout:g} s")
+            if self._transport is not None:
+                self._transport.abort()  # close() would wait for the unread replies to drain
+
     def _cancel_timers(self) -> None:
         if self._idle_handle is not None:
             self._idle_handle.cancel()
@@ -784,6 +836,9 @@ class _Connection(asyncio.Protocol):
         if self._frame_handle is not None:
             self._frame_handle.cancel()
             self._frame_handle = None
+        if self._stall_handle is not None:
+            self._stall_handle.cancel()
+            self._stall_handle = None
 
     def _release(self) -> None:
         """Forget the connection (idempotent)."""
@@ -902,20 +957,13 @@ class _Connection(asyncio.Protocol):
         self.client = dataclasses.replace(identity, can_write=identity.can_write and self.client.can_write)
         logger.debug("%s: %s connected", server.name, self.client)
         self._connected_at = self._loop.time()  # stalled_since counts from the end of the handshake
+        self._client.name = str(self.client)
         self._ready = True
         self._process()
 
     def _process(self) -> None:
-        """Start the complete requests in the buffer, as many as the limits allow.
-
-        ``current_client`` is this connection's client meanwhile: the tasks created for the
-        requests inherit it.
-        """
-        token = current_client.set(self.client)
-        try:
-            self._process_frames()
-        finally:
-            current_client.reset(token)
+        """Start the complete requests in the buffer, as many as the limits allow."""
+        self._process_frames()
         self._time_partial_frame()
 
     def _request(self, tid: int, unit: int, pdu: bytes) -> _Reply:
@@ -951,7 +999,7 @@ class _Connection(asyncio.Protocol):
                     break
             else:
                 self._in_flight += 1
-                task = self._loop.create_task(self._serve(reply))
+                task = self._loop.create_task(self._serve(reply), context=self._context)
                 server._tasks.add(task)
                 task.add_done_callback(server._tasks.discard)
         if position == size:
@@ -1002,6 +1050,13 @@ class _Connection(asyncio.Protocol):
                 self._drop(f"idle for {timeout:g} s")
                 return
         self._idle_handle = self._loop.call_at(deadline, self._check_idle)
+
+
+def _cap_send_buffer(transport: asyncio.BaseTransport) -> None:
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _SEND_BUFFER)
 
 
 def _format_address(address: object) -> str:
