@@ -23,11 +23,16 @@ Frame layout (Modbus Messaging on TCP/IP Implementation Guide V1.0b, 3.1.3)::
 A wrong protocol id or a length outside 2..254 closes that connection only (the
 stream cannot be resynchronised). A partial frame is kept until it is complete.
 
-Per connection, requests are handled concurrently: each complete frame becomes one
-task, created in arrival order, whose first step is the backend call, so the backend
-sees requests in arrival order; the task writes its reply (one ``transport.write``)
-as soon as the backend answers. Requests refused before the backend (bad count,
-unknown unit or function) are answered at once, without a task. At
+Per connection, requests are handled in arrival order. Reads of a backend that serves
+them from memory (``backend.read_now``, see :data:`ReadNow`) are answered at once,
+inside ``data_received``, without a task: at most ``_FRAMES_PER_TURN`` of them per
+call, the rest on the next turn of the loop (reading paused meanwhile), so a client
+pipelining thousands of reads cannot hold the loop, and the serial links polled in it.
+Every other request becomes one task, created in arrival order, whose first step is
+the backend call, so the backend sees requests in arrival order; the task writes its
+reply (one ``transport.write``) as soon as the backend answers. Requests refused
+before the backend (bad count, unknown unit or function) are answered at once,
+without a task. At
 ``max_in_flight_per_connection`` the connection stops reading (frames already
 received wait in the buffer); it also stops reading while the transport's write
 buffer is above its high-water mark, so a client that never reads its replies
@@ -81,7 +86,7 @@ import logging
 import os
 import ssl
 import struct
-from collections.abc import Coroutine, Sequence
+from collections.abc import Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any, Final, Protocol, TypeAlias, cast
@@ -97,6 +102,7 @@ __all__ = [
     "ModbusBackend",
     "ModbusServerCounters",
     "ModbusTcpServer",
+    "ReadNow",
     "make_tls_context",
 ]
 
@@ -141,6 +147,16 @@ class ModbusBackend(Protocol):
 
     async def write_registers(self, unit: int, address: int, values: Sequence[int]) -> None:
         """FC6 (one value) and FC16."""
+
+
+ReadNow: TypeAlias = Callable[[int, int, int, int], bytes]
+"""Optional ``backend.read_now(unit, function_code, address, count)``: the data of a read reply at once.
+
+A backend whose reads are served from memory (register images) offers it: the server then
+answers FC1-FC4 inside ``data_received``, in arrival order, without a task.  It returns the
+reply's data bytes (registers big-endian; bits packed LSB first, as the specification's
+FC1/FC2 replies), without the byte count, or raises :class:`ModbusExceptionReply`.
+"""
 
 
 @dataclass
@@ -194,6 +210,10 @@ _ADDRESS_COUNT_BYTES: Final = struct.Struct(">HHB")  # from PDU offset 1: FC15/F
 _EXCEPTION_FRAME: Final = struct.Struct(">HHHBBB")  # MBAP, fc | 0x80, exception code
 # _REGISTER_FRAMES[n]: a whole FC3/FC4 reply frame of n registers: MBAP, fc, byte count, values.
 _REGISTER_FRAMES: Final = [struct.Struct(f">HHHBBB{n}H") for n in range(_MAX_READ_REGISTERS + 1)]
+_READ_HEAD: Final = struct.Struct(">HHHBBB")  # MBAP, fc, byte count (the data follows)
+#: Requests answered from memory per ``_process`` call before the loop lets others run (a
+#: client pipelining thousands of reads must not hold the loop, and the serial links, for long).
+_FRAMES_PER_TURN: Final = 32
 
 _decoder: Final = DecodePDU(is_server=True)
 _BIT_RESPONSES: Final[dict[int, type[ReadCoilsResponse]]] = {
@@ -289,6 +309,8 @@ class ModbusTcpServer:
         self._refusing: set[str] = set()
         self._refusals_suppressed = 0
         self._logged_errors: set[type[BaseException]] = set()
+        read_now = getattr(backend, "read_now", None)
+        self._read_now: ReadNow | None = read_now if callable(read_now) else None
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -463,6 +485,8 @@ class ModbusTcpServer:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_VALUE)
             if address + count > 0x10000:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_ADDRESS)
+            if self._read_now is not None:
+                return self._read_at_once(tid, unit, function_code, address, count, 2 * count)
             return self._read_registers(tid, unit, function_code, address, count)
 
         if function_code in _BIT_READS:
@@ -473,6 +497,8 @@ class ModbusTcpServer:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_VALUE)
             if address + count > 0x10000:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_ADDRESS)
+            if self._read_now is not None:
+                return self._read_at_once(tid, unit, function_code, address, count, (count + 7) // 8)
             return self._read_bits(tid, unit, function_code, address, count)
 
         if function_code in _SINGLE_WRITES:
@@ -506,6 +532,20 @@ class ModbusTcpServer:
             return self._write_registers(tid, unit, pdu[:5], address, decoded.registers)
 
         return self._exception(tid, unit, function_code, _ILLEGAL_FUNCTION)
+
+    def _read_at_once(self, tid: int, unit: int, function_code: int, address: int, count: int, size: int) -> bytes:
+        """A read served from memory (``backend.read_now``): the whole reply frame, no task."""
+        assert self._read_now is not None
+        try:
+            data = self._read_now(unit, function_code, address, count)
+        except ModbusExceptionReply as reply:
+            return self._exception_reply(tid, unit, function_code, reply)
+        except Exception as error:
+            return self._backend_failed(tid, unit, function_code, error)
+        if len(data) != size:
+            wrong = ValueError(f"backend returned {len(data)} data bytes for {count} values ({size} expected)")
+            return self._backend_failed(tid, unit, function_code, wrong)
+        return _READ_HEAD.pack(tid, 0, 3 + size, unit, function_code, size) + data
 
     # -- the backend calls (each is the body of one task) ------------------------------
 
@@ -574,6 +614,7 @@ class _Connection(asyncio.Protocol):
     """One client connection: MBAP framing, one task per request, backpressure, idle timer."""
 
     __slots__ = (
+        "_backlog",
         "_buffer",
         "_eof",
         "_idle_handle",
@@ -603,6 +644,7 @@ class _Connection(asyncio.Protocol):
         self._buffer = b""  # received bytes; those before _offset are consumed
         self._offset = 0
         self._in_flight = 0
+        self._backlog = False  # complete frames left for the next turn of the loop (_FRAMES_PER_TURN)
         self._open = False  # admitted, and not closed by us
         self._ready = False  # requests may be processed (after the TLS handshake)
         self._released = False  # forgotten by the server
@@ -656,7 +698,7 @@ class _Connection(asyncio.Protocol):
 
     def eof_received(self) -> bool | None:
         self._eof = True
-        if self._in_flight and self._server.ssl_context is None:
+        if (self._in_flight or self._backlog) and self._server.ssl_context is None:
             return True  # keep the transport open to send the replies still in flight
         return None  # close (TLS transports always do)
 
@@ -764,9 +806,17 @@ class _Connection(asyncio.Protocol):
         position = self._offset
         server = self._server
         transport = self._transport
+        turn = _FRAMES_PER_TURN
         while size - position >= 7 and self._in_flight < self._limit:
             if self._write_paused or self._stopped or transport is None:
                 break
+            if not turn:
+                # Let the loop run the links (and other connections) before the rest.
+                if not self._backlog:
+                    self._backlog = True
+                    self._loop.call_soon(self._next_turn)
+                break
+            turn -= 1
             tid, protocol, length, unit = _MBAP.unpack_from(buffer, position)
             if protocol != 0 or not _MIN_LENGTH <= length <= _MAX_LENGTH:
                 self._drop(f"bad MBAP header (protocol id {protocol}, length {length})")
@@ -788,10 +838,17 @@ class _Connection(asyncio.Protocol):
             self._offset = 0
         else:
             self._offset = position
-        if self._eof and not self._in_flight and transport is not None:
+        if self._eof and not self._in_flight and not self._backlog and transport is not None:
             transport.close()
             return
         self._update_reading()
+
+    def _next_turn(self) -> None:
+        self._backlog = False
+        if self._ready and self._transport is not None:
+            self._process()
+        elif self._eof and not self._in_flight and self._transport is not None:
+            self._transport.close()
 
     async def _serve(self, reply: Coroutine[Any, Any, bytes]) -> None:
         """Await one backend call and write its reply at once (no done-callback round trip)."""
@@ -808,7 +865,7 @@ class _Connection(asyncio.Protocol):
         transport = self._transport
         if transport is None or not self._ready:
             return
-        pause = self._in_flight >= self._limit or self._write_paused or self._stopped
+        pause = self._in_flight >= self._limit or self._write_paused or self._stopped or self._backlog
         if pause != self._read_paused:
             self._read_paused = pause
             if pause:
