@@ -174,8 +174,7 @@ class Unit(ABC):
         bits = int.from_bytes(self.read_bit_bytes(table, address, count), "little")
         return [bool(bits >> k & 1) for k in range(count)]
 
-    @staticmethod
-    def _loop_time() -> float:
+    def _loop_time(self) -> float:
         return asyncio.get_running_loop().time()
 
     def _miss(self, table: Table, miss: ImageMiss, what: str) -> ModbusExceptionReply:
