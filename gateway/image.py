@@ -13,7 +13,8 @@ leaves its segment meets an unmapped address):
   before ``now`` (one C loop, no Python loop per register); only on a miss does a Python loop
   look for the first stale point, to answer with that point's block.
 
-What goes where is computed once per plan: per block, *strided copies* (``image[a:b:s] =
+What goes where (the *layout*) is computed once per plan and shared by the units of that plan:
+per block, *strided copies* (``image[a:b:s] =
 data[c:d:t]``) that cover its registers in as few operations as the map allows, and *bit
 runs* that move many bits with one shift.  A confirmed write patches the block's raw bytes and
 re-decodes that block into the images; the deadlines are untouched, so a write never makes
@@ -24,6 +25,8 @@ Generic: knows blocks, points and codecs, no protocol.
 
 from __future__ import annotations
 
+import weakref
+from array import array
 from bisect import bisect_right
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -51,11 +54,11 @@ class ImageMiss(Exception):
 
 
 class _Segment:
-    """Consecutive mapped addresses ``first``..``last`` of one table."""
+    """Consecutive mapped addresses ``first``..``last`` of one table, in one unit."""
 
     __slots__ = ("bits", "blocks", "deadlines", "first", "image", "last")
 
-    def __init__(self, first: int, last: int, registers: bool) -> None:
+    def __init__(self, first: int, last: int, registers: bool, blocks: array[int]) -> None:
         n = last - first + 1
         self.first = first
         self.last = last
@@ -65,25 +68,8 @@ class _Segment:
         self.bits = 0
         #: per address: the time after which its value is stale
         self.deadlines: list[float] = [NEVER] * n
-        #: per address: its block (to name the block of a stale read)
-        self.blocks: list[int] = [0] * n
-
-
-class _Table:
-    """The segments of one table, found by bisection on their first addresses."""
-
-    __slots__ = ("firsts", "segments")
-
-    def __init__(self, ranges: Sequence[tuple[int, int]], registers: bool) -> None:
-        self.segments = [_Segment(first, last, registers) for first, last in ranges]
-        self.firsts = [s.first for s in self.segments]
-
-    def find(self, address: int) -> _Segment | None:
-        i = bisect_right(self.firsts, address) - 1
-        if i < 0:
-            return None
-        segment = self.segments[i]
-        return segment if address <= segment.last else None
+        #: per address: its block (to name the block of a stale read; shared by units of one plan)
+        self.blocks = blocks
 
 
 @dataclass(frozen=True, slots=True)
@@ -91,10 +77,11 @@ class _Copy:
     """Registers at image bytes ``hi`` (MSB) and ``hi + 1`` (LSB), every ``step`` bytes, ``n`` of them.
 
     Their MSBs come from block bytes ``src_hi`` (every ``src_step``; -1: always 0), their LSBs
-    from ``src_lo``; ``mask``: the MSBs pass through ``_MASK_7F``.
+    from ``src_lo``; ``mask``: the MSBs pass through ``_MASK_7F``.  ``segment``: index in the
+    unit's segments.
     """
 
-    image: bytearray
+    segment: int
     hi: int
     step: int
     n: int
@@ -103,23 +90,24 @@ class _Copy:
     src_step: int
     mask: bool
 
-    def apply(self, data: bytes | bytearray) -> None:
+    def apply(self, data: bytes | bytearray, segments: list[_Segment]) -> None:
+        image = segments[self.segment].image
         n, step, src_step = self.n, self.step, self.src_step
         span, src_span = step * (n - 1) + 1, src_step * (n - 1) + 1
         if self.src_hi >= 0:
             msb = data[self.src_hi : self.src_hi + src_span : src_step]
             if self.mask:
                 msb = msb.translate(_MASK_7F)
-            self.image[self.hi : self.hi + span : step] = msb
+            image[self.hi : self.hi + span : step] = msb
         lo = self.hi + 1
-        self.image[lo : lo + span : step] = data[self.src_lo : self.src_lo + src_span : src_step]
+        image[lo : lo + span : step] = data[self.src_lo : self.src_lo + src_span : src_step]
 
 
 @dataclass(frozen=True, slots=True)
 class _BitRun:
     """``n`` bits of a block from bit ``shift`` (of the block as a little-endian int) to segment bit ``at``."""
 
-    segment: _Segment
+    segment: int
     shift: int
     at: int
     mask: int  # (1 << n) - 1
@@ -130,7 +118,7 @@ class _BitRun:
 class _Stamp:
     """Points ``first``, ``first + step`` ... (``n`` of them) of a segment's deadlines."""
 
-    deadlines: list[float]
+    segment: int
     first: int
     step: int
     n: int
@@ -180,105 +168,153 @@ def _strided_runs(items: Sequence[tuple[int, tuple[int, ...]]]) -> list[tuple[in
     return runs
 
 
-class Images:
-    """The four tables of a plan as images with per-point deadlines (module docstring)."""
+class _Layout:
+    """What goes where, per plan (shared by every unit of that plan): segments and per-block recipes."""
 
-    __slots__ = ("_bit_runs", "_copies", "_max_age", "_stamps", "tables")
+    __slots__ = ("bit_runs", "blocks_of", "bounds", "copies", "stamps", "tables")
+
+    def __init__(self, plan: Plan) -> None:
+        #: per table: (first addresses of its segments, index of its first segment)
+        self.tables: dict[Table, tuple[list[int], int]] = {}
+        #: per segment: first, last, is a register segment
+        self.bounds: list[tuple[int, int, bool]] = []
+        #: per segment: the block of each of its points
+        self.blocks_of: list[array[int]] = []
+        n_blocks = len(plan.blocks)
+        copies: list[list[_Copy]] = [[] for _ in range(n_blocks)]
+        bit_runs: list[list[_BitRun]] = [[] for _ in range(n_blocks)]
+        stamps: list[list[_Stamp]] = [[] for _ in range(n_blocks)]
+        for table in REGISTER_TABLES + BIT_TABLES:
+            registers = table in REGISTER_TABLES
+            points: dict[int, RegisterPoint] | dict[int, BitPoint] = (
+                plan.registers(table) if registers else plan.bits(table)
+            )
+            ranges = plan.ranges(table)
+            self.tables[table] = ([first for first, _ in ranges], len(self.bounds))
+            for first, last in ranges:
+                segment = len(self.bounds)
+                self.bounds.append((first, last, registers))
+                self.blocks_of.append(array("I", [points[a].block for a in range(first, last + 1)]))
+                groups: dict[tuple[int, object], list[int]] = {}
+                for a in range(first, last + 1):
+                    point = points[a]
+                    key = (point.codec, point.word_order_low_first) if isinstance(point, RegisterPoint) else None
+                    groups.setdefault((point.block, key), []).append(a)
+                for (block, _), addresses in groups.items():
+                    if registers:
+                        copies[block].extend(self._copies(segment, first, addresses, plan.holding
+                                                          if table is Table.HOLDING else plan.input))
+                    else:
+                        bit_runs[block].extend(self._bit_runs(segment, first, addresses, plan.bits(table)))
+                    for k, step, n, _, _ in _strided_runs([(a - first, (a - first,)) for a in addresses]):
+                        stamps[block].append(_Stamp(segment, k, step, n))
+        empty: tuple[()] = ()
+        self.copies = [tuple(c) if c else empty for c in copies]
+        self.bit_runs = [tuple(r) if r else empty for r in bit_runs]
+        self.stamps = [tuple(s) if s else empty for s in stamps]
+
+    @staticmethod
+    def _copies(segment: int, first: int, addresses: list[int], points: dict[int, RegisterPoint]) -> list[_Copy]:
+        items: list[tuple[int, tuple[int, ...]]] = []
+        masks = set()
+        for a in addresses:
+            src_hi, src_lo, mask = _register_bytes(points[a])
+            masks.add(mask)
+            items.append((a - first, (src_hi, src_lo)))
+        (mask,) = masks  # one codec per group
+        return [
+            _Copy(segment, 2 * k, 2 * step, n, src_hi, src_lo, src_step, mask)
+            for k, step, n, (src_hi, src_lo), src_step in _strided_runs(items)
+        ]
+
+    @staticmethod
+    def _bit_runs(segment: int, first: int, addresses: list[int], points: dict[int, BitPoint]) -> list[_BitRun]:
+        runs: list[_BitRun] = []
+        items = [(a - first, (8 * points[a].offset + points[a].bit,)) for a in addresses]
+        for k, step, n, (shift,), src_step in _strided_runs(items):
+            if step == 1 and src_step == 1:
+                mask = (1 << n) - 1
+                runs.append(_BitRun(segment, shift, k, mask, ~(mask << k)))
+            else:
+                for m in range(n):
+                    at = k + m * step
+                    runs.append(_BitRun(segment, shift + m * src_step, at, 1, ~(1 << at)))
+        return runs
+
+
+#: layouts by id(plan), dropped with their plan
+_LAYOUTS: dict[int, _Layout] = {}
+
+
+def _layout(plan: Plan) -> _Layout:
+    layout = _LAYOUTS.get(id(plan))
+    if layout is None:
+        layout = _LAYOUTS[id(plan)] = _Layout(plan)
+        weakref.finalize(plan, _LAYOUTS.pop, id(plan), None)
+    return layout
+
+
+class Images:
+    """The four tables of a plan as images with per-point deadlines (module docstring).
+
+    The layout (what goes where) is computed once per plan and shared by the units of that plan.
+    """
+
+    __slots__ = ("_bit_runs", "_copies", "_max_age", "_stamps", "_tables", "segments")
 
     def __init__(self, plan: Plan, max_age: Sequence[float]) -> None:
-        self._max_age = list(max_age)
-        self.tables: dict[Table, _Table] = {}
-        n_blocks = len(plan.blocks)
-        self._copies: list[list[_Copy]] = [[] for _ in range(n_blocks)]
-        self._bit_runs: list[list[_BitRun]] = [[] for _ in range(n_blocks)]
-        self._stamps: list[list[_Stamp]] = [[] for _ in range(n_blocks)]
-        for table in REGISTER_TABLES:
-            image = self.tables[table] = _Table(plan.ranges(table), registers=True)
-            self._plan_registers(image, plan.registers(table))
-        for table in BIT_TABLES:
-            image = self.tables[table] = _Table(plan.ranges(table), registers=False)
-            self._plan_bits(image, plan.bits(table))
-
-    # --- planning -----------------------------------------------------------------------
-
-    def _group(
-        self, image: _Table, points: dict[int, RegisterPoint] | dict[int, BitPoint], key: object
-    ) -> dict[tuple[int, int, object], list[int]]:
-        """Addresses by (segment, block, key(point)), each list sorted; records each point's block."""
-        groups: dict[tuple[int, int, object], list[int]] = {}
-        for i, segment in enumerate(image.segments):
-            for address in range(segment.first, segment.last + 1):
-                point = points[address]
-                segment.blocks[address - segment.first] = point.block
-                groups.setdefault((i, point.block, key(point) if callable(key) else None), []).append(address)
-        return groups
-
-    def _plan_stamps(self, segment: _Segment, block: int, addresses: list[int]) -> None:
-        items = [(a - segment.first, (a - segment.first,)) for a in addresses]
-        for first, step, n, _, _ in _strided_runs(items):
-            self._stamps[block].append(_Stamp(segment.deadlines, first, step, n))
-
-    def _plan_registers(self, image: _Table, points: dict[int, RegisterPoint]) -> None:
-        groups = self._group(image, points, lambda p: (p.codec, p.word_order_low_first))
-        for (i, block, _), addresses in groups.items():
-            segment = image.segments[i]
-            items: list[tuple[int, tuple[int, ...]]] = []
-            masks = set()
-            for a in addresses:
-                src_hi, src_lo, mask = _register_bytes(points[a])
-                masks.add(mask)
-                items.append((a - segment.first, (src_hi, src_lo)))
-            (mask,) = masks  # one codec per group
-            for first, step, n, (src_hi, src_lo), src_step in _strided_runs(items):
-                self._copies[block].append(
-                    _Copy(segment.image, 2 * first, 2 * step, n, src_hi, src_lo, src_step, mask)
-                )
-            self._plan_stamps(segment, block, addresses)
-
-    def _plan_bits(self, image: _Table, points: dict[int, BitPoint]) -> None:
-        for (i, block, _), addresses in self._group(image, points, None).items():
-            segment = image.segments[i]
-            items = [(a - segment.first, (8 * points[a].offset + points[a].bit,)) for a in addresses]
-            for first, step, n, (shift,), src_step in _strided_runs(items):
-                if step == 1 and src_step == 1:
-                    mask = (1 << n) - 1
-                    self._bit_runs[block].append(_BitRun(segment, shift, first, mask, ~(mask << first)))
-                else:
-                    for k in range(n):
-                        at, source = first + k * step, shift + k * src_step
-                        self._bit_runs[block].append(_BitRun(segment, source, at, 1, ~(1 << at)))
-            self._plan_stamps(segment, block, addresses)
+        layout = _layout(plan)
+        self._max_age = max_age
+        self._copies = layout.copies
+        self._bit_runs = layout.bit_runs
+        self._stamps = layout.stamps
+        self.segments = [
+            _Segment(first, last, registers, blocks)
+            for (first, last, registers), blocks in zip(layout.bounds, layout.blocks_of, strict=True)
+        ]
+        self._tables = layout.tables
 
     # --- stores -------------------------------------------------------------------------
 
     def decode(self, block: int, data: bytes | bytearray) -> None:
         """Write the values of ``block`` (its raw bytes ``data``) into the images."""
+        segments = self.segments
         for copy in self._copies[block]:
-            copy.apply(data)
+            copy.apply(data, segments)
         runs = self._bit_runs[block]
         if runs:
             value = int.from_bytes(data, "little")
             for run in runs:
-                segment = run.segment
+                segment = segments[run.segment]
                 segment.bits = (segment.bits & run.keep) | (((value >> run.shift) & run.mask) << run.at)
 
     def stamp(self, block: int, now: float) -> None:
         """The points of ``block`` were read at ``now``: fresh until now + the block's max age."""
         deadline = now + self._max_age[block]
+        segments = self.segments
         for s in self._stamps[block]:
+            deadlines = segments[s.segment].deadlines
             if s.n == 1:
-                s.deadlines[s.first] = deadline
+                deadlines[s.first] = deadline
             else:
-                s.deadlines[s.first : s.first + s.step * (s.n - 1) + 1 : s.step] = [deadline] * s.n
+                deadlines[s.first : s.first + s.step * (s.n - 1) + 1 : s.step] = [deadline] * s.n
 
     # --- reads --------------------------------------------------------------------------
 
+    def _find(self, table: Table, address: int) -> _Segment | None:
+        firsts, base = self._tables[table]
+        i = bisect_right(firsts, address) - 1
+        if i < 0:
+            return None
+        segment = self.segments[base + i]
+        return segment if address <= segment.last else None
+
     def mapped(self, table: Table, address: int, count: int) -> bool:
-        segment = self.tables[table].find(address)
+        segment = self._find(table, address)
         return segment is not None and address + count - 1 <= segment.last
 
     def _segment(self, table: Table, address: int, count: int, now: float) -> tuple[_Segment, int, int]:
-        segment = self.tables[table].find(address)
+        segment = self._find(table, address)
         if segment is None:
             raise ImageMiss(address, None)
         i = address - segment.first

@@ -29,6 +29,7 @@ input register     1000-1010     status block (see ``STATUS_REGISTERS``), always
 from __future__ import annotations
 
 import enum
+import functools
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -187,8 +188,13 @@ def plan_byte_blocks(addresses: Iterable[int], scan: Scan, max_count: int = 2) -
     return blocks
 
 
+@functools.cache
 def slc_ascii_plan() -> Plan:
-    """The default map of an SLC 100/150 (module docstring)."""
+    """The default map of an SLC 100/150 (module docstring).
+
+    Built once and shared by every SLC 100/150 link (a plan is never changed once built), so
+    that 64 links hold one plan and one image layout (``gateway.image``), not 64.
+    """
     plan = Plan()
     fast: set[int] = set()
     slow: set[int] = set()
