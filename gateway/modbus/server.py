@@ -25,9 +25,12 @@ stream cannot be resynchronised). A partial frame is kept until it is complete.
 
 Per connection, requests are handled in arrival order. Reads of a backend that serves
 them from memory (``backend.read_now``, see :data:`ReadNow`) are answered at once,
-inside ``data_received``, without a task: at most ``_FRAMES_PER_TURN`` of them per
-call, the rest on the next turn of the loop (reading paused meanwhile), so a client
-pipelining thousands of reads cannot hold the loop, and the serial links polled in it.
+inside ``data_received``, without a task.  The server takes at most
+``_FRAMES_PER_TURN`` requests per turn of the event loop, over all its connections;
+the rest wait for the next turn (``call_soon``), so between two turns the loop
+always gets back to the serial links polled in it: a storm of SCADA requests delays
+a link's reaction by a few requests' work, never by the whole storm.  A connection
+with more than ``_MAX_BACKLOG`` bytes waiting stops being read meanwhile.
 Every other request becomes one task, created in arrival order, whose first step is
 the backend call, so the backend sees requests in arrival order; the task writes its
 reply (one ``transport.write``) as soon as the backend answers. Requests refused
@@ -211,9 +214,11 @@ _EXCEPTION_FRAME: Final = struct.Struct(">HHHBBB")  # MBAP, fc | 0x80, exception
 # _REGISTER_FRAMES[n]: a whole FC3/FC4 reply frame of n registers: MBAP, fc, byte count, values.
 _REGISTER_FRAMES: Final = [struct.Struct(f">HHHBBB{n}H") for n in range(_MAX_READ_REGISTERS + 1)]
 _READ_HEAD: Final = struct.Struct(">HHHBBB")  # MBAP, fc, byte count (the data follows)
-#: Requests answered from memory per ``_process`` call before the loop lets others run (a
-#: client pipelining thousands of reads must not hold the loop, and the serial links, for long).
-_FRAMES_PER_TURN: Final = 32
+#: Requests taken per turn of the event loop, over all connections of a server (about 20 us
+#: each): the serial links' callbacks never wait behind more than this much Modbus work.
+_FRAMES_PER_TURN: Final = 8
+#: A connection whose unprocessed bytes exceed this stops being read until they are taken.
+_MAX_BACKLOG: Final = 65536
 
 _decoder: Final = DecodePDU(is_server=True)
 _BIT_RESPONSES: Final[dict[int, type[ReadCoilsResponse]]] = {
@@ -309,6 +314,8 @@ class ModbusTcpServer:
         self._refusing: set[str] = set()
         self._refusals_suppressed = 0
         self._logged_errors: set[type[BaseException]] = set()
+        self._turn_budget = _FRAMES_PER_TURN
+        self._turn_reset = False
         read_now = getattr(backend, "read_now", None)
         self._read_now: ReadNow | None = read_now if callable(read_now) else None
 
@@ -434,6 +441,20 @@ class ModbusTcpServer:
             and not self._all_connections_closed.done()
         ):
             self._all_connections_closed.set_result(None)
+
+    def _spend(self, loop: asyncio.AbstractEventLoop) -> bool:
+        """Take one request in this turn of the loop, or False: the turn's budget is spent."""
+        if self._turn_budget <= 0:
+            return False
+        self._turn_budget -= 1
+        if not self._turn_reset:
+            self._turn_reset = True
+            loop.call_soon(self._new_turn)  # runs first in the next turn, before its I/O callbacks
+        return True
+
+    def _new_turn(self) -> None:
+        self._turn_budget = _FRAMES_PER_TURN
+        self._turn_reset = False
 
     def _exception(self, tid: int, unit: int, function_code: int, code: int) -> bytes:
         exceptions = self.counters.exceptions
@@ -644,7 +665,7 @@ class _Connection(asyncio.Protocol):
         self._buffer = b""  # received bytes; those before _offset are consumed
         self._offset = 0
         self._in_flight = 0
-        self._backlog = False  # complete frames left for the next turn of the loop (_FRAMES_PER_TURN)
+        self._backlog = False  # a _next_turn is scheduled (the server's turn budget was spent)
         self._open = False  # admitted, and not closed by us
         self._ready = False  # requests may be processed (after the TLS handshake)
         self._released = False  # forgotten by the server
@@ -806,17 +827,15 @@ class _Connection(asyncio.Protocol):
         position = self._offset
         server = self._server
         transport = self._transport
-        turn = _FRAMES_PER_TURN
         while size - position >= 7 and self._in_flight < self._limit:
             if self._write_paused or self._stopped or transport is None:
                 break
-            if not turn:
+            if not server._spend(self._loop):
                 # Let the loop run the links (and other connections) before the rest.
                 if not self._backlog:
                     self._backlog = True
                     self._loop.call_soon(self._next_turn)
                 break
-            turn -= 1
             tid, protocol, length, unit = _MBAP.unpack_from(buffer, position)
             if protocol != 0 or not _MIN_LENGTH <= length <= _MAX_LENGTH:
                 self._drop(f"bad MBAP header (protocol id {protocol}, length {length})")
@@ -865,7 +884,12 @@ class _Connection(asyncio.Protocol):
         transport = self._transport
         if transport is None or not self._ready:
             return
-        pause = self._in_flight >= self._limit or self._write_paused or self._stopped or self._backlog
+        pause = (
+            self._in_flight >= self._limit
+            or self._write_paused
+            or self._stopped
+            or (self._backlog and len(self._buffer) - self._offset > _MAX_BACKLOG)
+        )
         if pause != self._read_paused:
             self._read_paused = pause
             if pause:
