@@ -450,3 +450,34 @@ def test_freshness_boundary_equals_the_old_decoder(scan: Scan) -> None:
             assert reply == run_now(old._request(1, 1, pdu)), (now, pdu)
             replies.add(reply[7] & 0x80)
         assert replies == ({0x80} if now > 10.0 + max_age else {0})
+
+
+async def test_pipelined_reads_answered_in_order_with_their_own_ids() -> None:
+    """200 reads in one segment (more than a turn of the loop takes): every reply, in order, own id."""
+    plan = slc_ascii_plan()
+    unit = ClockedUnit(unit_id=1, name="slc", driver=SlcAsciiDriver("sim://slc150?ladder=0"), plan=plan)
+    for block, spec in enumerate(plan.blocks):
+        unit.cache.store(block, bytes((block + k) & 0xFF for k in range(spec.size)), 100.0)
+    unit.now = 100.5
+    server = ModbusTcpServer(GatewayBackend([unit]), "127.0.0.1", 0)
+    await server.start()
+    try:
+        requests = [(3, 0, 60), (1, 701, 64), (4, 1000, 3), (3, 64, 1), (2, 1, 18)]
+        expected = {}
+        frames = b""
+        for tid in range(200):
+            pdu = struct.pack(">BHH", *requests[tid % len(requests)])
+            expected[tid] = run_now(server._request(tid, 1, pdu))[7:]
+            frames += struct.pack(">HHHB", tid, 0, len(pdu) + 1, 1) + pdu
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        writer.write(frames)
+        for tid in range(200):
+            async with asyncio.timeout(2.0):
+                header = await reader.readexactly(7)
+                body = await reader.readexactly(struct.unpack_from(">H", header, 4)[0] - 1)
+            assert struct.unpack_from(">H", header)[0] == tid
+            if tid % len(requests) != 2:  # the status block counts requests: skip its values
+                assert body == expected[tid], tid
+        writer.close()
+    finally:
+        await server.close()
