@@ -1,7 +1,8 @@
 """One controller served as one Modbus unit: driver + read plan + cache + poller + access rules.
 
-Reads are answered from the cache; writes go through to the controller and are answered only
-after it confirmed them.
+Reads are answered from the register and bit images (``gateway.image``), which the cache fills
+when a block is stored; writes go through to the controller and are answered only after it
+confirmed them, then patch the cache (never its read times).
 
 A value is stale (exception 0x0B) when its own block was last read longer ago than
 ``stale_after`` plus the period of its scan class (``fast_interval`` or ``slow_interval``), or when

@@ -3,7 +3,8 @@
 A *plan* lists the blocks the poller reads (each one controller transaction) and, for every
 Modbus address of every table, the *point* that says where its value lives inside a block and
 how a write to it reaches the controller.  The cache stores each block's raw bytes with the time
-it was read; serving a Modbus read is a look-up of points, never controller I/O.
+it was read and decodes them at once into the images of the four tables (``gateway.image``);
+serving a Modbus read is a slice of an image, never controller I/O.
 
 Default map of an SLC 100/150 (``slc_ascii_plan``), Modbus protocol addresses (0-based):
 
