@@ -1,7 +1,8 @@
 """One controller served as one Modbus unit: driver + read plan + cache + poller + access rules.
 
-Reads are answered from the cache; writes go through to the controller and are answered only
-after it confirmed them.
+Reads are answered from the register and bit images (``gateway.image``), which the cache fills
+when a block is stored; writes go through to the controller and are answered only after it
+confirmed them, then patch the cache (never its read times).
 
 A value is stale (exception 0x0B) when its own block was last read longer ago than
 ``stale_after`` plus the period of its scan class (``fast_interval`` or ``slow_interval``), or when
@@ -25,7 +26,6 @@ import asyncio
 import logging
 import struct
 from abc import ABC, abstractmethod
-from bisect import bisect_right
 from collections.abc import Awaitable, Callable, Hashable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
@@ -43,6 +43,7 @@ from gateway.errors import (
     ModbusExceptionReply,
     ProtocolError,
 )
+from gateway.image import ImageMiss, Images
 from gateway.modbus.mapping import (
     STATUS_BASE,
     STATUS_REGISTERS,
@@ -75,56 +76,8 @@ WritableRange = tuple[Table, int, int]  # table, first, last
 BUSY_HOLD = 0.1
 
 
-_U16_LE = Codec.U16_LE
-_U16_BE = Codec.U16_BE
-_U16_BE_MASKED = Codec.U16_BE_MASKED
-_STRIDE_2 = (_U16_LE, _U16_BE, _U16_BE_MASKED)
-
-
-@dataclass(frozen=True, slots=True)
-class _Run:
-    """Registers first..last: same block and codec, each word 2 bytes after the one before."""
-
-    first: int
-    last: int
-    block: int
-    offset: int
-    codec: Codec
-
-
-def _register_runs(points: dict[int, RegisterPoint]) -> tuple[list[int], list[_Run]]:
-    runs: list[_Run] = []
-    for address in sorted(points):
-        p = points[address]
-        if runs:
-            r = runs[-1]
-            if (
-                p.codec in _STRIDE_2
-                and r.codec is p.codec
-                and r.block == p.block
-                and r.last == address - 1
-                and p.offset == r.offset + 2 * (address - r.first)
-            ):
-                runs[-1] = _Run(r.first, address, r.block, r.offset, r.codec)
-                continue
-        runs.append(_Run(address, address, p.block, p.offset, p.codec))
-    return [r.first for r in runs], runs
-
-
-def _decode(point: RegisterPoint, data: bytearray) -> int:
-    o = point.offset
-    codec = point.codec
-    if codec is Codec.U16_BE_MASKED:
-        return ((data[o] & 0x7F) << 8) | data[o + 1]
-    if codec is Codec.U16_BE:
-        return (data[o] << 8) | data[o + 1]
-    if codec is Codec.U16_LE:
-        return data[o] | (data[o + 1] << 8)
-    if codec is Codec.U8:
-        return data[o]
-    # PCCC float32: 4 bytes little-endian; registers carry its high and low 16-bit halves.
-    raw: int = struct.unpack_from("<I", data, o)[0]
-    return (raw >> 16) if codec is Codec.F32_HIGH else (raw & 0xFFFF)
+def _pack_registers(values: Sequence[int]) -> bytes:
+    return struct.pack(f">{len(values)}H", *values)
 
 
 class Unit(ABC):
@@ -154,15 +107,19 @@ class Unit(ABC):
         self.stale_after = stale_after
         self.read_only = read_only
         self.writable = tuple(writable)
-        self.cache = BlockCache([block.size for block in plan.blocks])
         period = {Scan.FAST: fast_interval, Scan.SLOW: slow_interval}
         #: per block: the largest age at which its bytes are still served
         self._max_age = [stale_after + period[block.scan] for block in plan.blocks]
+        #: the four tables decoded when a block is stored (a read is a slice)
+        self.images = Images(plan, self._max_age)
+        self.cache = BlockCache(
+            [block.size for block in plan.blocks],
+            images=self.images,
+            fast=[i for i, block in enumerate(plan.blocks) if block.scan is Scan.FAST],
+        )
         #: the controller is silent after this long without an answer to a poll (the poller asks
         #: every fast_interval, or only every slow_interval when the plan has no fast class)
         self._silent_after = min(self._max_age, default=stale_after)
-        #: per register table: start addresses and runs of registers decoded together
-        self._runs = {table: _register_runs(plan.registers(table)) for table in (Table.HOLDING, Table.INPUT)}
         self.poller = Poller(
             name,
             plan.blocks,
@@ -205,63 +162,46 @@ class Unit(ABC):
 
     # --- reads ------------------------------------------------------------------------------
 
-    def read_registers(self, table: Table, address: int, count: int) -> list[int]:
-        now = asyncio.get_running_loop().time()
+    def read_register_bytes(self, table: Table, address: int, count: int) -> bytes:
+        """Registers ``address``.. (``count``) as the big-endian bytes of a FC3/FC4 reply.
+
+        Served from the image (a slice); the first unmapped or stale register, in address
+        order, decides the exception.
+        """
+        now = self._loop_time()
         if table is Table.INPUT and address >= STATUS_BASE:
-            return self._status(address, count, now)
-        points = self.plan.registers(table)
-        stamps, data, max_age = self.cache.stamps, self.cache.data, self._max_age
-        if self._silent(now):
-            if all(a in points for a in range(address, address + count)):
-                raise self._stale()
-        starts, runs = self._runs[table]
-        out: list[int] = []
-        a, end = address, address + count
-        i = bisect_right(starts, a) - 1
-        # Hot path (every SCADA read): whole runs of neighbouring registers in one unpack.
-        while a < end:
-            if i < 0 or i >= len(runs) or runs[i].last < a or runs[i].first > a:
-                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} register {a} is not mapped")
-            run = runs[i]
-            block = run.block
-            if now - stamps[block] > max_age[block]:
-                raise self._stale(block)
-            n = min(end, run.last + 1) - a
-            offset = run.offset + 2 * (a - run.first)
-            if run.codec is _U16_LE:
-                out.extend(struct.unpack_from(f"<{n}H", data[block], offset))
-            elif run.codec is _U16_BE_MASKED:
-                out.extend(v & 0x7FFF for v in struct.unpack_from(f">{n}H", data[block], offset))
-            elif run.codec is _U16_BE:
-                out.extend(struct.unpack_from(f">{n}H", data[block], offset))
-            else:
-                out.append(_decode(points[a], data[block]))
-            a += n
-            i += 1
-        return out
+            return _pack_registers(self._status(address, count, now))
+        if now - self.cache.newest > self._silent_after and self.images.mapped(table, address, count):
+            raise self._stale()
+        try:
+            return self.images.registers(table, address, count, now)
+        except ImageMiss as miss:
+            raise self._miss(table, miss, f"{table.value} register") from None
+
+    def read_bit_bytes(self, table: Table, address: int, count: int) -> bytes:
+        """Bits ``address``.. (``count``) packed LSB first, as the payload of a FC1/FC2 reply."""
+        now = self._loop_time()
+        if now - self.cache.newest > self._silent_after and self.images.mapped(table, address, count):
+            raise self._stale()
+        try:
+            return self.images.bits(table, address, count, now)
+        except ImageMiss as miss:
+            raise self._miss(table, miss, table.value) from None
+
+    def read_registers(self, table: Table, address: int, count: int) -> list[int]:
+        return list(struct.unpack(f">{count}H", self.read_register_bytes(table, address, count)))
 
     def read_bits(self, table: Table, address: int, count: int) -> list[bool]:
-        now = asyncio.get_running_loop().time()
-        points = self.plan.bits(table)
-        stamps, data, max_age = self.cache.stamps, self.cache.data, self._max_age
-        if self._silent(now):
-            if all(a in points for a in range(address, address + count)):
-                raise self._stale()
-        out: list[bool] = []
-        append = out.append
-        block = -1
-        raw = bytearray()
-        for a in range(address, address + count):
-            point = points.get(a)
-            if point is None:
-                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} {a} is not mapped")
-            if point.block != block:
-                block = point.block
-                if now - stamps[block] > max_age[block]:
-                    raise self._stale(block)
-                raw = data[block]
-            append(bool(raw[point.offset] >> point.bit & 1))
-        return out
+        bits = int.from_bytes(self.read_bit_bytes(table, address, count), "little")
+        return [bool(bits >> k & 1) for k in range(count)]
+
+    def _loop_time(self) -> float:
+        return asyncio.get_running_loop().time()
+
+    def _miss(self, table: Table, miss: ImageMiss, what: str) -> ModbusExceptionReply:
+        if miss.block is None:
+            return ModbusExceptionReply(ILLEGAL_ADDRESS, f"{what} {miss.address} is not mapped")
+        return self._stale(miss.block)
 
     def _silent(self, now: float) -> bool:
         """The controller answered no poll for ``stale_after`` seconds past its scan period."""
@@ -279,8 +219,7 @@ class Unit(ABC):
 
     def status_values(self, now: float) -> dict[str, int]:
         counters = self.driver.counters
-        fast = self.poller.fast
-        age = self.cache.oldest_age(fast, now) if fast else 0.0
+        age = self.cache.oldest_fast_age(now)
         return {
             "link_up": 1 if self.driver.available else 0,
             "data_age": min(65535, int(age * 10)) if age != float("inf") else 65535,
@@ -445,7 +384,6 @@ class Unit(ABC):
         )
 
     def _patch(self, point: RegisterPoint, value: int) -> None:
-        data = self.cache.data[point.block]
         o = point.offset
         if point.codec in (Codec.U16_BE, Codec.U16_BE_MASKED):
             self.cache.patch(point.block, o, value.to_bytes(2, "big"))
@@ -456,7 +394,7 @@ class Unit(ABC):
         elif point.codec is Codec.F32_LOW:
             self.cache.patch(point.block, o, value.to_bytes(2, "little"))
         else:
-            data[o] = value & 0xFF
+            self.cache.patch(point.block, o, bytes((value & 0xFF,)))
 
 
 @dataclass(slots=True)
