@@ -1,9 +1,11 @@
 """Helper process of the benchmarks: a Modbus TCP load generator on raw MBAP sockets (not a benchmark).
 
-    python bench/loadgen.py read  --port P [--unit U] [--address A] [--count N] [--connections C] [--duration S]
+    python bench/loadgen.py read  --port P [--unit U] [--function 3] [--address A] [--count N] [--connections C]
+                                  [--duration S]
     python bench/loadgen.py write --port P [--unit U] [--address A] [--writes N] [--gap-max S]
+    python bench/loadgen.py flood --port P [--unit U] [--in-flight K] [--span N] [--duration S]
 
-``read``: C connections, each a closed loop (send one FC3 request, await its reply, repeat) for
+``read``: C connections, each a closed loop (send one FC3 request (``--function``: 1-4), await its reply, repeat) for
 S seconds after a short warm-up; prints one JSON line: requests, exception replies, latency
 percentiles (ms), and this process's CPU seconds per second (to show whether the generator
 itself was the limit).  With ``--marks`` it prints ``START`` and ``STOP`` lines around the
@@ -13,7 +15,11 @@ measurement window, so a parent can sample the server's CPU time at those moment
 a random pause of 0..``gap-max`` seconds (so writes land at random phases of the poll cycle);
 prints one JSON line with every latency (ms) and the exception replies.
 
-Before measuring, both wait until the server answers a read of the register range without an
+``flood``: one connection keeping K FC6 writes in flight for S seconds (a new one the moment a
+reply comes, 0x06 "busy" replies included: a hostile master), to holding registers 0..N-1;
+prints one JSON line with the replies by kind (ok, busy, other).
+
+Before measuring, all wait until the server answers a read of the register range without an
 exception (the gateway serves nothing before its first poll completes).
 """
 
@@ -28,7 +34,7 @@ import struct
 import time
 
 HOST = "127.0.0.1"
-_READ = struct.Struct(">HHHBBHH")  # MBAP + FC3 address count
+_READ = struct.Struct(">HHHBBHH")  # MBAP + FC1-FC4 address count
 _WRITE = struct.Struct(">HHHBBHH")  # MBAP + FC6 address value
 
 
@@ -40,8 +46,8 @@ def _cpu() -> float:
 class ReadLoop(asyncio.Protocol):
     """One closed-loop connection: request, reply, request ..."""
 
-    def __init__(self, unit: int, address: int, count: int, latencies: list[float]) -> None:
-        self.unit, self.address, self.count = unit, address, count
+    def __init__(self, unit: int, address: int, count: int, latencies: list[float], function: int = 3) -> None:
+        self.unit, self.address, self.count, self.function = unit, address, count, function
         self.latencies = latencies
         self.recording = False
         self.running = True
@@ -60,7 +66,7 @@ class ReadLoop(asyncio.Protocol):
         self.tid = (self.tid + 1) & 0xFFFF
         assert self.transport is not None
         self.sent_at = time.perf_counter()
-        self.transport.write(_READ.pack(self.tid, 0, 6, self.unit, 3, self.address, self.count))
+        self.transport.write(_READ.pack(self.tid, 0, 6, self.unit, self.function, self.address, self.count))
 
     def data_received(self, data: bytes) -> None:
         buffer = self.buffer + data if self.buffer else data
@@ -97,17 +103,18 @@ async def _request(port: int, frame: bytes) -> bytes:
         writer.close()
 
 
-async def wait_ready(port: int, unit: int, address: int, count: int, patience: float = 20.0) -> None:
+async def wait_ready(port: int, unit: int, address: int, count: int, patience: float = 20.0,
+                     function: int = 3) -> None:
     deadline = time.monotonic() + patience
     while True:
         try:
-            reply = await asyncio.wait_for(_request(port, _READ.pack(1, 0, 6, unit, 3, address, count)), 2.0)
+            reply = await asyncio.wait_for(_request(port, _READ.pack(1, 0, 6, unit, function, address, count)), 2.0)
             if not reply[7] & 0x80:
                 return
         except (OSError, asyncio.IncompleteReadError, TimeoutError):
             pass
         if time.monotonic() > deadline:
-            raise SystemExit(f"server on port {port} did not serve holding {address}+{count} within {patience} s")
+            raise SystemExit(f"server on port {port} did not serve FC{function} {address}+{count} within {patience} s")
         await asyncio.sleep(0.1)
 
 
@@ -123,13 +130,13 @@ def _pcts(values: list[float]) -> dict[str, float]:
 
 
 async def read_load(args: argparse.Namespace) -> dict[str, object]:
-    await wait_ready(args.port, args.unit, args.address, args.count)
+    await wait_ready(args.port, args.unit, args.address, args.count, function=args.function)
     loop = asyncio.get_running_loop()
     latencies: list[float] = []
     loops: list[ReadLoop] = []
     for _ in range(args.connections):
         _, protocol = await loop.create_connection(
-            lambda: ReadLoop(args.unit, args.address, args.count, latencies), HOST, args.port
+            lambda: ReadLoop(args.unit, args.address, args.count, latencies, args.function), HOST, args.port
         )
         loops.append(protocol)
     await asyncio.sleep(args.warmup)
@@ -180,11 +187,36 @@ async def write_load(args: argparse.Namespace) -> dict[str, object]:
             **_pcts(latencies)}
 
 
+async def flood_load(args: argparse.Namespace) -> dict[str, object]:
+    await wait_ready(args.port, args.unit, 0, 1)
+    reader, writer = await asyncio.open_connection(HOST, args.port)
+    outcome = {"ok": 0, "busy": 0, "other": 0}
+    n = 0
+
+    def send() -> None:
+        nonlocal n
+        n += 1
+        writer.write(_WRITE.pack(n & 0xFFFF, 0, 6, args.unit, 6, n % args.span, n % args.modulo))
+
+    for _ in range(args.in_flight):
+        send()
+    end = time.monotonic() + args.duration
+    while time.monotonic() < end:
+        header = await reader.readexactly(6)
+        body = await reader.readexactly((header[4] << 8) | header[5])
+        kind = "ok" if not body[1] & 0x80 else "busy" if body[2] == 0x06 else "other"
+        outcome[kind] += 1
+        send()
+    writer.close()
+    return outcome
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("mode", choices=("read", "write"))
+    parser.add_argument("mode", choices=("read", "write", "flood"))
     parser.add_argument("--port", type=int, required=True)
     parser.add_argument("--unit", type=int, default=1)
+    parser.add_argument("--function", type=int, default=3, choices=(1, 2, 3, 4), help="read: function code")
     parser.add_argument("--address", type=int, default=0)
     parser.add_argument("--count", type=int, default=100)
     parser.add_argument("--connections", type=int, default=1)
@@ -194,9 +226,11 @@ def main() -> None:
     parser.add_argument("--gap-max", type=float, default=0.3)
     parser.add_argument("--modulo", type=int, default=10000)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--in-flight", type=int, default=16, help="flood: writes kept in flight")
+    parser.add_argument("--span", type=int, default=31, help="flood: holding registers 0..span-1")
     parser.add_argument("--marks", action="store_true", help="read: print START / STOP around the window")
     args = parser.parse_args()
-    runner = read_load if args.mode == "read" else write_load
+    runner = {"read": read_load, "write": write_load, "flood": flood_load}[args.mode]
     print(json.dumps(asyncio.run(runner(args))), flush=True)
 
 

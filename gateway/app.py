@@ -57,6 +57,10 @@ def build_unit(link: LinkConfig) -> Unit:
         writable=_writable(link),
         fast_interval=link.fast_interval,
         slow_interval=link.slow_interval,
+        write_burst=link.write_burst,
+        poll_burst=link.poll_burst,
+        write_queue_per_client=link.write_queue_per_client,
+        write_queue_per_link=link.write_queue_per_link,
     )
     if link.protocol == "df1":
         from gateway.unit_df1 import build_df1_unit
@@ -87,6 +91,17 @@ class GatewayBackend:
             return self.units[unit]
         except KeyError:
             raise ModbusExceptionReply(ModbusExceptionReply.GATEWAY_PATH_UNAVAILABLE) from None
+
+    def read_now(self, unit: int, function_code: int, address: int, count: int) -> bytes:
+        """FC1-FC4 from the unit's images: the reply's data bytes (the server's fast path)."""
+        target = self.units.get(unit)
+        if target is None:
+            raise ModbusExceptionReply(ModbusExceptionReply.GATEWAY_PATH_UNAVAILABLE)
+        if function_code == 3:
+            return target.read_register_bytes(Table.HOLDING, address, count)
+        if function_code == 4:
+            return target.read_register_bytes(Table.INPUT, address, count)
+        return target.read_bit_bytes(Table.COIL if function_code == 1 else Table.DISCRETE, address, count)
 
     async def read_coils(self, unit: int, address: int, count: int) -> Sequence[bool]:
         return self._unit(unit).read_bits(Table.COIL, address, count)

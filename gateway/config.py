@@ -640,6 +640,12 @@ class LinkConfig(_Model):
     writable: tuple[WritableRange, ...] = ()
     fast_interval: float = Field(0.0, ge=0)
     slow_interval: float = Field(10.0, ge=0)
+    #: write transactions in a row before waiting polls get the line, for poll_burst transactions
+    write_burst: int = Field(1, ge=1, le=100)
+    poll_burst: int = Field(2, ge=1, le=100)
+    #: writes that may wait for the line, per client connection and in all (beyond: 0x06)
+    write_queue_per_client: int = Field(8, ge=1, le=1000)
+    write_queue_per_link: int = Field(32, ge=1, le=10000)
     trace: Path | None = None
     # df1 only
     station: int = Field(1, ge=0, le=254)

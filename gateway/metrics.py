@@ -22,6 +22,8 @@ Metrics (every name starts with ``slc_gateway_``)::
       bytes_total{direction}        counter  direction = tx | rx, on the line
       write_requests_total          counter  Modbus writes passed through to the controller
       write_failures_total          counter  ... of which failed (answered with an exception)
+      partial_writes_total          counter  ... of which the controller refused part-way (some registers written)
+      write_busy_total              counter  writes answered 0x06 because the link's write queue was full
     per Modbus server, label server="modbus" | "modbus-tls"
       modbus_requests_total{function_code}    counter  requests by function code (decimal, unknown ones too)
       modbus_exceptions_total{exception_code} counter  exception replies by exception code (decimal)
@@ -158,6 +160,8 @@ class _GatewayCollector:
         byte_count = _counter("bytes", "Bytes on the link by direction.", (*link, "direction"))
         writes = _counter("write_requests", "Modbus writes passed through to the controller.", link)
         write_failures = _counter("write_failures", "Modbus writes that failed.", link)
+        partial = _counter("partial_writes", "Modbus writes the controller refused part-way (logged).", link)
+        busy = _counter("write_busy", "Modbus writes answered 0x06: the link's write queue was full.", link)
         for unit in units:
             labels = (unit.name, str(unit.unit_id))
             driver = unit.driver
@@ -176,7 +180,10 @@ class _GatewayCollector:
             byte_count.add_metric((*labels, "rx"), counters.bytes_received)
             writes.add_metric(labels, unit.write_requests)
             write_failures.add_metric(labels, unit.write_failures)
-        return [link_up, connected, age, stale, *plain.values(), retries, byte_count, writes, write_failures]
+            partial.add_metric(labels, unit.partial_writes)
+            busy.add_metric(labels, unit.writes.busy_refusals)
+        return [link_up, connected, age, stale, *plain.values(), retries, byte_count, writes, write_failures, partial,
+                busy]
 
     @staticmethod
     def _server_families(servers: Sequence[ModbusTcpServer]) -> list[Metric]:

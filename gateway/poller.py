@@ -1,5 +1,8 @@
 """Per link: scan the read plan, fast class continuously and slow class every few seconds.
 
+The slow class is read whole at start and after a link loss; its periodic scans are spread
+over the fast rounds of ``slow_interval`` (a share of it before each fast round).
+
 Every block is one request on the driver's queue at poll priority, so a write waits at most
 for the one poll transaction already on the line.  A block that fails keeps its last value
 in the cache and ages.  While the link is down the poller waits for it instead of spinning;
@@ -99,21 +102,37 @@ class Poller:
         if self._stagger:
             await asyncio.sleep(random.uniform(0, self._stagger))
         next_slow = loop.time()
+        whole_slow = True  # at start and after a loss: the whole slow class first
+        pending_slow: list[int] = []  # the rest of a periodic slow scan, spread over fast rounds
+        last_round = 0.0
         while True:
             started = loop.time()
             ok = True
-            if started >= next_slow and self.slow:
-                ok = await self._scan(self.slow)
-                if ok:
-                    next_slow = started + self.slow_interval
+            if started >= next_slow and self.slow and not pending_slow:
+                next_slow = started + self.slow_interval
+                if whole_slow or not self.fast or self.slow_interval <= 0:
+                    ok = await self._scan(self.slow)
+                    whole_slow = not ok
+                else:
+                    pending_slow = list(self.slow)
+            if ok and pending_slow:
+                # A periodic slow scan is spread over the fast rounds of the slow interval, so
+                # the fast class is not held up by the whole slow class at once (when writes
+                # share the line, that alone would age it past stale_after).
+                share = max(1, -(-len(self.slow) * max(last_round, self.fast_interval) // self.slow_interval))
+                chunk, pending_slow = pending_slow[: int(share)], pending_slow[int(share) :]
+                ok = await self._scan(chunk)
             if ok:
                 ok = await self._scan(self.fast)
             if not ok:
                 # The link was lost: the controller may come back power-cycled or replaced, so
                 # read the slow class first when it returns instead of serving pre-loss values.
                 next_slow = loop.time()
+                whole_slow = True
+                pending_slow = []
                 await asyncio.sleep(self._down_wait)
                 continue
+            last_round = loop.time() - started
             self.scans += 1
             if self.fast_interval > 0:
                 await asyncio.sleep(max(0.0, started + self.fast_interval - loop.time()))

@@ -25,6 +25,7 @@ from gateway.errors import ControllerRefused, GatewayError, InvalidRequest, Link
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import ControllerType, Mode
 from gateway.protocols.slc_ascii.memory_map import parse_item
+from gateway.tools_common import print_result, resolve_retries
 from gateway.transport import ByteStream, SerialSettings, open_stream
 
 __all__ = [
@@ -41,27 +42,6 @@ __all__ = [
 
 PROGRAM_FORMAT = "slc-gateway-program/1"
 _MODES = {"run": Mode.RUN, "program": Mode.PROGRAM, "test": Mode.CONTINUOUS_TEST, "save": Mode.SAVE_TO_EEPROM}
-
-
-def print_result(result: dict[str, Any], as_json: bool) -> None:
-    """``key = value`` lines, or one JSON object with ``--json``."""
-    if as_json:
-        print(json.dumps(result))
-    else:
-        for key, value in result.items():
-            print(f"{key} = {str(value).lower() if isinstance(value, bool) else value}")
-
-
-#: Retries per transaction when --retries is not given.  A probe asks "does anything answer?":
-#: with one retry it gives up within a few seconds on either protocol (DF1: 2 tries of 2 ACK waits).
-DEFAULT_RETRIES = 3
-PROBE_RETRIES = 1
-
-
-def resolve_retries(command: str, retries: int | None) -> int:
-    if retries is not None:
-        return retries
-    return PROBE_RETRIES if command == "probe" else DEFAULT_RETRIES
 
 
 def resolve_protocol(url: str, protocol: str | None) -> str:
@@ -222,10 +202,10 @@ async def _run_slc_ascii_tool(command: str, args: argparse.Namespace, received: 
                     if value not in (0, 1):
                         raise InvalidRequest(f"{item_text}: a bit takes 0 or 1, not {value}")
                     if not item.writable:
-                        item.encode_bit_write(0, bool(value))  # raises the read-only message
+                        cmds.write_item_bit(item, 0, bool(value))  # raises the read-only message
                     await driver.update_byte(item.read_address, item.bit, bool(value))
                 else:
-                    await driver.execute(item.encode_write(value))
+                    await driver.execute(cmds.write_item(item, value))
             print_result({text: value for text, _, value in writes}, args.json)
         elif command == "mode":
             await driver.set_mode(_MODES[args.mode])
@@ -261,7 +241,7 @@ def _parse_assignment(text: str) -> tuple[str, Any, int]:
     except ValueError as exc:
         raise InvalidRequest(f"{text!r}: {value_text!r} is not a whole number") from exc
     if not item.read_modify_write:
-        item.encode_write(value)  # validate now, before the port is opened
+        cmds.write_item(item, value)  # validate now, before the port is opened
     return name, item, value
 
 

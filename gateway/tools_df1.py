@@ -23,7 +23,7 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalWrite,
     SetProcessorMode,
 )
-from gateway.tools import print_result, resolve_retries
+from gateway.tools_common import print_result, resolve_retries
 from gateway.transport import SerialSettings, open_stream
 from gateway.unit_df1 import PROCESSORS
 

@@ -1,7 +1,8 @@
 """One controller served as one Modbus unit: driver + read plan + cache + poller + access rules.
 
-Reads are answered from the cache; writes go through to the controller and are answered only
-after it confirmed them.
+Reads are answered from the register and bit images (``gateway.image``), which the cache fills
+when a block is stored; writes go through to the controller and are answered only after it
+confirmed them, then patch the cache (never its read times).
 
 A value is stale (exception 0x0B) when its own block was last read longer ago than
 ``stale_after`` plus the period of its scan class (``fast_interval`` or ``slow_interval``), or when
@@ -22,14 +23,16 @@ no answer, link down, stale data                     0x0B
 from __future__ import annotations
 
 import asyncio
+import logging
 import struct
 from abc import ABC, abstractmethod
-from bisect import bisect_right
-from collections.abc import Awaitable, Sequence
-from dataclasses import dataclass
+from collections.abc import Awaitable, Callable, Hashable, Sequence
+from dataclasses import dataclass, field
+from functools import partial
 from typing import cast
 
 from gateway.cache import BlockCache
+from gateway.clients import current_client
 from gateway.drivers.base import LinkDriver
 from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import (
@@ -40,9 +43,11 @@ from gateway.errors import (
     ModbusExceptionReply,
     ProtocolError,
 )
+from gateway.image import ImageMiss, Images
 from gateway.modbus.mapping import (
     STATUS_BASE,
     STATUS_REGISTERS,
+    BitPoint,
     Block,
     Codec,
     Plan,
@@ -54,8 +59,11 @@ from gateway.modbus.mapping import (
     slc_ascii_plan,
 )
 from gateway.poller import Poller
+from gateway.writes import WriteQueue
 
-__all__ = ["SlcAsciiUnit", "Unit", "WritableRange"]
+__all__ = ["SlcAsciiUnit", "Unit", "WritableRange", "WriteStep"]
+
+log = logging.getLogger("gateway.unit")
 
 ILLEGAL_ADDRESS = ModbusExceptionReply.ILLEGAL_DATA_ADDRESS
 ILLEGAL_VALUE = ModbusExceptionReply.ILLEGAL_DATA_VALUE
@@ -64,57 +72,12 @@ TARGET_FAILED = ModbusExceptionReply.GATEWAY_TARGET_FAILED
 
 WritableRange = tuple[Table, int, int]  # table, first, last
 
-
-_U16_LE = Codec.U16_LE
-_U16_BE = Codec.U16_BE
-_U16_BE_MASKED = Codec.U16_BE_MASKED
-_STRIDE_2 = (_U16_LE, _U16_BE, _U16_BE_MASKED)
+#: Seconds a 0x06 (busy) answer to a write is held before it is sent.
+BUSY_HOLD = 0.1
 
 
-@dataclass(frozen=True, slots=True)
-class _Run:
-    """Registers first..last: same block and codec, each word 2 bytes after the one before."""
-
-    first: int
-    last: int
-    block: int
-    offset: int
-    codec: Codec
-
-
-def _register_runs(points: dict[int, RegisterPoint]) -> tuple[list[int], list[_Run]]:
-    runs: list[_Run] = []
-    for address in sorted(points):
-        p = points[address]
-        if runs:
-            r = runs[-1]
-            if (
-                p.codec in _STRIDE_2
-                and r.codec is p.codec
-                and r.block == p.block
-                and r.last == address - 1
-                and p.offset == r.offset + 2 * (address - r.first)
-            ):
-                runs[-1] = _Run(r.first, address, r.block, r.offset, r.codec)
-                continue
-        runs.append(_Run(address, address, p.block, p.offset, p.codec))
-    return [r.first for r in runs], runs
-
-
-def _decode(point: RegisterPoint, data: bytearray) -> int:
-    o = point.offset
-    codec = point.codec
-    if codec is Codec.U16_BE_MASKED:
-        return ((data[o] & 0x7F) << 8) | data[o + 1]
-    if codec is Codec.U16_BE:
-        return (data[o] << 8) | data[o + 1]
-    if codec is Codec.U16_LE:
-        return data[o] | (data[o + 1] << 8)
-    if codec is Codec.U8:
-        return data[o]
-    # PCCC float32: 4 bytes little-endian; registers carry its high and low 16-bit halves.
-    raw: int = struct.unpack_from("<I", data, o)[0]
-    return (raw >> 16) if codec is Codec.F32_HIGH else (raw & 0xFFFF)
+def _pack_registers(values: Sequence[int]) -> bytes:
+    return struct.pack(f">{len(values)}H", *values)
 
 
 class Unit(ABC):
@@ -132,6 +95,10 @@ class Unit(ABC):
         writable: Sequence[WritableRange] = (),
         fast_interval: float = 0.0,
         slow_interval: float = 10.0,
+        write_burst: int = 1,
+        poll_burst: int = 2,
+        write_queue_per_client: int = 8,
+        write_queue_per_link: int = 32,
     ) -> None:
         self.unit_id = unit_id
         self.name = name
@@ -140,15 +107,19 @@ class Unit(ABC):
         self.stale_after = stale_after
         self.read_only = read_only
         self.writable = tuple(writable)
-        self.cache = BlockCache([block.size for block in plan.blocks])
         period = {Scan.FAST: fast_interval, Scan.SLOW: slow_interval}
         #: per block: the largest age at which its bytes are still served
         self._max_age = [stale_after + period[block.scan] for block in plan.blocks]
+        #: the four tables decoded when a block is stored (a read is a slice)
+        self.images = Images(plan, self._max_age)
+        self.cache = BlockCache(
+            [block.size for block in plan.blocks],
+            images=self.images,
+            fast=[i for i, block in enumerate(plan.blocks) if block.scan is Scan.FAST],
+        )
         #: the controller is silent after this long without an answer to a poll (the poller asks
         #: every fast_interval, or only every slow_interval when the plan has no fast class)
         self._silent_after = min(self._max_age, default=stale_after)
-        #: per register table: start addresses and runs of registers decoded together
-        self._runs = {table: _register_runs(plan.registers(table)) for table in (Table.HOLDING, Table.INPUT)}
         self.poller = Poller(
             name,
             plan.blocks,
@@ -160,6 +131,11 @@ class Unit(ABC):
         )
         self.write_requests = 0
         self.write_failures = 0
+        #: write requests the controller refused after part of them was applied
+        self.partial_writes = 0
+        driver.write_burst = write_burst
+        driver.poll_burst = poll_burst
+        self.writes = WriteQueue(driver, name, per_client=write_queue_per_client, per_link=write_queue_per_link)
 
     # --- protocol hooks ---------------------------------------------------------------------
 
@@ -186,63 +162,46 @@ class Unit(ABC):
 
     # --- reads ------------------------------------------------------------------------------
 
-    def read_registers(self, table: Table, address: int, count: int) -> list[int]:
-        now = asyncio.get_running_loop().time()
+    def read_register_bytes(self, table: Table, address: int, count: int) -> bytes:
+        """Registers ``address``.. (``count``) as the big-endian bytes of a FC3/FC4 reply.
+
+        Served from the image (a slice); the first unmapped or stale register, in address
+        order, decides the exception.
+        """
+        now = self._loop_time()
         if table is Table.INPUT and address >= STATUS_BASE:
-            return self._status(address, count, now)
-        points = self.plan.registers(table)
-        stamps, data, max_age = self.cache.stamps, self.cache.data, self._max_age
-        if self._silent(now):
-            if all(a in points for a in range(address, address + count)):
-                raise self._stale()
-        starts, runs = self._runs[table]
-        out: list[int] = []
-        a, end = address, address + count
-        i = bisect_right(starts, a) - 1
-        # Hot path (every SCADA read): whole runs of neighbouring registers in one unpack.
-        while a < end:
-            if i < 0 or i >= len(runs) or runs[i].last < a or runs[i].first > a:
-                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} register {a} is not mapped")
-            run = runs[i]
-            block = run.block
-            if now - stamps[block] > max_age[block]:
-                raise self._stale(block)
-            n = min(end, run.last + 1) - a
-            offset = run.offset + 2 * (a - run.first)
-            if run.codec is _U16_LE:
-                out.extend(struct.unpack_from(f"<{n}H", data[block], offset))
-            elif run.codec is _U16_BE_MASKED:
-                out.extend(v & 0x7FFF for v in struct.unpack_from(f">{n}H", data[block], offset))
-            elif run.codec is _U16_BE:
-                out.extend(struct.unpack_from(f">{n}H", data[block], offset))
-            else:
-                out.append(_decode(points[a], data[block]))
-            a += n
-            i += 1
-        return out
+            return _pack_registers(self._status(address, count, now))
+        if now - self.cache.newest > self._silent_after and self.images.mapped(table, address, count):
+            raise self._stale()
+        try:
+            return self.images.registers(table, address, count, now)
+        except ImageMiss as miss:
+            raise self._miss(table, miss, f"{table.value} register") from None
+
+    def read_bit_bytes(self, table: Table, address: int, count: int) -> bytes:
+        """Bits ``address``.. (``count``) packed LSB first, as the payload of a FC1/FC2 reply."""
+        now = self._loop_time()
+        if now - self.cache.newest > self._silent_after and self.images.mapped(table, address, count):
+            raise self._stale()
+        try:
+            return self.images.bits(table, address, count, now)
+        except ImageMiss as miss:
+            raise self._miss(table, miss, table.value) from None
+
+    def read_registers(self, table: Table, address: int, count: int) -> list[int]:
+        return list(struct.unpack(f">{count}H", self.read_register_bytes(table, address, count)))
 
     def read_bits(self, table: Table, address: int, count: int) -> list[bool]:
-        now = asyncio.get_running_loop().time()
-        points = self.plan.bits(table)
-        stamps, data, max_age = self.cache.stamps, self.cache.data, self._max_age
-        if self._silent(now):
-            if all(a in points for a in range(address, address + count)):
-                raise self._stale()
-        out: list[bool] = []
-        append = out.append
-        block = -1
-        raw = bytearray()
-        for a in range(address, address + count):
-            point = points.get(a)
-            if point is None:
-                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} {a} is not mapped")
-            if point.block != block:
-                block = point.block
-                if now - stamps[block] > max_age[block]:
-                    raise self._stale(block)
-                raw = data[block]
-            append(bool(raw[point.offset] >> point.bit & 1))
-        return out
+        bits = int.from_bytes(self.read_bit_bytes(table, address, count), "little")
+        return [bool(bits >> k & 1) for k in range(count)]
+
+    def _loop_time(self) -> float:
+        return asyncio.get_running_loop().time()
+
+    def _miss(self, table: Table, miss: ImageMiss, what: str) -> ModbusExceptionReply:
+        if miss.block is None:
+            return ModbusExceptionReply(ILLEGAL_ADDRESS, f"{what} {miss.address} is not mapped")
+        return self._stale(miss.block)
 
     def _silent(self, now: float) -> bool:
         """The controller answered no poll for ``stale_after`` seconds past its scan period."""
@@ -260,8 +219,7 @@ class Unit(ABC):
 
     def status_values(self, now: float) -> dict[str, int]:
         counters = self.driver.counters
-        fast = self.poller.fast
-        age = self.cache.oldest_age(fast, now) if fast else 0.0
+        age = self.cache.oldest_fast_age(now)
         return {
             "link_up": 1 if self.driver.available else 0,
             "data_age": min(65535, int(age * 10)) if age != float("inf") else 65535,
@@ -285,6 +243,14 @@ class Unit(ABC):
         return registers[first : first + count]
 
     # --- writes -----------------------------------------------------------------------------
+    #
+    # A write request is validated whole (ranges, ``writable``, value limits, what the image
+    # knows the controller will refuse, float pairing) before anything is queued; then it is
+    # cut into steps, one controller command each (as few as the protocol allows), queued on
+    # the link's write queue in arrival order and run there.  When the controller refuses a
+    # step after earlier ones were applied, the request is answered with the exception, and
+    # the registers written are logged and counted (``partial_writes``): never a success for a
+    # partial write, never a silent one.
 
     def _check_writable(self, table: Table, address: int, count: int) -> None:
         if self.read_only:
@@ -294,31 +260,44 @@ class Unit(ABC):
         ):
             raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} {address} is not in a writable range")
 
-    async def _through(self, write: Awaitable[None]) -> None:
-        """Await a write coroutine, translating controller errors to Modbus exceptions."""
-        self.write_requests += 1
-        try:
-            await write
-        except ModbusExceptionReply:
-            self.write_failures += 1
-            raise  # already translated (e.g. a PCCC address problem: 0x02)
-        except ControllerRefused as exc:
-            self.write_failures += 1
-            raise ModbusExceptionReply(DEVICE_FAILURE, str(exc)) from exc
-        except InvalidRequest as exc:
-            self.write_failures += 1
-            raise ModbusExceptionReply(ILLEGAL_VALUE, str(exc)) from exc
-        except (LinkError, ProtocolError) as exc:
-            self.write_failures += 1
-            raise ModbusExceptionReply(TARGET_FAILED, str(exc)) from exc
-        except GatewayError as exc:
-            self.write_failures += 1
-            raise ModbusExceptionReply(DEVICE_FAILURE, str(exc)) from exc
+    def _refused_by_image(self, point: RegisterPoint) -> str | None:
+        """Why the controller is known (from the image) to refuse a write to ``point``, or None."""
+        return None
 
-    async def write_registers(self, address: int, values: Sequence[int]) -> None:
+    def _footprint(self, target: object) -> Hashable:
+        """The controller word a write target changes (writes to one word stay in arrival order)."""
+        address: Hashable = getattr(target, "address", target)
+        return address
+
+    def _register_steps(self, checked: list[tuple[int, RegisterPoint, int]]) -> list[WriteStep]:
+        """One step per word, one per float (its two registers); protocols may merge more."""
+        steps: list[WriteStep] = []
+        i = 0
+        while i < len(checked):
+            address, point, value = checked[i]
+            if point.codec in (Codec.F32_HIGH, Codec.F32_LOW):
+                pair = checked[i : i + 2]
+                halves = {p.codec: v for _, p, v in pair}
+                raw = halves[Codec.F32_HIGH] << 16 | halves[Codec.F32_LOW]
+                steps.append(WriteStep(address, address + 1, partial(self._write_float, point.write, raw),
+                                   [(p, v) for _, p, v in pair]))
+                i += 2
+                continue
+            write = partial(self._write_register, point.write, value)
+            steps.append(WriteStep(address, address, write, [(point, value)]))
+            i += 1
+        return steps
+
+    def _bit_steps(self, checked: list[tuple[int, BitPoint, bool]]) -> list[WriteStep]:
+        """One step per coil; protocols may merge more."""
+        return [WriteStep(a, a, partial(self._write_bit, bit.write, value), bit_patches=[(bit, value)])
+                for a, bit, value in checked]
+
+    def check_register_write(self, address: int, values: Sequence[int]) -> list[tuple[int, RegisterPoint, int]]:
+        """Validate a whole FC6/FC16: (address, point, value) per register, or the exception."""
         self._check_writable(Table.HOLDING, address, len(values))
         points = self.plan.holding
-        checked: list[tuple[RegisterPoint, int]] = []
+        checked: list[tuple[int, RegisterPoint, int]] = []
         for i, value in enumerate(values):
             point = points.get(address + i)
             if point is None or point.write is None:
@@ -326,29 +305,85 @@ class Unit(ABC):
             if value > point.max_value:
                 raise ModbusExceptionReply(ILLEGAL_VALUE, f"holding register {address + i}: {value} > "
                                            f"{point.max_value}")
-            checked.append((point, value))
+            refused = self._refused_by_image(point)
+            if refused is not None:
+                raise ModbusExceptionReply(DEVICE_FAILURE, f"holding register {address + i}: {refused}; "
+                                           "nothing written")
+            checked.append((address + i, point, value))
         i = 0
         while i < len(checked):
-            point, value = checked[i]
+            point = checked[i][1]
             if point.codec in (Codec.F32_HIGH, Codec.F32_LOW):
-                if i + 1 >= len(checked) or checked[i + 1][0].write != point.write:
-                    raise ModbusExceptionReply(ILLEGAL_ADDRESS, "a float32 takes both of its registers in one write")
                 pair = checked[i : i + 2]
-                halves = {p.codec: v for p, v in pair}
-                if set(halves) != {Codec.F32_HIGH, Codec.F32_LOW}:
-                    raise ModbusExceptionReply(ILLEGAL_ADDRESS, "a float32 takes both of its registers in one write")
-                raw = halves[Codec.F32_HIGH] << 16 | halves[Codec.F32_LOW]
-                await self._through(self._write_float(point.write, raw))
-                for p, v in pair:
-                    self._patch(p, v)
+                if len(pair) < 2 or pair[1][1].write != point.write or {p.codec for _, p, _ in pair} != {
+                    Codec.F32_HIGH, Codec.F32_LOW
+                }:
+                    raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"holding register {checked[i][0]} is half of a "
+                                               "float32: write both of its registers in one request")
                 i += 2
-                continue
-            await self._through(self._write_register(point.write, value))
-            self._patch(point, value)
-            i += 1
+            else:
+                i += 1
+        return checked
+
+    async def write_registers(self, address: int, values: Sequence[int]) -> None:
+        checked = self.check_register_write(address, values)
+        steps = self._register_steps(checked)
+        footprint = frozenset(self._footprint(p.write) for _, p, _ in checked)
+        await self._queue_write(Table.HOLDING, steps, footprint)
+
+    async def write_bits(self, address: int, values: Sequence[bool]) -> None:
+        self._check_writable(Table.COIL, address, len(values))
+        points = self.plan.coils
+        for i in range(len(values)):
+            point = points.get(address + i)
+            if point is None or point.write is None:
+                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"coil {address + i} is not writable")
+        steps = self._bit_steps([(address + i, points[address + i], value) for i, value in enumerate(values)])
+        footprint = frozenset(self._footprint(points[address + i].write) for i in range(len(values)))
+        await self._queue_write(Table.COIL, steps, footprint)
+
+    async def _queue_write(self, table: Table, steps: list[WriteStep], footprint: frozenset[Hashable]) -> None:
+        """Queue the steps now (arrival order) and wait for them; errors as Modbus exceptions."""
+        self.write_requests += 1
+        try:
+            try:
+                future = self.writes.submit(current_client.get(), footprint, partial(self._run_steps, table, steps))
+            except ModbusExceptionReply:
+                # Busy: the answer is held a moment, so that a master re-sending at once costs
+                # at most a few answers per second per request it keeps in flight, not a spin.
+                await asyncio.sleep(BUSY_HOLD)
+                raise
+            await asyncio.shield(future)
+        except ModbusExceptionReply:
+            self.write_failures += 1
+            raise
+
+    async def _run_steps(self, table: Table, steps: list[WriteStep]) -> None:
+        done: list[WriteStep] = []
+        for step in steps:
+            try:
+                await _translated(step.run())
+            except ModbusExceptionReply as exc:
+                if done:
+                    self._partial_write(table, done, step, exc)
+                raise
+            for point, value in step.patches:
+                self._patch(point, value)
+            for bit, on in step.bit_patches:
+                byte = self.cache.data[bit.block][bit.offset]
+                byte = byte | (1 << bit.bit) if on else byte & ~(1 << bit.bit)
+                self.cache.patch(bit.block, bit.offset, bytes([byte & 0xFF]))
+            done.append(step)
+
+    def _partial_write(self, table: Table, done: list[WriteStep], failed: WriteStep, exc: ModbusExceptionReply) -> None:
+        self.partial_writes += 1
+        written = _spans(done)
+        log.warning(
+            "link %s: write partly applied: %s %s written, %s %s and after not (%s); answered 0x%02X",
+            self.name, table.value, written, table.value, _span(failed.first, failed.last), exc, exc.code,
+        )
 
     def _patch(self, point: RegisterPoint, value: int) -> None:
-        data = self.cache.data[point.block]
         o = point.offset
         if point.codec in (Codec.U16_BE, Codec.U16_BE_MASKED):
             self.cache.patch(point.block, o, value.to_bytes(2, "big"))
@@ -359,21 +394,48 @@ class Unit(ABC):
         elif point.codec is Codec.F32_LOW:
             self.cache.patch(point.block, o, value.to_bytes(2, "little"))
         else:
-            data[o] = value & 0xFF
+            self.cache.patch(point.block, o, bytes((value & 0xFF,)))
 
-    async def write_bits(self, address: int, values: Sequence[bool]) -> None:
-        self._check_writable(Table.COIL, address, len(values))
-        points = self.plan.coils
-        for i in range(len(values)):
-            point = points.get(address + i)
-            if point is None or point.write is None:
-                raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"coil {address + i} is not writable")
-        for i, value in enumerate(values):
-            point = points[address + i]
-            await self._through(self._write_bit(point.write, value))
-            byte = self.cache.data[point.block][point.offset]
-            byte = byte | (1 << point.bit) if value else byte & ~(1 << point.bit)
-            self.cache.patch(point.block, point.offset, bytes([byte & 0xFF]))
+
+@dataclass(slots=True)
+class WriteStep:
+    """One controller command of a write request: Modbus addresses first..last."""
+
+    first: int
+    last: int
+    run: Callable[[], Awaitable[None]]
+    patches: list[tuple[RegisterPoint, int]] = field(default_factory=list)
+    bit_patches: list[tuple[BitPoint, bool]] = field(default_factory=list)
+
+
+def _span(first: int, last: int) -> str:
+    return f"{first}" if first == last else f"{first}-{last}"
+
+
+def _spans(steps: list[WriteStep]) -> str:
+    runs: list[list[int]] = []
+    for step in steps:
+        if runs and runs[-1][1] == step.first - 1:
+            runs[-1][1] = step.last
+        else:
+            runs.append([step.first, step.last])
+    return ", ".join(_span(a, b) for a, b in runs)
+
+
+async def _translated(write: Awaitable[None]) -> None:
+    """Await a write, translating controller errors to Modbus exceptions."""
+    try:
+        await write
+    except ModbusExceptionReply:
+        raise  # already translated (e.g. a PCCC address problem: 0x02)
+    except ControllerRefused as exc:
+        raise ModbusExceptionReply(DEVICE_FAILURE, str(exc)) from exc
+    except InvalidRequest as exc:
+        raise ModbusExceptionReply(ILLEGAL_VALUE, str(exc)) from exc
+    except (LinkError, ProtocolError) as exc:
+        raise ModbusExceptionReply(TARGET_FAILED, str(exc)) from exc
+    except GatewayError as exc:
+        raise ModbusExceptionReply(DEVICE_FAILURE, str(exc)) from exc
 
 
 class SlcAsciiUnit(Unit):
@@ -387,6 +449,13 @@ class SlcAsciiUnit(Unit):
     async def read_block(self, block: Block) -> bytes:
         address, count = cast(tuple[int, int], block.request)
         return await self.driver.read(address, count)
+
+    def _refused_by_image(self, point: RegisterPoint) -> str | None:
+        # A preset word with its protect bit set is refused by the controller (``;E``; "The
+        # Memory Map", 40H-7FH): known from the last read of it, so nothing of the request is sent.
+        if point.codec is Codec.U16_BE_MASKED and self.cache.data[point.block][point.offset] & 0x80:
+            return "protected in the controller (protect bit set)"
+        return None
 
     async def _write_register(self, target: object, value: int) -> None:
         assert isinstance(target, SlcWordWrite)

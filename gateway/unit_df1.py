@@ -13,14 +13,15 @@ what was written the write succeeded, otherwise SCADA gets 0x0B.  A write is nev
 from __future__ import annotations
 
 import struct
+from functools import partial
 from typing import Any, cast
 
 from gateway.config import LinkConfig
 from gateway.drivers.df1 import Df1Driver, check_reply_size
 from gateway.errors import ControllerRefused, ModbusExceptionReply
-from gateway.modbus.mapping import Block
+from gateway.modbus.mapping import BitPoint, Block, Codec, RegisterPoint
 from gateway.modbus.mapping_df1 import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, plan_df1
-from gateway.protocols.df1.address import SlcAddress
+from gateway.protocols.df1.address import FileType, SlcAddress
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.pccc import (
     PcccError,
@@ -30,7 +31,7 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalWrite,
 )
 from gateway.transport import SerialSettings
-from gateway.unit import Unit
+from gateway.unit import Unit, WriteStep
 
 __all__ = ["PROCESSORS", "Df1Unit", "build_df1_unit", "pccc_exception"]
 
@@ -57,8 +58,12 @@ def pccc_exception(error: PcccError) -> ModbusExceptionReply:
 class Df1Unit(Unit):
     driver: Df1Driver
 
-    def __init__(self, *, driver: Df1Driver, items: list[MapItem], max_read_bytes: int, **common: Any) -> None:
+    def __init__(
+        self, *, driver: Df1Driver, items: list[MapItem], max_read_bytes: int, max_write_bytes: int = 0, **common: Any
+    ) -> None:
         super().__init__(driver=driver, plan=plan_df1(items, max_read_bytes), **common)
+        #: data bytes of one write command (3-byte address fields take 2 each off it)
+        self.max_write_bytes = max_write_bytes or driver.family.max_write_bytes
 
     async def read_block(self, block: Block) -> bytes:
         read = cast(Df1Read, block.request)
@@ -86,6 +91,84 @@ class Df1Unit(Unit):
         request = ProtectedTypedLogicalWrite(a.file_type, a.file_number, a.element, a.sub_element, data)
         await self._write(request, a)
 
+    def _register_steps(self, checked: list[tuple[int, RegisterPoint, int]]) -> list[WriteStep]:
+        """Consecutive words (or floats) of one file in one typed logical write, up to the size limit.
+
+        The protected typed logical write (CMD 0F, FNC AA) writes ``size`` bytes from its address
+        (notes §4.36): N7:23-26 go in one command of 8 bytes, F8:0-1 in one of 8.
+        """
+        groups: list[list[WriteStep]] = []
+        for step in super()._register_steps(checked):
+            target = step.patches[0][0].write
+            assert isinstance(target, Df1WordWrite)
+            if groups and self._joins(groups[-1], target.address, len(_step_bytes(step))):
+                groups[-1].append(step)
+            else:
+                groups.append([step])
+        steps: list[WriteStep] = []
+        for group in groups:
+            if len(group) == 1:
+                steps.append(group[0])
+                continue
+            first = group[0].patches[0][0].write
+            assert isinstance(first, Df1WordWrite)
+            patches = [patch for step in group for patch in step.patches]
+            data = b"".join(_step_bytes(step) for step in group)
+            steps.append(WriteStep(group[0].first, group[-1].last, partial(self._write_words, first.address, data),
+                                   patches))
+        return steps
+
+    def _joins(self, group: list[WriteStep], address: SlcAddress, size: int) -> bool:
+        """Whether a write of ``size`` bytes at ``address`` continues ``group`` in one command."""
+        last = group[-1].patches[0][0].write
+        first = group[0].patches[0][0].write
+        assert isinstance(last, Df1WordWrite) and isinstance(first, Df1WordWrite)
+        a, b = last.address, address
+        if a.file_type not in _PLAIN_FILES or a.sub_element or b.sub_element or a.bit is not None:
+            return False
+        if (a.file_type, a.file_number) != (b.file_type, b.file_number) or b.element != a.element + 1:
+            return False
+        limit = self.max_write_bytes - 2 * _expanded_fields(first.address)
+        return sum(len(_step_bytes(step)) for step in group) + size <= limit
+    async def _write_words(self, address: SlcAddress, data: bytes) -> None:
+        request = ProtectedTypedLogicalWrite(
+            address.file_type, address.file_number, address.element, address.sub_element, data
+        )
+        await self._write(request, address)
+
+    def _bit_steps(self, checked: list[tuple[int, BitPoint, bool]]) -> list[WriteStep]:
+        """Consecutive coils of one word in one masked write (CMD 0F, FNC AB: only the bits of the
+        mask change, notes §4.36, §7.3), so an FC15 over B3:0/0-15 is one command."""
+        steps: list[WriteStep] = []
+        word: SlcAddress | None = None
+        for address, bit, value in checked:
+            target = bit.write
+            assert isinstance(target, Df1BitWrite)
+            if steps and target.address == word and steps[-1].last == address - 1:
+                steps[-1].last = address
+                steps[-1].bit_patches.append((bit, value))
+            else:
+                word = target.address
+                write = partial(self._write_bit, target, value)
+                steps.append(WriteStep(address, address, write, bit_patches=[(bit, value)]))
+        for step in steps:
+            if len(step.bit_patches) > 1:
+                first = step.bit_patches[0][0].write
+                assert isinstance(first, Df1BitWrite)
+                bits = [(cast(Df1BitWrite, p.write).bit, v) for p, v in step.bit_patches]
+                step.run = partial(self._write_bits, first.address, bits)
+        return steps
+
+    async def _write_bits(self, a: SlcAddress, bits: list[tuple[int, bool]]) -> None:
+        mask = 0
+        value = 0
+        for bit, on in bits:
+            mask |= 1 << bit
+            value |= (1 << bit) if on else 0
+        data = value.to_bytes(2, "little")
+        request = ProtectedTypedLogicalMaskedWrite(a.file_type, a.file_number, a.element, a.sub_element, mask, data)
+        await self._write(request, a)
+
     async def _write_bit(self, target: object, value: bool) -> None:
         assert isinstance(target, Df1BitWrite)
         a = target.address
@@ -108,6 +191,31 @@ class Df1Unit(Unit):
         return 0
 
 
+#: Files whose elements are one word or one float, packed: consecutive elements are consecutive bytes.
+_PLAIN_FILES = frozenset({FileType.INTEGER, FileType.BIT, FileType.FLOAT})
+
+
+def _expanded_fields(address: SlcAddress) -> int:
+    return sum(v >= 0xFF for v in (address.file_number, address.element, address.sub_element))
+
+
+def _step_bytes(step: WriteStep) -> bytes:
+    """The bytes a step writes, in address order: words little-endian, floats as 4 bytes."""
+    out = bytearray()
+    patches = step.patches
+    i = 0
+    while i < len(patches):
+        point, value = patches[i]
+        if point.codec in (Codec.F32_HIGH, Codec.F32_LOW):
+            halves = {p.codec: v for p, v in patches[i : i + 2]}
+            out += struct.pack("<I", halves[Codec.F32_HIGH] << 16 | halves[Codec.F32_LOW])
+            i += 2
+        else:
+            out += value.to_bytes(2, "little")
+            i += 1
+    return bytes(out)
+
+
 def build_df1_unit(link: LinkConfig, common: dict[str, Any]) -> Df1Unit:
     family = PROCESSORS[link.processor]
     max_read = link.max_read_bytes or family.max_read_bytes
@@ -127,5 +235,5 @@ def build_df1_unit(link: LinkConfig, common: dict[str, Any]) -> Df1Unit:
     items = [
         MapItem(e.table, e.start, e.address, e.count, e.type, e.word_order, e.scan) for e in link.map
     ]
-    return Df1Unit(driver=driver, items=items, max_read_bytes=max_read, **common)
+    return Df1Unit(driver=driver, items=items, max_read_bytes=max_read, max_write_bytes=link.max_write_bytes, **common)
 

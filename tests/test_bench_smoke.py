@@ -19,6 +19,7 @@ SCRIPTS = [
     "scale.py",
     "modbus_serving.py",
     "write_latency.py",
+    "write_fairness.py",
     "cpu_per_transaction.py",
 ]
 

@@ -12,12 +12,10 @@ from hypothesis import strategies as st
 
 from gateway.protocols.df1 import pccc
 from gateway.protocols.df1.half_duplex_framing import Checksum, encode_slave_message
+from gateway.protocols.df1.pccc.plc5 import ReadModifyWrite, WordRangeReadParams, WordRangeWriteParams
 from gateway.protocols.df1.plc5_address import (
     AddressError,
     Plc5Address,
-    ReadModifyWrite,
-    WordRangeRead,
-    WordRangeWrite,
     decode_logical_ascii,
     decode_logical_binary,
     encode_logical_ascii,
@@ -154,20 +152,24 @@ def test_logical_binary_round_trip(file_number: int, element: int, sub: int | No
 def test_word_range_read_layout_matches_kf2_5_57_and_the_pccc_codec() -> None:
     """KF2 p. 5-57: PACKET OFFSET(2) TOTAL TRANS(2) ADDRESS SIZE(1), low byte first."""
     address = encode_logical_binary(parse_plc5_address("N7:30"))
-    read = WordRangeRead(address, size=20)
+    read = WordRangeReadParams(address, size=20)
     assert read.encode() == bytes.fromhex("00 00 0A 00 07 00 07 1E 14")
-    assert WordRangeRead.decode(read.encode()) == WordRangeRead(address, 20, 0, 10)
-    legacy = pccc.WordRangeRead(pccc.LogicalBinaryAddress.of(0, 7, 30), 20)
-    assert legacy.encode_params() == read.encode()
+    assert WordRangeReadParams.decode(read.encode()) == WordRangeReadParams(address, 20, 0, 10)
+    typed_address = pccc.WordRangeRead(pccc.LogicalBinaryAddress.of(0, 7, 30), 20)
+    assert typed_address.encode_params() == read.encode()  # one layout: pccc.plc5.word_range_params
 
 
 def test_word_range_write_layout() -> None:
     address = encode_logical_binary(parse_plc5_address("B3:300"), compact=True)
-    write = WordRangeWrite(address, bytes.fromhex("34 12 78 56"), packet_offset=0)
+    write = WordRangeWriteParams(address, bytes.fromhex("34 12 78 56"), packet_offset=0)
     assert write.encode() == bytes.fromhex("00 00 02 00 06 03 FF 2C 01 34 12 78 56")
-    assert WordRangeWrite.decode(write.encode()) == WordRangeWrite(address, bytes.fromhex("34 12 78 56"), 0, 2)
+    assert WordRangeWriteParams.decode(write.encode()) == WordRangeWriteParams(
+        address, bytes.fromhex("34 12 78 56"), 0, 2
+    )
     ascii_address = encode_logical_ascii("N7:0")
-    assert WordRangeWrite.decode(WordRangeWrite(ascii_address, b"\x01\x00").encode()).address == ascii_address
+    assert (
+        WordRangeWriteParams.decode(WordRangeWriteParams(ascii_address, b"\x01\x00").encode()).address == ascii_address
+    )
 
 
 def test_read_modify_write_is_the_coil_write() -> None:
@@ -185,13 +187,13 @@ def test_read_modify_write_is_the_coil_write() -> None:
 def test_packet_limits() -> None:
     address = encode_logical_binary(parse_plc5_address("N7:0"))
     with pytest.raises(AddressError, match="even"):
-        WordRangeRead(address, 3).encode()
+        WordRangeReadParams(address, 3).encode()
     with pytest.raises(AddressError, match=r"2\.\.244"):
-        WordRangeRead(address, 246).encode()
+        WordRangeReadParams(address, 246).encode()
     with pytest.raises(AddressError, match="239"):
-        WordRangeWrite(address, bytes(236)).encode()
+        WordRangeWriteParams(address, bytes(236)).encode()
     with pytest.raises(AddressError, match="whole number"):
-        WordRangeWrite(address, b"\x01").encode()
+        WordRangeWriteParams(address, b"\x01").encode()
     with pytest.raises(AddressError, match="243"):
         ReadModifyWrite(((address, 0, 0),) * 31).encode()
     with pytest.raises(AddressError, match="truncated"):
@@ -206,10 +208,10 @@ def test_1785ke_5_5_word_range_write_logical_binary_n10_15() -> None:
     frame = bytes.fromhex("10 02 29 20 0F 00 46 01 00 00 00 04 00 0F 00 0A 0F 00 22 11 44 33 66 55 88 77 10 03 D1")
     address = bytes.fromhex("0F 00 0A 0F 00")  # mask 0F: data table 0, file 10, element 15, sub 0
     assert decode_logical_binary(address) == ((0, 10, 15, 0), 5)
-    write = WordRangeWrite(address, bytes.fromhex("22 11 44 33 66 55 88 77"))
+    write = WordRangeWriteParams(address, bytes.fromhex("22 11 44 33 66 55 88 77"))
     header = bytes.fromhex("29 20 0F 00 46 01 00")  # DST SRC CMD STS TNS(2) FNC 00
     assert encode_slave_message(header + write.encode(), Checksum.BCC) == frame
-    assert WordRangeWrite.decode(write.encode()) == WordRangeWrite(address, write.data, 0, 4)
+    assert WordRangeWriteParams.decode(write.encode()) == WordRangeWriteParams(address, write.data, 0, 4)
     reply = bytes.fromhex("10 02 20 29 4F 00 46 01 10 03 21")
     assert encode_slave_message(bytes.fromhex("20 29 4F 00 46 01"), Checksum.BCC) == reply
 
@@ -219,9 +221,9 @@ def test_1785ke_5_6_word_range_read_logical_ascii_n10_15() -> None:
     frame = bytes.fromhex("10 02 29 20 0F 00 47 01 01 00 00 04 00 00 24 4E 31 30 3A 31 35 00 08 10 03 E0")
     address = encode_logical_ascii(parse_plc5_address("N10:15"))
     assert address == bytes.fromhex("00 24 4E 31 30 3A 31 35 00")
-    read = WordRangeRead(address, size=8)
+    read = WordRangeReadParams(address, size=8)
     header = bytes.fromhex("29 20 0F 00 47 01 01")
     assert encode_slave_message(header + read.encode(), Checksum.BCC) == frame
-    assert WordRangeRead.decode(read.encode()) == WordRangeRead(address, 8, 0, 4)
+    assert WordRangeReadParams.decode(read.encode()) == WordRangeReadParams(address, 8, 0, 4)
     reply = bytes.fromhex("10 02 20 29 4F 00 47 01 22 11 44 33 66 55 88 77 10 03 BC")
     assert encode_slave_message(bytes.fromhex("20 29 4F 00 47 01 22 11 44 33 66 55 88 77"), Checksum.BCC) == reply

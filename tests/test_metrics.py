@@ -153,7 +153,8 @@ async def test_metrics_report_the_link_and_the_modbus_server(gateway: Gateway) -
     assert value(found, "slc_gateway_bytes_total", direction="rx", **link) > 0
     for kind in ("retransmit", "id_resync", "enq", "nak"):
         assert value(found, "slc_gateway_retries_total", kind=kind, **link) == 0
-    for name in ("timeouts", "crc_errors", "refusals", "faults", "reconnects", "write_requests", "write_failures"):
+    for name in ("timeouts", "crc_errors", "refusals", "faults", "reconnects", "write_requests", "write_failures",
+                 "partial_writes", "write_busy"):
         assert value(found, f"slc_gateway_{name}_total", **link) == 0
 
     server = {"server": "modbus"}

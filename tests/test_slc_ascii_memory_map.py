@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from gateway.errors import InvalidRequest, ProtocolError
-from gateway.protocols.slc_ascii.commands import CommandCode
+from gateway.protocols.slc_ascii.commands import CommandCode, write_item, write_item_bit
 from gateway.protocols.slc_ascii.memory_map import (
     BYTE_WRITE_RANGE,
     MEMORY_MAP,
@@ -380,7 +380,7 @@ def test_item_accumulator() -> None:
     assert item.decode(b"\x80\x05") == 5  # bit 15 is the protect bit, never data
     assert item.writable
     assert not item.read_modify_write
-    command = item.encode_write(1234)
+    command = write_item(item, 1234)
     assert (command.code, command.params) == (CommandCode.WRITE, b"\x00\x02\x04\xd2")
 
 
@@ -388,9 +388,9 @@ def test_item_preset_masks_protect_bit() -> None:
     item = parse_item(" 932.pre ")
     assert (item.text, item.read_address, item.read_count) == ("932.PRE", 0x7E, 2)
     assert item.decode(b"\x83\xe8") == 1000
-    assert item.encode_write(0).params == b"\x00\x7e\x00\x00"
+    assert write_item(item, 0).params == b"\x00\x7e\x00\x00"
     with pytest.raises(InvalidRequest, match="less than 2710H"):
-        item.encode_write(10000)
+        write_item(item, 10000)
 
 
 def test_item_protected() -> None:
@@ -401,7 +401,7 @@ def test_item_protected() -> None:
     assert item.decode(b"\x7f") is False
     assert not item.writable
     with pytest.raises(InvalidRequest, match=r"901\.PROTECTED is read only"):
-        item.encode_write(1)
+        write_item(item, 1)
 
 
 def test_item_step() -> None:
@@ -409,7 +409,7 @@ def test_item_step() -> None:
     assert (item.text, item.kind, item.read_address, item.read_count) == ("905.STEP", ItemKind.STEP, 0xC0, 1)
     assert item.decode(b"\x07") == 7
     with pytest.raises(InvalidRequest, match="read only"):
-        item.encode_write(1)
+        write_item(item, 1)
 
 
 @pytest.mark.parametrize(
@@ -428,14 +428,14 @@ def test_item_user_bits(text: str, address: int, bit: int) -> None:
 def test_item_bit_write_is_read_modify_write() -> None:
     item = parse_item("703")
     assert item.writable
-    with pytest.raises(InvalidRequest, match="703 is a bit: read byte 0x00A6 and use encode_bit_write"):
-        item.encode_write(1)
-    on = item.encode_bit_write(0b1000_0001, True)
+    with pytest.raises(InvalidRequest, match="703 is a bit: read byte 0x00A6 and use write_item_bit"):
+        write_item(item, 1)
+    on = write_item_bit(item, 0b1000_0001, True)
     assert (on.code, on.params) == (CommandCode.WRITE, b"\x00\xa6\x85")
-    off = item.encode_bit_write(0xFF, False)
+    off = write_item_bit(item, 0xFF, False)
     assert off.params == b"\x00\xa6\xfb"
     with pytest.raises(InvalidRequest, match="current byte 256 is not in 0-255"):
-        item.encode_bit_write(256, True)
+        write_item_bit(item, 256, True)
 
 
 @pytest.mark.parametrize("text", ["821", "11", "1", "909", "951", "869"])
@@ -443,9 +443,9 @@ def test_item_read_only_bits(text: str) -> None:
     item = parse_item(text)
     assert not item.writable
     with pytest.raises(InvalidRequest, match="is read only"):
-        item.encode_bit_write(0, True)
+        write_item_bit(item, 0, True)
     with pytest.raises(InvalidRequest, match="is read only"):
-        item.encode_write(1)
+        write_item(item, 1)
 
 
 def test_item_raw_byte() -> None:
@@ -457,11 +457,11 @@ def test_item_raw_byte() -> None:
         assert not item.writable
     relay = parse_item("@a6")
     assert relay.writable
-    assert relay.encode_write(0x55).params == b"\x00\xa6\x55"
+    assert write_item(relay, 0x55).params == b"\x00\xa6\x55"
     with pytest.raises(InvalidRequest, match="value 256 is out of range"):
-        relay.encode_write(256)
+        write_item(relay, 256)
     with pytest.raises(InvalidRequest, match="not a bit item"):
-        relay.encode_bit_write(0, True)
+        write_item_bit(relay, 0, True)
 
 
 def test_item_decode_checks_length() -> None:

@@ -11,13 +11,15 @@ not every retry.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import contextvars
 import enum
 import heapq
 import itertools
 import logging
 import random
 from abc import ABC, abstractmethod
-from collections.abc import Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -34,6 +36,22 @@ T = TypeVar("T")
 #: A connection that lasted less than this (seconds) counts as a failed attempt for the backoff.
 _STABLE_CONNECTION = 5.0
 OpenStream = Callable[..., Awaitable[ByteStream]]
+
+
+class _Session:
+    """A run of writes holding the line (``LinkDriver.write_session``)."""
+
+    __slots__ = ("driver", "extend", "held", "writes")
+
+    def __init__(self, driver: LinkDriver) -> None:
+        self.driver = driver
+        self.held = False
+        self.writes = 0
+        self.extend = False
+
+
+#: The write session of the current task, if any: its requests run on the line it holds.
+_SESSION: contextvars.ContextVar[_Session | None] = contextvars.ContextVar("gateway_write_session", default=None)
 
 
 class Priority(enum.IntEnum):
@@ -74,16 +92,21 @@ class _Line:
     Busy: callers wait in a heap; ``release`` hands the line to the most urgent one.
     """
 
-    __slots__ = ("_seq", "_waiters", "busy")
+    __slots__ = ("_grant_waiters", "_seq", "_waiters", "busy", "grants")
 
     def __init__(self) -> None:
         self.busy = False
         self._waiters: list[tuple[int, int, asyncio.Future[None]]] = []
         self._seq = itertools.count()
+        #: how many times the line was granted (to anyone)
+        self.grants = 0
+        #: (grants to wait for, future): woken when the line was granted that often, or fell idle
+        self._grant_waiters: list[tuple[int, asyncio.Future[None]]] = []
 
     async def acquire(self, priority: int) -> None:
         if not self.busy and not self._waiters:
             self.busy = True
+            self._granted()
             return
         future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         heapq.heappush(self._waiters, (priority, next(self._seq), future))
@@ -99,10 +122,47 @@ class _Line:
             _, _, future = heapq.heappop(self._waiters)
             if not future.done():
                 future.set_result(None)  # the line stays busy: it is theirs now
+                self._granted()
                 return
         self.busy = False
+        if self._grant_waiters:
+            # Idle only if nobody takes it in the same step (a poller asks again at once).
+            asyncio.get_running_loop().call_soon(self._idle_check)
+
+    def _idle_check(self) -> None:
+        if not self.busy:
+            self._wake_grant_waiters(idle=True)
+
+    def _granted(self) -> None:
+        self.grants += 1
+        if self._grant_waiters:
+            self._wake_grant_waiters(idle=False)
+
+    def _wake_grant_waiters(self, idle: bool) -> None:
+        keep = []
+        for target, future in self._grant_waiters:
+            if future.done():
+                continue
+            if idle or self.grants >= target:
+                future.set_result(None)
+            else:
+                keep.append((target, future))
+        self._grant_waiters = keep
+
+    async def wait_grants(self, target: int) -> None:
+        """Until the line was granted ``target`` times in all, or nobody uses it."""
+        if self.grants >= target or not self.busy:
+            return
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._grant_waiters.append((target, future))
+        await future
+
+    @property
+    def waiting(self) -> bool:
+        return any(not future.done() for _, _, future in self._waiters)
 
     def fail_waiting(self, exc: BaseException) -> None:
+        self._wake_grant_waiters(idle=True)
         while self._waiters:
             _, _, future = heapq.heappop(self._waiters)
             if not future.done():
@@ -146,6 +206,10 @@ class LinkDriver(ABC):
         self._listeners: list[Callable[[LinkDriver], None]] = []
         self._run_task: asyncio.Task[None] | None = None
         self._closing = False
+        #: in a write session: after ``write_burst`` write transactions in a row, up to
+        #: ``poll_burst`` waiting poll transactions get the line
+        self.write_burst = 1
+        self.poll_burst = 2
 
     # --- public state -----------------------------------------------------------------------
 
@@ -308,6 +372,9 @@ class LinkDriver(ABC):
         even when its caller gives up (a SCADA client that disconnects, a request cancelled),
         so the controller is never left with a write half done by us.
         """
+        session = _SESSION.get()
+        if session is not None and session.driver is self:
+            return await self._run_in_session(session, op)
         if self._stream is None:
             raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
         await self._line.acquire(int(priority))
@@ -330,6 +397,70 @@ class LinkDriver(ABC):
             raise LinkError(f"link {self.name}: internal error: {exc!r}") from exc
         finally:
             self._line.release()
+
+    @contextlib.asynccontextmanager
+    async def write_session(self) -> AsyncIterator[None]:
+        """Hold the line for a run of writes: ``submit`` calls of this task run on it at once.
+
+        The session takes the line at write priority and keeps it from one write to the next,
+        so queued writes go ahead of polls; but after ``write_burst`` transactions in a row it
+        lets waiting poll transactions have the line (``poll_burst`` of them, fewer if the poller
+        stops asking), so the data age stays bounded under any write load: writes take at most
+        ``write_burst * write / (write_burst * write + poll_burst * poll)`` of the line time.  A
+        write is never interrupted: the line changes hands only between two.
+        """
+        if self._stream is None:
+            raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
+        session = _Session(self)
+        await self._line.acquire(int(Priority.WRITE))
+        session.held = True
+        token = _SESSION.set(session)
+        try:
+            yield
+        finally:
+            _SESSION.reset(token)
+            if session.held:
+                session.held = False
+                self._line.release()
+
+    def extend_burst(self) -> None:
+        """In a write session: the next write may follow the burst before the polls it owes.
+
+        For the write of a client with nothing else queued, so a flood ahead of it does not
+        make it wait for a round of polls too; the polls still come after it, ``poll_burst``
+        for every ``write_burst`` writes, so the share of the line writes take is unchanged.
+        """
+        session = _SESSION.get()
+        if session is not None and session.driver is self:
+            session.extend = True
+
+    async def _run_in_session(self, session: _Session, op: Callable[[], Awaitable[T]]) -> T:
+        limit = self.write_burst + session.extend
+        session.extend = False
+        if session.held and session.writes >= limit and self._line.waiting:
+            owed = -(-self.poll_burst * session.writes // self.write_burst)
+            session.held = False
+            session.writes = 0
+            target = self._line.grants + owed
+            self._line.release()  # to the waiting poll
+            # Let the poller's next requests have the line too, as many as the writes owe; the
+            # last one's release hands the line back here (queued at write priority meanwhile).
+            await self._line.wait_grants(target)
+        if not session.held:
+            if self._stream is None:
+                raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
+            await self._line.acquire(int(Priority.WRITE))  # LinkDown when the link fails meanwhile
+            session.held = True
+        session.writes += 1
+        try:
+            if self._stream is None:
+                raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
+            return await op()
+        except (GatewayError, asyncio.CancelledError):
+            raise
+        except Exception as exc:  # a bug: fail the caller, keep the link alive
+            log.exception("link %s: unexpected error", self.name)
+            raise LinkError(f"link {self.name}: internal error: {exc!r}") from exc
 
     def send(self, data: bytes) -> None:
         """Write bytes to the line (from inside an ``op``)."""

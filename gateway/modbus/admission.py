@@ -31,9 +31,8 @@ clients when no roles are configured have read-write rights (the ``writable`` ra
 ``read_only`` of each link still apply).
 
 The identity of the client (:class:`ClientIdentity`: address, certificate subject, role, rights)
-is ``connection.client`` on each connection and, while a request is being handled, the value of
-the context variable :data:`current_client`, so the write path can log every write with who asked
-for it (``current_client.get()``) without a change of the backend interface.
+is ``connection.client`` on each connection; the server names the connection's
+:class:`gateway.clients.Client` after it, so the write path's audit log says who asked.
 
 The X.509 extension is read with a small DER walker over ``getpeercert(binary_form=True)``: the
 standard library's ``getpeercert()`` does not return private extensions, and the ``cryptography``
@@ -43,7 +42,6 @@ before it is walked, so only the path to the extensions is decoded, bounds-check
 
 from __future__ import annotations
 
-import contextvars
 import ipaddress
 import logging
 import ssl
@@ -60,7 +58,6 @@ __all__ = [
     "IPNetwork",
     "Rights",
     "RolePolicy",
-    "current_client",
     "peer_host",
     "role_from_certificate",
 ]
@@ -99,12 +96,6 @@ class ClientIdentity:
             return self.address
         role = f", role {self.role}" if self.role is not None else ""
         return f"{self.subject} ({self.address}{role})"
-
-
-current_client: contextvars.ContextVar[ClientIdentity | None] = contextvars.ContextVar(
-    "current_client", default=None
-)
-"""The client whose request is being handled (set around each request by the server)."""
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,8 @@
 A *plan* lists the blocks the poller reads (each one controller transaction) and, for every
 Modbus address of every table, the *point* that says where its value lives inside a block and
 how a write to it reaches the controller.  The cache stores each block's raw bytes with the time
-it was read; serving a Modbus read is a look-up of points, never controller I/O.
+it was read and decodes them at once into the images of the four tables (``gateway.image``);
+serving a Modbus read is a slice of an image, never controller I/O.
 
 Default map of an SLC 100/150 (``slc_ascii_plan``), Modbus protocol addresses (0-based):
 
@@ -29,6 +30,7 @@ input register     1000-1010     status block (see ``STATUS_REGISTERS``), always
 from __future__ import annotations
 
 import enum
+import functools
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -187,8 +189,13 @@ def plan_byte_blocks(addresses: Iterable[int], scan: Scan, max_count: int = 2) -
     return blocks
 
 
+@functools.cache
 def slc_ascii_plan() -> Plan:
-    """The default map of an SLC 100/150 (module docstring)."""
+    """The default map of an SLC 100/150 (module docstring).
+
+    Built once and shared by every SLC 100/150 link (a plan is never changed once built), so
+    that 64 links hold one plan and one image layout (``gateway.image``), not 64.
+    """
     plan = Plan()
     fast: set[int] = set()
     slow: set[int] = set()

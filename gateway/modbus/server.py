@@ -23,15 +23,30 @@ Frame layout (Modbus Messaging on TCP/IP Implementation Guide V1.0b, 3.1.3)::
 A wrong protocol id or a length outside 2..254 closes that connection only (the
 stream cannot be resynchronised). A partial frame is kept until it is complete.
 
-Per connection, requests are handled concurrently: each complete frame becomes one
-task, created in arrival order, whose first step is the backend call, so the backend
-sees requests in arrival order; the task writes its reply (one ``transport.write``)
-as soon as the backend answers. Requests refused before the backend (bad count,
-unknown unit or function) are answered at once, without a task. At
+Per connection, requests are handled in arrival order. Reads of a backend that serves
+them from memory (``backend.read_now``, see :data:`ReadNow`) are answered at once,
+inside ``data_received``, without a task.  The server takes at most
+``_FRAMES_PER_TURN`` requests per turn of the event loop, over all its connections;
+the rest wait for the next turn (``call_soon``), so between two turns the loop
+always gets back to the serial links polled in it: a storm of pipelined SCADA
+requests delays a link's reaction by at most ``_FRAMES_PER_TURN`` requests' work.  A connection
+with more than ``_MAX_BACKLOG`` bytes waiting stops being read meanwhile.
+Every other request becomes one task, created in arrival order, whose first step is
+the backend call, so the backend sees requests in arrival order; the task writes its
+reply (one ``transport.write``) as soon as the backend answers. Requests refused
+before the backend (bad count, unknown unit or function) are answered at once,
+without a task. At
 ``max_in_flight_per_connection`` the connection stops reading (frames already
 received wait in the buffer); it also stops reading while the transport's write
 buffer is above its high-water mark, so a client that never reads its replies
-cannot make the server buffer without bound.
+cannot make the server buffer without bound. The kernel send buffer is capped
+(64 KiB) so that this happens after about a thousand unread replies, not after
+megabytes of them; a client left paused for ``write_stall_timeout`` seconds is
+dropped.
+
+Every request task runs in its connection's ``contextvars`` context, where
+``gateway.clients.current_client`` is the connection's identity (for the write
+queue's fairness and the audit log: every write is logged on ``gateway.audit``).
 
 Connections (the rules are in :mod:`gateway.modbus.admission`): the allow list, the
 per-address cap and, on a TLS listener, the handshake budget are checked when the TCP
@@ -47,8 +62,8 @@ client that pipelines and resets would otherwise make asyncio log one warning pe
 
 Rights: a client without write rights (``connection.client.can_write``; roles from TLS
 client certificates, or loopback let in past ``allow`` for reads) gets 0x01 for every
-write function code before the request is looked at further; ``admission.current_client``
-names the client while its requests are handled, for the write path's audit log.
+write function code before the request is looked at further. Its description (certificate
+subject, or address) names it in the write path's audit log through ``gateway.clients``.
 
 A backend exception other than ``ModbusExceptionReply`` is answered 0x04 and logged
 with its traceback: at ERROR the first time its type is seen, at DEBUG afterwards
@@ -87,13 +102,16 @@ Write replies are echoes of the request bytes, as the specification defines them
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import contextvars
 import dataclasses
 import ipaddress
 import logging
 import os
+import socket
 import ssl
 import struct
-from collections.abc import Coroutine, Sequence
+from collections.abc import Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any, Final, Protocol, TypeAlias, cast
@@ -101,9 +119,10 @@ from typing import Any, Final, Protocol, TypeAlias, cast
 from pymodbus.pdu import DecodePDU
 from pymodbus.pdu.bit_message import ReadCoilsResponse, ReadDiscreteInputsResponse
 
+from gateway.clients import Client, audit_write, current_client
 from gateway.errors import ModbusExceptionReply
 from gateway.logutil import RepeatLog
-from gateway.modbus.admission import Admission, ClientIdentity, RolePolicy, current_client, peer_host
+from gateway.modbus.admission import Admission, ClientIdentity, RolePolicy, peer_host
 
 __all__ = [
     "FunctionCode",
@@ -111,6 +130,7 @@ __all__ = [
     "ModbusBackend",
     "ModbusServerCounters",
     "ModbusTcpServer",
+    "ReadNow",
     "make_tls_context",
 ]
 
@@ -155,6 +175,16 @@ class ModbusBackend(Protocol):
 
     async def write_registers(self, unit: int, address: int, values: Sequence[int]) -> None:
         """FC6 (one value) and FC16."""
+
+
+ReadNow: TypeAlias = Callable[[int, int, int, int], bytes]
+"""Optional ``backend.read_now(unit, function_code, address, count)``: the data of a read reply at once.
+
+A backend whose reads are served from memory (register images) offers it: the server then
+answers FC1-FC4 inside ``data_received``, in arrival order, without a task.  It returns the
+reply's data bytes (registers big-endian; bits packed LSB first, as the specification's
+FC1/FC2 replies), without the byte count, or raises :class:`ModbusExceptionReply`.
+"""
 
 
 @dataclass
@@ -205,6 +235,10 @@ _GATEWAY_PATH_UNAVAILABLE: Final = ModbusExceptionReply.GATEWAY_PATH_UNAVAILABLE
 _WRITE_FUNCTION_CODES: Final = frozenset({0x05, 0x06, 0x0F, 0x10, 0x16, 0x17})
 _EVERYONE_WRITES: Final = RolePolicy({}, "read-write")  # TLS without [modbus.tls.roles]
 _STALL_GRACE: Final = 1.0  # seconds before a connection without a request can be evicted
+#: Kernel send buffer of a connection (bytes): replies a client does not read pile up here and
+#: in the transport's buffer (64 KiB) before the connection stops being read; without a cap,
+#: loopback autotuning lets megabytes of replies be computed for a client that never reads.
+_SEND_BUFFER: Final = 64 * 1024
 
 _MBAP: Final = struct.Struct(">HHHB")  # tid, protocol id, length, unit
 _ADDRESS_COUNT: Final = struct.Struct(">HH")  # from PDU offset 1: address, count or value
@@ -212,6 +246,14 @@ _ADDRESS_COUNT_BYTES: Final = struct.Struct(">HHB")  # from PDU offset 1: FC15/F
 _EXCEPTION_FRAME: Final = struct.Struct(">HHHBBB")  # MBAP, fc | 0x80, exception code
 # _REGISTER_FRAMES[n]: a whole FC3/FC4 reply frame of n registers: MBAP, fc, byte count, values.
 _REGISTER_FRAMES: Final = [struct.Struct(f">HHHBBB{n}H") for n in range(_MAX_READ_REGISTERS + 1)]
+_READ_HEAD: Final = struct.Struct(">HHHBBB")  # MBAP, fc, byte count (the data follows)
+#: Requests taken per turn of the event loop, over all connections of a server (about 15 us
+#: each): the serial links' callbacks never wait behind more than ~1 ms of Modbus work.  Not
+#: lower: every deferral costs a loop turn (8 per turn cost a third of the throughput at 50
+#: connections, for no measurable gain in the links' cadence; bench/modbus_serving.py).
+_FRAMES_PER_TURN: Final = 64
+#: A connection whose unprocessed bytes exceed this stops being read until they are taken.
+_MAX_BACKLOG: Final = 65536
 
 _decoder: Final = DecodePDU(is_server=True)
 _BIT_RESPONSES: Final[dict[int, type[ReadCoilsResponse]]] = {
@@ -265,6 +307,8 @@ class ModbusTcpServer:
     ``allow``: peers outside these networks are closed at connect (``None``: everyone).
     ``idle_timeout``: seconds without a byte received (and nothing in flight) after
     which a connection is closed (``None``: never).
+    ``write_stall_timeout``: seconds a client may leave its replies unread (the
+    connection paused, its buffers full) before it is dropped (``None``: never).
     """
 
     def __init__(
@@ -278,6 +322,7 @@ class ModbusTcpServer:
         allow: Sequence[IPNetwork] | None = None,
         ssl_context: ssl.SSLContext | None = None,
         max_in_flight_per_connection: int = 16,
+        write_stall_timeout: float | None = 10.0,
         name: str = "modbus",
         max_connections_per_address: int | None = None,
         frame_timeout: float | None = 5.0,
@@ -310,6 +355,8 @@ class ModbusTcpServer:
         self.frame_timeout = frame_timeout
         self.handshake_timeout = handshake_timeout
         self.roles = roles
+        #: seconds a client may leave its replies unread (we stopped reading it) before it is dropped
+        self.write_stall_timeout = write_stall_timeout
         self.counters = ModbusServerCounters()
         self.repeat_log = RepeatLog(logger, log_interval)
         self.admission = Admission(
@@ -329,6 +376,10 @@ class ModbusTcpServer:
         self._stopped_event = asyncio.Event()
         self._all_connections_closed: asyncio.Future[None] | None = None
         self._logged_errors: set[type[BaseException]] = set()
+        self._turn_budget = _FRAMES_PER_TURN
+        self._turn_reset = False
+        read_now = getattr(backend, "read_now", None)
+        self._read_now: ReadNow | None = read_now if callable(read_now) else None
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -433,6 +484,20 @@ class ModbusTcpServer:
         ):
             self._all_connections_closed.set_result(None)
 
+    def _spend(self, loop: asyncio.AbstractEventLoop) -> bool:
+        """Take one request in this turn of the loop, or False: the turn's budget is spent."""
+        if self._turn_budget <= 0:
+            return False
+        self._turn_budget -= 1
+        if not self._turn_reset:
+            self._turn_reset = True
+            loop.call_soon(self._new_turn)  # runs first in the next turn, before its I/O callbacks
+        return True
+
+    def _new_turn(self) -> None:
+        self._turn_budget = _FRAMES_PER_TURN
+        self._turn_reset = False
+
     def _exception(self, tid: int, unit: int, function_code: int, code: int) -> bytes:
         exceptions = self.counters.exceptions
         exceptions[code] = exceptions.get(code, 0) + 1
@@ -483,6 +548,8 @@ class ModbusTcpServer:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_VALUE)
             if address + count > 0x10000:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_ADDRESS)
+            if self._read_now is not None:
+                return self._read_at_once(tid, unit, function_code, address, count, 2 * count)
             return self._read_registers(tid, unit, function_code, address, count)
 
         if function_code in _BIT_READS:
@@ -493,6 +560,8 @@ class ModbusTcpServer:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_VALUE)
             if address + count > 0x10000:
                 return self._exception(tid, unit, function_code, _ILLEGAL_DATA_ADDRESS)
+            if self._read_now is not None:
+                return self._read_at_once(tid, unit, function_code, address, count, (count + 7) // 8)
             return self._read_bits(tid, unit, function_code, address, count)
 
         if function_code in _SINGLE_WRITES:
@@ -526,6 +595,20 @@ class ModbusTcpServer:
             return self._write_registers(tid, unit, pdu[:5], address, decoded.registers)
 
         return self._exception(tid, unit, function_code, _ILLEGAL_FUNCTION)
+
+    def _read_at_once(self, tid: int, unit: int, function_code: int, address: int, count: int, size: int) -> bytes:
+        """A read served from memory (``backend.read_now``): the whole reply frame, no task."""
+        assert self._read_now is not None
+        try:
+            data = self._read_now(unit, function_code, address, count)
+        except ModbusExceptionReply as reply:
+            return self._exception_reply(tid, unit, function_code, reply)
+        except Exception as error:
+            return self._backend_failed(tid, unit, function_code, error)
+        if len(data) != size:
+            wrong = ValueError(f"backend returned {len(data)} data bytes for {count} values ({size} expected)")
+            return self._backend_failed(tid, unit, function_code, wrong)
+        return _READ_HEAD.pack(tid, 0, 3 + size, unit, function_code, size) + data
 
     # -- the backend calls (each is the body of one task) ------------------------------
 
@@ -567,22 +650,30 @@ class ModbusTcpServer:
     ) -> bytes:
         try:
             await self.backend.write_coils(unit, address, values)
-            return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
         except ModbusExceptionReply as reply:
-            return self._exception_reply(tid, unit, echo[0], reply)
+            frame = self._exception_reply(tid, unit, echo[0], reply)
+            audit_write(unit, echo[0], "coil", address, len(values), f"0x{frame[-1]:02X} {reply}")
+            return frame
         except Exception as error:
+            audit_write(unit, echo[0], "coil", address, len(values), f"0x04 {error!r}")
             return self._backend_failed(tid, unit, echo[0], error)
+        audit_write(unit, echo[0], "coil", address, len(values), "ok")
+        return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
 
     async def _write_registers(
         self, tid: int, unit: int, echo: bytes, address: int, values: Sequence[int]
     ) -> bytes:
         try:
             await self.backend.write_registers(unit, address, values)
-            return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
         except ModbusExceptionReply as reply:
-            return self._exception_reply(tid, unit, echo[0], reply)
+            frame = self._exception_reply(tid, unit, echo[0], reply)
+            audit_write(unit, echo[0], "holding", address, len(values), f"0x{frame[-1]:02X} {reply}")
+            return frame
         except Exception as error:
+            audit_write(unit, echo[0], "holding", address, len(values), f"0x04 {error!r}")
             return self._backend_failed(tid, unit, echo[0], error)
+        audit_write(unit, echo[0], "holding", address, len(values), "ok")
+        return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
 
     def _exception_reply(self, tid: int, unit: int, function_code: int, reply: ModbusExceptionReply) -> bytes:
         if not 1 <= reply.code <= 0xFF:
@@ -594,13 +685,16 @@ class _Connection(asyncio.Protocol):
     """One client connection: MBAP framing, one task per request, backpressure, idle timer.
 
     ``client`` (a :class:`~gateway.modbus.admission.ClientIdentity`) says who is connected and
-    with which rights; it is also the value of ``admission.current_client`` while this
-    connection's requests are handled (tasks created for them inherit it), for audit logging.
+    with which rights; its description is the name of the connection's
+    :class:`gateway.clients.Client`, current in every request task (for fairness and audit).
     """
 
     __slots__ = (
+        "_backlog",
         "_buffer",
+        "_client",
         "_connected_at",
+        "_context",
         "_eof",
         "_frame_handle",
         "_idle_handle",
@@ -619,6 +713,7 @@ class _Connection(asyncio.Protocol):
         "_released",
         "_served",
         "_server",
+        "_stall_handle",
         "_stopped",
         "_tls_task",
         "_transport",
@@ -635,6 +730,7 @@ class _Connection(asyncio.Protocol):
         self._buffer = b""  # received bytes; those before _offset are consumed
         self._offset = 0
         self._in_flight = 0
+        self._backlog = False  # a _next_turn is scheduled (the server's turn budget was spent)
         self._open = False  # admitted, and not closed by us
         self._ready = False  # requests may be processed (after the TLS handshake)
         self._released = False  # forgotten by the server
@@ -642,6 +738,7 @@ class _Connection(asyncio.Protocol):
         self._eof = False  # the peer has shut down its sending side
         self._read_paused = False
         self._write_paused = False
+        self._stall_handle: asyncio.TimerHandle | None = None
         self._last_received = 0.0
         self._idle_handle: asyncio.TimerHandle | None = None
         self._tls_task: asyncio.Task[None] | None = None
@@ -652,6 +749,10 @@ class _Connection(asyncio.Protocol):
         self._partial_position = -1  # stream offset of the incomplete frame being timed
         self._partial_since = 0.0
         self._frame_handle: asyncio.TimerHandle | None = None
+        #: the identity of the client; every request task runs in ``_context``, where it is current
+        self._client = Client("")
+        self._context = contextvars.copy_context()
+        self._context.run(current_client.set, self._client)
 
     # -- asyncio.Protocol --------------------------------------------------------------
 
@@ -660,6 +761,8 @@ class _Connection(asyncio.Protocol):
         self._peer = transport.get_extra_info("peername")
         server = self._server
         self.client = ClientIdentity(_format_address(self._peer))
+        self._client.name = str(self.client)
+        _cap_send_buffer(transport)
         if not server._admit(self, self._peer, handshake=server.ssl_context is not None):
             self._released = True
             self._transport.abort()
@@ -700,7 +803,7 @@ class _Connection(asyncio.Protocol):
 
     def eof_received(self) -> bool | None:
         self._eof = True
-        if self._in_flight and self._server.ssl_context is None:
+        if (self._in_flight or self._backlog) and self._server.ssl_context is None:
             return True  # keep the transport open to send the replies still in flight
         return None  # close (TLS transports always do)
 
@@ -717,9 +820,15 @@ class _Connection(asyncio.Protocol):
     def pause_writing(self) -> None:
         self._write_paused = True
         self._update_reading()
+        timeout = self._server.write_stall_timeout
+        if timeout is not None and self._stall_handle is None:
+            self._stall_handle = self._loop.call_later(timeout, self._stalled)
 
     def resume_writing(self) -> None:
         self._write_paused = False
+        if self._stall_handle is not None:
+            self._stall_handle.cancel()
+            self._stall_handle = None
         if self._ready:
             self._process()
 
@@ -777,6 +886,14 @@ class _Connection(asyncio.Protocol):
 
     # -- internals ---------------------------------------------------------------------
 
+    def _stalled(self) -> None:
+        """Paused (its replies unread) for ``write_stall_timeout``: drop it, buffers and all."""
+        self._stall_handle = None
+        if self._open and self._write_paused:
+            self._drop(f"its replies unread for {self._server.write_stall_timeout:g} s")
+            if self._transport is not None:
+                self._transport.abort()  # close() would wait for the unread replies to drain
+
     def _cancel_timers(self) -> None:
         if self._idle_handle is not None:
             self._idle_handle.cancel()
@@ -784,6 +901,9 @@ class _Connection(asyncio.Protocol):
         if self._frame_handle is not None:
             self._frame_handle.cancel()
             self._frame_handle = None
+        if self._stall_handle is not None:
+            self._stall_handle.cancel()
+            self._stall_handle = None
 
     def _release(self) -> None:
         """Forget the connection (idempotent)."""
@@ -902,20 +1022,13 @@ class _Connection(asyncio.Protocol):
         self.client = dataclasses.replace(identity, can_write=identity.can_write and self.client.can_write)
         logger.debug("%s: %s connected", server.name, self.client)
         self._connected_at = self._loop.time()  # stalled_since counts from the end of the handshake
+        self._client.name = str(self.client)
         self._ready = True
         self._process()
 
     def _process(self) -> None:
-        """Start the complete requests in the buffer, as many as the limits allow.
-
-        ``current_client`` is this connection's client meanwhile: the tasks created for the
-        requests inherit it.
-        """
-        token = current_client.set(self.client)
-        try:
-            self._process_frames()
-        finally:
-            current_client.reset(token)
+        """Start the complete requests in the buffer, as many as the limits allow."""
+        self._process_frames()
         self._time_partial_frame()
 
     def _request(self, tid: int, unit: int, pdu: bytes) -> _Reply:
@@ -937,6 +1050,12 @@ class _Connection(asyncio.Protocol):
         while size - position >= 7 and self._in_flight < self._limit:
             if self._write_paused or self._stopped or transport is None:
                 break
+            if not server._spend(self._loop):
+                # Let the loop run the links (and other connections) before the rest.
+                if not self._backlog:
+                    self._backlog = True
+                    self._loop.call_soon(self._next_turn)
+                break
             tid, protocol, length, unit = _MBAP.unpack_from(buffer, position)
             if protocol != 0 or not _MIN_LENGTH <= length <= _MAX_LENGTH:
                 self._drop(f"bad MBAP header (protocol id {protocol}, length {length})", cause="bad MBAP headers")
@@ -951,7 +1070,7 @@ class _Connection(asyncio.Protocol):
                     break
             else:
                 self._in_flight += 1
-                task = self._loop.create_task(self._serve(reply))
+                task = self._loop.create_task(self._serve(reply), context=self._context)
                 server._tasks.add(task)
                 task.add_done_callback(server._tasks.discard)
         if position == size:
@@ -959,12 +1078,19 @@ class _Connection(asyncio.Protocol):
             self._offset = 0
         else:
             self._offset = position
-        if self._eof and not self._in_flight and transport is not None:
+        if self._eof and not self._in_flight and not self._backlog and transport is not None:
             transport.close()
             return
         if transport is not None and transport.is_closing():
             return
         self._update_reading()
+
+    def _next_turn(self) -> None:
+        self._backlog = False
+        if self._ready and self._transport is not None:
+            self._process()
+        elif self._eof and not self._in_flight and self._transport is not None:
+            self._transport.close()
 
     async def _serve(self, reply: Coroutine[Any, Any, bytes]) -> None:
         """Await one backend call and write its reply at once (no done-callback round trip)."""
@@ -980,7 +1106,12 @@ class _Connection(asyncio.Protocol):
         transport = self._transport
         if transport is None or not self._ready:
             return
-        pause = self._in_flight >= self._limit or self._write_paused or self._stopped
+        pause = (
+            self._in_flight >= self._limit
+            or self._write_paused
+            or self._stopped
+            or (self._backlog and len(self._buffer) - self._offset > _MAX_BACKLOG)
+        )
         if pause != self._read_paused:
             self._read_paused = pause
             if pause:
@@ -1002,6 +1133,13 @@ class _Connection(asyncio.Protocol):
                 self._drop(f"idle for {timeout:g} s")
                 return
         self._idle_handle = self._loop.call_at(deadline, self._check_idle)
+
+
+def _cap_send_buffer(transport: asyncio.BaseTransport) -> None:
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _SEND_BUFFER)
 
 
 def _format_address(address: object) -> str:

@@ -27,7 +27,7 @@ from urllib.parse import parse_qsl, urlsplit
 
 from gateway.errors import LinkDown
 from gateway.sim.serve import SimDevice, SimStream
-from gateway.transport import SerialSettings
+from gateway.streams import SerialSettings
 
 __all__ = ["MODELS", "create_simulator", "get_simulator", "open_sim_stream", "parse_sim_url", "reset_simulators"]
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from gateway.errors import LinkDown
-from gateway.transport import ByteStream, SerialSettings
+from gateway.streams import ByteStream, SerialSettings
 
 __all__ = ["LineModel", "SimDevice", "SimOutput", "SimStream", "close_tcp", "serve_pty", "serve_tcp"]
 

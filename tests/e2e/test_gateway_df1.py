@@ -183,6 +183,19 @@ class Model:
         if self.sim.word("N7", address) == value:  # applied: its reply was lost (unique values)
             self.registers[address].add(value)
 
+    def words_written(self, first: int, values: list[int], ok: bool) -> None:
+        """An FC16 of consecutive N7 words: one command, so applied whole or not at all."""
+        entry = ("write", f"N7:{first}", b"".join(v.to_bytes(2, "little") for v in values))
+        if ok:
+            self.acked.append(entry)
+            for k, value in enumerate(values):
+                self.registers[first + k] = {value}
+            return
+        self.failed.append(entry)
+        if all(self.sim.word("N7", first + k) == value for k, value in enumerate(values)):
+            for k, value in enumerate(values):
+                self.registers[first + k].add(value)
+
     def float_written(self, element: int, raw: int, ok: bool) -> None:
         entry = ("write", f"F8:{element}", struct.pack("<I", raw))
         if ok:
@@ -255,8 +268,7 @@ async def worker(
             reply = await client.write_registers(N7_FIRST + first, new, device_id=MAIN)
             code = exception_code(reply)
             model.exceptions[code or 0] += 1
-            for k, value in enumerate(new):
-                model.word_written(first + k, value, code is None)
+            model.words_written(first, new, code is None)  # one typed logical write of all the words
         elif op < 0.88:  # FC16: a float, both of its registers
             element = rng.choice(own_floats)
             number_written = next(values) + 0.5

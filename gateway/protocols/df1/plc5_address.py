@@ -1,10 +1,12 @@
-"""PLC-5 addresses and the PLC-5 word range read / write and read-modify-write packets.
+"""PLC-5 addresses: parsing what a programmer types, logical binary and logical ASCII encodings.
 
 Manual: A-B 1770-6.5.16 chapter 13 "PLC Addressing" (p. 13-11 logical binary addressing, p. 13-12
 examples N7:30, B3:300, T4:2.ACC, PD12:10.SP, p. 13-13 the level map, p. 13-15 logical ASCII
 addressing) and chapter 7 (p. 7-20 read-modify-write, FNC 26); 1770-KF2 user manual p. 5-57 (word
 range read FNC 01 / write FNC 00 layouts); PLC-5 quick reference 1785 p. 2-6 (the address forms
-users type).  Reading and vectors: ``docs/df1-half-duplex-notes.md`` section 6.
+users type).  Reading and vectors: ``docs/df1-half-duplex-notes.md`` section 6.  The word range
+read / write and read-modify-write packets that carry these addresses are built in
+:mod:`gateway.protocols.df1.pccc.plc5`, the one home of PLC-5 packet building.
 
 Address forms accepted (what a PLC-5 programmer types)::
 
@@ -23,7 +25,6 @@ This module does no I/O.
 
 from __future__ import annotations
 
-import enum
 import re
 from dataclasses import dataclass
 from typing import Final
@@ -31,10 +32,6 @@ from typing import Final
 __all__ = [
     "AddressError",
     "Plc5Address",
-    "Plc5Function",
-    "ReadModifyWrite",
-    "WordRangeRead",
-    "WordRangeWrite",
     "decode_logical_ascii",
     "decode_logical_binary",
     "encode_logical_ascii",
@@ -49,14 +46,6 @@ _FF: Final = 0xFF
 
 class AddressError(ValueError):
     """A PLC-5 address that cannot be parsed or encoded; the message says what is wrong."""
-
-
-class Plc5Function(enum.IntEnum):
-    """FNC bytes of CMD 0F used here (1770-6.5.16 chapter 7; KF2 p. 5-48, 5-57)."""
-
-    WORD_RANGE_WRITE = 0x00
-    WORD_RANGE_READ = 0x01
-    READ_MODIFY_WRITE = 0x26
 
 
 #: File type letters -> (default file number or None, words per element, octal element/bit numbers)
@@ -264,128 +253,3 @@ def decode_logical_ascii(data: bytes, offset: int = 0) -> tuple[str, int]:
     if end < 0:
         raise AddressError("PLC-5 logical ASCII address without its closing NUL")
     return data[offset + 2 : end].decode("ascii", "replace"), end + 1
-
-
-# --------------------------------------------------------------------------------------- packets
-
-
-def _u16(name: str, value: int) -> bytes:
-    if not 0 <= value <= 0xFFFF:
-        raise AddressError(f"{name} {value} out of range 0..65535")
-    return value.to_bytes(2, "little")
-
-
-@dataclass(frozen=True, slots=True)
-class WordRangeRead:
-    """FNC 01: ``PACKET OFFSET(2) TOTAL TRANS(2) ADDRESS SIZE(1)``; SIZE in bytes (KF2 p. 5-57).
-
-    Parameters after the FNC byte; the header (DST SRC 0F STS TNS FNC) is the PCCC codec's.
-    """
-
-    address: bytes  #: an encoded logical binary or ASCII address
-    size: int  #: data bytes to read (even, at most 244)
-    packet_offset: int = 0  #: in words
-    total_transaction: int | None = None  #: in words; default size / 2
-
-    def encode(self) -> bytes:
-        if self.size < 2 or self.size % 2 or self.size > 244:
-            raise AddressError(f"word range read size {self.size}: an even number of bytes 2..244")
-        total = self.size // 2 if self.total_transaction is None else self.total_transaction
-        return (_u16("packet offset", self.packet_offset) + _u16("total transaction", total) + self.address) + bytes(
-            (self.size,)
-        )
-
-    @classmethod
-    def decode(cls, params: bytes) -> WordRangeRead:
-        if len(params) < 6:
-            raise AddressError("word range read parameters are truncated")
-        offset, total = int.from_bytes(params[0:2], "little"), int.from_bytes(params[2:4], "little")
-        end = _address_end(params, 4)
-        if end + 1 != len(params):
-            raise AddressError("word range read: one SIZE byte must follow the address")
-        return cls(params[4:end], params[end], offset, total)
-
-
-@dataclass(frozen=True, slots=True)
-class WordRangeWrite:
-    """FNC 00: ``PACKET OFFSET(2) TOTAL TRANS(2) ADDRESS DATA`` (KF2 p. 5-57), data low byte first."""
-
-    address: bytes
-    data: bytes
-    packet_offset: int = 0
-    total_transaction: int | None = None
-
-    def encode(self) -> bytes:
-        if not self.data or len(self.data) % 2:
-            raise AddressError("word range write data must be a whole number of words")
-        if len(self.address) + len(self.data) > 239:
-            raise AddressError("word range write: address + data may be at most 239 bytes (KF2 p. 5-57)")
-        total = len(self.data) // 2 if self.total_transaction is None else self.total_transaction
-        return _u16("packet offset", self.packet_offset) + _u16("total transaction", total) + self.address + self.data
-
-    @classmethod
-    def decode(cls, params: bytes) -> WordRangeWrite:
-        if len(params) < 5:
-            raise AddressError("word range write parameters are truncated")
-        offset, total = int.from_bytes(params[0:2], "little"), int.from_bytes(params[2:4], "little")
-        end = _address_end(params, 4)
-        return cls(params[4:end], params[end:], offset, total)
-
-
-@dataclass(frozen=True, slots=True)
-class ReadModifyWrite:
-    """FNC 26: repeated ``ADDRESS AND(2) OR(2)`` sets, masks low byte first (p. 7-20).
-
-    AND mask: 0 resets a bit, 1 keeps it; OR mask: 1 sets a bit.  A coil write of bit ``b``:
-    :meth:`set_bit` / :meth:`reset_bit`.
-    """
-
-    sets: tuple[tuple[bytes, int, int], ...]
-
-    @classmethod
-    def set_bit(cls, address: bytes, bit: int) -> ReadModifyWrite:
-        return cls(((address, 0xFFFF, 1 << _bit(bit)),))
-
-    @classmethod
-    def reset_bit(cls, address: bytes, bit: int) -> ReadModifyWrite:
-        return cls(((address, 0xFFFF & ~(1 << _bit(bit)), 0x0000),))
-
-    def encode(self) -> bytes:
-        if not self.sets:
-            raise AddressError("read-modify-write needs at least one address")
-        body = b"".join(a + _u16("AND mask", m_and) + _u16("OR mask", m_or) for a, m_and, m_or in self.sets)
-        if len(body) > 243:
-            raise AddressError("read-modify-write sets may be at most 243 bytes (p. 7-20)")
-        return body
-
-    @classmethod
-    def decode(cls, params: bytes) -> ReadModifyWrite:
-        sets: list[tuple[bytes, int, int]] = []
-        position = 0
-        while position < len(params):
-            end = _address_end(params, position)
-            if end + 4 > len(params):
-                raise AddressError("read-modify-write set is truncated")
-            and_mask = int.from_bytes(params[end : end + 2], "little")
-            or_mask = int.from_bytes(params[end + 2 : end + 4], "little")
-            sets.append((params[position:end], and_mask, or_mask))
-            position = end + 4
-        return cls(tuple(sets))
-
-    def apply(self, word: int) -> int:
-        """The word after the first set's masks: ``(word & AND) | OR``."""
-        _address, and_mask, or_mask = self.sets[0]
-        return (word & and_mask) | or_mask
-
-
-def _bit(bit: int) -> int:
-    if not 0 <= bit <= 15:
-        raise AddressError(f"bit {bit} out of range 0..15")
-    return bit
-
-
-def _address_end(data: bytes, offset: int) -> int:
-    """Offset after a logical binary or logical ASCII address starting at ``offset``."""
-    if data[offset : offset + 2] == b"\x00$":
-        return decode_logical_ascii(data, offset)[1]
-    return decode_logical_binary(data, offset)[1]

@@ -36,6 +36,8 @@ from gateway.errors import ControllerFault, InvalidRequest, ProtocolError
 from gateway.protocols.slc_ascii.memory_map import (
     PROTECT_BIT,
     WORD_VALUE_MASK,
+    Item,
+    ItemKind,
     check_byte_writable,
     check_readable,
     check_word_writable,
@@ -72,6 +74,8 @@ __all__ = [
     "set_mode",
     "upload_block",
     "write_byte",
+    "write_item",
+    "write_item_bit",
     "write_reset_accumulator",
     "write_sequencer_preset",
     "write_word",
@@ -288,6 +292,33 @@ def write_byte(address: int, value: int) -> Command:
         TimeoutClass.NORMAL,
         is_write=True,
     )
+
+
+def write_item(item: Item, value: int) -> Command:
+    """The command that writes ``value`` to ``item`` (not for bits: see :func:`write_item_bit`)."""
+    if item.kind in (ItemKind.ACCUMULATOR, ItemKind.PRESET):
+        return write_word(item.read_address, value)
+    if item.kind is ItemKind.BYTE and item.writable:
+        return write_byte(item.read_address, value)
+    if item.kind is ItemKind.BIT and item.writable:
+        raise InvalidRequest(f"{item.text} is a bit: read byte 0x{item.read_address:04X} and use write_item_bit()")
+    raise InvalidRequest(f"{item.text} is read only: {item.write_rule()}")
+
+
+def write_item_bit(item: Item, current: int, value: bool) -> Command:
+    """The byte write that sets bit ``item`` to ``value``, keeping the other bits of ``current``.
+
+    ``current`` is the byte just read at ``item.read_address``. Only relays 701-820 are writable.
+    """
+    if item.kind is not ItemKind.BIT or item.bit is None:
+        raise InvalidRequest(f"{item.text} is not a bit item")
+    if not item.writable:
+        raise InvalidRequest(f"{item.text} is read only: {item.write_rule()}")
+    if isinstance(current, bool) or not isinstance(current, int) or not 0 <= current <= 0xFF:
+        raise InvalidRequest(f"current byte {current!r} is not in 0-255")
+    mask = 1 << item.bit
+    new = current | mask if value else current & ~mask
+    return write_byte(item.read_address, new)
 
 
 def set_mode(mode: Mode) -> Command:

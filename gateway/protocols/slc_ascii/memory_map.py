@@ -22,12 +22,8 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from enum import Enum
 from types import MappingProxyType
-from typing import TYPE_CHECKING
 
 from gateway.errors import InvalidRequest, ProtocolError
-
-if TYPE_CHECKING:
-    from gateway.protocols.slc_ascii.commands import Command
 
 __all__ = [
     "BYTE_WRITE_RANGE",
@@ -473,8 +469,9 @@ class Item:
     ``text`` is the canonical spelling (``901.ACC``, ``701``, ``@0x0084``). Read ``read_count``
     bytes at ``read_address`` with command 02 and pass them to :meth:`decode`.
 
-    Writing: :meth:`encode_write` for ACC, PRE and raw bytes in 00A6H-00B4H. A user bit (``bit``
-    is set) can only be written as a whole byte: read the byte, then call :meth:`encode_bit_write`
+    Writing (:mod:`~gateway.protocols.slc_ascii.commands` builds the commands, this module only knows
+    the map): ``commands.write_item`` for ACC, PRE and raw bytes in 00A6H-00B4H. A user bit (``bit``
+    is set) can only be written as a whole byte: read the byte, then call ``commands.write_item_bit``
     with its current value. The other bits of that byte are written back with the values read, so
     a change the ladder program makes to them between the read and the write is lost.
     """
@@ -505,7 +502,7 @@ class Item:
 
     @property
     def read_modify_write(self) -> bool:
-        """True for bits: writing needs the current byte (:meth:`encode_bit_write`)."""
+        """True for bits: writing needs the current byte (``commands.write_item_bit``)."""
         return self.kind is ItemKind.BIT
 
     def decode(self, data: bytes) -> int | bool:
@@ -521,37 +518,7 @@ class Item:
             return bool(data[0] >> self.bit & 1)
         return data[0]  # STEP, BYTE
 
-    def encode_write(self, value: int) -> Command:
-        """The command that writes ``value`` to this item (not for bits: see :meth:`encode_bit_write`)."""
-        from gateway.protocols.slc_ascii import commands  # commands imports this module
-
-        if self.kind in (ItemKind.ACCUMULATOR, ItemKind.PRESET):
-            return commands.write_word(self.read_address, value)
-        if self.kind is ItemKind.BYTE and self.writable:
-            return commands.write_byte(self.read_address, value)
-        if self.kind is ItemKind.BIT and self.writable:
-            raise InvalidRequest(
-                f"{self.text} is a bit: read byte 0x{self.read_address:04X} and use encode_bit_write()")
-        raise InvalidRequest(f"{self.text} is read only: {self._write_rule()}")
-
-    def encode_bit_write(self, current: int, value: bool) -> Command:
-        """The byte write that sets this bit to ``value``, keeping the other bits of ``current``.
-
-        ``current`` is the byte just read at ``read_address``. Only relays 701-820 are writable.
-        """
-        from gateway.protocols.slc_ascii import commands  # commands imports this module
-
-        if self.kind is not ItemKind.BIT or self.bit is None:
-            raise InvalidRequest(f"{self.text} is not a bit item")
-        if not self.writable:
-            raise InvalidRequest(f"{self.text} is read only: {self._write_rule()}")
-        if isinstance(current, bool) or not isinstance(current, int) or not 0 <= current <= 0xFF:
-            raise InvalidRequest(f"current byte {current!r} is not in 0-255")
-        mask = 1 << self.bit
-        new = current | mask if value else current & ~mask
-        return commands.write_byte(self.read_address, new)
-
-    def _write_rule(self) -> str:
+    def write_rule(self) -> str:
         return (
             "the protocol writes only NNN.ACC, NNN.PRE (values 0-9999), internal relays 701-820 "
             f"and raw bytes {BYTE_WRITE_RANGE}"

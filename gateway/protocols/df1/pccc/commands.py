@@ -1,0 +1,85 @@
+"""PCCC command packets: every request type, and the command encoder / decoder over them.
+
+Manuals: S4516-DF1 Program Development Manual §2.2 and §2.6 (``DST SRC CMD STS TNS FNC params``);
+SLC 500 PCCC command notes §4.0 (which CMD / FNC pairs exist).  The request types themselves live
+in :mod:`.slc` and :mod:`.plc5`; this module only dispatches on ``(CMD, FNC)``.  It does no I/O.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Final
+
+from gateway.errors import InvalidRequest
+from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccFormatError, PcccHeader, Reader
+from gateway.protocols.df1.pccc.plc5 import TypedRead, TypedWrite, WordRangeRead, WordRangeWrite
+from gateway.protocols.df1.pccc.slc import (
+    DiagnosticStatus,
+    ProtectedTypedLogicalMaskedWrite,
+    ProtectedTypedLogicalRead,
+    ProtectedTypedLogicalWrite,
+    ReadFileInfo,
+    SetProcessorMode,
+)
+
+__all__ = ["PcccCommand", "Request", "decode_command", "encode_command"]
+
+
+Request = (
+    ProtectedTypedLogicalRead
+    | ProtectedTypedLogicalWrite
+    | ProtectedTypedLogicalMaskedWrite
+    | ReadFileInfo
+    | SetProcessorMode
+    | DiagnosticStatus
+    | WordRangeRead
+    | WordRangeWrite
+    | TypedRead
+    | TypedWrite
+)
+
+_REQUEST_TYPES: Final[dict[tuple[int, int], type[Request]]] = {
+    (cls.CMD, cls.FNC): cls
+    for cls in (
+        ProtectedTypedLogicalRead,
+        ProtectedTypedLogicalWrite,
+        ProtectedTypedLogicalMaskedWrite,
+        ReadFileInfo,
+        SetProcessorMode,
+        DiagnosticStatus,
+        WordRangeRead,
+        WordRangeWrite,
+        TypedRead,
+        TypedWrite,
+    )
+}
+
+
+@dataclass(frozen=True, slots=True)
+class PcccCommand:
+    """A decoded command packet (controller side)."""
+
+    header: PcccHeader
+    request: Request
+
+
+def encode_command(request: Request, *, dst: int, src: int, tns: int) -> bytes:
+    """``DST SRC CMD 00 TNS FNC params`` for ``request``."""
+    header = PcccHeader(dst, src, request.CMD, 0, tns)
+    return header.encode() + bytes((request.FNC,)) + request.encode_params()
+
+
+def decode_command(packet: bytes) -> PcccCommand:
+    """Parse a command packet; :class:`PcccFormatError` (with ``header`` when known) otherwise."""
+    header = PcccHeader.decode(packet)
+    if header.is_reply:
+        raise PcccFormatError(f"PCCC: CMD 0x{header.cmd:02X} is a reply, not a command", header=header)
+    reader = Reader(packet, HEADER_SIZE, header=header)
+    fnc = reader.u8("function code")
+    request_type = _REQUEST_TYPES.get((header.cmd, fnc))
+    if request_type is None:
+        raise reader.fail(f"PCCC: unsupported command CMD 0x{header.cmd:02X} FNC 0x{fnc:02X}")
+    try:
+        return PcccCommand(header, request_type.decode_params(reader))
+    except InvalidRequest as exc:
+        raise reader.fail(str(exc)) from exc

@@ -1,0 +1,34 @@
+"""What every link kind's CLI tool shares: result printing and the retry default.
+
+:mod:`gateway.tools` (SLC 100/150) and :mod:`gateway.tools_df1` both use these; keeping them here
+lets ``tools`` hand DF1 commands to ``tools_df1`` without ``tools_df1`` importing ``tools`` back
+(the ``tools <-> tools_df1`` import circle of issue 11).
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+__all__ = ["DEFAULT_RETRIES", "PROBE_RETRIES", "print_result", "resolve_retries"]
+
+
+def print_result(result: dict[str, Any], as_json: bool) -> None:
+    """``key = value`` lines, or one JSON object with ``--json``."""
+    if as_json:
+        print(json.dumps(result))
+    else:
+        for key, value in result.items():
+            print(f"{key} = {str(value).lower() if isinstance(value, bool) else value}")
+
+
+#: Retries per transaction when --retries is not given.  A probe asks "does anything answer?":
+#: with one retry it gives up within a few seconds on either protocol (DF1: 2 tries of 2 ACK waits).
+DEFAULT_RETRIES = 3
+PROBE_RETRIES = 1
+
+
+def resolve_retries(command: str, retries: int | None) -> int:
+    if retries is not None:
+        return retries
+    return PROBE_RETRIES if command == "probe" else DEFAULT_RETRIES

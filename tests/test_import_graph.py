@@ -1,0 +1,163 @@
+"""No import circles in gateway/ (issue 11).
+
+The graph is built from the source with :mod:`ast`, not by importing: every ``import`` and
+``from ... import`` anywhere in a module counts, at module level, inside functions and under
+``if TYPE_CHECKING:``, because a late import only hides a circle from the interpreter, not from
+the reader.  ``from package import name`` counts as an edge to ``package.name`` when that is a
+module, else to ``package``.  A package's ``__init__`` is the package's module.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterable
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def module_names(root: Path, package: str) -> dict[str, Path]:
+    """Dotted module name -> file, for every ``.py`` under ``root / package``."""
+    modules: dict[str, Path] = {}
+    for path in sorted((root / package).rglob("*.py")):
+        parts = list(path.relative_to(root).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts.pop()
+        modules[".".join(parts)] = path
+    return modules
+
+
+def _resolve(module: str, level: int, current: str, is_package: bool) -> str:
+    if level == 0:
+        return module
+    base = current.split(".")
+    if not is_package:
+        base.pop()
+    if level > 1:
+        base = base[: len(base) - (level - 1)]
+    return ".".join([*base, module] if module else base)
+
+
+def _owner(name: str, modules: Iterable[str]) -> str | None:
+    """The longest known module that ``name`` is or lies in."""
+    known = set(modules)
+    while name:
+        if name in known:
+            return name
+        name = name.rpartition(".")[0]
+    return None
+
+
+def import_graph(root: Path, package: str) -> dict[str, set[str]]:
+    """Module -> the modules of ``package`` it imports (anywhere in its source)."""
+    modules = module_names(root, package)
+    graph: dict[str, set[str]] = {name: set() for name in modules}
+    for name, path in modules.items():
+        is_package = path.name == "__init__.py"
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+            targets: list[str] = []
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = _resolve(node.module or "", node.level, name, is_package)
+                for alias in node.names:
+                    submodule = f"{base}.{alias.name}"
+                    targets.append(submodule if submodule in modules else base)
+            for target in targets:
+                owner = _owner(target, modules)
+                if owner is not None and owner != name:
+                    graph[name].add(owner)
+    return graph
+
+
+def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    components: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for successor in sorted(graph.get(node, ())):
+            if successor not in index:
+                visit(successor)
+                low[node] = min(low[node], low[successor])
+            elif successor in on_stack:
+                low[node] = min(low[node], index[successor])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1:
+                components.append(sorted(component))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return sorted(components)
+
+
+def _write(root: Path, files: dict[str, str]) -> None:
+    for relative, text in files.items():
+        path = root / relative
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text, encoding="utf-8")
+
+
+def test_gateway_has_no_import_cycles() -> None:
+    graph = import_graph(ROOT, "gateway")
+    assert len(graph) > 40, "the walk found too few modules; is ROOT right?"
+    assert "gateway.protocols.df1.pccc.codec" in graph["gateway.protocols.df1.pccc"]
+    cycles = find_cycles(graph)
+    assert cycles == [], "import circles (move the shared item to a module both can import):\n" + "\n".join(
+        " <-> ".join(cycle) for cycle in cycles
+    )
+
+
+@pytest.mark.parametrize(
+    ("files", "expected"),
+    [
+        pytest.param(
+            {"pkg/__init__.py": "", "pkg/a.py": "from pkg import b\n", "pkg/b.py": "import pkg.a\n"},
+            [["pkg.a", "pkg.b"]],
+            id="module-level",
+        ),
+        pytest.param(
+            {
+                "pkg/__init__.py": "",
+                "pkg/a.py": "from pkg.b import thing\n",
+                "pkg/b.py": "thing = 1\ndef late() -> None:\n    from pkg.c import other\n",
+                "pkg/c.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from . import a\nother = 2\n",
+            },
+            [["pkg.a", "pkg.b", "pkg.c"]],
+            id="function-level-and-type-checking-relative",
+        ),
+        pytest.param(
+            {
+                "pkg/__init__.py": "from pkg.sub import x\n",
+                "pkg/sub/__init__.py": "from pkg.sub.inner import x\n",
+                "pkg/sub/inner.py": "from .. import y\nx = 1\n",
+            },
+            [["pkg", "pkg.sub", "pkg.sub.inner"]],
+            id="through-package-inits",
+        ),
+        pytest.param(
+            {"pkg/__init__.py": "", "pkg/a.py": "from pkg import b\nimport os\n", "pkg/b.py": "import json\n"},
+            [],
+            id="no-cycle",
+        ),
+    ],
+)
+def test_the_check_finds_a_deliberate_cycle(tmp_path: Path, files: dict[str, str], expected: list[list[str]]) -> None:
+    _write(tmp_path, files)
+    assert find_cycles(import_graph(tmp_path, "pkg")) == expected

@@ -1,0 +1,214 @@
+"""The per-link write queue and the driver's write session, without a network or a controller."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator
+from typing import Any
+
+import pytest
+
+from gateway.drivers.base import LinkDriver, Priority
+from gateway.errors import GatewayError, LinkDown, ModbusExceptionReply
+from gateway.writes import WriteQueue
+
+
+class FakeSessionDriver:
+    """Only what WriteQueue uses: ``write_session``; ``down`` makes it fail like a lost link."""
+
+    def __init__(self) -> None:
+        self.down = False
+        self.sessions = 0
+        self.extended = 0
+
+    def extend_burst(self) -> None:
+        self.extended += 1
+
+    @contextlib.asynccontextmanager
+    async def write_session(self) -> AsyncIterator[None]:
+        if self.down:
+            raise LinkDown("link fake is down")
+        self.sessions += 1
+        yield
+
+
+def queue(**kwargs: int) -> tuple[WriteQueue, FakeSessionDriver, list[str]]:
+    driver = FakeSessionDriver()
+    return WriteQueue(driver, "fake", **kwargs), driver, []  # type: ignore[arg-type]
+
+
+def job(log: list[str], name: str, delay: float = 0.0) -> Any:
+    async def run() -> None:
+        await asyncio.sleep(delay)
+        log.append(name)
+
+    return run
+
+
+async def test_one_clients_jobs_run_in_arrival_order() -> None:
+    q, _, log = queue()
+    futures = [q.submit("a", frozenset({n % 2}), job(log, f"a{n}")) for n in range(5)]
+    await asyncio.gather(*futures)
+    assert log == ["a0", "a1", "a2", "a3", "a4"]
+
+
+async def test_clients_are_served_round_robin_when_their_writes_do_not_overlap() -> None:
+    q, _, log = queue()
+    futures = [q.submit("flood", frozenset({("flood", n)}), job(log, f"f{n}")) for n in range(6)]
+    futures.append(q.submit("polite", frozenset({"polite"}), job(log, "p")))
+    await asyncio.gather(*futures)
+    assert log.index("p") <= 2, log  # not behind the whole flood
+
+
+async def test_a_write_never_overtakes_an_earlier_overlapping_one_of_another_client() -> None:
+    q, _, log = queue()
+    futures = [q.submit("a", frozenset({("a", n)}), job(log, f"a{n}")) for n in range(4)]
+    futures.append(q.submit("a", frozenset({40, 41, 42, 43}), job(log, "a-fc16")))
+    futures.append(q.submit("b", frozenset({43}), job(log, "b-fc6")))  # arrived after a-fc16, overlaps it
+    futures.append(q.submit("c", frozenset({99}), job(log, "c")))
+    await asyncio.gather(*futures)
+    assert log.index("a-fc16") < log.index("b-fc6"), log
+    assert log.index("c") < log.index("a-fc16"), log  # disjoint: round robin lets it in early
+
+
+async def test_bounds_answer_0x06_at_once_and_queue_nothing() -> None:
+    q, _, log = queue(per_client=2, per_link=3)
+    futures = [q.submit("a", frozenset({1}), job(log, "a1", 0.01)), q.submit("a", frozenset({2}), job(log, "a2"))]
+    await asyncio.sleep(0)  # a1 is running: it no longer counts as waiting
+    futures.append(q.submit("a", frozenset({3}), job(log, "a3")))
+    with pytest.raises(ModbusExceptionReply) as per_client:
+        q.submit("a", frozenset({4}), job(log, "a4"))
+    futures.append(q.submit("b", frozenset({5}), job(log, "b5")))
+    with pytest.raises(ModbusExceptionReply) as per_link:
+        q.submit("c", frozenset({6}), job(log, "c6"))
+    assert per_client.value.code == per_link.value.code == 0x06
+    assert "connection" in str(per_client.value) and "link" in str(per_link.value)
+    await asyncio.gather(*futures)
+    assert sorted(log) == ["a1", "a2", "a3", "b5"] and q.busy_refusals == 2
+
+
+async def test_a_job_failure_is_its_callers_answer_and_the_queue_goes_on() -> None:
+    q, _, log = queue()
+
+    async def refused() -> None:
+        raise ModbusExceptionReply(0x04, "refused")
+
+    bad = q.submit("a", frozenset({1}), refused)
+    good = q.submit("a", frozenset({1}), job(log, "next"))
+    with pytest.raises(ModbusExceptionReply):
+        await bad
+    await good
+    assert log == ["next"]
+
+
+async def test_link_down_fails_every_waiting_write_with_0x0B() -> None:
+    q, driver, log = queue()
+    driver.down = True
+    futures = [q.submit(c, frozenset({n}), job(log, c)) for n, c in enumerate("abc")]
+    results = await asyncio.gather(*futures, return_exceptions=True)
+    assert all(isinstance(r, ModbusExceptionReply) and r.code == 0x0B for r in results), results
+    assert log == [] and q.waiting == 0
+
+
+# --------------------------------------------------------------------------------------------
+# The write session: writes ahead of polls, write_burst writes then poll_burst polls
+
+
+class LineDriver(LinkDriver):
+    """A driver whose 'transactions' are sleeps, logged in the order they held the line."""
+
+    def __init__(self) -> None:
+        super().__init__("socket://127.0.0.1:1", name="line")
+        self._stream = object()  # type: ignore[assignment]  # "connected": no I/O is done
+        self.line_log: list[str] = []
+
+    def on_connect(self) -> None: ...
+
+    def data_received(self, data: bytes) -> None: ...
+
+    def abort(self, exc: GatewayError) -> None: ...
+
+    async def transaction(self, name: str, priority: Priority) -> None:
+        async def op() -> None:
+            self.line_log.append(name)
+            await asyncio.sleep(0.002)
+
+        await self.submit(op, priority)
+
+
+@pytest.mark.parametrize(("write_burst", "poll_burst"), [(1, 1), (1, 2), (3, 1), (2, 3)])
+async def test_a_write_session_lets_polls_through_after_each_burst(write_burst: int, poll_burst: int) -> None:
+    driver = LineDriver()
+    driver.write_burst, driver.poll_burst = write_burst, poll_burst
+    stop = asyncio.Event()
+
+    async def poller() -> None:
+        n = 0
+        while not stop.is_set():
+            await driver.transaction(f"P{n}", Priority.POLL)
+            n += 1
+
+    poll_task = asyncio.create_task(poller())
+    await asyncio.sleep(0.01)
+    async with driver.write_session():
+        for n in range(12):
+            await driver.transaction(f"W{n}", Priority.WRITE)
+    stop.set()
+    await poll_task
+    kinds = "".join(name[0] for name in driver.line_log)
+    during = kinds[kinds.index("W") : kinds.rindex("W") + 1]
+    expected = ("W" * write_burst + "P" * poll_burst) * 12
+    assert during == expected[: len(during)], during
+    assert during.count("W") == 12
+
+
+async def test_an_extended_burst_still_owes_its_polls() -> None:
+    """A newcomer's write may follow a burst at once; the polls come after, two per write."""
+    driver = LineDriver()
+    stop = asyncio.Event()
+
+    async def poller() -> None:
+        n = 0
+        while not stop.is_set():
+            await driver.transaction(f"P{n}", Priority.POLL)
+            n += 1
+
+    poll_task = asyncio.create_task(poller())
+    await asyncio.sleep(0.01)
+    async with driver.write_session():
+        for n in range(4):
+            if n == 1:
+                driver.extend_burst()
+            await driver.transaction(f"W{n}", Priority.WRITE)
+    stop.set()
+    await poll_task
+    kinds = "".join(name[0] for name in driver.line_log)
+    assert kinds[kinds.index("W") : kinds.rindex("W") + 1] == "WWPPPPWPPW"
+
+
+async def test_the_queue_extends_the_burst_for_a_client_with_nothing_else_queued() -> None:
+    q, driver, log = queue()
+    futures = [q.submit("flood", frozenset({("flood", n)}), job(log, f"f{n}")) for n in range(4)]
+    await asyncio.sleep(0)
+    futures.append(q.submit("polite", frozenset({"polite"}), job(log, "p")))
+    await asyncio.gather(*futures)
+    assert driver.extended == 2  # the flood's first job (nothing queued before it) and the polite one
+
+
+async def test_without_waiting_polls_a_session_keeps_the_line() -> None:
+    driver = LineDriver()
+    async with driver.write_session():
+        for n in range(5):
+            await driver.transaction(f"W{n}", Priority.WRITE)
+    assert driver.line_log == [f"W{n}" for n in range(5)]
+
+
+async def test_a_session_on_a_lost_link_fails_its_writes_with_link_down() -> None:
+    driver = LineDriver()
+    driver._stream = None
+    with pytest.raises(LinkDown):
+        async with driver.write_session():
+            pass
+
+
