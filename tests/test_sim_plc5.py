@@ -11,10 +11,10 @@ import struct
 import pytest
 
 from gateway.protocols.df1.framing import ACK_SYMBOL, Checksum, encode_frame
+from gateway.protocols.df1.pccc.plc5 import ReadModifyWrite
+from gateway.protocols.df1.pccc.plc5 import WordRangeReadParams as WordRangeRead
+from gateway.protocols.df1.pccc.plc5 import WordRangeWriteParams as WordRangeWrite
 from gateway.protocols.df1.plc5_address import (
-    ReadModifyWrite,
-    WordRangeRead,
-    WordRangeWrite,
     encode_logical_ascii,
     encode_logical_binary,
     parse_plc5_address,

@@ -51,13 +51,10 @@ from collections.abc import Mapping
 from typing import ClassVar, Final
 
 from gateway.errors import GatewayError
-from gateway.protocols.df1.pccc import PcccHeader, Sts, encode_reply
+from gateway.protocols.df1.pccc import Function, PcccHeader, Sts, encode_reply
+from gateway.protocols.df1.pccc.plc5 import ReadModifyWrite, WordRangeReadParams, WordRangeWriteParams
 from gateway.protocols.df1.plc5_address import (
     AddressError,
-    Plc5Function,
-    ReadModifyWrite,
-    WordRangeRead,
-    WordRangeWrite,
     decode_logical_ascii,
     decode_logical_binary,
     parse_plc5_address,
@@ -138,13 +135,13 @@ class Plc5Simulator(Slc500Simulator):
             return super()._handle(packet)
         params = packet[7:]
         try:
-            if fnc == Plc5Function.WORD_RANGE_READ:
+            if fnc == Function.WORD_RANGE_READ:
                 self._count("word_range_read")
                 return encode_reply(header, data=self._word_range_read(params))
-            if fnc == Plc5Function.WORD_RANGE_WRITE:
+            if fnc == Function.WORD_RANGE_WRITE:
                 self._count("word_range_write")
                 self._word_range_write(params)
-            elif fnc == Plc5Function.READ_MODIFY_WRITE:
+            elif fnc == Function.READ_MODIFY_WRITE:
                 self._count("read_modify_write")
                 self._read_modify_write(params)
             elif fnc in _TYPED_LOGICAL or fnc in _SLC_ONLY:
@@ -196,7 +193,7 @@ class Plc5Simulator(Slc500Simulator):
 
     def _word_range_read(self, params: bytes) -> bytes:
         self._check_mask(params[4:5])
-        request = WordRangeRead.decode(params)
+        request = WordRangeReadParams.decode(params)
         if request.size > MAX_WORD_RANGE_READ:
             raise _Refusal(Sts.EXTENDED, ExtSts.TOO_LARGE)
         if request.size % 2 or request.size == 0:
@@ -208,7 +205,7 @@ class Plc5Simulator(Slc500Simulator):
 
     def _word_range_write(self, params: bytes) -> None:
         self._check_mask(params[4:5])
-        request = WordRangeWrite.decode(params)
+        request = WordRangeWriteParams.decode(params)
         if len(request.address) + len(request.data) > MAX_WORD_RANGE_WRITE:
             raise _Refusal(Sts.EXTENDED, ExtSts.TOO_LARGE)
         if not request.data or len(request.data) % 2:

@@ -9,7 +9,8 @@ What a PLC-5 unit sends (issue #12; 1770-6.5.16 chapter 7, 1770-KF2 p. 5-48 and 
   command - no read-then-write race with the ladder.
 
 The word range classes are the codec's (``gateway.protocols.df1.pccc``); the read-modify-write
-request is here because the codec has none.  This module does no I/O.
+request class (CMD / FNC / ``encode_params`` for the codec's ``encode_command``) is here; its sets are
+encoded by ``pccc.plc5.ReadModifyWrite``.  This module does no I/O.
 """
 
 from __future__ import annotations
@@ -17,12 +18,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeRead, WordRangeWrite
+from gateway.protocols.df1.pccc import Function, LogicalBinaryAddress, WordRangeRead, WordRangeWrite
+from gateway.protocols.df1.pccc.plc5 import ReadModifyWrite
 from gateway.protocols.df1.plc5_address import (
     AddressError,
     Plc5Address,
-    Plc5Function,
-    ReadModifyWrite,
     encode_logical_binary,
     parse_plc5_address,
 )
@@ -60,7 +60,7 @@ class Plc5ReadModifyWrite:
     """``CMD 0F FNC 26``: ``(address, AND mask, OR mask)`` sets, addresses logical binary (p. 7-20)."""
 
     CMD: ClassVar[int] = 0x0F
-    FNC: ClassVar[int] = Plc5Function.READ_MODIFY_WRITE
+    FNC: ClassVar[int] = Function.READ_MODIFY_WRITE
 
     sets: tuple[tuple[Plc5Address, int, int], ...]
 
