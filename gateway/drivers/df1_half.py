@@ -32,9 +32,10 @@ later step.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import random
-from collections.abc import Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import ClassVar, Final, Protocol
@@ -136,6 +137,8 @@ class Df1Station:
         self._state: bool | None = None
         self._listeners: list[Callable[[Df1Station], None]] = []
         self._closed = False
+        self.write_burst = 1  #: set by the unit; see write_session
+        self.poll_burst = 2
 
     # --- state ------------------------------------------------------------------------------
 
@@ -272,6 +275,20 @@ class Df1Station:
         else:
             self.counters.errors += 1
             self._report(False, error)
+
+    # --- the write-session API of LinkDriver (gateway.writes uses it) ------------------------
+
+    @contextlib.asynccontextmanager
+    async def write_session(self) -> AsyncIterator[None]:
+        """A run of writes.  On a half-duplex line the core owns the order (each station's commands
+        in turn, round robin between stations, polls between them), so a session only checks that
+        the line is up; ``write_burst`` / ``poll_burst`` are kept for the unit but not used."""
+        if not self.line.connected:
+            raise LinkDown(f"link {self.name} is down: {self.line.last_error or 'not connected'}")
+        yield
+
+    def extend_burst(self) -> None:
+        """No burst accounting on a half-duplex line (see :meth:`write_session`)."""
 
     async def probe(self) -> DiagnosticStatusInfo:
         reply = await self.execute(DiagnosticStatus(), "diagnostic status")
