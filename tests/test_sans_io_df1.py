@@ -37,7 +37,8 @@ def test_the_package_has_its_cores() -> None:
 @pytest.mark.parametrize("path", MODULES, ids=lambda path: str(path.relative_to(PACKAGE)))
 def test_no_io_imports(path: Path) -> None:
     forbidden = imported_roots(path.read_text()) & FORBIDDEN
-    assert not forbidden, f"{path.relative_to(PACKAGE)} imports {sorted(forbidden)}: protocol cores do no I/O (ARCHITECTURE.md rule 1)"
+    where = path.relative_to(PACKAGE)
+    assert not forbidden, f"{where} imports {sorted(forbidden)}: protocol cores do no I/O (ARCHITECTURE.md rule 1)"
 
 
 def test_the_check_sees_imports_in_any_form() -> None:
