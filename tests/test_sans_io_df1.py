@@ -16,7 +16,7 @@ import gateway.protocols.df1 as df1_package
 
 FORBIDDEN = {"asyncio", "socket", "serial", "serial_asyncio", "serial_asyncio_fast", "time", "selectors"}
 PACKAGE = Path(df1_package.__file__).parent
-MODULES = sorted(PACKAGE.glob("*.py"))
+MODULES = sorted(PACKAGE.rglob("*.py"))  # sub-packages (pccc/) too
 
 
 def imported_roots(source: str) -> set[str]:
@@ -30,14 +30,15 @@ def imported_roots(source: str) -> set[str]:
 
 
 def test_the_package_has_its_cores() -> None:
-    names = {path.stem for path in MODULES}
+    names = {path.relative_to(PACKAGE).parts[0].removesuffix(".py") for path in MODULES}
     assert {"framing", "link", "transaction", "pccc", "address"} <= names
 
 
-@pytest.mark.parametrize("path", MODULES, ids=lambda path: path.name)
+@pytest.mark.parametrize("path", MODULES, ids=lambda path: str(path.relative_to(PACKAGE)))
 def test_no_io_imports(path: Path) -> None:
     forbidden = imported_roots(path.read_text()) & FORBIDDEN
-    assert not forbidden, f"{path.name} imports {sorted(forbidden)}: protocol cores do no I/O (ARCHITECTURE.md rule 1)"
+    where = path.relative_to(PACKAGE)
+    assert not forbidden, f"{where} imports {sorted(forbidden)}: protocol cores do no I/O (ARCHITECTURE.md rule 1)"
 
 
 def test_the_check_sees_imports_in_any_form() -> None:

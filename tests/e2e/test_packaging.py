@@ -10,7 +10,7 @@ does.  These tests are skipped only when the package index cannot be reached; wi
 
 The static checks of the Dockerfile, docker-compose.yml and the systemd unit need no network; the
 unit file's syntax check needs ``systemd-analyze`` (skipped without it, required in CI too).
-The image itself is built and run by test_image.py.
+The image itself is built and run by test_container_image.py.
 """
 
 from __future__ import annotations
