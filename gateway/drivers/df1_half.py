@@ -1,0 +1,504 @@
+"""Asyncio driver for a DF1 half-duplex multi-drop line: one line owner, one handle per station.
+
+The sans-I/O master core (:class:`~gateway.protocols.df1.half_duplex.HalfDuplexMaster`) decides
+everything on the wire: polling, resends of the identical master frame, demotion of a dead station,
+RTS timing, echo suppression.  :class:`Df1HalfDuplexLine` owns the port (reconnects through
+:class:`~gateway.drivers.base.LinkDriver`), feeds the core every byte, runs the one timer the core
+asks for (``next_deadline()`` / ``handle_timeout(now)``) and drives RTS when the port can.
+
+Each station on the line gets a :class:`Df1Station` handle with the API a DF1 unit uses on
+:class:`~gateway.drivers.df1.Df1Driver`: ``execute(request, name, write=...)`` -> the reply, plus
+``available``, ``counters``, ``last_sts``, ``add_listener``, ``run()`` / ``close()`` and ``probe()``.
+Requests of different stations are in the core at the same time; it serves them round robin, so a
+dead or slow station never holds up the others.  Verdicts:
+
+* the reply, STS 0 -> returned;  STS != 0 -> :class:`~gateway.protocols.df1.pccc.PcccError`;
+* a read without an answer -> sent again with a new TNS (``retries`` more times), then
+  :class:`~gateway.errors.LinkTimeout`;
+* a station demoted to slow poll -> :class:`~gateway.errors.LinkTimeout` at once (Modbus 0x0B);
+* a write is sent as one master frame; the core resends that identical frame (same TNS) when its
+  DLE ACK does not come, which a slave with duplicate detection (the default) ACKs without running it
+  again.  For slaves without duplicate detection (``duplicate_detect=False``) no frame is ever resent;
+* a write whose master frame may have been executed but whose reply never came -> never sent again:
+  a read-back of the target (``read_back_for``) settles it - the written value is there: success;
+  anything else :class:`~gateway.drivers.df1.WriteOutcomeUnknown`.  A write the station never
+  acknowledged nor saw (``may_have_executed`` False) fails with ``LinkTimeout``.
+
+TNS are allocated per line (the core refuses a TNS already in use on the line).  Messages a slave
+initiates are acknowledged by the core and counted here (``slave_messages``); answering them is a
+later step.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import random
+from collections.abc import AsyncIterator, Callable, Sequence
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import ClassVar, Final, Protocol
+
+from gateway.drivers.base import LinkCounters, LinkDriver, OpenStream
+from gateway.drivers.df1 import DF1_SETTINGS, WriteOutcomeUnknown
+from gateway.errors import GatewayError, LinkDown, LinkTimeout, ProtocolError
+from gateway.protocols.df1.half_duplex import (
+    NEED_DATA,
+    FailReason,
+    HalfDuplexMaster,
+    LineConfig,
+    MasterEvent,
+    ReplyReceived,
+    RequestFailed,
+    SlaveInitiated,
+    StationConfig,
+    StationCounters,
+    StationDemoted,
+    StationRestored,
+    StrayReply,
+)
+from gateway.protocols.df1.half_duplex_framing import Checksum
+from gateway.protocols.df1.pccc import (
+    DiagnosticStatus,
+    DiagnosticStatusInfo,
+    PcccFormatError,
+    PcccHeader,
+    PcccReply,
+    ProtectedTypedLogicalMaskedWrite,
+    ProtectedTypedLogicalWrite,
+    TnsAllocator,
+    decode_reply,
+)
+from gateway.protocols.df1.transaction import read_back_for
+from gateway.transport import SerialSettings, open_stream
+
+__all__ = ["Df1HalfDuplexLine", "Df1Station", "PcccCommand", "StationTotals"]
+
+log = logging.getLogger("gateway.link")
+
+_WRITE_TYPES: Final = frozenset({
+    "ProtectedTypedLogicalWrite", "ProtectedTypedLogicalMaskedWrite", "TypedWrite", "WordRangeWrite",
+    "SetProcessorMode", "Plc5ReadModifyWrite",
+})
+
+
+class PcccCommand(Protocol):
+    """Any PCCC request: ``CMD`` / ``FNC`` and the parameters after FNC (the pccc request classes)."""
+
+    CMD: ClassVar[int]
+    FNC: ClassVar[int]
+
+    def encode_params(self) -> bytes: ...
+
+
+def encode_packet(request: PcccCommand, *, dst: int, src: int, tns: int) -> bytes:
+    """``DST SRC CMD 00 TNS FNC params``."""
+    return PcccHeader(dst, src, request.CMD, 0, tns).encode() + bytes((request.FNC,)) + request.encode_params()
+
+
+@dataclass(slots=True)
+class StationTotals:
+    """Per-station counters for metrics, summed over reconnects (the core's own reset with it)."""
+
+    polls: int = 0
+    eots: int = 0
+    messages_sent: int = 0
+    messages_received: int = 0
+    retries: int = 0
+    timeouts: int = 0
+    bad_frames: int = 0
+    duplicates: int = 0
+    demotions: int = 0
+    read_retries: int = 0  #: reads sent again with a new TNS by this driver
+    read_backs: int = 0  #: writes settled by a read-back
+    stray_replies: int = 0
+    slave_messages: int = 0  #: messages the station initiated (acknowledged, not answered yet)
+
+    def add(self, core: StationCounters) -> StationTotals:
+        total = StationTotals(**{f.name: getattr(self, f.name) for f in fields(self)})
+        for f in fields(core):
+            setattr(total, f.name, getattr(total, f.name) + getattr(core, f.name))
+        return total
+
+
+class Df1Station:
+    """One station on a half-duplex line, with the request API of ``Df1Driver``."""
+
+    def __init__(self, line: Df1HalfDuplexLine, config: StationConfig, name: str) -> None:
+        self.line = line
+        self.config = config
+        self.station = config.station
+        self.name = name
+        self.counters = LinkCounters()
+        self.last_sts = 0
+        self.last_error = ""
+        self._base = StationTotals()  #: counters of cores before the current one, and the driver's own
+        self._state: bool | None = None
+        self._listeners: list[Callable[[Df1Station], None]] = []
+        self._closed = False
+        self.write_burst = 1  #: set by the unit; see write_session
+        self.poll_burst = 2
+
+    # --- state ------------------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        return self.line.connected
+
+    @property
+    def available(self) -> bool:
+        """The port is open and the station answered its last exchange (not demoted)."""
+        return self.line.connected and self._state is True
+
+    @property
+    def totals(self) -> StationTotals:
+        """Polls, EOTs, retries, demotions ... of this station since the line started."""
+        core = self.line.core
+        return self._base.add(core.counters(self.station)) if core is not None else self._base
+
+    def add_listener(self, callback: Callable[[Df1Station], None]) -> None:
+        self._listeners.append(callback)
+
+    def _report(self, up: bool, reason: str = "") -> None:
+        if reason:
+            self.last_error = reason
+        if self._state is up:
+            return
+        self._state = up
+        if up:
+            self.last_error = ""
+            log.info("link %s: station %d up", self.name, self.station)
+        else:
+            log.warning("link %s: station %d down: %s", self.name, self.station, self.last_error or "no answer")
+        for callback in self._listeners:
+            callback(self)
+
+    def _bank(self, core: HalfDuplexMaster) -> None:
+        """The core is being replaced (reconnect): keep its counts."""
+        self._base = self._base.add(core.counters(self.station))
+
+    # --- life cycle (shared line) -------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Keep the shared line running (the first station to run starts it) until cancelled."""
+        await self.line.run_shared()
+
+    async def start(self, wait: float | None = None) -> None:
+        await self.line.start_shared(wait)
+
+    async def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            await self.line.release()
+
+    # --- requests ---------------------------------------------------------------------------
+
+    async def execute(self, request: PcccCommand, name: str = "", *, write: bool | None = None) -> PcccReply:
+        """Send ``request`` to this station and return the (successful) reply (module docstring)."""
+        label = name or type(request).__name__
+        is_write = type(request).__name__ in _WRITE_TYPES if write is None else write
+        if not is_write:
+            return await self._read(request, label)
+        # a write goes on to its verdict even when its caller gives up (as Df1Driver.submit does)
+        task = asyncio.ensure_future(self._write(request, label))
+        task.add_done_callback(_observe)
+        return await asyncio.shield(task)
+
+    async def _read(self, request: PcccCommand, label: str) -> PcccReply:
+        tries = self.line.retries + 1
+        for attempt in range(tries):
+            if attempt:
+                self._base.read_retries += 1
+            event, tns = await self.line.exchange(self, request)
+            if isinstance(event, ReplyReceived):
+                return self._settle(event, request, label, tns)
+            if event.reason is FailReason.STATION_DEMOTED or attempt == tries - 1:
+                return self._fail(event, label, attempt + 1)
+        raise AssertionError("unreachable: the last try returns or raises")
+
+    async def _write(self, request: PcccCommand, label: str) -> PcccReply:
+        event, tns = await self.line.exchange(self, request)
+        if isinstance(event, ReplyReceived):
+            return self._settle(event, request, label, tns)
+        if not event.may_have_executed:
+            return self._fail(event, label, 1)
+        writes = (ProtectedTypedLogicalWrite, ProtectedTypedLogicalMaskedWrite)
+        read_back = read_back_for(request) if isinstance(request, writes) else None
+        why = f"{event.reason.value}; the write may have been applied"
+        if read_back is not None:
+            self._base.read_backs += 1
+            try:
+                got = await self._read(read_back.request, f"read-back of {label}")
+            except (LinkTimeout, GatewayError) as exc:
+                why += f" (the read-back failed: {exc})"
+            else:
+                if read_back.holds(got.data):
+                    self.counters.transactions += 1
+                    return PcccReply(self.line.source, self.station, request.CMD | 0x40, 0, tns)
+                why += f" (the read-back gave {got.data.hex(' ')}, not the value written)"
+        self.counters.timeouts += 1
+        message = f"link {self.name}: {label}: {why}"
+        self._note(False, message)
+        raise WriteOutcomeUnknown(message)
+
+    def _settle(self, event: ReplyReceived, request: PcccCommand, label: str, tns: int) -> PcccReply:
+        try:
+            reply = decode_reply(event.message)
+        except PcccFormatError as exc:
+            self._note(False, f"link {self.name}: {label}: {exc}")
+            raise ProtocolError(f"link {self.name}: {label}: {exc}") from exc
+        self._note(True)
+        if not reply.ok:
+            self.counters.refusals += 1
+            self.last_sts = reply.sts
+            reply.raise_for_status(command=label, fnc=request.FNC)
+        return reply
+
+    def _fail(self, event: RequestFailed, label: str, tries: int) -> PcccReply:
+        self.counters.timeouts += 1
+        if event.reason is FailReason.STATION_DEMOTED:
+            message = (
+                f"link {self.name}: {label}: station {self.station} does not answer polls; it is polled "
+                f"every {self.config.slow_poll_interval:g} s until it does (check its power, cable and "
+                f"station number)"
+            )
+        else:
+            message = f"link {self.name}: {label}: {event.reason.value} (after {tries} tries)"
+        self._note(False, message)
+        raise LinkTimeout(message)
+
+    def _note(self, ok: bool, error: str = "") -> None:
+        if ok:
+            self.counters.transactions += 1
+            self._report(True)
+        else:
+            self.counters.errors += 1
+            self._report(False, error)
+
+    # --- the write-session API of LinkDriver (gateway.writes uses it) ------------------------
+
+    @contextlib.asynccontextmanager
+    async def write_session(self) -> AsyncIterator[None]:
+        """A run of writes.  On a half-duplex line the core owns the order (each station's commands
+        in turn, round robin between stations, polls between them), so a session only checks that
+        the line is up; ``write_burst`` / ``poll_burst`` are kept for the unit but not used."""
+        if not self.line.connected:
+            raise LinkDown(f"link {self.name} is down: {self.line.last_error or 'not connected'}")
+        yield
+
+    def extend_burst(self) -> None:
+        """No burst accounting on a half-duplex line (see :meth:`write_session`)."""
+
+    async def probe(self) -> DiagnosticStatusInfo:
+        reply = await self.execute(DiagnosticStatus(), "diagnostic status")
+        return DiagnosticStatusInfo(reply.data)
+
+
+def _observe(task: asyncio.Future[PcccReply]) -> None:
+    if not task.cancelled():
+        task.exception()
+
+
+class Df1HalfDuplexLine(LinkDriver):
+    """The master of one half-duplex line (module docstring).  ``station(n)`` gives the handles."""
+
+    def __init__(
+        self,
+        url: str,
+        stations: Sequence[StationConfig],
+        *,
+        name: str = "",
+        settings: SerialSettings = DF1_SETTINGS,
+        checksum: Checksum = Checksum.CRC,
+        source: int = 0,
+        ack_timeout: float = 0.5,
+        message_retries: int = 3,
+        retries: int = 2,
+        pre_transmit_delay: float = 0.0,
+        rts_send_delay: float = 0.0,
+        rts_off_delay: float = 0.0,
+        echo: bool = False,
+        duplicate_detect: bool = True,
+        link_reset: bool = True,
+        rts: Callable[[bool], None] | None = None,
+        station_names: dict[int, str] | None = None,
+        trace: Path | None = None,
+        reconnect_min: float = 0.5,
+        reconnect_max: float = 30.0,
+        opener: OpenStream = open_stream,
+        first_tns: int | None = None,
+    ) -> None:
+        super().__init__(
+            url, name=name, settings=settings, trace=trace, reconnect_min=reconnect_min,
+            reconnect_max=reconnect_max, opener=opener,
+        )
+        if not stations:
+            raise ValueError(f"line {self.name}: a half-duplex line needs at least one station")
+        self.checksum = checksum
+        self.source = source
+        self.retries = retries
+        self.ack_timeout = ack_timeout
+        # Without duplicate detection in the slaves (RM p. 13-59 "Duplicate Packet Detect" unchecked) a
+        # resent master frame whose first copy arrived is executed again: then no frame is ever resent
+        # (reads are retried with a new TNS, writes settled by a read-back), so a write runs once.
+        self.duplicate_detect = duplicate_detect
+        self.message_retries = message_retries if duplicate_detect else 0
+        self.pre_transmit_delay = pre_transmit_delay
+        self.rts_send_delay = rts_send_delay
+        self.rts_off_delay = rts_off_delay
+        self.echo = echo
+        self.link_reset = link_reset
+        self._rts = rts
+        self._rts_state: bool | None = None
+        self._configs = list(stations)
+        HalfDuplexMaster(self._line_config(), self._configs)  # validate now: unique stations, tunables
+        names = station_names or {}
+        self.stations: dict[int, Df1Station] = {
+            c.station: Df1Station(self, c, names.get(c.station, f"{self.name}/{c.station}")) for c in stations
+        }
+        self._tns = TnsAllocator(random.randrange(1, 0x10000) if first_tns is None else first_tns)
+        self.core: HalfDuplexMaster | None = None
+        self._waiting: dict[int, asyncio.Future[ReplyReceived | RequestFailed]] = {}
+        self._timer: asyncio.TimerHandle | None = None
+        self._users = 0
+        self.stray_replies = 0
+
+    def station(self, number: int) -> Df1Station:
+        try:
+            return self.stations[number]
+        except KeyError:
+            raise ValueError(f"line {self.name}: no station {number} (stations: {sorted(self.stations)})") from None
+
+    def _line_config(self) -> LineConfig:
+        return LineConfig(
+            self.checksum,
+            ack_timeout=self.ack_timeout,
+            message_retries=self.message_retries,
+            char_time=self.char_time,
+            pre_transmit_delay=self.pre_transmit_delay,
+            rts_send_delay=self.rts_send_delay,
+            rts_off_delay=self.rts_off_delay,
+            echo=self.echo,
+        )
+
+    # --- shared life cycle ------------------------------------------------------------------
+
+    async def run_shared(self) -> None:
+        """Every station's ``run()``: one line task, started by the first, awaited by all."""
+        self._users += 1
+        if self._run_task is None:
+            self._run_task = asyncio.create_task(self.run(), name=f"{self.name}-line")
+        await asyncio.shield(self._run_task)
+
+    async def start_shared(self, wait: float | None = None) -> None:
+        self._users += 1
+        if self._run_task is None:
+            await self.start(wait)
+
+    async def release(self) -> None:
+        """A station is done with the line; the last one closes it."""
+        self._users -= 1
+        if self._users <= 0:
+            await self.close()
+
+    # --- protocol hooks ---------------------------------------------------------------------
+
+    def on_connect(self) -> None:
+        loop = asyncio.get_running_loop()
+        if self.core is not None:
+            for handle in self.stations.values():
+                handle._bank(self.core)
+        for waiter in self._waiting.values():
+            if not waiter.done():
+                waiter.set_exception(LinkDown(f"line {self.name}: reconnected; the request was lost with the line"))
+        self._waiting.clear()
+        self.core = HalfDuplexMaster(self._line_config(), self._configs)
+        self.core.start(loop.time(), link_reset=self.link_reset)
+        self._pump()
+
+    def abort(self, exc: GatewayError) -> None:
+        for waiter in self._waiting.values():
+            if not waiter.done():
+                waiter.set_exception(exc)
+        self._waiting.clear()
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
+    def data_received(self, data: bytes) -> None:
+        if self.core is not None:
+            self.core.receive_data(data, asyncio.get_running_loop().time())
+            self._pump()
+
+    def _pump(self) -> None:
+        core = self.core
+        if core is None:
+            return
+        if self._rts is not None and core.rts != self._rts_state:  # RTS before the bytes it keys up
+            self._rts_state = core.rts
+            self._rts(core.rts)
+        out = core.data_to_send()
+        if out and self.connected:
+            self.send(out)
+        while (event := core.next_event()) is not NEED_DATA:
+            self._dispatch(event)
+        self._arm_timer()
+
+    def _dispatch(self, event: MasterEvent) -> None:
+        if isinstance(event, ReplyReceived | RequestFailed):
+            waiter = self._waiting.pop(event.request_id, None)
+            if waiter is not None and not waiter.done():
+                waiter.set_result(event)
+        elif isinstance(event, StationDemoted):
+            handle = self.stations[event.station]
+            handle._report(False, f"station {event.station} does not answer polls (demoted to slow poll)")
+        elif isinstance(event, StationRestored):
+            self.stations[event.station]._report(True)
+        elif isinstance(event, SlaveInitiated):
+            self.stations[event.station]._base.slave_messages += 1
+            log.debug("line %s: station %d sent a message of its own: %s", self.name, event.station,
+                      event.message.hex(" "))
+        elif isinstance(event, StrayReply):
+            self.stray_replies += 1
+            self.stations[event.station]._base.stray_replies += 1
+
+    def _arm_timer(self) -> None:
+        deadline = self.core.next_deadline() if self.core is not None else None
+        timer = self._timer
+        if timer is not None:
+            if deadline is not None and timer.when() == deadline:
+                return
+            timer.cancel()
+            self._timer = None
+        if deadline is not None and self.connected:
+            self._timer = asyncio.get_running_loop().call_at(deadline, self._on_timer)
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        if self.connected and self.core is not None:
+            self.core.handle_timeout(asyncio.get_running_loop().time())
+            self._pump()
+
+    # --- requests ---------------------------------------------------------------------------
+
+    async def exchange(self, handle: Df1Station, request: PcccCommand) -> tuple[ReplyReceived | RequestFailed, int]:
+        """Submit ``request`` for ``handle``'s station; its outcome event and the TNS it used."""
+        core = self.core
+        if core is None or not self.connected:
+            raise LinkDown(f"link {handle.name} is down: {self.last_error or 'not connected'}")
+        loop = asyncio.get_running_loop()
+        tns = self._tns.allocate()
+        try:
+            packet = encode_packet(request, dst=handle.station, src=self.source, tns=tns)
+            waiter: asyncio.Future[ReplyReceived | RequestFailed] = loop.create_future()
+            request_id = core.submit(handle.station, packet, loop.time())
+            self._waiting[request_id] = waiter
+            self._pump()
+            try:
+                return await waiter, tns
+            finally:
+                self._waiting.pop(request_id, None)
+        finally:
+            self._tns.release(tns)
+
