@@ -142,9 +142,10 @@ async def test_a_write_whose_every_reply_is_lost_times_out_and_is_applied_once()
     async with asyncio.timeout(5), driver:
         await driver.read(0x40, 2)
         sim.faults.drop = 1  # from now on every reply is lost
-        with pytest.raises(LinkTimeout):
+        with pytest.raises(LinkTimeout, match="outcome unknown"):
             await driver.write_word(0x40, 4321)
-        assert not driver.available
+        # one failed transaction is not a lost link (down after 3 in a row, or 5 s of silence)
+        assert driver.available
         assert "no valid answer" in driver.last_error
         assert driver.counters.retransmits == 3 == sim.counters.retransmits
         assert driver.counters.timeouts == 4
@@ -294,9 +295,12 @@ async def test_counters_follow_dropped_and_garbled_replies() -> None:
     c = driver.counters
     assert c.transactions == 100
     assert c.retransmits == sim.counters.retransmits > 0
-    # each lost or garbled reply costs exactly one wait to the deadline, and one ;Z
-    assert c.timeouts == sim.counters.dropped + sim.counters.garbled_out
-    assert c.retransmits == c.timeouts
+    # a lost reply costs one wait to the deadline and one ;Z; a complete garbled one a ;Z at
+    # once (no wait); a truncated one is seen only when the next frame starts, or at the deadline
+    assert sim.counters.dropped <= c.timeouts < sim.counters.dropped + sim.counters.garbled_out
+    # (a truncated reply completed by the next frame's leading character may cost a second ;Z)
+    assert sim.counters.dropped + sim.counters.garbled_out <= c.retransmits
+    assert c.retransmits <= sim.counters.dropped + 2 * sim.counters.garbled_out
     assert c.retries == c.retransmits + c.id_resyncs
     assert c.crc_errors >= sim.counters.garbled_out - 1  # the last truncated one may still be pending
 
