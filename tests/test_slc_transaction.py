@@ -113,12 +113,12 @@ def test_reads_succeed_on_a_harsh_line(variants: dict[str, str]) -> None:
 # --- byte scripts --------------------------------------------------------------------------------
 
 
-def _started(command: cmds.Command = cmds.read_bytes(0x40, 2), *, msg_id: int = 5) -> SlcSession:
+def _started(command: cmds.Command | None = None, *, msg_id: int = 5) -> SlcSession:
     """A session in step with the controller: the next command goes with ``msg_id``."""
     session = SlcSession(timeout=TIMEOUT)
     session._next = msg_id  # as after msg_id - 1 messages
     session._last_taken = msg_id - 1 if msg_id > 1 else (MAX_ID if msg_id == 1 else 0)
-    session.start(command, 0.0)
+    session.start(command or cmds.read_bytes(0x40, 2), 0.0)
     return session
 
 
