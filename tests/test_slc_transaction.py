@@ -116,7 +116,8 @@ def test_reads_succeed_on_a_harsh_line(variants: dict[str, str]) -> None:
 def _started(command: cmds.Command | None = None, *, msg_id: int = 5) -> SlcSession:
     """A session in step with the controller: the next command goes with ``msg_id``."""
     session = SlcSession(timeout=TIMEOUT)
-    session._next = msg_id  # as after msg_id - 1 messages
+    session._next = msg_id  # as after msg_id - 1 messages, numbering begun after quiet
+    session._era_trusted = True
     session._last_taken = msg_id - 1 if msg_id > 1 else (MAX_ID if msg_id == 1 else 0)
     session.start(command or cmds.read_bytes(0x40, 2), 0.0)
     return session
@@ -153,10 +154,49 @@ def test_a_garbled_complete_reply_gets_z_at_once_a_missing_one_after_the_timeout
     assert session.next_deadline() == pytest.approx(0.01 + TIMEOUT)
     session.handle_timeout(0.2)  # early: nothing happens
     assert session.data_to_send() == b""
-    session.handle_timeout(0.31 + 0.01)
-    assert session.data_to_send() == encode_retransmit(5)
-    session.receive_data(encode_data_reply("000200400064", 5), 0.4)
+    session.receive_data(encode_data_reply("000200400064", 5), 0.05)
     assert session.take_result().verdict is Verdict.DONE
+
+    # nothing at all: the timeout is waited out, then ;Z
+    session.start(READ, 1.0)
+    assert session.data_to_send() == encode_command(READ, 6)
+    session.handle_timeout(1.0 + TIMEOUT / 2)
+    assert session.data_to_send() == b""
+    session.handle_timeout(1.0 + TIMEOUT)
+    assert session.data_to_send() == encode_retransmit(6)
+    # silence after ;Z (a power cycle leaves nothing to repeat): a read resyncs and asks again
+    session.handle_timeout(1.0 + 2 * TIMEOUT)
+    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
+    session.receive_data(encode_data_reply("021FFE1547", 0), 1.7)
+    assert session.data_to_send() == encode_command(READ, 1)
+    session.receive_data(encode_data_reply("000200400064", 1), 1.71)
+    assert session.take_result().verdict is Verdict.DONE
+
+
+def test_a_reply_cut_short_gets_z_after_the_character_gap_not_the_timeout() -> None:
+    session = _started()
+    session.data_to_send()
+    reply = encode_data_reply("000200400064", 5)
+    session.receive_data(reply[:7], 0.01)  # the rest (and its CR) is lost
+    assert session.next_deadline() == pytest.approx(0.01 + session.char_gap)
+    session.handle_timeout(0.01 + session.char_gap)
+    assert session.data_to_send() == encode_retransmit(5)
+    assert session.counters.crc_errors == 1
+    session.receive_data(reply, 0.1)
+    assert session.take_result().verdict is Verdict.DONE
+
+
+def test_a_frame_in_pieces_is_not_cut_short() -> None:
+    session = _started()
+    session.data_to_send()
+    reply = encode_data_reply("000200400064", 5)
+    now = 0.0
+    for i in range(len(reply)):
+        now += session.char_gap / 2
+        session.handle_timeout(now)
+        session.receive_data(reply[i : i + 1], now)
+    assert session.take_result().verdict is Verdict.DONE
+    assert session.counters.crc_errors == 0
 
 
 def test_a_write_answered_by_its_z_is_done_once() -> None:
@@ -231,6 +271,7 @@ def test_late_i_after_id_rollover_is_proof_for_a_write() -> None:
     session = SlcSession(timeout=TIMEOUT)
     session._next = MAX_ID
     session._last_taken = MAX_ID - 1
+    session._era_trusted = True
     session.start(cmds.read_bytes(0x40, 2), 0.0)
     assert session.data_to_send() == encode_command(cmds.read_bytes(0x40, 2), MAX_ID)
     session.receive_data(encode_data_reply("000200400064", MAX_ID), 0.01)

@@ -79,7 +79,7 @@ class SlcAsciiDriver(LinkDriver):
         self.retries = retries
         self.last_fault: ControllerFault | None = None
         self.session = SlcSession(timeout=timeout, retries=retries)
-        self._wake: asyncio.Event = asyncio.Event()
+        self._waiter: asyncio.Future[None] | None = None
         # A port that cannot do 7E1 (some adapters, pseudo-terminals) can run at 8N1 with the
         # parity bit computed here; replies are read with bit 7 masked either way.
         self._software_parity = settings.bytesize == 8 and settings.parity == "N"
@@ -93,14 +93,17 @@ class SlcAsciiDriver(LinkDriver):
         # The core's reply time also covers the characters of a command and the longest reply.
         self.session.timeout = self.timeout + (2 * 8 + 9 + _LONGEST_REPLY) * self.char_time
         self.session.late_bound = 2 * self.session.timeout
+        # a frame's characters follow each other; a pause of 20 characters (50 ms at least, for
+        # device servers that cut frames into packets) means the rest is lost
+        self.session.char_gap = max(0.05, 20 * self.char_time)
 
     def abort(self, exc: GatewayError) -> None:
         self._aborted = exc
-        self._wake.set()
+        _wake(self._waiter)
 
     def data_received(self, data: bytes) -> None:
         self.session.receive_data(data, asyncio.get_running_loop().time())
-        self._wake.set()
+        _wake(self._waiter)
 
     # --- one transaction --------------------------------------------------------------------
 
@@ -118,14 +121,21 @@ class SlcAsciiDriver(LinkDriver):
                 session.connected()
                 raise LinkDown(f"link {self.name} is down: {self.last_error or 'closed'}")
             deadline = session.next_deadline()
-            self._wake.clear()
             if deadline is not None and loop.time() >= deadline:
                 session.handle_timeout(loop.time())
                 continue
+            # Wait for bytes or the core's deadline (no wait_for: it can swallow a cancellation).
+            self._waiter = waiter = loop.create_future()
+            timer = loop.call_at(deadline, _wake, waiter) if deadline is not None else None
             try:
-                await asyncio.wait_for(self._wake.wait(), None if deadline is None else deadline - loop.time())
-            except TimeoutError:
-                session.handle_timeout(loop.time())
+                await waiter
+            except asyncio.CancelledError:
+                session.connected()  # the line is in an unknown state: resync next time
+                raise
+            finally:
+                self._waiter = None
+                if timer is not None:
+                    timer.cancel()
         self._flush()
         self._sync_counters(before)
         result = session.take_result()
@@ -302,6 +312,11 @@ class SlcAsciiDriver(LinkDriver):
                 block += 1
 
         await self.submit(op, Priority.WRITE)
+
+
+def _wake(waiter: asyncio.Future[None] | None) -> None:
+    if waiter is not None and not waiter.done():
+        waiter.set_result(None)
 
 
 def _data(answer: Answer) -> DataReply:

@@ -152,6 +152,7 @@ class SlcSession:
         max_resends: int = MAX_RESENDS,
         max_resyncs: int = MAX_RESYNCS,
         late_bound: float | None = None,
+        char_gap: float = 0.05,
     ) -> None:
         self.timeout = timeout
         self.retries = retries
@@ -159,6 +160,11 @@ class SlcSession:
         self.max_resyncs = max_resyncs
         #: a reply arrives at most this long after its message (replies "just after the timeout")
         self.late_bound = late_bound if late_bound is not None else 2 * timeout
+        #: a frame whose next character does not come within this is cut short (garbled)
+        self.char_gap = char_gap
+        self._gap_deadline: float | None = None
+        #: the current ID numbering began with a barrier sent after quiet (writes need it)
+        self._era_trusted = False
         self.counters = SessionCounters()
         self.fault_pending = False
         self.result: Result | None = None
@@ -191,11 +197,14 @@ class SlcSession:
 
     def connected(self) -> None:
         """A new stream: forget the decoder state; the first command resyncs."""
+        self._last_sent = float("-inf")
         self._decoder = ReplyDecoder()
         self._out.clear()
         self._next = 0
         self._clean = True
+        self._era_trusted = False
         self._deadline = None
+        self._gap_deadline = None
         self.state = SessionState.IDLE
         self.result = None
 
@@ -208,7 +217,7 @@ class SlcSession:
         self._timeout = timeout if timeout is not None else self.timeout
         self._resends = self._resyncs = self._probes = self._messages = 0
         self._z_ever = False
-        if self._next == 0:
+        if self._next == 0 or (self._is_write and not self._era_trusted):
             self._begin_resync(now)
         elif self._is_write and not self._clean:
             self._enter_quiet(now, then_resync=False)
@@ -217,6 +226,10 @@ class SlcSession:
 
     def receive_data(self, data: bytes, now: float) -> None:
         self._decoder.receive_data(data)
+        self._events(now)
+        self._gap_deadline = now + self.char_gap if self._decoder.partial else None
+
+    def _events(self, now: float) -> None:
         while True:
             event = self._decoder.next_event()
             if event is NEED_DATA:
@@ -234,11 +247,23 @@ class SlcSession:
             self._step(kind, now, event)
 
     def handle_timeout(self, now: float) -> None:
+        if self._gap_deadline is not None and now >= self._gap_deadline:
+            self._gap_deadline = None
+            garbled = self._decoder.flush_partial()
+            if garbled is not None:
+                self.counters.crc_errors += 1
+                kind = self._classify(garbled)
+                if kind is not None:
+                    self._step(kind, now, garbled)
+            return
         if self._deadline is None or now < self._deadline:
             return
         self._step(_In.TIMEOUT, now, None)
 
     def next_deadline(self) -> float | None:
+        if self._gap_deadline is not None and self.state is not SessionState.IDLE:
+            if self._deadline is None or self._gap_deadline < self._deadline:
+                return self._gap_deadline
         return self._deadline
 
     def data_to_send(self) -> bytes:
@@ -337,6 +362,7 @@ class SlcSession:
     def _after_quiet(self, now: float) -> None:
         self._clean = True
         if self._quiet_then_resync:
+            self._era_trusted = True
             self._send_probe(now)
         else:
             self._send_first_copy(now)
@@ -346,7 +372,13 @@ class SlcSession:
         self.counters.id_resyncs += 1
         self._probes = 0
         self._next = 0
-        self._enter_quiet(now)
+        if self._is_write or now >= self._last_sent + self.late_bound:
+            self._enter_quiet(now)  # the barrier must be sound: no earlier reply may follow it
+        else:
+            # A read needs no sound barrier (its reply is checked against its own echo, and
+            # any value it takes was held); the numbering is then not trusted for writes.
+            self._era_trusted = False
+            self._send_probe(now)
 
     def _send_probe(self, now: float) -> None:
         self._probes += 1
@@ -357,8 +389,10 @@ class SlcSession:
         self.result = Result(verdict, answer, reason)
         self.state = SessionState.IDLE
         self._deadline = None
-        if verdict in (Verdict.DONE, Verdict.REFUSED) and self._messages == 1 and self._began_clean:
-            self._clean = True  # the one message of this transaction got its answer: nothing due
+        if verdict in (Verdict.DONE, Verdict.REFUSED) and self._messages == 1 and self._era_trusted:
+            # The one message of this transaction got its answer: the replies to every earlier
+            # message came before it (or never will), so none can still come.
+            self._clean = True
         if verdict in (Verdict.UNKNOWN, Verdict.FAILED):
             self._next = 0  # we no longer know the controller's ID state
 
@@ -431,6 +465,11 @@ class SlcSession:
 
     def _on_timeout(self, now: float, event: ReplyEvent | None) -> None:
         self.counters.timeouts += 1
+        if self.state is SessionState.Z_SENT and not self._is_write:
+            # Silence after ;Z: power-cycled (no last reply to repeat) or lost again.  A read
+            # need not find out which: ask again under a new numbering.
+            self._retry_read(now, "no answer to ;Z")
+            return
         self._z_or_give_up(now, "no valid answer")
 
     def _z_or_give_up(self, now: float, why: str) -> None:
@@ -447,7 +486,7 @@ class SlcSession:
         # The barrier: the controller expects 01 next, and no earlier reply can follow.
         self._next = 1
         self._last_taken = 0
-        self._clean = True
+        self._clean = self._era_trusted
         self._send_first_copy(now)
 
     def _on_probe_garbled(self, now: float, event: ReplyEvent | None) -> None:
