@@ -21,8 +21,8 @@ Where the manual leaves the controller's behaviour open, ``VARIANTS`` has a swit
   power cycle (``retained``) ("{id} is the last valid [ID]");
 * ``z_after_power_up``: ``;Z`` with no reply kept since power-up gets no answer (``silent``) or
   ``;E`` with the ``;Z``'s ID (``error``);
-* ``late_replies``: ``none``, or ``some``: 1 reply in 8 comes just after the 0.3 s reply time
-  (``late_delay``, 0.36 s by default);
+* ``late_replies``: ``none``, or ``some``: 1 reply in ``late_every`` (20) comes just after the
+  0.3 s reply time (``late_delay``, 0.36 s by default), holding back the replies behind it;
 * ``z_garbled_again``: the repetition of a garbled reply is clean (``no``) or garbled again once
   (``once``);
 * ``transfer_after_power_up``: the upload/download block pointer restarts at block 0
@@ -81,12 +81,14 @@ class FaultPlan:
     fault_every: int = 0  # emit ;T and set an error bit after every N-th command
     seed: int = 1
     late_delay: float = 0.36  # late_replies=some: a late reply comes this long after its command
+    late_every: int = 20  # late_replies=some: 1 reply in N is late
 
     @classmethod
     def from_options(cls, options: dict[str, str]) -> FaultPlan:
         plan = cls()
         for key, text in options.items():
-            if key not in ("garble", "drop", "delay", "power_cycle_every", "fault_every", "seed", "late_delay"):
+            if key not in ("garble", "drop", "delay", "power_cycle_every", "fault_every", "seed", "late_delay",
+                           "late_every"):
                 raise ValueError(f"unknown simulator fault option {key!r}")
             try:
                 value: float = float(text) if key in ("delay", "late_delay") else int(text)
@@ -339,7 +341,7 @@ class SlcAsciiSimulator:
             self.counters.garbled_out += 1
             reply = self._garble(reply)
         delay = plan.delay
-        if self.variants["late_replies"] == "some" and self._rng.randrange(8) == 0:
+        if self.variants["late_replies"] == "some" and self._rng.randrange(max(1, plan.late_every)) == 0:
             self.counters.late += 1
             delay = max(delay, plan.late_delay)
         out.append(Output(delay, reply))

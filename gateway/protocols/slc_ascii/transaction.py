@@ -51,6 +51,7 @@ Rules:
 from __future__ import annotations
 
 import enum
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
@@ -80,7 +81,7 @@ Answer = Ack | DataReply
 #: controller did not get it) before it stops.
 MAX_RESENDS: Final = 8
 #: How many ID 00 resyncs one transaction may do (reads: each one asks again).
-MAX_RESYNCS: Final = 4
+MAX_RESYNCS: Final = 8
 
 _PROBE: Final = cmds.read_frn()
 _PROBE_PREFIX: Final = f"{2:02X}{cmds.FRN_ADDRESS:04X}"
@@ -153,6 +154,7 @@ class SlcSession:
         max_resyncs: int = MAX_RESYNCS,
         late_bound: float | None = None,
         char_gap: float = 0.05,
+        min_timeout: float = 0.05,
     ) -> None:
         self.timeout = timeout
         self.retries = retries
@@ -162,6 +164,12 @@ class SlcSession:
         self.late_bound = late_bound if late_bound is not None else 2 * timeout
         #: a frame whose next character does not come within this is cut short (garbled)
         self.char_gap = char_gap
+        #: the reply timeout adapts to the controller's measured reply time (2 x the slowest of the
+        #: last 32 replies), between min_timeout and the configured timeout ("Normally the SLC
+        #: will respond within 0.3 seconds": an upper bound).  An early ;Z is harmless: it uses
+        #: up no ID, and the controller handles it after the command it follows.
+        self.min_timeout = min_timeout
+        self._reply_times: deque[float] = deque(maxlen=32)
         self._gap_deadline: float | None = None
         #: the current ID numbering began with a barrier sent after quiet (writes need it)
         self._era_trusted = False
@@ -192,6 +200,9 @@ class SlcSession:
         self._messages = 0
         self._began_clean = True
         self._quiet_then_resync = True
+        self._heard = False
+        self._copy_sent = 0.0
+        self._full_timeout = timeout
 
     # --- API ------------------------------------------------------------------------------
 
@@ -215,6 +226,10 @@ class SlcSession:
         self._command = command
         self._is_write = command.is_write or command.code == cmds.CommandCode.UPLOAD
         self._timeout = timeout if timeout is not None else self.timeout
+        #: the configured reply time: the last wait before a verdict is never shorter
+        self._full_timeout = self._timeout
+        if self._timeout <= self.timeout and len(self._reply_times) >= 8:
+            self._timeout = min(self._timeout, max(self.min_timeout, 2 * max(self._reply_times)))
         self._resends = self._resyncs = self._probes = self._messages = 0
         self._z_ever = False
         if self._next == 0 or (self._is_write and not self._era_trusted):
@@ -225,6 +240,8 @@ class SlcSession:
             self._send_first_copy(now)
 
     def receive_data(self, data: bytes, now: float) -> None:
+        if data and self.state is SessionState.RESYNC:
+            self._heard = True
         self._decoder.receive_data(data)
         self._events(now)
         self._gap_deadline = now + self.char_gap if self._decoder.partial else None
@@ -315,6 +332,9 @@ class SlcSession:
         return True
 
     def _step(self, kind: _In, now: float, event: ReplyEvent | None) -> None:
+        if self.state in (SessionState.SENT, SessionState.RESYNC) and kind is not _In.TIMEOUT:
+            # the first reply to a message we did not have to ask for again: its reply time
+            self._reply_times.append(now - self._last_sent)
         handler = _TRANSITIONS.get((self.state, kind))
         if handler is not None:
             handler(self, now, event)
@@ -336,6 +356,7 @@ class SlcSession:
         self._send_copy(now)
 
     def _send_copy(self, now: float) -> None:
+        self._copy_sent = now
         self._copies += 1
         self._z_sent = 0
         self._clean = False
@@ -347,7 +368,9 @@ class SlcSession:
         self._z_ever = True
         self.counters.retransmits += 1
         self.state = SessionState.Z_SENT
-        self._send(encode_retransmit(self._msg_id), now, self._timeout)
+        # a write's last ;Z waits the full reply time: its answer may be held back on the line
+        last = self._is_write and self._z_sent >= self.retries
+        self._send(encode_retransmit(self._msg_id), now, self._full_timeout if last else self._timeout)
 
     def _enter_quiet(self, now: float, *, then_resync: bool = True) -> None:
         self._quiet_then_resync = then_resync
@@ -371,6 +394,7 @@ class SlcSession:
         self._resyncs += 1
         self.counters.id_resyncs += 1
         self._probes = 0
+        self._heard = False
         self._next = 0
         if self._is_write or now >= self._last_sent + self.late_bound:
             self._enter_quiet(now)  # the barrier must be sound: no earlier reply may follow it
@@ -383,7 +407,9 @@ class SlcSession:
     def _send_probe(self, now: float) -> None:
         self._probes += 1
         self.state = SessionState.RESYNC
-        self._send(encode_command(_PROBE, 0), now, self.timeout)
+        # the full reply time: a reply held back on the line (one just after the timeout) must
+        # not make a silent-line verdict
+        self._send(encode_command(_PROBE, 0), now, self._full_timeout)
 
     def _finish(self, verdict: Verdict, answer: Answer | None = None, reason: str = "") -> None:
         self.result = Result(verdict, answer, reason)
@@ -496,9 +522,15 @@ class SlcSession:
     def _on_probe_timeout(self, now: float, event: ReplyEvent | None, timed_out: bool = True) -> None:
         if timed_out:
             self.counters.timeouts += 1
+        else:
+            self._heard = True
         if self._probes > self.retries:
+            why = f"no answer to read FRN with ID 00 (resync) after {self._probes} tries"
+            if self._heard:
+                self._retry_read(now, why)  # the controller is there, the line is bad: go on
+                return
             self._next = 0
-            self._finish(Verdict.FAILED, reason=f"no answer to read FRN with ID 00 (resync) after {self._probes} tries")
+            self._finish(Verdict.FAILED, reason=why)  # silence: fail fast (a dead line)
             return
         self._send_probe(now)
 
