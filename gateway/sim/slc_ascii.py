@@ -278,6 +278,7 @@ class SlcAsciiSimulator:
                 self.counters.retransmits += 1
                 if self._last_reply is not None:
                     again = self._last_garbled and self.variants["z_garbled_again"] == "once"
+                    self._last_garbled = False  # garbled again once, not for ever
                     self._emit(out, self._last_reply, garble=again)
                 elif self.variants["z_after_power_up"] == "error":
                     self._emit(out, framing.encode_refused(event.msg_id))
