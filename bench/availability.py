@@ -98,7 +98,7 @@ writable = ["holding:32-62"]
 
 
 async def measure(variants: dict[str, str], mix: dict[str, int], seconds: float, *, seed: int = 1,
-                  write_every: float = 1.0) -> dict[str, Any]:
+                  write_every: float = 5.0) -> dict[str, Any]:
     """Read the presets for ``seconds`` after the first scan; the figures and the correctness checks."""
     url = sim_url(mix, variants, seed)
     sim = get_simulator(url)

@@ -92,7 +92,7 @@ class SlcAsciiDriver(LinkDriver):
         self.session.connected()
         # The core's reply time also covers the characters of a command and the longest reply.
         self.session.timeout = self.timeout + (2 * 8 + 9 + _LONGEST_REPLY) * self.char_time
-        self.session.late_bound = 2 * self.session.timeout
+        self.session.late_bound = 1.5 * self.session.timeout
         # a frame's characters follow each other; a pause of 20 characters (50 ms at least, for
         # device servers that cut frames into packets) means the rest is lost
         self.session.char_gap = max(0.05, 20 * self.char_time)

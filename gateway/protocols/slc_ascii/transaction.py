@@ -160,8 +160,9 @@ class SlcSession:
         self.retries = retries
         self.max_resends = max_resends
         self.max_resyncs = max_resyncs
-        #: a reply arrives at most this long after its message (replies "just after the timeout")
-        self.late_bound = late_bound if late_bound is not None else 2 * timeout
+        #: a reply arrives at most this long after its message (replies "just after the timeout"; an
+        #: assumption of the design, docs/controller-variants.md)
+        self.late_bound = late_bound if late_bound is not None else 1.5 * timeout
         #: a frame whose next character does not come within this is cut short (garbled)
         self.char_gap = char_gap
         #: the reply timeout adapts to the controller's measured reply time (2 x the slowest of the
