@@ -17,7 +17,7 @@ import pytest
 
 from gateway.drivers.base import Priority
 from gateway.drivers.slc_ascii import SlcAsciiDriver
-from gateway.errors import ControllerRefused, LinkDown, LinkTimeout, ProtocolError
+from gateway.errors import ControllerRefused, GatewayError, LinkDown, LinkTimeout, ProtocolError
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import ControllerType, Mode
 from gateway.protocols.slc_ascii.framing import DataReply
@@ -484,3 +484,39 @@ async def test_start_fails_with_link_down_when_nothing_listens() -> None:
     async with asyncio.timeout(5):
         with pytest.raises(LinkDown):
             await driver.start()
+
+
+# ---------------------------------------------------------------------------------------------
+# Program transfer across power cycles (issue 9): restart from block 0 within a bound
+
+
+@pytest.mark.parametrize("pointer", ["restart", "keep"])
+async def test_upload_and_download_survive_a_power_cycle_midway(pointer: str) -> None:
+    url = f"sim://slc150?power_cycle_every=200&ladder=0&variant=transfer_after_power_up={pointer}"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.02, slow_timeout=0.02)
+    program = bytes((i * 29 + 5) & 0xFF for i in range(ControllerType.SLC150.block_count * 15 - 8)) + bytes(8)
+    async with asyncio.timeout(30), driver:
+        for _ in range(100):  # so that a power cycle comes in the middle of the upload
+            await driver.read(0x40, 2)
+        await driver.set_mode(Mode.PROGRAM)
+        uploaded = await driver.upload_program(ControllerType.SLC150)
+        assert uploaded[:-8] == sim.program[:-8]
+        assert sim.counters.power_cycles >= 1
+        cycles = sim.counters.power_cycles
+        await driver.download_program(ControllerType.SLC150, program)
+        assert bytes(sim.program) == program
+        assert sim.counters.power_cycles > cycles  # one came during the download too
+    assert [w for w in sim.applied_writes if w[0] == "program"] == [("program", 0, len(program))]
+
+
+async def test_a_download_that_cannot_complete_names_the_block() -> None:
+    url = "sim://slc150?power_cycle_every=60&ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.02, slow_timeout=0.02)
+    program = bytes(ControllerType.SLC150.block_count * 15)
+    async with asyncio.timeout(60), driver:
+        await driver.set_mode(Mode.PROGRAM)
+        with pytest.raises(GatewayError, match=r"download failed at block 0x[0-9A-F]{2} of 165 .*download again"):
+            await driver.download_program(ControllerType.SLC150, program)
+    assert not [w for w in sim.applied_writes if w[0] == "program"]  # never reported complete
