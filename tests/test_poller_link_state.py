@@ -23,9 +23,10 @@ def blocks(n: int, scan: Scan = Scan.SLOW) -> list[Block]:
 async def run_poller(poller: Poller, until: int, reads: list[int]) -> None:
     task = asyncio.create_task(poller.run())
     try:
-        async with asyncio.timeout(5):
-            while len(reads) < until:
-                await asyncio.sleep(0.001)
+        for _ in range(5000):
+            if len(reads) >= until:
+                break
+            await asyncio.sleep(0.001)
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
