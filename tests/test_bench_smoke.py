@@ -20,6 +20,7 @@ SCRIPTS = [
     "modbus_serving.py",
     "write_latency.py",
     "cpu_per_transaction.py",
+    "availability.py",
 ]
 
 
