@@ -231,7 +231,7 @@ class SlcSession:
         self._full_timeout = self._timeout
         if self._timeout <= self.timeout and len(self._reply_times) >= 8:
             self._timeout = min(self._timeout, max(self.min_timeout, 2 * max(self._reply_times)))
-        self._resends = self._resyncs = self._probes = self._messages = 0
+        self._resends = self._resyncs = self._probes = self._messages = self._copies = 0
         self._z_ever = False
         if self._next == 0 or (self._is_write and not self._era_trusted):
             self._begin_resync(now)
@@ -308,6 +308,9 @@ class SlcSession:
         if state is SessionState.RESYNC:
             if isinstance(event, DataReply) and event.msg_id == 0 and event.body_hex.startswith(_PROBE_PREFIX):
                 return _In.PROBE_ANSWER
+            if (not self._is_write and self._copies and isinstance(event, DataReply)
+                    and event.msg_id == self._msg_id and self._fits(event)):
+                return _In.OURS  # a read's answer held back on the line: a value it held, take it
             return None  # anything else answers an earlier message
         if isinstance(event, IdMismatch):
             self.counters.id_mismatches += 1
@@ -436,6 +439,11 @@ class SlcSession:
         assert isinstance(event, (Ack, DataReply))
         self._finish(Verdict.DONE, event)
 
+    def _on_late_read_answer(self, now: float, event: ReplyEvent | None) -> None:
+        assert isinstance(event, DataReply)
+        self._finish(Verdict.DONE, event)
+        self._next = 0  # our ID 00 read is still on its way: begin the next with a resync again
+
     def _on_refused(self, now: float, event: ReplyEvent | None) -> None:
         if not self._z_ever:
             self._finish(Verdict.REFUSED, reason="illegal command or parameters for the current mode")
@@ -557,6 +565,7 @@ _TRANSITIONS: Final[dict[tuple[SessionState, _In], _Handler]] = {
     (_S.SENT, _In.TIMEOUT): SlcSession._on_timeout,
     (_S.Z_SENT, _In.TIMEOUT): SlcSession._on_timeout,
     (_S.RESYNC, _In.PROBE_ANSWER): SlcSession._on_probe_answer,
+    (_S.RESYNC, _In.OURS): SlcSession._on_late_read_answer,
     (_S.RESYNC, _In.GARBLED): SlcSession._on_probe_garbled,
     (_S.RESYNC, _In.TIMEOUT): SlcSession._on_probe_timeout,
     (_S.QUIET, _In.TIMEOUT): SlcSession._on_quiet,
