@@ -74,8 +74,9 @@ def describe(variants: dict[str, str]) -> str:
     return ",".join(f"{k}={v}" for k, v in variants.items())
 
 
-def sim_url(mix: dict[str, int], variants: dict[str, str], seed: int) -> str:
+def sim_url(mix: dict[str, int], variants: dict[str, str], seed: int, extra: str = "") -> str:
     query = [f"{k}={v}" for k, v in mix.items()] + [f"variant={k}={v}" for k, v in variants.items()]
+    query += [extra] if extra else []
     query += ["ladder=0", f"seed={seed}", f"instance={uuid.uuid4().hex}"]
     return "sim://slc150?" + "&".join(query)
 
@@ -98,9 +99,9 @@ writable = ["holding:32-62"]
 
 
 async def measure(variants: dict[str, str], mix: dict[str, int], seconds: float, *, seed: int = 1,
-                  write_every: float = 5.0) -> dict[str, Any]:
+                  write_every: float = 5.0, extra: str = "") -> dict[str, Any]:
     """Read the presets for ``seconds`` after the first scan; the figures and the correctness checks."""
-    url = sim_url(mix, variants, seed)
+    url = sim_url(mix, variants, seed, extra)
     sim = get_simulator(url)
     assert isinstance(sim, SlcAsciiSimulator)
     held = {reg: {sim.word(0x40 + 2 * (reg - 32)) & 0x7FFF} for reg in PRESETS}
@@ -261,7 +262,11 @@ async def run(args: argparse.Namespace) -> None:
     variants = variant_list(everything=True)
     if args.quick:
         variants = [variants[0], variants[-1]]
+    if args.only:
+        variants = [v for v in variants if args.only in describe(v)]
     mixes = ["clean", "harsh"] if args.quick else list(MIXES)
+    if args.mix:
+        mixes = [m for m in mixes if m in args.mix.split(",")]
     rows = []
     worst_harsh = 1.0
     wrong = doubles = lost = 0
@@ -269,7 +274,7 @@ async def run(args: argparse.Namespace) -> None:
         clean_goodput = 0.0
         for mix in mixes:
             reset_simulators()
-            figures = await measure(variant, MIXES[mix], args.seconds, seed=args.seed)
+            figures = await measure(variant, MIXES[mix], args.seconds, seed=args.seed, extra=args.sim_option)
             if mix == "clean":
                 clean_goodput = figures["goodput"]
             relative = figures["goodput"] / clean_goodput if clean_goodput else float("nan")
@@ -288,7 +293,7 @@ async def run(args: argparse.Namespace) -> None:
     print()
     print(table(["variant", "mix", "fresh %", "reads", "goodput tx/s", "goodput vs clean", "wrong values",
                  "writes acked/sent", "double writes", "acked writes lost"], rows))
-    recovered = await recovery(args.outage)
+    recovered = await recovery(args.outage) if not args.no_recovery else float("nan")
     print(f"\nrecovery after a {args.outage:g} s outage: first fresh read of all 31 presets "
           f"{recovered:.2f} s after the device server returned (target <= 2 s)")
     result(worst_harsh_fresh_pct=100 * worst_harsh, wrong_values=wrong, double_writes=doubles,
@@ -303,6 +308,10 @@ def main() -> None:
     parser.add_argument("--outage", type=float, default=0.0, help="outage for the recovery part (default 10; "
                                                                    "quick 2)")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--only", default="", help="only the variants whose description contains this")
+    parser.add_argument("--mix", default="", help="only these mixes (comma separated)")
+    parser.add_argument("--sim-option", default="", help="one more sim:// option, e.g. late_every=20")
+    parser.add_argument("--no-recovery", action="store_true", help="skip the recovery part")
     args = parser.parse_args()
     args.seconds = args.seconds or (3.0 if args.quick else 20.0)
     args.outage = args.outage or (2.0 if args.quick else 10.0)

@@ -21,7 +21,7 @@ Where the manual leaves the controller's behaviour open, ``VARIANTS`` has a swit
   power cycle (``retained``) ("{id} is the last valid [ID]");
 * ``z_after_power_up``: ``;Z`` with no reply kept since power-up gets no answer (``silent``) or
   ``;E`` with the ``;Z``'s ID (``error``);
-* ``late_replies``: ``none``, or ``some``: 1 reply in ``late_every`` (20) comes just after the
+* ``late_replies``: ``none``, or ``some``: 1 reply in ``late_every`` (50) comes just after the
   0.3 s reply time (``late_delay``, 0.36 s by default), holding back the replies behind it;
 * ``z_garbled_again``: the repetition of a garbled reply is clean (``no``) or garbled again once
   (``once``);
@@ -81,7 +81,7 @@ class FaultPlan:
     fault_every: int = 0  # emit ;T and set an error bit after every N-th command
     seed: int = 1
     late_delay: float = 0.36  # late_replies=some: a late reply comes this long after its command
-    late_every: int = 20  # late_replies=some: 1 reply in N is late
+    late_every: int = 50  # late_replies=some: 1 reply in N is late
 
     @classmethod
     def from_options(cls, options: dict[str, str]) -> FaultPlan:
