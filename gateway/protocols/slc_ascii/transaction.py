@@ -411,9 +411,10 @@ class SlcSession:
     def _send_probe(self, now: float) -> None:
         self._probes += 1
         self.state = SessionState.RESYNC
-        # the full reply time: a reply held back on the line (one just after the timeout) must
-        # not make a silent-line verdict
-        self._send(encode_command(_PROBE, 0), now, self._full_timeout)
+        # the last try waits the full reply time: a reply held back on the line (one just after
+        # the timeout) must not make a silent-line verdict
+        last = self._probes > self.retries
+        self._send(encode_command(_PROBE, 0), now, self._full_timeout if last else self._timeout)
 
     def _finish(self, verdict: Verdict, answer: Answer | None = None, reason: str = "") -> None:
         self.result = Result(verdict, answer, reason)
