@@ -171,6 +171,8 @@ class SlcSession:
         #: up no ID, and the controller handles it after the command it follows.
         self.min_timeout = min_timeout
         self._reply_times: deque[float] = deque(maxlen=32)
+        #: how long after a copy of the command its answers came (an upper bound of their lateness)
+        self._lateness: deque[float] = deque(maxlen=32)
         self._gap_deadline: float | None = None
         #: the current ID numbering began with a barrier sent after quiet (writes need it)
         self._era_trusted = False
@@ -336,6 +338,8 @@ class SlcSession:
         return True
 
     def _step(self, kind: _In, now: float, event: ReplyEvent | None) -> None:
+        if kind in (_In.OURS, _In.OURS_REFUSED, _In.ID_OURS, _In.ID_OTHER):
+            self._lateness.append(now - self._copy_sent)
         if self.state in (SessionState.SENT, SessionState.RESYNC) and kind is not _In.TIMEOUT:
             # the first reply to a message we did not have to ask for again: its reply time
             self._reply_times.append(now - self._last_sent)
@@ -376,9 +380,14 @@ class SlcSession:
         last = self._is_write and self._z_sent >= self.retries
         self._send(encode_retransmit(self._msg_id), now, self._full_timeout if last else self._timeout)
 
+    def _quiet_time(self) -> float:
+        """How long after our last message no reply to it can come: ``late_bound``, or more
+        when answers were seen coming later than that (a controller slower than configured)."""
+        return max(self.late_bound, 1.5 * max(self._lateness, default=0.0))
+
     def _enter_quiet(self, now: float, *, then_resync: bool = True) -> None:
         self._quiet_then_resync = then_resync
-        quiet_at = self._last_sent + self.late_bound
+        quiet_at = self._last_sent + self._quiet_time()
         if now >= quiet_at:
             self._after_quiet(now)
             return
@@ -400,7 +409,7 @@ class SlcSession:
         self._probes = 0
         self._heard = False
         self._next = 0
-        if self._is_write or now >= self._last_sent + self.late_bound:
+        if self._is_write or now >= self._last_sent + self._quiet_time():
             self._enter_quiet(now)  # the barrier must be sound: no earlier reply may follow it
         else:
             # A read needs no sound barrier (its reply is checked against its own echo, and
