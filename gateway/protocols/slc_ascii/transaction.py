@@ -30,11 +30,17 @@ may come between a command and its reply.
 Rules:
 
 * **Resends keep the ID.**  A copy with the same ID is never executed twice (the ID check).
-* **ID 00 (resync) only after quiet.**  The controller's numbering restarts with a harmless read
-  (``#0108``, read FRN, ID 00), sent only when no reply to an earlier message can still come
-  (``late_bound`` seconds after our last message).  Its answer is then a barrier: no reply
-  of an earlier message follows it, so a reply with the same ID from before can never be taken
-  for an answer.
+* **ID 00 (resync) for a write only after quiet.**  The controller's numbering restarts with a
+  harmless read (``#0108``, read FRN, ID 00).  Before a write relies on it, it is sent only when
+  no reply to an earlier message can still come (``late_bound``, 1.5 x the reply time, or more
+  when replies were seen coming later); its answer is then a barrier: no reply of an earlier
+  message follows it, so a reply with the same ID from before is never taken for an answer.
+  Reads resync at once (their answer is checked against its address echo, and any value taken
+  is one the controller held); a write then first resyncs after quiet.
+* **Timeouts adapt.**  The reply timeout is 2 x the slowest of the last 32 first replies (at
+  least ``min_timeout``, at most the configured one); the waits that decide a verdict (the last
+  resync read, a write's last ``;Z``) keep the configured time.  A frame whose next character
+  does not come within ``char_gap`` is garbled at once.
 * **Reads never fail for want of proof.**  A read that meets ``;I``, runs out of ``;Z`` retries
   or gets a ``;E`` that may answer a ``;Z`` resyncs and asks again (``max_resyncs`` times).
 * **Writes are resent under a new ID only after proof of non-execution**: a ``;I`` to a copy of
