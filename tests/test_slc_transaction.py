@@ -327,3 +327,18 @@ def test_ids_run_through_a_rollover_against_the_simulator() -> None:
         assert line.run(READ).verdict is Verdict.DONE
     assert sim.counters.id_mismatches == 0
     assert session.counters.id_resyncs == 1  # only the one after connecting
+
+
+def test_a_read_refused_in_a_numbering_begun_without_quiet_is_asked_again() -> None:
+    """``;E01`` may be a controller's answer to an earlier ``;Z01`` (after a power cycle): a read
+    in a numbering begun without quiet resyncs and asks again; a second ``;E`` is a refusal."""
+    session = _started(msg_id=1)
+    session._era_trusted = False
+    session.data_to_send()
+    session.receive_data(encode_refused(1), 0.01)
+    assert session.result is None
+    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
+    session.receive_data(encode_data_reply("021FFE1547", 0), 0.02)
+    assert session.data_to_send() == encode_command(READ, 1)
+    session.receive_data(encode_refused(1), 0.03)
+    assert session.take_result().verdict is Verdict.REFUSED

@@ -210,6 +210,7 @@ class SlcSession:
         self._began_clean = True
         self._quiet_then_resync = True
         self._heard = False
+        self._refused_once = False
         self._copy_sent = 0.0
         self._full_timeout = timeout
 
@@ -241,6 +242,7 @@ class SlcSession:
             self._timeout = min(self._timeout, max(self.min_timeout, 2 * max(self._reply_times)))
         self._resends = self._resyncs = self._probes = self._messages = self._copies = 0
         self._z_ever = False
+        self._refused_once = False
         if self._next == 0 or (self._is_write and not self._era_trusted):
             self._begin_resync(now)
         elif self._is_write and not self._clean:
@@ -461,6 +463,13 @@ class SlcSession:
         self._next = 0  # our ID 00 read is still on its way: begin the next with a resync again
 
     def _on_refused(self, now: float, event: ReplyEvent | None) -> None:
+        if not self._is_write and not self._era_trusted and not self._refused_once:
+            self._refused_once = True
+            # A read in a numbering begun without quiet: this ;E may answer an earlier ;Z with
+            # the same ID (a controller that answers ;Z with ;E after a power cycle).  Ask again
+            # under a new numbering; a second ;E is the controller's refusal.
+            self._retry_read(now, ";E to be confirmed")
+            return
         if not self._z_ever:
             self._finish(Verdict.REFUSED, reason="illegal command or parameters for the current mode")
             return
