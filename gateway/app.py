@@ -73,6 +73,8 @@ def build_unit(link: LinkConfig) -> Unit:
         timeout=link.timeout,
         retries=link.retries,
         trace=link.trace,
+        down_after_failures=link.down_after_failures,
+        down_after_seconds=link.down_after_seconds,
     )
     return SlcAsciiUnit(driver=driver, **common)
 

@@ -92,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--paced", action="store_true", help="pace characters at --baudrate (a real line's speed)")
     p.add_argument("--baudrate", type=int, help="line speed for --paced (default 9600 / 19200 for slc504)")
     p.add_argument("--turnaround", type=float, default=0.0, metavar="S", help="controller turnaround delay")
+    p.add_argument("--variant", action="append", default=[], metavar="NAME=VALUE",
+                   help="a reading of the manual where it leaves behaviour open (repeatable; "
+                        "docs/controller-variants.md lists them)")
 
     p = sub.add_parser("probe", help="print the controller type and firmware revision")
     _add_link_options(p)
@@ -211,6 +214,8 @@ async def _simulate(args: argparse.Namespace) -> int:
                 options[key] = str(getattr(args, key))
     if args.no_ladder:
         options["ladder"] = "0"
+    if args.variant:
+        options["variant"] = ",".join(args.variant)
     try:
         device = create_simulator(args.model, options)
     except ValueError as exc:

@@ -5,8 +5,11 @@ over the fast rounds of ``slow_interval`` (a share of it before each fast round)
 
 Every block is one request on the driver's queue at poll priority, so a write waits at most
 for the one poll transaction already on the line.  A block that fails keeps its last value
-in the cache and ages.  While the link is down the poller waits for it instead of spinning;
-when it comes back the slow class is read at once.
+in the cache and ages; the scan goes on with the next block, and the failed one is read again
+in its turn (a scan never restarts from its first block, so a long scan completes even when
+faults come every few messages).  While the link is down (the driver's own verdict: several
+failures in a row, not one) the poller waits for it instead of spinning; when it comes back the
+scan resumes where it stopped, and the slow class is read at once.
 """
 
 from __future__ import annotations
@@ -28,6 +31,8 @@ ReadBlock = Callable[[Block], Awaitable[bytes]]
 
 #: Seconds before a block the controller refused is tried again (at most the slow interval).
 _REFUSED_RETRY = 5.0
+#: Keys of the resume positions: the fast class, a whole slow scan, a share of a spread slow scan.
+_FAST, _SLOW, _SLOW_SHARE = "fast", "slow", "slow share"
 #: Refused blocks logged one by one (program mode refuses every read: one line is enough).
 _REFUSALS_LOGGED = 3
 
@@ -62,17 +67,22 @@ class Poller:
         #: blocks the controller refuses to read (a file too short, program mode ...): the
         #: refusal and when it came; retried every slow_interval, not every scan
         self.refused: dict[int, tuple[ControllerRefused, float]] = {}
+        #: per scan class: the position to resume at after the link went down mid-scan
+        self._resume = {_FAST: 0, _SLOW: 0, _SLOW_SHARE: 0}
 
-    async def _scan(self, indexes: Sequence[int]) -> bool:
-        """Read ``indexes``; False when the link is down (stop the scan early)."""
+    async def _scan(self, indexes: Sequence[int], scan: str = _FAST) -> bool:
+        """Read ``indexes``; False when the link is down (the scan stops and resumes there later)."""
         loop = asyncio.get_running_loop()
-        for index in indexes:
+        start = self._resume[scan] if self._resume[scan] < len(indexes) else 0
+        for position in range(start, len(indexes)):
+            index = indexes[position]
             refused = self.refused.get(index)
             if refused is not None and loop.time() - refused[1] < min(self.slow_interval, _REFUSED_RETRY):
                 continue
             try:
                 data = await self._read_block(self.blocks[index])
             except LinkDown:
+                self._resume[scan] = position
                 return False
             except ControllerRefused as exc:
                 self.block_errors += 1
@@ -87,14 +97,17 @@ class Poller:
                 self.block_errors += 1
                 log.debug("link %s: block %s failed: %s", self.name, self.blocks[index].label, exc)
                 if self._responding is not None and not self._responding():
-                    # The controller stopped answering: probe it with one block per round
-                    # instead of waiting out the full retries of every block in the plan.
+                    # The driver reports the link down (several failures in a row): probe it
+                    # with one block per round instead of waiting out the retries of every
+                    # block; the scan resumes after this block.
+                    self._resume[scan] = position + 1
                     return False
                 continue
             if refused is not None:
                 del self.refused[index]
                 log.info("link %s: %s is read again", self.name, self.blocks[index].label)
             self.cache.store(index, data, loop.time())
+        self._resume[scan] = 0
         return True
 
     async def run(self) -> None:
@@ -111,7 +124,7 @@ class Poller:
             if started >= next_slow and self.slow and not pending_slow:
                 next_slow = started + self.slow_interval
                 if whole_slow or not self.fast or self.slow_interval <= 0:
-                    ok = await self._scan(self.slow)
+                    ok = await self._scan(self.slow, _SLOW)
                     whole_slow = not ok
                 else:
                     pending_slow = list(self.slow)
@@ -121,9 +134,9 @@ class Poller:
                 # share the line, that alone would age it past stale_after).
                 share = max(1, -(-len(self.slow) * max(last_round, self.fast_interval) // self.slow_interval))
                 chunk, pending_slow = pending_slow[: int(share)], pending_slow[int(share) :]
-                ok = await self._scan(chunk)
+                ok = await self._scan(chunk, _SLOW_SHARE)
             if ok:
-                ok = await self._scan(self.fast)
+                ok = await self._scan(self.fast, _FAST)
             if not ok:
                 # The link was lost: the controller may come back power-cycled or replaced, so
                 # read the slow class first when it returns instead of serving pre-loss values.

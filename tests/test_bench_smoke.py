@@ -21,6 +21,7 @@ SCRIPTS = [
     "write_latency.py",
     "write_fairness.py",
     "cpu_per_transaction.py",
+    "availability.py",
 ]
 
 

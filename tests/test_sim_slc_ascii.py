@@ -131,10 +131,12 @@ def test_commands_with_parity_bit_set_are_understood(host: Host) -> None:
         raw(0x02, "0001"),  # too few parameters
     ],
 )
-def test_illegal_reads_are_refused(host: Host, command: Command) -> None:
+def test_illegal_reads_are_refused(host: Host, sim: SlcAsciiSimulator, command: Command) -> None:
     if command.params == bytes.fromhex("00020085"):
-        # 84H-85H and 86H are all readable: this one is legal, read it to prove it.
-        assert isinstance(host.do(command), DataReply)
+        # 84H-85H and 86H are all readable: this one is legal, read it to prove it, byte for byte.
+        sim.memory[0x85], sim.memory[0x86] = 0x12, 0x34
+        msg_id = host.next_id
+        assert host.do(command) == DataReply("00020085" "1234", msg_id)
         return
     assert isinstance(host.do(command), Refused)
 

@@ -180,9 +180,11 @@ class LinkDriver(ABC):
         settings: SerialSettings | None = None,
         trace: Path | None = None,
         reconnect_min: float = 0.5,
-        reconnect_max: float = 30.0,
+        reconnect_max: float = 1.0,
         connect_timeout: float = 5.0,
         opener: OpenStream = open_stream,
+        down_after_failures: int = 3,
+        down_after_seconds: float = 5.0,
     ) -> None:
         self.url = url
         self.name = name or describe_url(url)
@@ -210,6 +212,14 @@ class LinkDriver(ABC):
         #: ``poll_burst`` waiting poll transactions get the line
         self.write_burst = 1
         self.poll_burst = 2
+        #: the link is reported down after this many failed transactions in a row, or this long
+        #: without a valid reply while transactions fail (whichever comes first), not on one failure
+        self.down_after_failures = max(1, down_after_failures)
+        self.down_after_seconds = down_after_seconds
+        self._failures_in_row = 0
+        self._last_ok: float | None = None
+        #: link state changes (each counted and logged once)
+        self.state_changes = 0
 
     # --- public state -----------------------------------------------------------------------
 
@@ -233,6 +243,7 @@ class LinkDriver(ABC):
         if self._state is up:
             return
         self._state = up
+        self.state_changes += 1
         if up:
             self.last_error = ""
             log.info("link %s: up (%s)", self.name, describe_url(self.url))
@@ -265,6 +276,7 @@ class LinkDriver(ABC):
                 continue
             if attempt or self.counters.transactions:
                 self.counters.reconnects += 1
+            self._failures_in_row = 0
             attempt = 0
             opened = asyncio.get_running_loop().time()
             await self._serve(stream)
@@ -471,13 +483,26 @@ class LinkDriver(ABC):
         stream.write(data)
 
     def note_result(self, ok: bool, error: str = "") -> None:
-        """Record whether the controller answered (drives ``available`` and the up/down log)."""
+        """Record whether the controller answered (drives ``available`` and the up/down log).
+
+        One failure does not make a link down (Kepware's auto-demotion is the model): it goes
+        down after ``down_after_failures`` failed transactions in a row or ``down_after_seconds``
+        without a valid reply, and up again at the first answer.
+        """
+        now = asyncio.get_running_loop().time()
         if ok:
             self.counters.transactions += 1
+            self._failures_in_row = 0
+            self._last_ok = now
             if self._state is not True:
                 self._report(True)
-        else:
-            self.counters.errors += 1
+            return
+        self.counters.errors += 1
+        self._failures_in_row += 1
+        if error:
+            self.last_error = error
+        silent = self._last_ok is not None and now - self._last_ok >= self.down_after_seconds
+        if self._state is None or silent or self._failures_in_row >= self.down_after_failures:
             self._report(False, error)
 
     # --- protocol hooks ---------------------------------------------------------------------

@@ -14,6 +14,8 @@
 ``paced=1``            pace every character at the link's baud rate (a real line's speed)
 ``turnaround=S``       controller turnaround before each reply, seconds (with or without pacing)
 ``instance=NAME``      a separate controller for each name (default: one per URL)
+``variant=NAME=VALUE``  a reading of the manual where it leaves behaviour open (repeat the key,
+                       or separate several with commas); see ``docs/controller-variants.md``
 =====================  ==========================================================================
 
 The same URL always reaches the same simulated controller within a process, so a reconnecting
@@ -22,17 +24,27 @@ driver finds the controller as it left it, and tests can inspect it with ``get_s
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
 from gateway.errors import LinkDown
 from gateway.sim.serve import SimDevice, SimStream
+from gateway.sim.variants import parse_variant_args, resolve_variants
 from gateway.streams import SerialSettings
 
-__all__ = ["MODELS", "create_simulator", "get_simulator", "open_sim_stream", "parse_sim_url", "reset_simulators"]
+__all__ = [
+    "MODELS",
+    "create_simulator",
+    "get_simulator",
+    "open_sim_stream",
+    "parse_sim_url",
+    "reset_simulators",
+    "variants_of",
+]
 
 MODELS = ("slc150", "slc100", "slc504")
-_STREAM_OPTIONS = ("paced", "turnaround", "instance", "ladder")
+_STREAM_OPTIONS = ("paced", "turnaround", "instance", "ladder", "variant")
 _registry: dict[str, Any] = {}
 
 
@@ -44,14 +56,39 @@ def parse_sim_url(url: str) -> tuple[str, dict[str, str]]:
     model = (parts.netloc or parts.path.lstrip("/")).lower()
     if model not in MODELS:
         raise ValueError(f"{url}: unknown simulator {model!r} (choose from {', '.join(MODELS)})")
-    options = dict(parse_qsl(parts.query, keep_blank_values=True))
+    options: dict[str, str] = {}
+    for key, value in parse_qsl(parts.query, keep_blank_values=True):
+        if key == "variant" and options.get(key):
+            options[key] += "," + value  # repeatable: every variant counts, not only the last
+        else:
+            options[key] = value
+    if options.get("variant"):
+        # validate now: a typo is an error, never a silent default reading
+        variants_of(model, parse_variant_args([options["variant"]]))
     return model, options
+
+
+def variants_of(model: str, chosen: Mapping[str, str]) -> dict[str, str]:
+    """Every variant of ``model`` with its value (chosen or default); ValueError naming the choices."""
+    return resolve_variants(model, _variant_table(model), chosen)
+
+
+def _variant_table(model: str) -> Mapping[str, tuple[str, ...]]:
+    if model in ("slc150", "slc100"):
+        from gateway.sim.slc_ascii import SlcAsciiSimulator
+
+        return SlcAsciiSimulator.VARIANTS
+    from gateway.sim.slc500 import Slc500Simulator
+
+    table: Mapping[str, tuple[str, ...]] = getattr(Slc500Simulator, "VARIANTS", {})
+    return table
 
 
 def create_simulator(model: str, options: dict[str, str]) -> SimDevice:
     """A new simulated controller.  ``options`` are the fault/ladder options (see module doc)."""
     fault_options = {k: v for k, v in options.items() if k not in _STREAM_OPTIONS}
     ladder = options.get("ladder", "1") not in ("0", "false", "no")
+    variants = variants_of(model, parse_variant_args([options.get("variant", "")]))
     if model in ("slc150", "slc100"):
         from gateway.protocols.slc_ascii.commands import ControllerType
         from gateway.sim.slc_ascii import FaultPlan, SlcAsciiSimulator
@@ -60,9 +97,13 @@ def create_simulator(model: str, options: dict[str, str]) -> SimDevice:
             ControllerType.SLC150 if model == "slc150" else ControllerType.SLC100,
             faults=FaultPlan.from_options(fault_options),
             ladder=ladder,
+            variants=variants,
         )
     from gateway.sim.slc500 import Slc500Simulator
 
+    if hasattr(Slc500Simulator, "VARIANTS"):
+        extra: dict[str, Any] = {"variants": variants}
+        return Slc500Simulator.from_options(fault_options, ladder=ladder, **extra)
     return Slc500Simulator.from_options(fault_options, ladder=ladder)
 
 

@@ -14,6 +14,22 @@ Written from the manual ("SLC Programmable Controller Communications Protocol"):
 * write byte: 0xA6-0xB4 (relays 701-820) only, or 0x0101 (the mode byte: mode selection).
 * a small ladder keeps some timers, a counter and inputs changing.
 
+Where the manual leaves the controller's behaviour open, ``VARIANTS`` has a switch per reading
+(``--variant name=value``; ``docs/controller-variants.md``); the first value is the default:
+
+* ``power_up_id``: ``;I`` after power-up reports 00 (``zero``) or the last ID valid before the
+  power cycle (``retained``) ("{id} is the last valid [ID]");
+* ``z_after_power_up``: ``;Z`` with no reply kept since power-up gets no answer (``silent``) or
+  ``;E`` with the ``;Z``'s ID (``error``);
+* ``late_replies``: ``none``, or ``some``: 1 reply in ``late_every`` (50) comes just after the
+  0.3 s reply time (``late_delay``, 0.36 s by default), holding back the replies behind it;
+* ``z_garbled_again``: the repetition of a garbled reply is clean (``no``) or garbled again once
+  (``once``);
+* ``transfer_after_power_up``: the upload/download block pointer restarts at block 0
+  (``restart``) or is kept (``keep``);
+* ``fault_report``: ``;T`` follows the reply to the command (``after_reply``) or comes between
+  the command and its reply (``before_reply``).
+
 This class does no I/O: ``receive(data, now)`` returns the replies to send, each with a delay.
 ``gateway.sim.serve`` runs it in-process, over TCP or on a pty.
 """
@@ -21,8 +37,9 @@ This class does no I/O: ``receive(data, now)`` returns the replies to send, each
 from __future__ import annotations
 
 import random
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Final
+from typing import ClassVar, Final
 
 from gateway.protocols.slc_ascii import framing
 from gateway.protocols.slc_ascii.commands import ControllerType, Mode
@@ -33,6 +50,7 @@ from gateway.protocols.slc_ascii.framing import (
     RetransmitRequest,
 )
 from gateway.protocols.slc_ascii.memory_map import is_readable
+from gateway.sim.variants import resolve_variants
 
 __all__ = ["FaultPlan", "Output", "SlcAsciiSimulator"]
 
@@ -62,15 +80,18 @@ class FaultPlan:
     power_cycle_every: int = 0  # power-cycle before the N-th command frame (# frames, counted)
     fault_every: int = 0  # emit ;T and set an error bit after every N-th command
     seed: int = 1
+    late_delay: float = 0.36  # late_replies=some: a late reply comes this long after its command
+    late_every: int = 50  # late_replies=some: 1 reply in N is late
 
     @classmethod
     def from_options(cls, options: dict[str, str]) -> FaultPlan:
         plan = cls()
         for key, text in options.items():
-            if key not in ("garble", "drop", "delay", "power_cycle_every", "fault_every", "seed"):
+            if key not in ("garble", "drop", "delay", "power_cycle_every", "fault_every", "seed", "late_delay",
+                           "late_every"):
                 raise ValueError(f"unknown simulator fault option {key!r}")
             try:
-                value: float = float(text) if key == "delay" else int(text)
+                value: float = float(text) if key in ("delay", "late_delay") else int(text)
             except ValueError as exc:
                 raise ValueError(f"simulator option {key}={text!r} is not a number") from exc
             if value < 0:
@@ -90,6 +111,7 @@ class SimCounters:
     dropped: int = 0
     power_cycles: int = 0
     faults: int = 0
+    late: int = 0
 
 
 @dataclass
@@ -110,13 +132,24 @@ class _Sequencer:
 class SlcAsciiSimulator:
     """One SLC 100/150 controller.  Not thread-safe; drive it from one event loop."""
 
+    VARIANTS: ClassVar[dict[str, tuple[str, ...]]] = {
+        "power_up_id": ("zero", "retained"),
+        "z_after_power_up": ("silent", "error"),
+        "late_replies": ("none", "some"),
+        "z_garbled_again": ("no", "once"),
+        "transfer_after_power_up": ("restart", "keep"),
+        "fault_report": ("after_reply", "before_reply"),
+    }
+
     def __init__(
         self,
         model: ControllerType = ControllerType.SLC150,
         *,
         faults: FaultPlan | None = None,
         ladder: bool = True,
+        variants: Mapping[str, str] | None = None,
     ) -> None:
+        self.variants = resolve_variants(model.name.lower(), self.VARIANTS, variants or {})
         self.model = model
         self.faults = faults or FaultPlan()
         self.counters = SimCounters()
@@ -128,6 +161,11 @@ class SlcAsciiSimulator:
         self._decoder = framing.CommandDecoder()
         self._ladder = _Ladder(enabled=ladder)
         self._frames_seen = 0
+        self._last_garbled = False
+        self._line_busy_until = float("-inf")
+        self._last_valid_id = 0
+        self._transfer: str | None = None
+        self._next_block = 0
         self._init_memory()
         self._power_up()
 
@@ -150,10 +188,12 @@ class SlcAsciiSimulator:
 
     def _power_up(self) -> None:
         self._expected_id: int | None = 0  # expects 00
-        self._last_valid_id = 0
+        if self.variants["power_up_id"] == "zero":
+            self._last_valid_id = 0  # else: ;I keeps reporting the ID valid before the power cycle
         self._last_reply: bytes | None = None
-        self._transfer: str | None = None  # "upload" | "download" while a program transfer runs
-        self._next_block = 0
+        if self.variants["transfer_after_power_up"] == "restart":
+            self._transfer = None  # "upload" | "download" while a program transfer runs
+            self._next_block = 0
         self._decoder = framing.CommandDecoder()
 
     def power_cycle(self) -> None:
@@ -237,7 +277,11 @@ class SlcAsciiSimulator:
             if isinstance(event, RetransmitRequest):
                 self.counters.retransmits += 1
                 if self._last_reply is not None:
-                    self._emit(out, self._last_reply)
+                    again = self._last_garbled and self.variants["z_garbled_again"] == "once"
+                    self._last_garbled = False  # garbled again once, not for ever
+                    self._emit(out, self._last_reply, garble=again)
+                elif self.variants["z_after_power_up"] == "error":
+                    self._emit(out, framing.encode_refused(event.msg_id))
                 continue
             assert isinstance(event, CommandFrame)
             self._frames_seen += 1
@@ -246,15 +290,31 @@ class SlcAsciiSimulator:
                 self.power_cycle()
             executed_before = self.counters.commands
             reply = self._handle(event)
-            if executed_before != self.counters.commands:
-                # ;Z repeats "its most recent acknowledge or data message" (or ;E): not ;I.
-                self._last_reply = reply
-            self._emit(out, reply)
             executed = self.counters.commands != executed_before  # not for a frame answered ;I
-            if plan.fault_every and executed and self.counters.commands % plan.fault_every == 0:
+            fault = bool(plan.fault_every and executed and self.counters.commands % plan.fault_every == 0)
+            if fault and self.variants["fault_report"] == "before_reply":
                 self.raise_fault()
                 out.append(Output(plan.delay, framing.encode_fault(0)))
-        return out
+            if executed:
+                # ;Z repeats "its most recent acknowledge or data message" (or ;E): not ;I.
+                self._last_reply = reply
+                self._last_garbled = False
+            garbled = self._emit(out, reply)
+            if executed:
+                self._last_garbled = garbled
+            if fault and self.variants["fault_report"] == "after_reply":
+                self.raise_fault()
+                out.append(Output(plan.delay, framing.encode_fault(0)))
+        return self._in_order(out, now)
+
+    def _in_order(self, out: list[Output], now: float) -> list[Output]:
+        """The line keeps the order: a late reply holds back the replies after it."""
+        ordered = []
+        for item in out:
+            delay = max(item.delay, self._line_busy_until - now)
+            self._line_busy_until = now + delay
+            ordered.append(item if delay == item.delay else Output(delay, item.data))
+        return ordered
 
     def poll(self, now: float) -> list[Output]:
         """No timers: the SLC 100/150 only ever answers."""
@@ -271,15 +331,22 @@ class SlcAsciiSimulator:
     def fault_frame(self) -> bytes:
         return framing.encode_fault(0)
 
-    def _emit(self, out: list[Output], reply: bytes) -> None:
+    def _emit(self, out: list[Output], reply: bytes, *, garble: bool = False) -> bool:
+        """Put ``reply`` on the line through the faults; True when it went out garbled."""
         plan = self.faults
         if plan.drop and self._rng.randrange(plan.drop) == 0:
             self.counters.dropped += 1
-            return
-        if plan.garble and self._rng.randrange(plan.garble) == 0:
+            return False
+        garbled = garble or bool(plan.garble and self._rng.randrange(plan.garble) == 0)
+        if garbled:
             self.counters.garbled_out += 1
             reply = self._garble(reply)
-        out.append(Output(plan.delay, reply))
+        delay = plan.delay
+        if self.variants["late_replies"] == "some" and self._rng.randrange(max(1, plan.late_every)) == 0:
+            self.counters.late += 1
+            delay = max(delay, plan.late_delay)
+        out.append(Output(delay, reply))
+        return garbled
 
     def _garble(self, reply: bytes) -> bytes:
         kind = self._rng.randrange(3)

@@ -873,7 +873,12 @@ async def test_silent_device_server_goes_stale_and_recovers(
 
         await eventually(stale, STALE_AFTER + 0.5, "reads answer 0x0B")
         assert time.monotonic() - silenced <= STALE_AFTER + 0.5
-        assert (await read_registers(client, "input", STATUS_BASE, 1, MAIN)) == [0]
+
+        async def link_down() -> bool:
+            return (await read_registers(client, "input", STATUS_BASE, 1, MAIN)) == [0]
+
+        # down after 3 failed transactions in a row (down_after_failures), not on the first one
+        await eventually(link_down, 3.0, "status register 1000 shows link down")
 
         sim.set_word(2, 2222)
         server.silent = False

@@ -332,6 +332,12 @@ class _LineSplitter:
     def buffered(self) -> int:
         return len(self._buffer)
 
+    def flush(self) -> bytes:
+        """Give up on the partial line (its end never came): its bytes, now forgotten."""
+        line = bytes(self._buffer)
+        self._buffer.clear()
+        return line
+
 
 def _split_checked(line: bytes) -> tuple[bytes, int] | str:
     """``line`` is lead + text + CRC.  Returns (text upper-cased, ID) or a reason it is garbled."""
@@ -364,6 +370,17 @@ class _Decoder:
 
     def receive_data(self, data: bytes) -> None:
         self._lines.feed(data)
+
+    @property
+    def partial(self) -> bool:
+        """Part of a frame has arrived, without its CR."""
+        return self._lines.buffered > 0
+
+    def flush_partial(self) -> Garbled | None:
+        """The rest of a partial frame is not coming (the caller's inter-character timeout):
+        report it garbled now instead of when the next frame starts."""
+        line = self._lines.flush()
+        return Garbled(line, "frame cut short (no CR)") if line else None
 
     def _next_checked(self) -> tuple[bytes, bytes, int] | Garbled | NeedData:
         """(line, upper-cased text through the ID, ID), a Garbled line, or NEED_DATA."""

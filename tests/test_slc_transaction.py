@@ -1,0 +1,344 @@
+"""The SLC 100/150 transaction core (sans-I/O) under every reading of the manual.
+
+Driven with a fake clock and the simulator through random fault scripts (hypothesis): no write
+applied twice, no acknowledged write lost, every unacknowledged write applied at most once (and
+reported UNKNOWN, which the gateway answers 0x0B), no value the controller never held; reads
+never fail for want of proof.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections import Counter
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from gateway.protocols.slc_ascii import commands as cmds
+from gateway.protocols.slc_ascii.framing import (
+    MAX_ID,
+    DataReply,
+    encode_ack,
+    encode_command,
+    encode_data_reply,
+    encode_fault,
+    encode_id_mismatch,
+    encode_refused,
+    encode_retransmit,
+)
+from gateway.protocols.slc_ascii.transaction import SessionState, SlcSession, Verdict, next_id
+from gateway.sim.slc_ascii import FaultPlan, SlcAsciiSimulator
+from gateway.sim.variants import variant_matrix
+from tests.slc_core_harness import FATES, FakeLine
+
+VARIANTS = list(variant_matrix(SlcAsciiSimulator.VARIANTS))
+ADDRESSES = (0x40, 0x42, 0x44)
+TIMEOUT = 0.3
+
+fates = st.lists(st.sampled_from(FATES), max_size=300)
+cycles = st.lists(st.booleans(), max_size=120)
+operations = st.lists(st.tuples(st.sampled_from(("read", "write")), st.sampled_from(ADDRESSES)), min_size=1,
+                      max_size=25)
+
+
+def _fresh(variants: dict[str, str]) -> tuple[SlcAsciiSimulator, SlcSession]:
+    sim = SlcAsciiSimulator(faults=FaultPlan(late_delay=1.2 * TIMEOUT), ladder=False, variants=variants)
+    return sim, SlcSession(timeout=TIMEOUT, retries=3)
+
+
+def _check_run(variants: dict[str, str], fate_list: list[str], cycle_list: list[bool],
+               ops: list[tuple[str, int]], lost: list[bool] = ()) -> None:  # type: ignore[assignment]
+    sim, session = _fresh(variants)
+    line = FakeLine(sim, session, iter(fate_list), iter(cycle_list), iter(lost))
+    held = {a: {sim.word(a)} for a in ADDRESSES}  # every value each address ever held
+    acknowledged: list[tuple[int, int]] = []
+    unknown: list[tuple[int, int]] = []
+    refused_or_failed: list[tuple[int, int]] = []
+    values = itertools.count(1)
+    for kind, address in ops:
+        if kind == "write":
+            value = next(values)
+            result = line.run(cmds.write_word(address, value))
+            # the controller may have applied it: it may hold it from now on
+            held[address].add(value)
+            if result.verdict is Verdict.DONE:
+                acknowledged.append((address, value))
+            elif result.verdict is Verdict.UNKNOWN:
+                unknown.append((address, value))
+            else:
+                refused_or_failed.append((address, value))
+        else:
+            result = line.run(cmds.read_bytes(address, 2))
+            if result.verdict is Verdict.DONE:
+                assert isinstance(result.answer, DataReply)
+                got = int.from_bytes(cmds.parse_read_reply(address, 2, result.answer.body_hex), "big")
+                assert got in held[address], f"read 0x{address:02X} = {got}: never held {sorted(held[address])}"
+            else:
+                # reads never fail for want of proof: only when the line stays bad past the bounds
+                assert result.verdict is Verdict.FAILED
+    applied = Counter((a, v) for kind, a, v in sim.applied_writes if kind == "word")
+    assert all(n == 1 for n in applied.values()), f"a write applied twice: {applied}"
+    for write in acknowledged:
+        assert applied[write] == 1, f"acknowledged write {write} not applied"
+    for write in refused_or_failed:
+        assert applied[write] == 0, f"write {write} reported not executed, but applied"
+    assert set(applied) <= set(acknowledged) | set(unknown)
+
+
+@pytest.mark.parametrize("variants", VARIANTS, ids=lambda v: ",".join(f"{k}={x}" for k, x in sorted(v.items())))
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(fate_list=fates, cycle_list=cycles, ops=operations, lost=cycles)
+def test_correct_under_random_faults(variants: dict[str, str], fate_list: list[str], cycle_list: list[bool],
+                                     ops: list[tuple[str, int]], lost: list[bool]) -> None:
+    _check_run(variants, fate_list, cycle_list, ops, lost)
+
+
+@pytest.mark.parametrize("variants", VARIANTS[:: max(1, len(VARIANTS) // 8)],
+                         ids=lambda v: ",".join(f"{k}={x}" for k, x in sorted(v.items())))
+def test_reads_succeed_on_a_harsh_line(variants: dict[str, str]) -> None:
+    """1 in 4 garbled, 1 in 6 dropped, a power cycle every 25 commands: every read answers."""
+    sim, session = _fresh(variants)
+    fate_cycle = itertools.cycle(["ok", "garble", "ok", "drop", "ok", "ok", "garble", "ok", "ok", "ok", "drop", "late"])
+    power = itertools.cycle([False] * 24 + [True])
+    line = FakeLine(sim, session, fate_cycle, power)
+    for n in range(200):
+        address = 0x40 + 2 * (n % 32)
+        result = line.run(cmds.read_bytes(address, 2))
+        assert result.verdict is Verdict.DONE, result.reason
+        got = int.from_bytes(cmds.parse_read_reply(address, 2, result.answer.body_hex), "big")  # type: ignore[union-attr]
+        assert got == sim.word(address)
+
+
+# --- byte scripts --------------------------------------------------------------------------------
+
+
+def _started(command: cmds.Command | None = None, *, msg_id: int = 5) -> SlcSession:
+    """A session in step with the controller: the next command goes with ``msg_id``."""
+    session = SlcSession(timeout=TIMEOUT)
+    session._next = msg_id  # as after msg_id - 1 messages, numbering begun after quiet
+    session._era_trusted = True
+    session._last_taken = msg_id - 1 if msg_id > 1 else (MAX_ID if msg_id == 1 else 0)
+    session.start(command or cmds.read_bytes(0x40, 2), 0.0)
+    return session
+
+
+READ = cmds.read_bytes(0x40, 2)
+WRITE = cmds.write_word(0x40, 1234)
+
+
+def test_clean_read_whole_byte_by_byte_and_with_trailing_garbage() -> None:
+    for chunks in ("whole", "bytes", "garbage"):
+        session = _started()
+        assert session.data_to_send() == encode_command(READ, 5)
+        reply = encode_data_reply("00020040" + "04D2", 5)
+        if chunks == "whole":
+            session.receive_data(reply, 0.01)
+        elif chunks == "bytes":
+            for i in range(len(reply)):
+                session.receive_data(reply[i : i + 1], 0.01)
+        else:
+            session.receive_data(b"\x00~" + reply + b"\r\n\x7f", 0.01)
+        result = session.take_result()
+        assert result.verdict is Verdict.DONE
+        assert session.data_to_send() == b""
+
+
+def test_a_garbled_complete_reply_gets_z_at_once_a_missing_one_after_the_timeout() -> None:
+    session = _started()
+    session.data_to_send()
+    bad = bytearray(encode_data_reply("000200400064", 5))
+    bad[5] ^= 1
+    session.receive_data(bytes(bad), 0.01)
+    assert session.data_to_send() == encode_retransmit(5)  # at once, not at 0.3 s
+    assert session.next_deadline() == pytest.approx(0.01 + TIMEOUT)
+    session.handle_timeout(0.2)  # early: nothing happens
+    assert session.data_to_send() == b""
+    session.receive_data(encode_data_reply("000200400064", 5), 0.05)
+    assert session.take_result().verdict is Verdict.DONE
+
+    # nothing at all: the timeout is waited out, then ;Z
+    session.start(READ, 1.0)
+    assert session.data_to_send() == encode_command(READ, 6)
+    session.handle_timeout(1.0 + TIMEOUT / 2)
+    assert session.data_to_send() == b""
+    session.handle_timeout(1.0 + TIMEOUT)
+    assert session.data_to_send() == encode_retransmit(6)
+    # silence after ;Z (a power cycle leaves nothing to repeat): a read resyncs and asks again
+    session.handle_timeout(1.0 + 2 * TIMEOUT)
+    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
+    session.receive_data(encode_data_reply("021FFE1547", 0), 1.7)
+    assert session.data_to_send() == encode_command(READ, 1)
+    session.receive_data(encode_data_reply("000200400064", 1), 1.71)
+    assert session.take_result().verdict is Verdict.DONE
+
+
+def test_a_reply_cut_short_gets_z_after_the_character_gap_not_the_timeout() -> None:
+    session = _started()
+    session.data_to_send()
+    reply = encode_data_reply("000200400064", 5)
+    session.receive_data(reply[:7], 0.01)  # the rest (and its CR) is lost
+    assert session.next_deadline() == pytest.approx(0.01 + session.char_gap)
+    session.handle_timeout(0.01 + session.char_gap)
+    assert session.data_to_send() == encode_retransmit(5)
+    assert session.counters.crc_errors == 1
+    session.receive_data(reply, 0.1)
+    assert session.take_result().verdict is Verdict.DONE
+
+
+def test_a_frame_in_pieces_is_not_cut_short() -> None:
+    session = _started()
+    session.data_to_send()
+    reply = encode_data_reply("000200400064", 5)
+    now = 0.0
+    for i in range(len(reply)):
+        now += session.char_gap / 2
+        session.handle_timeout(now)
+        session.receive_data(reply[i : i + 1], now)
+    assert session.take_result().verdict is Verdict.DONE
+    assert session.counters.crc_errors == 0
+
+
+def test_a_write_answered_by_its_z_is_done_once() -> None:
+    session = _started(WRITE)
+    session.data_to_send()
+    session.handle_timeout(TIMEOUT)
+    assert session.data_to_send() == encode_retransmit(5)
+    session.receive_data(encode_ack(5), 0.35)
+    assert session.take_result().verdict is Verdict.DONE
+
+
+def test_a_write_with_no_answer_is_unknown_never_resent() -> None:
+    session = _started(WRITE)
+    sent = [session.data_to_send()]
+    now = 0.0
+    while session.result is None:
+        now = session.next_deadline() or now
+        session.handle_timeout(now)
+        sent.append(session.data_to_send())
+    assert session.take_result().verdict is Verdict.UNKNOWN
+    assert sent.count(encode_command(WRITE, 5)) == 1
+    assert sent[1:] == [encode_retransmit(5)] * 3 + [b""]
+
+
+def test_a_refusal_after_z_is_not_taken_for_a_refusal_of_the_write() -> None:
+    # z_after_power_up=error: a controller power-cycled after executing the write answers the ;Z
+    # with ;E: the write may have run, so the verdict is UNKNOWN, not REFUSED.
+    session = _started(WRITE)
+    session.data_to_send()
+    session.handle_timeout(TIMEOUT)
+    session.receive_data(encode_refused(5), 0.35)
+    assert session.take_result().verdict is Verdict.UNKNOWN
+
+
+def test_a_refusal_of_the_command_itself_is_refused() -> None:
+    session = _started(WRITE)
+    session.data_to_send()
+    session.receive_data(encode_refused(5), 0.01)
+    assert session.take_result().verdict is Verdict.REFUSED
+
+
+def test_t_between_command_and_reply_is_noted_and_does_not_disturb() -> None:
+    session = _started()
+    session.data_to_send()
+    session.receive_data(encode_fault(0) + encode_data_reply("000200400064", 5), 0.01)
+    assert session.fault_pending
+    assert session.take_result().verdict is Verdict.DONE
+
+
+@pytest.mark.parametrize("reported", [4, 0], ids=["retained", "zero"])
+def test_i_after_power_up_proves_a_single_copy_was_not_executed(reported: int) -> None:
+    """The controller power-cycled before our write (ID 05): ``;I04`` (retained) or ``;I00``."""
+    session = _started(WRITE)
+    session.data_to_send()
+    session.receive_data(encode_id_mismatch(reported), 0.01)
+    assert session.state is SessionState.QUIET  # the line must be quiet before ID 00
+    assert session.data_to_send() == b""
+    session.handle_timeout(session.next_deadline() or 0)
+    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
+    session.receive_data(encode_data_reply("021FFE1547", 0), 0.7)
+    assert session.data_to_send() == encode_command(WRITE, 1)  # resent under a new ID
+    session.receive_data(encode_ack(1), 0.71)
+    assert session.take_result().verdict is Verdict.DONE
+
+
+def test_late_i_after_id_rollover_is_proof_for_a_write() -> None:
+    """Our write goes with ID 01 after 7F: a retained-ID controller power-cycled answers ``;I7F``.
+
+    7F is the ID before ours only because IDs roll over from 7F to 01: a core that rolled over
+    at 80 would never send 01 here.
+    """
+    session = SlcSession(timeout=TIMEOUT)
+    session._next = MAX_ID
+    session._last_taken = MAX_ID - 1
+    session._era_trusted = True
+    session.start(cmds.read_bytes(0x40, 2), 0.0)
+    assert session.data_to_send() == encode_command(cmds.read_bytes(0x40, 2), MAX_ID)
+    session.receive_data(encode_data_reply("000200400064", MAX_ID), 0.01)
+    assert session.take_result().verdict is Verdict.DONE
+    session.start(WRITE, 0.02)
+    assert session.data_to_send() == encode_command(WRITE, 1)  # 7F rolls over to 01, never 80 or 00
+    session.handle_timeout(0.02 + TIMEOUT)  # reply lost
+    assert session.data_to_send() == encode_retransmit(1)
+    session.receive_data(encode_data_reply("000200400064", MAX_ID), 0.4)  # ;Z: an older reply
+    assert session.data_to_send() == encode_command(WRITE, 1)  # resent with the same ID
+    session.receive_data(encode_id_mismatch(MAX_ID), 0.41)  # power-cycled, retained ID 7F
+    assert session.state is SessionState.QUIET  # proof: ;I<the ID before ours> -> resync, new ID
+    session.handle_timeout(session.next_deadline() or 0)
+    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
+
+
+def test_i_00_after_two_copies_is_no_proof() -> None:
+    """Zero reading: ``;I00`` after a power cycle says nothing of an earlier copy: UNKNOWN."""
+    session = _started(WRITE)
+    session.data_to_send()
+    session.handle_timeout(TIMEOUT)
+    session.data_to_send()
+    session.receive_data(encode_ack(4), 0.35)  # ;Z answered with the previous reply
+    assert session.data_to_send() == encode_command(WRITE, 5)
+    session.receive_data(encode_id_mismatch(0), 0.36)
+    now = 0.36
+    while session.result is None:
+        assert session.data_to_send() in (b"", encode_retransmit(5))
+        now = session.next_deadline() or now
+        session.handle_timeout(now)
+    assert session.take_result().verdict is Verdict.UNKNOWN
+
+
+def test_i_with_our_id_fetches_the_answer_with_z() -> None:
+    session = _started(WRITE)
+    session.data_to_send()
+    session.receive_data(encode_id_mismatch(5), 0.01)
+    assert session.data_to_send() == encode_retransmit(5)
+    session.receive_data(encode_ack(5), 0.02)
+    assert session.take_result().verdict is Verdict.DONE
+
+
+def test_next_id_rolls_over_from_7f_to_01() -> None:
+    assert next_id(0) == 1
+    assert next_id(0x7E) == 0x7F
+    assert next_id(0x7F) == 1
+
+
+def test_ids_run_through_a_rollover_against_the_simulator() -> None:
+    sim, session = _fresh(VARIANTS[0])
+    line = FakeLine(sim, session, iter(()), iter(()))
+    for _ in range(300):
+        assert line.run(READ).verdict is Verdict.DONE
+    assert sim.counters.id_mismatches == 0
+    assert session.counters.id_resyncs == 1  # only the one after connecting
+
+
+def test_a_read_refused_in_a_numbering_begun_without_quiet_is_asked_again() -> None:
+    """``;E01`` may be a controller's answer to an earlier ``;Z01`` (after a power cycle): a read
+    in a numbering begun without quiet resyncs and asks again; a second ``;E`` is a refusal."""
+    session = _started(msg_id=1)
+    session._era_trusted = False
+    session.data_to_send()
+    session.receive_data(encode_refused(1), 0.01)
+    assert session.result is None
+    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
+    session.receive_data(encode_data_reply("021FFE1547", 0), 0.02)
+    assert session.data_to_send() == encode_command(READ, 1)
+    session.receive_data(encode_refused(1), 0.03)
+    assert session.take_result().verdict is Verdict.REFUSED
