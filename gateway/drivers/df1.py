@@ -77,7 +77,7 @@ class Df1Driver(LinkDriver):
         retries: int = 3,
         trace: Path | None = None,
         reconnect_min: float = 0.5,
-        reconnect_max: float = 30.0,
+        reconnect_max: float = 1.0,
         opener: OpenStream = open_stream,
         first_tns: int | None = None,
     ) -> None:

@@ -325,7 +325,7 @@ class Df1HalfDuplexLine(LinkDriver):
         station_names: dict[int, str] | None = None,
         trace: Path | None = None,
         reconnect_min: float = 0.5,
-        reconnect_max: float = 30.0,
+        reconnect_max: float = 1.0,
         opener: OpenStream = open_stream,
         first_tns: int | None = None,
     ) -> None:
