@@ -25,6 +25,7 @@ from gateway.errors import ControllerRefused, GatewayError, InvalidRequest, Link
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import ControllerType, Mode
 from gateway.protocols.slc_ascii.memory_map import parse_item
+from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS
 from gateway.tools_common import print_result, resolve_retries
 from gateway.transport import ByteStream, SerialSettings, open_stream
 
@@ -181,6 +182,8 @@ async def _run_slc_ascii_tool(command: str, args: argparse.Namespace, received: 
         settings=settings,
         timeout=args.timeout or DEFAULT_TIMEOUT,
         retries=resolve_retries(command, args.retries),
+        # A probe asks "is an SLC 100/150 there?": one resync, so a wrong guess fails in seconds.
+        max_resyncs=1 if command == "probe" else MAX_RESYNCS,
         trace=args.trace,
         reconnect_min=60.0,
         opener=received.opener,

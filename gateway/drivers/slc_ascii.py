@@ -18,7 +18,7 @@ from gateway.errors import ControllerFault, ControllerRefused, GatewayError, Lin
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command, ControllerType, FrnInfo, Mode, TimeoutClass
 from gateway.protocols.slc_ascii.framing import Ack, DataReply
-from gateway.protocols.slc_ascii.transaction import SlcSession, Verdict
+from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS, SlcSession, Verdict
 from gateway.transport import SerialSettings, open_stream
 
 __all__ = ["SLC_ASCII_SETTINGS", "SlcAsciiDriver"]
@@ -62,6 +62,7 @@ class SlcAsciiDriver(LinkDriver):
         opener: OpenStream = open_stream,
         down_after_failures: int = 3,
         down_after_seconds: float = 5.0,
+        max_resyncs: int = MAX_RESYNCS,
     ) -> None:
         super().__init__(
             url,
@@ -78,7 +79,7 @@ class SlcAsciiDriver(LinkDriver):
         self.slow_timeout = max(slow_timeout, timeout)
         self.retries = retries
         self.last_fault: ControllerFault | None = None
-        self.session = SlcSession(timeout=timeout, retries=retries)
+        self.session = SlcSession(timeout=timeout, retries=retries, max_resyncs=max_resyncs)
         self._waiter: asyncio.Future[None] | None = None
         # A port that cannot do 7E1 (some adapters, pseudo-terminals) can run at 8N1 with the
         # parity bit computed here; replies are read with bit 7 masked either way.

@@ -62,6 +62,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
 
+from gateway.errors import format_seconds
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command, ReplyKind
 from gateway.protocols.slc_ascii.framing import (
@@ -559,7 +560,8 @@ class SlcSession:
         else:
             self._heard = True
         if self._probes > self.retries:
-            why = f"no answer to read FRN with ID 00 (resync) after {self._probes} tries"
+            why = (f"no answer to read FRN with ID 00 (resync) within {format_seconds(self._full_timeout)} s "
+                   f"after {self._probes} tries")
             if self._heard:
                 self._retry_read(now, why)  # the controller is there, the line is bad: go on
                 return
