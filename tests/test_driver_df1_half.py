@@ -26,7 +26,7 @@ from gateway.protocols.df1.pccc import (
 )
 from gateway.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.sim.serve import SimStream
-from gateway.sim.variants import variant_matrix
+from gateway.sim.variants import pairwise_cover, variant_matrix
 from gateway.transport import ByteStream
 
 N = FileType.INTEGER
@@ -231,7 +231,15 @@ async def test_plc5_station_read_and_written_with_word_range_commands(typed_logi
     assert line.controllers[4].applied_writes == []
 
 
-@pytest.mark.parametrize("choices", list(variant_matrix(MultidropLine.VARIANTS)), ids=str)
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    """Every combination of the slave readings with ``--soak``; a pairwise cover otherwise."""
+    if "choices" in metafunc.fixturenames:
+        every = bool(metafunc.config.getoption("--soak", default=False))
+        table = MultidropLine.VARIANTS
+        combos = list(variant_matrix(table)) if every else pairwise_cover(table)
+        metafunc.parametrize("choices", combos, ids=str)
+
+
 async def test_every_slave_reading_values_right_and_writes_once(choices: dict[str, str]) -> None:
     """Each reading of docs/df1-half-duplex-notes.md §5 (bad_frame_reply, reply_retries,
     duplicate_detect, when_busy), a busy and a slow station, lost and corrupted frames and lost slave

@@ -38,3 +38,18 @@ def test_variant_matrix_covers_every_combination() -> None:
     assert {(c["power_up_id"], c["z_after_power_up"]) for c in combos} == {
         ("zero", "silent"), ("zero", "error"), ("retained", "silent"), ("retained", "error"),
     }
+
+
+def test_pairwise_cover_covers_every_pair_with_fewer_combinations() -> None:
+    from gateway.sim.variants import pairwise_cover
+
+    table = {"a": ("1", "2"), "b": ("x", "y", "z"), "c": ("p", "q"), "d": ("m", "n")}
+    cover = pairwise_cover(table)
+    assert len(cover) < len(list(variant_matrix(table)))
+    names = sorted(table)
+    for i, first in enumerate(names):
+        for second in names[i + 1 :]:
+            for u in table[first]:
+                for v in table[second]:
+                    assert any(c[first] == u and c[second] == v for c in cover), (first, u, second, v)
+    assert pairwise_cover({"a": ("1", "2", "3")}) == [{"a": "1"}, {"a": "2"}, {"a": "3"}]

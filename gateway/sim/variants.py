@@ -12,7 +12,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Iterable, Iterator, Mapping
 
-__all__ = ["VariantTable", "parse_variant_args", "resolve_variants", "variant_matrix"]
+__all__ = ["VariantTable", "pairwise_cover", "parse_variant_args", "resolve_variants", "variant_matrix"]
 
 #: variant name -> allowed values (the first is the default reading)
 VariantTable = Mapping[str, tuple[str, ...]]
@@ -56,3 +56,29 @@ def variant_matrix(table: VariantTable) -> Iterator[dict[str, str]]:
     names = sorted(table)
     for values in itertools.product(*(table[name] for name in names)):
         yield dict(zip(names, values, strict=True))
+
+
+def pairwise_cover(table: VariantTable) -> list[dict[str, str]]:
+    """Combinations in which every pair of values of two variants occurs at least once.
+
+    Greedy (each pick covers the most pairs not yet covered), deterministic, and far smaller
+    than :func:`variant_matrix` for tables of several variants: the quick run of a test over
+    the matrix; the whole matrix runs in the long (``--soak``) run.
+    """
+    names = sorted(table)
+    combos = list(variant_matrix(table))
+
+    def pairs(combo: dict[str, str]) -> set[tuple[str, str, str, str]]:
+        return {(a, combo[a], b, combo[b]) for i, a in enumerate(names) for b in names[i + 1 :]}
+
+    uncovered = set().union(*(pairs(c) for c in combos)) if combos else set()
+    chosen: list[dict[str, str]] = []
+    while uncovered:
+        best = max(combos, key=lambda c: len(pairs(c) & uncovered))
+        chosen.append(best)
+        uncovered -= pairs(best)
+    if not chosen and combos:
+        chosen.append(combos[0])  # one variant (or none): no pairs, one combination suffices
+    if len(names) == 1:
+        chosen = combos  # every value of the one variant
+    return chosen
