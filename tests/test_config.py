@@ -13,22 +13,24 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from gateway.config import (
-    DF1_ONLY_KEYS,
+    LINK_MODELS,
     PROTOCOL_DEFAULTS,
+    Df1LinkConfig,
     GatewayConfig,
-    LinkConfig,
     LoggingConfig,
     MapEntry,
     MetricsConfig,
     ModbusConfig,
+    SlcAsciiLinkConfig,
     TlsConfig,
     WritableRange,
-    _classify_address,
     load_config,
     parse_config,
     parse_listen,
 )
+from gateway.config.df1 import classify_address
 from gateway.errors import ConfigError
+from gateway.protocols.df1.address import parse_address
 
 _PEM_CACHE: dict[str, bytes] = {}
 
@@ -169,7 +171,7 @@ count = 64
 
 def test_example_file_mentions_every_key() -> None:
     text = EXAMPLE.read_text(encoding="utf-8")
-    for model in (ModbusConfig, TlsConfig, MetricsConfig, LoggingConfig, LinkConfig, MapEntry):
+    for model in (ModbusConfig, TlsConfig, MetricsConfig, LoggingConfig, *LINK_MODELS, MapEntry):
         for key in model.model_fields:
             if key in ("tls", "map"):  # sections, not keys
                 continue
@@ -284,7 +286,7 @@ def test_describe_lists_every_key() -> None:
     for key in ModbusConfig.model_fields:
         if key != "tls":
             assert f"\n{key} = " in described
-    for key in LinkConfig.model_fields:
+    for key in {key for model in LINK_MODELS for key in model.model_fields}:
         if key != "map":
             assert f"\n{key} = " in described
     for key in MapEntry.model_fields:
@@ -294,7 +296,7 @@ def test_describe_lists_every_key() -> None:
 
 def test_models_are_frozen_and_can_be_built_in_code() -> None:
     config = GatewayConfig(
-        link=(LinkConfig(name="a", protocol="slc-ascii", port="COM3", unit=1),),
+        link=(SlcAsciiLinkConfig(name="a", protocol="slc-ascii", port="COM3", unit=1),),
     )
     assert config.link[0].baudrate == 9600
     with pytest.raises(ValidationError):
@@ -997,7 +999,7 @@ def test_every_df1_only_key_is_refused_on_an_slc_ascii_link() -> None:
         "max_read_bytes": "0",
         "max_write_bytes": "0",
     }
-    assert set(values) | {"map"} == set(DF1_ONLY_KEYS)
+    assert set(values) | {"map"} == set(Df1LinkConfig.model_fields) - set(SlcAsciiLinkConfig.model_fields)
     text = ASCII_LINK + "".join(f"{key} = {value}\n" for key, value in values.items())
     lines = error_of(text).split("\n")
     assert lines[0] == "<string>: 6 errors in the configuration:"
@@ -1006,17 +1008,16 @@ def test_every_df1_only_key_is_refused_on_an_slc_ascii_link() -> None:
 
 
 # ----------------------------------------------------------------------------------------------
-# SLC 500 address syntax: decided by gateway.protocols.df1.address when it exists
+# SLC 500 address syntax: decided by gateway.protocols.df1.address, the protocol's own parser
 
 
 @pytest.mark.parametrize(
-    "address", ["N7:0", "B3:0/5", "F8:10", "T4:0.ACC", "N256:0", "N7:x", "Z9:0", "N7:0/99"]
+    "address", ["N7:0", "B3:0/5", "F8:10", "T4:0.ACC", "N256:0", "N7:x", "Z9:0", "N7:0/99", "ST9:0"]
 )
 def test_address_syntax_follows_the_address_module(address: str) -> None:
-    module = pytest.importorskip("gateway.protocols.df1.address")
     text = df1_with_maps(f'table = "holding"\nstart = 0\ncount = 1\naddress = "{address}"')
     try:
-        module.parse_address(address)
+        parse_address(address)
     except ValueError as exc:
         error = error_of(text)
         assert "(link[0]).map[0].address: not a valid SLC 500 address: " in error
@@ -1041,13 +1042,14 @@ def test_address_syntax_follows_the_address_module(address: str) -> None:
         ("O:5.3", "O", False),
         ("S:3", "S", False),
         ("F8:0", "F", False),
-        ("ST9:0", "ST", False),
+        ("B3/17", "B", True),
     ],
 )
-def test_local_address_classification(address: str, letter: str, is_bit: bool) -> None:
-    """Used for the map rules when the address module gives no answer (or is not there)."""
-    assert _classify_address(address) == (letter, is_bit)
-    assert _classify_address("hello") is None
+def test_address_classification_comes_from_the_parser(address: str, letter: str, is_bit: bool) -> None:
+    """The map rules read file letter and bit-ness from parse_address's result (no regex twin)."""
+    assert classify_address(address) == (letter, is_bit)
+    with pytest.raises(ValueError, match="hello"):
+        classify_address("hello")
 
 
 # ----------------------------------------------------------------------------------------------
