@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import ipaddress
 import re
 import tomllib
@@ -13,8 +14,10 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from gateway.config import (
+    DF1_DEFAULTS,
     LINK_MODELS,
     PROTOCOL_DEFAULTS,
+    SLC_ASCII_DEFAULTS,
     Df1LinkConfig,
     GatewayConfig,
     LoggingConfig,
@@ -27,6 +30,7 @@ from gateway.config import (
     load_config,
     parse_config,
     parse_listen,
+    protocol_names,
 )
 from gateway.config.df1 import classify_address
 from gateway.errors import ConfigError
@@ -1346,3 +1350,80 @@ def test_trace_limits_and_repeat_interval() -> None:
     assert config.logging.repeat_interval == 5.0
     with pytest.raises(ConfigError, match=r"logging\.trace_max_bytes"):
         parse_config("[logging]\ntrace_max_bytes = 10\n" + ASCII_LINK)
+
+
+# ----------------------------------------------------------------------------------------------
+# Issue 11: one link model per protocol, chosen by `protocol` (a discriminated union)
+
+
+def test_each_link_is_validated_by_the_model_of_its_protocol() -> None:
+    ascii_link, df1_link = parse_config(VALID).link
+    assert type(ascii_link) is SlcAsciiLinkConfig
+    assert type(df1_link) is Df1LinkConfig
+    assert "station" not in SlcAsciiLinkConfig.model_fields  # refused by extra="forbid", not by a list
+    assert protocol_names() == ("slc-ascii", "df1")
+    assert tuple(PROTOCOL_DEFAULTS) == protocol_names()
+    for model in LINK_MODELS:
+        keys = model.serial_defaults.as_keys()
+        assert {key: model.model_fields[key].default for key in keys} == keys
+
+
+@pytest.mark.parametrize(
+    ("value", "hint"),
+    [('"df2"', ' (did you mean "df1"?)'), ('"slc_ascii"', ' (did you mean "slc-ascii"?)'), ('""', ""), ("5", "")],
+)
+def test_an_unknown_protocol_names_the_known_ones_and_never_falls_back(value: str, hint: str) -> None:
+    text = ASCII_LINK.replace('"slc-ascii"', value)
+    assert error_of(text) == (
+        f'<string>:{line_of(text, "protocol")}: link "press-1" (link[0]).protocol: '
+        f'unknown protocol: must be "slc-ascii" or "df1" (got {value}){hint}'
+    )
+
+
+def test_a_link_without_a_protocol() -> None:
+    text = ASCII_LINK.replace('protocol = "slc-ascii"\n', "") + "station = 3\n"
+    assert error_of(text) == (
+        f'<string>:{line_of(text, "[[link]]")}: link "press-1" (link[0]).protocol: missing required key'
+    )
+
+
+def test_a_misspelt_key_of_the_other_protocol_is_named_as_such() -> None:
+    text = ASCII_LINK + "statoin = 3\n"
+    assert error_of(text).endswith(
+        '(link[0]).statoin: unknown key (did you mean "station"? It is a key of df1 links; '
+        "this link's protocol is slc-ascii)"
+    )
+    text = DF1_LINK.replace("unit = 2", "unit = 2\nstatoin = 3")
+    assert error_of(text).endswith('(link[0]).statoin: unknown key (did you mean "station"?)')
+
+
+def test_a_wrong_simulator_is_reported_with_the_other_problems_of_the_link() -> None:
+    text = ASCII_LINK.replace("sim://slc150", "sim://slc504") + "retries = 99\n"
+    lines = error_of(text).split("\n")
+    assert lines[0] == "<string>: 2 errors in the configuration:"
+    assert "(link[0]).port: sim://slc504 simulates a controller that speaks df1" in lines[1]
+    assert "(link[0]).retries: must be less than or equal to 10" in lines[2]
+    text = ASCII_LINK.replace("sim://slc150", "sim://slc999") + "retries = 99\n"
+    lines = error_of(text).split("\n")
+    assert lines[1].endswith("(link[0]).port: sim://slc999: no such simulator: expected sim://slc150, sim://slc100 "
+                             "or sim://slc504")
+
+
+def test_a_bad_port_names_the_simulators_of_the_links_protocol() -> None:
+    error = error_of(DF1_LINK.replace('"sim://slc504"', '"ttyUSB0"'))
+    assert error.endswith("rfc2217://host:port or sim://slc504")
+    error = error_of(ASCII_LINK.replace('"sim://slc150"', '"ttyUSB0"'))
+    assert error.endswith("rfc2217://host:port or sim://slc150 | sim://slc100")
+
+
+def test_drivers_and_tools_agree_with_the_serial_defaults_of_the_config() -> None:
+    """config/slc_ascii.py and config/df1.py hold the serial defaults; the CLI tools read them there.
+    The drivers keep a default of their own (for code that builds one without a config) until the
+    link-kind registry passes the config's in: this keeps the two from drifting apart."""
+    from gateway.drivers.df1 import DF1_SETTINGS, Df1Driver
+    from gateway.drivers.slc_ascii import SLC_ASCII_SETTINGS, SlcAsciiDriver
+
+    assert SLC_ASCII_SETTINGS == SLC_ASCII_DEFAULTS.settings
+    assert inspect.signature(SlcAsciiDriver).parameters["timeout"].default == SLC_ASCII_DEFAULTS.timeout
+    assert DF1_SETTINGS == DF1_DEFAULTS.settings
+    assert inspect.signature(Df1Driver).parameters["timeout"].default == DF1_DEFAULTS.timeout

@@ -207,11 +207,6 @@ class LinkBase(Model):
     def is_simulated(self) -> bool:
         return self.port.startswith("sim://")
 
-    @property
-    def serial_settings(self) -> SerialSettings:
-        """``baudrate``, ``bytesize``, ``parity`` and ``stopbits`` as the drivers take them."""
-        return SerialSettings(self.baudrate, self.bytesize, self.parity, self.stopbits)
-
     def is_writable(self, table: str, address: int) -> bool:
         """Whether a Modbus write to ``table`` ``address`` passes ``read_only`` and ``writable``.
 
