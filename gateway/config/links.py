@@ -1,6 +1,7 @@
-"""The link kinds the config knows: one tuple of link models, the discriminated union built from it.
+"""The link kinds the config knows: one union of link models, and what is derived from it.
 
-``LINK_MODELS`` is the one place that lists the protocols. Each model's ``protocol`` field is a
+``LinkConfig`` is the one place that lists the link models (``LINK_MODELS`` and the protocol
+tables are derived from it; no ``if protocol == ...`` anywhere). Each model's ``protocol`` field is a
 one-value ``Literal``: pydantic picks the model by it (``Field(discriminator="protocol")``), so an
 unknown protocol is an error naming the known ones, never a fallback to a default protocol, and each
 model refuses the keys it does not have (``extra="forbid"``).
