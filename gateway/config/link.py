@@ -118,6 +118,8 @@ class LinkBase(Model):
     timeout: float = Field(gt=0, le=60)
     retries: int = Field(3, ge=0, le=10)
     stale_after: float = Field(5.0, gt=0)
+    down_after_failures: int = Field(3, ge=1, le=1000)
+    down_after_seconds: float = Field(5.0, gt=0)
     read_only: bool = False
     writable: tuple[WritableRange, ...] = ()
     fast_interval: float = Field(0.0, ge=0)
