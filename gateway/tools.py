@@ -20,7 +20,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from gateway.drivers.slc_ascii import DEFAULT_TIMEOUT, SLC_ASCII_SETTINGS, SlcAsciiDriver
+from gateway.config import SLC_ASCII_DEFAULTS
+from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import ControllerRefused, GatewayError, InvalidRequest, LinkTimeout
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import ControllerType, Mode
@@ -165,7 +166,7 @@ async def run_tool(command: str, args: argparse.Namespace) -> int:
 
 
 async def _run_slc_ascii_tool(command: str, args: argparse.Namespace, received: ReceivedBytes) -> int:
-    defaults = SLC_ASCII_SETTINGS
+    defaults = SLC_ASCII_DEFAULTS
     settings = SerialSettings(
         args.baudrate or defaults.baudrate,
         args.bytesize or defaults.bytesize,
@@ -180,7 +181,7 @@ async def _run_slc_ascii_tool(command: str, args: argparse.Namespace, received: 
     driver = SlcAsciiDriver(
         args.url,
         settings=settings,
-        timeout=args.timeout or DEFAULT_TIMEOUT,
+        timeout=args.timeout or defaults.timeout,
         retries=resolve_retries(command, args.retries),
         # A probe asks "is an SLC 100/150 there?": one resync, so a wrong guess fails in seconds.
         max_resyncs=1 if command == "probe" else MAX_RESYNCS,

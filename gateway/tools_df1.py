@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import argparse
 import struct
+from dataclasses import replace
 from typing import Any
 
+from gateway.config import DF1_DEFAULTS
 from gateway.drivers.base import OpenStream
-from gateway.drivers.df1 import DF1_SETTINGS, Df1Driver
+from gateway.drivers.df1 import Df1Driver
 from gateway.errors import InvalidRequest
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
 from gateway.protocols.df1.framing import Checksum
@@ -24,7 +26,7 @@ from gateway.protocols.df1.pccc import (
     SetProcessorMode,
 )
 from gateway.tools_common import print_result, resolve_retries
-from gateway.transport import SerialSettings, open_stream
+from gateway.transport import open_stream
 from gateway.unit_df1 import PROCESSORS
 
 __all__ = ["decode_value", "encode_value", "run_df1_tool"]
@@ -69,9 +71,9 @@ def encode_value(address: SlcAddress, text: str) -> tuple[bytes, int | None]:
 async def run_df1_tool(command: str, args: argparse.Namespace, opener: OpenStream = open_stream) -> int:
     if args.processor not in PROCESSORS:
         raise InvalidRequest(f"--processor {args.processor}: choose from {', '.join(PROCESSORS)}")
-    settings = DF1_SETTINGS
+    settings = DF1_DEFAULTS.settings
     if args.baudrate:
-        settings = SerialSettings(args.baudrate, 8, "N", 1)
+        settings = replace(settings, baudrate=args.baudrate)
     if command == "read":
         items = [(text, parse_address(text)) for text in args.items]
     elif command == "write":
@@ -91,7 +93,7 @@ async def run_df1_tool(command: str, args: argparse.Namespace, opener: OpenStrea
         station=args.station,
         source=args.source,
         family=PROCESSORS[args.processor],
-        timeout=args.timeout or 1.0,
+        timeout=args.timeout or DF1_DEFAULTS.timeout,
         retries=resolve_retries(command, args.retries),
         trace=args.trace,
         reconnect_min=60.0,

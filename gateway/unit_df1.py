@@ -16,7 +16,7 @@ import struct
 from functools import partial
 from typing import Any, cast
 
-from gateway.config import LinkConfig
+from gateway.config import Df1LinkConfig
 from gateway.drivers.df1 import Df1Driver, check_reply_size
 from gateway.errors import ControllerRefused, ModbusExceptionReply
 from gateway.modbus.mapping import BitPoint, Block, Codec, RegisterPoint
@@ -216,7 +216,7 @@ def _step_bytes(step: WriteStep) -> bytes:
     return bytes(out)
 
 
-def build_df1_unit(link: LinkConfig, common: dict[str, Any]) -> Df1Unit:
+def build_df1_unit(link: Df1LinkConfig, common: dict[str, Any]) -> Df1Unit:
     family = PROCESSORS[link.processor]
     max_read = link.max_read_bytes or family.max_read_bytes
     settings = SerialSettings(link.baudrate, link.bytesize, link.parity, link.stopbits)

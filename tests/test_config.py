@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import ipaddress
 import re
 import tomllib
@@ -13,22 +14,27 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from gateway.config import (
-    DF1_ONLY_KEYS,
+    DF1_DEFAULTS,
+    LINK_MODELS,
     PROTOCOL_DEFAULTS,
+    SLC_ASCII_DEFAULTS,
+    Df1LinkConfig,
     GatewayConfig,
-    LinkConfig,
     LoggingConfig,
     MapEntry,
     MetricsConfig,
     ModbusConfig,
+    SlcAsciiLinkConfig,
     TlsConfig,
     WritableRange,
-    _classify_address,
     load_config,
     parse_config,
     parse_listen,
+    protocol_names,
 )
+from gateway.config.df1 import classify_address
 from gateway.errors import ConfigError
+from gateway.protocols.df1.address import parse_address
 
 _PEM_CACHE: dict[str, bytes] = {}
 
@@ -169,7 +175,7 @@ count = 64
 
 def test_example_file_mentions_every_key() -> None:
     text = EXAMPLE.read_text(encoding="utf-8")
-    for model in (ModbusConfig, TlsConfig, MetricsConfig, LoggingConfig, LinkConfig, MapEntry):
+    for model in (ModbusConfig, TlsConfig, MetricsConfig, LoggingConfig, *LINK_MODELS, MapEntry):
         for key in model.model_fields:
             if key in ("tls", "map"):  # sections, not keys
                 continue
@@ -284,7 +290,7 @@ def test_describe_lists_every_key() -> None:
     for key in ModbusConfig.model_fields:
         if key != "tls":
             assert f"\n{key} = " in described
-    for key in LinkConfig.model_fields:
+    for key in {key for model in LINK_MODELS for key in model.model_fields}:
         if key != "map":
             assert f"\n{key} = " in described
     for key in MapEntry.model_fields:
@@ -294,7 +300,7 @@ def test_describe_lists_every_key() -> None:
 
 def test_models_are_frozen_and_can_be_built_in_code() -> None:
     config = GatewayConfig(
-        link=(LinkConfig(name="a", protocol="slc-ascii", port="COM3", unit=1),),
+        link=(SlcAsciiLinkConfig(name="a", protocol="slc-ascii", port="COM3", unit=1),),
     )
     assert config.link[0].baudrate == 9600
     with pytest.raises(ValidationError):
@@ -997,7 +1003,7 @@ def test_every_df1_only_key_is_refused_on_an_slc_ascii_link() -> None:
         "max_read_bytes": "0",
         "max_write_bytes": "0",
     }
-    assert set(values) | {"map"} == set(DF1_ONLY_KEYS)
+    assert set(values) | {"map"} == set(Df1LinkConfig.model_fields) - set(SlcAsciiLinkConfig.model_fields)
     text = ASCII_LINK + "".join(f"{key} = {value}\n" for key, value in values.items())
     lines = error_of(text).split("\n")
     assert lines[0] == "<string>: 6 errors in the configuration:"
@@ -1006,17 +1012,16 @@ def test_every_df1_only_key_is_refused_on_an_slc_ascii_link() -> None:
 
 
 # ----------------------------------------------------------------------------------------------
-# SLC 500 address syntax: decided by gateway.protocols.df1.address when it exists
+# SLC 500 address syntax: decided by gateway.protocols.df1.address, the protocol's own parser
 
 
 @pytest.mark.parametrize(
-    "address", ["N7:0", "B3:0/5", "F8:10", "T4:0.ACC", "N256:0", "N7:x", "Z9:0", "N7:0/99"]
+    "address", ["N7:0", "B3:0/5", "F8:10", "T4:0.ACC", "N256:0", "N7:x", "Z9:0", "N7:0/99", "ST9:0"]
 )
 def test_address_syntax_follows_the_address_module(address: str) -> None:
-    module = pytest.importorskip("gateway.protocols.df1.address")
     text = df1_with_maps(f'table = "holding"\nstart = 0\ncount = 1\naddress = "{address}"')
     try:
-        module.parse_address(address)
+        parse_address(address)
     except ValueError as exc:
         error = error_of(text)
         assert "(link[0]).map[0].address: not a valid SLC 500 address: " in error
@@ -1041,13 +1046,14 @@ def test_address_syntax_follows_the_address_module(address: str) -> None:
         ("O:5.3", "O", False),
         ("S:3", "S", False),
         ("F8:0", "F", False),
-        ("ST9:0", "ST", False),
+        ("B3/17", "B", True),
     ],
 )
-def test_local_address_classification(address: str, letter: str, is_bit: bool) -> None:
-    """Used for the map rules when the address module gives no answer (or is not there)."""
-    assert _classify_address(address) == (letter, is_bit)
-    assert _classify_address("hello") is None
+def test_address_classification_comes_from_the_parser(address: str, letter: str, is_bit: bool) -> None:
+    """The map rules read file letter and bit-ness from parse_address's result (no regex twin)."""
+    assert classify_address(address) == (letter, is_bit)
+    with pytest.raises(ValueError, match="hello"):
+        classify_address("hello")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1344,3 +1350,80 @@ def test_trace_limits_and_repeat_interval() -> None:
     assert config.logging.repeat_interval == 5.0
     with pytest.raises(ConfigError, match=r"logging\.trace_max_bytes"):
         parse_config("[logging]\ntrace_max_bytes = 10\n" + ASCII_LINK)
+
+
+# ----------------------------------------------------------------------------------------------
+# Issue 11: one link model per protocol, chosen by `protocol` (a discriminated union)
+
+
+def test_each_link_is_validated_by_the_model_of_its_protocol() -> None:
+    ascii_link, df1_link = parse_config(VALID).link
+    assert type(ascii_link) is SlcAsciiLinkConfig
+    assert type(df1_link) is Df1LinkConfig
+    assert "station" not in SlcAsciiLinkConfig.model_fields  # refused by extra="forbid", not by a list
+    assert protocol_names() == ("slc-ascii", "df1")
+    assert tuple(PROTOCOL_DEFAULTS) == protocol_names()
+    for model in LINK_MODELS:
+        keys = model.serial_defaults.as_keys()
+        assert {key: model.model_fields[key].default for key in keys} == keys
+
+
+@pytest.mark.parametrize(
+    ("value", "hint"),
+    [('"df2"', ' (did you mean "df1"?)'), ('"slc_ascii"', ' (did you mean "slc-ascii"?)'), ('""', ""), ("5", "")],
+)
+def test_an_unknown_protocol_names_the_known_ones_and_never_falls_back(value: str, hint: str) -> None:
+    text = ASCII_LINK.replace('"slc-ascii"', value)
+    assert error_of(text) == (
+        f'<string>:{line_of(text, "protocol")}: link "press-1" (link[0]).protocol: '
+        f'unknown protocol: must be "slc-ascii" or "df1" (got {value}){hint}'
+    )
+
+
+def test_a_link_without_a_protocol() -> None:
+    text = ASCII_LINK.replace('protocol = "slc-ascii"\n', "") + "station = 3\n"
+    assert error_of(text) == (
+        f'<string>:{line_of(text, "[[link]]")}: link "press-1" (link[0]).protocol: missing required key'
+    )
+
+
+def test_a_misspelt_key_of_the_other_protocol_is_named_as_such() -> None:
+    text = ASCII_LINK + "statoin = 3\n"
+    assert error_of(text).endswith(
+        '(link[0]).statoin: unknown key (did you mean "station"? It is a key of df1 links; '
+        "this link's protocol is slc-ascii)"
+    )
+    text = DF1_LINK.replace("unit = 2", "unit = 2\nstatoin = 3")
+    assert error_of(text).endswith('(link[0]).statoin: unknown key (did you mean "station"?)')
+
+
+def test_a_wrong_simulator_is_reported_with_the_other_problems_of_the_link() -> None:
+    text = ASCII_LINK.replace("sim://slc150", "sim://slc504") + "retries = 99\n"
+    lines = error_of(text).split("\n")
+    assert lines[0] == "<string>: 2 errors in the configuration:"
+    assert "(link[0]).port: sim://slc504 simulates a controller that speaks df1" in lines[1]
+    assert "(link[0]).retries: must be less than or equal to 10" in lines[2]
+    text = ASCII_LINK.replace("sim://slc150", "sim://slc999") + "retries = 99\n"
+    lines = error_of(text).split("\n")
+    assert lines[1].endswith("(link[0]).port: sim://slc999: no such simulator: expected sim://slc150, sim://slc100 "
+                             "or sim://slc504")
+
+
+def test_a_bad_port_names_the_simulators_of_the_links_protocol() -> None:
+    error = error_of(DF1_LINK.replace('"sim://slc504"', '"ttyUSB0"'))
+    assert error.endswith("rfc2217://host:port or sim://slc504")
+    error = error_of(ASCII_LINK.replace('"sim://slc150"', '"ttyUSB0"'))
+    assert error.endswith("rfc2217://host:port or sim://slc150 | sim://slc100")
+
+
+def test_drivers_and_tools_agree_with_the_serial_defaults_of_the_config() -> None:
+    """config/slc_ascii.py and config/df1.py hold the serial defaults; the CLI tools read them there.
+    The drivers keep a default of their own (for code that builds one without a config) until the
+    link-kind registry passes the config's in: this keeps the two from drifting apart."""
+    from gateway.drivers.df1 import DF1_SETTINGS, Df1Driver
+    from gateway.drivers.slc_ascii import SLC_ASCII_SETTINGS, SlcAsciiDriver
+
+    assert SLC_ASCII_SETTINGS == SLC_ASCII_DEFAULTS.settings
+    assert inspect.signature(SlcAsciiDriver).parameters["timeout"].default == SLC_ASCII_DEFAULTS.timeout
+    assert DF1_SETTINGS == DF1_DEFAULTS.settings
+    assert inspect.signature(Df1Driver).parameters["timeout"].default == DF1_DEFAULTS.timeout

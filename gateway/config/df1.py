@@ -1,0 +1,195 @@
+"""``[[link]]`` with ``protocol = "df1"``: an SLC 500 / PLC-5 over DF1 full duplex, and its
+``[[link.map]]`` entries.
+
+Map addresses are checked by the protocol's own parser, :func:`gateway.protocols.df1.address.parse_address`;
+the map rules read the file letter and whether the address names a bit from what it returns.
+This module is the one place that holds the protocol's serial defaults.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar, Literal, NamedTuple
+
+from pydantic import Field, model_validator
+
+from gateway.config._common import Loc, Model, Problems, show
+from gateway.config.link import LinkBase, Parity, SerialDefaults
+from gateway.config.writer import table_lines
+from gateway.protocols.df1.address import parse_address
+
+__all__ = ["DF1_DEFAULTS", "Df1LinkConfig", "MapEntry", "Processor", "Table", "ValueType", "classify_address"]
+
+Table = Literal["holding", "input", "coil", "discrete"]
+ValueType = Literal["int16", "uint16", "float32", "bool"]
+Processor = Literal["slc500", "slc5/01", "slc5/02", "slc5/03", "slc5/04", "slc5/05", "plc5"]
+
+#: DF1 full duplex line settings unless a link gives its own: 19200 baud 8N1, 1 s for a reply.
+DF1_DEFAULTS = SerialDefaults(baudrate=19200, bytesize=8, parity="N", stopbits=1, timeout=1.0)
+
+_BIT_TABLES = ("coil", "discrete")
+_BIT_FILES = frozenset({"B", "N", "I", "O", "S", "R"})
+"""Files whose elements are words of addressable bits (SLC 500 addressing reference)."""
+
+
+class AddressKind(NamedTuple):
+    letter: str
+    is_bit: bool
+
+
+def classify_address(text: str) -> AddressKind:
+    """The file letter of an SLC 500 address and whether it names a bit.
+
+    Raises ``ValueError`` (an :class:`~gateway.protocols.df1.address.AddressError`) saying why
+    ``text`` is not an address.
+    """
+    address = parse_address(text)
+    return AddressKind(address.file_type.letter, address.bit is not None)
+
+
+class MapEntry(Model):
+    """``[[link.map]]``: ``count`` values from SLC ``address`` on, at ``table`` addresses from ``start``."""
+
+    table: Table
+    start: int = Field(ge=0, le=65535)
+    address: str
+    count: int = Field(ge=1, le=2000)
+    type: ValueType = "int16"
+    word_order: Literal["high-first", "low-first"] = "high-first"
+    scan: Literal["fast", "slow"] = "fast"
+
+    @model_validator(mode="before")
+    @classmethod
+    def _bool_by_default_for_bits(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "type" not in data and data.get("table") in _BIT_TABLES:
+            return {**data, "type": "bool"}
+        return data
+
+    @property
+    def width(self) -> int:
+        """Modbus addresses per value: 2 for float32, else 1."""
+        return 2 if self.type == "float32" else 1
+
+    @property
+    def size(self) -> int:
+        """Modbus addresses covered: ``count * width``."""
+        return self.count * self.width
+
+    @property
+    def last(self) -> int:
+        """The last Modbus address covered (inclusive)."""
+        return self.start + self.size - 1
+
+    def describe_range(self) -> str:
+        return f"{self.table} {self.start}-{self.last}"
+
+    @model_validator(mode="after")
+    def _check(self) -> MapEntry:
+        problems: list[tuple[Loc, str]] = []
+        bit_table = self.table in _BIT_TABLES
+        if bit_table and self.type != "bool":
+            problems.append((("type",), f'a {self.table} table holds bits: the type must be "bool"'))
+        elif not bit_table and self.type == "bool":
+            problems.append(
+                (("type",), f'type "bool" is for coil and discrete tables (this is a {self.table} table)')
+            )
+        type_problem = bool(problems)
+        if self.last > 65535:
+            problems.append(
+                (
+                    ("count",),
+                    f"the entry ends past Modbus address 65535: start {self.start} + count {self.count}"
+                    f" x {self.width} - 1 = {self.last}",
+                )
+            )
+        try:
+            kind = classify_address(self.address)
+        except ValueError as exc:  # AddressError is an InvalidRequest, a ValueError
+            problems.append((("address",), f"not a valid SLC 500 address: {exc}"))
+        else:
+            if not type_problem:
+                problems.extend(self._address_problems(kind))
+        if problems:
+            raise Problems(*problems)
+        return self
+
+    def _address_problems(self, kind: AddressKind) -> list[tuple[Loc, str]]:
+        address = show(self.address)
+        if self.table in _BIT_TABLES:
+            if kind.letter == "F":
+                return [
+                    (("address",), f"{address} is a floating-point element: a {self.table} table needs bits")
+                ]
+            if not kind.is_bit and kind.letter not in _BIT_FILES:
+                return [
+                    (
+                        ("address",),
+                        f"{address}: a {self.table} table needs a bit address (e.g. B3:0/0 or N7:0/0) "
+                        "or an element of a bit file (B, N, I, O, S, R)",
+                    )
+                ]
+            return []
+        if kind.is_bit:
+            return [(("address",), f"{address} is a bit address: a {self.table} table needs a word address")]
+        if self.type == "float32" and kind.letter != "F":
+            return [
+                (("address",), f'{address}: type "float32" needs a floating-point file address such as F8:0')
+            ]
+        if self.type != "float32" and kind.letter == "F":
+            return [(("type",), f'{address} is a floating-point element: use type = "float32"')]
+        return []
+
+
+class Df1LinkConfig(LinkBase):
+    """``[[link]]`` of an SLC 500 or PLC-5 over DF1 full duplex, with its ``[[link.map]]``."""
+
+    serial_defaults: ClassVar[SerialDefaults] = DF1_DEFAULTS
+    sim_models: ClassVar[tuple[str, ...]] = ("slc504",)
+
+    protocol: Literal["df1"]
+    baudrate: int = DF1_DEFAULTS.baudrate
+    bytesize: int = DF1_DEFAULTS.bytesize
+    parity: Parity = DF1_DEFAULTS.parity
+    stopbits: int = DF1_DEFAULTS.stopbits
+    timeout: float = Field(DF1_DEFAULTS.timeout, gt=0, le=60)
+    station: int = Field(1, ge=0, le=254)
+    source: int = Field(0, ge=0, le=254)
+    checksum: Literal["bcc", "crc"] = "crc"
+    processor: Processor = "slc5/04"
+    max_read_bytes: int = Field(0, ge=0, le=240)
+    max_write_bytes: int = Field(0, ge=0, le=240)
+    map: tuple[MapEntry, ...] = Field((), strict=False)
+
+    def problems(self) -> list[tuple[Loc, str]]:
+        problems = super().problems()
+        if not self.map:
+            problems.insert(0, (("map",), "a df1 link needs at least one [[link.map]] entry"))
+        problems.extend(_overlaps(self.map))
+        return problems
+
+    def describe_lines(self) -> list[str]:
+        lines = table_lines("[[link]]", self, skip=("map",))
+        for entry in self.map:
+            lines += table_lines("[[link.map]]", entry, indent="  ")
+        return lines
+
+
+def _overlaps(entries: Sequence[MapEntry]) -> list[tuple[Loc, str]]:
+    problems: list[tuple[Loc, str]] = []
+    for later in range(len(entries)):
+        b = entries[later]
+        for earlier in range(later):
+            a = entries[earlier]
+            if a.table != b.table or a.last < b.start or b.last < a.start:
+                continue
+            low, high = max(a.start, b.start), min(a.last, b.last)
+            where = f"{low}-{high}" if low != high else f"{low}"
+            problems.append(
+                (
+                    ("map", later),
+                    f"{b.describe_range()} overlaps map[{earlier}] ({a.describe_range()}) "
+                    f"at {b.table} {where}",
+                )
+            )
+            break
+    return problems

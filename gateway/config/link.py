@@ -1,0 +1,223 @@
+"""``[[link]]``: the keys every link has, whatever its protocol, and ``writable`` ranges.
+
+Each protocol's link model (``gateway.config.slc_ascii``, ``gateway.config.df1``) subclasses
+:class:`LinkBase`: it fixes ``protocol`` to its name (the tag of the discriminated union in
+``gateway.config.links``), gives its serial defaults and adds the keys only it has. Unknown keys
+are refused by the model (``extra="forbid"``), so no list of "keys only for protocol X" is kept.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar, Literal
+
+from pydantic import Field, ValidationInfo, field_validator, model_validator
+
+from gateway.config._common import Loc, Model, Problems, array, check_port_url, resolve_path, show
+from gateway.config.writer import table_lines
+from gateway.streams import SerialSettings
+
+__all__ = ["BAUDRATES", "LinkBase", "Parity", "SerialDefaults", "WritableRange", "WritableTable"]
+
+WritableTable = Literal["holding", "coil"]
+Parity = Literal["N", "E", "O"]
+
+#: The baud rates a link may use.
+BAUDRATES = (110, 300, 600, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
+
+_NAME_RE = re.compile(r"[A-Za-z0-9_.-]{1,40}")
+_WRITABLE_RE = re.compile(r"\s*([a-z]+)\s*:\s*([0-9]{1,6})\s*(?:-\s*([0-9]{1,6})\s*)?")
+
+
+@dataclass(frozen=True, slots=True)
+class SerialDefaults:
+    """A protocol's line settings and reply timeout: the defaults of its ``[[link]]`` keys."""
+
+    baudrate: int
+    bytesize: int
+    parity: Parity
+    stopbits: int
+    timeout: float
+
+    @property
+    def settings(self) -> SerialSettings:
+        """The line settings as the drivers and simulators take them."""
+        return SerialSettings(self.baudrate, self.bytesize, self.parity, self.stopbits)
+
+    def as_keys(self) -> dict[str, object]:
+        """``{"baudrate": ..., "bytesize": ..., "parity": ..., "timeout": ...}``: the config keys they set."""
+        return {"baudrate": self.baudrate, "bytesize": self.bytesize, "parity": self.parity, "timeout": self.timeout}
+
+
+class WritableRange(Model):
+    """One entry of ``writable``: Modbus addresses ``first..last`` (inclusive) of ``table``."""
+
+    table: WritableTable
+    first: int = Field(ge=0, le=65535)
+    last: int = Field(ge=0, le=65535)
+
+    @classmethod
+    def parse(cls, text: str) -> WritableRange:
+        """Parse ``"holding:0-31"`` or ``"coil:40"``; raises ``ValueError``."""
+        match = _WRITABLE_RE.fullmatch(text)
+        if match is None:
+            raise ValueError(
+                f'{show(text)}: expected "table:first-last" or "table:address", e.g. "holding:0-31"'
+            )
+        table, first_text, last_text = match.groups()
+        if table not in ("holding", "coil"):
+            raise ValueError(f"{show(text)}: the table must be holding or coil (the writable tables)")
+        table_name: WritableTable = "holding" if table == "holding" else "coil"
+        first = int(first_text)
+        last = int(last_text) if last_text is not None else first
+        if last > 65535:
+            raise ValueError(f"{show(text)}: Modbus addresses are 0..65535")
+        if first > last:
+            raise ValueError(f"{show(text)}: the range is backwards ({first} > {last})")
+        return cls(table=table_name, first=first, last=last)
+
+    def __contains__(self, item: object) -> bool:
+        """``("holding", 12) in writable_range``."""
+        if not (isinstance(item, tuple) and len(item) == 2):
+            return False
+        table, address = item
+        return bool(table == self.table and isinstance(address, int) and self.first <= address <= self.last)
+
+    def __str__(self) -> str:
+        if self.first == self.last:
+            return f"{self.table}:{self.first}"
+        return f"{self.table}:{self.first}-{self.last}"
+
+
+class LinkBase(Model):
+    """``[[link]]``: one serial link to one controller, served as one Modbus unit id.
+
+    A subclass per protocol sets ``protocol`` to a one-value ``Literal``, the defaults of
+    ``baudrate``, ``bytesize``, ``parity`` and ``timeout`` (from its :data:`serial_defaults`), and
+    ``sim_models``, the ``sim://`` models that speak its protocol.
+    """
+
+    #: The line settings and reply timeout the protocol's manual gives (the subclass's defaults).
+    serial_defaults: ClassVar[SerialDefaults]
+    #: ``sim://`` models of controllers that speak this protocol.
+    sim_models: ClassVar[tuple[str, ...]] = ()
+    #: Messages for keys of other protocols' links given on this one (default: "only for X links").
+    foreign_key_notes: ClassVar[Mapping[str, str]] = {}
+
+    name: str
+    protocol: str
+    port: str
+    unit: int = Field(ge=1, le=247)
+    baudrate: int
+    bytesize: int
+    parity: Parity
+    stopbits: int = 1
+    timeout: float = Field(gt=0, le=60)
+    retries: int = Field(3, ge=0, le=10)
+    stale_after: float = Field(5.0, gt=0)
+    down_after_failures: int = Field(3, ge=1, le=1000)
+    down_after_seconds: float = Field(5.0, gt=0)
+    read_only: bool = False
+    writable: tuple[WritableRange, ...] = ()
+    fast_interval: float = Field(0.0, ge=0)
+    slow_interval: float = Field(10.0, ge=0)
+    #: write transactions in a row before waiting polls get the line, for poll_burst transactions
+    write_burst: int = Field(1, ge=1, le=100)
+    poll_burst: int = Field(2, ge=1, le=100)
+    #: writes that may wait for the line, per client connection and in all (beyond: 0x06)
+    write_queue_per_client: int = Field(8, ge=1, le=1000)
+    write_queue_per_link: int = Field(32, ge=1, le=10000)
+    trace: Path | None = None
+
+    @field_validator("name")
+    @classmethod
+    def _check_name(cls, value: str) -> str:
+        if not _NAME_RE.fullmatch(value):
+            raise ValueError(f"{show(value)}: a link name is 1 to 40 characters from A-Z a-z 0-9 _ . -")
+        return value
+
+    @field_validator("port")
+    @classmethod
+    def _check_port(cls, value: str) -> str:
+        check_port_url(value, cls.sim_models)
+        return value
+
+    @field_validator("baudrate")
+    @classmethod
+    def _check_baudrate(cls, value: int) -> int:
+        if value not in BAUDRATES:
+            raise ValueError(f"{value} is not a standard baud rate ({', '.join(map(str, BAUDRATES))})")
+        return value
+
+    @field_validator("bytesize")
+    @classmethod
+    def _check_bytesize(cls, value: int) -> int:
+        if value not in (7, 8):
+            raise ValueError(f"must be 7 or 8 (got {value})")
+        return value
+
+    @field_validator("stopbits")
+    @classmethod
+    def _check_stopbits(cls, value: int) -> int:
+        if value not in (1, 2):
+            raise ValueError(f"must be 1 or 2 (got {value})")
+        return value
+
+    @field_validator("writable", mode="before")
+    @classmethod
+    def _parse_writable(cls, value: object) -> object:
+        ranges: list[WritableRange] = []
+        problems: list[tuple[Loc, str]] = []
+        for index, item in enumerate(array(value)):
+            if isinstance(item, WritableRange):
+                ranges.append(item)
+            elif not isinstance(item, str):
+                problems.append(((index,), f'must be a string such as "holding:0-31" (got {show(item)})'))
+            else:
+                try:
+                    ranges.append(WritableRange.parse(item))
+                except ValueError as exc:
+                    problems.append(((index,), str(exc)))
+        if problems:
+            raise Problems(*problems)
+        return tuple(ranges)
+
+    @field_validator("trace", mode="before")
+    @classmethod
+    def _trace_path(cls, value: object, info: ValidationInfo) -> Path | None:
+        if value is None or value == "":
+            return None
+        return resolve_path(value, info, must_exist=False)
+
+    @model_validator(mode="after")
+    def _check_link(self) -> LinkBase:
+        problems = self.problems()
+        if problems:
+            raise Problems(*problems)
+        return self
+
+    def problems(self) -> list[tuple[Loc, str]]:
+        """Rules across keys (after each key is valid); a subclass adds its own to these."""
+        if self.read_only and self.writable:
+            return [(("writable",), "a read_only link accepts no writes: drop writable or read_only")]
+        return []
+
+    @property
+    def is_simulated(self) -> bool:
+        return self.port.startswith("sim://")
+
+    def is_writable(self, table: str, address: int) -> bool:
+        """Whether a Modbus write to ``table`` ``address`` passes ``read_only`` and ``writable``.
+
+        Whether the address is mapped at all is the mapping's business, not this method's.
+        """
+        if self.read_only or table not in ("holding", "coil"):
+            return False
+        return not self.writable or any((table, address) in r for r in self.writable)
+
+    def describe_lines(self) -> list[str]:
+        """This link as ``[[link]]`` TOML (the resolved-config writer's part for it)."""
+        return table_lines("[[link]]", self)
