@@ -20,7 +20,7 @@ from gateway.config import Df1LinkConfig
 from gateway.drivers.df1 import Df1Driver, check_reply_size
 from gateway.errors import ControllerRefused, ModbusExceptionReply
 from gateway.modbus.mapping import BitPoint, Block, Codec, RegisterPoint
-from gateway.modbus.mapping_df1 import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, plan_df1
+from gateway.modbus.mapping_df1 import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, shared_plan_df1
 from gateway.protocols.df1.address import FileType, SlcAddress
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.pccc import (
@@ -61,7 +61,7 @@ class Df1Unit(Unit):
     def __init__(
         self, *, driver: Df1Driver, items: list[MapItem], max_read_bytes: int, max_write_bytes: int = 0, **common: Any
     ) -> None:
-        super().__init__(driver=driver, plan=plan_df1(items, max_read_bytes), **common)
+        super().__init__(driver=driver, plan=shared_plan_df1(items, max_read_bytes), **common)
         #: data bytes of one write command (3-byte address fields take 2 each off it)
         self.max_write_bytes = max_write_bytes or driver.family.max_write_bytes
 

@@ -343,3 +343,16 @@ def test_optimal_blocks_matches_exhaustive_search(case: tuple[list[tuple[int, in
         assert any(start <= first and first + count <= start + words for start, words in blocks), (first, count)
     cost = sum(block_cost(words, overhead) for _, words in blocks)
     assert cost == brute_force(spans, element_words, max_words, overhead)
+
+
+def test_links_with_the_same_map_share_one_plan() -> None:
+    """Identical machines' links hold one plan (and so one image layout); a different map or
+    size limit gets its own."""
+    from gateway.modbus.mapping_df1 import shared_plan_df1
+
+    items = [MapItem(table="holding", start=0, address="N7:0", count=10)]
+    same = [MapItem(table="holding", start=0, address="N7:0", count=10)]
+    other = [MapItem(table="holding", start=0, address="N7:0", count=11)]
+    assert shared_plan_df1(items, 236) is shared_plan_df1(same, 236)
+    assert shared_plan_df1(items, 236) is not shared_plan_df1(other, 236)
+    assert shared_plan_df1(items, 236) is not shared_plan_df1(items, 100)

@@ -15,6 +15,7 @@ the optimum for this cost model; merging neighbours and splitting long runs both
 
 from __future__ import annotations
 
+import functools
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -31,6 +32,7 @@ __all__ = [
     "block_cost",
     "optimal_blocks",
     "plan_df1",
+    "shared_plan_df1",
 ]
 
 #: Bytes on the wire of one protected typed logical read besides its data: command frame
@@ -244,3 +246,15 @@ def plan_df1(items: Sequence[MapItem], max_read_bytes: int, overhead: int = READ
             word_write = Df1WordWrite(cell.address) if writable else None
             plan.registers(cell.table)[cell.modbus] = RegisterPoint(block, offset, cell.codec, word_write)
     return plan
+
+
+@functools.lru_cache(maxsize=256)
+def _shared_plan(items: tuple[MapItem, ...], max_read_bytes: int) -> Plan:
+    return plan_df1(items, max_read_bytes)
+
+
+def shared_plan_df1(items: Sequence[MapItem], max_read_bytes: int) -> Plan:
+    """:func:`plan_df1`, built once per distinct map: links with the same map (a plant's
+    identical machines) share one plan and one image layout, as every SLC 100/150 link shares
+    ``slc_ascii_plan()``.  A plan is never changed once built."""
+    return _shared_plan(tuple(items), max_read_bytes)
