@@ -29,7 +29,8 @@ idle (same transactions, so the same ratio as wire efficiency).  Both links are 
 process whatever map is read, so each window gives both links' ratios.
 
 **Memory per link**: ``--memory`` (also run by full mode) builds 20 SLC and 20 DF1 units with a
-full cache and reports tracemalloc bytes per unit; ``--memory-tree DIR`` measures another
+full cache and reports tracemalloc bytes per unit (DF1 twice: 20 units sharing one map, and 20
+units each with a map of its own); ``--memory-tree DIR`` measures another
 checkout the same way (e.g. ``git archive 7bd7acd | tar -x -C /tmp/base``) for the comparison.
 
     python bench/modbus_serving.py [--quick] [--duration S] [--rounds N] [--connections 1,10,50]
@@ -228,11 +229,17 @@ def memory_per_link(units: int = 20) -> dict[str, float]:
         return Df1Unit(driver=Df1Driver("sim://slc504"), items=[MapItem(**e) for e in DF1_MAP],  # type: ignore[arg-type]
                        max_read_bytes=236, unit_id=1, name=f"df1{i}")
 
+    def df1_own(i: int) -> object:
+        # a map of its own: the same entries at Modbus addresses shifted by i, so no two units share
+        # a plan (a checkout without shared plans builds one per unit either way)
+        items = [MapItem(**{**e, "start": int(e["start"]) + i}) for e in DF1_MAP]  # type: ignore[arg-type]
+        return Df1Unit(driver=Df1Driver("sim://slc504"), items=items, max_read_bytes=236, unit_id=1, name=f"own{i}")
+
     out: dict[str, float] = {}
 
     async def measure() -> None:
         now = asyncio.get_running_loop().time()
-        for name, build in (("slc", slc), ("df1", df1)):
+        for name, build in (("slc", slc), ("df1", df1), ("df1_own", df1_own)):
             build(0)  # imports and caches outside the measurement
             gc.collect()
             tracemalloc.start()
@@ -289,12 +296,15 @@ def main() -> None:
     if args.memory or args.memory_tree:
         memory = memory_per_link()
         line = f"memory per link (tracemalloc, full cache): SLC {memory['slc'] / 1024:.1f} KiB, " \
-               f"DF1 {memory['df1'] / 1024:.1f} KiB"
-        values: dict[str, object] = {"slc_kib": memory["slc"] / 1024, "df1_kib": memory["df1"] / 1024}
+               f"DF1 {memory['df1'] / 1024:.1f} KiB (shared map), {memory['df1_own'] / 1024:.1f} KiB (map of its own)"
+        values: dict[str, object] = {"slc_kib": memory["slc"] / 1024, "df1_kib": memory["df1"] / 1024,
+                                     "df1_own_kib": memory["df1_own"] / 1024}
         if args.memory_tree:
             base = memory_of_tree(args.memory_tree)
-            line += f"; {args.memory_tree}: SLC {base['slc'] / 1024:.1f} KiB, DF1 {base['df1'] / 1024:.1f} KiB"
-            values.update(slc_ratio=memory["slc"] / base["slc"], df1_ratio=memory["df1"] / base["df1"])
+            line += f"; {args.memory_tree}: SLC {base['slc'] / 1024:.1f} KiB, DF1 {base['df1'] / 1024:.1f} KiB, " \
+                    f"{base['df1_own'] / 1024:.1f} KiB"
+            values.update(slc_ratio=memory["slc"] / base["slc"], df1_ratio=memory["df1"] / base["df1"],
+                          df1_own_ratio=memory["df1_own"] / base["df1_own"])
         print(line)
         result(**values)
         return
@@ -418,8 +428,9 @@ def report(rows: list[dict[str, object]], idle: list[dict[str, float]], maps: li
     if not quick:
         memory = memory_per_link()
         print(f"memory per link (tracemalloc, full cache): SLC {memory['slc'] / 1024:.1f} KiB, "
-              f"DF1 {memory['df1'] / 1024:.1f} KiB")
-        values.update(slc_link_kib=memory["slc"] / 1024, df1_link_kib=memory["df1"] / 1024)
+              f"DF1 {memory['df1'] / 1024:.1f} KiB (shared map), {memory['df1_own'] / 1024:.1f} KiB (map of its own)")
+        values.update(slc_link_kib=memory["slc"] / 1024, df1_link_kib=memory["df1"] / 1024,
+                      df1_own_link_kib=memory["df1_own"] / 1024)
     last = connection_counts[-1]
     first = connection_counts[0]
     values["line_loaded_over_idle_worst"] = worst_line

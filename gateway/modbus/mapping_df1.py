@@ -161,7 +161,9 @@ class _Cell:
     scan: Scan
 
 
-def _cells(item: MapItem) -> list[_Cell]:
+def _cells(item: MapItem, words: dict[SlcAddress, SlcAddress]) -> list[_Cell]:
+    """The cells of one map entry.  ``words`` interns word addresses across the plan: the 16
+    coils of one word share one address object (a plan lives as long as its links)."""
     base = parse_address(item.address)
     table = Table(item.table)
     scan = Scan(item.scan)
@@ -176,6 +178,7 @@ def _cells(item: MapItem) -> list[_Cell]:
                 absolute = first_bit + k
                 word, bit = base.offset(absolute // 16), absolute % 16
             word = SlcAddress(word.file_type, word.file_number, word.element, word.sub_element, None)
+            word = words.setdefault(word, word)
             cells.append(_Cell(table, item.start + k, word, None, bit, scan))
         return cells
     if item.type == "float32":
@@ -193,7 +196,8 @@ def _cells(item: MapItem) -> list[_Cell]:
 
 def plan_df1(items: Sequence[MapItem], max_read_bytes: int, overhead: int = READ_OVERHEAD_BYTES) -> Plan:
     """The read plan and Modbus points of a DF1 link's map."""
-    cells = [cell for item in items for cell in _cells(item)]
+    words: dict[SlcAddress, SlcAddress] = {}
+    cells = [cell for item in items for cell in _cells(item, words)]
     max_words = max_read_bytes // 2
     # Needed spans per (scan, key); a word read by the fast class is not read again by the slow.
     fast_words: set[tuple[Key, int]] = set()
@@ -234,6 +238,7 @@ def plan_df1(items: Sequence[MapItem], max_read_bytes: int, overhead: int = READ
                 return index, 2 * (position - start)
         raise AssertionError(f"{cell.address} not covered by the read plan")
 
+    word_writes: dict[SlcAddress, Df1WordWrite] = {}  # one per word or float (both halves share it)
     for cell in cells:
         block, offset = find(cell)
         writable = cell.table in (Table.HOLDING, Table.COIL)
@@ -243,7 +248,7 @@ def plan_df1(items: Sequence[MapItem], max_read_bytes: int, overhead: int = READ
             plan.bits(cell.table)[cell.modbus] = point
         else:
             assert cell.codec is not None
-            word_write = Df1WordWrite(cell.address) if writable else None
+            word_write = word_writes.setdefault(cell.address, Df1WordWrite(cell.address)) if writable else None
             plan.registers(cell.table)[cell.modbus] = RegisterPoint(block, offset, cell.codec, word_write)
     return plan
 
