@@ -3,7 +3,8 @@
 The transaction rules (``;Z``, ``;I``, resend after proof, ID 00 resync, the write verdict) live
 in :mod:`gateway.protocols.slc_ascii.transaction`; this module moves bytes and time to it and
 turns its verdicts into errors: ``REFUSED`` -> ``ControllerRefused``, ``UNKNOWN`` (a write that
-may or may not have run, at most once) and ``FAILED`` -> ``LinkTimeout``.
+may or may not have run, at most once) -> ``WriteOutcomeUnknown`` (as the DF1 driver), ``FAILED``
+-> ``LinkTimeout``.
 """
 
 from __future__ import annotations
@@ -14,7 +15,15 @@ from pathlib import Path
 from typing import Final
 
 from gateway.drivers.base import LinkDriver, OpenStream, Priority
-from gateway.errors import ControllerFault, ControllerRefused, GatewayError, LinkDown, LinkTimeout, ProtocolError
+from gateway.errors import (
+    ControllerFault,
+    ControllerRefused,
+    GatewayError,
+    LinkDown,
+    LinkTimeout,
+    ProtocolError,
+    WriteOutcomeUnknown,
+)
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command, ControllerType, FrnInfo, Mode, TimeoutClass
 from gateway.protocols.slc_ascii.framing import Ack, DataReply
@@ -151,8 +160,8 @@ class SlcAsciiDriver(LinkDriver):
                 reason=result.reason,
             )
         if result.verdict is Verdict.UNKNOWN:
-            raise LinkTimeout(f"link {self.name}: {command.name}: outcome unknown (applied at most once): "
-                              f"{result.reason}")
+            raise WriteOutcomeUnknown(f"link {self.name}: {command.name}: outcome unknown (applied at most once): "
+                                      f"{result.reason}")
         raise LinkTimeout(f"link {self.name}: {command.name}: {result.reason}")
 
     def _flush(self) -> None:
