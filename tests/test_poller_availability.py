@@ -69,10 +69,13 @@ def script() -> Script:
 
 
 @pytest.fixture
-async def running(script: Script) -> AsyncIterator[Poller]:
+async def running(script: Script, caplog: pytest.LogCaptureFixture) -> AsyncIterator[Poller]:
+    """A poller of 3 blocks that has read its first data (the log from its start on)."""
+    caplog.set_level(logging.DEBUG, "gateway.poller")
     poller = Poller("p", blocks(3), BlockCache([2] * 3), script, fast_interval=0.002, slow_interval=0.01,
                     down_wait=0.002, stagger=0, responding=lambda: True)
     task = asyncio.create_task(poller.run())
+    await until(lambda: poller.available)
     yield poller
     task.cancel()
     await asyncio.gather(task, return_exceptions=True)
@@ -83,9 +86,7 @@ async def test_available_after_the_first_block_read_and_the_first_data_is_not_ne
 ) -> None:
     fresh = Poller("q", blocks(1), BlockCache([2]), script)
     assert not fresh.available and fresh.last_success is None and fresh.last_error is None
-    caplog.set_level(logging.DEBUG, "gateway.poller")
     poller = running
-    await until(lambda: poller.available)
     assert poller.last_success is not None
     before = poller.last_success
     await rounds(script, 3)
@@ -96,9 +97,7 @@ async def test_available_after_the_first_block_read_and_the_first_data_is_not_ne
 async def test_a_lost_link_is_the_drivers_to_log_the_poller_says_it_at_debug_once(
     script: Script, running: Poller, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.DEBUG, "gateway.poller")
     poller = running
-    await until(lambda: poller.available)
     lost = LinkDown("link p is down: closed")
     script.error = lambda index: lost
     await until(lambda: not poller.available)
@@ -116,9 +115,7 @@ async def test_a_lost_link_is_the_drivers_to_log_the_poller_says_it_at_debug_onc
 async def test_one_failed_block_of_a_round_leaves_the_data_available(
     script: Script, running: Poller, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.DEBUG, "gateway.poller")
     poller = running
-    await until(lambda: poller.available)
     script.error = lambda index: LinkTimeout("no valid answer") if index == 1 else None
     await rounds(script, 20)
     assert poller.available and isinstance(poller.last_error, LinkTimeout)
@@ -135,9 +132,7 @@ async def test_one_failed_block_of_a_round_leaves_the_data_available(
 async def test_a_controller_that_answers_without_data_is_warned_once_and_back_online_once(
     error: GatewayError, script: Script, running: Poller, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, "gateway.poller")
     poller = running
-    await until(lambda: poller.available)
     script.error = lambda index: error
     await until(lambda: not poller.available)
     reads = script.reads
@@ -154,9 +149,7 @@ async def test_no_data_after_a_lost_link_is_warned_and_its_recovery_said(
 ) -> None:
     # The link drops (the driver's news), comes back, but the controller now refuses every read
     # (program mode after a power cycle): that the poller must say, once.
-    caplog.set_level(logging.INFO, "gateway.poller")
     poller = running
-    await until(lambda: poller.available)
     script.error = lambda index: LinkDown("gone")
     await until(lambda: not poller.available)
     refused = ControllerRefused("controller refused read", command="read")
