@@ -121,7 +121,6 @@ class SlcAsciiDriver(LinkDriver):
         session = self.session
         timeout = self.slow_timeout if command.timeout_class is TimeoutClass.SLOW else self.timeout
         timeout += (2 * command.byte_count + 9 + _LONGEST_REPLY) * self.char_time
-        before = session.counters.faults
         self._aborted = None
         session.start(command, loop.time(), timeout)
         while session.result is None:
@@ -146,7 +145,7 @@ class SlcAsciiDriver(LinkDriver):
                 if timer is not None:
                     timer.cancel()
         self._flush()
-        self._sync_counters(before)
+        self._sync_counters()
         result = session.take_result()
         if result.verdict is Verdict.DONE:
             assert result.answer is not None
@@ -168,7 +167,7 @@ class SlcAsciiDriver(LinkDriver):
         if data:
             self.send(data.translate(_EVEN_PARITY) if self._software_parity else data)
 
-    def _sync_counters(self, faults_before: int) -> None:
+    def _sync_counters(self) -> None:
         core, mine = self.session.counters, self.counters
         mine.timeouts, mine.crc_errors = core.timeouts, core.crc_errors
         mine.retransmits, mine.id_resyncs = core.retransmits, core.id_mismatches
