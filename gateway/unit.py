@@ -10,13 +10,14 @@ the controller has answered no poll for ``stale_after`` plus the shortest scan p
 slow-class value read every 10 s is not stale 5 s after its read while the link is up, and no
 value outlives a silent link by more than ``stale_after`` (plus ``fast_interval``).
 
-Error translation (controller -> Modbus exception):
+Error translation (controller -> Modbus exception; errors by type: ``gateway.errors.MODBUS_CODES``):
 
 =================================================  =====
 unmapped address, read-only point, ``read_only``    0x02
 value out of range (e.g. > 9999 on an SLC 100/150)  0x03
 controller refused (``;E``, PCCC STS), protected     0x04
 no answer, link down, stale data                     0x0B
+a write whose outcome is unknown (sent once)         0x0B
 =================================================  =====
 """
 
@@ -35,14 +36,7 @@ from gateway.cache import BlockCache
 from gateway.clients import current_client
 from gateway.drivers.base import LinkDriver
 from gateway.drivers.slc_ascii import SlcAsciiDriver
-from gateway.errors import (
-    ControllerRefused,
-    GatewayError,
-    InvalidRequest,
-    LinkError,
-    ModbusExceptionReply,
-    ProtocolError,
-)
+from gateway.errors import ControllerRefused, GatewayError, ModbusExceptionReply, modbus_exception
 from gateway.image import ImageMiss, Images
 from gateway.modbus.mapping import (
     STATUS_BASE,
@@ -423,19 +417,14 @@ def _spans(steps: list[WriteStep]) -> str:
 
 
 async def _translated(write: Awaitable[None]) -> None:
-    """Await a write, translating controller errors to Modbus exceptions."""
+    """Await a write, translating its error to the Modbus exception of ``gateway.errors.MODBUS_CODES``."""
     try:
         await write
-    except ModbusExceptionReply:
-        raise  # already translated (e.g. a PCCC address problem: 0x02)
-    except ControllerRefused as exc:
-        raise ModbusExceptionReply(DEVICE_FAILURE, str(exc)) from exc
-    except InvalidRequest as exc:
-        raise ModbusExceptionReply(ILLEGAL_VALUE, str(exc)) from exc
-    except (LinkError, ProtocolError) as exc:
-        raise ModbusExceptionReply(TARGET_FAILED, str(exc)) from exc
     except GatewayError as exc:
-        raise ModbusExceptionReply(DEVICE_FAILURE, str(exc)) from exc
+        reply = modbus_exception(exc)
+        if reply is exc:
+            raise  # already translated (e.g. a PCCC address problem: 0x02)
+        raise reply from exc
 
 
 class SlcAsciiUnit(Unit):

@@ -31,7 +31,7 @@ from collections.abc import Awaitable, Callable, Hashable
 from dataclasses import dataclass, field
 
 from gateway.drivers.base import LinkDriver
-from gateway.errors import LinkError, ModbusExceptionReply
+from gateway.errors import LinkError, ModbusExceptionReply, modbus_exception
 
 __all__ = ["WriteQueue"]
 
@@ -135,7 +135,7 @@ class WriteQueue:
                             await self._run(entry)
                 except LinkError as exc:
                     # No line for writes (the link is down): every waiting job fails at once.
-                    error = ModbusExceptionReply(ModbusExceptionReply.GATEWAY_TARGET_FAILED, str(exc))
+                    error = modbus_exception(exc)  # 0x0B
                     while (entry := self._pick()) is not None:
                         if not entry.future.done():
                             entry.future.set_exception(error)

@@ -9,7 +9,8 @@ and turns the core's verdicts into results and exceptions:
 * done -> the reply (for a write whose reply was lost but whose read-back showed the written
   value: a success too);
 * refused -> :class:`~gateway.protocols.df1.pccc.PcccError` with the manual's text;
-* outcome unknown -> :class:`WriteOutcomeUnknown` (Modbus 0x0B); the write was sent once;
+* outcome unknown -> :class:`~gateway.errors.WriteOutcomeUnknown` (Modbus 0x0B); the write was
+  sent once (re-exported here for the modules that import it from this one);
 * failed -> :class:`~gateway.errors.LinkTimeout`.
 """
 
@@ -21,7 +22,7 @@ from pathlib import Path
 from typing import Final
 
 from gateway.drivers.base import LinkDriver, OpenStream, Priority
-from gateway.errors import GatewayError, LinkTimeout, ProtocolError
+from gateway.errors import GatewayError, LinkTimeout, ProtocolError, WriteOutcomeUnknown
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.link import Df1Link
 from gateway.protocols.df1.pccc import (
@@ -53,10 +54,6 @@ _WRITE_TYPES: Final = ("ProtectedTypedLogicalWrite", "ProtectedTypedLogicalMaske
 
 #: Characters of the longest DF1 frame: 6 header + 4 + 236 data bytes, framing, CRC, some DLE doubling.
 _LONGEST_FRAME: Final = 280
-
-
-class WriteOutcomeUnknown(LinkTimeout):
-    """The write may have reached the controller, but neither its reply nor a read-back proved it applied."""
 
 
 class Df1Driver(LinkDriver):

@@ -3,7 +3,8 @@
 The transaction rules (``;Z``, ``;I``, resend after proof, ID 00 resync, the write verdict) live
 in :mod:`gateway.protocols.slc_ascii.transaction`; this module moves bytes and time to it and
 turns its verdicts into errors: ``REFUSED`` -> ``ControllerRefused``, ``UNKNOWN`` (a write that
-may or may not have run, at most once) and ``FAILED`` -> ``LinkTimeout``.
+may or may not have run, at most once) -> ``WriteOutcomeUnknown`` (as the DF1 driver), ``FAILED``
+-> ``LinkTimeout``.
 """
 
 from __future__ import annotations
@@ -14,14 +15,23 @@ from pathlib import Path
 from typing import Final
 
 from gateway.drivers.base import LinkDriver, OpenStream, Priority
-from gateway.errors import ControllerFault, ControllerRefused, GatewayError, LinkDown, LinkTimeout, ProtocolError
+from gateway.errors import (
+    ControllerFault,
+    ControllerRefused,
+    GatewayError,
+    LinkDown,
+    LinkTimeout,
+    ProtocolError,
+    WriteOutcomeUnknown,
+)
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command, ControllerType, FrnInfo, Mode, TimeoutClass
 from gateway.protocols.slc_ascii.framing import Ack, DataReply
 from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS, SlcSession, Verdict
+from gateway.protocols.slc_ascii.transfer import MAX_TRANSFER_RESTARTS, Download, Restart, Upload
 from gateway.transport import SerialSettings, open_stream
 
-__all__ = ["SLC_ASCII_SETTINGS", "SlcAsciiDriver"]
+__all__ = ["MAX_TRANSFER_RESTARTS", "SLC_ASCII_SETTINGS", "SlcAsciiDriver"]
 
 log = logging.getLogger("gateway.link")
 
@@ -36,8 +46,6 @@ Answer = Ack | DataReply
 
 #: Characters of the longest reply: an upload block ``:<block><15 bytes><ID><CRC>CR``.
 _LONGEST_REPLY: Final = 1 + 2 + 30 + 2 + 2 + 1
-#: Program transfer: restarts from block 0 (after a power cycle, a lost block) before giving up.
-MAX_TRANSFER_RESTARTS: Final = 10
 
 #: 7-bit character -> the same character with its even parity bit as bit 7.  On a port set to
 #: 8 data bits and no parity this puts on the wire exactly what 7E1 would.
@@ -113,7 +121,6 @@ class SlcAsciiDriver(LinkDriver):
         session = self.session
         timeout = self.slow_timeout if command.timeout_class is TimeoutClass.SLOW else self.timeout
         timeout += (2 * command.byte_count + 9 + _LONGEST_REPLY) * self.char_time
-        before = session.counters.faults
         self._aborted = None
         session.start(command, loop.time(), timeout)
         while session.result is None:
@@ -138,7 +145,7 @@ class SlcAsciiDriver(LinkDriver):
                 if timer is not None:
                     timer.cancel()
         self._flush()
-        self._sync_counters(before)
+        self._sync_counters()
         result = session.take_result()
         if result.verdict is Verdict.DONE:
             assert result.answer is not None
@@ -151,8 +158,8 @@ class SlcAsciiDriver(LinkDriver):
                 reason=result.reason,
             )
         if result.verdict is Verdict.UNKNOWN:
-            raise LinkTimeout(f"link {self.name}: {command.name}: outcome unknown (applied at most once): "
-                              f"{result.reason}")
+            raise WriteOutcomeUnknown(f"link {self.name}: {command.name}: outcome unknown (applied at most once): "
+                                      f"{result.reason}")
         raise LinkTimeout(f"link {self.name}: {command.name}: {result.reason}")
 
     def _flush(self) -> None:
@@ -160,7 +167,7 @@ class SlcAsciiDriver(LinkDriver):
         if data:
             self.send(data.translate(_EVEN_PARITY) if self._software_parity else data)
 
-    def _sync_counters(self, faults_before: int) -> None:
+    def _sync_counters(self) -> None:
         core, mine = self.session.counters, self.counters
         mine.timeouts, mine.crc_errors = core.timeouts, core.crc_errors
         mine.retransmits, mine.id_resyncs = core.retransmits, core.id_mismatches
@@ -244,73 +251,32 @@ class SlcAsciiDriver(LinkDriver):
 
     async def upload_program(self, controller: ControllerType) -> bytes:
         """Every program block in order (the controller must be in program mode)."""
-
-        async def op() -> bytes:
-            blocks = bytearray()
-            restarts = 0
-            while len(blocks) < controller.block_count * cmds.BLOCK_SIZE:
-                expected = len(blocks) // cmds.BLOCK_SIZE
-                try:
-                    answer = await self._run_command(cmds.upload_block())
-                except (LinkTimeout, ProtocolError) as exc:
-                    got: int | None = None  # the controller's pointer may have moved
-                    why = str(exc)
-                else:
-                    block = cmds.parse_upload_reply(_data(answer).body_hex, controller=controller)
-                    if block.block == expected:
-                        blocks += block.data
-                        continue
-                    got, why = block.block, f"expected block 0x{expected:02X}, got 0x{block.block:02X}"
-                restarts += 1
-                if restarts > MAX_TRANSFER_RESTARTS:
-                    raise ProtocolError(f"upload: gave up after {MAX_TRANSFER_RESTARTS} restarts ({why}); "
-                                        "check the line and try again")
-                log.info("link %s: upload restarts from block 0 (%s)", self.name, why)
-                if got == 0:
-                    blocks = bytearray(block.data)  # a power cycle restarted the controller's pointer
-                else:
-                    # "The user can reset the procedure by re-entering the Program mode."
-                    await self._run_command(cmds.set_mode(Mode.PROGRAM))
-                    blocks = bytearray()
-            return bytes(blocks)
-
-        return await self.submit(op, Priority.WRITE)
+        upload = Upload(controller)
+        await self._transfer(upload)
+        return upload.program
 
     async def download_program(self, controller: ControllerType, program: bytes) -> None:
         """Download every block in order (program mode).  ``program`` is block_count * 15 bytes.
 
-        Never silently partial: a block that fails (a power cycle resets the controller's block
-        pointer; an outcome the line left unknown) restarts the download from block 0 after
-        re-entering program mode, at most ``MAX_TRANSFER_RESTARTS`` times; then the error names
-        the block.
+        Never silently partial: the restart rules (from block 0, at most ``MAX_TRANSFER_RESTARTS``
+        times, then an error naming the block) are :mod:`gateway.protocols.slc_ascii.transfer`'s.
         """
-        size = controller.block_count * cmds.BLOCK_SIZE
-        if len(program) != size:
-            raise ProtocolError(f"download: a {controller.name} program is {size} bytes, got {len(program)}")
-        commands = [
-            cmds.download_block(block, program[block * 15 : block * 15 + 15], controller=controller)
-            for block in range(controller.block_count)
-        ]
+        await self._transfer(Download(controller, program))
+
+    async def _transfer(self, transfer: Upload | Download) -> None:
+        """Run the commands of a program transfer back to back, holding the line."""
 
         async def op() -> None:
-            restarts = 0
-            block = 0
-            while block < len(commands):
+            while (command := transfer.next_command()) is not None:
                 try:
-                    await self._run_command(commands[block])
-                except (LinkTimeout, ControllerRefused, ProtocolError) as exc:
-                    restarts += 1
-                    if restarts > MAX_TRANSFER_RESTARTS:
-                        raise GatewayError(
-                            f"download failed at block 0x{block:02X} of {len(commands)} after "
-                            f"{MAX_TRANSFER_RESTARTS} restarts: {exc}; the controller's program is incomplete "
-                            "(a download clears it): run the download again"
-                        ) from exc
-                    log.info("link %s: download restarts from block 0 (block 0x%02X: %s)", self.name, block, exc)
-                    await self._run_command(cmds.set_mode(Mode.PROGRAM))
-                    block = 0
-                    continue
-                block += 1
+                    answer = await self._run_command(command)
+                except transfer.restart_on as exc:
+                    restart: Restart | None = transfer.failed(exc)
+                else:
+                    restart = transfer.answered(answer)
+                if restart is not None:
+                    log.info("link %s: %s restarts from block 0 (block 0x%02X: %s)", self.name,
+                             restart.transfer, restart.block, restart.reason)
 
         await self.submit(op, Priority.WRITE)
 
