@@ -58,6 +58,8 @@ __all__ = [
     "IPNetwork",
     "Rights",
     "RolePolicy",
+    "format_address",
+    "host_allowed",
     "peer_host",
     "role_from_certificate",
 ]
@@ -258,7 +260,16 @@ def peer_host(peer: object) -> str | None:
     return str(address)
 
 
-def _allowed(host: str | None, allow: Sequence[IPNetwork]) -> bool:
+def format_address(address: object) -> str:
+    """A ``peername`` / ``sockname`` as ``host:port`` (``[host]:port`` for IPv6), for log lines."""
+    if isinstance(address, tuple) and len(address) >= 2:
+        host, port = address[0], address[1]
+        return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
+    return str(address)
+
+
+def host_allowed(host: str | None, allow: Sequence[IPNetwork]) -> bool:
+    """Whether ``host`` (a :func:`peer_host`) is inside one of ``allow`` (False for None)."""
     if host is None:
         return False
     address = ipaddress.ip_address(host)
@@ -306,7 +317,7 @@ class Admission:
         ``handshake_started``: loop time, for a TLS connection whose handshake starts now.
         """
         host = peer_host(peer)
-        if self.allow is not None and not _allowed(host, self.allow) and not self.read_only(peer):
+        if self.allow is not None and not host_allowed(host, self.allow) and not self.read_only(peer):
             return self._refuse("peer not in the allowed networks", peer, host)
         if (
             self.max_per_address is not None
@@ -331,7 +342,7 @@ class Admission:
         if not self.loopback_reads or self.allow is None:
             return False
         host = peer_host(peer)
-        return host is not None and ipaddress.ip_address(host).is_loopback and not _allowed(host, self.allow)
+        return host is not None and ipaddress.ip_address(host).is_loopback and not host_allowed(host, self.allow)
 
     def handshake_done(self, slot: Slot, peer: object) -> bool:
         """Move a TLS connection from the handshake budget to the connection slots (False: refused)."""
@@ -409,14 +420,7 @@ class Admission:
             host,
             "%s: refused connection from %s: %s",
             self.name,
-            _format_address(peer),
+            format_address(peer),
             reason,
         )
         return False
-
-
-def _format_address(address: object) -> str:
-    if isinstance(address, tuple) and len(address) >= 2:
-        host, port = address[0], address[1]
-        return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
-    return str(address)
