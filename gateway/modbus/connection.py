@@ -57,7 +57,7 @@ from typing import Any, Final, Protocol, cast
 from gateway.clients import Client, current_client
 from gateway.logutil import RepeatLog
 from gateway.modbus import mbap
-from gateway.modbus.admission import Admission, ClientIdentity, RolePolicy, format_address, peer_host
+from gateway.modbus.admission import Admission, RolePolicy, format_address, peer_host
 from gateway.modbus.handler import ModbusServerCounters, Reply
 from gateway.modbus.mbap import ILLEGAL_FUNCTION, MAX_LENGTH, MIN_LENGTH, WRITE_FUNCTION_CODES
 
@@ -119,15 +119,13 @@ class ConnectionHost(Protocol):
 class Connection(asyncio.Protocol):
     """One client connection: MBAP framing, one task per request, backpressure, idle timer.
 
-    ``client`` (a :class:`~gateway.modbus.admission.ClientIdentity`) says who is connected and
-    with which rights; its description is the name of the connection's
-    :class:`gateway.clients.Client`, current in every request task (for fairness and audit).
+    ``client`` (a :class:`gateway.clients.Client`) says who is connected and with which rights;
+    it is ``current_client`` in every request task (for the write queue's fairness and audit).
     """
 
     __slots__ = (
         "_backlog",
         "_buffer",
-        "_client",
         "_connected_at",
         "_context",
         "_eof",
@@ -177,17 +175,15 @@ class Connection(asyncio.Protocol):
         self._last_received = 0.0
         self._idle_handle: asyncio.TimerHandle | None = None
         self._tls_task: asyncio.Task[None] | None = None
-        self.client = ClientIdentity("?")
         self._connected_at = 0.0
         self._served = False  # a complete request has been taken from this connection
         self._received_total = 0  # bytes received since connect
         self._partial_position = -1  # stream offset of the incomplete frame being timed
         self._partial_since = 0.0
         self._frame_handle: asyncio.TimerHandle | None = None
-        #: the identity of the client; every request task runs in ``_context``, where it is current
-        self._client = Client("")
+        #: every request task runs in ``_context``, where ``client`` is ``current_client``
         self._context = contextvars.copy_context()
-        self._context.run(current_client.set, self._client)
+        self.client = Client("?")
 
     # -- asyncio.Protocol --------------------------------------------------------------
 
@@ -195,8 +191,7 @@ class Connection(asyncio.Protocol):
         self._transport = cast(asyncio.Transport, transport)
         self._peer = transport.get_extra_info("peername")
         server = self._server
-        self.client = ClientIdentity(format_address(self._peer))
-        self._client.name = str(self.client)
+        self._identify(Client(format_address(self._peer)))
         _cap_send_buffer(transport)
         if not server._admit(self, self._peer, handshake=server.ssl_context is not None):
             self._released = True
@@ -204,7 +199,7 @@ class Connection(asyncio.Protocol):
             self._transport = None
             return
         if server.admission.read_only(self._peer):
-            self.client = ClientIdentity(self.client.address, can_write=False)
+            self._identify(Client(self.client.address, can_write=False))
         self._open = True
         self._last_received = self._connected_at = self._loop.time()
         if self._server.idle_timeout is not None:
@@ -320,6 +315,15 @@ class Connection(asyncio.Protocol):
             self._drop(reason, cause="connections closed to make room")
 
     # -- internals ---------------------------------------------------------------------
+
+    def _identify(self, client: Client) -> None:
+        """Who the connection is from now on, also as ``current_client`` of its requests.
+
+        Set before the first request is taken (at connect, and when the TLS handshake ends), so
+        that all requests of a connection see one client.
+        """
+        self.client = client
+        self._context.run(current_client.set, client)
 
     def _stalled(self) -> None:
         """Paused (its replies unread) for ``write_stall_timeout``: drop it, buffers and all."""
@@ -454,10 +458,9 @@ class Connection(asyncio.Protocol):
         identity = (server.roles or _EVERYONE_WRITES).identify(
             self.client.address, transport.get_extra_info("ssl_object")
         )
-        self.client = dataclasses.replace(identity, can_write=identity.can_write and self.client.can_write)
+        self._identify(dataclasses.replace(identity, can_write=identity.can_write and self.client.can_write))
         logger.debug("%s: %s connected", server.name, self.client)
         self._connected_at = self._loop.time()  # stalled_since counts from the end of the handshake
-        self._client.name = str(self.client)
         self._ready = True
         self._process()
 
