@@ -51,7 +51,7 @@ Write replies are echoes of the request bytes, as the specification defines them
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Coroutine, Sequence
+from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final, Protocol, TypeAlias
 
@@ -242,10 +242,10 @@ class RequestHandler:
                 return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
             address, value = _ADDRESS_COUNT.unpack_from(pdu, 1)
             if function_code == FunctionCode.WRITE_SINGLE_REGISTER:
-                return self._write_registers(tid, unit, pdu, address, (value,))
+                return self._write(tid, unit, pdu, "holding", address, (value,), self.backend.write_registers)
             if value != COIL_ON and value != COIL_OFF:
                 return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
-            return self._write_coils(tid, unit, pdu, address, (value == COIL_ON,))
+            return self._write(tid, unit, pdu, "coil", address, (value == COIL_ON,), self.backend.write_coils)
 
         if function_code in MULTIPLE_WRITES:
             if size < 6:
@@ -264,8 +264,8 @@ class RequestHandler:
             if decoded is None:  # not expected after the checks above
                 return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
             if coils:
-                return self._write_coils(tid, unit, pdu[:5], address, decoded.bits[:count])
-            return self._write_registers(tid, unit, pdu[:5], address, decoded.registers)
+                return self._write(tid, unit, pdu[:5], "coil", address, decoded.bits[:count], self.backend.write_coils)
+            return self._write(tid, unit, pdu[:5], "holding", address, decoded.registers, self.backend.write_registers)
 
         return self._exception(tid, unit, function_code, ILLEGAL_FUNCTION)
 
@@ -318,34 +318,27 @@ class RequestHandler:
         except Exception as error:
             return self._backend_failed(tid, unit, function_code, error)
 
-    async def _write_coils(
-        self, tid: int, unit: int, echo: bytes, address: int, values: Sequence[bool]
+    async def _write(
+        self,
+        tid: int,
+        unit: int,
+        echo: bytes,
+        table: str,
+        address: int,
+        values: Sequence[bool] | Sequence[int],
+        write: Callable[[int, int, Any], Awaitable[None]],
     ) -> bytes:
+        """``write`` (``backend.write_coils`` or ``write_registers``), audited; the reply echoes ``echo``."""
         try:
-            await self.backend.write_coils(unit, address, values)
+            await write(unit, address, values)
         except ModbusExceptionReply as reply:
             frame = self._exception_reply(tid, unit, echo[0], reply)
-            audit_write(unit, echo[0], "coil", address, len(values), f"0x{frame[-1]:02X} {reply}")
+            audit_write(unit, echo[0], table, address, len(values), f"0x{frame[-1]:02X} {reply}")
             return frame
         except Exception as error:
-            audit_write(unit, echo[0], "coil", address, len(values), f"0x04 {error!r}")
+            audit_write(unit, echo[0], table, address, len(values), f"0x04 {error!r}")
             return self._backend_failed(tid, unit, echo[0], error)
-        audit_write(unit, echo[0], "coil", address, len(values), "ok")
-        return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
-
-    async def _write_registers(
-        self, tid: int, unit: int, echo: bytes, address: int, values: Sequence[int]
-    ) -> bytes:
-        try:
-            await self.backend.write_registers(unit, address, values)
-        except ModbusExceptionReply as reply:
-            frame = self._exception_reply(tid, unit, echo[0], reply)
-            audit_write(unit, echo[0], "holding", address, len(values), f"0x{frame[-1]:02X} {reply}")
-            return frame
-        except Exception as error:
-            audit_write(unit, echo[0], "holding", address, len(values), f"0x04 {error!r}")
-            return self._backend_failed(tid, unit, echo[0], error)
-        audit_write(unit, echo[0], "holding", address, len(values), "ok")
+        audit_write(unit, echo[0], table, address, len(values), "ok")
         return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo
 
     def _exception_reply(self, tid: int, unit: int, function_code: int, reply: ModbusExceptionReply) -> bytes:
