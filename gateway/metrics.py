@@ -51,7 +51,6 @@ container health check, not for browsers.
 from __future__ import annotations
 
 import asyncio
-import ipaddress
 import json
 import logging
 import math
@@ -64,7 +63,7 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 
 from gateway.config import parse_listen
 from gateway.logutil import RepeatLog
-from gateway.modbus.admission import IPNetwork, peer_host
+from gateway.modbus.admission import IPNetwork, format_address, host_allowed, peer_host
 
 if TYPE_CHECKING:
     from gateway.modbus.server import ModbusTcpServer
@@ -313,7 +312,7 @@ class MetricsServer:
         )
         log.info(
             "metrics: serving /metrics and /healthz on http://%s",
-            ", ".join(_format_address(sock.getsockname()) for sock in self._server.sockets),
+            ", ".join(format_address(sock.getsockname()) for sock in self._server.sockets),
         )
 
     async def close(self) -> None:
@@ -336,7 +335,7 @@ class MetricsServer:
         peer = writer.get_extra_info("peername")
         host = peer_host(peer)
         reason = None
-        if self.allow is not None and (host is None or not any(_ip(host) in n for n in self.allow)):
+        if self.allow is not None and not host_allowed(host, self.allow):
             reason = "peer not in the allowed networks"
         elif task is None or len(self._handlers) >= self.max_connections:
             reason = f"already {self.max_connections} connections (max_connections)"
@@ -347,7 +346,7 @@ class MetricsServer:
                 f"metrics: connection refused, {reason}",
                 host,
                 "metrics: refused connection from %s: %s",
-                _format_address(peer),
+                format_address(peer),
                 reason,
             )
             writer.transport.abort()
@@ -429,14 +428,3 @@ def _parse_head(head: bytes) -> tuple[str, str]:
         raise _HttpError(505)
     path = target.split(b"?", 1)[0].decode("ascii", "replace")
     return method.decode("ascii"), path
-
-
-def _ip(host: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address:
-    return ipaddress.ip_address(host)
-
-
-def _format_address(address: object) -> str:
-    if isinstance(address, tuple) and len(address) >= 2:
-        host, port = address[0], address[1]
-        return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
-    return str(address)

@@ -18,6 +18,7 @@ SCRIPTS = [
     "plan_quality.py",
     "scale.py",
     "modbus_serving.py",
+    "modbus_fast_path.py",
     "write_latency.py",
     "write_fairness.py",
     "cpu_per_transaction.py",

@@ -18,11 +18,11 @@ from hypothesis import strategies as st
 from pymodbus.client import AsyncModbusTcpClient, AsyncModbusTlsClient
 
 from gateway.errors import ModbusExceptionReply
+from gateway.modbus.admission import host_allowed, peer_host
 from gateway.modbus.server import (
     IPNetwork,
     ModbusBackend,
     ModbusTcpServer,
-    _peer_allowed,
     make_tls_context,
 )
 
@@ -545,12 +545,15 @@ async def test_allow_list_accepts_peer_inside(backend: DictBackend) -> None:
 
 
 def test_allow_list_handles_ipv4_mapped_ipv6() -> None:
+    def allowed(peer: object, allow: Sequence[IPNetwork]) -> bool:
+        return host_allowed(peer_host(peer), allow)
+
     allow = [ipaddress.IPv4Network("10.0.0.0/8")]
-    assert _peer_allowed(("::ffff:10.1.2.3", 502, 0, 0), allow)
-    assert not _peer_allowed(("::ffff:11.1.2.3", 502, 0, 0), allow)
-    assert not _peer_allowed(("fd00::1", 502, 0, 0), allow)
-    assert _peer_allowed(("fd00::1", 502, 0, 0), [ipaddress.IPv6Network("fd00::/8")])
-    assert not _peer_allowed(None, allow)
+    assert allowed(("::ffff:10.1.2.3", 502, 0, 0), allow)
+    assert not allowed(("::ffff:11.1.2.3", 502, 0, 0), allow)
+    assert not allowed(("fd00::1", 502, 0, 0), allow)
+    assert allowed(("fd00::1", 502, 0, 0), [ipaddress.IPv6Network("fd00::/8")])
+    assert not allowed(None, allow)
 
 
 async def test_idle_timeout(backend: DictBackend) -> None:

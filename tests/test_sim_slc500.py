@@ -983,3 +983,22 @@ def test_faults_on_writes_spares_reads() -> None:
     assert wire_of(lose.receive(command_frame(write(N, 7, 3, b"\x01\x00"), tns=2), 0.1)) == []
     with pytest.raises(ValueError, match="faults_on"):
         Slc500Simulator.from_options({"faults_on": "reads"})
+
+
+def test_the_processor_executes_commands_without_a_link() -> None:
+    """``Slc500Processor.execute``: a command packet in, its reply packet out (no DF1 link, no faults)."""
+    from gateway.sim.slc500_processor import Slc500Processor
+
+    processor = Slc500Processor(ladder=False)
+    reply = processor.execute(encode_command(read(FileType.INTEGER, 7, 201), dst=1, src=0, tns=0x1234))
+    assert reply is not None
+    decoded = decode_reply(reply)
+    assert (decoded.dst, decoded.src, decoded.tns, decoded.sts, decoded.data) == (0, 1, 0x1234, 0, b"\xff\x7f")
+    written = processor.execute(encode_command(write(FileType.INTEGER, 7, 3, b"\x2a\x00"), dst=1, src=0, tns=2))
+    assert written is not None and decode_reply(written).sts == 0
+    assert processor.word("N7", 3) == 42
+    assert processor.applied_writes == [("write", "N7:3", b"\x2a\x00")]
+    missing = processor.execute(encode_command(read(FileType.INTEGER, 9, 0), dst=1, src=0, tns=3))
+    assert missing is not None and (decode_reply(missing).sts, decode_reply(missing).ext_sts) == (0xF0, 0x06)
+    assert processor.execute(encode_command(read(FileType.INTEGER, 7, 0), dst=5, src=0, tns=4)) is None
+    assert processor.counters.ignored == 1

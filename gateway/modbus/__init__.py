@@ -1,7 +1,7 @@
 """Modbus side of the gateway.
 
-``gateway.modbus.server`` is the Modbus TCP server (the only module that imports
-pymodbus); ``gateway.modbus.mapping`` maps Modbus addresses to controller addresses.
-Import them directly: this package re-exports nothing, so that the pure mapping does
-not pull in pymodbus.
+``gateway.modbus.server`` is the Modbus TCP server (its parts: ``mbap``, ``handler``, the only
+module that imports pymodbus, ``connection`` and ``admission``); ``gateway.modbus.mapping`` maps
+Modbus addresses to controller addresses. Import them directly: this package re-exports nothing,
+so that the pure mapping does not pull in pymodbus.
 """

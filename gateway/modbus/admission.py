@@ -30,9 +30,9 @@ function) on every write function code and is served reads as usual. Plain TCP c
 clients when no roles are configured have read-write rights (the ``writable`` ranges and
 ``read_only`` of each link still apply).
 
-The identity of the client (:class:`ClientIdentity`: address, certificate subject, role, rights)
-is ``connection.client`` on each connection; the server names the connection's
-:class:`gateway.clients.Client` after it, so the write path's audit log says who asked.
+The identity of the client (:class:`gateway.clients.Client`: address, certificate subject, role,
+rights) is ``connection.client`` on each connection, current in its requests, so the write path's
+audit log says who asked.
 
 The X.509 extension is read with a small DER walker over ``getpeercert(binary_form=True)``: the
 standard library's ``getpeercert()`` does not return private extensions, and the ``cryptography``
@@ -49,15 +49,17 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Final, Literal, Protocol, TypeAlias
 
+from gateway.clients import Client
 from gateway.logutil import RepeatLog
 
 __all__ = [
     "ROLE_OID",
     "Admission",
-    "ClientIdentity",
     "IPNetwork",
     "Rights",
     "RolePolicy",
+    "format_address",
+    "host_allowed",
     "peer_host",
     "role_from_certificate",
 ]
@@ -76,28 +78,6 @@ _ROLE_OID_DER: Final = bytes.fromhex("2b0601040183890c862201")  # the OID's cont
 # Identity and rights
 
 
-@dataclass(frozen=True, slots=True)
-class ClientIdentity:
-    """Who is on the other end of a connection.
-
-    ``address``: ``host:port`` of the peer; ``subject``: the verified certificate's subject as
-    ``CN=...,O=...`` (None on plain TCP or without a client certificate); ``role``: the Modbus
-    role from the certificate (None without one); ``can_write``: the rights it was given.
-    ``str(client)`` is what an audit line names: the subject if there is one, else the address.
-    """
-
-    address: str
-    subject: str | None = None
-    role: str | None = None
-    can_write: bool = True
-
-    def __str__(self) -> str:
-        if self.subject is None:
-            return self.address
-        role = f", role {self.role}" if self.role is not None else ""
-        return f"{self.subject} ({self.address}{role})"
-
-
 @dataclass(frozen=True)
 class RolePolicy:
     """``[modbus.tls.roles]``: role name -> rights, and the rights of a certificate without a known role."""
@@ -105,7 +85,7 @@ class RolePolicy:
     roles: Mapping[str, Rights]
     default: Rights = "read"
 
-    def identify(self, address: str, ssl_object: object) -> ClientIdentity:
+    def identify(self, address: str, ssl_object: object) -> Client:
         """The identity of a TLS client from its verified certificate (``ssl_object``: the SSLObject)."""
         subject: str | None = None
         role: str | None = None
@@ -125,7 +105,7 @@ class RolePolicy:
                         "client %s: certificate role extension ignored (%s): %s rights", address, error, self.default
                     )
         rights = self.roles.get(role, self.default) if role is not None else self.default
-        return ClientIdentity(address, subject, role, rights == "read-write")
+        return Client(address, subject, role, rights == "read-write")
 
 
 def format_subject(subject: object) -> str | None:
@@ -258,7 +238,16 @@ def peer_host(peer: object) -> str | None:
     return str(address)
 
 
-def _allowed(host: str | None, allow: Sequence[IPNetwork]) -> bool:
+def format_address(address: object) -> str:
+    """A ``peername`` / ``sockname`` as ``host:port`` (``[host]:port`` for IPv6), for log lines."""
+    if isinstance(address, tuple) and len(address) >= 2:
+        host, port = address[0], address[1]
+        return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
+    return str(address)
+
+
+def host_allowed(host: str | None, allow: Sequence[IPNetwork]) -> bool:
+    """Whether ``host`` (a :func:`peer_host`) is inside one of ``allow`` (False for None)."""
     if host is None:
         return False
     address = ipaddress.ip_address(host)
@@ -306,7 +295,7 @@ class Admission:
         ``handshake_started``: loop time, for a TLS connection whose handshake starts now.
         """
         host = peer_host(peer)
-        if self.allow is not None and not _allowed(host, self.allow) and not self.read_only(peer):
+        if self.allow is not None and not host_allowed(host, self.allow) and not self.read_only(peer):
             return self._refuse("peer not in the allowed networks", peer, host)
         if (
             self.max_per_address is not None
@@ -331,7 +320,7 @@ class Admission:
         if not self.loopback_reads or self.allow is None:
             return False
         host = peer_host(peer)
-        return host is not None and ipaddress.ip_address(host).is_loopback and not _allowed(host, self.allow)
+        return host is not None and ipaddress.ip_address(host).is_loopback and not host_allowed(host, self.allow)
 
     def handshake_done(self, slot: Slot, peer: object) -> bool:
         """Move a TLS connection from the handshake budget to the connection slots (False: refused)."""
@@ -409,14 +398,7 @@ class Admission:
             host,
             "%s: refused connection from %s: %s",
             self.name,
-            _format_address(peer),
+            format_address(peer),
             reason,
         )
         return False
-
-
-def _format_address(address: object) -> str:
-    if isinstance(address, tuple) and len(address) >= 2:
-        host, port = address[0], address[1]
-        return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
-    return str(address)
