@@ -196,8 +196,8 @@ def _cells(item: MapItem, words: dict[SlcAddress, SlcAddress]) -> list[_Cell]:
 
 def plan_df1(items: Sequence[MapItem], max_read_bytes: int, overhead: int = READ_OVERHEAD_BYTES) -> Plan:
     """The read plan and Modbus points of a DF1 link's map."""
-    words: dict[SlcAddress, SlcAddress] = {}
-    cells = [cell for item in items for cell in _cells(item, words)]
+    interned: dict[SlcAddress, SlcAddress] = {}
+    cells = [cell for item in items for cell in _cells(item, interned)]
     max_words = max_read_bytes // 2
     # Needed spans per (scan, key); a word read by the fast class is not read again by the slow.
     fast_words: set[tuple[Key, int]] = set()
