@@ -40,8 +40,10 @@ from _benchlib import DF1_MAP, print_machine, result, table
 
 from gateway.drivers.df1 import Df1Driver
 from gateway.drivers.slc_ascii import SlcAsciiDriver
-from gateway.modbus.mapping import Block, Scan
 from gateway.links.df1.plan import MapItem
+from gateway.links.df1.unit import Df1Unit
+from gateway.links.slc_ascii.unit import SlcAsciiUnit
+from gateway.modbus.mapping import Block, Scan
 from gateway.protocols.df1.framing import NEED_DATA as DF1_NEED_DATA
 from gateway.protocols.df1.framing import Checksum, encode_frame
 from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete
@@ -52,8 +54,6 @@ from gateway.protocols.slc_ascii.framing import NEED_DATA, ReplyDecoder
 from gateway.protocols.slc_ascii.framing import encode_command as encode_slc
 from gateway.sim import create_simulator
 from gateway.transport import ByteStream, SerialSettings
-from gateway.links.slc_ascii.unit import SlcAsciiUnit
-from gateway.links.df1.unit import Df1Unit
 
 ACK = b"\x10\x06"
 

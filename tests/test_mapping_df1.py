@@ -16,10 +16,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway.links.df1.plan import F32_HIGH, F32_LOW, U16_LE
-from gateway.modbus.mapping import Plan, Scan, Table
 from gateway.links.df1.plan import (
+    F32_HIGH,
+    F32_LOW,
     READ_OVERHEAD_BYTES,
+    U16_LE,
     Df1BitWrite,
     Df1Read,
     Df1WordWrite,
@@ -28,6 +29,7 @@ from gateway.links.df1.plan import (
     optimal_blocks,
     plan_df1,
 )
+from gateway.modbus.mapping import Plan, Scan, Table
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
 
 INTEGER, FLOAT, TIMER, BIT, INPUT = FileType.INTEGER, FileType.FLOAT, FileType.TIMER, FileType.BIT, FileType.INPUT

@@ -147,7 +147,7 @@ def _render_path(loc: Loc, link_names: Mapping[int, str]) -> str:
 
 
 def _untag(loc: Loc) -> tuple[Loc, type[LinkBase] | None]:
-    """``("link", 0, "df1", "station")`` -> ``(("link", 0, "station"), Df1LinkConfig)``.
+    """``("link", 0, <protocol>, "station")`` -> ``(("link", 0, "station"), <the protocol's link model>)``.
 
     Pydantic puts the tag of a discriminated union into the path; TOML has no such level.
     """

@@ -15,6 +15,8 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
+from gateway.config.df1 import DF1_DEFAULTS
+from gateway.config.slc_ascii import SLC_ASCII_DEFAULTS
 from gateway.sim.serve import SimDevice
 from gateway.streams import SerialSettings
 
@@ -71,8 +73,8 @@ def _slc504_variants() -> Mapping[str, tuple[str, ...]]:
     return Slc500Simulator.VARIANTS
 
 
-_ASCII_LINE = SerialSettings(9600, 7, "E", 1)
-_DF1_LINE = SerialSettings(19200, 8, "N", 1)
+_ASCII_LINE = SLC_ASCII_DEFAULTS.settings
+_DF1_LINE = DF1_DEFAULTS.settings
 _ASCII_OPTIONS = frozenset({"power_cycle_every", "fault_every"})
 _DF1_OPTIONS = frozenset({"withhold_ack", "duplicate", "noise"})
 _DF1_SETTINGS = frozenset({"checksum", "station"})
