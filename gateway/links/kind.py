@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Awaitable, Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar, get_args
 
 from gateway.config.link import LinkBase, SerialDefaults
@@ -110,8 +110,6 @@ class LinkKind(Generic[C]):
     tool: ToolRunner | None = None
     #: hints after a failed tool command (None: no hints)
     hints: ToolHints | None = None
-    #: the tool commands this kind offers
-    commands: frozenset[str] = field(default_factory=frozenset)
 
     @property
     def name(self) -> str:
