@@ -46,19 +46,12 @@ def _add_link_options(parser: argparse.ArgumentParser) -> None:
         help=f"{protocols}; default {names[0]}; a sim:// URL's controller sets it",
     )
     parser.add_argument("--baudrate", type=int, help=f"default: {_per_kind(lambda k: k.serial_defaults.baudrate)}")
-    parser.add_argument(
-        "--bytesize", type=int, choices=(7, 8),
-        help="slc-ascii: data bits (default 7); with 8 and --parity N the even parity bit is sent as bit 7, "
-        "the same bits on the wire as 7E1, for ports that cannot do 7E1 (e.g. a pseudo-terminal)",
-    )
-    parser.add_argument("--parity", choices=("E", "O", "N"), help="slc-ascii: parity (default E)")
     parser.add_argument("--timeout", type=float,
-                        help=f"seconds per reply (default: {_per_kind(lambda k: k.serial_defaults.timeout)})")
+                        help=f"seconds per reply; default: {_per_kind(lambda k: k.serial_defaults.timeout)}")
     parser.add_argument("--retries", type=int, help="retries per transaction (default 3; probe: 1, to fail fast)")
-    parser.add_argument("--station", type=int, default=1, help="df1: destination node (default 1)")
-    parser.add_argument("--source", type=int, default=0, help="df1: our node (default 0)")
-    parser.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc (default crc)")
-    parser.add_argument("--processor", default="slc5/04", help="df1: processor family (default slc5/04)")
+    for kind in link_kinds().values():  # each kind's own options (its name in their help)
+        if kind.tool_options is not None:
+            kind.tool_options(parser)
     parser.add_argument("--trace", type=Path, help="record every byte on the link to this file")
     parser.add_argument("--json", action="store_true", help="print JSON")
 

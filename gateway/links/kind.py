@@ -110,6 +110,8 @@ class LinkKind(Generic[C]):
     tool: ToolRunner | None = None
     #: hints after a failed tool command (None: no hints)
     hints: ToolHints | None = None
+    #: adds the tool's own command-line options (``--station`` ...) to a tool command's parser
+    tool_options: Callable[[argparse.ArgumentParser], None] | None = None
 
     @property
     def name(self) -> str:

@@ -9,7 +9,7 @@ Its rooms: the sans-I/O protocol in :mod:`gateway.protocols.df1`, the driver in
 from __future__ import annotations
 
 from gateway.config.df1 import Df1LinkConfig
-from gateway.links.df1.tool import HINTS, run_df1_tool
+from gateway.links.df1.tool import HINTS, add_options, run_df1_tool
 from gateway.links.df1.unit import build_df1, df1_plan
 from gateway.links.kind import LinkKind
 from gateway.sim.models import SLC504
@@ -24,4 +24,5 @@ KIND: LinkKind[Df1LinkConfig] = LinkKind(
     simulators=(SLC504,),
     tool=run_df1_tool,
     hints=HINTS,
+    tool_options=add_options,
 )

@@ -30,7 +30,7 @@ from gateway.protocols.df1.pccc import (
 )
 from gateway.tools_common import print_result, resolve_retries
 
-__all__ = ["HINTS", "decode_value", "encode_value", "run_df1_tool"]
+__all__ = ["HINTS", "add_options", "decode_value", "encode_value", "run_df1_tool"]
 
 #: DF1 link-layer symbols: DLE followed by STX, ETX, ENQ, ACK or NAK (1770-6.5.16, full duplex).
 _DLE_FRAMED = re.compile(rb"\x10[\x02\x03\x05\x06\x15]")
@@ -77,6 +77,15 @@ def encode_value(address: SlcAddress, text: str) -> tuple[bytes, int | None]:
     if not -0x8000 <= value <= 0xFFFF:
         raise InvalidRequest(f"{address}={text}: a word takes -32768..65535")
     return (value & 0xFFFF).to_bytes(2, "little"), None
+
+
+def add_options(parser: argparse.ArgumentParser) -> None:
+    """The options only DF1 commands take."""
+    parser.add_argument("--station", type=int, default=1, help="df1: destination node (default 1)")
+    parser.add_argument("--source", type=int, default=0, help="df1: our node (default 0)")
+    parser.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc (default crc)")
+    parser.add_argument("--processor", default="slc5/04", choices=tuple(PROCESSORS),
+                        help="df1: processor family (default slc5/04)")
 
 
 async def run_df1_tool(command: str, args: argparse.Namespace, opener: OpenStream) -> int:

@@ -11,7 +11,7 @@ from __future__ import annotations
 from gateway.config.slc_ascii import SlcAsciiLinkConfig
 from gateway.links.kind import LinkKind
 from gateway.links.slc_ascii.plan import plan_lines, slc_ascii_plan
-from gateway.links.slc_ascii.tool import HINTS, run_slc_ascii_tool
+from gateway.links.slc_ascii.tool import HINTS, add_options, run_slc_ascii_tool
 from gateway.links.slc_ascii.unit import build_slc_ascii
 from gateway.sim.models import SLC100, SLC150
 
@@ -26,4 +26,5 @@ KIND: LinkKind[SlcAsciiLinkConfig] = LinkKind(
     simulators=(SLC150, SLC100),
     tool=run_slc_ascii_tool,
     hints=HINTS,
+    tool_options=add_options,
 )

@@ -32,7 +32,7 @@ from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS
 from gateway.tools_common import print_result, resolve_retries
 from gateway.transport import SerialSettings
 
-__all__ = ["HINTS", "PROGRAM_FORMAT", "load_program_file", "run_slc_ascii_tool", "save_program_file"]
+__all__ = ["HINTS", "PROGRAM_FORMAT", "add_options", "load_program_file", "run_slc_ascii_tool", "save_program_file"]
 
 PROGRAM_FORMAT = "slc-gateway-program/1"
 _MODES = {"run": Mode.RUN, "program": Mode.PROGRAM, "test": Mode.CONTINUOUS_TEST, "save": Mode.SAVE_TO_EEPROM}
@@ -53,6 +53,16 @@ HINTS = ToolHints(
     controllers="an SLC 100 or 150",
     check="the cable, baud rate and parity (SLC 100/150: 9600 7E1)",
 )
+
+
+def add_options(parser: argparse.ArgumentParser) -> None:
+    """The options only SLC 100/150 commands take."""
+    parser.add_argument(
+        "--bytesize", type=int, choices=(7, 8),
+        help="slc-ascii: data bits (default 7); with 8 and --parity N the even parity bit is sent as bit 7, "
+        "the same bits on the wire as 7E1, for ports that cannot do 7E1 (e.g. a pseudo-terminal)",
+    )
+    parser.add_argument("--parity", choices=("E", "O", "N"), help="slc-ascii: parity (default E)")
 
 
 async def run_slc_ascii_tool(command: str, args: argparse.Namespace, opener: OpenStream) -> int:
