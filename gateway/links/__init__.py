@@ -40,6 +40,9 @@ __all__ = [
 BUILTIN_KINDS: tuple[LinkKind[Any], ...] = (slc_ascii.KIND, df1.KIND)
 
 _kinds: dict[str, LinkKind[Any]] = {kind.name: kind for kind in BUILTIN_KINDS}
+for _kind in BUILTIN_KINDS:  # built-in simulators are in gateway.sim's catalogue already; a new one is added
+    for _model in _kind.simulators:
+        register_sim_model(_model)
 _version = [0]
 
 #: Every registered kind by protocol name (a read-only view: use register_link_kind to add one).
