@@ -373,7 +373,8 @@ class CompletionLog:
 
 def slc_bare_frames() -> list[bytes]:
     """SLC 100/150 read requests of the default map's fast class, IDs 00, 01..7F, 01..7F ..."""
-    from gateway.modbus.mapping import Scan, slc_ascii_plan
+    from gateway.links.slc_ascii.plan import slc_ascii_plan
+    from gateway.modbus.mapping import Scan
     from gateway.protocols.slc_ascii import commands as cmds
     from gateway.protocols.slc_ascii.framing import encode_command
 
@@ -390,7 +391,7 @@ def df1_bare_frames(
     entries: Sequence[dict[str, object]] = DF1_MAP, count: int = 4000, first_tns: int = 30000
 ) -> list[bytes]:
     """DF1 command frames (CRC) of the map's read plan, consecutive TNS from ``first_tns``."""
-    from gateway.modbus.mapping_df1 import MapItem, plan_df1
+    from gateway.links.df1.plan import MapItem, plan_df1
     from gateway.protocols.df1.framing import Checksum, encode_frame
     from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, encode_command
 

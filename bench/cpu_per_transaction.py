@@ -40,8 +40,10 @@ from _benchlib import DF1_MAP, print_machine, result, table
 
 from gateway.drivers.df1 import Df1Driver
 from gateway.drivers.slc_ascii import SlcAsciiDriver
+from gateway.links.df1.plan import MapItem
+from gateway.links.df1.unit import Df1Unit
+from gateway.links.slc_ascii.unit import SlcAsciiUnit
 from gateway.modbus.mapping import Block, Scan
-from gateway.modbus.mapping_df1 import MapItem
 from gateway.protocols.df1.framing import NEED_DATA as DF1_NEED_DATA
 from gateway.protocols.df1.framing import Checksum, encode_frame
 from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete
@@ -52,8 +54,6 @@ from gateway.protocols.slc_ascii.framing import NEED_DATA, ReplyDecoder
 from gateway.protocols.slc_ascii.framing import encode_command as encode_slc
 from gateway.sim import create_simulator
 from gateway.transport import ByteStream, SerialSettings
-from gateway.unit import SlcAsciiUnit
-from gateway.unit_df1 import Df1Unit
 
 ACK = b"\x10\x06"
 
@@ -154,14 +154,14 @@ def canned_replies(model: str, frames: Sequence[bytes]) -> dict[bytes, bytes]:
 
 
 def slc_blocks() -> tuple[list[Block], list[Block]]:
-    from gateway.modbus.mapping import slc_ascii_plan
+    from gateway.links.slc_ascii.plan import slc_ascii_plan
 
     blocks = slc_ascii_plan().blocks
     return [b for b in blocks if b.scan is Scan.SLOW], [b for b in blocks if b.scan is Scan.FAST]
 
 
 def df1_blocks() -> list[Block]:
-    from gateway.modbus.mapping_df1 import plan_df1
+    from gateway.links.df1.plan import plan_df1
 
     return plan_df1([MapItem(**e) for e in DF1_MAP], 236).blocks  # type: ignore[arg-type]
 

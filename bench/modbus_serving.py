@@ -218,9 +218,9 @@ def memory_per_link(units: int = 20) -> dict[str, float]:
 
     from gateway.drivers.df1 import Df1Driver
     from gateway.drivers.slc_ascii import SlcAsciiDriver
-    from gateway.modbus.mapping_df1 import MapItem
-    from gateway.unit import SlcAsciiUnit
-    from gateway.unit_df1 import Df1Unit
+    from gateway.links.df1.plan import MapItem
+    from gateway.links.df1.unit import Df1Unit
+    from gateway.links.slc_ascii.unit import SlcAsciiUnit
 
     def slc(i: int) -> object:
         return SlcAsciiUnit(driver=SlcAsciiDriver("sim://slc150"), unit_id=1, name=f"slc{i}")

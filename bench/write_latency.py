@@ -55,7 +55,8 @@ from gateway.config import parse_config
 
 def slc_times() -> tuple[list[float], float]:
     """(poll transaction durations of one fast scan, write transaction duration), seconds."""
-    from gateway.modbus.mapping import Scan, slc_ascii_plan
+    from gateway.links.slc_ascii.plan import slc_ascii_plan
+    from gateway.modbus.mapping import Scan
 
     polls = []
     for block in slc_ascii_plan().blocks:
@@ -68,7 +69,7 @@ def slc_times() -> tuple[list[float], float]:
 
 
 def df1_times() -> tuple[list[float], float]:
-    from gateway.modbus.mapping_df1 import MapItem, plan_df1
+    from gateway.links.df1.plan import MapItem, plan_df1
     from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, ProtectedTypedLogicalWrite
 
     polls = []

@@ -9,86 +9,57 @@ import signal
 from collections.abc import Sequence
 from typing import Any
 
-from gateway.config import GatewayConfig, LinkConfig, parse_listen
-from gateway.drivers.slc_ascii import SlcAsciiDriver
-from gateway.errors import ModbusExceptionReply
+from gateway.config import GatewayConfig, parse_listen
+from gateway.config.link import LinkBase
+from gateway.errors import ConfigError, ModbusExceptionReply
+from gateway.links import LinkKind, LinkRunner, link_kind, link_kinds
 from gateway.metrics import MetricsServer
 from gateway.modbus.admission import RolePolicy
-from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Block, Table
+from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Table
 from gateway.modbus.server import ModbusTcpServer, make_tls_context
-from gateway.transport import SerialSettings, describe_url, set_trace_limits
-from gateway.unit import SlcAsciiUnit, Unit, WritableRange
+from gateway.transport import describe_url, set_trace_limits
+from gateway.unit import Unit
 
-__all__ = ["Gateway", "GatewayBackend", "build_unit", "describe_map", "run_gateway"]
+__all__ = ["Gateway", "GatewayBackend", "build_units", "describe_map", "run_gateway"]
 
 log = logging.getLogger("gateway")
 
-_TABLES = {"holding": Table.HOLDING, "input": Table.INPUT, "coil": Table.COIL, "discrete": Table.DISCRETE}
 
+def build_units(links: Sequence[LinkBase]) -> tuple[list[Unit[Any, Any]], list[LinkRunner]]:
+    """The runtime of the ``[[link]]`` tables: their units (in file order) and the runners of their lines.
 
-def _settings(link: LinkConfig) -> SerialSettings:
-    return SerialSettings(link.baudrate, link.bytesize, link.parity, link.stopbits)
-
-
-def _writable(link: LinkConfig) -> list[WritableRange]:
-    """The link's ``writable`` ranges, overlapping and adjacent ones merged.
-
-    A write is checked against one range at a time, so FC16 across ``holding:40-41`` and
-    ``holding:42-43`` is allowed only once they are one range ``holding:40-43``.
+    Each kind builds all of its links at once (links that share a line share its runner).
     """
-    merged: list[list[int]] = []
-    tables: list[str] = []
-    for r in sorted(link.writable, key=lambda r: (r.table, r.first)):
-        if merged and tables[-1] == r.table and r.first <= merged[-1][1] + 1:
-            merged[-1][1] = max(merged[-1][1], r.last)
-        else:
-            merged.append([r.first, r.last])
-            tables.append(r.table)
-    return [(_TABLES[table], first, last) for table, (first, last) in zip(tables, merged, strict=True)]
+    by_name: dict[str, Unit[Any, Any]] = {}
+    runners: list[LinkRunner] = []
+    for protocol in dict.fromkeys(link.protocol for link in links):
+        kind = _kind(protocol)
+        built = kind.build_units(links)
+        by_name.update((unit.name, unit) for unit in built.units)
+        runners.extend(built.runners)
+    missing = [link.name for link in links if link.name not in by_name]
+    if missing:
+        raise ConfigError(f"no unit was built for link(s) {', '.join(missing)}")
+    return [by_name[link.name] for link in links], runners
 
 
-def build_unit(link: LinkConfig) -> Unit:
-    """The runtime of one ``[[link]]``: driver, plan, cache, poller."""
-    common: dict[str, Any] = dict(
-        unit_id=link.unit,
-        name=link.name,
-        stale_after=link.stale_after,
-        read_only=link.read_only,
-        writable=_writable(link),
-        fast_interval=link.fast_interval,
-        slow_interval=link.slow_interval,
-        write_burst=link.write_burst,
-        poll_burst=link.poll_burst,
-        write_queue_per_client=link.write_queue_per_client,
-        write_queue_per_link=link.write_queue_per_link,
-    )
-    if link.protocol == "df1":
-        from gateway.unit_df1 import build_df1_unit
-
-        return build_df1_unit(link, common)
-    driver = SlcAsciiDriver(
-        link.port,
-        name=link.name,
-        settings=_settings(link),
-        timeout=link.timeout,
-        retries=link.retries,
-        trace=link.trace,
-        down_after_failures=link.down_after_failures,
-        down_after_seconds=link.down_after_seconds,
-    )
-    return SlcAsciiUnit(driver=driver, **common)
+def _kind(protocol: str) -> LinkKind[Any]:
+    try:
+        return link_kind(protocol)
+    except KeyError:
+        raise ConfigError(f"unknown protocol {protocol!r}: known are {', '.join(link_kinds())}") from None
 
 
 class GatewayBackend:
     """The Modbus server's backend: dispatch by unit id."""
 
-    def __init__(self, units: Sequence[Unit]) -> None:
+    def __init__(self, units: Sequence[Unit[Any, Any]]) -> None:
         self.units = {unit.unit_id: unit for unit in units}
 
     def has_unit(self, unit: int) -> bool:
         return unit in self.units
 
-    def _unit(self, unit: int) -> Unit:
+    def _unit(self, unit: int) -> Unit[Any, Any]:
         try:
             return self.units[unit]
         except KeyError:
@@ -129,7 +100,7 @@ class Gateway:
 
     def __init__(self, config: GatewayConfig) -> None:
         self.config = config
-        self.units = [build_unit(link) for link in config.link]
+        self.units, self.runners = build_units(config.link)
         self.backend = GatewayBackend(self.units)
         modbus = config.modbus
         set_trace_limits(config.logging.trace_max_bytes, config.logging.trace_backups)
@@ -191,8 +162,9 @@ class Gateway:
         try:
             async with asyncio.TaskGroup() as group:
                 self._links = []
+                for runner in self.runners:
+                    self._links.append(group.create_task(runner.run(), name=f"{runner.name}-link"))
                 for unit in self.units:
-                    self._links.append(group.create_task(unit.driver.run(), name=f"{unit.name}-link"))
                     group.create_task(unit.poller.run(), name=f"{unit.name}-poller")
                 for server in self.servers:
                     group.create_task(server.serve_forever(), name=f"{server.name}-server")
@@ -211,8 +183,8 @@ class Gateway:
         await asyncio.gather(*(server.close() for server in self.servers))
         for task in self._links:
             task.cancel()
-        for unit in self.units:
-            await unit.driver.close()
+        for runner in self.runners:
+            await runner.close()
         if self.metrics is not None:
             await self.metrics.close()
 
@@ -260,8 +232,8 @@ def describe_map(config: GatewayConfig) -> str:
     """The Modbus map and read plan of every link (``check-config``)."""
     lines: list[str] = []
     for link in config.link:
-        unit = build_unit(link)
-        plan = unit.plan
+        kind = _kind(link.protocol)
+        plan = kind.plan_of(link)
         fast = sum(1 for b in plan.blocks if b.scan.value == "fast")
         lines.append(f"unit {link.unit} ({link.name}, {link.protocol}, {describe_url(link.port)}):")
         for table in Table:
@@ -272,27 +244,5 @@ def describe_map(config: GatewayConfig) -> str:
         status_last = STATUS_BASE + sum(width for _, width in STATUS_REGISTERS) - 1
         lines.append(f"  {'status':9} input {STATUS_BASE}-{status_last}")
         lines.append(f"  read plan: {len(plan.blocks)} blocks ({fast} fast, {len(plan.blocks) - fast} slow)")
-        lines.extend(f"    {line}" for line in _plan_lines(plan.blocks))
+        lines.extend(f"    {line}" for line in kind.plan_lines(plan))
     return "\n".join(lines)
-
-
-def _plan_lines(blocks: Sequence[Block]) -> list[str]:
-    """One line per block; SLC 100/150 byte reads are summarised as address ranges per class."""
-    lines: list[str] = []
-    byte_reads: dict[str, list[tuple[int, int]]] = {}
-    for block in blocks:
-        request = block.request
-        if isinstance(request, tuple):
-            byte_reads.setdefault(block.scan.value, []).append((request[0], request[1]))
-        else:
-            lines.append(f"{block.scan.value:4} {block.label}")
-    for scan, reads in byte_reads.items():
-        runs: list[list[int]] = []
-        for start, count in sorted(reads):
-            if runs and runs[-1][1] == start:
-                runs[-1][1] = start + count
-            else:
-                runs.append([start, start + count])
-        text = ", ".join(f"0x{a:04X}-0x{b - 1:04X}" for a, b in runs)
-        lines.append(f"{scan:4} {len(reads)} reads of 1-2 bytes covering {text}")
-    return lines

@@ -14,11 +14,16 @@ import contextlib
 import logging
 import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 from gateway import __version__
 from gateway.errors import GatewayError
+from gateway.links import LinkKind, kind_names, link_kinds
+from gateway.sim import model_names
+from gateway.sim.models import sim_models
 
 __all__ = ["main"]
 
@@ -27,25 +32,26 @@ log = logging.getLogger("gateway")
 DEMO_CONFIG = Path(__file__).with_name("demo.toml")
 
 
+def _per_kind(value: Callable[[LinkKind[Any]], object]) -> str:
+    """``9600 (slc-ascii), 19200 (df1)``: a value of every link kind, for help texts."""
+    return ", ".join(f"{value(kind)} ({name})" for name, kind in link_kinds().items())
+
+
 def _add_link_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("url", help="port URL: /dev/ttyUSB0, socket://host:port, rfc2217://host:port, sim://slc150")
+    names = kind_names()
+    protocols = " or ".join(f"{name} ({link_kinds()[name].controllers})" for name in names)
     parser.add_argument(
-        "--protocol", choices=("slc-ascii", "df1"),
-        help="slc-ascii (SLC 100/150, default) or df1 (SLC 500 / PLC-5); a sim:// URL's controller sets it",
+        "--protocol", choices=names,
+        help=f"{protocols}; default {names[0]}; a sim:// URL's controller sets it",
     )
-    parser.add_argument("--baudrate", type=int, help="default: 9600 (slc-ascii), 19200 (df1)")
-    parser.add_argument(
-        "--bytesize", type=int, choices=(7, 8),
-        help="slc-ascii: data bits (default 7); with 8 and --parity N the even parity bit is sent as bit 7, "
-        "the same bits on the wire as 7E1, for ports that cannot do 7E1 (e.g. a pseudo-terminal)",
-    )
-    parser.add_argument("--parity", choices=("E", "O", "N"), help="slc-ascii: parity (default E)")
-    parser.add_argument("--timeout", type=float, help="seconds per reply (default: 0.3 slc-ascii, 1.0 df1)")
+    parser.add_argument("--baudrate", type=int, help=f"default: {_per_kind(lambda k: k.serial_defaults.baudrate)}")
+    parser.add_argument("--timeout", type=float,
+                        help=f"seconds per reply; default: {_per_kind(lambda k: k.serial_defaults.timeout)}")
     parser.add_argument("--retries", type=int, help="retries per transaction (default 3; probe: 1, to fail fast)")
-    parser.add_argument("--station", type=int, default=1, help="df1: destination node (default 1)")
-    parser.add_argument("--source", type=int, default=0, help="df1: our node (default 0)")
-    parser.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc (default crc)")
-    parser.add_argument("--processor", default="slc5/04", help="df1: processor family (default slc5/04)")
+    for kind in link_kinds().values():  # each kind's own options (its name in their help)
+        if kind.tool_options is not None:
+            kind.tool_options(parser)
     parser.add_argument("--trace", type=Path, help="record every byte on the link to this file")
     parser.add_argument("--json", action="store_true", help="print JSON")
 
@@ -74,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("config", type=Path)
 
     p = sub.add_parser("simulate", help="serve a simulated controller over TCP or a pseudo-terminal")
-    p.add_argument("model", choices=("slc150", "slc100", "slc504"))
+    p.add_argument("model", choices=model_names())
     p.add_argument("--listen", default="127.0.0.1:7001", help="host:port (default 127.0.0.1:7001)")
     p.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal instead; prints its path")
     p.add_argument("--garble", type=int, default=0, metavar="N", help="corrupt 1 in N replies")
@@ -90,7 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--no-ladder", action="store_true", help="freeze the ladder: values change only when written")
     p.add_argument("--paced", action="store_true", help="pace characters at --baudrate (a real line's speed)")
-    p.add_argument("--baudrate", type=int, help="line speed for --paced (default 9600 / 19200 for slc504)")
+    speeds = ", ".join(f"{model.settings.baudrate} ({name})" for name, model in sim_models().items())
+    p.add_argument("--baudrate", type=int, help=f"line speed for --paced (default: {speeds})")
     p.add_argument("--turnaround", type=float, default=0.0, metavar="S", help="controller turnaround delay")
     p.add_argument("--variant", action="append", default=[], metavar="NAME=VALUE",
                    help="a reading of the manual where it leaves behaviour open (repeatable; "
@@ -195,23 +202,20 @@ async def _simulate(args: argparse.Namespace) -> int:
     from gateway.config import parse_listen
     from gateway.sim import create_simulator
     from gateway.sim.serve import close_tcp, serve_pty, serve_tcp
-    from gateway.transport import SerialSettings
 
+    model = sim_models()[args.model]
     options: dict[str, str] = {"seed": str(args.seed)}
-    for key in ("garble", "drop", "power_cycle_every", "fault_every"):
+    for key in ("garble", "drop"):
         value = getattr(args, key)
         if value:
             options[key] = str(value)
     if args.delay:
         options["delay"] = str(args.delay)
-    if args.model == "slc504":
-        options.pop("power_cycle_every", None)
-        options.pop("fault_every", None)
-        options["checksum"] = args.checksum
-        options["station"] = str(args.station)
-        for key in ("withhold_ack", "duplicate", "noise"):
-            if getattr(args, key):
-                options[key] = str(getattr(args, key))
+    for key in sorted(model.cli_options):  # the fault options this model takes (others are not its own)
+        if getattr(args, key, 0):
+            options[key] = str(getattr(args, key))
+    for key in sorted(model.cli_settings):
+        options[key] = str(getattr(args, key))
     if args.no_ladder:
         options["ladder"] = "0"
     if args.variant:
@@ -220,9 +224,7 @@ async def _simulate(args: argparse.Namespace) -> int:
         device = create_simulator(args.model, options)
     except ValueError as exc:
         raise GatewayError(str(exc)) from exc
-    df1 = args.model == "slc504"
-    baud = args.baudrate or (19200 if df1 else 9600)
-    settings = SerialSettings(baud, 8, "N", 1) if df1 else SerialSettings(baud, 7, "E", 1)
+    settings = replace(model.settings, baudrate=args.baudrate or model.settings.baudrate)
     paced = settings if args.paced else None
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()

@@ -30,8 +30,9 @@ from array import array
 from bisect import bisect_right
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
-from gateway.modbus.mapping import BitPoint, Codec, Plan, RegisterPoint, Table
+from gateway.modbus.mapping import BitPoint, Plan, RegisterPoint, Table
 
 __all__ = ["BIT_TABLES", "REGISTER_TABLES", "ImageMiss", "Images"]
 
@@ -40,7 +41,7 @@ BIT_TABLES = (Table.COIL, Table.DISCRETE)
 
 NEVER = float("-inf")
 
-#: bytes.translate table clearing bit 7 (the SLC 100/150 protect bit is bit 15 of a word, bit 7 of its MSB)
+#: bytes.translate table clearing bit 7 of a register's MSB (a codec's ``mask``)
 _MASK_7F = bytes(b & 0x7F for b in range(256))
 
 
@@ -124,22 +125,11 @@ class _Stamp:
     n: int
 
 
-def _register_bytes(point: RegisterPoint) -> tuple[int, int, bool]:
-    """(MSB source or -1, LSB source, mask) of a register in its block."""
+def _register_bytes(point: RegisterPoint[Any]) -> tuple[int, int, bool]:
+    """(MSB source or -1, LSB source, mask) of a register in its block, from its codec."""
     o = point.offset
     codec = point.codec
-    if codec is Codec.U16_BE:
-        return o, o + 1, False
-    if codec is Codec.U16_BE_MASKED:
-        return o, o + 1, True
-    if codec is Codec.U16_LE:
-        return o + 1, o, False
-    if codec is Codec.U8:
-        return -1, o, False
-    # PCCC float32: 4 bytes little-endian b0 b1 b2 b3; high half b3 b2, low half b1 b0.
-    if codec is Codec.F32_HIGH:
-        return o + 3, o + 2, False
-    return o + 1, o, False
+    return (-1 if codec.msb is None else o + codec.msb), o + codec.lsb, codec.mask
 
 
 def _strided_runs(items: Sequence[tuple[int, tuple[int, ...]]]) -> list[tuple[int, int, int, tuple[int, ...], int]]:
@@ -173,7 +163,7 @@ class _Layout:
 
     __slots__ = ("bit_runs", "blocks_of", "bounds", "copies", "stamps", "tables")
 
-    def __init__(self, plan: Plan) -> None:
+    def __init__(self, plan: Plan[Any, Any]) -> None:
         #: per table: (first addresses of its segments, index of its first segment)
         self.tables: dict[Table, tuple[list[int], int]] = {}
         #: per segment: first, last, is a register segment
@@ -186,7 +176,7 @@ class _Layout:
         stamps: list[list[_Stamp]] = [[] for _ in range(n_blocks)]
         for table in REGISTER_TABLES + BIT_TABLES:
             registers = table in REGISTER_TABLES
-            points: dict[int, RegisterPoint] | dict[int, BitPoint] = (
+            points: dict[int, RegisterPoint[Any]] | dict[int, BitPoint[Any]] = (
                 plan.registers(table) if registers else plan.bits(table)
             )
             ranges = plan.ranges(table)
@@ -214,7 +204,7 @@ class _Layout:
         self.stamps = [tuple(s) if s else empty for s in stamps]
 
     @staticmethod
-    def _copies(segment: int, first: int, addresses: list[int], points: dict[int, RegisterPoint]) -> list[_Copy]:
+    def _copies(segment: int, first: int, addresses: list[int], points: dict[int, RegisterPoint[Any]]) -> list[_Copy]:
         items: list[tuple[int, tuple[int, ...]]] = []
         masks = set()
         for a in addresses:
@@ -228,7 +218,7 @@ class _Layout:
         ]
 
     @staticmethod
-    def _bit_runs(segment: int, first: int, addresses: list[int], points: dict[int, BitPoint]) -> list[_BitRun]:
+    def _bit_runs(segment: int, first: int, addresses: list[int], points: dict[int, BitPoint[Any]]) -> list[_BitRun]:
         runs: list[_BitRun] = []
         items = [(a - first, (8 * points[a].offset + points[a].bit,)) for a in addresses]
         for k, step, n, (shift,), src_step in _strided_runs(items):
@@ -246,7 +236,7 @@ class _Layout:
 _LAYOUTS: dict[int, _Layout] = {}
 
 
-def _layout(plan: Plan) -> _Layout:
+def _layout(plan: Plan[Any, Any]) -> _Layout:
     layout = _LAYOUTS.get(id(plan))
     if layout is None:
         layout = _LAYOUTS[id(plan)] = _Layout(plan)
@@ -262,7 +252,7 @@ class Images:
 
     __slots__ = ("_bit_runs", "_copies", "_max_age", "_stamps", "_tables", "segments")
 
-    def __init__(self, plan: Plan, max_age: Sequence[float]) -> None:
+    def __init__(self, plan: Plan[Any, Any], max_age: Sequence[float]) -> None:
         layout = _layout(plan)
         self._max_age = max_age
         self._copies = layout.copies

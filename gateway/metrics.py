@@ -56,7 +56,7 @@ import logging
 import math
 import re
 from collections.abc import Iterator, Sequence
-from typing import TYPE_CHECKING, Final, Protocol
+from typing import TYPE_CHECKING, Any, Final, Protocol
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric
@@ -101,7 +101,7 @@ class GatewayView(Protocol):
     """What the metrics server reads from the gateway (:class:`gateway.app.Gateway` has it)."""
 
     @property
-    def units(self) -> Sequence[Unit]: ...
+    def units(self) -> Sequence[Unit[Any, Any]]: ...
 
     @property
     def servers(self) -> Sequence[ModbusTcpServer]: ...
@@ -136,7 +136,7 @@ class _GatewayCollector:
         yield from self._server_families(self._gateway.servers)
 
     @staticmethod
-    def _link_families(units: Sequence[Unit], now: float) -> list[Metric]:
+    def _link_families(units: Sequence[Unit[Any, Any]], now: float) -> list[Metric]:
         link = ("link", "unit")
         link_up = _gauge("link_up", "1 if the link is open and the controller answered the last transaction.", link)
         connected = _gauge("link_connected", "1 if the link's port or socket is open.", link)
@@ -223,7 +223,7 @@ class _GatewayCollector:
         return [requests, exceptions, backend_errors, connections, accepted, refused, dropped, evicted, handshakes]
 
 
-def _data_age(unit: Unit, now: float) -> float:
+def _data_age(unit: Unit[Any, Any], now: float) -> float:
     """Seconds since the oldest fast-class block was read; +Inf if one never was."""
     return max(0.0, unit.cache.oldest_age(unit.poller.fast, now))
 

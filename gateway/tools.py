@@ -1,62 +1,48 @@
 """The diagnostic commands of the CLI (probe, read, write, mode, upload, download) on one link.
 
-Program backup file (``upload`` writes it, ``download`` reads it): JSON, one object::
-
-    {"format": "slc-gateway-program/1", "controller": "SLC150", "device_type": 21, "frn": 47,
-     "blocks": ["<30 hex digits>", ...],            # every block in order, 15 bytes each
-     "sha256": "<hex digest of the concatenated block bytes>"}
-
-``download`` refuses a file whose controller differs from the connected one, a file with the
-wrong block count, a bad checksum, or an unknown format.
+The link kind (``--protocol``, or the one a ``sim://`` URL's controller speaks) runs the command
+(its ``tool``); this module picks the kind, keeps the first bytes that came back and, when no
+valid answer came, says which other protocol they look like.
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
-import json
-import re
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
-from gateway.config import SLC_ASCII_DEFAULTS
-from gateway.drivers.slc_ascii import SlcAsciiDriver
-from gateway.errors import ControllerRefused, GatewayError, InvalidRequest, LinkTimeout
-from gateway.protocols.slc_ascii import commands as cmds
-from gateway.protocols.slc_ascii.commands import ControllerType, Mode
-from gateway.protocols.slc_ascii.memory_map import parse_item
-from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS
+from gateway.errors import ControllerRefused, InvalidRequest, LinkTimeout
+from gateway.links import LinkKind, kind_names, link_kind, link_kinds
+from gateway.sim import parse_sim_url
 from gateway.tools_common import print_result, resolve_retries
 from gateway.transport import ByteStream, SerialSettings, open_stream
 
 __all__ = [
-    "PROGRAM_FORMAT",
     "ReceivedBytes",
-    "load_program_file",
     "print_result",
     "resolve_protocol",
     "resolve_retries",
     "run_tool",
-    "save_program_file",
     "wrong_protocol_hint",
 ]
 
-PROGRAM_FORMAT = "slc-gateway-program/1"
-_MODES = {"run": Mode.RUN, "program": Mode.PROGRAM, "test": Mode.CONTINUOUS_TEST, "save": Mode.SAVE_TO_EEPROM}
+
+def _kind_of_model(model: str) -> LinkKind[Any]:
+    for kind in link_kinds().values():
+        if model in kind.config_model.sim_models:
+            return kind
+    raise InvalidRequest(f"sim://{model}: no link kind speaks to this simulator")
 
 
 def resolve_protocol(url: str, protocol: str | None) -> str:
-    """``--protocol``, or the one a ``sim://`` URL's controller speaks; slc-ascii by default."""
+    """``--protocol``, or the one a ``sim://`` URL's controller speaks; the first kind by default."""
     if not url.lower().startswith("sim://"):
-        return protocol or "slc-ascii"
-    from gateway.sim import parse_sim_url
-
+        return protocol or kind_names()[0]
     try:
         model, _ = parse_sim_url(url)
     except ValueError as exc:
         raise InvalidRequest(str(exc)) from exc
-    spoken = "slc-ascii" if model in ("slc100", "slc150") else "df1"  # every other simulator is DF1
+    spoken = _kind_of_model(model).name
     if protocol is not None and protocol != spoken:
         raise InvalidRequest(
             f"{url} simulates an {model}, which speaks {spoken}, not {protocol}: "
@@ -108,30 +94,18 @@ class _Recording(ByteStream):
         return self._inner.char_time(settings)
 
 
-#: DF1 link-layer symbols: DLE followed by STX, ETX, ENQ, ACK or NAK (1770-6.5.16, full duplex).
-_DLE_FRAMED = re.compile(rb"\x10[\x02\x03\x05\x06\x15]")
-#: SLC 100/150 ASCII replies: ":" data / acknowledge or ";" status lines ending in CR.
-_ASCII_REPLY = re.compile(rb"[:;][0-9A-Fa-f?]{1,80}\r")
-_LOW_7_BITS = bytes(b & 0x7F for b in range(256))
-
-
 def wrong_protocol_hint(protocol: str, received: bytes) -> str:
     """What to try after no valid answer came on a link run with ``protocol``; "" if nothing to say."""
-    if protocol == "slc-ascii":
-        if _DLE_FRAMED.search(received):
-            return ("the bytes that came back look like DF1 (DLE-framed): an SLC 500 or PLC-5? "
-                    "try --protocol df1 (see --trace FILE for the bytes)")
-        if not received:
-            return ("nothing came back: check the cable, baud rate and parity (SLC 100/150: 9600 7E1), "
-                    "or try --protocol df1 for an SLC 500 or PLC-5")
-        return ""
-    # A 7E1 talker read at 8N1 arrives with its parity bit as bit 7.
-    if _ASCII_REPLY.search(received.translate(_LOW_7_BITS)):
-        return ("the bytes that came back look like the SLC 100/150 ASCII protocol (':'/';' lines): "
-                "try --protocol slc-ascii (see --trace FILE for the bytes)")
+    own = link_kind(protocol)
+    others = [(kind.name, kind.hints) for kind in link_kinds().values() if kind is not own and kind.hints is not None]
+    for name, hints in others:
+        if hints.looks_like(received):
+            return (f"the bytes that came back look like {hints.wire} try --protocol {name} "
+                    "(see --trace FILE for the bytes)")
     if not received:
-        return ("nothing came back: check the cable, baud rate, --checksum and --station, "
-                "or try --protocol slc-ascii for an SLC 100 or 150")
+        check = own.hints.check if own.hints is not None else "the cable and the line settings"
+        tries = " or ".join(f"--protocol {name} for {hints.controllers}" for name, hints in others)
+        return f"nothing came back: check {check}" + (f", or try {tries}" if tries else "")
     return ""
 
 
@@ -146,13 +120,12 @@ def _sim_is_fresh(url: str) -> str:
 
 async def run_tool(command: str, args: argparse.Namespace) -> int:
     protocol = resolve_protocol(args.url, args.protocol)
+    kind = link_kind(protocol)
+    if kind.tool is None:
+        raise InvalidRequest(f"{protocol} links have no diagnostic commands")
     received = ReceivedBytes()
     try:
-        if protocol == "df1":
-            from gateway.tools_df1 import run_df1_tool
-
-            return await run_df1_tool(command, args, opener=received.opener)
-        return await _run_slc_ascii_tool(command, args, received)
+        return await kind.tool(command, args, received.opener)
     except LinkTimeout as exc:
         hint = wrong_protocol_hint(protocol, bytes(received.data))
         if hint:
@@ -165,130 +138,3 @@ async def run_tool(command: str, args: argparse.Namespace) -> int:
         raise
 
 
-async def _run_slc_ascii_tool(command: str, args: argparse.Namespace, received: ReceivedBytes) -> int:
-    defaults = SLC_ASCII_DEFAULTS
-    settings = SerialSettings(
-        args.baudrate or defaults.baudrate,
-        args.bytesize or defaults.bytesize,
-        args.parity or defaults.parity,
-        defaults.stopbits,
-    )
-    # Validate everything the user typed before opening the port.
-    if command == "read":
-        items = [parse_item(text) for text in args.items]
-    elif command == "write":
-        writes = [_parse_assignment(text) for text in args.assignments]
-    driver = SlcAsciiDriver(
-        args.url,
-        settings=settings,
-        timeout=args.timeout or defaults.timeout,
-        retries=resolve_retries(command, args.retries),
-        # A probe asks "is an SLC 100/150 there?": one resync, so a wrong guess fails in seconds.
-        max_resyncs=1 if command == "probe" else MAX_RESYNCS,
-        trace=args.trace,
-        reconnect_min=60.0,
-        opener=received.opener,
-    )
-    async with driver:
-        if command == "probe":
-            info = await driver.probe()
-            kind = info.controller.name if info.controller else f"unknown (device type 0x{info.device_type:02X})"
-            print_result({"controller": kind, "device_type": info.device_type, "frn": info.frn}, args.json)
-        elif command == "read":
-            result: dict[str, Any] = {}
-            for text, item in zip(args.items, items, strict=True):
-                result[text] = item.decode(await driver.read(item.read_address, item.read_count))
-            print_result(result, args.json)
-        elif command == "write":
-            for item_text, item, value in writes:
-                if item.read_modify_write:
-                    assert item.bit is not None
-                    if value not in (0, 1):
-                        raise InvalidRequest(f"{item_text}: a bit takes 0 or 1, not {value}")
-                    if not item.writable:
-                        cmds.write_item_bit(item, 0, bool(value))  # raises the read-only message
-                    await driver.update_byte(item.read_address, item.bit, bool(value))
-                else:
-                    await driver.execute(cmds.write_item(item, value))
-            print_result({text: value for text, _, value in writes}, args.json)
-        elif command == "mode":
-            await driver.set_mode(_MODES[args.mode])
-            print_result({"mode": args.mode}, args.json)
-        elif command == "upload":
-            info = await driver.probe()
-            controller = _known(info.controller, info.device_type)
-            program = await driver.upload_program(controller)
-            save_program_file(args.file, controller, info.frn, program)
-            print_result(_transfer_summary(args.file, controller), args.json)
-        elif command == "download":
-            info = await driver.probe()
-            controller = _known(info.controller, info.device_type)
-            program = load_program_file(args.file, controller)
-            await driver.download_program(controller, program)
-            print_result(_transfer_summary(args.file, controller), args.json)
-        else:
-            raise InvalidRequest(f"unknown command {command}")
-    return 0
-
-
-def _transfer_summary(path: Path, controller: ControllerType) -> dict[str, Any]:
-    return {"file": str(path), "controller": controller.name, "blocks": controller.block_count}
-
-
-def _parse_assignment(text: str) -> tuple[str, Any, int]:
-    name, sep, value_text = text.partition("=")
-    if not sep or not name or not value_text:
-        raise InvalidRequest(f"{text!r}: expected ITEM=VALUE, e.g. 905.PRE=1234 or 701=1")
-    item = parse_item(name)
-    try:
-        value = int(value_text, 0)
-    except ValueError as exc:
-        raise InvalidRequest(f"{text!r}: {value_text!r} is not a whole number") from exc
-    if not item.read_modify_write:
-        cmds.write_item(item, value)  # validate now, before the port is opened
-    return name, item, value
-
-
-def _known(controller: ControllerType | None, device_type: int) -> ControllerType:
-    if controller is None:
-        raise GatewayError(f"unknown controller type 0x{device_type:02X}: program transfer needs an SLC 100 or 150")
-    return controller
-
-
-def save_program_file(path: Path, controller: ControllerType, frn: int, program: bytes) -> None:
-    blocks = [program[i : i + cmds.BLOCK_SIZE].hex().upper() for i in range(0, len(program), cmds.BLOCK_SIZE)]
-    document = {
-        "format": PROGRAM_FORMAT,
-        "controller": controller.name,
-        "device_type": controller.device_type,
-        "frn": frn,
-        "blocks": blocks,
-        "sha256": hashlib.sha256(program).hexdigest(),
-    }
-    path.write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
-
-
-def load_program_file(path: Path, controller: ControllerType) -> bytes:
-    """The program bytes of a backup file, checked against ``controller``."""
-    try:
-        document = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InvalidRequest(f"{path}: not a program backup file ({exc})") from exc
-    if not isinstance(document, dict) or document.get("format") != PROGRAM_FORMAT:
-        raise InvalidRequest(f"{path}: not a {PROGRAM_FORMAT} file")
-    if document.get("controller") != controller.name:
-        raise InvalidRequest(
-            f"{path}: the program is for an {document.get('controller')}, the controller is an {controller.name}"
-        )
-    blocks = document.get("blocks")
-    if not isinstance(blocks, list) or len(blocks) != controller.block_count:
-        raise InvalidRequest(f"{path}: expected {controller.block_count} blocks")
-    try:
-        program = b"".join(bytes.fromhex(block) for block in blocks)
-    except (TypeError, ValueError) as exc:
-        raise InvalidRequest(f"{path}: a block is not hex") from exc
-    if len(program) != controller.block_count * cmds.BLOCK_SIZE:
-        raise InvalidRequest(f"{path}: every block must be {cmds.BLOCK_SIZE} bytes")
-    if hashlib.sha256(program).hexdigest() != document.get("sha256"):
-        raise InvalidRequest(f"{path}: checksum mismatch: the file is damaged")
-    return program

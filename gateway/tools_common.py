@@ -1,8 +1,8 @@
 """What every link kind's CLI tool shares: result printing and the retry default.
 
-:mod:`gateway.tools` (SLC 100/150) and :mod:`gateway.tools_df1` both use these; keeping them here
-lets ``tools`` hand DF1 commands to ``tools_df1`` without ``tools_df1`` importing ``tools`` back
-(the ``tools <-> tools_df1`` import circle of issue 11).
+Every link kind's tool (``gateway.links.<kind>.tool``) uses these, and :mod:`gateway.tools`
+re-exports them; keeping them here lets ``tools`` hand a command to a kind's tool without the
+tool importing ``tools`` back (the ``tools <-> tools_df1`` import circle of issue 11).
 """
 
 from __future__ import annotations

@@ -30,12 +30,11 @@ from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Callable, Hashable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
-from typing import cast
+from typing import Any, Generic, NotRequired, TypedDict, TypeVar
 
 from gateway.cache import BlockCache
 from gateway.clients import current_client
 from gateway.drivers.base import LinkDriver
-from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import ControllerRefused, GatewayError, ModbusExceptionReply, modbus_exception
 from gateway.image import ImageMiss, Images
 from gateway.modbus.mapping import (
@@ -43,19 +42,16 @@ from gateway.modbus.mapping import (
     STATUS_REGISTERS,
     BitPoint,
     Block,
-    Codec,
+    Half,
     Plan,
     RegisterPoint,
     Scan,
-    SlcBitWrite,
-    SlcWordWrite,
     Table,
-    slc_ascii_plan,
 )
 from gateway.poller import Poller
 from gateway.writes import WriteQueue
 
-__all__ = ["SlcAsciiUnit", "Unit", "WritableRange", "WriteStep"]
+__all__ = ["Unit", "UnitOptions", "WritableRange", "WriteStep"]
 
 log = logging.getLogger("gateway.unit")
 
@@ -66,16 +62,41 @@ TARGET_FAILED = ModbusExceptionReply.GATEWAY_TARGET_FAILED
 
 WritableRange = tuple[Table, int, int]  # table, first, last
 
+#: The write target types of a unit's plan: R for a holding register, B for a coil.
+R = TypeVar("R")
+B = TypeVar("B")
+
 #: Seconds a 0x06 (busy) answer to a write is held before it is sent.
 BUSY_HOLD = 0.1
+
+
+class UnitOptions(TypedDict):
+    """The keyword arguments of :class:`Unit` every link has, whatever its kind."""
+
+    unit_id: int
+    name: str
+    stale_after: NotRequired[float]
+    read_only: NotRequired[bool]
+    writable: NotRequired[Sequence[WritableRange]]
+    fast_interval: NotRequired[float]
+    slow_interval: NotRequired[float]
+    write_burst: NotRequired[int]
+    poll_burst: NotRequired[int]
+    write_queue_per_client: NotRequired[int]
+    write_queue_per_link: NotRequired[int]
 
 
 def _pack_registers(values: Sequence[int]) -> bytes:
     return struct.pack(f">{len(values)}H", *values)
 
 
-class Unit(ABC):
-    """A link as a Modbus unit.  Subclasses: the protocol's plan, block reads and writes."""
+class Unit(ABC, Generic[R, B]):
+    """A link as a Modbus unit.  Subclasses: the link kind's plan, block reads and writes.
+
+    Generic in the plan's write targets: ``R`` for a holding register, ``B`` for a coil (a
+    link kind's own types, e.g. a file address and a bit), so that a subclass's write hooks take
+    exactly the targets its plan holds.
+    """
 
     def __init__(
         self,
@@ -83,7 +104,7 @@ class Unit(ABC):
         unit_id: int,
         name: str,
         driver: LinkDriver,
-        plan: Plan,
+        plan: Plan[R, B],
         stale_after: float = 5.0,
         read_only: bool = False,
         writable: Sequence[WritableRange] = (),
@@ -137,14 +158,14 @@ class Unit(ABC):
     async def read_block(self, block: Block) -> bytes: ...
 
     @abstractmethod
-    async def _write_register(self, target: object, value: int) -> None: ...
+    async def _write_register(self, target: R, value: int) -> None: ...
 
-    async def _write_float(self, target: object, raw: int) -> None:
-        """Write the 32 bits of a float (both of its registers at once)."""
-        raise ModbusExceptionReply(ILLEGAL_ADDRESS, "this unit has no float registers")
+    async def _write_pair(self, target: R, raw: int) -> None:
+        """Write the 32 bits of a value held in two registers (both at once: a float)."""
+        raise ModbusExceptionReply(ILLEGAL_ADDRESS, "this unit has no 32-bit registers")
 
     @abstractmethod
-    async def _write_bit(self, target: object, value: bool) -> None: ...
+    async def _write_bit(self, target: B, value: bool) -> None: ...
 
     @property
     @abstractmethod
@@ -254,44 +275,45 @@ class Unit(ABC):
         ):
             raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} {address} is not in a writable range")
 
-    def _refused_by_image(self, point: RegisterPoint) -> str | None:
+    def _refused_by_image(self, point: RegisterPoint[R]) -> str | None:
         """Why the controller is known (from the image) to refuse a write to ``point``, or None."""
         return None
 
-    def _footprint(self, target: object) -> Hashable:
+    def _footprint(self, target: R | B) -> Hashable:
         """The controller word a write target changes (writes to one word stay in arrival order)."""
         address: Hashable = getattr(target, "address", target)
         return address
 
-    def _register_steps(self, checked: list[tuple[int, RegisterPoint, int]]) -> list[WriteStep]:
-        """One step per word, one per float (its two registers); protocols may merge more."""
+    def _register_steps(self, checked: list[tuple[int, RegisterPoint[R], int]]) -> list[WriteStep]:
+        """One step per word, one per 32-bit pair (its two registers); protocols may merge more."""
         steps: list[WriteStep] = []
         i = 0
         while i < len(checked):
             address, point, value = checked[i]
-            if point.codec in (Codec.F32_HIGH, Codec.F32_LOW):
+            target = _target(point)
+            if point.codec.half is not None:
                 pair = checked[i : i + 2]
-                halves = {p.codec: v for _, p, v in pair}
-                raw = halves[Codec.F32_HIGH] << 16 | halves[Codec.F32_LOW]
-                steps.append(WriteStep(address, address + 1, partial(self._write_float, point.write, raw),
+                halves = {p.codec.half: v for _, p, v in pair}
+                raw = halves[Half.HIGH] << 16 | halves[Half.LOW]
+                steps.append(WriteStep(address, address + 1, partial(self._write_pair, target, raw),
                                    [(p, v) for _, p, v in pair]))
                 i += 2
                 continue
-            write = partial(self._write_register, point.write, value)
+            write = partial(self._write_register, target, value)
             steps.append(WriteStep(address, address, write, [(point, value)]))
             i += 1
         return steps
 
-    def _bit_steps(self, checked: list[tuple[int, BitPoint, bool]]) -> list[WriteStep]:
+    def _bit_steps(self, checked: list[tuple[int, BitPoint[B], bool]]) -> list[WriteStep]:
         """One step per coil; protocols may merge more."""
-        return [WriteStep(a, a, partial(self._write_bit, bit.write, value), bit_patches=[(bit, value)])
+        return [WriteStep(a, a, partial(self._write_bit, _target(bit), value), bit_patches=[(bit, value)])
                 for a, bit, value in checked]
 
-    def check_register_write(self, address: int, values: Sequence[int]) -> list[tuple[int, RegisterPoint, int]]:
+    def check_register_write(self, address: int, values: Sequence[int]) -> list[tuple[int, RegisterPoint[R], int]]:
         """Validate a whole FC6/FC16: (address, point, value) per register, or the exception."""
         self._check_writable(Table.HOLDING, address, len(values))
         points = self.plan.holding
-        checked: list[tuple[int, RegisterPoint, int]] = []
+        checked: list[tuple[int, RegisterPoint[R], int]] = []
         for i, value in enumerate(values):
             point = points.get(address + i)
             if point is None or point.write is None:
@@ -307,13 +329,13 @@ class Unit(ABC):
         i = 0
         while i < len(checked):
             point = checked[i][1]
-            if point.codec in (Codec.F32_HIGH, Codec.F32_LOW):
+            if point.codec.half is not None:
                 pair = checked[i : i + 2]
-                if len(pair) < 2 or pair[1][1].write != point.write or {p.codec for _, p, _ in pair} != {
-                    Codec.F32_HIGH, Codec.F32_LOW
+                if len(pair) < 2 or pair[1][1].write != point.write or {p.codec.half for _, p, _ in pair} != {
+                    Half.HIGH, Half.LOW
                 }:
                     raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"holding register {checked[i][0]} is half of a "
-                                               "float32: write both of its registers in one request")
+                                               "32-bit value: write both of its registers in one request")
                 i += 2
             else:
                 i += 1
@@ -322,7 +344,7 @@ class Unit(ABC):
     async def write_registers(self, address: int, values: Sequence[int]) -> None:
         checked = self.check_register_write(address, values)
         steps = self._register_steps(checked)
-        footprint = frozenset(self._footprint(p.write) for _, p, _ in checked)
+        footprint = frozenset(self._footprint(_target(p)) for _, p, _ in checked)
         await self._queue_write(Table.HOLDING, steps, footprint)
 
     async def write_bits(self, address: int, values: Sequence[bool]) -> None:
@@ -333,7 +355,7 @@ class Unit(ABC):
             if point is None or point.write is None:
                 raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"coil {address + i} is not writable")
         steps = self._bit_steps([(address + i, points[address + i], value) for i, value in enumerate(values)])
-        footprint = frozenset(self._footprint(points[address + i].write) for i in range(len(values)))
+        footprint = frozenset(self._footprint(_target(points[address + i])) for i in range(len(values)))
         await self._queue_write(Table.COIL, steps, footprint)
 
     async def _queue_write(self, table: Table, steps: list[WriteStep], footprint: frozenset[Hashable]) -> None:
@@ -377,18 +399,21 @@ class Unit(ABC):
             self.name, table.value, written, table.value, _span(failed.first, failed.last), exc, exc.code,
         )
 
-    def _patch(self, point: RegisterPoint, value: int) -> None:
-        o = point.offset
-        if point.codec in (Codec.U16_BE, Codec.U16_BE_MASKED):
-            self.cache.patch(point.block, o, value.to_bytes(2, "big"))
-        elif point.codec is Codec.U16_LE:
-            self.cache.patch(point.block, o, value.to_bytes(2, "little"))
-        elif point.codec is Codec.F32_HIGH:
-            self.cache.patch(point.block, o + 2, value.to_bytes(2, "little"))
-        elif point.codec is Codec.F32_LOW:
-            self.cache.patch(point.block, o, value.to_bytes(2, "little"))
+    def _patch(self, point: RegisterPoint[R], value: int) -> None:
+        """Put a confirmed register value into its block's bytes where its codec reads them."""
+        codec = point.codec
+        lsb = point.offset + codec.lsb
+        if codec.msb is None:
+            self.cache.patch(point.block, lsb, bytes((value & 0xFF,)))
+            return
+        msb = point.offset + codec.msb
+        if msb == lsb - 1:
+            self.cache.patch(point.block, msb, value.to_bytes(2, "big"))
+        elif msb == lsb + 1:
+            self.cache.patch(point.block, lsb, value.to_bytes(2, "little"))
         else:
-            self.cache.patch(point.block, o, bytes((value & 0xFF,)))
+            self.cache.patch(point.block, msb, bytes((value >> 8 & 0xFF,)))
+            self.cache.patch(point.block, lsb, bytes((value & 0xFF,)))
 
 
 @dataclass(slots=True)
@@ -398,8 +423,19 @@ class WriteStep:
     first: int
     last: int
     run: Callable[[], Awaitable[None]]
-    patches: list[tuple[RegisterPoint, int]] = field(default_factory=list)
-    bit_patches: list[tuple[BitPoint, bool]] = field(default_factory=list)
+    patches: list[tuple[RegisterPoint[Any], int]] = field(default_factory=list)
+    bit_patches: list[tuple[BitPoint[Any], bool]] = field(default_factory=list)
+
+
+T = TypeVar("T")
+
+
+def _target(point: RegisterPoint[T] | BitPoint[T]) -> T:
+    """The write target of a point checked writable (``write`` not None)."""
+    target = point.write
+    if target is None:
+        raise ModbusExceptionReply(ILLEGAL_ADDRESS, "not writable")
+    return target
 
 
 def _span(first: int, last: int) -> str:
@@ -425,36 +461,3 @@ async def _translated(write: Awaitable[None]) -> None:
         if reply is exc:
             raise  # already translated (e.g. a PCCC address problem: 0x02)
         raise reply from exc
-
-
-class SlcAsciiUnit(Unit):
-    """An SLC 100/150 with the default map."""
-
-    driver: SlcAsciiDriver
-
-    def __init__(self, *, driver: SlcAsciiDriver, **kwargs: object) -> None:
-        super().__init__(driver=driver, plan=slc_ascii_plan(), **kwargs)  # type: ignore[arg-type]
-
-    async def read_block(self, block: Block) -> bytes:
-        address, count = cast(tuple[int, int], block.request)
-        return await self.driver.read(address, count)
-
-    def _refused_by_image(self, point: RegisterPoint) -> str | None:
-        # A preset word with its protect bit set is refused by the controller (``;E``; "The
-        # Memory Map", 40H-7FH): known from the last read of it, so nothing of the request is sent.
-        if point.codec is Codec.U16_BE_MASKED and self.cache.data[point.block][point.offset] & 0x80:
-            return "protected in the controller (protect bit set)"
-        return None
-
-    async def _write_register(self, target: object, value: int) -> None:
-        assert isinstance(target, SlcWordWrite)
-        await self.driver.write_word(target.address, value)
-
-    async def _write_bit(self, target: object, value: bool) -> None:
-        assert isinstance(target, SlcBitWrite)
-        await self.driver.update_byte(target.address, target.bit, value)
-
-    @property
-    def last_fault_number(self) -> int:
-        fault = self.driver.last_fault
-        return fault.errors[0] if fault is not None and fault.errors else 0

@@ -15,8 +15,6 @@ from pydantic import ValidationError
 
 from gateway.config import (
     DF1_DEFAULTS,
-    LINK_MODELS,
-    PROTOCOL_DEFAULTS,
     SLC_ASCII_DEFAULTS,
     Df1LinkConfig,
     GatewayConfig,
@@ -27,9 +25,11 @@ from gateway.config import (
     SlcAsciiLinkConfig,
     TlsConfig,
     WritableRange,
+    link_models,
     load_config,
     parse_config,
     parse_listen,
+    protocol_defaults,
     protocol_names,
 )
 from gateway.config.df1 import classify_address
@@ -175,7 +175,7 @@ count = 64
 
 def test_example_file_mentions_every_key() -> None:
     text = EXAMPLE.read_text(encoding="utf-8")
-    for model in (ModbusConfig, TlsConfig, MetricsConfig, LoggingConfig, *LINK_MODELS, MapEntry):
+    for model in (ModbusConfig, TlsConfig, MetricsConfig, LoggingConfig, *link_models(), MapEntry):
         for key in model.model_fields:
             if key in ("tls", "map"):  # sections, not keys
                 continue
@@ -199,7 +199,7 @@ def test_defaults_of_the_sections() -> None:
 def test_serial_defaults_follow_the_protocol(protocol: str) -> None:
     link = parse_config(VALID).link[0 if protocol == "slc-ascii" else 1]
     assert link.protocol == protocol
-    for key, value in PROTOCOL_DEFAULTS[protocol].items():
+    for key, value in protocol_defaults()[protocol].items():
         assert getattr(link, key) == value
     assert (link.stopbits, link.retries, link.stale_after, link.read_only) == (1, 3, 5.0, False)
     assert (link.writable, link.fast_interval, link.slow_interval, link.trace) == ((), 0.0, 10.0, None)
@@ -290,7 +290,7 @@ def test_describe_lists_every_key() -> None:
     for key in ModbusConfig.model_fields:
         if key != "tls":
             assert f"\n{key} = " in described
-    for key in {key for model in LINK_MODELS for key in model.model_fields}:
+    for key in {key for model in link_models() for key in model.model_fields}:
         if key != "map":
             assert f"\n{key} = " in described
     for key in MapEntry.model_fields:
@@ -1362,8 +1362,8 @@ def test_each_link_is_validated_by_the_model_of_its_protocol() -> None:
     assert type(df1_link) is Df1LinkConfig
     assert "station" not in SlcAsciiLinkConfig.model_fields  # refused by extra="forbid", not by a list
     assert protocol_names() == ("slc-ascii", "df1")
-    assert tuple(PROTOCOL_DEFAULTS) == protocol_names()
-    for model in LINK_MODELS:
+    assert tuple(protocol_defaults()) == protocol_names()
+    for model in link_models():
         keys = model.serial_defaults.as_keys()
         assert {key: model.model_fields[key].default for key in keys} == keys
 

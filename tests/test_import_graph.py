@@ -161,3 +161,46 @@ def test_gateway_has_no_import_cycles() -> None:
 def test_the_check_finds_a_deliberate_cycle(tmp_path: Path, files: dict[str, str], expected: list[list[str]]) -> None:
     _write(tmp_path, files)
     assert find_cycles(import_graph(tmp_path, "pkg")) == expected
+
+
+#: The modules that must not know any protocol (issue 11): they find a link's kind in the registry.
+GENERIC = (
+    "gateway.app",
+    "gateway.cache",
+    "gateway.cli",
+    "gateway.image",
+    "gateway.modbus.mapping",
+    "gateway.poller",
+    "gateway.sim",
+    "gateway.tools",
+    "gateway.unit",
+)
+#: What names a protocol: its sans-I/O core, its driver, its kind package, its config model.
+PROTOCOL_MODULES = (
+    "gateway.protocols.",
+    "gateway.drivers.slc_ascii",
+    "gateway.drivers.df1",
+    "gateway.links.slc_ascii",
+    "gateway.links.df1",
+    "gateway.config.slc_ascii",
+    "gateway.config.df1",
+)
+
+
+def test_generic_modules_import_no_protocol() -> None:
+    graph = import_graph(ROOT, "gateway")
+    found = {
+        module: sorted(target for target in graph[module] if target.startswith(PROTOCOL_MODULES))
+        for module in GENERIC
+    }
+    assert {module: targets for module, targets in found.items() if targets} == {}
+
+
+def test_protocol_names_are_spelt_out_in_at_most_three_modules() -> None:
+    """String literals ``"slc-ascii"`` and ``"df1"`` (code, not comments) live with the config models."""
+    spelt: set[str] = set()
+    for name, path in module_names(ROOT, "gateway").items():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Constant) and node.value in ("slc-ascii", "df1"):
+                spelt.add(name)
+    assert spelt == {"gateway.config.slc_ascii", "gateway.config.df1"}

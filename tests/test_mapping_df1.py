@@ -1,4 +1,4 @@
-"""DF1 map entries -> Modbus points, and the read planner (``gateway.modbus.mapping_df1``).
+"""DF1 map entries -> Modbus points, and the read planner (``gateway.links.df1.plan``).
 
 Expected word positions are worked out here from the SLC 500 addressing reference (one word per
 N/B/S element, two per float, three per timer/counter/control structure; I/O words by slot), not
@@ -16,9 +16,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway.modbus.mapping import Codec, Plan, Scan, Table
-from gateway.modbus.mapping_df1 import (
+from gateway.links.df1.plan import (
+    F32_HIGH,
+    F32_LOW,
     READ_OVERHEAD_BYTES,
+    U16_LE,
     Df1BitWrite,
     Df1Read,
     Df1WordWrite,
@@ -27,6 +29,7 @@ from gateway.modbus.mapping_df1 import (
     optimal_blocks,
     plan_df1,
 )
+from gateway.modbus.mapping import Plan, Scan, Table
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
 
 INTEGER, FLOAT, TIMER, BIT, INPUT = FileType.INTEGER, FileType.FLOAT, FileType.TIMER, FileType.BIT, FileType.INPUT
@@ -117,7 +120,7 @@ def test_n7_words_one_register_each(max_read_bytes: int) -> None:
         assert (read.file_type, read.file_number) == (INTEGER, 7)
         assert offset == word_byte(INTEGER, 5 + k)
         point = plan.holding[10 + k]
-        assert point.codec is Codec.U16_LE
+        assert point.codec is U16_LE
         assert point.write == Df1WordWrite(SlcAddress(INTEGER, 7, 5 + k, 0))
     assert_within_limit(plan, max_read_bytes)
 
@@ -159,7 +162,7 @@ def test_float32_two_registers_in_either_order(word_order: str, high: int, low: 
     for k, value in enumerate(values):
         raw = struct.unpack("<I", struct.pack("<f", value))[0]
         hi_point, lo_point = plan.holding[200 + 2 * k + high], plan.holding[200 + 2 * k + low]
-        assert (hi_point.codec, lo_point.codec) == (Codec.F32_HIGH, Codec.F32_LOW)
+        assert (hi_point.codec, lo_point.codec) == (F32_HIGH, F32_LOW)
         assert hi_point.offset == lo_point.offset == word_byte(FLOAT, 3 + k) - first_byte(read)
         assert hi_point.write == lo_point.write == Df1WordWrite(parse_address(f"F8:{3 + k}"))
         # decoded as the unit does: the float's 32 bits, high half and low half
@@ -348,7 +351,7 @@ def test_optimal_blocks_matches_exhaustive_search(case: tuple[list[tuple[int, in
 def test_links_with_the_same_map_share_one_plan() -> None:
     """Identical machines' links hold one plan (and so one image layout); a different map or
     size limit gets its own."""
-    from gateway.modbus.mapping_df1 import shared_plan_df1
+    from gateway.links.df1.plan import shared_plan_df1
 
     items = [MapItem(table="holding", start=0, address="N7:0", count=10)]
     same = [MapItem(table="holding", start=0, address="N7:0", count=10)]

@@ -206,6 +206,11 @@ class LinkBase(Model):
         return []
 
     @property
+    def line_settings(self) -> SerialSettings:
+        """The link's line settings as the drivers and simulators take them."""
+        return SerialSettings(self.baudrate, self.bytesize, self.parity, self.stopbits)
+
+    @property
     def is_simulated(self) -> bool:
         return self.port.startswith("sim://")
 

@@ -1,79 +1,94 @@
-"""The link kinds the config knows: one union of link models, and what is derived from it.
+"""The link kinds the config knows, from the registry of link kinds (:mod:`gateway.links`).
 
-``LinkConfig`` is the one place that lists the link models (``LINK_MODELS`` and the protocol
-tables are derived from it; no ``if protocol == ...`` anywhere). Each model's ``protocol`` field is a
-one-value ``Literal``: pydantic picks the model by it (``Field(discriminator="protocol")``), so an
-unknown protocol is an error naming the known ones, never a fallback to a default protocol, and each
-model refuses the keys it does not have (``extra="forbid"``).
+A ``[[link]]`` is validated by the model of its ``protocol``: the discriminated union
+(``Field(discriminator="protocol")``) of the config models of every registered kind, rebuilt
+when a kind is registered, so that a kind registered from outside is accepted like a built-in
+one.  Each model's ``protocol`` field is a one-value ``Literal``: an unknown protocol is an error
+naming the known ones, never a fallback to a default protocol, and each model refuses the keys
+it does not have (``extra="forbid"``).
+
+The registry is read when a config is validated, not when this module is imported: the kinds'
+packages import the config models, so the config cannot import the kinds first.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Annotated, Any, TypeAlias, get_args
+from typing import Annotated, Any, TypeAlias, Union
 
-from pydantic import Field, ValidationError, ValidatorFunctionWrapHandler, WrapValidator
+from pydantic import (
+    Field,
+    SerializeAsAny,
+    TypeAdapter,
+    ValidationError,
+    ValidationInfo,
+    ValidatorFunctionWrapHandler,
+    WrapValidator,
+)
 from pydantic_core import InitErrorDetails
 
 from gateway.config._common import Problems, check_port_url, sim_model
-from gateway.config.df1 import Df1LinkConfig
 from gateway.config.link import LinkBase
-from gateway.config.slc_ascii import SlcAsciiLinkConfig
 
 __all__ = [
-    "LINK_MODELS",
-    "PROTOCOL_DEFAULTS",
     "LinkConfig",
     "LinkProtocol",
     "TaggedLink",
     "link_model",
+    "link_models",
+    "protocol_defaults",
     "protocol_names",
     "protocol_of",
     "sim_model_names",
 ]
 
-#: The type of one ``[[link]]``: the link model of one protocol. This union is the one list of the
-#: link models (a union, not a tuple, so that mypy checks code that reads a link's keys); a new
-#: protocol adds its model here.
-LinkConfig: TypeAlias = SlcAsciiLinkConfig | Df1LinkConfig
-
-#: Every link model, one per protocol, in the order of LinkConfig.
-LINK_MODELS: tuple[type[LinkBase], ...] = get_args(LinkConfig)
+#: The type of one ``[[link]]``: the link model of one protocol (a LinkBase subclass).
+LinkConfig: TypeAlias = LinkBase
 
 #: A protocol name (the ``protocol`` key of a link); protocol_names() lists them.
 LinkProtocol: TypeAlias = str
 
 
+def _by_protocol() -> Mapping[str, type[LinkBase]]:
+    from gateway.links import link_kinds
+
+    return {name: kind.config_model for name, kind in link_kinds().items()}
+
+
 def protocol_of(model: type[LinkBase]) -> str:
     """The protocol name of a link model: the one value of its ``protocol`` Literal."""
-    (name,) = get_args(model.model_fields["protocol"].annotation)
-    return str(name)
+    from gateway.links.kind import protocol_of as of
+
+    return of(model)
 
 
-_BY_PROTOCOL: Mapping[str, type[LinkBase]] = {protocol_of(model): model for model in LINK_MODELS}
-_SIM_PROTOCOL: Mapping[str, str] = {
-    model_name: protocol for protocol, model in _BY_PROTOCOL.items() for model_name in model.sim_models
-}
-
-#: Serial settings that depend on the protocol; filled in when a link does not give them.
-PROTOCOL_DEFAULTS: Mapping[str, Mapping[str, object]] = {
-    protocol: model.serial_defaults.as_keys() for protocol, model in _BY_PROTOCOL.items()
-}
+def link_models() -> tuple[type[LinkBase], ...]:
+    """Every link model, one per registered kind, built-in ones first."""
+    return tuple(_by_protocol().values())
 
 
 def protocol_names() -> tuple[str, ...]:
-    """The protocols a link may name, in LINK_MODELS order."""
-    return tuple(_BY_PROTOCOL)
+    """The protocols a link may name, built-in ones first."""
+    return tuple(_by_protocol())
 
 
 def link_model(protocol: str) -> type[LinkBase] | None:
     """The link model of ``protocol`` (None: no such protocol)."""
-    return _BY_PROTOCOL.get(protocol)
+    return _by_protocol().get(protocol)
+
+
+def protocol_defaults() -> dict[str, dict[str, object]]:
+    """Serial settings that depend on the protocol (filled in when a link does not give them)."""
+    return {protocol: model.serial_defaults.as_keys() for protocol, model in _by_protocol().items()}
+
+
+def _sim_protocols() -> dict[str, str]:
+    return {name: protocol for protocol, model in _by_protocol().items() for name in model.sim_models}
 
 
 def sim_model_names() -> str:
     """``sim://slc150, sim://slc100 or sim://slc504``: the simulators, for messages."""
-    names = [f"sim://{name}" for name in _SIM_PROTOCOL]
+    names = [f"sim://{name}" for name in _sim_protocols()]
     return ", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else names[0]
 
 
@@ -93,23 +108,40 @@ def _simulator_problem(raw: object) -> str | None:
     model = sim_model(port)
     if model is None:
         return None
-    speaks = _SIM_PROTOCOL.get(model)
+    speaks = _sim_protocols().get(model)
     if speaks is None:
         return f"sim://{model}: no such simulator: expected {sim_model_names()}"
-    if isinstance(protocol, str) and protocol in _BY_PROTOCOL and speaks != protocol:
+    if isinstance(protocol, str) and protocol in _by_protocol() and speaks != protocol:
         return f"sim://{model} simulates a controller that speaks {speaks}, but this link's protocol is {protocol}"
     return None
 
 
-def _validate_link(value: Any, handler: ValidatorFunctionWrapHandler) -> Any:
+_adapters: dict[tuple[type[LinkBase], ...], TypeAdapter[Any]] = {}
+
+
+def _adapter() -> TypeAdapter[Any]:
+    """The discriminated union of the registered kinds' models (one adapter per set of models)."""
+    models = link_models()
+    adapter = _adapters.get(models)
+    if adapter is None:
+        form: Any = models[0]
+        if len(models) > 1:
+            union: Any = Union[models]  # noqa: UP007 - built at run time from the registry
+            form = Annotated[union, Field(discriminator="protocol")]
+        adapter = TypeAdapter(form)
+        _adapters[models] = adapter
+    return adapter
+
+
+def _validate_link(value: Any, handler: ValidatorFunctionWrapHandler, info: ValidationInfo) -> Any:
     """Validate one ``[[link]]`` by its protocol's model, adding the check of its simulator."""
+    if isinstance(value, LinkBase):
+        return value
     problem = _simulator_problem(value)
     extra = [] if problem is None else [_port_error(value, problem)]
     try:
-        link = handler(value)
+        link = _adapter().validate_python(value, context=info.context)
     except ValidationError as exc:
-        if not extra:
-            raise
         errors = [
             InitErrorDetails(type=e["type"], loc=e["loc"], input=e["input"], ctx=e.get("ctx", {}))
             for e in exc.errors(include_url=False)
@@ -124,6 +156,6 @@ def _port_error(value: object, message: str) -> InitErrorDetails:
     return InitErrorDetails(type="value_error", loc=(), input=value, ctx={"error": Problems((("port",), message))})
 
 
-#: One ``[[link]]`` as GatewayConfig validates it: the model chosen by ``protocol``, and the
-#: simulator of its port checked against the simulators of every kind.
-TaggedLink = Annotated[Annotated[LinkConfig, Field(discriminator="protocol")], WrapValidator(_validate_link)]
+#: One ``[[link]]`` as GatewayConfig validates it: the model chosen by ``protocol`` among the
+#: registered kinds' models, and the simulator of its port checked against every kind's simulators.
+TaggedLink = Annotated[SerializeAsAny[LinkBase], WrapValidator(_validate_link)]

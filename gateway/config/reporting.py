@@ -20,7 +20,7 @@ from pydantic_core import ErrorDetails
 from gateway.config._common import Loc, Problems, show
 from gateway.config.lines import LineIndex
 from gateway.config.link import LinkBase
-from gateway.config.links import LINK_MODELS, link_model, protocol_names, protocol_of
+from gateway.config.links import link_model, link_models, protocol_names, protocol_of
 from gateway.config.schema import GatewayConfig
 from gateway.config.writer import toml_string
 from gateway.errors import ConfigError
@@ -66,7 +66,7 @@ def _foreign_key(key: str, link: type[LinkBase]) -> str | None:
     note = link.foreign_key_notes.get(key)
     if note is not None:
         return note
-    owners = [protocol_of(model) for model in LINK_MODELS if model is not link and key in model.model_fields]
+    owners = [protocol_of(model) for model in link_models() if model is not link and key in model.model_fields]
     if not owners:
         return None
     return f"only for {' and '.join(owners)} links (this link's protocol is {protocol_of(link)})"
@@ -108,10 +108,10 @@ def _suggestion(loc: Loc, link: type[LinkBase] | None) -> str:
     if close:
         return f' (did you mean "{close[0]}"?)'
     if model is link and link is not None:  # a misspelt key of another protocol's links
-        others = {key for other in LINK_MODELS for key in other.model_fields} - set(link.model_fields)
+        others = {key for other in link_models() for key in other.model_fields} - set(link.model_fields)
         close = difflib.get_close_matches(loc[-1], sorted(others), n=1, cutoff=0.6)
         if close:
-            owners = " and ".join(protocol_of(model) for model in LINK_MODELS if close[0] in model.model_fields)
+            owners = " and ".join(protocol_of(model) for model in link_models() if close[0] in model.model_fields)
             protocol = protocol_of(link)
             return f' (did you mean "{close[0]}"? It is a key of {owners} links; this link\'s protocol is {protocol})'
     return ""
@@ -147,7 +147,7 @@ def _render_path(loc: Loc, link_names: Mapping[int, str]) -> str:
 
 
 def _untag(loc: Loc) -> tuple[Loc, type[LinkBase] | None]:
-    """``("link", 0, "df1", "station")`` -> ``(("link", 0, "station"), Df1LinkConfig)``.
+    """``("link", 0, <protocol>, "station")`` -> ``(("link", 0, "station"), <the protocol's link model>)``.
 
     Pydantic puts the tag of a discriminated union into the path; TOML has no such level.
     """

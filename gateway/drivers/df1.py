@@ -21,6 +21,7 @@ import random
 from pathlib import Path
 from typing import Final
 
+from gateway.config.df1 import DF1_DEFAULTS
 from gateway.drivers.base import LinkDriver, OpenStream, Priority
 from gateway.errors import GatewayError, LinkTimeout, ProtocolError, WriteOutcomeUnknown
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
@@ -45,8 +46,8 @@ from gateway.transport import SerialSettings, open_stream
 
 __all__ = ["DF1_SETTINGS", "Df1Driver", "WriteOutcomeUnknown"]
 
-#: DF1 full duplex default line settings: 19200 baud 8N1.
-DF1_SETTINGS: Final = SerialSettings(baudrate=19200, bytesize=8, parity="N", stopbits=1)
+#: DF1 full duplex default line settings (19200 8N1), kept with the link model's defaults.
+DF1_SETTINGS: Final = DF1_DEFAULTS.settings
 
 _WRITE_TYPES: Final = ("ProtectedTypedLogicalWrite", "ProtectedTypedLogicalMaskedWrite", "TypedWrite",
                        "WordRangeWrite", "SetProcessorMode")

@@ -14,6 +14,7 @@ import logging
 from pathlib import Path
 from typing import Final
 
+from gateway.config.slc_ascii import SLC_ASCII_DEFAULTS
 from gateway.drivers.base import LinkDriver, OpenStream, Priority
 from gateway.errors import (
     ControllerFault,
@@ -35,10 +36,10 @@ __all__ = ["MAX_TRANSFER_RESTARTS", "SLC_ASCII_SETTINGS", "SlcAsciiDriver"]
 
 log = logging.getLogger("gateway.link")
 
-#: Manual: "even parity, and operates at 9600 baud ... 7 - data bits, 1 - parity bit, and 1 - stop bit".
-SLC_ASCII_SETTINGS: Final = SerialSettings(baudrate=9600, bytesize=7, parity="E", stopbits=1)
+#: The manual's line settings (9600 7E1), kept with the link model's defaults.
+SLC_ASCII_SETTINGS: Final = SLC_ASCII_DEFAULTS.settings
 #: The 0.3 s reply time of the manual, for commands other than mode changes and program edits.
-DEFAULT_TIMEOUT: Final = 0.3
+DEFAULT_TIMEOUT: Final = SLC_ASCII_DEFAULTS.timeout
 #: Mode changes and program transfer ("The exceptions are edit commands and mode changes").
 DEFAULT_SLOW_TIMEOUT: Final = 3.0
 

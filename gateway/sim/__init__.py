@@ -1,7 +1,8 @@
 """Controller simulators, written from the manuals, with fault injection.
 
-``sim://MODEL[?options]`` URLs open an in-process simulator.  Models: ``slc150``, ``slc100``
-(SLC 100/150 ASCII protocol) and ``slc504`` (SLC 5/04, DF1 full duplex).  Options:
+``sim://MODEL[?options]`` URLs open an in-process simulator.  The models are listed in
+:mod:`gateway.sim.models` (built in: ``slc150``, ``slc100``, ``slc504``; a link kind may add
+its own).  Options:
 
 =====================  ==========================================================================
 ``garble=N``           corrupt 1 in N replies
@@ -29,21 +30,21 @@ from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
 from gateway.errors import LinkDown
+from gateway.sim.models import sim_models
 from gateway.sim.serve import SimDevice, SimStream
 from gateway.sim.variants import parse_variant_args, resolve_variants
 from gateway.streams import SerialSettings
 
 __all__ = [
-    "MODELS",
     "create_simulator",
     "get_simulator",
+    "model_names",
     "open_sim_stream",
     "parse_sim_url",
     "reset_simulators",
     "variants_of",
 ]
 
-MODELS = ("slc150", "slc100", "slc504")
 _STREAM_OPTIONS = ("paced", "turnaround", "instance", "ladder", "variant")
 _registry: dict[str, Any] = {}
 
@@ -54,8 +55,8 @@ def parse_sim_url(url: str) -> tuple[str, dict[str, str]]:
     if parts.scheme != "sim":
         raise ValueError(f"{url}: not a sim:// URL")
     model = (parts.netloc or parts.path.lstrip("/")).lower()
-    if model not in MODELS:
-        raise ValueError(f"{url}: unknown simulator {model!r} (choose from {', '.join(MODELS)})")
+    if model not in sim_models():
+        raise ValueError(f"{url}: unknown simulator {model!r} (choose from {', '.join(model_names())})")
     options: dict[str, str] = {}
     for key, value in parse_qsl(parts.query, keep_blank_values=True):
         if key == "variant" and options.get(key):
@@ -68,43 +69,25 @@ def parse_sim_url(url: str) -> tuple[str, dict[str, str]]:
     return model, options
 
 
+def model_names() -> tuple[str, ...]:
+    """The simulator models, built-in ones first."""
+    return tuple(sim_models())
+
+
 def variants_of(model: str, chosen: Mapping[str, str]) -> dict[str, str]:
     """Every variant of ``model`` with its value (chosen or default); ValueError naming the choices."""
-    return resolve_variants(model, _variant_table(model), chosen)
-
-
-def _variant_table(model: str) -> Mapping[str, tuple[str, ...]]:
-    if model in ("slc150", "slc100"):
-        from gateway.sim.slc_ascii import SlcAsciiSimulator
-
-        return SlcAsciiSimulator.VARIANTS
-    from gateway.sim.slc500 import Slc500Simulator
-
-    table: Mapping[str, tuple[str, ...]] = getattr(Slc500Simulator, "VARIANTS", {})
-    return table
+    return resolve_variants(model, sim_models()[model].variants(), chosen)
 
 
 def create_simulator(model: str, options: dict[str, str]) -> SimDevice:
     """A new simulated controller.  ``options`` are the fault/ladder options (see module doc)."""
+    found = sim_models().get(model)
+    if found is None:
+        raise ValueError(f"unknown simulator {model!r} (choose from {', '.join(model_names())})")
     fault_options = {k: v for k, v in options.items() if k not in _STREAM_OPTIONS}
     ladder = options.get("ladder", "1") not in ("0", "false", "no")
     variants = variants_of(model, parse_variant_args([options.get("variant", "")]))
-    if model in ("slc150", "slc100"):
-        from gateway.protocols.slc_ascii.commands import ControllerType
-        from gateway.sim.slc_ascii import FaultPlan, SlcAsciiSimulator
-
-        return SlcAsciiSimulator(
-            ControllerType.SLC150 if model == "slc150" else ControllerType.SLC100,
-            faults=FaultPlan.from_options(fault_options),
-            ladder=ladder,
-            variants=variants,
-        )
-    from gateway.sim.slc500 import Slc500Simulator
-
-    if hasattr(Slc500Simulator, "VARIANTS"):
-        extra: dict[str, Any] = {"variants": variants}
-        return Slc500Simulator.from_options(fault_options, ladder=ladder, **extra)
-    return Slc500Simulator.from_options(fault_options, ladder=ladder)
+    return found.create(fault_options, ladder, variants)
 
 
 def get_simulator(url: str) -> Any:

@@ -16,7 +16,7 @@ What SCADA must see, whatever the line does:
 * nothing hangs (``asyncio.timeout``).
 
 Expected values come from the simulator's memory and its documented initial data table, not
-from ``gateway.modbus.mapping_df1``.  Without ``mbpoll`` its test is skipped, unless
+from ``gateway.links.df1.plan``.  Without ``mbpoll`` its test is skipped, unless
 ``SLC_GATEWAY_REQUIRE_MBPOLL=1``, which makes it fail instead.
 """
 

@@ -19,13 +19,18 @@ import functools
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import TypeAlias
 
-from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, RegisterPoint, Scan, Table
+from gateway.modbus.mapping import BitPoint, Block, Codec, Half, Plan, RegisterPoint, Scan, Table
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
 
 __all__ = [
+    "F32_HIGH",
+    "F32_LOW",
     "READ_OVERHEAD_BYTES",
+    "U16_LE",
     "Df1BitWrite",
+    "Df1Plan",
     "Df1Read",
     "Df1WordWrite",
     "MapItem",
@@ -39,6 +44,12 @@ __all__ = [
 #: (DLE STX, 6 header, FNC, size, file, type, element, sub-element, DLE ETX, CRC = 18), its
 #: DLE ACK (2), the reply frame's framing and header (2 + 6 + 2 + 2 = 12) and our DLE ACK (2).
 READ_OVERHEAD_BYTES = 34
+
+#: A PCCC word: little-endian (int16 is the same bits).
+U16_LE = Codec("u16le", 1, 0)
+#: A PCCC float is 4 bytes little-endian b0 b1 b2 b3: its high half is b3 b2, its low half b1 b0.
+F32_HIGH = Codec("f32-high", 3, 2, half=Half.HIGH)
+F32_LOW = Codec("f32-low", 1, 0, half=Half.LOW)
 
 _IO = (FileType.INPUT, FileType.OUTPUT)
 _STRUCTURES = (FileType.TIMER, FileType.COUNTER, FileType.CONTROL)
@@ -81,6 +92,10 @@ class MapItem:
     type: str = "int16"  # int16 | uint16 | float32 | bool
     word_order: str = "high-first"
     scan: str = "fast"
+
+
+#: The plan of a DF1 link: typed word writes to holding registers, masked bit writes to coils.
+Df1Plan: TypeAlias = Plan[Df1WordWrite, Df1BitWrite]
 
 
 # --- word positions ------------------------------------------------------------------------
@@ -185,16 +200,16 @@ def _cells(item: MapItem, words: dict[SlcAddress, SlcAddress]) -> list[_Cell]:
         high, low = (0, 1) if item.word_order == "high-first" else (1, 0)
         for k in range(item.count):
             address = base.offset(k)
-            cells.append(_Cell(table, item.start + 2 * k + high, address, Codec.F32_HIGH, None, scan))
-            cells.append(_Cell(table, item.start + 2 * k + low, address, Codec.F32_LOW, None, scan))
+            cells.append(_Cell(table, item.start + 2 * k + high, address, F32_HIGH, None, scan))
+            cells.append(_Cell(table, item.start + 2 * k + low, address, F32_LOW, None, scan))
         return cells
     for k in range(item.count):
         address = base.offset(k)
-        cells.append(_Cell(table, item.start + k, address, Codec.U16_LE, None, scan))
+        cells.append(_Cell(table, item.start + k, address, U16_LE, None, scan))
     return cells
 
 
-def plan_df1(items: Sequence[MapItem], max_read_bytes: int, overhead: int = READ_OVERHEAD_BYTES) -> Plan:
+def plan_df1(items: Sequence[MapItem], max_read_bytes: int, overhead: int = READ_OVERHEAD_BYTES) -> Df1Plan:
     """The read plan and Modbus points of a DF1 link's map."""
     interned: dict[SlcAddress, SlcAddress] = {}
     cells = [cell for item in items for cell in _cells(item, interned)]
@@ -208,10 +223,10 @@ def plan_df1(items: Sequence[MapItem], max_read_bytes: int, overhead: int = READ
     needed: dict[tuple[Scan, Key], set[tuple[int, int]]] = defaultdict(set)
     for cell in cells:
         key, position = _locate(cell.address)
-        words = 2 if cell.codec in (Codec.F32_HIGH, Codec.F32_LOW) else 1
+        words = 2 if cell.codec is not None and cell.codec.half is not None else 1
         scan = Scan.FAST if (key, position) in fast_words else cell.scan
         needed[scan, key].add((position, words))
-    plan = Plan()
+    plan: Df1Plan = Plan()
     where: dict[tuple[Scan, Key], list[tuple[int, int, int]]] = {}  # -> [(start, words, block index)]
     for (scan, key), spans in sorted(needed.items(), key=lambda kv: (kv[0][0].value, kv[0][1])):
         file_type, file_number, slot = key
@@ -254,11 +269,11 @@ def plan_df1(items: Sequence[MapItem], max_read_bytes: int, overhead: int = READ
 
 
 @functools.lru_cache(maxsize=256)
-def _shared_plan(items: tuple[MapItem, ...], max_read_bytes: int) -> Plan:
+def _shared_plan(items: tuple[MapItem, ...], max_read_bytes: int) -> Df1Plan:
     return plan_df1(items, max_read_bytes)
 
 
-def shared_plan_df1(items: Sequence[MapItem], max_read_bytes: int) -> Plan:
+def shared_plan_df1(items: Sequence[MapItem], max_read_bytes: int) -> Df1Plan:
     """:func:`plan_df1`, built once per distinct map: links with the same map (a plant's
     identical machines) share one plan and one image layout, as every SLC 100/150 link shares
     ``slc_ascii_plan()``.  A plan is never changed once built."""

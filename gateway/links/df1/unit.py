@@ -13,14 +13,16 @@ what was written the write succeeded, otherwise SCADA gets 0x0B.  A write is nev
 from __future__ import annotations
 
 import struct
+from collections.abc import Sequence
 from functools import partial
-from typing import Any, cast
+from typing import Any, Unpack, get_args
 
-from gateway.config import Df1LinkConfig
+from gateway.config.df1 import Df1LinkConfig, Processor
 from gateway.drivers.df1 import Df1Driver, check_reply_size
 from gateway.errors import ControllerRefused, ModbusExceptionReply
-from gateway.modbus.mapping import BitPoint, Block, Codec, RegisterPoint
-from gateway.modbus.mapping_df1 import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, shared_plan_df1
+from gateway.links.df1.plan import Df1BitWrite, Df1Plan, Df1Read, Df1WordWrite, MapItem, shared_plan_df1
+from gateway.links.kind import Built, unit_options
+from gateway.modbus.mapping import BitPoint, Block, Half, RegisterPoint
 from gateway.protocols.df1.address import FileType, SlcAddress
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.pccc import (
@@ -30,20 +32,26 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalRead,
     ProtectedTypedLogicalWrite,
 )
-from gateway.transport import SerialSettings
-from gateway.unit import Unit, WriteStep
+from gateway.unit import Unit, UnitOptions, WriteStep
 
-__all__ = ["PROCESSORS", "Df1Unit", "build_df1_unit", "pccc_exception"]
+__all__ = ["PROCESSORS", "Df1Unit", "build_df1", "df1_plan", "pccc_exception"]
 
-PROCESSORS = {
-    "slc500": ProcessorFamily.SLC500_FIXED,
-    "slc5/01": ProcessorFamily.SLC5_01,
-    "slc5/02": ProcessorFamily.SLC5_02,
-    "slc5/03": ProcessorFamily.SLC5_03,
-    "slc5/04": ProcessorFamily.SLC5_04,
-    "slc5/05": ProcessorFamily.SLC5_05,
-    "plc5": ProcessorFamily.PLC5,
-}
+#: ``processor`` names (the config's ``Processor``, in its order) -> families.
+PROCESSORS: dict[str, ProcessorFamily] = dict(
+    zip(
+        get_args(Processor),
+        (
+            ProcessorFamily.SLC500_FIXED,
+            ProcessorFamily.SLC5_01,
+            ProcessorFamily.SLC5_02,
+            ProcessorFamily.SLC5_03,
+            ProcessorFamily.SLC5_04,
+            ProcessorFamily.SLC5_05,
+            ProcessorFamily.PLC5,
+        ),
+        strict=True,
+    )
+)
 #: EXT STS codes (CMD 0F) that say the address is wrong: answered as Modbus 0x02.
 _ADDRESS_EXT_STS = frozenset({0x02, 0x03, 0x06, 0x07, 0x0A, 0x13})
 
@@ -55,18 +63,26 @@ def pccc_exception(error: PcccError) -> ModbusExceptionReply:
     return ModbusExceptionReply(code, str(error))
 
 
-class Df1Unit(Unit):
+class Df1Unit(Unit[Df1WordWrite, Df1BitWrite]):
     driver: Df1Driver
 
     def __init__(
-        self, *, driver: Df1Driver, items: list[MapItem], max_read_bytes: int, max_write_bytes: int = 0, **common: Any
+        self,
+        *,
+        driver: Df1Driver,
+        items: list[MapItem],
+        max_read_bytes: int,
+        max_write_bytes: int = 0,
+        **common: Unpack[UnitOptions],
     ) -> None:
         super().__init__(driver=driver, plan=shared_plan_df1(items, max_read_bytes), **common)
         #: data bytes of one write command (3-byte address fields take 2 each off it)
         self.max_write_bytes = max_write_bytes or driver.family.max_write_bytes
 
     async def read_block(self, block: Block) -> bytes:
-        read = cast(Df1Read, block.request)
+        read = block.request
+        if not isinstance(read, Df1Read):
+            raise TypeError(f"{block.label}: not a DF1 read")
         request = ProtectedTypedLogicalRead(read.file_type, read.file_number, read.element, read.sub_element, read.size)
         reply = await self.driver.execute(request, f"read {block.label}")
         return check_reply_size(reply, read.size, f"read {block.label}")
@@ -77,21 +93,19 @@ class Df1Unit(Unit):
         except PcccError as exc:
             raise pccc_exception(exc) from exc
 
-    async def _write_register(self, target: object, value: int) -> None:
-        assert isinstance(target, Df1WordWrite)
+    async def _write_register(self, target: Df1WordWrite, value: int) -> None:
         a = target.address
         data = value.to_bytes(2, "little")
         request = ProtectedTypedLogicalWrite(a.file_type, a.file_number, a.element, a.sub_element, data)
         await self._write(request, a)
 
-    async def _write_float(self, target: object, raw: int) -> None:
-        assert isinstance(target, Df1WordWrite)
+    async def _write_pair(self, target: Df1WordWrite, raw: int) -> None:
         a = target.address
         data = struct.pack("<I", raw)
         request = ProtectedTypedLogicalWrite(a.file_type, a.file_number, a.element, a.sub_element, data)
         await self._write(request, a)
 
-    def _register_steps(self, checked: list[tuple[int, RegisterPoint, int]]) -> list[WriteStep]:
+    def _register_steps(self, checked: list[tuple[int, RegisterPoint[Df1WordWrite], int]]) -> list[WriteStep]:
         """Consecutive words (or floats) of one file in one typed logical write, up to the size limit.
 
         The protected typed logical write (CMD 0F, FNC AA) writes ``size`` bytes from its address
@@ -99,8 +113,7 @@ class Df1Unit(Unit):
         """
         groups: list[list[WriteStep]] = []
         for step in super()._register_steps(checked):
-            target = step.patches[0][0].write
-            assert isinstance(target, Df1WordWrite)
+            target = _word_target(step)
             if groups and self._joins(groups[-1], target.address, len(_step_bytes(step))):
                 groups[-1].append(step)
             else:
@@ -110,8 +123,7 @@ class Df1Unit(Unit):
             if len(group) == 1:
                 steps.append(group[0])
                 continue
-            first = group[0].patches[0][0].write
-            assert isinstance(first, Df1WordWrite)
+            first = _word_target(group[0])
             patches = [patch for step in group for patch in step.patches]
             data = b"".join(_step_bytes(step) for step in group)
             steps.append(WriteStep(group[0].first, group[-1].last, partial(self._write_words, first.address, data),
@@ -120,9 +132,8 @@ class Df1Unit(Unit):
 
     def _joins(self, group: list[WriteStep], address: SlcAddress, size: int) -> bool:
         """Whether a write of ``size`` bytes at ``address`` continues ``group`` in one command."""
-        last = group[-1].patches[0][0].write
-        first = group[0].patches[0][0].write
-        assert isinstance(last, Df1WordWrite) and isinstance(first, Df1WordWrite)
+        last = _word_target(group[-1])
+        first = _word_target(group[0])
         a, b = last.address, address
         if a.file_type not in _PLAIN_FILES or a.sub_element or b.sub_element or a.bit is not None:
             return False
@@ -130,33 +141,36 @@ class Df1Unit(Unit):
             return False
         limit = self.max_write_bytes - 2 * _expanded_fields(first.address)
         return sum(len(_step_bytes(step)) for step in group) + size <= limit
+
     async def _write_words(self, address: SlcAddress, data: bytes) -> None:
         request = ProtectedTypedLogicalWrite(
             address.file_type, address.file_number, address.element, address.sub_element, data
         )
         await self._write(request, address)
 
-    def _bit_steps(self, checked: list[tuple[int, BitPoint, bool]]) -> list[WriteStep]:
+    def _bit_steps(self, checked: list[tuple[int, BitPoint[Df1BitWrite], bool]]) -> list[WriteStep]:
         """Consecutive coils of one word in one masked write (CMD 0F, FNC AB: only the bits of the
         mask change, notes §4.36, §7.3), so an FC15 over B3:0/0-15 is one command."""
         steps: list[WriteStep] = []
         word: SlcAddress | None = None
+        targets: list[list[Df1BitWrite]] = []
         for address, bit, value in checked:
             target = bit.write
-            assert isinstance(target, Df1BitWrite)
+            if target is None:
+                raise ModbusExceptionReply(ModbusExceptionReply.ILLEGAL_DATA_ADDRESS, f"coil {address} is not writable")
             if steps and target.address == word and steps[-1].last == address - 1:
                 steps[-1].last = address
                 steps[-1].bit_patches.append((bit, value))
+                targets[-1].append(target)
             else:
                 word = target.address
                 write = partial(self._write_bit, target, value)
                 steps.append(WriteStep(address, address, write, bit_patches=[(bit, value)]))
-        for step in steps:
-            if len(step.bit_patches) > 1:
-                first = step.bit_patches[0][0].write
-                assert isinstance(first, Df1BitWrite)
-                bits = [(cast(Df1BitWrite, p.write).bit, v) for p, v in step.bit_patches]
-                step.run = partial(self._write_bits, first.address, bits)
+                targets.append([target])
+        for step, bit_targets in zip(steps, targets, strict=True):
+            if len(bit_targets) > 1:
+                bits = [(t.bit, v) for t, (_, v) in zip(bit_targets, step.bit_patches, strict=True)]
+                step.run = partial(self._write_bits, bit_targets[0].address, bits)
         return steps
 
     async def _write_bits(self, a: SlcAddress, bits: list[tuple[int, bool]]) -> None:
@@ -169,8 +183,7 @@ class Df1Unit(Unit):
         request = ProtectedTypedLogicalMaskedWrite(a.file_type, a.file_number, a.element, a.sub_element, mask, data)
         await self._write(request, a)
 
-    async def _write_bit(self, target: object, value: bool) -> None:
-        assert isinstance(target, Df1BitWrite)
+    async def _write_bit(self, target: Df1BitWrite, value: bool) -> None:
         a = target.address
         mask = 1 << target.bit
         data = (mask if value else 0).to_bytes(2, "little")
@@ -206,9 +219,9 @@ def _step_bytes(step: WriteStep) -> bytes:
     i = 0
     while i < len(patches):
         point, value = patches[i]
-        if point.codec in (Codec.F32_HIGH, Codec.F32_LOW):
-            halves = {p.codec: v for p, v in patches[i : i + 2]}
-            out += struct.pack("<I", halves[Codec.F32_HIGH] << 16 | halves[Codec.F32_LOW])
+        if point.codec.half is not None:
+            halves = {p.codec.half: v for p, v in patches[i : i + 2]}
+            out += struct.pack("<I", halves[Half.HIGH] << 16 | halves[Half.LOW])
             i += 2
         else:
             out += value.to_bytes(2, "little")
@@ -216,24 +229,46 @@ def _step_bytes(step: WriteStep) -> bytes:
     return bytes(out)
 
 
-def build_df1_unit(link: Df1LinkConfig, common: dict[str, Any]) -> Df1Unit:
-    family = PROCESSORS[link.processor]
-    max_read = link.max_read_bytes or family.max_read_bytes
-    settings = SerialSettings(link.baudrate, link.bytesize, link.parity, link.stopbits)
+def _word_target(step: WriteStep) -> Df1WordWrite:
+    """The word a register write step starts at (steps are made from writable points only)."""
+    target = step.patches[0][0].write
+    if not isinstance(target, Df1WordWrite):
+        raise TypeError(f"register {step.first}: not a DF1 word write")
+    return target
+
+
+def _items(link: Df1LinkConfig) -> list[MapItem]:
+    return [MapItem(e.table, e.start, e.address, e.count, e.type, e.word_order, e.scan) for e in link.map]
+
+
+def _max_read(link: Df1LinkConfig) -> int:
+    return link.max_read_bytes or PROCESSORS[link.processor].max_read_bytes
+
+
+def df1_plan(link: Df1LinkConfig) -> Df1Plan:
+    """The read plan of a DF1 link (shared by links with the same map)."""
+    return shared_plan_df1(_items(link), _max_read(link))
+
+
+def build_df1_unit(link: Df1LinkConfig) -> Df1Unit:
+    """The unit of one full-duplex link, with its own driver (one controller per port)."""
     driver = Df1Driver(
         link.port,
         name=link.name,
-        settings=settings,
+        settings=link.line_settings,
         checksum=Checksum.CRC if link.checksum == "crc" else Checksum.BCC,
         station=link.station,
         source=link.source,
-        family=family,
+        family=PROCESSORS[link.processor],
         timeout=link.timeout,
         retries=link.retries,
         trace=link.trace,
     )
-    items = [
-        MapItem(e.table, e.start, e.address, e.count, e.type, e.word_order, e.scan) for e in link.map
-    ]
-    return Df1Unit(driver=driver, items=items, max_read_bytes=max_read, max_write_bytes=link.max_write_bytes, **common)
+    return Df1Unit(driver=driver, items=_items(link), max_read_bytes=_max_read(link),
+                   max_write_bytes=link.max_write_bytes, **unit_options(link))
 
+
+def build_df1(links: Sequence[Df1LinkConfig]) -> Built:
+    """Every DF1 link's unit; each full-duplex unit's driver is its runner."""
+    units = [build_df1_unit(link) for link in links]
+    return Built(units, [unit.driver for unit in units])

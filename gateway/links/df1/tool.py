@@ -8,14 +8,17 @@ as its three words.
 from __future__ import annotations
 
 import argparse
+import re
 import struct
 from dataclasses import replace
 from typing import Any
 
-from gateway.config import DF1_DEFAULTS
+from gateway.config.df1 import DF1_DEFAULTS
 from gateway.drivers.base import OpenStream
 from gateway.drivers.df1 import Df1Driver
 from gateway.errors import InvalidRequest
+from gateway.links.df1.unit import PROCESSORS
+from gateway.links.kind import ToolHints
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.pccc import (
@@ -26,10 +29,18 @@ from gateway.protocols.df1.pccc import (
     SetProcessorMode,
 )
 from gateway.tools_common import print_result, resolve_retries
-from gateway.transport import open_stream
-from gateway.unit_df1 import PROCESSORS
 
-__all__ = ["decode_value", "encode_value", "run_df1_tool"]
+__all__ = ["HINTS", "add_options", "decode_value", "encode_value", "run_df1_tool"]
+
+#: DF1 link-layer symbols: DLE followed by STX, ETX, ENQ, ACK or NAK (1770-6.5.16, full duplex).
+_DLE_FRAMED = re.compile(rb"\x10[\x02\x03\x05\x06\x15]")
+
+HINTS = ToolHints(
+    looks_like=lambda received: _DLE_FRAMED.search(received) is not None,
+    wire="DF1 (DLE-framed): an SLC 500 or PLC-5?",
+    controllers="an SLC 500 or PLC-5",
+    check="the cable, baud rate, --checksum and --station",
+)
 
 
 def decode_value(address: SlcAddress, data: bytes) -> Any:
@@ -68,7 +79,16 @@ def encode_value(address: SlcAddress, text: str) -> tuple[bytes, int | None]:
     return (value & 0xFFFF).to_bytes(2, "little"), None
 
 
-async def run_df1_tool(command: str, args: argparse.Namespace, opener: OpenStream = open_stream) -> int:
+def add_options(parser: argparse.ArgumentParser) -> None:
+    """The options only DF1 commands take."""
+    parser.add_argument("--station", type=int, default=1, help="df1: destination node (default 1)")
+    parser.add_argument("--source", type=int, default=0, help="df1: our node (default 0)")
+    parser.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc (default crc)")
+    parser.add_argument("--processor", default="slc5/04", choices=tuple(PROCESSORS),
+                        help="df1: processor family (default slc5/04)")
+
+
+async def run_df1_tool(command: str, args: argparse.Namespace, opener: OpenStream) -> int:
     if args.processor not in PROCESSORS:
         raise InvalidRequest(f"--processor {args.processor}: choose from {', '.join(PROCESSORS)}")
     settings = DF1_DEFAULTS.settings

@@ -1,0 +1,28 @@
+"""The DF1 link kind: SLC 500 and PLC-5 controllers over DF1 full duplex, with a configured map.
+
+Its rooms: the sans-I/O protocol in :mod:`gateway.protocols.df1`, the driver in
+:mod:`gateway.drivers.df1`, the simulator in :mod:`gateway.sim.slc500`, the ``[[link]]`` model in
+:mod:`gateway.config.df1`; here the plan (``plan``), the unit (``unit``) and the CLI commands
+(``tool``).
+"""
+
+from __future__ import annotations
+
+from gateway.config.df1 import Df1LinkConfig
+from gateway.links.df1.tool import HINTS, add_options, run_df1_tool
+from gateway.links.df1.unit import build_df1, df1_plan
+from gateway.links.kind import LinkKind
+from gateway.sim.models import SLC504
+
+__all__ = ["KIND"]
+
+KIND: LinkKind[Df1LinkConfig] = LinkKind(
+    config_model=Df1LinkConfig,
+    build=build_df1,
+    plan=df1_plan,
+    controllers="SLC 500 / PLC-5",
+    simulators=(SLC504,),
+    tool=run_df1_tool,
+    hints=HINTS,
+    tool_options=add_options,
+)

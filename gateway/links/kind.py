@@ -1,0 +1,172 @@
+"""What a link kind (a protocol) provides: :class:`LinkKind`, and what its factory returns.
+
+A kind is one package under ``gateway/links/`` that exports one ``KIND``; the registry
+(:mod:`gateway.links`) maps protocol names to kinds.  Nothing outside a kind's package names its
+protocol: the app, the config, the CLI and the simulators ask the registry.
+
+The unit factory gets **every** ``[[link]]`` of its kind at once (``build(links)``) and returns
+the units and the *runners* (:class:`LinkRunner`: what owns a serial line and moves bytes).  A
+full-duplex kind returns one runner per unit (its driver); a kind whose controllers share one
+port (several ``[[link]]`` on one half-duplex line, polled by one master) returns one runner for
+the line and as many units as links.  The Gateway runs the runners and the units' pollers, and
+closes the runners when it stops.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Generic, Protocol, TypeVar, get_args
+
+from gateway.config.link import LinkBase, SerialDefaults
+from gateway.drivers.base import OpenStream
+from gateway.modbus.mapping import Plan, Table
+from gateway.sim.models import SimModel
+from gateway.unit import Unit, UnitOptions, WritableRange
+
+__all__ = [
+    "Built",
+    "LinkKind",
+    "LinkRunner",
+    "ToolHints",
+    "block_lines",
+    "protocol_of",
+    "unit_options",
+]
+
+C = TypeVar("C", bound=LinkBase)
+
+
+class LinkRunner(Protocol):
+    """What owns a line: runs until cancelled (reconnecting as needed); ``close`` ends it."""
+
+    @property
+    def name(self) -> str: ...
+
+    async def run(self) -> None: ...
+
+    async def close(self) -> None: ...
+
+
+@dataclass(frozen=True, slots=True)
+class Built:
+    """What a kind's factory made of its links: one unit per link, and the runners of their lines."""
+
+    units: Sequence[Unit[Any, Any]]
+    runners: Sequence[LinkRunner]
+
+
+#: ``(command, parsed arguments, opener)`` -> exit status: a kind's diagnostic commands (probe, read ...)
+ToolRunner = Callable[[str, argparse.Namespace, OpenStream], Awaitable[int]]
+
+
+@dataclass(frozen=True, slots=True)
+class ToolHints:
+    """What the CLI says after no valid answer came: which protocol the bytes look like, what to check."""
+
+    #: whether bytes that came back look like this kind's protocol
+    looks_like: Callable[[bytes], bool]
+    #: "DF1 (DLE-framed): an SLC 500 or PLC-5?": what such bytes are, for "the bytes ... look like ..."
+    wire: str
+    #: "an SLC 500 or PLC-5": the controllers that speak it, for "or try --protocol X for ..."
+    controllers: str
+    #: "the cable, baud rate and parity (SLC 100/150: 9600 7E1)": what to check when nothing came back
+    check: str
+
+
+def protocol_of(model: type[LinkBase]) -> str:
+    """The protocol name of a link model: the one value of its ``protocol`` Literal."""
+    (name,) = get_args(model.model_fields["protocol"].annotation)
+    return str(name)
+
+
+def block_lines(plan: Plan[Any, Any]) -> list[str]:
+    """One line per block of a read plan (``check-config``): its scan class and label."""
+    return [f"{block.scan.value:4} {block.label}" for block in plan.blocks]
+
+
+@dataclass(frozen=True)
+class LinkKind(Generic[C]):
+    """One protocol: its config model, unit factory, plan, simulators and CLI tool.
+
+    The protocol name is the config model's ``protocol`` Literal; the serial defaults are the
+    model's :attr:`~gateway.config.link.LinkBase.serial_defaults` (one place each).
+    """
+
+    #: ``[[link]]`` of this kind (a LinkBase subclass with ``protocol: Literal["name"]``)
+    config_model: type[C]
+    #: every link of this kind at once -> units and runners (see the module doc)
+    build: Callable[[Sequence[C]], Built]
+    #: the read plan of one link (``check-config`` shows it without opening a port)
+    plan: Callable[[C], Plan[Any, Any]]
+    #: "SLC 100/150": the controllers, for help texts
+    controllers: str
+    #: the plan's blocks as lines for ``check-config``
+    plan_lines: Callable[[Plan[Any, Any]], list[str]] = block_lines
+    #: the ``sim://`` models of controllers of this kind (their names: ``config_model.sim_models``)
+    simulators: Sequence[SimModel] = ()
+    #: the diagnostic commands (``slc-gateway probe/read/write ... --protocol name``); None: none
+    tool: ToolRunner | None = None
+    #: hints after a failed tool command (None: no hints)
+    hints: ToolHints | None = None
+    #: adds the tool's own command-line options (``--station`` ...) to a tool command's parser
+    tool_options: Callable[[argparse.ArgumentParser], None] | None = None
+
+    @property
+    def name(self) -> str:
+        return protocol_of(self.config_model)
+
+    @property
+    def serial_defaults(self) -> SerialDefaults:
+        return self.config_model.serial_defaults
+
+    def links_of(self, links: Sequence[LinkBase]) -> list[C]:
+        """The links of this kind among ``links``, in order."""
+        return [link for link in links if isinstance(link, self.config_model)]
+
+    def build_units(self, links: Sequence[LinkBase]) -> Built:
+        return self.build(self.links_of(links))
+
+    def plan_of(self, link: LinkBase) -> Plan[Any, Any]:
+        if not isinstance(link, self.config_model):
+            raise TypeError(f"link {link.name} is not a {self.name} link")
+        return self.plan(link)
+
+
+_TABLES = {"holding": Table.HOLDING, "input": Table.INPUT, "coil": Table.COIL, "discrete": Table.DISCRETE}
+
+
+def _writable(link: LinkBase) -> list[WritableRange]:
+    """The link's ``writable`` ranges, overlapping and adjacent ones merged.
+
+    A write is checked against one range at a time, so FC16 across ``holding:40-41`` and
+    ``holding:42-43`` is allowed only once they are one range ``holding:40-43``.
+    """
+    merged: list[list[int]] = []
+    tables: list[str] = []
+    for r in sorted(link.writable, key=lambda r: (r.table, r.first)):
+        if merged and tables[-1] == r.table and r.first <= merged[-1][1] + 1:
+            merged[-1][1] = max(merged[-1][1], r.last)
+        else:
+            merged.append([r.first, r.last])
+            tables.append(r.table)
+    return [(_TABLES[table], first, last) for table, (first, last) in zip(tables, merged, strict=True)]
+
+
+def unit_options(link: LinkBase) -> UnitOptions:
+    """The :class:`~gateway.unit.Unit` keyword arguments every link has (whatever its kind)."""
+    return UnitOptions(
+        unit_id=link.unit,
+        name=link.name,
+        stale_after=link.stale_after,
+        read_only=link.read_only,
+        writable=_writable(link),
+        fast_interval=link.fast_interval,
+        slow_interval=link.slow_interval,
+        write_burst=link.write_burst,
+        poll_burst=link.poll_burst,
+        write_queue_per_client=link.write_queue_per_client,
+        write_queue_per_link=link.write_queue_per_link,
+    )
+

@@ -1,0 +1,30 @@
+"""The SLC 100/150 link kind (ASCII protocol): one controller per port, the fixed default map.
+
+Its rooms: the sans-I/O protocol in :mod:`gateway.protocols.slc_ascii`, the driver in
+:mod:`gateway.drivers.slc_ascii`, the simulator in :mod:`gateway.sim.slc_ascii`, the ``[[link]]``
+model in :mod:`gateway.config.slc_ascii`; here the plan (``plan``), the unit (``unit``) and the
+CLI commands (``tool``).
+"""
+
+from __future__ import annotations
+
+from gateway.config.slc_ascii import SlcAsciiLinkConfig
+from gateway.links.kind import LinkKind
+from gateway.links.slc_ascii.plan import plan_lines, slc_ascii_plan
+from gateway.links.slc_ascii.tool import HINTS, add_options, run_slc_ascii_tool
+from gateway.links.slc_ascii.unit import build_slc_ascii
+from gateway.sim.models import SLC100, SLC150
+
+__all__ = ["KIND"]
+
+KIND: LinkKind[SlcAsciiLinkConfig] = LinkKind(
+    config_model=SlcAsciiLinkConfig,
+    build=build_slc_ascii,
+    plan=lambda link: slc_ascii_plan(),
+    controllers="SLC 100/150",
+    plan_lines=plan_lines,
+    simulators=(SLC150, SLC100),
+    tool=run_slc_ascii_tool,
+    hints=HINTS,
+    tool_options=add_options,
+)

@@ -1,0 +1,177 @@
+"""The SLC 100/150 read plan: the fixed default map, its codecs and write targets.  Pure: no I/O.
+
+Default map of an SLC 100/150 (``slc_ascii_plan``), Modbus protocol addresses (0-based):
+
+=================  ============  ======================================================  ========
+table              address       content                                                 writable
+=================  ============  ======================================================  ========
+holding register   0-31          accumulators of 901-932 (word at byte 2n, MSB first)     0-9999
+holding register   32-63         presets of 901-932 (protect bit masked)                 0-9999
+coil               701-868       internal relays                                         701-820
+discrete input     1-610         inputs (user bit addresses, incl. 9, 10, 109 ... 610)
+discrete input     11-618        outputs
+discrete input     701-876       relays, fine timer bits, AUTO/MAN
+discrete input     901-932       timer/counter/sequencer outputs
+discrete input     951-982       timer/counter/sequencer overflow
+input register     0-31          sequencer step counters of 901-932
+input register     66            error bits 84H (high byte) and 85H (low byte)
+input register     67-74         force select table 86H-95H (word at byte 2n)
+input register     129-136       force state table 102H-111H (word at byte 2n)
+input register     1000-1010     status block (see ``STATUS_REGISTERS``), always served
+=================  ============  ======================================================  ========
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, TypeAlias
+
+from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, RegisterPoint, Scan
+from gateway.protocols.slc_ascii import memory_map as mm
+
+__all__ = [
+    "U8",
+    "U16_BE",
+    "U16_BE_MASKED",
+    "SlcAsciiPlan",
+    "SlcBitWrite",
+    "SlcWordWrite",
+    "byte_read",
+    "plan_byte_blocks",
+    "plan_lines",
+    "slc_ascii_plan",
+]
+
+#: An SLC 100/150 word, MSB first.
+U16_BE = Codec("u16be", 0, 1)
+#: A preset or accumulator: MSB first, the protect bit (bit 15) masked.
+U16_BE_MASKED = Codec("u16be-masked", 0, 1, mask=True)
+#: One byte (the step counters).
+U8 = Codec("u8", None, 0)
+
+
+@dataclass(frozen=True, slots=True)
+class SlcWordWrite:
+    """SLC 100/150 holding register write: write-word command at ``address``."""
+
+    address: int
+
+
+@dataclass(frozen=True, slots=True)
+class SlcBitWrite:
+    """SLC 100/150 coil write: read the relay byte fresh, write it back with ``bit`` changed."""
+
+    address: int
+    bit: int
+
+
+#: The plan of an SLC 100/150 link: word writes to holding registers, bit writes to coils.
+SlcAsciiPlan: TypeAlias = Plan[SlcWordWrite, SlcBitWrite]
+
+
+def plan_byte_blocks(addresses: Iterable[int], scan: Scan, max_count: int = 2) -> list[tuple[int, int, Scan]]:
+    """Cover byte ``addresses`` with the fewest reads of at most ``max_count`` readable bytes.
+
+    Left-to-right greedy, which is optimal for covering points on a line with segments of a
+    fixed maximum length.  Never reads a byte that is not readable (``**`` cells).
+    """
+    blocks: list[tuple[int, int, Scan]] = []
+    pending = sorted(set(addresses))
+    i = 0
+    while i < len(pending):
+        start = pending[i]
+        count = 1
+        while count < max_count and i + count < len(pending) and pending[i + count] == start + count:
+            count += 1
+        if not mm.is_readable(start, count):
+            count = 1
+        if not mm.is_readable(start, 1):
+            # 0x3F / 0x7F: the last byte of a word table is readable only as the second of two
+            blocks.append((start - 1, 2, scan))
+        else:
+            blocks.append((start, count, scan))
+        i += count
+    return blocks
+
+
+@functools.cache
+def slc_ascii_plan() -> SlcAsciiPlan:
+    """The default map of an SLC 100/150 (module docstring).
+
+    Built once and shared by every SLC 100/150 link (a plan is never changed once built), so
+    that 64 links hold one plan and one image layout (``gateway.image``), not 64.
+    """
+    plan: SlcAsciiPlan = Plan()
+    fast: set[int] = set()
+    slow: set[int] = set()
+    fast.update(range(0x00, 0x40))  # accumulators
+    slow.update(range(0x40, 0x80))  # presets
+    fast.update(range(0x96, 0xBC))  # outputs, inputs, relays, fine timer bits
+    fast.update(range(0xDC, 0xE4))  # timer/counter/sequencer outputs and overflow
+    slow.update(range(0xBC, 0xDC))  # step counters
+    slow.update(range(0x84, 0x96))  # error bits, force select table
+    slow.update(range(0x102, 0x112))  # force state table
+    where: dict[int, tuple[int, int]] = {}  # byte address -> (block, offset)
+    for scan, addresses in ((Scan.FAST, fast), (Scan.SLOW, slow)):
+        for start, count, _ in plan_byte_blocks(addresses, scan):
+            index = len(plan.blocks)
+            plan.blocks.append(Block((start, count), count, scan, f"{count} byte(s) at 0x{start:04X}"))
+            for k in range(count):
+                where.setdefault(start + k, (index, k))
+
+    def word(
+        address: int, codec: Codec, write: SlcWordWrite | None = None, max_value: int = 0xFFFF
+    ) -> RegisterPoint[SlcWordWrite]:
+        block, offset = where[address]
+        if offset + 2 > plan.blocks[block].size:
+            raise AssertionError(f"word at 0x{address:04X} split across blocks")
+        return RegisterPoint(block, offset, codec, write, max_value)
+
+    for n in range(32):
+        plan.holding[n] = word(2 * n, U16_BE_MASKED, SlcWordWrite(2 * n), 9999)
+        plan.holding[32 + n] = word(0x40 + 2 * n, U16_BE_MASKED, SlcWordWrite(0x40 + 2 * n), 9999)
+        block, offset = where[0xBC + n]
+        plan.input[n] = RegisterPoint(block, offset, U8)
+    plan.input[0x84 // 2] = word(0x84, U16_BE)
+    for address in range(0x86, 0x96, 2):
+        plan.input[address // 2] = word(address, U16_BE)
+    for address in range(0x102, 0x112, 2):
+        plan.input[address // 2] = word(address, U16_BE)
+    for user in mm.all_user_bits():
+        byte, bit = mm.user_bit_to_byte(user)
+        block, offset = where[byte]
+        plan.discrete[user] = BitPoint(block, offset, bit)
+        if 701 <= user <= 868:
+            writable = SlcBitWrite(byte, bit) if mm.is_writable_user_bit(user) else None
+            plan.coils[user] = BitPoint(block, offset, bit, writable)
+    return plan
+
+
+def byte_read(block: Block) -> tuple[int, int]:
+    """(first byte address, count) of an SLC 100/150 block."""
+    request = block.request
+    if not (isinstance(request, tuple) and len(request) == 2):
+        raise TypeError(f"{block.label}: not an SLC 100/150 byte read")
+    start, count = request
+    return int(start), int(count)
+
+
+def plan_lines(plan: Plan[Any, Any]) -> list[str]:
+    """The read plan for ``check-config``: the 1-2 byte reads summarised as address ranges per scan class."""
+    byte_reads: dict[str, list[tuple[int, int]]] = {}
+    for block in plan.blocks:
+        start, count = byte_read(block)
+        byte_reads.setdefault(block.scan.value, []).append((start, count))
+    lines: list[str] = []
+    for scan, reads in byte_reads.items():
+        runs: list[list[int]] = []
+        for start, count in sorted(reads):
+            if runs and runs[-1][1] == start:
+                runs[-1][1] = start + count
+            else:
+                runs.append([start, start + count])
+        text = ", ".join(f"0x{a:04X}-0x{b - 1:04X}" for a, b in runs)
+        lines.append(f"{scan:4} {len(reads)} reads of 1-2 bytes covering {text}")
+    return lines
