@@ -67,7 +67,9 @@ from gateway.protocols.df1.pccc import (
     PcccReply,
     ProtectedTypedLogicalMaskedWrite,
     ProtectedTypedLogicalWrite,
+    ReadModifyWriteRequest,
     TnsAllocator,
+    WordRangeWrite,
     decode_reply,
 )
 from gateway.protocols.df1.transaction import read_back_for
@@ -79,8 +81,12 @@ log = logging.getLogger("gateway.link")
 
 _WRITE_TYPES: Final = frozenset({
     "ProtectedTypedLogicalWrite", "ProtectedTypedLogicalMaskedWrite", "TypedWrite", "WordRangeWrite",
-    "SetProcessorMode", "Plc5ReadModifyWrite",
+    "SetProcessorMode", "ReadModifyWriteRequest",
 })
+#: Writes a read-back can settle (``read_back_for``): typed logical, PLC-5 word range and RMW.
+_READ_BACK_TYPES: Final = (
+    ProtectedTypedLogicalWrite, ProtectedTypedLogicalMaskedWrite, WordRangeWrite, ReadModifyWriteRequest,
+)
 
 
 class PcccCommand(Protocol):
@@ -223,8 +229,7 @@ class Df1Station:
             return self._settle(event, request, label, tns)
         if not event.may_have_executed:
             return self._fail(event, label, 1)
-        writes = (ProtectedTypedLogicalWrite, ProtectedTypedLogicalMaskedWrite)
-        read_back = read_back_for(request) if isinstance(request, writes) else None
+        read_back = read_back_for(request) if isinstance(request, _READ_BACK_TYPES) else None
         why = f"{event.reason.value}; the write may have been applied"
         if read_back is not None:
             self._base.read_backs += 1
