@@ -24,9 +24,16 @@ dead or slow station never holds up the others.  Verdicts:
   anything else :class:`~gateway.drivers.df1.WriteOutcomeUnknown`.  A write the station never
   acknowledged nor saw (``may_have_executed`` False) fails with ``LinkTimeout``.
 
-TNS are allocated per line (the core refuses a TNS already in use on the line).  Messages a slave
-initiates are acknowledged by the core and counted here (``slave_messages``); answering them is a
-later step.
+TNS are allocated per line (the core refuses a TNS already in use on the line).
+
+Messages a slave initiates (MSG instructions, report by exception) are acknowledged by the core
+(DLE ACK) and answered here with the PCCC reply decided by
+:func:`~gateway.protocols.df1.slave_messages.answer_slave_message`: a write to the gateway's own
+station (``source``) lands in the sending station's
+:class:`~gateway.protocols.df1.slave_messages.RegisterTable` (``register_tables``, by station) and is
+answered STS 00; anything else STS 10 (1770-6.5.16 p. 8-3).  The reply goes back as a master message
+(``HalfDuplexMaster.send_reply``).  Counted per station: ``slave_messages``, ``slave_writes``,
+``slave_refused``.
 """
 
 from __future__ import annotations
@@ -35,7 +42,7 @@ import asyncio
 import contextlib
 import logging
 import random
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import ClassVar, Final, Protocol
@@ -49,6 +56,7 @@ from gateway.protocols.df1.half_duplex import (
     HalfDuplexMaster,
     LineConfig,
     MasterEvent,
+    MessageDelivered,
     ReplyReceived,
     RequestFailed,
     SlaveInitiated,
@@ -72,6 +80,7 @@ from gateway.protocols.df1.pccc import (
     WordRangeWrite,
     decode_reply,
 )
+from gateway.protocols.df1.slave_messages import RegisterTable, Verdict, answer_slave_message
 from gateway.protocols.df1.transaction import read_back_for
 from gateway.transport import SerialSettings, open_stream
 
@@ -119,7 +128,10 @@ class StationTotals:
     read_retries: int = 0  #: reads sent again with a new TNS by this driver
     read_backs: int = 0  #: writes settled by a read-back
     stray_replies: int = 0
-    slave_messages: int = 0  #: messages the station initiated (acknowledged, not answered yet)
+    slave_messages: int = 0  #: messages the station initiated (acknowledged and answered)
+    slave_writes: int = 0  #: ... of them writes stored in the station's register table
+    slave_refused: int = 0  #: ... of them answered with an error (STS 10, or F0/06 outside the table)
+    slave_replies_lost: int = 0  #: replies to them the station never acknowledged
 
     def add(self, core: StationCounters) -> StationTotals:
         total = StationTotals(**{f.name: getattr(self, f.name) for f in fields(self)})
@@ -328,6 +340,7 @@ class Df1HalfDuplexLine(LinkDriver):
         link_reset: bool = True,
         rts: Callable[[bool], None] | None = None,
         station_names: dict[int, str] | None = None,
+        register_tables: Mapping[int, RegisterTable] | None = None,
         trace: Path | None = None,
         reconnect_min: float = 0.5,
         reconnect_max: float = 1.0,
@@ -368,6 +381,9 @@ class Df1HalfDuplexLine(LinkDriver):
         self._timer: asyncio.TimerHandle | None = None
         self._users = 0
         self.stray_replies = 0
+        #: writes of each station to the gateway's own address (report by exception), by station
+        self.register_tables: dict[int, RegisterTable] = dict(register_tables or {})
+        self._replies: dict[int, int] = {}  #: request id of a reply to a slave's message -> station
 
     def station(self, number: int) -> Df1Station:
         try:
@@ -451,7 +467,11 @@ class Df1HalfDuplexLine(LinkDriver):
         self._arm_timer()
 
     def _dispatch(self, event: MasterEvent) -> None:
-        if isinstance(event, ReplyReceived | RequestFailed):
+        if isinstance(event, RequestFailed) and event.request_id in self._replies:
+            station = self._replies.pop(event.request_id)
+            self.stations[station]._base.slave_replies_lost += 1
+            log.debug("line %s: station %d never acknowledged the reply to its message", self.name, station)
+        elif isinstance(event, ReplyReceived | RequestFailed):
             waiter = self._waiting.pop(event.request_id, None)
             if waiter is not None and not waiter.done():
                 waiter.set_result(event)
@@ -461,12 +481,29 @@ class Df1HalfDuplexLine(LinkDriver):
         elif isinstance(event, StationRestored):
             self.stations[event.station]._report(True)
         elif isinstance(event, SlaveInitiated):
-            self.stations[event.station]._base.slave_messages += 1
-            log.debug("line %s: station %d sent a message of its own: %s", self.name, event.station,
-                      event.message.hex(" "))
+            self._answer(event)
+        elif isinstance(event, MessageDelivered):
+            self._replies.pop(event.request_id, None)
         elif isinstance(event, StrayReply):
             self.stray_replies += 1
             self.stations[event.station]._base.stray_replies += 1
+
+    def _answer(self, event: SlaveInitiated) -> None:
+        """Store a slave's write to us and queue the PCCC reply its MSG waits for (module docstring)."""
+        assert self.core is not None
+        now = asyncio.get_running_loop().time()
+        totals = self.stations[event.station]._base
+        totals.slave_messages += 1
+        table = self.register_tables.get(event.station)
+        verdict, reply = answer_slave_message(event.message, own_station=self.source, table=table, now=now)
+        if verdict is Verdict.STORED:
+            totals.slave_writes += 1
+        elif reply is not None:
+            totals.slave_refused += 1
+            log.debug("line %s: station %d sent %s: %s", self.name, event.station, event.message.hex(" "),
+                      verdict.value)
+        if reply is not None:
+            self._replies[self.core.send_reply(event.station, reply, now)] = event.station
 
     def _arm_timer(self) -> None:
         deadline = self.core.next_deadline() if self.core is not None else None
