@@ -157,6 +157,7 @@ class Df1Station:
         self._closed = False
         self.write_burst = 1  #: set by the unit; see write_session
         self.poll_burst = 2
+        self.last_reply_at: float | None = None  #: loop time of the last reply of this station (any STS)
 
     # --- state ------------------------------------------------------------------------------
 
@@ -174,6 +175,28 @@ class Df1Station:
         """Polls, EOTs, retries, demotions ... of this station since the line started."""
         core = self.line.core
         return self._base.add(core.counters(self.station)) if core is not None else self._base
+
+    def data_age(self, now: float | None = None) -> float | None:
+        """Seconds since this station last answered a command of ours; None before its first reply."""
+        if self.last_reply_at is None:
+            return None
+        return (asyncio.get_running_loop().time() if now is None else now) - self.last_reply_at
+
+    def metrics(self, now: float | None = None) -> dict[str, float]:
+        """Per-station numbers for the integrator's metrics (issue #12 observability).
+
+        ``polls``, ``eots``, ``retries`` (master frames sent again for a missing ACK), ``read_retries``
+        (reads sent again with a new TNS), ``timeouts``, ``bad_frames``, ``duplicates``, ``demotions``,
+        ``messages_sent`` / ``messages_received``, ``read_backs``, ``slave_messages`` / ``slave_writes``
+        / ``slave_refused``, ``active`` (1 / 0: not demoted) and ``data_age`` seconds (-1 before the
+        first reply).  Counters are totals since the line was created (reconnects included).
+        """
+        values: dict[str, float] = {f.name: getattr(self.totals, f.name) for f in fields(StationTotals)}
+        core = self.line.core
+        values["active"] = 1.0 if core is not None and core.is_active(self.station) else 0.0
+        age = self.data_age(now)
+        values["data_age"] = -1.0 if age is None else age
+        return values
 
     def add_listener(self, callback: Callable[[Df1Station], None]) -> None:
         self._listeners.append(callback)
@@ -265,6 +288,7 @@ class Df1Station:
         except PcccFormatError as exc:
             self._note(False, f"link {self.name}: {label}: {exc}")
             raise ProtocolError(f"link {self.name}: {label}: {exc}") from exc
+        self.last_reply_at = asyncio.get_running_loop().time()
         self._note(True)
         if not reply.ok:
             self.counters.refusals += 1
@@ -384,6 +408,10 @@ class Df1HalfDuplexLine(LinkDriver):
         #: writes of each station to the gateway's own address (report by exception), by station
         self.register_tables: dict[int, RegisterTable] = dict(register_tables or {})
         self._replies: dict[int, int] = {}  #: request id of a reply to a slave's message -> station
+
+    def station_metrics(self, now: float | None = None) -> dict[int, dict[str, float]]:
+        """:meth:`Df1Station.metrics` of every station on the line, by station number."""
+        return {number: handle.metrics(now) for number, handle in self.stations.items()}
 
     def station(self, number: int) -> Df1Station:
         try:
