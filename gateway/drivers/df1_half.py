@@ -82,9 +82,13 @@ from gateway.protocols.df1.pccc import (
 )
 from gateway.protocols.df1.slave_messages import RegisterTable, Verdict, answer_slave_message
 from gateway.protocols.df1.transaction import read_back_for
-from gateway.transport import SerialSettings, open_stream
+from gateway.transport import SerialSettings, enable_rs485, modem_lines, open_stream
 
-__all__ = ["Df1HalfDuplexLine", "Df1Station", "PcccCommand", "StationTotals"]
+__all__ = ["RTS_MODES", "Df1HalfDuplexLine", "Df1Station", "PcccCommand", "StationTotals"]
+
+#: ``rts``: ``toggle`` (the core keys RTS around each transmission), ``rs485`` (the kernel's RS-485
+#: mode does), ``on`` / ``off`` (held; a full-duplex modem, a 4-wire converter).
+RTS_MODES: Final = ("toggle", "rs485", "on", "off")
 
 log = logging.getLogger("gateway.link")
 
@@ -363,6 +367,8 @@ class Df1HalfDuplexLine(LinkDriver):
         duplicate_detect: bool = True,
         link_reset: bool = True,
         rts: Callable[[bool], None] | None = None,
+        rts_mode: str = "toggle",
+        dtr: bool = True,
         station_names: dict[int, str] | None = None,
         register_tables: Mapping[int, RegisterTable] | None = None,
         trace: Path | None = None,
@@ -391,8 +397,14 @@ class Df1HalfDuplexLine(LinkDriver):
         self.rts_off_delay = rts_off_delay
         self.echo = echo
         self.link_reset = link_reset
+        if rts_mode not in RTS_MODES:
+            raise ValueError(f"line {self.name}: rts = {rts_mode!r}: choose {', '.join(RTS_MODES)}")
+        self.rts_mode = rts_mode
+        self.dtr = dtr
+        self._rts_given = rts  #: an explicit RTS setter (tests, a GPIO); else the port's, per connection
         self._rts = rts
         self._rts_state: bool | None = None
+        self._rts_warned = False
         self._configs = list(stations)
         HalfDuplexMaster(self._line_config(), self._configs)  # validate now: unique stations, tunables
         names = station_names or {}
@@ -462,9 +474,41 @@ class Df1HalfDuplexLine(LinkDriver):
             if not waiter.done():
                 waiter.set_exception(LinkDown(f"line {self.name}: reconnected; the request was lost with the line"))
         self._waiting.clear()
+        self._setup_modem_lines()
         self.core = HalfDuplexMaster(self._line_config(), self._configs)
         self.core.start(loop.time(), link_reset=self.link_reset)
         self._pump()
+
+    def _setup_modem_lines(self) -> None:
+        """RTS / DTR of a local (or rfc2217) port for this connection (``gateway.transport`` docstring).
+
+        ``toggle``: the core keys RTS around each transmission; ``rs485``: the kernel does (exact
+        to the bit); ``on`` / ``off``: held.  A port without modem lines (``socket://``) is logged
+        once: its device server must key the transmitter.
+        """
+        self._rts_state = None
+        if self._rts_given is not None or self._stream is None:
+            return
+        self._rts = None
+        lines = modem_lines(self._stream)
+        if lines is None:
+            if self.rts_mode in ("toggle", "rs485", "on") and not self._rts_warned and self.url.startswith("socket:"):
+                self._rts_warned = True
+                log.warning("line %s: %s has no modem lines: set the device server to key RTS itself "
+                            "(RTS toggle / RS-485 auto direction)", self.name, self.url)
+            return
+        lines.set_dtr(self.dtr)
+        if lines.remote and self.rts_mode == "toggle" and not self._rts_warned:
+            self._rts_warned = True
+            log.warning("line %s: RTS over RFC 2217 follows the data by a network round trip; prefer the "
+                        "device server's RTS toggle for a radio", self.name)
+        if self.rts_mode == "rs485" and enable_rs485(self._stream, delay_before_tx=self.rts_send_delay,
+                                                     delay_before_rx=self.rts_off_delay):
+            return
+        if self.rts_mode in ("toggle", "rs485"):  # rs485 refused by the port: the core keys RTS
+            self._rts = lines.set_rts
+        else:
+            lines.set_rts(self.rts_mode == "on")
 
     def abort(self, exc: GatewayError) -> None:
         for waiter in self._waiting.values():
