@@ -166,6 +166,11 @@ class Df1Station:
     # --- state ------------------------------------------------------------------------------
 
     @property
+    def url(self) -> str:
+        """The line's port (for logs)."""
+        return self.line.url
+
+    @property
     def connected(self) -> bool:
         return self.line.connected
 
