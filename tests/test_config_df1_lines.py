@@ -88,3 +88,20 @@ def test_station_equal_to_source_and_full_duplex_on_a_line_port(served: None) ->
 @pytest.mark.parametrize("key", [k for k in LINE_KEYS if k not in ("trace",)])
 def test_every_line_key_is_a_config_key(key: str) -> None:
     assert key in Df1LinkConfig.model_fields
+
+
+def test_readme_half_duplex_example_passes_once_served(served: None) -> None:
+    """The README's half-duplex example is a valid config (as ``check-config`` will load it once the
+    app builds lines) and forms one line of two stations without conflicts."""
+    from pathlib import Path
+
+    from gateway.config import parse_config
+
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
+    section = readme[readme.index("### DF1 half duplex: multi-drop lines and radio"):]
+    example = section[section.index("```toml\n") + 8 : section.index("\n```", section.index("```toml\n"))]
+    config = parse_config(example)
+    assert line_problems(config.links) == []
+    (line,) = group_lines(config.links)
+    assert [link.name for link in line.links] == ["well-1", "well-2"]
+    assert line.links[1].processor == "plc5" and line.links[0].receive_words == 16
