@@ -45,7 +45,7 @@ from gateway.protocols.df1.pccc import (
 )
 from gateway.protocols.df1.plc5_address import AddressError, Plc5Address, encode_logical_binary, parse_plc5_address
 from gateway.unit import Unit, WriteStep
-from gateway.unit_df1 import Df1Unit, pccc_exception
+from gateway.unit_df1 import Df1Unit, _step_bytes, pccc_exception
 
 __all__ = [
     "PLC5_MAX_READ_BYTES",
@@ -343,20 +343,3 @@ def _target(point: BitPoint) -> Plc5BitWrite:
     target = point.write
     assert isinstance(target, Plc5BitWrite)
     return target
-
-
-def _step_bytes(step: WriteStep) -> bytes:
-    """The bytes a step writes, in address order: words low byte first, floats low word first."""
-    out = bytearray()
-    patches = step.patches
-    i = 0
-    while i < len(patches):
-        point, value = patches[i]
-        if point.codec in (Codec.F32_HIGH, Codec.F32_LOW):
-            halves = {p.codec: v for p, v in patches[i : i + 2]}
-            out += struct.pack("<I", halves[Codec.F32_HIGH] << 16 | halves[Codec.F32_LOW])
-            i += 2
-        else:
-            out += value.to_bytes(2, "little")
-            i += 1
-    return bytes(out)

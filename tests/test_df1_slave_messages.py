@@ -14,14 +14,13 @@ import asyncio
 from dataclasses import replace
 
 import pytest
+from test_df1_half_duplex_master import events, feed
 
 from gateway.drivers.df1_half import Df1HalfDuplexLine
 from gateway.protocols.df1.half_duplex import (
-    NEED_DATA,
     FailReason,
     HalfDuplexMaster,
     LineConfig,
-    MasterEvent,
     MessageDelivered,
     RequestFailed,
     SlaveInitiated,
@@ -48,7 +47,7 @@ from gateway.sim.serve import SimStream
 from gateway.transport import ByteStream
 
 GATEWAY = 0x00
-MODES = ["whole", "bytes"]
+MODES = ["whole", "bytes"]  # as test_df1_half_duplex_master: whole, byte by byte
 
 
 def msg_word_range_write(station: int, tns: int, element: int, words: list[int], dst: int = GATEWAY) -> bytes:
@@ -61,22 +60,6 @@ def msg_typed_logical_write(station: int, tns: int, element: int, words: list[in
     """What an SLC 5/0x MSG (485 write to N7:element) puts on the line: 0F AA, file type 89."""
     data = b"".join(w.to_bytes(2, "little") for w in words)
     return encode_command(ProtectedTypedLogicalWrite(0x89, 7, element, 0, data), dst=GATEWAY, src=station, tns=tns)
-
-
-def events(master: HalfDuplexMaster) -> list[MasterEvent]:
-    out: list[MasterEvent] = []
-    while (event := master.next_event()) is not NEED_DATA:
-        assert not isinstance(event, type(NEED_DATA))
-        out.append(event)
-    return out
-
-
-def feed(master: HalfDuplexMaster, data: bytes, now: float, mode: str) -> None:
-    if mode == "whole":
-        master.receive_data(data, now)
-    else:
-        for byte in data:
-            master.receive_data(bytes((byte,)), now)
 
 
 # ------------------------------------------------------------------------------ the answer
