@@ -8,6 +8,18 @@ URLs:
 * ``rfc2217://host:port`` - a serial device server speaking RFC 2217 (pyserial's client).
 * ``sim://slc150``, ``sim://slc100``, ``sim://slc504`` - an in-process simulator
   (see ``gateway.sim``); options may follow as a query: ``sim://slc150?garble=5&drop=7``.
+
+Modem lines for half-duplex DF1 (issue #12; :func:`modem_lines`): a local port gives the driver an
+RTS setter and a DTR setter, so the half-duplex core keys a radio or an RS-485 transceiver with RTS
+(``rts_send_delay`` before the first byte, ``rts_off_delay`` after the last; 1747-RM001 p. 13-59).
+``rs485=True`` instead hands RTS to the kernel's RS-485 mode (pyserial ``rs485_mode``, Linux
+TIOCSRS485: RTS on while the UART sends, exact to the bit).  An ``rfc2217://`` port gives setters
+too, but each change is a SET-CONTROL command over TCP: RTS follows the data by a network round trip,
+too late to key a radio precisely; use the device server's own RTS toggle / RS-485 mode.  A
+``socket://`` port (raw TCP) has no modem lines: :func:`modem_lines` returns None and the device
+server must drive RTS itself (its "RTS toggle" or automatic RS-485 direction setting).
+Echo suppression (2-wire RS-485, the master hears its own bytes) is the half-duplex core's
+(``LineConfig.echo``): it strips exactly the bytes it sent, wherever the port is.
 """
 
 from __future__ import annotations
@@ -17,8 +29,9 @@ import logging
 import os
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 from urllib.parse import urlsplit
 
 from gateway.errors import LinkDown
@@ -27,11 +40,14 @@ from gateway.streams import ByteStream, SerialSettings
 
 __all__ = [
     "ByteStream",
+    "ModemLines",
     "ProtocolStream",
     "SerialSettings",
     "SoftwareParityStream",
     "TracingStream",
     "describe_url",
+    "enable_rs485",
+    "modem_lines",
     "open_stream",
 ]
 
@@ -61,6 +77,8 @@ class ProtocolStream(ByteStream, asyncio.Protocol):
         self._wakeup: asyncio.Future[None] | None = None
         self._receive: Callable[[bytes], None] | None = None
         self._lost: Callable[[str], None] | None = None
+        #: the pyserial port of a local or rfc2217 serial port (modem lines), None for TCP
+        self.serial_port: Any = None
 
     # asyncio.Protocol
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -269,6 +287,66 @@ class SoftwareParityStream(ByteStream):
 _SOFTWARE_PARITY_LOGGED: set[str] = set()
 
 
+@dataclass(frozen=True, slots=True)
+class ModemLines:
+    """RTS / DTR setters of an open serial port (``remote``: an rfc2217 port, changes go over TCP)."""
+
+    set_rts: Callable[[bool], None]
+    set_dtr: Callable[[bool], None]
+    remote: bool
+
+
+def modem_lines(stream: ByteStream) -> ModemLines | None:
+    """The modem line setters of ``stream`` (through tracing / software-parity wrappers), or None
+    when it has none (``socket://``, ``sim://``, a pseudo-terminal without modem lines)."""
+    while isinstance(stream, TracingStream | SoftwareParityStream):
+        stream = stream._inner
+    port = stream.serial_port if isinstance(stream, ProtocolStream) else None
+    if port is None:
+        return None
+    import serial
+
+    errors = (OSError, ValueError, serial.SerialException)
+
+    def setter(name: str) -> Callable[[bool], None]:
+        def set_line(on: bool) -> None:
+            try:
+                setattr(port, name, on)
+            except errors as exc:  # a port without the line: say so once, do not fail the link
+                if (id(port), name) not in _MODEM_LINE_LOGGED:
+                    _MODEM_LINE_LOGGED.add((id(port), name))
+                    log.warning("%s: cannot set %s (%s); key the transmitter in hardware", port.port, name.upper(), exc)
+
+        return set_line
+
+    return ModemLines(setter("rts"), setter("dtr"), remote=type(port).__module__.endswith("rfc2217"))
+
+
+def enable_rs485(stream: ByteStream, *, delay_before_tx: float = 0.0, delay_before_rx: float = 0.0) -> bool:
+    """Hand RTS to the kernel's RS-485 mode (RTS on while sending); False when the port cannot."""
+    while isinstance(stream, TracingStream | SoftwareParityStream):
+        stream = stream._inner
+    port = stream.serial_port if isinstance(stream, ProtocolStream) else None
+    if port is None:
+        return False
+    import serial
+    import serial.rs485
+
+    try:
+        port.rs485_mode = serial.rs485.RS485Settings(
+            rts_level_for_tx=True, rts_level_for_rx=False,
+            delay_before_tx=delay_before_tx or None, delay_before_rx=delay_before_rx or None,
+        )
+    except (OSError, ValueError, NotImplementedError, serial.SerialException) as exc:
+        log.warning("%s: the kernel RS-485 mode is not available (%s)", port.port, exc)
+        return False
+    return True
+
+
+#: (port, line) pairs already reported as not settable.
+_MODEM_LINE_LOGGED: set[tuple[int, str]] = set()
+
+
 def describe_url(url: str) -> str:
     """A URL with any query options and credentials (``user:password@``) removed, for log lines."""
     return redact_url(url.split("?", 1)[0])
@@ -381,6 +459,7 @@ async def _open_serial_as(url: str, settings: SerialSettings, connect_timeout: f
                     f"{settings.stopbits}: {exc}") from exc
     port = transport.get_extra_info("serial")
     if isinstance(port, serial.SerialBase):
+        stream.serial_port = port
         try:
             # 1745-PCC: DTR to the SPACING condition (asserted), RTS to MARKING (not asserted).
             port.dtr = True

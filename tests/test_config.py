@@ -1002,11 +1002,31 @@ def test_every_df1_only_key_is_refused_on_an_slc_ascii_link() -> None:
         "processor": '"slc5/04"',
         "max_read_bytes": "0",
         "max_write_bytes": "0",
+        # half duplex (issue #12)
+        "duplex": '"full"',
+        "pre_transmit_delay": "0.0",
+        "rts_send_delay": "0.0",
+        "rts_off_delay": "0.0",
+        "rts": '"toggle"',
+        "dtr": "true",
+        "echo": "false",
+        "ack_timeout": "0.5",
+        "message_retries": "3",
+        "duplicate_detect": "true",
+        "link_reset": "true",
+        "poll_timeout": "0.5",
+        "reply_wait": "0.0",
+        "max_polls": "20",
+        "poll_interval": "1.0",
+        "demote_after": "3",
+        "slow_poll_interval": "10.0",
+        "receive_file": "7",
+        "receive_words": "0",
     }
     assert set(values) | {"map"} == set(Df1LinkConfig.model_fields) - set(SlcAsciiLinkConfig.model_fields)
     text = ASCII_LINK + "".join(f"{key} = {value}\n" for key, value in values.items())
     lines = error_of(text).split("\n")
-    assert lines[0] == "<string>: 6 errors in the configuration:"
+    assert lines[0] == f"<string>: {len(values)} errors in the configuration:"
     for key in values:
         assert any(f"(link[0]).{key}: only for df1 links" in line for line in lines)
 

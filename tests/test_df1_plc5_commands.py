@@ -34,7 +34,7 @@ def test_coil_writes_are_read_modify_write() -> None:
     assert plc5_bit_write("B3/5", True).encode_params() == bytes.fromhex("07 00 03 00 FF FF 20 00")
     assert plc5_bit_write("B3/21", False).encode_params() == bytes.fromhex("07 00 03 01 DF FF 00 00")
     assert plc5_bit_write("T4:1/DN", True).encode_params() == bytes.fromhex("0F 00 04 01 00 FF FF 00 20")
-    packet = encode_command(plc5_bit_write("N7:0/3", True), dst=2, src=0, tns=1)  # type: ignore[arg-type]
+    packet = encode_command(plc5_bit_write("N7:0/3", True), dst=2, src=0, tns=1)
     assert packet == bytes.fromhex("02 00 0F 00 01 00 26 07 00 07 00 FF FF 08 00")
 
 

@@ -24,6 +24,10 @@ Table = Literal["holding", "input", "coil", "discrete"]
 ValueType = Literal["int16", "uint16", "float32", "bool"]
 Processor = Literal["slc500", "slc5/01", "slc5/02", "slc5/03", "slc5/04", "slc5/05", "plc5"]
 
+#: Set True where the app builds half-duplex lines (gateway.config.df1_lines.group_lines); until
+#: then ``duplex = "half"`` is refused rather than silently run as full duplex.
+HALF_DUPLEX_SERVED = False
+
 #: DF1 full duplex line settings unless a link gives its own: 19200 baud 8N1, 1 s for a reply.
 DF1_DEFAULTS = SerialDefaults(baudrate=19200, bytesize=8, parity="N", stopbits=1, timeout=1.0)
 
@@ -160,11 +164,52 @@ class Df1LinkConfig(LinkBase):
     max_write_bytes: int = Field(0, ge=0, le=240)
     map: tuple[MapEntry, ...] = Field((), strict=False)
 
+    # --- half duplex (issue #12; docs/df1-half-duplex-line.md) -------------------------------
+    #: "full": point to point; "half": a station on a multi-drop line / radio channel, polled by
+    #: the gateway.  Links with the same ``port`` and ``duplex = "half"`` share one line master.
+    duplex: Literal["full", "half"] = "full"
+    # Line keys: every link of one line must give the same values (gateway.config.df1_lines).
+    #: quiet time after the last byte heard before the master transmits (2-wire turnaround, radio)
+    pre_transmit_delay: float = Field(0.0, ge=0, le=10)
+    #: RTS on -> first byte (modem key-up) and last byte -> RTS off (1747-RM001 p. 13-59)
+    rts_send_delay: float = Field(0.0, ge=0, le=10)
+    rts_off_delay: float = Field(0.0, ge=0, le=10)
+    #: "toggle": RTS keyed around each transmission; "rs485": by the kernel; "on" / "off": held
+    rts: Literal["toggle", "rs485", "on", "off"] = "toggle"
+    dtr: bool = True
+    #: 2-wire RS-485: the master hears its own bytes (they are stripped, a mismatch is a collision)
+    echo: bool = False
+    #: wait for the DLE ACK of a master message; resends of the identical frame without it
+    ack_timeout: float = Field(0.5, gt=0, le=60)
+    message_retries: int = Field(3, ge=0, le=10)
+    #: the slaves detect duplicate messages (1747-RM001 "Duplicate Packet Detect"); off: never resend
+    duplicate_detect: bool = True
+    #: DLE NAK (global link reset) when the line starts, as a master does at power-up (Table 2.C)
+    link_reset: bool = True
+    # Station keys (this link's station): the reply ``timeout`` above is from the ACK to the reply.
+    #: wait for the answer to a poll (a message or DLE EOT)
+    poll_timeout: float = Field(0.5, gt=0, le=60)
+    #: after the ACK of a command, before the first poll for its reply (1747-RM001 p. 13-67)
+    reply_wait: float = Field(0.0, ge=0, le=60)
+    #: DLE EOT answers tolerated while waiting for one reply
+    max_polls: int = Field(20, ge=1, le=1000)
+    #: background poll period for the station's own messages (report by exception)
+    poll_interval: float = Field(1.0, gt=0, le=3600)
+    #: answerless polls or unacknowledged messages in a row before the station is demoted
+    demote_after: int = Field(3, ge=1, le=100)
+    #: poll period of a demoted station (it fails at once, 0x0B, until it answers again)
+    slow_poll_interval: float = Field(10.0, gt=0, le=3600)
+    #: words of N``receive_file`` the station may write to the gateway with an MSG (0: none; STS 10)
+    receive_file: int = Field(7, ge=0, le=999)
+    receive_words: int = Field(0, ge=0, le=10000)
+
     def problems(self) -> list[tuple[Loc, str]]:
         problems = super().problems()
         if not self.map:
             problems.insert(0, (("map",), "a df1 link needs at least one [[link.map]] entry"))
         problems.extend(_overlaps(self.map))
+        if self.duplex == "half" and not HALF_DUPLEX_SERVED:
+            problems.append((("duplex",), 'duplex = "half" is not served by this build yet: use duplex = "full"'))
         return problems
 
     def describe_lines(self) -> list[str]:

@@ -24,9 +24,16 @@ dead or slow station never holds up the others.  Verdicts:
   anything else :class:`~gateway.drivers.df1.WriteOutcomeUnknown`.  A write the station never
   acknowledged nor saw (``may_have_executed`` False) fails with ``LinkTimeout``.
 
-TNS are allocated per line (the core refuses a TNS already in use on the line).  Messages a slave
-initiates are acknowledged by the core and counted here (``slave_messages``); answering them is a
-later step.
+TNS are allocated per line (the core refuses a TNS already in use on the line).
+
+Messages a slave initiates (MSG instructions, report by exception) are acknowledged by the core
+(DLE ACK) and answered here with the PCCC reply decided by
+:func:`~gateway.protocols.df1.slave_messages.answer_slave_message`: a write to the gateway's own
+station (``source``) lands in the sending station's
+:class:`~gateway.protocols.df1.slave_messages.RegisterTable` (``register_tables``, by station) and is
+answered STS 00; anything else STS 10 (1770-6.5.16 p. 8-3).  The reply goes back as a master message
+(``HalfDuplexMaster.send_reply``).  Counted per station: ``slave_messages``, ``slave_writes``,
+``slave_refused``.
 """
 
 from __future__ import annotations
@@ -35,7 +42,7 @@ import asyncio
 import contextlib
 import logging
 import random
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import ClassVar, Final, Protocol
@@ -49,6 +56,7 @@ from gateway.protocols.df1.half_duplex import (
     HalfDuplexMaster,
     LineConfig,
     MasterEvent,
+    MessageDelivered,
     ReplyReceived,
     RequestFailed,
     SlaveInitiated,
@@ -67,20 +75,31 @@ from gateway.protocols.df1.pccc import (
     PcccReply,
     ProtectedTypedLogicalMaskedWrite,
     ProtectedTypedLogicalWrite,
+    ReadModifyWriteRequest,
     TnsAllocator,
+    WordRangeWrite,
     decode_reply,
 )
+from gateway.protocols.df1.slave_messages import RegisterTable, Verdict, answer_slave_message
 from gateway.protocols.df1.transaction import read_back_for
-from gateway.transport import SerialSettings, open_stream
+from gateway.transport import SerialSettings, enable_rs485, modem_lines, open_stream
 
-__all__ = ["Df1HalfDuplexLine", "Df1Station", "PcccCommand", "StationTotals"]
+__all__ = ["RTS_MODES", "Df1HalfDuplexLine", "Df1Station", "PcccCommand", "StationTotals"]
+
+#: ``rts``: ``toggle`` (the core keys RTS around each transmission), ``rs485`` (the kernel's RS-485
+#: mode does), ``on`` / ``off`` (held; a full-duplex modem, a 4-wire converter).
+RTS_MODES: Final = ("toggle", "rs485", "on", "off")
 
 log = logging.getLogger("gateway.link")
 
 _WRITE_TYPES: Final = frozenset({
     "ProtectedTypedLogicalWrite", "ProtectedTypedLogicalMaskedWrite", "TypedWrite", "WordRangeWrite",
-    "SetProcessorMode", "Plc5ReadModifyWrite",
+    "SetProcessorMode", "ReadModifyWriteRequest",
 })
+#: Writes a read-back can settle (``read_back_for``): typed logical, PLC-5 word range and RMW.
+_READ_BACK_TYPES: Final = (
+    ProtectedTypedLogicalWrite, ProtectedTypedLogicalMaskedWrite, WordRangeWrite, ReadModifyWriteRequest,
+)
 
 
 class PcccCommand(Protocol):
@@ -113,7 +132,10 @@ class StationTotals:
     read_retries: int = 0  #: reads sent again with a new TNS by this driver
     read_backs: int = 0  #: writes settled by a read-back
     stray_replies: int = 0
-    slave_messages: int = 0  #: messages the station initiated (acknowledged, not answered yet)
+    slave_messages: int = 0  #: messages the station initiated (acknowledged and answered)
+    slave_writes: int = 0  #: ... of them writes stored in the station's register table
+    slave_refused: int = 0  #: ... of them answered with an error (STS 10, or F0/06 outside the table)
+    slave_replies_lost: int = 0  #: replies to them the station never acknowledged
 
     def add(self, core: StationCounters) -> StationTotals:
         total = StationTotals(**{f.name: getattr(self, f.name) for f in fields(self)})
@@ -139,8 +161,14 @@ class Df1Station:
         self._closed = False
         self.write_burst = 1  #: set by the unit; see write_session
         self.poll_burst = 2
+        self.last_reply_at: float | None = None  #: loop time of the last reply of this station (any STS)
 
     # --- state ------------------------------------------------------------------------------
+
+    @property
+    def url(self) -> str:
+        """The line's port (for logs)."""
+        return self.line.url
 
     @property
     def connected(self) -> bool:
@@ -156,6 +184,28 @@ class Df1Station:
         """Polls, EOTs, retries, demotions ... of this station since the line started."""
         core = self.line.core
         return self._base.add(core.counters(self.station)) if core is not None else self._base
+
+    def data_age(self, now: float | None = None) -> float | None:
+        """Seconds since this station last answered a command of ours; None before its first reply."""
+        if self.last_reply_at is None:
+            return None
+        return (asyncio.get_running_loop().time() if now is None else now) - self.last_reply_at
+
+    def metrics(self, now: float | None = None) -> dict[str, float]:
+        """Per-station numbers for the integrator's metrics (issue #12 observability).
+
+        ``polls``, ``eots``, ``retries`` (master frames sent again for a missing ACK), ``read_retries``
+        (reads sent again with a new TNS), ``timeouts``, ``bad_frames``, ``duplicates``, ``demotions``,
+        ``messages_sent`` / ``messages_received``, ``read_backs``, ``slave_messages`` / ``slave_writes``
+        / ``slave_refused``, ``active`` (1 / 0: not demoted) and ``data_age`` seconds (-1 before the
+        first reply).  Counters are totals since the line was created (reconnects included).
+        """
+        values: dict[str, float] = {f.name: getattr(self.totals, f.name) for f in fields(StationTotals)}
+        core = self.line.core
+        values["active"] = 1.0 if core is not None and core.is_active(self.station) else 0.0
+        age = self.data_age(now)
+        values["data_age"] = -1.0 if age is None else age
+        return values
 
     def add_listener(self, callback: Callable[[Df1Station], None]) -> None:
         self._listeners.append(callback)
@@ -223,8 +273,7 @@ class Df1Station:
             return self._settle(event, request, label, tns)
         if not event.may_have_executed:
             return self._fail(event, label, 1)
-        writes = (ProtectedTypedLogicalWrite, ProtectedTypedLogicalMaskedWrite)
-        read_back = read_back_for(request) if isinstance(request, writes) else None
+        read_back = read_back_for(request) if isinstance(request, _READ_BACK_TYPES) else None
         why = f"{event.reason.value}; the write may have been applied"
         if read_back is not None:
             self._base.read_backs += 1
@@ -248,6 +297,7 @@ class Df1Station:
         except PcccFormatError as exc:
             self._note(False, f"link {self.name}: {label}: {exc}")
             raise ProtocolError(f"link {self.name}: {label}: {exc}") from exc
+        self.last_reply_at = asyncio.get_running_loop().time()
         self._note(True)
         if not reply.ok:
             self.counters.refusals += 1
@@ -322,7 +372,10 @@ class Df1HalfDuplexLine(LinkDriver):
         duplicate_detect: bool = True,
         link_reset: bool = True,
         rts: Callable[[bool], None] | None = None,
+        rts_mode: str = "toggle",
+        dtr: bool = True,
         station_names: dict[int, str] | None = None,
+        register_tables: Mapping[int, RegisterTable] | None = None,
         trace: Path | None = None,
         reconnect_min: float = 0.5,
         reconnect_max: float = 1.0,
@@ -349,8 +402,14 @@ class Df1HalfDuplexLine(LinkDriver):
         self.rts_off_delay = rts_off_delay
         self.echo = echo
         self.link_reset = link_reset
+        if rts_mode not in RTS_MODES:
+            raise ValueError(f"line {self.name}: rts = {rts_mode!r}: choose {', '.join(RTS_MODES)}")
+        self.rts_mode = rts_mode
+        self.dtr = dtr
+        self._rts_given = rts  #: an explicit RTS setter (tests, a GPIO); else the port's, per connection
         self._rts = rts
         self._rts_state: bool | None = None
+        self._rts_warned = False
         self._configs = list(stations)
         HalfDuplexMaster(self._line_config(), self._configs)  # validate now: unique stations, tunables
         names = station_names or {}
@@ -363,6 +422,13 @@ class Df1HalfDuplexLine(LinkDriver):
         self._timer: asyncio.TimerHandle | None = None
         self._users = 0
         self.stray_replies = 0
+        #: writes of each station to the gateway's own address (report by exception), by station
+        self.register_tables: dict[int, RegisterTable] = dict(register_tables or {})
+        self._replies: dict[int, int] = {}  #: request id of a reply to a slave's message -> station
+
+    def station_metrics(self, now: float | None = None) -> dict[int, dict[str, float]]:
+        """:meth:`Df1Station.metrics` of every station on the line, by station number."""
+        return {number: handle.metrics(now) for number, handle in self.stations.items()}
 
     def station(self, number: int) -> Df1Station:
         try:
@@ -413,9 +479,41 @@ class Df1HalfDuplexLine(LinkDriver):
             if not waiter.done():
                 waiter.set_exception(LinkDown(f"line {self.name}: reconnected; the request was lost with the line"))
         self._waiting.clear()
+        self._setup_modem_lines()
         self.core = HalfDuplexMaster(self._line_config(), self._configs)
         self.core.start(loop.time(), link_reset=self.link_reset)
         self._pump()
+
+    def _setup_modem_lines(self) -> None:
+        """RTS / DTR of a local (or rfc2217) port for this connection (``gateway.transport`` docstring).
+
+        ``toggle``: the core keys RTS around each transmission; ``rs485``: the kernel does (exact
+        to the bit); ``on`` / ``off``: held.  A port without modem lines (``socket://``) is logged
+        once: its device server must key the transmitter.
+        """
+        self._rts_state = None
+        if self._rts_given is not None or self._stream is None:
+            return
+        self._rts = None
+        lines = modem_lines(self._stream)
+        if lines is None:
+            if self.rts_mode in ("toggle", "rs485", "on") and not self._rts_warned and self.url.startswith("socket:"):
+                self._rts_warned = True
+                log.warning("line %s: %s has no modem lines: set the device server to key RTS itself "
+                            "(RTS toggle / RS-485 auto direction)", self.name, self.url)
+            return
+        lines.set_dtr(self.dtr)
+        if lines.remote and self.rts_mode == "toggle" and not self._rts_warned:
+            self._rts_warned = True
+            log.warning("line %s: RTS over RFC 2217 follows the data by a network round trip; prefer the "
+                        "device server's RTS toggle for a radio", self.name)
+        if self.rts_mode == "rs485" and enable_rs485(self._stream, delay_before_tx=self.rts_send_delay,
+                                                     delay_before_rx=self.rts_off_delay):
+            return
+        if self.rts_mode in ("toggle", "rs485"):  # rs485 refused by the port: the core keys RTS
+            self._rts = lines.set_rts
+        else:
+            lines.set_rts(self.rts_mode == "on")
 
     def abort(self, exc: GatewayError) -> None:
         for waiter in self._waiting.values():
@@ -446,7 +544,11 @@ class Df1HalfDuplexLine(LinkDriver):
         self._arm_timer()
 
     def _dispatch(self, event: MasterEvent) -> None:
-        if isinstance(event, ReplyReceived | RequestFailed):
+        if isinstance(event, RequestFailed) and event.request_id in self._replies:
+            station = self._replies.pop(event.request_id)
+            self.stations[station]._base.slave_replies_lost += 1
+            log.debug("line %s: station %d never acknowledged the reply to its message", self.name, station)
+        elif isinstance(event, ReplyReceived | RequestFailed):
             waiter = self._waiting.pop(event.request_id, None)
             if waiter is not None and not waiter.done():
                 waiter.set_result(event)
@@ -456,12 +558,29 @@ class Df1HalfDuplexLine(LinkDriver):
         elif isinstance(event, StationRestored):
             self.stations[event.station]._report(True)
         elif isinstance(event, SlaveInitiated):
-            self.stations[event.station]._base.slave_messages += 1
-            log.debug("line %s: station %d sent a message of its own: %s", self.name, event.station,
-                      event.message.hex(" "))
+            self._answer(event)
+        elif isinstance(event, MessageDelivered):
+            self._replies.pop(event.request_id, None)
         elif isinstance(event, StrayReply):
             self.stray_replies += 1
             self.stations[event.station]._base.stray_replies += 1
+
+    def _answer(self, event: SlaveInitiated) -> None:
+        """Store a slave's write to us and queue the PCCC reply its MSG waits for (module docstring)."""
+        assert self.core is not None
+        now = asyncio.get_running_loop().time()
+        totals = self.stations[event.station]._base
+        totals.slave_messages += 1
+        table = self.register_tables.get(event.station)
+        verdict, reply = answer_slave_message(event.message, own_station=self.source, table=table, now=now)
+        if verdict is Verdict.STORED:
+            totals.slave_writes += 1
+        elif reply is not None:
+            totals.slave_refused += 1
+            log.debug("line %s: station %d sent %s: %s", self.name, event.station, event.message.hex(" "),
+                      verdict.value)
+        if reply is not None:
+            self._replies[self.core.send_reply(event.station, reply, now)] = event.station
 
     def _arm_timer(self) -> None:
         deadline = self.core.next_deadline() if self.core is not None else None

@@ -73,6 +73,7 @@ __all__ = [
     "LineConfig",
     "LineState",
     "MasterEvent",
+    "MessageDelivered",
     "ReplyReceived",
     "RequestFailed",
     "SlaveInitiated",
@@ -194,6 +195,14 @@ class SlaveInitiated:
 
 
 @dataclass(frozen=True, slots=True)
+class MessageDelivered:
+    """A master message sent with :meth:`HalfDuplexMaster.send_reply` was acknowledged (DLE ACK)."""
+
+    request_id: int
+    station: int
+
+
+@dataclass(frozen=True, slots=True)
 class StrayReply:
     """A reply matching no request of the polled station (late after a failure): discarded."""
 
@@ -211,7 +220,9 @@ class StationRestored:
     station: int
 
 
-MasterEvent = ReplyReceived | RequestFailed | SlaveInitiated | StrayReply | StationDemoted | StationRestored
+MasterEvent = (
+    ReplyReceived | RequestFailed | SlaveInitiated | MessageDelivered | StrayReply | StationDemoted | StationRestored
+)
 
 
 @dataclass(slots=True)
@@ -257,6 +268,7 @@ class _Request:
     polls: int = 0
     poll_at: float = 0.0
     reply_deadline: float = 0.0
+    expects_reply: bool = True  #: False: the reply to a slave's own command; done at its DLE ACK
 
 
 @dataclass(slots=True)
@@ -337,9 +349,10 @@ class HalfDuplexMaster:
             raise ValueError("a command packet has at least DST SRC CMD STS TNS (6 bytes)")
         tns = message[4:6]
         for other in self._stations.values():
-            if any(r.message[4:6] == tns for r in itertools.chain(other.queue, other.awaiting)):
+            if any(r.expects_reply and r.message[4:6] == tns for r in itertools.chain(other.queue, other.awaiting)):
                 raise ValueError(f"TNS {tns.hex()} is already in use on this line; allocate TNS per line")
-        if self._request is not None and self._request.message[4:6] == tns:
+        current = self._request
+        if current is not None and current.expects_reply and current.message[4:6] == tns:
             raise ValueError(f"TNS {tns.hex()} is already in use on this line; allocate TNS per line")
         request_id = next(self._ids)
         if not target.active:
@@ -347,6 +360,25 @@ class HalfDuplexMaster:
             return request_id
         frame = encode_master_message(station, message, self.line.checksum)
         target.queue.append(_Request(request_id, station, message, frame))
+        self._kick(now)
+        return request_id
+
+    def send_reply(self, station: int, message: bytes, now: float) -> int:
+        """Queue the PCCC reply to a command ``station`` initiated (:class:`SlaveInitiated`).
+
+        Sent as a master message (``DLE SOH STN ...``; 1770-6.5.16 p. 5-2) ahead of the station's
+        queued commands, resent identically while its DLE ACK is missing, as a command is; nothing is
+        polled for.  Events: :class:`MessageDelivered` at the ACK, else ``RequestFailed(NO_ACK)``.
+        The TNS is the slave's own (its MSG's), so it is not checked against the line's TNS.
+        """
+        target = self._stations.get(station)
+        if target is None:
+            raise ValueError(f"station {station} is not on this line (stations: {self._order})")
+        if len(message) < _HEAD:
+            raise ValueError("a reply packet has at least DST SRC CMD STS TNS (6 bytes)")
+        request_id = next(self._ids)
+        frame = encode_master_message(station, message, self.line.checksum)
+        target.queue.appendleft(_Request(request_id, station, message, frame, expects_reply=False))
         self._kick(now)
         return request_id
 
@@ -458,6 +490,10 @@ class HalfDuplexMaster:
         request = self._take_request()
         station = self._stations[request.station]
         self._answered(station)
+        if not request.expects_reply:
+            self._events.append(MessageDelivered(request.request_id, request.station))
+            self._state = LineState.IDLE
+            return
         request.poll_at = now + station.config.reply_wait
         request.reply_deadline = now + station.config.reply_timeout
         station.awaiting.append(request)
@@ -647,6 +683,11 @@ class HalfDuplexMaster:
             self._send_poll(turn, now, again=True)
             return True
         wake: list[float] = []
+        for station in self._rotation():
+            if station.active and station.queue and not station.queue[0].expects_reply:
+                self._serve(station)  # a slave's MSG waits for this reply: before anything else
+                self._send_message(station.queue.popleft(), now)
+                return True
         for station in self._rotation():
             due = [r.poll_at for r in station.awaiting]
             wake += due + [r.reply_deadline for r in station.awaiting]

@@ -8,24 +8,15 @@ What a PLC-5 unit sends (issue #12; 1770-6.5.16 chapter 7, 1770-KF2 p. 5-48 and 
   ``AND ~(1<<b) OR 0000`` to reset it (p. 7-20): only that bit changes, in the controller, in one
   command - no read-then-write race with the ladder.
 
-The word range classes are the codec's (``gateway.protocols.df1.pccc``); the read-modify-write
-request class (CMD / FNC / ``encode_params`` for the codec's ``encode_command``) is here; its sets are
-encoded by ``pccc.plc5.ReadModifyWrite``.  This module does no I/O.
+The request classes are the codec's (``gateway.protocols.df1.pccc``: ``WordRangeRead``,
+``WordRangeWrite``, ``ReadModifyWriteRequest``); this module builds them from typed PLC-5 addresses.
+This module does no I/O.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import ClassVar
-
-from gateway.protocols.df1.pccc import Function, LogicalBinaryAddress, WordRangeRead, WordRangeWrite
-from gateway.protocols.df1.pccc.plc5 import ReadModifyWrite
-from gateway.protocols.df1.plc5_address import (
-    AddressError,
-    Plc5Address,
-    encode_logical_binary,
-    parse_plc5_address,
-)
+from gateway.protocols.df1.pccc import LogicalBinaryAddress, ReadModifyWriteRequest, WordRangeRead, WordRangeWrite
+from gateway.protocols.df1.plc5_address import AddressError, Plc5Address, parse_plc5_address
 
 __all__ = ["Plc5ReadModifyWrite", "plc5_bit_write", "plc5_read", "plc5_write"]
 
@@ -55,17 +46,8 @@ def plc5_write(address: Plc5Address | str, data: bytes) -> WordRangeWrite:
     return WordRangeWrite(_logical(parsed), data)
 
 
-@dataclass(frozen=True, slots=True)
-class Plc5ReadModifyWrite:
-    """``CMD 0F FNC 26``: ``(address, AND mask, OR mask)`` sets, addresses logical binary (p. 7-20)."""
-
-    CMD: ClassVar[int] = 0x0F
-    FNC: ClassVar[int] = Function.READ_MODIFY_WRITE
-
-    sets: tuple[tuple[Plc5Address, int, int], ...]
-
-    def encode_params(self) -> bytes:
-        return ReadModifyWrite(tuple((encode_logical_binary(a), m_and, m_or) for a, m_and, m_or in self.sets)).encode()
+#: The read-modify-write request (the codec's class; kept under this name for the PLC-5 unit).
+Plc5ReadModifyWrite = ReadModifyWriteRequest
 
 
 def plc5_bit_write(address: Plc5Address | str, value: bool) -> Plc5ReadModifyWrite:
@@ -73,6 +55,6 @@ def plc5_bit_write(address: Plc5Address | str, value: bool) -> Plc5ReadModifyWri
     parsed = _address(address)
     if parsed.bit is None:
         raise AddressError(f"{parsed}: a coil write needs a bit address (B3/5, N7:0/3)")
-    word = Plc5Address(parsed.file_type, parsed.file_number, parsed.element, parsed.sub_element)
+    word = _logical(Plc5Address(parsed.file_type, parsed.file_number, parsed.element, parsed.sub_element))
     mask = 1 << parsed.bit
-    return Plc5ReadModifyWrite(((word, 0xFFFF, mask) if value else (word, 0xFFFF & ~mask, 0x0000),))
+    return ReadModifyWriteRequest(((word, 0xFFFF, mask) if value else (word, 0xFFFF & ~mask, 0x0000),))

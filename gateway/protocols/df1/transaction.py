@@ -67,8 +67,11 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalMaskedWrite,
     ProtectedTypedLogicalRead,
     ProtectedTypedLogicalWrite,
+    ReadModifyWriteRequest,
     Request,
     TnsAllocator,
+    WordRangeRead,
+    WordRangeWrite,
     decode_reply,
     encode_command,
 )
@@ -144,12 +147,13 @@ class TransactionCounters:
 class ReadBack:
     """How to verify a write: the read to send and whether its data shows the write applied."""
 
-    request: ProtectedTypedLogicalRead
+    request: ProtectedTypedLogicalRead | WordRangeRead
     holds: Callable[[bytes], bool]
 
 
 def read_back_for(request: Request) -> ReadBack | None:
-    """The read-back of a protected typed logical (masked) write, None for other commands."""
+    """The read-back of a protected typed logical (masked) write, a PLC-5 word range write or a
+    one-word read-modify-write; None for other commands."""
     if isinstance(request, ProtectedTypedLogicalWrite):
         data = request.data
         read = ProtectedTypedLogicalRead(
@@ -169,6 +173,19 @@ def read_back_for(request: Request) -> ReadBack | None:
             )
 
         return ReadBack(read, holds)
+    if isinstance(request, WordRangeWrite) and request.packet_offset == 0:
+        # PLC-5 word range write (issue #12): read the same words back with a word range read
+        words = request.data
+        return ReadBack(WordRangeRead(request.address, len(words)), lambda got: got == words)
+    if isinstance(request, ReadModifyWriteRequest) and len(request.sets) == 1:
+        # PLC-5 coil write: the bits the masks force (AND 0 or OR 1) hold the OR mask's value (p. 7-20)
+        address, and_mask, or_mask = request.sets[0]
+        forced = (~and_mask | or_mask) & 0xFFFF
+
+        def forced_bits_hold(got: bytes) -> bool:
+            return len(got) == 2 and int.from_bytes(got, "little") & forced == or_mask & forced
+
+        return ReadBack(WordRangeRead(address, 2), forced_bits_hold)
     return None
 
 

@@ -38,6 +38,7 @@ from gateway.protocols.df1.pccc.commands import (
 )
 from gateway.protocols.df1.pccc.plc5 import (
     DataType,
+    ReadModifyWriteRequest,
     TypeData,
     TypedData,
     TypedRead,
@@ -91,6 +92,7 @@ __all__ = [
     "ProtectedTypedLogicalRead",
     "ProtectedTypedLogicalWrite",
     "ReadFileInfo",
+    "ReadModifyWriteRequest",
     "Request",
     "SetProcessorMode",
     "SizeLimits",

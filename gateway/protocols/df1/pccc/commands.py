@@ -12,7 +12,13 @@ from typing import Final
 
 from gateway.errors import InvalidRequest
 from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccFormatError, PcccHeader, Reader
-from gateway.protocols.df1.pccc.plc5 import TypedRead, TypedWrite, WordRangeRead, WordRangeWrite
+from gateway.protocols.df1.pccc.plc5 import (
+    ReadModifyWriteRequest,
+    TypedRead,
+    TypedWrite,
+    WordRangeRead,
+    WordRangeWrite,
+)
 from gateway.protocols.df1.pccc.slc import (
     DiagnosticStatus,
     ProtectedTypedLogicalMaskedWrite,
@@ -36,6 +42,7 @@ Request = (
     | WordRangeWrite
     | TypedRead
     | TypedWrite
+    | ReadModifyWriteRequest
 )
 
 _REQUEST_TYPES: Final[dict[tuple[int, int], type[Request]]] = {
@@ -51,6 +58,7 @@ _REQUEST_TYPES: Final[dict[tuple[int, int], type[Request]]] = {
         WordRangeWrite,
         TypedRead,
         TypedWrite,
+        ReadModifyWriteRequest,
     )
 }
 

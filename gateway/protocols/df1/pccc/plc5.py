@@ -31,6 +31,7 @@ from gateway.protocols.df1.plc5_address import AddressError, decode_logical_asci
 __all__ = [
     "DataType",
     "ReadModifyWrite",
+    "ReadModifyWriteRequest",
     "TypeData",
     "TypedData",
     "TypedRead",
@@ -331,6 +332,39 @@ class TypedWrite:
         if not typed.data or not typed.element_size:
             raise reader.fail("PCCC: typed write without data")
         return cls(address, typed.data_type, typed.element_size, typed.data, offset, total)
+
+
+@dataclass(frozen=True, slots=True)
+class ReadModifyWriteRequest:
+    """Read-modify-write (CMD 0F, FNC 26; 1770-6.5.16 p. 7-20, KF2 p. 5-48): ``ADDRESS AND(2) OR(2)`` sets.
+
+    Each addressed word becomes ``(word & AND) | OR`` in the controller, in one command: the coil
+    write of a PLC-5 (no read-then-write race with the ladder).  Addresses must point to a word.
+    """
+
+    CMD: ClassVar[int] = Command.EXTENDED
+    FNC: ClassVar[int] = Function.READ_MODIFY_WRITE
+
+    sets: tuple[tuple[LogicalBinaryAddress, int, int], ...]
+
+    def __post_init__(self) -> None:
+        if not self.sets:
+            raise InvalidRequest("PCCC: read-modify-write needs at least one address")
+        for _address, and_mask, or_mask in self.sets:
+            check_range("AND mask", and_mask, 0, 0xFFFF)
+            check_range("OR mask", or_mask, 0, 0xFFFF)
+
+    def encode_params(self) -> bytes:
+        return b"".join(a.encode() + struct.pack("<HH", m_and, m_or) for a, m_and, m_or in self.sets)
+
+    @classmethod
+    def decode_params(cls, reader: Reader) -> ReadModifyWriteRequest:
+        sets: list[tuple[LogicalBinaryAddress, int, int]] = []
+        while True:
+            address = LogicalBinaryAddress.read(reader)
+            sets.append((address, reader.u16("AND mask"), reader.u16("OR mask")))
+            if reader.pos >= len(reader.data):
+                return cls(tuple(sets))
 
 
 # ------------------------------------------------------ byte-level builders (any encoded address)

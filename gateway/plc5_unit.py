@@ -1,0 +1,345 @@
+"""A PLC-5 on DF1 served as a Modbus unit with the PLC-5's own commands (issue #12).
+
+``processor = "plc5"`` reads and writes with word range commands and PLC-5 addresses, never with the
+SLC typed logical commands (``0F A2`` / ``AA`` / ``AB``), which 1770-6.5.16 lists for the SLC 500 and
+MicroLogix only (a PLC-5 may answer them STS 10; ``gateway.sim.plc5`` variant ``typed_logical``):
+
+* blocks: word range read ``0F 01`` (1770-KF2 p. 5-57; 1785-KE p. 5-6), logical binary address of
+  the block's first word (``07 00 07 1E`` for N7:30, 1770-6.5.16 p. 13-12);
+* holding registers: word range write ``0F 00`` (KF2 p. 5-57; 1785-KE p. 5-5); consecutive words of
+  one file in one command, floats as two words low word first;
+* coils: read-modify-write ``0F 26`` of the word holding the bit, ``AND ~set_or_reset OR set``
+  (1770-6.5.16 p. 7-20): only the written bits change, in the controller, in one command.
+
+Every write goes to the driver with ``write=True``: the exactly-once verdict and the read-back of a
+write whose reply was lost (``gateway.protocols.df1.transaction.read_back_for``: a word range read of
+the same words) apply as for the SLC unit.  A write is never sent twice.
+
+Addresses are the forms users type (``N7:0``, ``B3/5``, ``B3:0/5``, ``T4:1.ACC``, ``T4:1/DN``,
+``F8:2``, ``I:010`` octal), parsed by :mod:`gateway.protocols.df1.plc5_address`; the read plan is
+:func:`plan_plc5` (the cost model and block choice of ``mapping_df1``, on PLC-5 word positions).
+
+The unit is the SLC :class:`~gateway.unit_df1.Df1Unit` with its commands replaced; it only needs a
+driver with ``execute(request, name, write=...)`` (``Df1Driver`` or a half-duplex ``Df1Station``).
+"""
+
+from __future__ import annotations
+
+import functools
+import struct
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import partial
+from typing import Any
+
+from gateway.errors import InvalidRequest
+from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, RegisterPoint, Scan, Table
+from gateway.modbus.mapping_df1 import READ_OVERHEAD_BYTES, MapItem, optimal_blocks
+from gateway.protocols.df1.pccc import (
+    LogicalBinaryAddress,
+    PcccError,
+    ReadModifyWriteRequest,
+    WordRangeRead,
+    WordRangeWrite,
+)
+from gateway.protocols.df1.plc5_address import AddressError, Plc5Address, encode_logical_binary, parse_plc5_address
+from gateway.unit import Unit, WriteStep
+from gateway.unit_df1 import Df1Unit, _step_bytes, pccc_exception
+
+__all__ = [
+    "PLC5_MAX_READ_BYTES",
+    "PLC5_MAX_WRITE_BYTES",
+    "Plc5BitWrite",
+    "Plc5Read",
+    "Plc5Unit",
+    "Plc5WordWrite",
+    "plan_plc5",
+    "shared_plan_plc5",
+]
+
+#: Word range read: SIZE at most 244 bytes (KF2 p. 5-57).
+PLC5_MAX_READ_BYTES = 244
+#: Word range write: address + data at most 239 bytes (KF2 p. 5-57).
+PLC5_MAX_WRITE_BYTES = 239
+_STRUCTURES = frozenset("TCR")
+
+
+@dataclass(frozen=True, slots=True)
+class Plc5Read:
+    """A block: ``words`` words from ``address`` (a word of a data file)."""
+
+    address: Plc5Address
+    words: int
+
+
+@dataclass(frozen=True, slots=True)
+class Plc5WordWrite:
+    """A holding register's target: the word (or the float) at ``address``."""
+
+    address: Plc5Address
+
+
+@dataclass(frozen=True, slots=True)
+class Plc5BitWrite:
+    """A coil's target: bit ``bit`` of the word at ``address``."""
+
+    address: Plc5Address
+    bit: int
+
+
+# --- word positions ------------------------------------------------------------------------
+
+_Key = tuple[str, int]  # file type letter, file number
+
+
+#: Words per element (1770-6.5.16 p. 13-13): a float 2, a timer / counter / control 3, else 1.
+_ELEMENT_WORDS = {"F": 2, "T": 3, "C": 3, "R": 3}
+
+
+def _words_per_element(file_type: str) -> int:
+    return _ELEMENT_WORDS.get(file_type, 1)
+
+
+def _position(address: Plc5Address) -> int:
+    """Word position of ``address`` in its file."""
+    return address.element * _words_per_element(address.file_type) + (address.sub_element or 0)
+
+
+def _word(key: _Key, position: int) -> Plc5Address:
+    """The address of word ``position`` of a file: element (and sub-element of a structure)."""
+    file_type, file_number = key
+    size = _words_per_element(file_type)
+    element, sub = divmod(position, size)
+    if file_type in _STRUCTURES:
+        return Plc5Address(file_type, file_number, element, sub)
+    return Plc5Address(file_type, file_number, element)  # a float's first word is its element
+
+
+@dataclass(frozen=True, slots=True)
+class _Cell:
+    table: Table
+    modbus: int
+    key: _Key
+    position: int  # the word (for bits: the word holding the bit)
+    codec: Codec | None
+    bit: int | None
+    scan: Scan
+
+
+def _cells(item: MapItem) -> list[_Cell]:
+    try:
+        base = parse_plc5_address(item.address)
+    except AddressError as exc:
+        raise InvalidRequest(f"map address {item.address!r}: {exc}") from exc
+    table, scan = Table(item.table), Scan(item.scan)
+    key = (base.file_type, base.file_number)
+    first = _position(base)
+    structure = base.file_type in _STRUCTURES
+    cells: list[_Cell] = []
+    if table in (Table.COIL, Table.DISCRETE):
+        first_bit = base.bit or 0
+        for k in range(item.count):
+            if structure:  # T4:0/DN, count 3: the DN bits of T4:0, T4:1, T4:2
+                position, bit = first + 3 * k, first_bit
+            else:  # B3/5 or B3:0/5, count 20: bits 5..24 of the file
+                position, bit = first + (first_bit + k) // 16, (first_bit + k) % 16
+            cells.append(_Cell(table, item.start + k, key, position, None, bit, scan))
+        return cells
+    if base.bit is not None:
+        raise InvalidRequest(f"map address {item.address!r}: a register maps a word, not a bit")
+    if item.type == "float32":
+        if base.file_type != "F":
+            raise InvalidRequest(f"map address {item.address!r}: float32 needs an F file (F8:0)")
+        high, low = (0, 1) if item.word_order == "high-first" else (1, 0)
+        for k in range(item.count):
+            position = first + 2 * k
+            cells.append(_Cell(table, item.start + 2 * k + high, key, position, Codec.F32_HIGH, None, scan))
+            cells.append(_Cell(table, item.start + 2 * k + low, key, position, Codec.F32_LOW, None, scan))
+        return cells
+    if base.file_type == "F":
+        raise InvalidRequest(f"map address {item.address!r}: an F file holds floats: type = \"float32\"")
+    step = 3 if structure and base.sub_element is not None else 1  # T4:0.ACC, count 3: ACC of T4:0-2
+    for k in range(item.count):
+        cells.append(_Cell(table, item.start + k, key, first + step * k, Codec.U16_LE, None, scan))
+    return cells
+
+
+def plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTES) -> Plan:
+    """The read plan and Modbus points of a PLC-5 map (PLC-5 addresses; word range reads)."""
+    cells = [cell for item in items for cell in _cells(item)]
+    max_words = min(max_read_bytes, PLC5_MAX_READ_BYTES) // 2
+    fast = {(c.key, c.position) for c in cells if c.scan is Scan.FAST}
+    needed: dict[tuple[Scan, _Key], set[tuple[int, int]]] = defaultdict(set)
+    for cell in cells:
+        scan = Scan.FAST if (cell.key, cell.position) in fast else cell.scan
+        needed[scan, cell.key].add((cell.position, 2 if cell.codec in (Codec.F32_HIGH, Codec.F32_LOW) else 1))
+    plan = Plan()
+    where: dict[tuple[Scan, _Key], list[tuple[int, int, int]]] = {}
+    for (scan, key), spans in sorted(needed.items(), key=lambda kv: (kv[0][0].value, kv[0][1])):
+        entries = []
+        for start, words in optimal_blocks(spans, _words_per_element(key[0]), max_words, READ_OVERHEAD_BYTES):
+            address = _word(key, start)
+            index = len(plan.blocks)
+            plan.blocks.append(Block(Plc5Read(address, words), 2 * words, scan, f"{address} ({words} words)"))
+            entries.append((start, words, index))
+        where[scan, key] = entries
+    for cell in cells:
+        scan = Scan.FAST if (cell.key, cell.position) in fast else cell.scan
+        block, offset = next(
+            (index, 2 * (cell.position - start))
+            for start, words, index in where[scan, cell.key]
+            if start <= cell.position < start + words
+        )
+        writable = cell.table in (Table.HOLDING, Table.COIL)
+        word = _word(cell.key, cell.position)
+        if cell.bit is not None:
+            target = Plc5BitWrite(word, cell.bit) if writable else None
+            plan.bits(cell.table)[cell.modbus] = BitPoint(block, offset + cell.bit // 8, cell.bit % 8, target)
+        else:
+            assert cell.codec is not None
+            register_target = Plc5WordWrite(word) if writable else None
+            plan.registers(cell.table)[cell.modbus] = RegisterPoint(block, offset, cell.codec, register_target)
+    return plan
+
+
+@functools.lru_cache(maxsize=256)
+def _shared(items: tuple[MapItem, ...], max_read_bytes: int) -> Plan:
+    return plan_plc5(items, max_read_bytes)
+
+
+def shared_plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTES) -> Plan:
+    """:func:`plan_plc5`, built once per distinct map (as ``shared_plan_df1``); never changed once built."""
+    return _shared(tuple(items), max_read_bytes)
+
+
+def _logical(address: Plc5Address) -> LogicalBinaryAddress:
+    return LogicalBinaryAddress.of(*address.levels)
+
+
+# --- the unit ------------------------------------------------------------------------------
+
+
+class Plc5Unit(Df1Unit):
+    """A PLC-5 map served with word range read / write and read-modify-write (module docstring).
+
+    ``Plc5Unit(driver=..., items=[MapItem(...)], max_read_bytes=244, max_write_bytes=0, **common)``
+    with the ``common`` keywords of :class:`~gateway.unit.Unit` (``unit_id``, ``name``, ...);
+    ``driver`` is a ``Df1Driver`` or a half-duplex ``Df1Station`` (same ``execute`` API).
+    """
+
+    def __init__(
+        self, *, driver: Any, items: list[MapItem], max_read_bytes: int = 0, max_write_bytes: int = 0, **common: Any
+    ) -> None:
+        Unit.__init__(self, driver=driver, plan=shared_plan_plc5(items, max_read_bytes or PLC5_MAX_READ_BYTES),
+                      **common)
+        self.max_write_bytes = min(max_write_bytes or PLC5_MAX_WRITE_BYTES, PLC5_MAX_WRITE_BYTES)
+
+    async def read_block(self, block: Block) -> bytes:
+        read = block.request
+        assert isinstance(read, Plc5Read)
+        reply = await self.driver.execute(WordRangeRead(_logical(read.address), 2 * read.words), f"read {block.label}")
+        if len(reply.data) != 2 * read.words:
+            raise InvalidRequest(
+                f"read {block.label}: the PLC-5 answered {len(reply.data)} bytes, not {2 * read.words}"
+            )
+        return reply.data
+
+    async def _execute_write(self, request: WordRangeWrite | ReadModifyWriteRequest, label: str) -> None:
+        try:
+            await self.driver.execute(request, label, write=True)
+        except PcccError as exc:
+            raise pccc_exception(exc) from exc
+
+    async def _write_words(self, address: Any, data: bytes) -> None:
+        assert isinstance(address, Plc5Address)
+        await self._execute_write(WordRangeWrite(_logical(address), data), f"write {address}")
+
+    async def _write_register(self, target: object, value: int) -> None:
+        assert isinstance(target, Plc5WordWrite)
+        await self._write_words(target.address, value.to_bytes(2, "little"))
+
+    async def _write_float(self, target: object, raw: int) -> None:
+        assert isinstance(target, Plc5WordWrite)
+        await self._write_words(target.address, struct.pack("<I", raw))  # low word first, as read
+
+    def _register_steps(self, checked: list[tuple[int, RegisterPoint, int]]) -> list[WriteStep]:
+        """Consecutive words (or floats) of one N / B / F / I / O / S file in one word range write."""
+        steps: list[WriteStep] = []
+        group: list[WriteStep] = []
+        size = 0
+
+        def flush() -> None:
+            if len(group) == 1:
+                steps.append(group[0])
+            elif group:
+                first = group[0].patches[0][0].write
+                assert isinstance(first, Plc5WordWrite)
+                data = b"".join(_step_bytes(s) for s in group)
+                patches = [patch for s in group for patch in s.patches]
+                steps.append(WriteStep(group[0].first, group[-1].last, partial(self._write_words, first.address, data),
+                                       patches))
+            group.clear()
+
+        for step in Unit._register_steps(self, checked):
+            target = step.patches[0][0].write
+            assert isinstance(target, Plc5WordWrite)
+            nbytes = len(_step_bytes(step))
+            if group and self._continues(group, target.address, size + nbytes):
+                group.append(step)
+                size += nbytes
+                continue
+            flush()
+            group.append(step)
+            size = nbytes
+        flush()
+        return steps
+
+    def _continues(self, group: list[WriteStep], address: Plc5Address, size: int) -> bool:
+        first, last = group[0].patches[0][0].write, group[-1].patches[0][0].write
+        assert isinstance(first, Plc5WordWrite) and isinstance(last, Plc5WordWrite)
+        a = last.address
+        if a.file_type in _STRUCTURES or (a.file_type, a.file_number) != (address.file_type, address.file_number):
+            return False
+        if address.element != a.element + 1:
+            return False
+        return size <= self.max_write_bytes - len(encode_logical_binary(first.address))
+
+    def _bit_steps(self, checked: list[tuple[int, BitPoint, bool]]) -> list[WriteStep]:
+        """Consecutive coils of one word in one read-modify-write (only their bits change, p. 7-20)."""
+        runs: list[list[tuple[int, BitPoint, bool]]] = []
+        for modbus, point, value in checked:
+            target = point.write
+            assert isinstance(target, Plc5BitWrite)
+            if runs and runs[-1][-1][0] == modbus - 1 and _target(runs[-1][-1][1]).address == target.address:
+                runs[-1].append((modbus, point, value))
+            else:
+                runs.append([(modbus, point, value)])
+        return [
+            WriteStep(
+                run[0][0], run[-1][0],
+                partial(self._write_bits, _target(run[0][1]).address, [(_target(p).bit, v) for _, p, v in run]),
+                bit_patches=[(p, v) for _, p, v in run],
+            )
+            for run in runs
+        ]
+
+    async def _write_bits(self, address: Any, bits: list[tuple[int, bool]]) -> None:
+        assert isinstance(address, Plc5Address)
+        forced = set_bits = 0
+        for bit, on in bits:
+            forced |= 1 << bit
+            set_bits |= (1 << bit) if on else 0
+        request = ReadModifyWriteRequest(((_logical(address), 0xFFFF & ~forced | set_bits, set_bits),))
+        label = f"write {address}/" + ",".join(str(b) for b, _ in bits)
+        await self._execute_write(request, label)
+
+    async def _write_bit(self, target: object, value: bool) -> None:
+        assert isinstance(target, Plc5BitWrite)
+        await self._write_bits(target.address, [(target.bit, value)])
+
+
+def _target(point: BitPoint) -> Plc5BitWrite:
+    target = point.write
+    assert isinstance(target, Plc5BitWrite)
+    return target

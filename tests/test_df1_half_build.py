@@ -1,0 +1,114 @@
+"""Half-duplex lines built from ``[[link]]`` configs, end to end over TCP against the multi-drop simulator.
+
+Two lines, as the integrator will wire them (``gateway.df1_half_build``): SLC 5/04 stations 1-3 (BCC)
+behind one device server port, PLC-5 stations 5 and 6 (CRC) behind another; station 3 absent.  Every
+unit reads its own station's values (never another's), the absent one fails with 0x0B promptly,
+a write lands once on the right station, and an MSG of station 2 lands in its register table.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+import gateway.config.df1 as df1_config
+from gateway.config.df1 import Df1LinkConfig
+from gateway.config.df1_lines import line_problems
+from gateway.df1_half_build import build_half_duplex_units
+from gateway.drivers.df1_half import Df1Station
+from gateway.errors import LinkTimeout
+from gateway.modbus.mapping import Table
+from gateway.plc5_unit import Plc5Unit
+from gateway.protocols.df1.half_duplex_framing import Checksum
+from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeWrite, encode_command
+from gateway.sim.df1_multidrop import LineOptions, MultidropLine
+from gateway.sim.serve import close_tcp, serve_tcp
+from gateway.unit import Unit
+from gateway.unit_df1 import Df1Unit
+
+HOST = "127.0.0.1"
+
+
+@pytest.fixture(autouse=True)
+def served(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    monkeypatch.setattr(df1_config, "HALF_DUPLEX_SERVED", True)
+    yield
+
+
+def link(name: str, unit: int, port: str, station: int, **keys: Any) -> Df1LinkConfig:
+    return Df1LinkConfig.model_validate({
+        "name": name, "protocol": "df1", "port": port, "unit": unit, "duplex": "half", "station": station,
+        "timeout": 1.0, "poll_timeout": 0.05, "ack_timeout": 0.05, "poll_interval": 0.05, "slow_poll_interval": 2.0,
+        "map": [{"table": "holding", "start": 0, "address": "N7:0", "count": 4}], **keys,
+    })
+
+
+async def refresh(unit: Unit) -> None:
+    for index, block in enumerate(unit.plan.blocks):
+        unit.cache.store(index, await unit.read_block(block), unit._loop_time())
+
+
+async def test_two_lines_from_config_over_tcp() -> None:
+    slc = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1, 2, 3), dead=frozenset({3})))
+    plc5 = MultidropLine(LineOptions(checksum=Checksum.CRC, stations=(5, 6), model="plc5"))
+    for sim in (slc, plc5):
+        for number, controller in sim.controllers.items():
+            for k in range(4):
+                controller.set_word("N7", k, 100 * number + k)
+    servers = [await serve_tcp(slc, HOST, 0), await serve_tcp(plc5, HOST, 0)]
+    ports = [f"socket://{HOST}:{server.sockets[0].getsockname()[1]}" for server in servers]
+    links = [
+        link("s1", 1, ports[0], 1, checksum="bcc"),
+        link("s2", 2, ports[0], 2, checksum="bcc", receive_words=4),
+        link("s3", 3, ports[0], 3, checksum="bcc", demote_after=2),
+        link("p5", 5, ports[1], 5, processor="plc5"),
+        link("p6", 6, ports[1], 6, processor="plc5"),
+    ]
+    assert line_problems(links) == []
+    built = build_half_duplex_units(links, lambda c: {"unit_id": c.unit, "name": c.name})
+    units = {links[index].name: unit for index, unit in built}
+    assert [type(units[n]) for n in ("s1", "p5")] == [Df1Unit, Plc5Unit]
+    lines = {id(u.driver.line) for u in units.values() if isinstance(u.driver, Df1Station)}
+    assert len(lines) == 2  # one master per port
+    msg = encode_command(WordRangeWrite(LogicalBinaryAddress.of(0, 7, 1), b"\x2a\x00"), dst=0, src=2, tns=77)
+    tasks = [asyncio.create_task(unit.driver.run()) for unit in units.values()]
+    try:
+        await asyncio.sleep(0.3)  # after the line's link reset (DLE NAK empties slave queues)
+        slc.slaves[2].initiate(msg)
+        for name in ("s1", "s2", "p5", "p6"):
+            await refresh(units[name])
+        for name, number in (("s1", 1), ("s2", 2), ("p5", 5), ("p6", 6)):
+            assert units[name].read_registers(Table.HOLDING, 0, 4) == [100 * number + k for k in range(4)]
+        started = time.monotonic()
+        for _ in range(3):
+            with pytest.raises(LinkTimeout, match="station 3"):
+                await refresh(units["s3"])
+        assert time.monotonic() - started < 2.0
+        for name in ("s2", "p6"):
+            unit = units[name]
+            for step in unit._register_steps(unit.check_register_write(3, [999])):
+                await step.run()
+        for _ in range(100):
+            driver = units["s2"].driver
+            assert isinstance(driver, Df1Station)
+            if driver.line.register_tables[2].writes:
+                break
+            await asyncio.sleep(0.02)
+    finally:
+        for task in tasks:
+            task.cancel()
+        for unit in units.values():
+            await unit.driver.close()
+        for server in servers:
+            await close_tcp(server)
+    assert slc.controllers[2].word("N7", 3) == 999 and slc.controllers[1].word("N7", 3) == 103
+    assert plc5.controllers[6].word("N7", 3) == 999 and plc5.controllers[5].word("N7", 3) == 503
+    assert [len(slc.controllers[n].applied_writes) for n in (1, 2, 3)] == [0, 1, 0]
+    assert [len(plc5.controllers[n].applied_writes) for n in (5, 6)] == [0, 1]
+    driver = units["s2"].driver
+    assert isinstance(driver, Df1Station)
+    assert driver.line.register_tables[2].values() == [0, 42, 0, 0]

@@ -1,0 +1,200 @@
+"""Messages slaves initiate on a half-duplex line (MSG, report by exception): stored and answered.
+
+The core acknowledges a slave's own command (DLE ACK, 1770-6.5.16 ch. 3) and sends the PCCC reply
+back as a master message ahead of the station's commands (``send_reply``); the answer is decided by
+``gateway.protocols.df1.slave_messages``: writes to the gateway's own station go into the sending
+station's register table (STS 00), writes outside it STS F0 / EXT 06 (p. 8-4), anything else STS 10
+"illegal command or format" (p. 8-3).  Byte scripts with a fake clock, whole and byte by byte, with
+trailing garbage; then the driver against the multi-drop simulator.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import replace
+
+import pytest
+from test_df1_half_duplex_master import events, feed
+
+from gateway.drivers.df1_half import Df1HalfDuplexLine
+from gateway.protocols.df1.half_duplex import (
+    FailReason,
+    HalfDuplexMaster,
+    LineConfig,
+    MessageDelivered,
+    RequestFailed,
+    SlaveInitiated,
+    StationConfig,
+)
+from gateway.protocols.df1.half_duplex_framing import (
+    ACK,
+    EOT,
+    Checksum,
+    encode_master_message,
+    encode_poll,
+    encode_slave_message,
+)
+from gateway.protocols.df1.pccc import (
+    LogicalBinaryAddress,
+    ProtectedTypedLogicalRead,
+    ProtectedTypedLogicalWrite,
+    WordRangeWrite,
+    encode_command,
+)
+from gateway.protocols.df1.slave_messages import RegisterTable, Verdict, answer_slave_message
+from gateway.sim.df1_multidrop import LineOptions, MultidropLine
+from gateway.sim.serve import SimStream
+from gateway.transport import ByteStream
+
+GATEWAY = 0x00
+MODES = ["whole", "bytes"]  # as test_df1_half_duplex_master: whole, byte by byte
+
+
+def msg_word_range_write(station: int, tns: int, element: int, words: list[int], dst: int = GATEWAY) -> bytes:
+    """What a PLC-5 MSG (word range write to N7:element of node ``dst``) puts on the line."""
+    data = b"".join(w.to_bytes(2, "little") for w in words)
+    return encode_command(WordRangeWrite(LogicalBinaryAddress.of(0, 7, element), data), dst=dst, src=station, tns=tns)
+
+
+def msg_typed_logical_write(station: int, tns: int, element: int, words: list[int]) -> bytes:
+    """What an SLC 5/0x MSG (485 write to N7:element) puts on the line: 0F AA, file type 89."""
+    data = b"".join(w.to_bytes(2, "little") for w in words)
+    return encode_command(ProtectedTypedLogicalWrite(0x89, 7, element, 0, data), dst=GATEWAY, src=station, tns=tns)
+
+
+# ------------------------------------------------------------------------------ the answer
+
+
+def test_word_range_write_to_us_is_stored_with_its_time() -> None:
+    table = RegisterTable(file_number=7, size=10)
+    packet = msg_word_range_write(3, 0x0102, 4, [11, 0x1010])
+    verdict, reply = answer_slave_message(packet, own_station=GATEWAY, table=table, now=12.5)
+    assert verdict is Verdict.STORED
+    assert reply == bytes.fromhex("03 00 4F 00 02 01")  # DST/SRC swapped, CMD | 40, same TNS, STS 0
+    assert table.values()[4:6] == [11, 0x1010] and table.received_at(4) == 12.5
+    assert table.age(5, 13.0) == pytest.approx(0.5) and table.age(0, 13.0) is None
+
+
+def test_typed_logical_write_to_us_is_stored() -> None:
+    table = RegisterTable(file_number=7, size=10)
+    verdict, reply = answer_slave_message(msg_typed_logical_write(2, 9, 0, [1, 2, 3]), own_station=GATEWAY,
+                                          table=table, now=1.0)
+    assert verdict is Verdict.STORED and reply == bytes.fromhex("02 00 4F 00 09 00")
+    assert table.values()[:3] == [1, 2, 3]
+
+
+@pytest.mark.parametrize(
+    ("packet", "table", "verdict", "reply"),
+    [
+        # a read (0F A2): not something the gateway serves to slaves -> STS 10 (p. 8-3)
+        (encode_command(ProtectedTypedLogicalRead(0x89, 7, 0, 0, 2), dst=GATEWAY, src=2, tns=5),
+         RegisterTable(), Verdict.UNSUPPORTED, "02 00 4F 10 05 00"),
+        # a write for another station: the gateway does not route between slaves -> STS 10
+        (msg_word_range_write(2, 6, 0, [1], dst=9), RegisterTable(), Verdict.UNSUPPORTED, "02 09 4F 10 06 00"),
+        # a station without a register table -> STS 10
+        (msg_word_range_write(2, 7, 0, [1]), None, Verdict.UNSUPPORTED, "02 00 4F 10 07 00"),
+        # words outside the table -> STS F0, EXT STS 06 "address doesn't point to something usable" (p. 8-4)
+        (msg_word_range_write(2, 8, 9, [1, 2]), RegisterTable(size=10), Verdict.BAD_ADDRESS, "02 00 4F F0 08 00 06"),
+        # another file -> the same
+        (encode_command(WordRangeWrite(LogicalBinaryAddress.of(0, 9, 0), b"\x01\x00"), dst=GATEWAY, src=2, tns=1),
+         RegisterTable(), Verdict.BAD_ADDRESS, "02 00 4F F0 01 00 06"),
+        # an unknown command -> STS 10; a reply or a runt -> no answer at all
+        (bytes.fromhex("00 02 06 00 03 00 00"), RegisterTable(), Verdict.UNSUPPORTED, "02 00 46 10 03 00"),
+        (bytes.fromhex("00 02 4F 00 03 00"), RegisterTable(), Verdict.NO_ANSWER, None),
+        (bytes.fromhex("00 02 0F"), RegisterTable(), Verdict.NO_ANSWER, None),
+    ],
+)
+def test_everything_else_gets_the_manuals_error(
+    packet: bytes, table: RegisterTable | None, verdict: Verdict, reply: str | None
+) -> None:
+    got = answer_slave_message(packet, own_station=GATEWAY, table=table, now=0.0)
+    assert got == (verdict, None if reply is None else bytes.fromhex(reply))
+    if table is not None:
+        assert table.values() == [0] * table.size  # nothing stored
+
+
+# ------------------------------------------------------------------------------ the core
+
+
+def make(*stations: int, checksum: Checksum = Checksum.BCC) -> HalfDuplexMaster:
+    master = HalfDuplexMaster(LineConfig(checksum, ack_timeout=0.5, message_retries=1),
+                              [replace(StationConfig(s), poll_interval=100.0) for s in stations])
+    master.start(0.0)
+    return master
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("checksum", list(Checksum))
+def test_core_acks_the_msg_then_sends_the_reply_as_a_master_message(mode: str, checksum: Checksum) -> None:
+    master = make(2, 3, checksum=checksum)
+    assert master.data_to_send() == encode_poll(2)
+    msg = msg_word_range_write(2, 0x10, 0, [5])
+    feed(master, encode_slave_message(msg, checksum) + b"\x00\x10", 0.01, mode)  # with trailing garbage
+    assert master.data_to_send() == ACK + encode_poll(2)
+    assert events(master) == [SlaveInitiated(2, msg)]
+    feed(master, EOT, 0.02, mode)
+    assert master.data_to_send() == encode_poll(3)
+    reply = bytes.fromhex("02 00 4F 00 10 00")
+    request = master.send_reply(2, reply, 0.025)  # while station 3's poll is out: queued
+    assert master.data_to_send() == b""
+    feed(master, EOT, 0.03, mode)
+    assert master.data_to_send() == encode_master_message(2, reply, checksum)
+    feed(master, ACK + b"\x55", 0.04, mode)
+    assert events(master) == [MessageDelivered(request, 2)]
+    assert master.data_to_send() == b""  # nothing polled for; next background poll at 100 s
+
+
+def test_reply_goes_ahead_of_queued_commands_and_is_resent_identically() -> None:
+    master = make(2)
+    master.data_to_send()
+    master.receive_data(EOT, 0.0)
+    command = bytes.fromhex("02 00 0F 00 10 00 A2")  # our own command, same TNS as the slave's MSG
+    reply = bytes.fromhex("02 00 4F 00 10 00")
+    master.submit(2, command, 0.0)
+    sent = master.data_to_send()
+    assert sent == encode_master_message(2, command, Checksum.BCC)
+    request = master.send_reply(2, reply, 0.0)  # queued while our command waits for its ACK
+    master.receive_data(ACK, 0.1)
+    assert master.data_to_send() == encode_master_message(2, reply, Checksum.BCC)  # before the reply poll
+    master.handle_timeout(0.6)  # no ACK: the same bytes again
+    assert master.data_to_send() == encode_master_message(2, reply, Checksum.BCC)
+    master.handle_timeout(1.1)
+    assert events(master) == [RequestFailed(request, 2, reason=FailReason.NO_ACK, may_have_executed=True)]
+
+
+
+
+# ------------------------------------------------------------------------------ the driver
+
+
+async def test_driver_stores_report_by_exception_and_answers_each_station() -> None:
+    line = MultidropLine(LineOptions(checksum=Checksum.CRC, stations=(1, 2, 3)))
+
+    async def opener(url: str, settings: object, **_: object) -> ByteStream:
+        return SimStream(line)
+
+    tables = {1: RegisterTable(size=8), 2: RegisterTable(size=8)}
+    driver = Df1HalfDuplexLine(
+        "sim://line", [StationConfig(n, poll_timeout=0.05, poll_interval=0.02) for n in (1, 2, 3)],
+        name="line", checksum=Checksum.CRC, ack_timeout=0.05, opener=opener, register_tables=tables, first_tns=1,
+        link_reset=False,  # a DLE NAK at start would empty the slaves' queues (Table 2.C)
+    )
+    line.slaves[1].initiate(msg_word_range_write(1, 0x0501, 2, [111, 112]))
+    line.slaves[2].initiate(msg_typed_logical_write(2, 0x0601, 0, [222]))
+    line.slaves[3].initiate(msg_word_range_write(3, 0x0701, 0, [333]))  # no table for station 3
+    await driver.start()
+    try:
+        for _ in range(200):
+            totals = [driver.stations[n].totals for n in (1, 2, 3)]
+            if all(t.slave_messages == 1 for t in totals) and not driver._replies:
+                break
+            await asyncio.sleep(0.01)
+    finally:
+        await driver.close()
+    assert tables[1].values()[2:4] == [111, 112] and tables[1].values()[:2] == [0, 0]
+    assert tables[2].values()[0] == 222 and tables[1].values()[0] == 0  # never mixed between stations
+    assert [driver.stations[n].totals.slave_writes for n in (1, 2, 3)] == [1, 1, 0]
+    assert driver.stations[3].totals.slave_refused == 1
+    # each slave received exactly one master message: the reply to its MSG (its controller ignores it)
+    assert [line.slaves[n].counters.messages for n in (1, 2, 3)] == [1, 1, 1]
+    assert all(not line.slaves[n].outgoing for n in (1, 2, 3))  # every MSG was acknowledged
