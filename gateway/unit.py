@@ -34,7 +34,7 @@ from typing import Any, Generic, NotRequired, TypedDict, TypeVar
 
 from gateway.cache import BlockCache
 from gateway.clients import current_client
-from gateway.drivers.base import LinkDriver
+from gateway.drivers.base import UnitDriver
 from gateway.errors import ControllerRefused, GatewayError, ModbusExceptionReply, modbus_exception
 from gateway.image import ImageMiss, Images
 from gateway.modbus.mapping import (
@@ -103,7 +103,7 @@ class Unit(ABC, Generic[R, B]):
         *,
         unit_id: int,
         name: str,
-        driver: LinkDriver,
+        driver: UnitDriver,
         plan: Plan[R, B],
         stale_after: float = 5.0,
         read_only: bool = False,

@@ -30,7 +30,7 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Hashable
 from dataclasses import dataclass, field
 
-from gateway.drivers.base import LinkDriver
+from gateway.drivers.base import UnitDriver
 from gateway.errors import LinkError, ModbusExceptionReply, modbus_exception
 
 __all__ = ["WriteQueue"]
@@ -52,7 +52,7 @@ class _Entry:
 class WriteQueue:
     """The write jobs of one link (module docstring)."""
 
-    def __init__(self, driver: LinkDriver, name: str, *, per_client: int = 8, per_link: int = 32) -> None:
+    def __init__(self, driver: UnitDriver, name: str, *, per_client: int = 8, per_link: int = 32) -> None:
         if per_client < 1 or per_link < 1:
             raise ValueError("write queue bounds must be at least 1")
         self.driver = driver

@@ -2,22 +2,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
 from pydantic import ValidationError
 
-import gateway.config.df1 as df1_config
-from gateway.config.df1 import Df1LinkConfig
-from gateway.config.df1_lines import LINE_KEYS, group_lines, line_problems
-
-
-@pytest.fixture
-def served(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
-    """As after the wiring: the app builds half-duplex lines."""
-    monkeypatch.setattr(df1_config, "HALF_DUPLEX_SERVED", True)
-    yield
+from gateway.config.df1 import LINE_KEYS, Df1LinkConfig, group_lines, line_problems
 
 
 def link(name: str, unit: int, **keys: Any) -> Df1LinkConfig:
@@ -32,12 +22,11 @@ def test_defaults_keep_full_duplex_and_today_s_behaviour() -> None:
     assert full.duplex == "full" and full.rts == "toggle" and full.receive_words == 0
 
 
-def test_half_duplex_refused_until_the_app_serves_it() -> None:
-    with pytest.raises(ValidationError, match='duplex = "half" is not served by this build yet'):
-        link("a", 1)
+def test_half_duplex_link_is_accepted() -> None:
+    assert link("a", 1).duplex == "half"
 
 
-def test_new_keys_are_typed_and_bounded(served: None) -> None:
+def test_new_keys_are_typed_and_bounded() -> None:
     line = link("a", 1, pre_transmit_delay=0.02, rts="rs485", echo=True, poll_timeout=0.3, demote_after=5,
                 receive_file=9, receive_words=20)
     assert (line.pre_transmit_delay, line.rts, line.echo, line.demote_after, line.receive_words) == (
@@ -48,7 +37,7 @@ def test_new_keys_are_typed_and_bounded(served: None) -> None:
         link("a", 1, poll_timeout=0)
 
 
-def test_grouping_by_port_protocol_and_duplex(served: None) -> None:
+def test_grouping_by_port_protocol_and_duplex() -> None:
     links = [
         link("a", 1, station=1),
         link("b", 2, station=2),
@@ -62,7 +51,7 @@ def test_grouping_by_port_protocol_and_duplex(served: None) -> None:
     assert line_problems(links) == []
 
 
-def test_line_keys_must_agree_and_messages_name_both_links(served: None) -> None:
+def test_line_keys_must_agree_and_messages_name_both_links() -> None:
     links = [link("pump1", 1, station=1), link("pump2", 2, station=2, baudrate=9600, checksum="bcc")]
     problems = line_problems(links)
     assert [loc for loc, _ in problems] == [("link", 1, "baudrate"), ("link", 1, "checksum")]
@@ -71,14 +60,14 @@ def test_line_keys_must_agree_and_messages_name_both_links(served: None) -> None
     assert "9600" in message and "19200" in message
 
 
-def test_station_numbers_unique_per_line_not_across_lines(served: None) -> None:
+def test_station_numbers_unique_per_line_not_across_lines() -> None:
     links = [link("a", 1, station=4), link("b", 2, station=4), link("c", 3, station=4, port="/dev/ttyS2")]
     problems = line_problems(links)
     assert len(problems) == 1 and problems[0][0] == ("link", 1, "station")
     assert '"b"' in problems[0][1] and '"a"' in problems[0][1] and "both station 4" in problems[0][1]
 
 
-def test_station_equal_to_source_and_full_duplex_on_a_line_port(served: None) -> None:
+def test_station_equal_to_source_and_full_duplex_on_a_line_port() -> None:
     links = [link("a", 1, station=0), link("b", 2, station=2, duplex="full")]
     problems = line_problems(links)
     assert [loc for loc, _ in problems] == [("link", 0, "station"), ("link", 1, "duplex")]
@@ -90,9 +79,9 @@ def test_every_line_key_is_a_config_key(key: str) -> None:
     assert key in Df1LinkConfig.model_fields
 
 
-def test_readme_half_duplex_example_passes_once_served(served: None) -> None:
-    """The README's half-duplex example is a valid config (as ``check-config`` will load it once the
-    app builds lines) and forms one line of two stations without conflicts."""
+def test_readme_half_duplex_example_passes() -> None:
+    """The README's half-duplex example is a valid config (``check-config`` loads it) and forms one
+    line of two stations without conflicts."""
     from pathlib import Path
 
     from gateway.config import parse_config

@@ -1,6 +1,6 @@
 """Half-duplex lines built from ``[[link]]`` configs, end to end over TCP against the multi-drop simulator.
 
-Two lines, as the integrator will wire them (``gateway.df1_half_build``): SLC 5/04 stations 1-3 (BCC)
+Two lines, as the DF1 link kind builds them (``gateway.links.df1.build.build_df1``): SLC 5/04 stations 1-3 (BCC)
 behind one device server port, PLC-5 stations 5 and 6 (CRC) behind another; station 3 absent.  Every
 unit reads its own station's values (never another's), the absent one fails with 0x0B promptly,
 a write lands once on the right station, and an MSG of station 2 lands in its register table.
@@ -10,33 +10,24 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
 
-import gateway.config.df1 as df1_config
-from gateway.config.df1 import Df1LinkConfig
-from gateway.config.df1_lines import line_problems
-from gateway.df1_half_build import build_half_duplex_units
+from gateway.config.df1 import Df1LinkConfig, line_problems
 from gateway.drivers.df1_half import Df1Station
 from gateway.errors import LinkTimeout
+from gateway.links.df1.build import build_df1
+from gateway.links.df1.plc5_unit import Plc5Unit
+from gateway.links.df1.unit import Df1Unit
 from gateway.modbus.mapping import Table
-from gateway.plc5_unit import Plc5Unit
 from gateway.protocols.df1.half_duplex_framing import Checksum
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeWrite, encode_command
 from gateway.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.sim.serve import close_tcp, serve_tcp
 from gateway.unit import Unit
-from gateway.unit_df1 import Df1Unit
 
 HOST = "127.0.0.1"
-
-
-@pytest.fixture(autouse=True)
-def served(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
-    monkeypatch.setattr(df1_config, "HALF_DUPLEX_SERVED", True)
-    yield
 
 
 def link(name: str, unit: int, port: str, station: int, **keys: Any) -> Df1LinkConfig:
@@ -69,13 +60,14 @@ async def test_two_lines_from_config_over_tcp() -> None:
         link("p6", 6, ports[1], 6, processor="plc5"),
     ]
     assert line_problems(links) == []
-    built = build_half_duplex_units(links, lambda c: {"unit_id": c.unit, "name": c.name})
-    units = {links[index].name: unit for index, unit in built}
+    built = build_df1(links)
+    units = {link.name: unit for link, unit in zip(links, built.units, strict=True)}
+    assert len(built.runners) == 2  # one line master per port
     assert [type(units[n]) for n in ("s1", "p5")] == [Df1Unit, Plc5Unit]
     lines = {id(u.driver.line) for u in units.values() if isinstance(u.driver, Df1Station)}
     assert len(lines) == 2  # one master per port
     msg = encode_command(WordRangeWrite(LogicalBinaryAddress.of(0, 7, 1), b"\x2a\x00"), dst=0, src=2, tns=77)
-    tasks = [asyncio.create_task(unit.driver.run()) for unit in units.values()]
+    tasks = [asyncio.create_task(runner.run()) for runner in built.runners]
     try:
         await asyncio.sleep(0.3)  # after the line's link reset (DLE NAK empties slave queues)
         slc.slaves[2].initiate(msg)
@@ -101,8 +93,8 @@ async def test_two_lines_from_config_over_tcp() -> None:
     finally:
         for task in tasks:
             task.cancel()
-        for unit in units.values():
-            await unit.driver.close()
+        for runner in built.runners:
+            await runner.close()
         for server in servers:
             await close_tcp(server)
     assert slc.controllers[2].word("N7", 3) == 999 and slc.controllers[1].word("N7", 3) == 103

@@ -15,9 +15,9 @@ import pytest
 
 from gateway.drivers.df1_half import Df1HalfDuplexLine
 from gateway.errors import LinkTimeout
+from gateway.links.df1.plan import MapItem
+from gateway.links.df1.plc5_unit import Plc5Unit
 from gateway.modbus.mapping import Table
-from gateway.modbus.mapping_df1 import MapItem
-from gateway.plc5_unit import Plc5Unit
 from gateway.protocols.df1.half_duplex import StationConfig
 from gateway.protocols.df1.half_duplex_framing import Checksum
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeRead

@@ -18,9 +18,9 @@ import pytest
 
 from gateway.drivers.df1 import Df1Driver
 from gateway.errors import InvalidRequest
+from gateway.links.df1.plan import MapItem
+from gateway.links.df1.plc5_unit import Plc5BitWrite, Plc5Read, Plc5Unit, Plc5WordWrite, plan_plc5
 from gateway.modbus.mapping import Table
-from gateway.modbus.mapping_df1 import MapItem
-from gateway.plc5_unit import Plc5BitWrite, Plc5Read, Plc5Unit, Plc5WordWrite, plan_plc5
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, ReadModifyWriteRequest, WordRangeRead, WordRangeWrite
 from gateway.protocols.df1.plc5_address import parse_plc5_address

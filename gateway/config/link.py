@@ -9,7 +9,7 @@ are refused by the model (``extra="forbid"``), so no list of "keys only for prot
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Literal
@@ -198,6 +198,12 @@ class LinkBase(Model):
         if problems:
             raise Problems(*problems)
         return self
+
+    @classmethod
+    def problems_across(cls, links: Sequence[LinkBase]) -> list[tuple[Loc, str]]:
+        """Rules across the ``[[link]]`` tables of this kind (``links``: every link, in file order),
+        at ``("link", index, key)``; none by default (a kind whose links share a line adds its own)."""
+        return []
 
     def problems(self) -> list[tuple[Loc, str]]:
         """Rules across keys (after each key is valid); a subclass adds its own to these."""

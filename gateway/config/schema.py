@@ -219,6 +219,8 @@ class GatewayConfig(Model):
                     )
                 )
             units.setdefault(link.unit, index)
+        for model in dict.fromkeys(type(link) for link in self.link):
+            problems.extend(model.problems_across(self.link))
         listeners: list[tuple[Loc, str]] = []
         if self.modbus.plain_enabled:
             listeners.append((("modbus", "listen"), self.modbus.listen))

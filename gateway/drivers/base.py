@@ -20,14 +20,15 @@ import logging
 import random
 from abc import ABC, abstractmethod
 from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import AbstractAsyncContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 from gateway.errors import GatewayError, LinkDown, LinkError, LinkTimeout, format_seconds
 from gateway.transport import ByteStream, SerialSettings, describe_url, open_stream
 
-__all__ = ["LinkCounters", "LinkDriver", "OpenStream", "Priority"]
+__all__ = ["LinkCounters", "LinkDriver", "OpenStream", "Priority", "UnitDriver"]
 
 log = logging.getLogger("gateway.link")
 
@@ -167,6 +168,33 @@ class _Line:
             _, _, future = heapq.heappop(self._waiters)
             if not future.done():
                 future.set_exception(exc)
+
+
+class UnitDriver(Protocol):
+    """What a unit, its write queue, the metrics and the app use of the driver under a unit.
+
+    A :class:`LinkDriver` is one (one controller per port); so is a station's handle on a shared
+    line (``gateway.drivers.df1_half.Df1Station``), whose line is the runner instead.
+    """
+
+    name: str
+    counters: LinkCounters
+    last_error: str
+    write_burst: int
+    poll_burst: int
+
+    @property
+    def url(self) -> str: ...
+
+    @property
+    def available(self) -> bool: ...
+
+    @property
+    def connected(self) -> bool: ...
+
+    def write_session(self) -> AbstractAsyncContextManager[None]: ...
+
+    def extend_burst(self) -> None: ...
 
 
 class LinkDriver(ABC):

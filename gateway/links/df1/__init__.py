@@ -9,8 +9,8 @@ Its rooms: the sans-I/O protocol in :mod:`gateway.protocols.df1`, the driver in
 from __future__ import annotations
 
 from gateway.config.df1 import Df1LinkConfig
+from gateway.links.df1.build import build_df1, df1_plan
 from gateway.links.df1.tool import HINTS, add_options, run_df1_tool
-from gateway.links.df1.unit import build_df1, df1_plan
 from gateway.links.kind import LinkKind
 from gateway.sim.models import SLC504
 

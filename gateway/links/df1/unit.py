@@ -13,20 +13,19 @@ what was written the write succeeded, otherwise SCADA gets 0x0B.  A write is nev
 from __future__ import annotations
 
 import struct
-from collections.abc import Sequence
 from functools import partial
-from typing import Any, Unpack, get_args
+from typing import Any, Protocol, TypeVar, Unpack, get_args
 
-from gateway.config.df1 import Df1LinkConfig, Processor
+from gateway.config.df1 import Processor
+from gateway.drivers.base import UnitDriver
 from gateway.drivers.df1 import Df1Driver, check_reply_size
 from gateway.errors import ControllerRefused, ModbusExceptionReply
-from gateway.links.df1.plan import Df1BitWrite, Df1Plan, Df1Read, Df1WordWrite, MapItem, shared_plan_df1
-from gateway.links.kind import Built, unit_options
-from gateway.modbus.mapping import BitPoint, Block, Half, RegisterPoint
+from gateway.links.df1.plan import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, shared_plan_df1
+from gateway.modbus.mapping import BitPoint, Block, Half, Plan, RegisterPoint
 from gateway.protocols.df1.address import FileType, SlcAddress
-from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.pccc import (
     PcccError,
+    PcccReply,
     ProcessorFamily,
     ProtectedTypedLogicalMaskedWrite,
     ProtectedTypedLogicalRead,
@@ -34,7 +33,10 @@ from gateway.protocols.df1.pccc import (
 )
 from gateway.unit import Unit, UnitOptions, WriteStep
 
-__all__ = ["PROCESSORS", "Df1Unit", "build_df1", "df1_plan", "pccc_exception"]
+R = TypeVar("R")
+B = TypeVar("B")
+
+__all__ = ["PROCESSORS", "Df1Unit", "PcccDriver", "PcccUnit", "pccc_exception"]
 
 #: ``processor`` names (the config's ``Processor``, in its order) -> families.
 PROCESSORS: dict[str, ProcessorFamily] = dict(
@@ -63,21 +65,69 @@ def pccc_exception(error: PcccError) -> ModbusExceptionReply:
     return ModbusExceptionReply(code, str(error))
 
 
-class Df1Unit(Unit[Df1WordWrite, Df1BitWrite]):
-    driver: Df1Driver
+class PcccDriver(UnitDriver, Protocol):
+    """What a PCCC unit needs of its driver: a full-duplex ``Df1Driver``, or a station's handle on a
+    half-duplex line (``gateway.drivers.df1_half.Df1Station``)."""
+
+    last_sts: int
+
+    async def execute(self, request: Any, name: str = "", *, write: bool | None = None) -> PcccReply: ...
+
+
+class PcccUnit(Unit[R, B]):
+    """What the SLC 500 and the PLC-5 units share: PCCC commands through a :class:`PcccDriver`,
+    PCCC refusals as Modbus exceptions (:func:`pccc_exception`), the last STS as the last fault."""
+
+    driver: PcccDriver
+
+    def __init__(
+        self, *, driver: PcccDriver, plan: Plan[R, B], max_write_bytes: int, **common: Unpack[UnitOptions]
+    ) -> None:
+        super().__init__(driver=driver, plan=plan, **common)
+        self.driver = driver
+        #: data bytes of one write command
+        self.max_write_bytes = max_write_bytes
+
+    async def _execute(self, request: Any, label: str, *, write: bool | None = None) -> None:
+        """Run a write command; a PCCC refusal becomes its Modbus exception."""
+        try:
+            await self.driver.execute(request, label, write=write)
+        except PcccError as exc:
+            raise pccc_exception(exc) from exc
+
+    def refusal_exception(self, error: ControllerRefused) -> ModbusExceptionReply:
+        if isinstance(error, PcccError):
+            return pccc_exception(error)
+        return super().refusal_exception(error)
+
+    @property
+    def last_fault_number(self) -> int:
+        return self.driver.last_sts
+
+    @property
+    def id_resyncs(self) -> int:
+        return 0
+
+
+class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):
+    """An SLC 500 (or a PLC-5 that accepts SLC commands) with typed logical reads and writes."""
 
     def __init__(
         self,
         *,
-        driver: Df1Driver,
+        driver: PcccDriver,
         items: list[MapItem],
         max_read_bytes: int,
         max_write_bytes: int = 0,
+        family: ProcessorFamily | None = None,
         **common: Unpack[UnitOptions],
     ) -> None:
-        super().__init__(driver=driver, plan=shared_plan_df1(items, max_read_bytes), **common)
-        #: data bytes of one write command (3-byte address fields take 2 each off it)
-        self.max_write_bytes = max_write_bytes or driver.family.max_write_bytes
+        if not max_write_bytes:
+            # 3-byte address fields take 2 each off it (``_joins``)
+            family = family or (driver.family if isinstance(driver, Df1Driver) else ProcessorFamily.SLC5_04)
+            max_write_bytes = family.max_write_bytes
+        super().__init__(driver=driver, plan=shared_plan_df1(items, max_read_bytes), max_write_bytes=max_write_bytes,
+                         **common)
 
     async def read_block(self, block: Block) -> bytes:
         read = block.request
@@ -88,10 +138,7 @@ class Df1Unit(Unit[Df1WordWrite, Df1BitWrite]):
         return check_reply_size(reply, read.size, f"read {block.label}")
 
     async def _write(self, request: Any, address: SlcAddress) -> None:
-        try:
-            await self.driver.execute(request, f"write {address}")
-        except PcccError as exc:
-            raise pccc_exception(exc) from exc
+        await self._execute(request, f"write {address}")
 
     async def _write_register(self, target: Df1WordWrite, value: int) -> None:
         a = target.address
@@ -190,20 +237,6 @@ class Df1Unit(Unit[Df1WordWrite, Df1BitWrite]):
         request = ProtectedTypedLogicalMaskedWrite(a.file_type, a.file_number, a.element, a.sub_element, mask, data)
         await self._write(request, a)
 
-    def refusal_exception(self, error: ControllerRefused) -> ModbusExceptionReply:
-        if isinstance(error, PcccError):
-            return pccc_exception(error)
-        return super().refusal_exception(error)
-
-    @property
-    def last_fault_number(self) -> int:
-        return self.driver.last_sts
-
-    @property
-    def id_resyncs(self) -> int:
-        return 0
-
-
 #: Files whose elements are one word or one float, packed: consecutive elements are consecutive bytes.
 _PLAIN_FILES = frozenset({FileType.INTEGER, FileType.BIT, FileType.FLOAT})
 
@@ -235,40 +268,3 @@ def _word_target(step: WriteStep) -> Df1WordWrite:
     if not isinstance(target, Df1WordWrite):
         raise TypeError(f"register {step.first}: not a DF1 word write")
     return target
-
-
-def _items(link: Df1LinkConfig) -> list[MapItem]:
-    return [MapItem(e.table, e.start, e.address, e.count, e.type, e.word_order, e.scan) for e in link.map]
-
-
-def _max_read(link: Df1LinkConfig) -> int:
-    return link.max_read_bytes or PROCESSORS[link.processor].max_read_bytes
-
-
-def df1_plan(link: Df1LinkConfig) -> Df1Plan:
-    """The read plan of a DF1 link (shared by links with the same map)."""
-    return shared_plan_df1(_items(link), _max_read(link))
-
-
-def build_df1_unit(link: Df1LinkConfig) -> Df1Unit:
-    """The unit of one full-duplex link, with its own driver (one controller per port)."""
-    driver = Df1Driver(
-        link.port,
-        name=link.name,
-        settings=link.line_settings,
-        checksum=Checksum.CRC if link.checksum == "crc" else Checksum.BCC,
-        station=link.station,
-        source=link.source,
-        family=PROCESSORS[link.processor],
-        timeout=link.timeout,
-        retries=link.retries,
-        trace=link.trace,
-    )
-    return Df1Unit(driver=driver, items=_items(link), max_read_bytes=_max_read(link),
-                   max_write_bytes=link.max_write_bytes, **unit_options(link))
-
-
-def build_df1(links: Sequence[Df1LinkConfig]) -> Built:
-    """Every DF1 link's unit; each full-duplex unit's driver is its runner."""
-    units = [build_df1_unit(link) for link in links]
-    return Built(units, [unit.driver for unit in units])

@@ -19,7 +19,7 @@ Addresses are the forms users type (``N7:0``, ``B3/5``, ``B3:0/5``, ``T4:1.ACC``
 ``F8:2``, ``I:010`` octal), parsed by :mod:`gateway.protocols.df1.plc5_address`; the read plan is
 :func:`plan_plc5` (the cost model and block choice of ``mapping_df1``, on PLC-5 word positions).
 
-The unit is the SLC :class:`~gateway.unit_df1.Df1Unit` with its commands replaced; it only needs a
+The unit is the SLC :class:`~gateway.links.df1.unit.Df1Unit` with its commands replaced; it only needs a
 driver with ``execute(request, name, write=...)`` (``Df1Driver`` or a half-duplex ``Df1Station``).
 """
 
@@ -31,21 +31,20 @@ from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
-from typing import Any
+from typing import TypeAlias, Unpack
 
-from gateway.errors import InvalidRequest
+from gateway.errors import InvalidRequest, ModbusExceptionReply
+from gateway.links.df1.plan import F32_HIGH, F32_LOW, READ_OVERHEAD_BYTES, U16_LE, MapItem, optimal_blocks
+from gateway.links.df1.unit import PcccDriver, PcccUnit, _step_bytes
 from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, RegisterPoint, Scan, Table
-from gateway.modbus.mapping_df1 import READ_OVERHEAD_BYTES, MapItem, optimal_blocks
 from gateway.protocols.df1.pccc import (
     LogicalBinaryAddress,
-    PcccError,
     ReadModifyWriteRequest,
     WordRangeRead,
     WordRangeWrite,
 )
 from gateway.protocols.df1.plc5_address import AddressError, Plc5Address, encode_logical_binary, parse_plc5_address
-from gateway.unit import Unit, WriteStep
-from gateway.unit_df1 import Df1Unit, _step_bytes, pccc_exception
+from gateway.unit import UnitOptions, WriteStep
 
 __all__ = [
     "PLC5_MAX_READ_BYTES",
@@ -86,6 +85,9 @@ class Plc5BitWrite:
 
     address: Plc5Address
     bit: int
+
+
+Plc5Plan: TypeAlias = Plan[Plc5WordWrite, Plc5BitWrite]
 
 
 # --- word positions ------------------------------------------------------------------------
@@ -154,18 +156,18 @@ def _cells(item: MapItem) -> list[_Cell]:
         high, low = (0, 1) if item.word_order == "high-first" else (1, 0)
         for k in range(item.count):
             position = first + 2 * k
-            cells.append(_Cell(table, item.start + 2 * k + high, key, position, Codec.F32_HIGH, None, scan))
-            cells.append(_Cell(table, item.start + 2 * k + low, key, position, Codec.F32_LOW, None, scan))
+            cells.append(_Cell(table, item.start + 2 * k + high, key, position, F32_HIGH, None, scan))
+            cells.append(_Cell(table, item.start + 2 * k + low, key, position, F32_LOW, None, scan))
         return cells
     if base.file_type == "F":
         raise InvalidRequest(f"map address {item.address!r}: an F file holds floats: type = \"float32\"")
     step = 3 if structure and base.sub_element is not None else 1  # T4:0.ACC, count 3: ACC of T4:0-2
     for k in range(item.count):
-        cells.append(_Cell(table, item.start + k, key, first + step * k, Codec.U16_LE, None, scan))
+        cells.append(_Cell(table, item.start + k, key, first + step * k, U16_LE, None, scan))
     return cells
 
 
-def plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTES) -> Plan:
+def plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTES) -> Plc5Plan:
     """The read plan and Modbus points of a PLC-5 map (PLC-5 addresses; word range reads)."""
     cells = [cell for item in items for cell in _cells(item)]
     max_words = min(max_read_bytes, PLC5_MAX_READ_BYTES) // 2
@@ -173,8 +175,8 @@ def plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTE
     needed: dict[tuple[Scan, _Key], set[tuple[int, int]]] = defaultdict(set)
     for cell in cells:
         scan = Scan.FAST if (cell.key, cell.position) in fast else cell.scan
-        needed[scan, cell.key].add((cell.position, 2 if cell.codec in (Codec.F32_HIGH, Codec.F32_LOW) else 1))
-    plan = Plan()
+        needed[scan, cell.key].add((cell.position, 2 if cell.codec in (F32_HIGH, F32_LOW) else 1))
+    plan: Plc5Plan = Plan()
     where: dict[tuple[Scan, _Key], list[tuple[int, int, int]]] = {}
     for (scan, key), spans in sorted(needed.items(), key=lambda kv: (kv[0][0].value, kv[0][1])):
         entries = []
@@ -204,11 +206,11 @@ def plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTE
 
 
 @functools.lru_cache(maxsize=256)
-def _shared(items: tuple[MapItem, ...], max_read_bytes: int) -> Plan:
+def _shared(items: tuple[MapItem, ...], max_read_bytes: int) -> Plc5Plan:
     return plan_plc5(items, max_read_bytes)
 
 
-def shared_plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTES) -> Plan:
+def shared_plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTES) -> Plc5Plan:
     """:func:`plan_plc5`, built once per distinct map (as ``shared_plan_df1``); never changed once built."""
     return _shared(tuple(items), max_read_bytes)
 
@@ -220,84 +222,76 @@ def _logical(address: Plc5Address) -> LogicalBinaryAddress:
 # --- the unit ------------------------------------------------------------------------------
 
 
-class Plc5Unit(Df1Unit):
+class Plc5Unit(PcccUnit[Plc5WordWrite, Plc5BitWrite]):
     """A PLC-5 map served with word range read / write and read-modify-write (module docstring).
 
-    ``Plc5Unit(driver=..., items=[MapItem(...)], max_read_bytes=244, max_write_bytes=0, **common)``
-    with the ``common`` keywords of :class:`~gateway.unit.Unit` (``unit_id``, ``name``, ...);
-    ``driver`` is a ``Df1Driver`` or a half-duplex ``Df1Station`` (same ``execute`` API).
+    ``driver`` is a ``Df1Driver`` or a half-duplex ``Df1Station`` (the same ``execute`` API).
     """
 
     def __init__(
-        self, *, driver: Any, items: list[MapItem], max_read_bytes: int = 0, max_write_bytes: int = 0, **common: Any
+        self,
+        *,
+        driver: PcccDriver,
+        items: list[MapItem],
+        max_read_bytes: int = 0,
+        max_write_bytes: int = 0,
+        **common: Unpack[UnitOptions],
     ) -> None:
-        Unit.__init__(self, driver=driver, plan=shared_plan_plc5(items, max_read_bytes or PLC5_MAX_READ_BYTES),
-                      **common)
-        self.max_write_bytes = min(max_write_bytes or PLC5_MAX_WRITE_BYTES, PLC5_MAX_WRITE_BYTES)
+        plan = shared_plan_plc5(items, max_read_bytes or PLC5_MAX_READ_BYTES)
+        limit = min(max_write_bytes or PLC5_MAX_WRITE_BYTES, PLC5_MAX_WRITE_BYTES)
+        super().__init__(driver=driver, plan=plan, max_write_bytes=limit, **common)
 
     async def read_block(self, block: Block) -> bytes:
         read = block.request
-        assert isinstance(read, Plc5Read)
+        if not isinstance(read, Plc5Read):
+            raise TypeError(f"{block.label}: not a PLC-5 read")
         reply = await self.driver.execute(WordRangeRead(_logical(read.address), 2 * read.words), f"read {block.label}")
-        if len(reply.data) != 2 * read.words:
-            raise InvalidRequest(
-                f"read {block.label}: the PLC-5 answered {len(reply.data)} bytes, not {2 * read.words}"
-            )
-        return reply.data
+        data: bytes = reply.data
+        if len(data) != 2 * read.words:
+            raise InvalidRequest(f"read {block.label}: the PLC-5 answered {len(data)} bytes, not {2 * read.words}")
+        return data
 
-    async def _execute_write(self, request: WordRangeWrite | ReadModifyWriteRequest, label: str) -> None:
-        try:
-            await self.driver.execute(request, label, write=True)
-        except PcccError as exc:
-            raise pccc_exception(exc) from exc
+    async def _write_words(self, address: Plc5Address, data: bytes) -> None:
+        await self._execute(WordRangeWrite(_logical(address), data), f"write {address}", write=True)
 
-    async def _write_words(self, address: Any, data: bytes) -> None:
-        assert isinstance(address, Plc5Address)
-        await self._execute_write(WordRangeWrite(_logical(address), data), f"write {address}")
-
-    async def _write_register(self, target: object, value: int) -> None:
-        assert isinstance(target, Plc5WordWrite)
+    async def _write_register(self, target: Plc5WordWrite, value: int) -> None:
         await self._write_words(target.address, value.to_bytes(2, "little"))
 
-    async def _write_float(self, target: object, raw: int) -> None:
-        assert isinstance(target, Plc5WordWrite)
+    async def _write_pair(self, target: Plc5WordWrite, raw: int) -> None:
         await self._write_words(target.address, struct.pack("<I", raw))  # low word first, as read
 
-    def _register_steps(self, checked: list[tuple[int, RegisterPoint, int]]) -> list[WriteStep]:
+    def _register_steps(self, checked: list[tuple[int, RegisterPoint[Plc5WordWrite], int]]) -> list[WriteStep]:
         """Consecutive words (or floats) of one N / B / F / I / O / S file in one word range write."""
         steps: list[WriteStep] = []
-        group: list[WriteStep] = []
+        group: list[tuple[WriteStep, Plc5WordWrite]] = []
         size = 0
 
         def flush() -> None:
             if len(group) == 1:
-                steps.append(group[0])
+                steps.append(group[0][0])
             elif group:
-                first = group[0].patches[0][0].write
-                assert isinstance(first, Plc5WordWrite)
-                data = b"".join(_step_bytes(s) for s in group)
-                patches = [patch for s in group for patch in s.patches]
-                steps.append(WriteStep(group[0].first, group[-1].last, partial(self._write_words, first.address, data),
-                                       patches))
+                data = b"".join(_step_bytes(s) for s, _ in group)
+                patches = [patch for s, _ in group for patch in s.patches]
+                steps.append(WriteStep(group[0][0].first, group[-1][0].last,
+                                       partial(self._write_words, group[0][1].address, data), patches))
             group.clear()
 
-        for step in Unit._register_steps(self, checked):
+        for step in super()._register_steps(checked):
             target = step.patches[0][0].write
-            assert isinstance(target, Plc5WordWrite)
+            if not isinstance(target, Plc5WordWrite):
+                raise TypeError(f"register {step.first}: not a PLC-5 word write")
             nbytes = len(_step_bytes(step))
-            if group and self._continues(group, target.address, size + nbytes):
-                group.append(step)
+            if group and self._continues(group[0][1], group[-1][1], target.address, size + nbytes):
+                group.append((step, target))
                 size += nbytes
                 continue
             flush()
-            group.append(step)
+            group.append((step, target))
             size = nbytes
         flush()
         return steps
 
-    def _continues(self, group: list[WriteStep], address: Plc5Address, size: int) -> bool:
-        first, last = group[0].patches[0][0].write, group[-1].patches[0][0].write
-        assert isinstance(first, Plc5WordWrite) and isinstance(last, Plc5WordWrite)
+    def _continues(self, first: Plc5WordWrite, last: Plc5WordWrite, address: Plc5Address, size: int) -> bool:
         a = last.address
         if a.file_type in _STRUCTURES or (a.file_type, a.file_number) != (address.file_type, address.file_number):
             return False
@@ -305,12 +299,11 @@ class Plc5Unit(Df1Unit):
             return False
         return size <= self.max_write_bytes - len(encode_logical_binary(first.address))
 
-    def _bit_steps(self, checked: list[tuple[int, BitPoint, bool]]) -> list[WriteStep]:
+    def _bit_steps(self, checked: list[tuple[int, BitPoint[Plc5BitWrite], bool]]) -> list[WriteStep]:
         """Consecutive coils of one word in one read-modify-write (only their bits change, p. 7-20)."""
-        runs: list[list[tuple[int, BitPoint, bool]]] = []
+        runs: list[list[tuple[int, BitPoint[Plc5BitWrite], bool]]] = []
         for modbus, point, value in checked:
-            target = point.write
-            assert isinstance(target, Plc5BitWrite)
+            target = _target(point)
             if runs and runs[-1][-1][0] == modbus - 1 and _target(runs[-1][-1][1]).address == target.address:
                 runs[-1].append((modbus, point, value))
             else:
@@ -324,22 +317,21 @@ class Plc5Unit(Df1Unit):
             for run in runs
         ]
 
-    async def _write_bits(self, address: Any, bits: list[tuple[int, bool]]) -> None:
-        assert isinstance(address, Plc5Address)
+    async def _write_bits(self, address: Plc5Address, bits: list[tuple[int, bool]]) -> None:
         forced = set_bits = 0
         for bit, on in bits:
             forced |= 1 << bit
             set_bits |= (1 << bit) if on else 0
         request = ReadModifyWriteRequest(((_logical(address), 0xFFFF & ~forced | set_bits, set_bits),))
         label = f"write {address}/" + ",".join(str(b) for b, _ in bits)
-        await self._execute_write(request, label)
+        await self._execute(request, label, write=True)
 
-    async def _write_bit(self, target: object, value: bool) -> None:
-        assert isinstance(target, Plc5BitWrite)
+    async def _write_bit(self, target: Plc5BitWrite, value: bool) -> None:
         await self._write_bits(target.address, [(target.bit, value)])
 
 
-def _target(point: BitPoint) -> Plc5BitWrite:
+def _target(point: BitPoint[Plc5BitWrite]) -> Plc5BitWrite:
     target = point.write
-    assert isinstance(target, Plc5BitWrite)
+    if target is None:
+        raise ModbusExceptionReply(ModbusExceptionReply.ILLEGAL_DATA_ADDRESS, "coil is not writable")
     return target

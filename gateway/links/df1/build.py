@@ -1,0 +1,144 @@
+"""Every DF1 ``[[link]]`` as a unit, and the runners of their lines (the DF1 kind's ``build``).
+
+* A full-duplex link (``duplex = "full"``, the default) gets its own
+  :class:`~gateway.drivers.df1.Df1Driver`: one controller per port, the driver is the runner.
+* Links with the same ``port`` and ``duplex = "half"`` are the stations of one multi-drop line
+  (``gateway.config.df1.group_lines``): one :class:`~gateway.drivers.df1_half.Df1HalfDuplexLine`
+  master per line is the runner, and each link's unit talks through its station's handle
+  (``line.station(n)``, the same ``execute`` API as the full-duplex driver).
+
+Whatever the line, ``processor = "plc5"`` gets a :class:`~gateway.links.df1.plc5_unit.Plc5Unit` (word
+range commands, PLC-5 addresses), every SLC 500 processor a :class:`~gateway.links.df1.unit.Df1Unit`
+(typed logical commands).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from gateway.config.df1 import Df1LinkConfig, HalfDuplexLine, group_lines
+from gateway.drivers.df1 import Df1Driver
+from gateway.drivers.df1_half import Df1HalfDuplexLine
+from gateway.links.df1.plan import MapItem, shared_plan_df1
+from gateway.links.df1.plc5_unit import PLC5_MAX_READ_BYTES, Plc5Unit, shared_plan_plc5
+from gateway.links.df1.unit import PROCESSORS, Df1Unit, PcccDriver, PcccUnit
+from gateway.links.kind import Built, LinkRunner, unit_options
+from gateway.modbus.mapping import Plan
+from gateway.protocols.df1.framing import Checksum
+from gateway.protocols.df1.half_duplex import StationConfig
+from gateway.protocols.df1.pccc import ProcessorFamily
+from gateway.protocols.df1.slave_messages import RegisterTable
+
+__all__ = ["build_df1", "build_line", "df1_plan", "map_items", "station_config", "station_unit"]
+
+
+def map_items(link: Df1LinkConfig) -> list[MapItem]:
+    return [MapItem(e.table, e.start, e.address, e.count, e.type, e.word_order, e.scan) for e in link.map]
+
+
+def _is_plc5(link: Df1LinkConfig) -> bool:
+    return PROCESSORS[link.processor] is ProcessorFamily.PLC5
+
+
+def _max_read(link: Df1LinkConfig) -> int:
+    return link.max_read_bytes or PROCESSORS[link.processor].max_read_bytes
+
+
+def df1_plan(link: Df1LinkConfig) -> Plan[Any, Any]:
+    """The read plan of a DF1 link (shared by links with the same map): PLC-5 or SLC 500 addresses."""
+    if _is_plc5(link):
+        return shared_plan_plc5(map_items(link), link.max_read_bytes or PLC5_MAX_READ_BYTES)
+    return shared_plan_df1(map_items(link), _max_read(link))
+
+
+def station_unit(driver: PcccDriver, link: Df1LinkConfig) -> PcccUnit[Any, Any]:
+    """The unit of one link over ``driver`` (its own full-duplex driver, or its station on a line)."""
+    items = map_items(link)
+    if _is_plc5(link):
+        return Plc5Unit(driver=driver, items=items, max_read_bytes=link.max_read_bytes,
+                        max_write_bytes=link.max_write_bytes, **unit_options(link))
+    return Df1Unit(driver=driver, items=items, max_read_bytes=_max_read(link), max_write_bytes=link.max_write_bytes,
+                   family=PROCESSORS[link.processor], **unit_options(link))
+
+
+def _checksum(link: Df1LinkConfig) -> Checksum:
+    return Checksum.CRC if link.checksum == "crc" else Checksum.BCC
+
+
+def full_duplex_driver(link: Df1LinkConfig) -> Df1Driver:
+    """The driver of one full-duplex link (one controller per port)."""
+    return Df1Driver(
+        link.port,
+        name=link.name,
+        settings=link.line_settings,
+        checksum=_checksum(link),
+        station=link.station,
+        source=link.source,
+        family=PROCESSORS[link.processor],
+        timeout=link.timeout,
+        retries=link.retries,
+        trace=link.trace,
+    )
+
+
+def station_config(link: Df1LinkConfig) -> StationConfig:
+    """The station keys of one half-duplex link (``timeout`` is the reply timeout after the ACK)."""
+    return StationConfig(
+        link.station,
+        poll_timeout=link.poll_timeout,
+        reply_timeout=link.timeout,
+        reply_wait=link.reply_wait,
+        max_polls=link.max_polls,
+        retries=link.demote_after,
+        poll_interval=link.poll_interval,
+        slow_poll_interval=link.slow_poll_interval,
+    )
+
+
+def build_line(line: HalfDuplexLine) -> Df1HalfDuplexLine:
+    """The line master of ``line`` (its links passed ``line_problems``: they agree on the line keys)."""
+    first = line.first
+    tables = {
+        link.station: RegisterTable(file_number=link.receive_file, size=link.receive_words)
+        for link in line.links if link.receive_words
+    }
+    return Df1HalfDuplexLine(
+        first.port,
+        [station_config(link) for link in line.links],
+        name=line.name,
+        settings=first.line_settings,
+        checksum=_checksum(first),
+        source=first.source,
+        ack_timeout=first.ack_timeout,
+        message_retries=first.message_retries,
+        retries=first.retries,
+        pre_transmit_delay=first.pre_transmit_delay,
+        rts_send_delay=first.rts_send_delay,
+        rts_off_delay=first.rts_off_delay,
+        rts_mode=first.rts,
+        dtr=first.dtr,
+        echo=first.echo,
+        duplicate_detect=first.duplicate_detect,
+        link_reset=first.link_reset,
+        station_names={link.station: link.name for link in line.links},
+        register_tables=tables,
+        trace=first.trace,
+    )
+
+
+def build_df1(links: Sequence[Df1LinkConfig]) -> Built:
+    """Every DF1 link's unit, in ``links`` order; runners: each full-duplex driver, each line master."""
+    units: dict[int, PcccUnit[Any, Any]] = {}
+    runners: list[LinkRunner] = []
+    for line in group_lines(links):
+        master = build_line(line)
+        runners.append(master)
+        for index, link in zip(line.indexes, line.links, strict=True):
+            units[index] = station_unit(master.station(link.station), link)
+    for index, link in enumerate(links):
+        if index not in units:
+            driver = full_duplex_driver(link)
+            runners.append(driver)
+            units[index] = station_unit(driver, link)
+    return Built([units[index] for index in range(len(links))], runners)
