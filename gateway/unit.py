@@ -84,6 +84,7 @@ class UnitOptions(TypedDict):
     poll_burst: NotRequired[int]
     write_queue_per_client: NotRequired[int]
     write_queue_per_link: NotRequired[int]
+    stagger: NotRequired[float | None]
 
 
 def _pack_registers(values: Sequence[int]) -> bytes:
@@ -114,6 +115,7 @@ class Unit(ABC, Generic[R, B]):
         poll_burst: int = 2,
         write_queue_per_client: int = 8,
         write_queue_per_link: int = 32,
+        stagger: float | None = None,
     ) -> None:
         self.unit_id = unit_id
         self.name = name
@@ -143,6 +145,7 @@ class Unit(ABC, Generic[R, B]):
             fast_interval=fast_interval,
             slow_interval=slow_interval,
             responding=lambda: driver.available,
+            stagger=stagger,  # None: a share of fast_interval from the name (gateway.poller.default_stagger)
         )
         self.write_requests = 0
         self.write_failures = 0
