@@ -24,6 +24,11 @@ Metrics (every name starts with ``slc_gateway_``)::
       write_failures_total          counter  ... of which failed (answered with an exception)
       partial_writes_total          counter  ... of which the controller refused part-way (some registers written)
       write_busy_total              counter  writes answered 0x06 because the link's write queue was full
+    per link whose driver reports its own numbers (``driver.metrics() -> dict[str, float]``), same labels
+      link_<key>_total              counter  every key, e.g. link_polls_total, link_eots_total
+      link_<key>                    gauge    keys of state, not counts: ``active`` and ``*_active``
+      link_<key>_seconds            gauge    keys ending in ``age`` (``data_age``); a negative age (no
+                                             answer yet) is +Inf, as in data_age_seconds
     per Modbus server, label server="modbus" | "modbus-tls"
       modbus_requests_total{function_code}    counter  requests by function code (decimal, unknown ones too)
       modbus_exceptions_total{exception_code} counter  exception replies by exception code (decimal)
@@ -181,8 +186,9 @@ class _GatewayCollector:
             write_failures.add_metric(labels, unit.write_failures)
             partial.add_metric(labels, unit.partial_writes)
             busy.add_metric(labels, unit.writes.busy_refusals)
-        return [link_up, connected, age, stale, *plain.values(), retries, byte_count, writes, write_failures, partial,
-                busy]
+        static: list[Metric] = [link_up, connected, age, stale, *plain.values(), retries, byte_count, writes,
+                                write_failures, partial, busy]
+        return static + _driver_families(units, {family.name for family in static})
 
     @staticmethod
     def _server_families(servers: Sequence[ModbusTcpServer]) -> list[Metric]:
@@ -221,6 +227,72 @@ class _GatewayCollector:
             evicted.add_metric((name,), server.admission.evicted)
             handshakes.add_metric((name,), server.admission.handshaking)
         return [requests, exceptions, backend_errors, connections, accepted, refused, dropped, evicted, handshakes]
+
+
+_METRIC_KEY: Final = re.compile(r"[a-z][a-z0-9_]{0,62}")
+_warned_keys: set[tuple[str, str]] = set()
+
+
+def _driver_family(key: str, link: Sequence[str]) -> Metric:
+    """``link_<key>``: a gauge for a state (``active``) or an age (``..._seconds``), else a counter."""
+    name = "link_" + key
+    if key.endswith("age"):
+        return _gauge(name + "_seconds", f"{key} of the station or line, seconds (+Inf: never answered).", link)
+    if key == "active" or key.endswith("_active"):
+        return _gauge(name, f"{key}: 1 yes, 0 no (reported by the link's driver).", link)
+    return _counter(name, f"{key} (reported by the link's driver), since the link was created.", link)
+
+
+def _driver_numbers(unit: Unit[Any, Any]) -> dict[str, float]:
+    """``unit.driver.metrics()`` if the driver has the hook; {} without it or when it fails (logged once)."""
+    hook = getattr(unit.driver, "metrics", None)
+    if not callable(hook):
+        return {}
+    try:
+        numbers = hook()
+    except Exception as exc:  # a driver's bug must not cost the scrape
+        if (unit.name, "") not in _warned_keys:
+            _warned_keys.add((unit.name, ""))
+            log.warning("metrics: link %s: its driver's metrics() failed: %r", unit.name, exc)
+        return {}
+    if not isinstance(numbers, dict):
+        return {}
+    good: dict[str, float] = {}
+    for key, number in numbers.items():
+        if isinstance(key, str) and _METRIC_KEY.fullmatch(key) and isinstance(number, int | float):
+            good[key] = float(number)
+        elif (unit.name, str(key)) not in _warned_keys:
+            _warned_keys.add((unit.name, str(key)))
+            log.warning("metrics: link %s: driver metric %r = %r skipped: keys are lower-case names "
+                        "([a-z][a-z0-9_]*), values numbers", unit.name, key, number)
+    return good
+
+
+def _driver_families(units: Sequence[Unit[Any, Any]], taken: set[str]) -> list[Metric]:
+    """The ``link_<key>`` families of the drivers that report their own numbers (module docstring).
+
+    A key whose family name is already one of the static families' is skipped (logged once).
+    """
+    link = ("link", "unit")
+    families: dict[str, Metric] = {}
+    for unit in units:
+        labels = (unit.name, str(unit.unit_id))
+        for key, number in sorted(_driver_numbers(unit).items()):
+            family = families.get(key)
+            if family is None:
+                family = _driver_family(key, link)
+                if family.name in taken:
+                    if (unit.name, key) not in _warned_keys:
+                        _warned_keys.add((unit.name, key))
+                        log.warning("metrics: link %s: driver metric %r would shadow %s; skipped",
+                                    unit.name, key, family.name)
+                    continue
+                families[key] = family
+            if key.endswith("age") and number < 0:
+                number = math.inf
+            assert isinstance(family, CounterMetricFamily | GaugeMetricFamily)
+            family.add_metric(labels, number)
+    return list(families.values())
 
 
 def _data_age(unit: Unit[Any, Any], now: float) -> float:

@@ -1,8 +1,11 @@
 """``[[link]]`` with ``protocol = "df1"``: an SLC 500 / PLC-5 over DF1 full duplex, and its
 ``[[link.map]]`` entries.
 
-Map addresses are checked by the protocol's own parser, :func:`gateway.protocols.df1.address.parse_address`;
-the map rules read the file letter and whether the address names a bit from what it returns.
+Map addresses are checked by the parser of the link's processor: an SLC 500's by
+:func:`gateway.protocols.df1.address.parse_address`, a PLC-5's (``processor = "plc5"``: ``B3/5``,
+``N7:300``, octal ``I:010``) by :func:`gateway.protocols.df1.plc5_address.parse_plc5_address`; the map
+rules read the file letter and whether the address names a bit from what it returns.  The entry alone
+checks its keys; the link checks its addresses (only the link knows its processor).
 This module is the one place that holds the protocol's serial defaults.
 """
 
@@ -12,12 +15,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal, NamedTuple
 
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from gateway.config._common import Loc, Model, Problems, show
 from gateway.config.link import LinkBase, Parity, SerialDefaults
 from gateway.config.writer import table_lines
 from gateway.protocols.df1.address import parse_address
+from gateway.protocols.df1.plc5_address import parse_plc5_address
 
 __all__ = [
     "DF1_DEFAULTS",
@@ -50,14 +54,21 @@ class AddressKind(NamedTuple):
     is_bit: bool
 
 
-def classify_address(text: str) -> AddressKind:
-    """The file letter of an SLC 500 address and whether it names a bit.
+def classify_address(text: str, processor: str = "slc5/04") -> AddressKind:
+    """The file letter of an address of ``processor`` and whether it names a bit.
 
-    Raises ``ValueError`` (an :class:`~gateway.protocols.df1.address.AddressError`) saying why
+    Raises ``ValueError`` (an ``AddressError`` of the SLC 500 or the PLC-5 parser) saying why
     ``text`` is not an address.
     """
+    if processor == "plc5":
+        plc5 = parse_plc5_address(text)
+        return AddressKind(plc5.file_type, plc5.bit is not None)
     address = parse_address(text)
     return AddressKind(address.file_type.letter, address.bit is not None)
+
+
+def _processor_name(processor: str) -> str:
+    return "PLC-5" if processor == "plc5" else "SLC 500"
 
 
 class MapEntry(Model):
@@ -106,7 +117,6 @@ class MapEntry(Model):
             problems.append(
                 (("type",), f'type "bool" is for coil and discrete tables (this is a {self.table} table)')
             )
-        type_problem = bool(problems)
         if self.last > 65535:
             problems.append(
                 (
@@ -115,16 +125,17 @@ class MapEntry(Model):
                     f" x {self.width} - 1 = {self.last}",
                 )
             )
-        try:
-            kind = classify_address(self.address)
-        except ValueError as exc:  # AddressError is an InvalidRequest, a ValueError
-            problems.append((("address",), f"not a valid SLC 500 address: {exc}"))
-        else:
-            if not type_problem:
-                problems.extend(self._address_problems(kind))
         if problems:
             raise Problems(*problems)
         return self
+
+    def address_problems(self, processor: str) -> list[tuple[Loc, str]]:
+        """The address's problems on a link of ``processor`` (at ``("address",)`` or ``("type",)``)."""
+        try:
+            kind = classify_address(self.address, processor)
+        except ValueError as exc:  # AddressError is an InvalidRequest, a ValueError
+            return [(("address",), f"not a valid {_processor_name(processor)} address: {exc}")]
+        return self._address_problems(kind)
 
     def _address_problems(self, kind: AddressKind) -> list[tuple[Loc, str]]:
         address = show(self.address)
@@ -211,6 +222,23 @@ class Df1LinkConfig(LinkBase):
     #: words of N``receive_file`` the station may write to the gateway with an MSG (0: none; STS 10)
     receive_file: int = Field(7, ge=0, le=999)
     receive_words: int = Field(0, ge=0, le=10000)
+
+    @field_validator("map", mode="after")
+    @classmethod
+    def _check_addresses(cls, entries: tuple[MapEntry, ...], info: ValidationInfo) -> tuple[MapEntry, ...]:
+        """Each entry's address by the parser of this link's processor (skipped when ``processor``
+        itself is invalid: that error is reported)."""
+        processor = info.data.get("processor")
+        if processor is None:
+            return entries
+        problems = [
+            ((index, *loc), message)
+            for index, entry in enumerate(entries)
+            for loc, message in entry.address_problems(processor)
+        ]
+        if problems:
+            raise Problems(*problems)
+        return entries
 
     def problems(self) -> list[tuple[Loc, str]]:
         problems = super().problems()

@@ -1,36 +1,64 @@
 """The diagnostic commands of the CLI for DF1 links (``--protocol df1``): probe, read, write, mode.
 
-Items are SLC 500 logical addresses: ``N7:0`` (signed 16-bit), ``B3:0/3`` (a bit), ``F8:2``
-(a float), ``T4:1.ACC``, ``C5:0/DN``, ``I:1.0``, ``S:1/5``; a whole structure (``T4:1``) reads
-as its three words.
+Items of an SLC 500 are SLC 500 logical addresses, read and written with the typed logical
+commands: ``N7:0`` (signed 16-bit), ``B3:0/3`` (a bit), ``F8:2`` (a float), ``T4:1.ACC``,
+``C5:0/DN``, ``I:1.0``, ``S:1/5``; a whole structure (``T4:1``) reads as its three words.
+
+With ``--processor plc5`` items are PLC-5 addresses (``N7:0``, ``B3/5``, ``T4:1.ACC``, ``F8:2``,
+octal ``I:010``, elements above 255), read with word range read ``0F 01`` and written with word
+range write ``0F 00``; a bit is written with read-modify-write ``0F 26`` (only that bit changes, in
+the controller: :mod:`gateway.protocols.df1.plc5_commands`), as the PLC-5 unit does.
+
+``--duplex half --station N`` talks to station N of a half-duplex multi-drop line or radio channel:
+a :class:`~gateway.drivers.df1_half.Df1HalfDuplexLine` master with that one station, the commands
+through ``line.station(N)`` (the same ``execute`` API as the full-duplex
+:class:`~gateway.drivers.df1.Df1Driver`).  ``--poll-timeout`` and ``--ack-timeout`` are the line's
+answer timers (radio: raise them); ``--timeout`` is from the station's ACK to its reply.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import re
 import struct
-from dataclasses import replace
-from typing import Any
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, replace
+from typing import Any, Protocol
 
 from gateway.config.df1 import DF1_DEFAULTS
 from gateway.drivers.base import OpenStream
 from gateway.drivers.df1 import Df1Driver
-from gateway.errors import InvalidRequest
+from gateway.drivers.df1_half import Df1HalfDuplexLine, PcccCommand
+from gateway.errors import InvalidRequest, LinkTimeout
 from gateway.links.df1.unit import PROCESSORS
 from gateway.links.kind import ToolHints
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
 from gateway.protocols.df1.framing import Checksum
+from gateway.protocols.df1.half_duplex import StationConfig
 from gateway.protocols.df1.pccc import (
+    DiagnosticStatusInfo,
+    PcccReply,
+    ProcessorFamily,
     ProcessorMode,
     ProtectedTypedLogicalMaskedWrite,
     ProtectedTypedLogicalRead,
     ProtectedTypedLogicalWrite,
     SetProcessorMode,
 )
+from gateway.protocols.df1.plc5_address import AddressError, Plc5Address, parse_plc5_address
+from gateway.protocols.df1.plc5_commands import plc5_bit_write, plc5_read, plc5_write
 from gateway.tools_common import print_result, resolve_retries
 
-__all__ = ["HINTS", "add_options", "decode_value", "encode_value", "run_df1_tool"]
+__all__ = [
+    "HINTS",
+    "add_options",
+    "decode_plc5_value",
+    "decode_value",
+    "encode_plc5_write",
+    "encode_value",
+    "run_df1_tool",
+]
 
 #: DF1 link-layer symbols: DLE followed by STX, ETX, ENQ, ACK or NAK (1770-6.5.16, full duplex).
 _DLE_FRAMED = re.compile(rb"\x10[\x02\x03\x05\x06\x15]")
@@ -39,7 +67,7 @@ HINTS = ToolHints(
     looks_like=lambda received: _DLE_FRAMED.search(received) is not None,
     wire="DF1 (DLE-framed): an SLC 500 or PLC-5?",
     controllers="an SLC 500 or PLC-5",
-    check="the cable, baud rate, --checksum and --station",
+    check="the cable, baud rate, --checksum, --station and --duplex",
 )
 
 
@@ -79,49 +107,144 @@ def encode_value(address: SlcAddress, text: str) -> tuple[bytes, int | None]:
     return (value & 0xFFFF).to_bytes(2, "little"), None
 
 
+#: PLC-5 files whose words read as signed 16-bit numbers (integers, and timer / counter / control words)
+_PLC5_SIGNED = frozenset("NTCR")
+_PLC5_STRUCTURES = frozenset("TCR")
+
+
+def _plc5_address(text: str) -> Plc5Address:
+    try:
+        return parse_plc5_address(text)
+    except AddressError as exc:
+        raise InvalidRequest(f"{exc} (--processor plc5 reads PLC-5 addresses)") from exc
+
+
+def _plc5_word(address: Plc5Address) -> Plc5Address:
+    """The word holding a bit address (or the address itself)."""
+    return Plc5Address(address.file_type, address.file_number, address.element, address.sub_element)
+
+
+def decode_plc5_value(address: Plc5Address, data: bytes) -> Any:
+    """The value of ``address`` from the bytes a word range read of ``_plc5_word(address)`` returned."""
+    if address.bit is not None:
+        return bool(int.from_bytes(data[:2], "little") >> address.bit & 1)
+    if address.file_type == "F" and address.sub_element is None:
+        return struct.unpack("<f", data[:4])[0]  # two words, the low-order word first
+    words = [int.from_bytes(data[i : i + 2], "little") for i in range(0, len(data), 2)]
+    if len(words) > 1:
+        return words
+    signed = address.file_type in _PLC5_SIGNED
+    return words[0] - 0x10000 if signed and words[0] & 0x8000 else words[0]
+
+
+def encode_plc5_write(address: Plc5Address, text: str) -> PcccCommand:
+    """The PLC-5 command that writes ``text`` to ``address``: word range write, or RMW for a bit."""
+    if address.bit is not None:
+        try:
+            value = int(text, 0)
+        except ValueError as exc:
+            raise InvalidRequest(f"{address}={text}: a bit takes 0 or 1") from exc
+        if value not in (0, 1):
+            raise InvalidRequest(f"{address}={text}: a bit takes 0 or 1")
+        return plc5_bit_write(address, bool(value))
+    if address.file_type == "F":
+        try:
+            return plc5_write(address, struct.pack("<f", float(text)))
+        except ValueError as exc:
+            raise InvalidRequest(f"{address}={text}: not a number") from exc
+    if address.file_type in _PLC5_STRUCTURES and address.sub_element is None:
+        raise InvalidRequest(f"{address}: write a member (.PRE, .ACC ...), not the whole structure")
+    try:
+        value = int(text, 0)
+    except ValueError as exc:
+        raise InvalidRequest(f"{address}={text}: not a whole number") from exc
+    if not -0x8000 <= value <= 0xFFFF:
+        raise InvalidRequest(f"{address}={text}: a word takes -32768..65535")
+    return plc5_write(address, (value & 0xFFFF).to_bytes(2, "little"))
+
+
+@dataclass(frozen=True, slots=True)
+class _Read:
+    text: str
+    request: PcccCommand
+    decode: Callable[[bytes], Any]
+
+
+@dataclass(frozen=True, slots=True)
+class _Write:
+    text: str
+    value: str
+    request: PcccCommand
+
+
+def _read_item(text: str, plc5: bool) -> _Read:
+    if plc5:
+        address = _plc5_address(text)
+        return _Read(text, plc5_read(_plc5_word(address)), lambda data: decode_plc5_value(address, data))
+    slc = parse_address(text)
+    request = ProtectedTypedLogicalRead(slc.file_type, slc.file_number, slc.element, slc.sub_element, slc.byte_count)
+    return _Read(text, request, lambda data: decode_value(slc, data))
+
+
+def _write_item(text: str, plc5: bool) -> _Write:
+    name, sep, value = text.partition("=")
+    if not sep or not value:
+        example = "N7:0=5 or B3/5=1" if plc5 else "N7:0=5 or B3:0/3=1"
+        raise InvalidRequest(f"{text!r}: expected ADDRESS=VALUE, e.g. {example}")
+    if plc5:
+        return _Write(name, value, encode_plc5_write(_plc5_address(name), value))
+    a = parse_address(name)
+    data, mask = encode_value(a, value)
+    if mask is None:
+        return _Write(name, value, ProtectedTypedLogicalWrite(a.file_type, a.file_number, a.element, a.sub_element,
+                                                              data))
+    return _Write(name, value, ProtectedTypedLogicalMaskedWrite(a.file_type, a.file_number, a.element,
+                                                                a.sub_element, mask, data))
+
+
+class _Target(Protocol):
+    """What the commands use: ``Df1Driver``, or a station of a half-duplex line (``Df1Station``)."""
+
+    async def execute(self, request: Any, name: str = "", *, write: bool | None = None) -> PcccReply: ...
+
+    async def probe(self) -> DiagnosticStatusInfo: ...
+
+
 def add_options(parser: argparse.ArgumentParser) -> None:
     """The options only DF1 commands take."""
     parser.add_argument("--station", type=int, default=1, help="df1: destination node (default 1)")
     parser.add_argument("--source", type=int, default=0, help="df1: our node (default 0)")
     parser.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc (default crc)")
     parser.add_argument("--processor", default="slc5/04", choices=tuple(PROCESSORS),
-                        help="df1: processor family (default slc5/04)")
+                        help="df1: processor family (default slc5/04; plc5: PLC-5 addresses, word range commands)")
+    parser.add_argument("--duplex", choices=("full", "half"), default="full",
+                        help="df1: full (point to point, default) or half (a station of a multi-drop line or "
+                             "radio channel, polled by us)")
+    parser.add_argument("--poll-timeout", type=float, default=0.5, metavar="S",
+                        help="df1 half duplex: wait for the answer to a poll (default 0.5)")
+    parser.add_argument("--ack-timeout", type=float, default=0.5, metavar="S",
+                        help="df1 half duplex: wait for the DLE ACK of a command (default 0.5)")
 
 
 async def run_df1_tool(command: str, args: argparse.Namespace, opener: OpenStream) -> int:
     if args.processor not in PROCESSORS:
         raise InvalidRequest(f"--processor {args.processor}: choose from {', '.join(PROCESSORS)}")
-    settings = DF1_DEFAULTS.settings
-    if args.baudrate:
-        settings = replace(settings, baudrate=args.baudrate)
+    plc5 = PROCESSORS[args.processor] is ProcessorFamily.PLC5
+    reads: list[_Read] = []
+    writes: list[_Write] = []
     if command == "read":
-        items = [(text, parse_address(text)) for text in args.items]
+        reads = [_read_item(text, plc5) for text in args.items]
     elif command == "write":
-        writes = []
-        for text in args.assignments:
-            name, sep, value = text.partition("=")
-            if not sep or not value:
-                raise InvalidRequest(f"{text!r}: expected ADDRESS=VALUE, e.g. N7:0=5 or B3:0/3=1")
-            address = parse_address(name)
-            writes.append((name, address, value, *encode_value(address, value)))
-    elif command not in ("probe", "mode"):
+        writes = [_write_item(text, plc5) for text in args.assignments]
+    elif command == "mode":
+        if plc5:
+            raise InvalidRequest("mode: a PLC-5 has no SLC change-mode command (0F 80); "
+                                 "use the keyswitch or the programming software")
+    elif command != "probe":
         raise InvalidRequest(f"{command} is not available for DF1 links")
-    driver = Df1Driver(
-        args.url,
-        settings=settings,
-        checksum=Checksum.CRC if args.checksum == "crc" else Checksum.BCC,
-        station=args.station,
-        source=args.source,
-        family=PROCESSORS[args.processor],
-        timeout=args.timeout or DF1_DEFAULTS.timeout,
-        retries=resolve_retries(command, args.retries),
-        trace=args.trace,
-        reconnect_min=60.0,
-        opener=opener,
-    )
-    async with driver:
+    async with _open(command, args, opener) as target:
         if command == "probe":
-            info = await driver.probe()
+            info = await target.probe()
             family = info.family
             print_result({
                 "processor": family.value if family else f"unknown (type 0x{info.processor_type or 0:02X})",
@@ -131,30 +254,66 @@ async def run_df1_tool(command: str, args: argparse.Namespace, opener: OpenStrea
             }, args.json)
         elif command == "read":
             result: dict[str, Any] = {}
-            for text, address in items:
-                request = ProtectedTypedLogicalRead(
-                    address.file_type, address.file_number, address.element, address.sub_element, address.byte_count
-                )
-                reply = await driver.execute(request, f"read {address}")
-                result[text] = decode_value(address, reply.data)
+            for item in reads:
+                reply = await target.execute(item.request, f"read {item.text}", write=False)
+                result[item.text] = item.decode(reply.data)
             print_result(result, args.json)
         elif command == "write":
-            for name, a, _, data, mask in writes:
-                if mask is None:
-                    await driver.execute(
-                        ProtectedTypedLogicalWrite(a.file_type, a.file_number, a.element, a.sub_element, data),
-                        f"write {name}",
-                    )
-                else:
-                    masked = ProtectedTypedLogicalMaskedWrite(
-                        a.file_type, a.file_number, a.element, a.sub_element, mask, data
-                    )
-                    await driver.execute(masked, f"write {name}")
-            print_result({name: value for name, _, value, _, _ in writes}, args.json)
+            for write in writes:
+                await target.execute(write.request, f"write {write.text}", write=True)
+            print_result({write.text: write.value for write in writes}, args.json)
         else:
             modes = {"run": ProcessorMode.RUN, "program": ProcessorMode.PROGRAM, "test": ProcessorMode.TEST_CONTINUOUS}
             if args.mode not in modes:
                 raise InvalidRequest(f"DF1 mode: choose run, program or test, not {args.mode}")
-            await driver.execute(SetProcessorMode(modes[args.mode]), f"mode {args.mode}", write=True)
+            await target.execute(SetProcessorMode(modes[args.mode]), f"mode {args.mode}", write=True)
             print_result({"mode": args.mode}, args.json)
     return 0
+
+
+@contextlib.asynccontextmanager
+async def _open(command: str, args: argparse.Namespace, opener: OpenStream) -> AsyncIterator[_Target]:
+    """The full-duplex driver, or station ``--station`` of a half-duplex line master (``--duplex half``)."""
+    settings = DF1_DEFAULTS.settings
+    if args.baudrate:
+        settings = replace(settings, baudrate=args.baudrate)
+    checksum = Checksum.CRC if args.checksum == "crc" else Checksum.BCC
+    timeout = args.timeout or DF1_DEFAULTS.timeout
+    retries = resolve_retries(command, args.retries)
+    if getattr(args, "duplex", "full") != "half":
+        driver = Df1Driver(
+            args.url, settings=settings, checksum=checksum, station=args.station, source=args.source,
+            family=PROCESSORS[args.processor], timeout=timeout, retries=retries, trace=args.trace,
+            reconnect_min=60.0, opener=opener,
+        )
+        async with driver:
+            yield driver
+        return
+    if args.station == args.source:
+        raise InvalidRequest(f"--station {args.station} is our own address (--source): give another station")
+    try:
+        station = StationConfig(args.station, poll_timeout=args.poll_timeout, reply_timeout=timeout)
+        line = Df1HalfDuplexLine(
+            args.url, [station], settings=settings, checksum=checksum, source=args.source,
+            ack_timeout=args.ack_timeout, retries=retries, trace=args.trace, reconnect_min=60.0,
+            reconnect_max=60.0, opener=opener,
+        )
+    except ValueError as exc:
+        raise InvalidRequest(f"--duplex half: {exc}") from exc
+    await line.start()
+    try:
+        yield line.station(args.station)
+    except LinkTimeout as exc:
+        raise _half_duplex_timeout(line, args.station, exc) from exc
+    finally:
+        await line.close()
+
+
+def _half_duplex_timeout(line: Df1HalfDuplexLine, station: int, exc: LinkTimeout) -> LinkTimeout:
+    """The station's failure in words for a one-shot command (the line's own speaks of slow polls)."""
+    check = ("check its power and cable, --station, --checksum (bcc or crc), --baudrate, and on a radio or "
+             "a slow modem --poll-timeout and --ack-timeout")
+    core = line.core
+    if core is not None and not core.is_active(station):
+        return LinkTimeout(f"station {station} does not answer on {line.url}: {check}")
+    return LinkTimeout(f"{exc}; {check}")
