@@ -484,7 +484,7 @@ BAD = [
         ASCII_LINK.replace('"sim://slc150"', '"sim://slc999"'),
         "(link[0]).port",
         "port",
-        "sim://slc150, sim://slc100 or sim://slc504",
+        "sim://slc150, sim://slc100, sim://slc504, sim://plc5 or sim://df1line",
     ),
     (
         "port-sim-query",
@@ -1425,13 +1425,13 @@ def test_a_wrong_simulator_is_reported_with_the_other_problems_of_the_link() -> 
     assert "(link[0]).retries: must be less than or equal to 10" in lines[2]
     text = ASCII_LINK.replace("sim://slc150", "sim://slc999") + "retries = 99\n"
     lines = error_of(text).split("\n")
-    assert lines[1].endswith("(link[0]).port: sim://slc999: no such simulator: expected sim://slc150, sim://slc100 "
-                             "or sim://slc504")
+    assert lines[1].endswith("(link[0]).port: sim://slc999: no such simulator: expected sim://slc150, sim://slc100, "
+                             "sim://slc504, sim://plc5 or sim://df1line")
 
 
 def test_a_bad_port_names_the_simulators_of_the_links_protocol() -> None:
     error = error_of(DF1_LINK.replace('"sim://slc504"', '"ttyUSB0"'))
-    assert error.endswith("rfc2217://host:port or sim://slc504")
+    assert error.endswith("rfc2217://host:port or sim://slc504 | sim://plc5 | sim://df1line")
     error = error_of(ASCII_LINK.replace('"sim://slc150"', '"ttyUSB0"'))
     assert error.endswith("rfc2217://host:port or sim://slc150 | sim://slc100")
 

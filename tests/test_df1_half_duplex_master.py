@@ -6,6 +6,7 @@ docs/df1-half-duplex-notes.md; section numbers below refer to it.
 
 from __future__ import annotations
 
+import itertools
 import random
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
@@ -150,6 +151,42 @@ def test_dead_station_is_demoted_fails_fast_and_comes_back_on_slow_poll() -> Non
     master.receive_data(EOT, now + 30.1)
     assert events(master) == [StationRestored(2)]
     assert master.counters(2).demotions == 1
+
+
+def test_demoted_station_is_slow_polled_even_while_the_others_always_have_commands() -> None:
+    """A demoted station's slow poll takes its turn in the round robin: queued commands of busy
+    stations (a gateway polling continuously) must not starve it, or it is never restored."""
+    master = make(1, 2, line={"ack_timeout": 0.1}, poll_timeout=0.1, retries=3, poll_interval=100.0,
+                  slow_poll_interval=2.0)
+    slave = HalfDuplexSlave(1, Checksum.BCC, lambda cmd: reply_to(cmd, b"\x00\x00"))  # station 2 is absent
+    tns = itertools.count(1)
+    master.submit(1, command(1, next(tns)), 0.0)
+    master.submit(2, command(2, next(tns)), 0.0)  # the absent station's unit reads too, until demoted
+    now, replies, polls_of_2 = 0.0, 0, []
+    while now < 12.0:
+        for event in events(master):
+            assert not isinstance(event, RequestFailed) or event.station == 2, event
+            if isinstance(event, ReplyReceived):
+                replies += 1
+                master.submit(1, command(1, next(tns)), now)  # station 1 always has its next command
+            if isinstance(event, RequestFailed) and master.is_active(2):
+                master.submit(2, command(2, next(tns)), now)
+        sent = master.data_to_send()
+        polls_of_2 += [now] * sent.count(encode_poll(2))
+        slave.receive_data(sent)
+        answer = slave.data_to_send()
+        if answer:
+            now += 0.01
+            master.receive_data(answer, now)
+            continue
+        deadline = master.next_deadline()
+        assert deadline is not None
+        now = max(now, deadline)
+        master.handle_timeout(now)
+    assert not master.is_active(2) and master.counters(2).demotions == 1 and replies > 100
+    slow = [t for t in polls_of_2 if t > 2.0]  # demoted after 3 unacknowledged commands (1.2 s)
+    assert len(slow) >= 4, polls_of_2  # every 2 s after the demotion, despite station 1's traffic
+    assert all(b - a < 2.5 for a, b in itertools.pairwise(slow)), slow
 
 
 def test_bad_slave_frame_is_not_acknowledged_and_the_station_is_polled_again() -> None:

@@ -33,7 +33,8 @@ def test_line_model_splits_slave_and_controller_variants() -> None:
 @pytest.mark.parametrize(
     ("model", "options", "variants", "message"),
     [
-        ("df1line", {"stations": "1"}, "typed_logical=accept", "unknown variant"),  # an SLC line
+        ("df1line", {"stations": "1"}, "typed_logical=accept", "of PLC-5 stations"),  # an SLC line
+        ("df1line", {"stations": "1"}, "ack_order=embedded", "unknown variant"),  # a full-duplex link's
         ("df1line", {"stations": "1"}, "reply_retries=9", "not one of"),
         ("df1line", {"bogus": "1"}, "", "unknown multi-drop line option"),
         ("plc5", {}, "typed_logical=maybe", "not one of"),

@@ -168,7 +168,7 @@ class Df1LinkConfig(LinkBase):
     """``[[link]]`` of an SLC 500 or PLC-5 over DF1 full duplex, with its ``[[link.map]]``."""
 
     serial_defaults: ClassVar[SerialDefaults] = DF1_DEFAULTS
-    sim_models: ClassVar[tuple[str, ...]] = ("slc504",)
+    sim_models: ClassVar[tuple[str, ...]] = ("slc504", "plc5", "df1line")
 
     protocol: Literal["df1"]
     baudrate: int = DF1_DEFAULTS.baudrate

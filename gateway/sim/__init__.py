@@ -1,8 +1,8 @@
 """Controller simulators, written from the manuals, with fault injection.
 
 ``sim://MODEL[?options]`` URLs open an in-process simulator.  The models are listed in
-:mod:`gateway.sim.models` (built in: ``slc150``, ``slc100``, ``slc504``; a link kind may add
-its own).  Options:
+:mod:`gateway.sim.models` (built in: ``slc150``, ``slc100``, ``slc504``, ``plc5`` and the DF1
+half-duplex multi-drop line ``df1line``; a link kind may add its own).  Options:
 
 =====================  ==========================================================================
 ``garble=N``           corrupt 1 in N replies
@@ -19,7 +19,11 @@ its own).  Options:
                        or separate several with commas); see ``docs/controller-variants.md``
 =====================  ==========================================================================
 
-The same URL always reaches the same simulated controller within a process, so a reconnecting
+A *self-paced* model (``df1line``: ``sim://df1line?stations=1,2,3&dead=3&corrupt=6&ignore=10``, its
+options in ``docs/df1-half-duplex-line.md``) judges collisions on its own clock: it takes
+``char_time=S`` instead of ``paced=1`` (an error for it), and ``turnaround=S`` is its own option.
+
+The same URL always reaches the same simulated controller (or line) within a process, so a reconnecting
 driver finds the controller as it left it, and tests can inspect it with ``get_simulator(url)``.
 """
 
@@ -46,7 +50,13 @@ __all__ = [
 ]
 
 _STREAM_OPTIONS = ("paced", "turnaround", "instance", "ladder", "variant")
+#: a self-paced device takes ``turnaround`` itself (and refuses ``paced``)
+_SELF_PACED_STREAM_OPTIONS = ("instance", "ladder", "variant")
 _registry: dict[str, Any] = {}
+
+
+def _truthy(text: str) -> bool:
+    return text.strip().lower() not in ("0", "false", "no", "")
 
 
 def parse_sim_url(url: str) -> tuple[str, dict[str, str]]:
@@ -63,6 +73,9 @@ def parse_sim_url(url: str) -> tuple[str, dict[str, str]]:
             options[key] += "," + value  # repeatable: every variant counts, not only the last
         else:
             options[key] = value
+    if sim_models()[model].self_paced and _truthy(options.get("paced", "0")):
+        raise ValueError(f"{url}: sim://{model} paces itself: give char_time=S (seconds per character) "
+                         "instead of paced=1")
     if options.get("variant"):
         # validate now: a typo is an error, never a silent default reading
         variants_of(model, parse_variant_args([options["variant"]]))
@@ -84,7 +97,8 @@ def create_simulator(model: str, options: dict[str, str]) -> SimDevice:
     found = sim_models().get(model)
     if found is None:
         raise ValueError(f"unknown simulator {model!r} (choose from {', '.join(model_names())})")
-    fault_options = {k: v for k, v in options.items() if k not in _STREAM_OPTIONS}
+    stream_options = _SELF_PACED_STREAM_OPTIONS if found.self_paced else _STREAM_OPTIONS
+    fault_options = {k: v for k, v in options.items() if k not in stream_options}
     ladder = options.get("ladder", "1") not in ("0", "false", "no")
     variants = variants_of(model, parse_variant_args([options.get("variant", "")]))
     return found.create(fault_options, ladder, variants)
@@ -107,10 +121,12 @@ def reset_simulators() -> None:
 
 def open_sim_stream(url: str, settings: SerialSettings) -> SimStream:
     try:
-        _, options = parse_sim_url(url)
+        model, options = parse_sim_url(url)
         device = get_simulator(url)
+        if sim_models()[model].self_paced:
+            return SimStream(device)  # its own clock: no line settings, its turnaround is its option
         turnaround = float(options.get("turnaround", "0") or 0)
     except ValueError as exc:
         raise LinkDown(str(exc)) from exc
-    paced = options.get("paced", "0") not in ("0", "false", "no", "")
+    paced = _truthy(options.get("paced", "0"))
     return SimStream(device, settings if paced else None, turnaround)

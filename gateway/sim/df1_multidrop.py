@@ -200,6 +200,8 @@ class MultidropLine:
     """Several half-duplex slave stations on one medium (module docstring).  A ``SimDevice``."""
 
     VARIANTS: ClassVar[Mapping[str, tuple[str, ...]]] = SLAVE_VARIANTS
+    #: paces its own bytes (``char_time``): serve it without line settings (``gateway.sim.serve``)
+    self_paced: ClassVar[bool] = True
 
     def __init__(
         self,

@@ -20,8 +20,8 @@ from gateway.config.slc_ascii import SLC_ASCII_DEFAULTS
 from gateway.sim.serve import SimDevice
 from gateway.streams import SerialSettings
 
-__all__ = ["BUILTIN_MODELS", "SLC100", "SLC150", "SLC504", "SimModel", "register_sim_model", "sim_models",
-           "unregister_sim_model"]
+__all__ = ["BUILTIN_MODELS", "DF1LINE", "PLC5", "SLC100", "SLC150", "SLC504", "SimModel", "register_sim_model",
+           "sim_models", "unregister_sim_model"]
 
 #: (fault options, ladder running, variant values) -> a new simulated controller
 SimFactory = Callable[[Mapping[str, str], bool, Mapping[str, str]], SimDevice]
@@ -42,6 +42,9 @@ class SimModel:
     cli_options: frozenset[str] = field(default_factory=frozenset)
     #: the ``slc-gateway simulate`` settings it takes (always given: they have defaults)
     cli_settings: frozenset[str] = field(default_factory=frozenset)
+    #: the device paces its own bytes (a multi-drop line judging collisions on its own clock): it is
+    #: served without line settings, ``turnaround`` is its own option and ``paced`` does not apply
+    self_paced: bool = False
 
 
 def _slc_ascii(model: str) -> SimFactory:
@@ -73,6 +76,30 @@ def _slc504_variants() -> Mapping[str, tuple[str, ...]]:
     return Slc500Simulator.VARIANTS
 
 
+def _plc5(faults: Mapping[str, str], ladder: bool, variants: Mapping[str, str]) -> SimDevice:
+    from gateway.sim.df1_half_models import create_plc5
+
+    return create_plc5(faults, ladder=ladder, variants=variants)
+
+
+def _plc5_variants() -> Mapping[str, tuple[str, ...]]:
+    from gateway.sim.plc5 import Plc5Simulator
+
+    return Plc5Simulator.VARIANTS
+
+
+def _df1line(faults: Mapping[str, str], ladder: bool, variants: Mapping[str, str]) -> SimDevice:
+    from gateway.sim.df1_half_models import create_line
+
+    return create_line(faults, ladder=ladder, variants=variants)
+
+
+def _df1line_variants() -> Mapping[str, tuple[str, ...]]:
+    from gateway.sim.df1_half_models import LINE_VARIANTS
+
+    return LINE_VARIANTS
+
+
 _ASCII_LINE = SLC_ASCII_DEFAULTS.settings
 _DF1_LINE = DF1_DEFAULTS.settings
 _ASCII_OPTIONS = frozenset({"power_cycle_every", "fault_every"})
@@ -82,8 +109,14 @@ _DF1_SETTINGS = frozenset({"checksum", "station"})
 SLC150 = SimModel("slc150", _slc_ascii("slc150"), _ASCII_LINE, _slc_ascii_variants, _ASCII_OPTIONS)
 SLC100 = SimModel("slc100", _slc_ascii("slc100"), _ASCII_LINE, _slc_ascii_variants, _ASCII_OPTIONS)
 SLC504 = SimModel("slc504", _slc504, _DF1_LINE, _slc504_variants, _DF1_OPTIONS, _DF1_SETTINGS)
+#: a PLC-5 on DF1 full duplex (word range commands; ``gateway.sim.plc5``)
+PLC5 = SimModel("plc5", _plc5, _DF1_LINE, _plc5_variants, _DF1_OPTIONS, _DF1_SETTINGS)
+#: a DF1 half-duplex multi-drop line of SLC 5/04 or PLC-5 stations (``gateway.sim.df1_multidrop``); its
+#: stations, faults and timing are URL options (``stations=1,2,3&dead=3&corrupt=6&ignore=10``)
+DF1LINE = SimModel("df1line", _df1line, _DF1_LINE, _df1line_variants, cli_settings=frozenset({"checksum"}),
+                   self_paced=True)
 
-BUILTIN_MODELS = (SLC150, SLC100, SLC504)
+BUILTIN_MODELS = (SLC150, SLC100, SLC504, PLC5, DF1LINE)
 
 _models: dict[str, SimModel] = {model.name: model for model in BUILTIN_MODELS}
 

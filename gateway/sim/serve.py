@@ -3,7 +3,9 @@
 A simulated device is sans-I/O: ``receive(data, now) -> [Output(delay, data)]``.  This module
 moves its bytes, optionally through a *line model* that paces every character at the line's
 baud rate (``bits_per_char / baudrate`` seconds each, both directions independent, as on a
-full-duplex serial line) plus the device's turnaround delay.
+full-duplex serial line) plus the device's turnaround delay.  A device whose class says
+``self_paced = True`` (a multi-drop line: it judges collisions on its own clock) is served without
+a line model: asking for one is a clear error.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
-from gateway.errors import LinkDown
+from gateway.errors import GatewayError, LinkDown
 from gateway.streams import ByteStream, SerialSettings
 
 __all__ = ["LineModel", "SimDevice", "SimOutput", "SimStream", "close_tcp", "serve_pty", "serve_tcp"]
@@ -68,6 +70,15 @@ def _line_models(settings: SerialSettings | None) -> tuple[LineModel, LineModel]
     return LineModel(char_time), LineModel(char_time)
 
 
+def _check_pacing(device: SimDevice, settings: SerialSettings | None, turnaround: float) -> None:
+    """A device that paces its own bytes (``self_paced``, e.g. a multi-drop line) takes no line model."""
+    if getattr(device, "self_paced", False) and (settings is not None or turnaround):
+        raise GatewayError(
+            f"{type(device).__name__} paces its own bytes (it judges collisions on its own clock): serve it "
+            "without pacing or turnaround; give it char_time=S and turnaround=S options instead"
+        )
+
+
 class _Wire:
     """Delivers device bytes to ``sink`` and host bytes to the device, through the line models."""
 
@@ -78,6 +89,7 @@ class _Wire:
         settings: SerialSettings | None,
         turnaround: float = 0.0,
     ) -> None:
+        _check_pacing(device, settings, turnaround)
         self._device = device
         self._sink = sink
         self._to_device, self._to_host = _line_models(settings)
@@ -258,6 +270,7 @@ async def serve_tcp(
     turnaround: float = 0.0,
 ) -> asyncio.Server:
     """Serve ``device`` on a TCP port, as a serial device server in raw mode would."""
+    _check_pacing(device, settings, turnaround)
     loop = asyncio.get_running_loop()
     clients: set[asyncio.Transport] = set()
     server = await loop.create_server(

@@ -12,7 +12,7 @@ from gateway.config.df1 import Df1LinkConfig
 from gateway.links.df1.build import build_df1, df1_plan
 from gateway.links.df1.tool import HINTS, add_options, run_df1_tool
 from gateway.links.kind import LinkKind
-from gateway.sim.models import SLC504
+from gateway.sim.models import DF1LINE, PLC5, SLC504
 
 __all__ = ["KIND"]
 
@@ -21,7 +21,7 @@ KIND: LinkKind[Df1LinkConfig] = LinkKind(
     build=build_df1,
     plan=df1_plan,
     controllers="SLC 500 / PLC-5",
-    simulators=(SLC504,),
+    simulators=(SLC504, PLC5, DF1LINE),
     tool=run_df1_tool,
     hints=HINTS,
     tool_options=add_options,

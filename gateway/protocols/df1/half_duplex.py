@@ -535,8 +535,11 @@ class HalfDuplexMaster:
         """IDLE: pick the next exchange.
 
         Priority: a pending link reset; the station of this turn again while it has messages; then,
-        round robin over the stations, a due poll for a reply or a queued command (so a slow
-        station's reply polls cannot starve the others); then background polls.
+        round robin over the stations, a due poll for a reply, a due slow poll of a demoted
+        station or a queued command (so a slow station's reply polls cannot starve the others, and
+        busy stations cannot starve a demoted one's slow poll: under continuous polling it would
+        never be restored); then background polls of active stations (an active station with
+        traffic is polled for its replies anyway, and every poll restarts its ``poll_interval``).
         """
         while self._state is LineState.IDLE:
             self._wake = None
@@ -569,7 +572,7 @@ class HalfDuplexMaster:
         for station in self._rotation():
             due = [r.poll_at for r in station.awaiting]
             wake += due + [r.reply_deadline for r in station.awaiting]
-            if due and min(due) <= now:
+            if (due and min(due) <= now) or (not station.active and station.next_poll_at <= now):
                 self._serve(station)
                 self._send_poll(station.config.station, now)
                 return True
