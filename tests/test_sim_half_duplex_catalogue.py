@@ -107,7 +107,7 @@ def _config(url: str) -> str:
         text += (
             f'\n[[link]]\nname = "s{station}"\nprotocol = "df1"\nport = "{url}"\nduplex = "half"\n'
             f'checksum = "bcc"\nstation = {station}\nunit = {station}\npoll_timeout = 0.05\nack_timeout = 0.05\n'
-            f'timeout = 0.5\npoll_interval = 0.05\nslow_poll_interval = 2.0\n'
+            f'timeout = 0.5\npoll_interval = 0.05\nslow_poll_interval = 2.0\ndemote_after = 5\n'
             '[[link.map]]\ntable = "holding"\nstart = 0\naddress = "N7:0"\ncount = 2\n'
         )
     return text
