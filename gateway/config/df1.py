@@ -21,6 +21,7 @@ from gateway.config._common import Loc, Model, Problems, show
 from gateway.config.link import LinkBase, Parity, SerialDefaults
 from gateway.config.writer import table_lines
 from gateway.protocols.df1.address import parse_address
+from gateway.protocols.df1.half_duplex_events import DEMOTE_AFTER
 from gateway.protocols.df1.plc5_address import parse_plc5_address
 
 __all__ = [
@@ -216,7 +217,7 @@ class Df1LinkConfig(LinkBase):
     #: background poll period for the station's own messages (report by exception)
     poll_interval: float = Field(1.0, gt=0, le=3600)
     #: answerless polls or unacknowledged messages in a row before the station is demoted
-    demote_after: int = Field(3, ge=1, le=100)
+    demote_after: int = Field(DEMOTE_AFTER, ge=1, le=100)
     #: poll period of a demoted station (it fails at once, 0x0B, until it answers again)
     slow_poll_interval: float = Field(10.0, gt=0, le=3600)
     #: words of N``receive_file`` the station may write to the gateway with an MSG (0: none; STS 10)

@@ -316,4 +316,4 @@ def _half_duplex_timeout(line: Df1HalfDuplexLine, station: int, exc: LinkTimeout
     core = line.core
     if core is not None and not core.is_active(station):
         return LinkTimeout(f"station {station} does not answer on {line.url}: {check}")
-    return LinkTimeout(f"{exc}; {check}")
+    return LinkTimeout(f"station {station} does not answer on {line.url} ({exc}): {check}")
