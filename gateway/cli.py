@@ -102,6 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--variant", action="append", default=[], metavar="NAME=VALUE",
                    help="a reading of the manual where it leaves behaviour open (repeatable; "
                         "docs/controller-variants.md lists them)")
+    p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="any option of the model's sim:// URL (repeatable), e.g. for df1line: stations=1,2,3,4 "
+                        "dead=4 corrupt=6 ignore=10 model=plc5 (docs/df1-half-duplex-line.md lists them)")
 
     p = sub.add_parser("probe", help="print the controller type and firmware revision")
     _add_link_options(p)
@@ -220,6 +223,11 @@ async def _simulate(args: argparse.Namespace) -> int:
         options["ladder"] = "0"
     if args.variant:
         options["variant"] = ",".join(args.variant)
+    for text in args.option:
+        key, sep, value = text.partition("=")
+        if not sep or not key.strip():
+            raise GatewayError(f"--option {text!r}: give KEY=VALUE, as in a sim:// URL (e.g. --option dead=3)")
+        options[key.strip()] = value.strip()
     try:
         device = create_simulator(args.model, options)
     except ValueError as exc:

@@ -10,6 +10,8 @@
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 from collections.abc import Iterator
 
 import pytest
@@ -18,7 +20,7 @@ from cli_support import start_simulator, stop
 from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.drivers.df1_half import Df1HalfDuplexLine
-from gateway.errors import GatewayError, LinkDown
+from gateway.errors import GatewayError, LinkDown, LinkTimeout
 from gateway.links import link_kind
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.half_duplex import StationConfig
@@ -157,3 +159,26 @@ async def test_simulate_df1line_serves_the_line_over_tcp() -> None:
 def test_simulate_plc5_serves_a_plc5() -> None:
     for url in _served("plc5", "--checksum", "bcc", "--variant", "typed_logical=accept"):
         assert url.startswith("socket://127.0.0.1:")
+
+
+async def test_simulate_df1line_takes_the_url_options() -> None:
+    """``--option stations=5,6 --option dead=6``: station 5 answers, the dead 6 and the absent 2 do not."""
+    for url in _served("df1line", "--checksum", "bcc", "--option", "stations=5,6", "--option", "dead=6"):
+        configs = [StationConfig(n, poll_timeout=0.1, reply_timeout=0.5, retries=2) for n in (2, 5, 6)]
+        master = Df1HalfDuplexLine(url, configs, checksum=Checksum.BCC, ack_timeout=0.1)
+        stations = {n: master.station(n) for n in (2, 5, 6)}
+        await stations[5].start()
+        try:
+            reply = await stations[5].execute(ProtectedTypedLogicalRead(FileType.INTEGER, 7, 0, 0, 2), "read N7:0")
+            assert reply.src == 5
+            for number in (2, 6):
+                with pytest.raises(LinkTimeout):
+                    await stations[number].execute(ProtectedTypedLogicalRead(FileType.INTEGER, 7, 0, 0, 2), "read")
+        finally:
+            await stations[5].close()
+
+
+def test_simulate_option_needs_key_and_value() -> None:
+    process = subprocess.run([sys.executable, "-m", "gateway", "simulate", "df1line", "--option", "dead"],
+                             capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    assert process.returncode != 0 and "give KEY=VALUE" in process.stderr
