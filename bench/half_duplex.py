@@ -15,7 +15,7 @@ Part 1, line efficiency, for 1, 4 and 16 stations at 9600 and 19200 baud:
   is every turnaround).
 
 Part 2, one dead station: three live stations with and without a fourth station that never answers
-(demoted after 3 answerless polls, polled every ``slow_poll_interval`` 10 s), rounds alternated; the
+(demoted after the default 5 answerless polls, polled every ``slow_poll_interval`` 10 s), rounds alternated; the
 live stations' data age = the interval between successive fresh reads of a station (median and
 95th percentile over all reads of the three), and reads/s.
 
@@ -82,7 +82,7 @@ async def run_line(stations: int, baud: int, seconds: float, *, dead: bool = Fal
 
     frame_time = 300 * settings.char_time  # the longest frame at this speed, with margin
     configs = [StationConfig(n, poll_timeout=0.05 + turnaround + frame_time / 4, reply_timeout=2.0 + 4 * frame_time,
-                             retries=3, poll_interval=1.0, slow_poll_interval=10.0) for n in numbers]
+                             poll_interval=1.0, slow_poll_interval=10.0) for n in numbers]  # demote_after: default
     driver = Df1HalfDuplexLine("sim://line", configs, name="bench", settings=settings, checksum=Checksum.CRC,
                                ack_timeout=0.05 + turnaround + frame_time / 4, retries=1, opener=opener,
                                link_reset=False)
@@ -108,7 +108,7 @@ async def run_line(stations: int, baud: int, seconds: float, *, dead: bool = Fal
     tasks = [asyncio.create_task(reader(h)) for h in handles]
     try:
         await asyncio.sleep(min(1.0, seconds / 3))  # warm up
-        if dead:  # measure the steady state: the dead station demoted (its cost until then is ~3 timeouts)
+        if dead:  # measure the steady state: the dead station demoted (its cost until then is ~5 timeouts)
             for _ in range(100):
                 if driver.core is not None and not driver.core.is_active(numbers[-1]):
                     demoted_after = loop.time() - started
