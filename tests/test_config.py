@@ -1022,6 +1022,8 @@ def test_every_df1_only_key_is_refused_on_an_slc_ascii_link() -> None:
         "slow_poll_interval": "10.0",
         "receive_file": "7",
         "receive_words": "0",
+        "receive_table": '"input"',
+        "receive_start": "100",
     }
     assert set(values) | {"map"} == set(Df1LinkConfig.model_fields) - set(SlcAsciiLinkConfig.model_fields)
     text = ASCII_LINK + "".join(f"{key} = {value}\n" for key, value in values.items())

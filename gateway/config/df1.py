@@ -20,6 +20,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 from gateway.config._common import Loc, Model, Problems, show
 from gateway.config.link import LinkBase, Parity, SerialDefaults
 from gateway.config.writer import table_lines
+from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
 from gateway.protocols.df1.address import parse_address
 from gateway.protocols.df1.half_duplex_events import DEMOTE_AFTER
 from gateway.protocols.df1.plc5_address import parse_plc5_address
@@ -223,6 +224,10 @@ class Df1LinkConfig(LinkBase):
     #: words of N``receive_file`` the station may write to the gateway with an MSG (0: none; STS 10)
     receive_file: int = Field(7, ge=0, le=999)
     receive_words: int = Field(0, ge=0, le=10000)
+    #: where the unit serves those words (read-only), then one age register per word: Modbus table
+    #: ("input" or "holding") and the address of word 0 (``gateway.links.df1.receive``)
+    receive_table: Literal["input", "holding"] = "input"
+    receive_start: int = Field(0, ge=0, le=65535)
 
     @field_validator("map", mode="after")
     @classmethod
@@ -246,6 +251,38 @@ class Df1LinkConfig(LinkBase):
         if not self.map:
             problems.insert(0, (("map",), "a df1 link needs at least one [[link.map]] entry"))
         problems.extend(_overlaps(self.map))
+        problems.extend(self._receive_problems())
+        return problems
+
+    @property
+    def receive_last(self) -> int:
+        """The last Modbus address of the receive range: ``receive_words`` words, then as many ages."""
+        return self.receive_start + 2 * self.receive_words - 1
+
+    def _receive_problems(self) -> list[tuple[Loc, str]]:
+        """The receive range (``receive_words`` words then their ages, from ``receive_start`` in
+        ``receive_table``): half duplex only, below 65536, clear of the map and the status block."""
+        if not self.receive_words:
+            return []
+        if self.duplex != "half":
+            return [(("receive_words",), 'receive_words is for a station of a half-duplex line (duplex = "half"): '
+                     "on a full-duplex link the gateway takes no messages from the controller; drop it or set "
+                     'duplex = "half"')]
+        start = self.receive_start
+        table, last = self.receive_table, self.receive_last
+        what = f"the receive range ({table} {start}-{last}: {self.receive_words} words, then their ages)"
+        if last > 65535:
+            return [(("receive_start",), f"{what} ends past Modbus address 65535: start {start} + 2 x "
+                     f"receive_words {self.receive_words} - 1 = {last}")]
+        problems: list[tuple[Loc, str]] = []
+        for index, entry in enumerate(self.map):
+            if entry.table == table and entry.start <= last and start <= entry.last:
+                problems.append((("receive_start",), f"{what} overlaps map[{index}] ({entry.describe_range()}): "
+                                 "move receive_start (or use the other receive_table)"))
+        status_last = STATUS_BASE + sum(width for _, width in STATUS_REGISTERS) - 1
+        if table == "input" and start <= status_last and STATUS_BASE <= last:
+            problems.append((("receive_start",), f"{what} overlaps the unit's status block (input {STATUS_BASE}-"
+                             f"{status_last}): move it, or use receive_table = \"holding\""))
         return problems
 
     @classmethod

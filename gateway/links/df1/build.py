@@ -9,7 +9,8 @@
 
 Whatever the line, ``processor = "plc5"`` gets a :class:`~gateway.links.df1.plc5_unit.Plc5Unit` (word
 range commands, PLC-5 addresses), every SLC 500 processor a :class:`~gateway.links.df1.unit.Df1Unit`
-(typed logical commands).
+(typed logical commands).  A station with ``receive_words`` serves its register table (the words it
+sends with MSG instructions, and their ages) from ``receive_start`` (``gateway.links.df1.receive``).
 """
 
 from __future__ import annotations
@@ -22,9 +23,10 @@ from gateway.drivers.df1 import Df1Driver
 from gateway.drivers.df1_half import Df1HalfDuplexLine
 from gateway.links.df1.plan import MapItem, shared_plan_df1
 from gateway.links.df1.plc5_unit import PLC5_MAX_READ_BYTES, Plc5Unit, shared_plan_plc5
+from gateway.links.df1.receive import ReceiveWindow
 from gateway.links.df1.unit import PROCESSORS, Df1Unit, PcccDriver, PcccUnit
 from gateway.links.kind import Built, LinkRunner, unit_options
-from gateway.modbus.mapping import Plan
+from gateway.modbus.mapping import Plan, Table
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.half_duplex import StationConfig
 from gateway.protocols.df1.pccc import ProcessorFamily
@@ -135,7 +137,10 @@ def build_df1(links: Sequence[Df1LinkConfig]) -> Built:
         master = build_line(line)
         runners.append(master)
         for index, link in zip(line.indexes, line.links, strict=True):
-            units[index] = station_unit(master.station(link.station), link)
+            unit = units[index] = station_unit(master.station(link.station), link)
+            table = master.register_tables.get(link.station)
+            if table is not None:
+                unit.receive = ReceiveWindow(Table(link.receive_table), link.receive_start, table)
     for index, link in enumerate(links):
         if index not in units:
             driver = full_duplex_driver(link)

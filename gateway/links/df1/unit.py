@@ -21,7 +21,8 @@ from gateway.drivers.base import UnitDriver
 from gateway.drivers.df1 import Df1Driver, check_reply_size
 from gateway.errors import ControllerRefused, ModbusExceptionReply
 from gateway.links.df1.plan import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, shared_plan_df1
-from gateway.modbus.mapping import BitPoint, Block, Half, Plan, RegisterPoint
+from gateway.links.df1.receive import ReceiveWindow
+from gateway.modbus.mapping import BitPoint, Block, Half, Plan, RegisterPoint, Table
 from gateway.protocols.df1.address import FileType, SlcAddress
 from gateway.protocols.df1.pccc import (
     PcccError,
@@ -87,6 +88,19 @@ class PcccUnit(Unit[R, B]):
         self.driver = driver
         #: data bytes of one write command
         self.max_write_bytes = max_write_bytes
+        #: the station's register table of messages it sent (half duplex, ``receive_words``), set by the builder
+        self.receive: ReceiveWindow | None = None
+
+    def read_register_bytes(self, table: Table, address: int, count: int) -> bytes:
+        """As :meth:`Unit.read_register_bytes`; the receive window's part from the table (``receive``)."""
+        window = self.receive
+        if window is None or not window.overlaps(table, address, count):
+            return super().read_register_bytes(table, address, count)
+        now = self._loop_time()
+        return b"".join(
+            window.registers(first, n, now) if inside else super(PcccUnit, self).read_register_bytes(table, first, n)
+            for first, n, inside in window.split(address, count)
+        )
 
     async def _execute(self, request: Any, label: str, *, write: bool | None = None) -> None:
         """Run a write command; a PCCC refusal becomes its Modbus exception."""
