@@ -250,8 +250,13 @@ def test_t_between_command_and_reply_is_noted_and_does_not_disturb() -> None:
 def test_i_after_power_up_proves_a_single_copy_was_not_executed(reported: int) -> None:
     """The controller power-cycled before our write (ID 05): ``;I04`` (retained) or ``;I00``."""
     session = _started(WRITE)
-    session.data_to_send()
+    sent = session.data_to_send()
     session.receive_data(encode_id_mismatch(reported), 0.01)
+    if reported == 4:
+        # ;I with the ID before ours may answer a line-repeated copy of the previous message:
+        # a second copy with our ID first (test_stray_i_of_a_repeated_previous_message_...)
+        assert session.data_to_send() == sent
+        session.receive_data(encode_id_mismatch(reported), 0.02)
     assert session.state is SessionState.QUIET  # the line must be quiet before ID 00
     assert session.data_to_send() == b""
     session.handle_timeout(session.next_deadline() or 0)
@@ -259,6 +264,29 @@ def test_i_after_power_up_proves_a_single_copy_was_not_executed(reported: int) -
     session.receive_data(encode_data_reply("021FFE1547", 0), 0.7)
     assert session.data_to_send() == encode_command(WRITE, 1)  # resent under a new ID
     session.receive_data(encode_ack(1), 0.71)
+    assert session.take_result().verdict is Verdict.DONE
+
+
+def test_stray_i_of_a_repeated_previous_message_never_makes_a_write_run_twice() -> None:
+    """The line repeated the previous message (ID 04): the controller ran it, refused the copy with
+    ``;I04``, and that ``;I`` comes after its ack, while our write (ID 05) is on its way and runs.
+    Taking the ``;I04`` as proof would resend the write under a new ID (run twice): a second copy
+    with ID 05 is refused ``;I05`` (ours ran), and ``;Z`` fetches its ack.  (Long soak, 9be0bdd.)"""
+    session = _started(WRITE)
+    sent = session.data_to_send()
+    session.receive_data(encode_id_mismatch(4), 0.01)
+    assert session.data_to_send() == sent  # the same ID again, never a new one
+    session.receive_data(encode_ack(5), 0.02)  # the ack of the first copy, which ran
+    result = session.take_result()
+    assert result.verdict is Verdict.DONE
+    # and when the ack of the first copy is lost: the second copy is refused with our ID
+    session = _started(WRITE)
+    sent = session.data_to_send()
+    session.receive_data(encode_id_mismatch(4), 0.01)
+    assert session.data_to_send() == sent
+    session.receive_data(encode_id_mismatch(5), 0.02)
+    assert session.data_to_send() == encode_retransmit(5)
+    session.receive_data(encode_ack(5), 0.03)
     assert session.take_result().verdict is Verdict.DONE
 
 

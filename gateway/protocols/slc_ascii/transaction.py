@@ -46,8 +46,11 @@ Rules:
 * **Writes are resent under a new ID only after proof of non-execution**: a ``;I`` to a copy of
   the command, in a transaction that began with no reply of an earlier message still due,
   that reports the ID before ours (not 00: a controller may report 00 after any power cycle),
-  or a ``;I`` of any kind when only one copy was ever sent (it answers that copy: it was not
-  executed).  ``;I`` with our own ID proves an earlier copy was accepted: ``;Z`` fetches its
+  or a ``;I`` of another kind when only one copy was ever sent (it answers that copy: it was not
+  executed).  A ``;I`` with the ID before ours to the first copy is not proof yet: it may answer
+  a copy of the previous message that the line repeated (refused after the previous message ran),
+  heard while ours is on its way; a second copy with our ID settles it (``;I`` with our ID: ours
+  ran).  ``;I`` with our own ID proves an earlier copy was accepted: ``;Z`` fetches its
   answer (``;R`` or ``;E``).  Without proof, after the retries, the verdict is
   ``UNKNOWN`` (the gateway answers 0x0B); the command was applied at most once.
 * **``;Z`` at once after a complete reply that fails its check**; the timeout is waited out
@@ -510,6 +513,16 @@ class SlcSession:
             self._retry_read(now, f";I{event.last_valid_id:02X}: message ID out of step")
             return
         last = event.last_valid_id
+        if (self._began_clean and self._copies == 1 and last == self._prev_id and last != 0
+                and self._resends < self.max_resends):
+            # Ambiguous: this ;I may answer our only copy (not executed), or a copy of the previous
+            # message that the line repeated, refused after that message ran and heard only now,
+            # while ours is on its way (and runs).  A second copy with our ID is safe either way:
+            # ;I with our ID (ours ran: ;Z fetches its answer) or ;I with the previous ID again.
+            self._resends += 1
+            self.counters.resends += 1
+            self._send_copy(now)
+            return
         proof = self._began_clean and (self._copies == 1 or (last == self._prev_id and last != 0))
         if proof:
             # No copy of the command was, or can still be, executed: a new ID is safe.
