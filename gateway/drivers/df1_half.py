@@ -117,18 +117,10 @@ def encode_packet(request: PcccCommand, *, dst: int, src: int, tns: int) -> byte
 
 
 @dataclass(slots=True)
-class StationTotals:
-    """Per-station counters for metrics, summed over reconnects (the core's own reset with it)."""
+class StationTotals(StationCounters):
+    """Per-station counters for metrics, summed over reconnects (the core's own reset with it):
+    the core's :class:`StationCounters` and the driver's own."""
 
-    polls: int = 0
-    eots: int = 0
-    messages_sent: int = 0
-    messages_received: int = 0
-    retries: int = 0
-    timeouts: int = 0
-    bad_frames: int = 0
-    duplicates: int = 0
-    demotions: int = 0
     read_retries: int = 0  #: reads sent again with a new TNS by this driver
     read_backs: int = 0  #: writes settled by a read-back
     stray_replies: int = 0

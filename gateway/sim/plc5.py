@@ -61,6 +61,7 @@ from gateway.protocols.df1.plc5_address import (
 )
 from gateway.sim.slc500 import ExtSts, Output, Slc500Options, Slc500Simulator
 from gateway.sim.slc500_data import DataFile
+from gateway.sim.slc500_processor import _not_usable, _Refuse  # the SLC processor's refusal, one class
 
 __all__ = ["MAX_WORD_RANGE_READ", "MAX_WORD_RANGE_WRITE", "Output", "Plc5Simulator"]
 
@@ -74,17 +75,6 @@ _EXTENDED_CMD: Final = 0x0F
 _TYPED_LOGICAL: Final = frozenset({0xA2, 0xAA, 0xAB})
 #: SLC-only functions a PLC-5 does not have: read file info, set processor mode (SLC form).
 _SLC_ONLY: Final = frozenset({0x94, 0x80})
-
-
-class _Refusal(Exception):
-    def __init__(self, sts: int, ext_sts: int | None = None) -> None:
-        super().__init__(sts, ext_sts)
-        self.sts = sts
-        self.ext_sts = ext_sts
-
-
-def _usable() -> _Refusal:
-    return _Refusal(Sts.EXTENDED, ExtSts.NOT_USABLE)
 
 
 class Plc5Simulator(Slc500Simulator):
@@ -146,10 +136,10 @@ class Plc5Simulator(Slc500Simulator):
                 self._read_modify_write(params)
             elif fnc in _TYPED_LOGICAL or fnc in _SLC_ONLY:
                 self._count("unsupported")
-                raise _Refusal(Sts.ILLEGAL_COMMAND_OR_FORMAT)
+                raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
             else:
                 return super()._handle(packet)  # typed read / write (67 / 68) and the rest
-        except _Refusal as refusal:
+        except _Refuse as refusal:
             self.counters.refusals += 1
             return encode_reply(header, sts=refusal.sts, ext_sts=refusal.ext_sts)
         except (AddressError, IndexError):
@@ -163,41 +153,41 @@ class Plc5Simulator(Slc500Simulator):
             text, _end = decode_logical_ascii(address)
             parsed = parse_plc5_address(text)
             if parsed.bit is not None:
-                raise _usable()  # word commands: the address must point to a word
+                raise _not_usable()  # word commands: the address must point to a word
             levels: tuple[int, ...] = parsed.levels
         else:
             mask = address[0]
             if mask & ~0x0F:
-                raise _Refusal(Sts.EXTENDED, ExtSts.MORE_LEVELS)
+                raise _Refuse(Sts.EXTENDED, ExtSts.MORE_LEVELS)
             if not mask & 0x02:
-                raise _Refusal(Sts.EXTENDED, ExtSts.FEWER_LEVELS)
+                raise _Refuse(Sts.EXTENDED, ExtSts.FEWER_LEVELS)
             levels, _end = decode_logical_binary(address)
         section, file_number, element, sub = (*levels, 0, 0, 0, 0)[:4]
         data_file = self._files.get(file_number)
         if section != 0 or data_file is None:
-            raise _usable()
+            raise _not_usable()
         if element >= data_file.elements or sub >= data_file.element_words:
-            raise _usable()
+            raise _not_usable()
         return data_file, (element * data_file.element_words + sub) * 2
 
     @staticmethod
     def _check_mask(mask: bytes) -> None:
         """Level count first: a mask naming levels past 4 is EXT STS 03, even when the rest is garbled."""
         if mask and mask[0] != 0 and mask[0] & ~0x0F:
-            raise _Refusal(Sts.EXTENDED, ExtSts.MORE_LEVELS)
+            raise _Refuse(Sts.EXTENDED, ExtSts.MORE_LEVELS)
 
     @staticmethod
     def _span(data_file: DataFile, offset: int, size: int) -> None:
         if offset + size > len(data_file.data):
-            raise _Refusal(Sts.EXTENDED, ExtSts.WRONG_SIZE)
+            raise _Refuse(Sts.EXTENDED, ExtSts.WRONG_SIZE)
 
     def _word_range_read(self, params: bytes) -> bytes:
         self._check_mask(params[4:5])
         request = WordRangeReadParams.decode(params)
         if request.size > MAX_WORD_RANGE_READ:
-            raise _Refusal(Sts.EXTENDED, ExtSts.TOO_LARGE)
+            raise _Refuse(Sts.EXTENDED, ExtSts.TOO_LARGE)
         if request.size % 2 or request.size == 0:
-            raise _Refusal(Sts.ILLEGAL_COMMAND_OR_FORMAT)
+            raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
         data_file, offset = self._target(request.address)
         offset += request.packet_offset * 2
         self._span(data_file, offset, request.size)
@@ -207,9 +197,9 @@ class Plc5Simulator(Slc500Simulator):
         self._check_mask(params[4:5])
         request = WordRangeWriteParams.decode(params)
         if len(request.address) + len(request.data) > MAX_WORD_RANGE_WRITE:
-            raise _Refusal(Sts.EXTENDED, ExtSts.TOO_LARGE)
+            raise _Refuse(Sts.EXTENDED, ExtSts.TOO_LARGE)
         if not request.data or len(request.data) % 2:
-            raise _Refusal(Sts.ILLEGAL_COMMAND_OR_FORMAT)
+            raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
         data_file, offset = self._target(request.address)
         offset += request.packet_offset * 2
         self._span(data_file, offset, len(request.data))
@@ -220,7 +210,7 @@ class Plc5Simulator(Slc500Simulator):
         self._check_mask(params[0:1])
         request = ReadModifyWrite.decode(params)
         if not request.sets:
-            raise _Refusal(Sts.ILLEGAL_COMMAND_OR_FORMAT)
+            raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
         targets = [(self._target(address), and_mask, or_mask) for address, and_mask, or_mask in request.sets]
         for (data_file, offset), and_mask, or_mask in targets:  # all checked above: apply every set
             word = data_file.word(offset)
