@@ -219,9 +219,27 @@ async def test_power_cycle_is_followed_by_a_resync_with_id_00() -> None:
             await driver.write_word(0x50, value)
             assert sim.word(0x50) == value
     assert sim.counters.power_cycles >= 2
-    assert driver.counters.id_resyncs == sim.counters.id_mismatches >= 2
+    # "ID resyncs" counts the ID 00 resyncs that recovered the numbering (one per ;I here, not the
+    # one after connecting), not ;I replies
+    assert sim.counters.id_mismatches >= 2
+    assert driver.counters.id_resyncs == sim.counters.id_mismatches
     assert [w[2] for w in sim.applied_writes] == list(range(1, 11))
     assert driver.counters.timeouts == 0
+
+
+async def test_id_resyncs_count_resyncs_not_id_mismatch_replies() -> None:
+    # Under the retained reading a write after a power cycle meets ;I twice (the first copy's ;I
+    # with the previous ID is not proof yet; the second copy's is) and resyncs once: the status
+    # registers and the id_resync metric count resyncs, the ;I replies are another number.
+    url = "sim://slc150?power_cycle_every=5&ladder=0&variant=power_up_id=retained"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.05)
+    async with asyncio.timeout(5), driver:
+        for value in range(1, 13):
+            await driver.write_word(0x50, value)
+    assert sim.counters.power_cycles >= 2
+    assert sim.counters.power_cycles <= driver.counters.id_resyncs < sim.counters.id_mismatches
+    assert [w[2] for w in sim.applied_writes] == list(range(1, 13))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -279,7 +297,7 @@ async def test_counters_on_a_clean_line(quiet: tuple[SlcAsciiDriver, SlcAsciiSim
     assert c.transactions == 10
     # after connecting, one read FRN with ID 00 restarts the controller's numbering
     assert c.bytes_sent == len(b"#010800A3\r") + 10 * len(b"#0502000200400100\r")
-    assert c.bytes_received == len(b":021FFE15470031\r") + 10 * len(b":00020040006400XX\r")
+    assert c.bytes_received == len(b":021FFE15470031\r") + 10 * len(b":020040006400XX\r")
     assert (c.errors, c.timeouts, c.crc_errors, c.retransmits, c.id_resyncs, c.refusals, c.faults) == (0,) * 7
     assert c.retries == 0
     assert c.reconnects == 0

@@ -136,7 +136,7 @@ def test_illegal_reads_are_refused(host: Host, sim: SlcAsciiSimulator, command: 
         # 84H-85H and 86H are all readable: this one is legal, read it to prove it, byte for byte.
         sim.memory[0x85], sim.memory[0x86] = 0x12, 0x34
         msg_id = host.next_id
-        assert host.do(command) == DataReply("00020085" "1234", msg_id)
+        assert host.do(command) == DataReply("020085" "1234", msg_id)
         return
     assert isinstance(host.do(command), Refused)
 
@@ -428,7 +428,7 @@ def test_power_cycle_resets_ids_and_keeps_memory(host: Host, sim: SlcAsciiSimula
     assert sim.counters.power_cycles == 1
     assert host.send(encode_retransmit(4)) == []  # the last reply is gone
     assert host.raw_send(cmds.read_frn(), 5) == [IdMismatch(0)]  # expects 00 again
-    assert host.raw_send(cmds.read_bytes(0x48, 2), 0) == [DataReply("00020048004D", 0)]
+    assert host.raw_send(cmds.read_bytes(0x48, 2), 0) == [DataReply("020048004D", 0)]
     assert sim.word(0x48) == 77
 
 
@@ -469,7 +469,7 @@ def test_garbled_replies_never_decode_as_valid(sim: SlcAsciiSimulator) -> None:
             if isinstance(event, Garbled):
                 garbled += 1
             else:
-                assert event == DataReply("000200400064", 0)
+                assert event == DataReply("0200400064", 0)
                 good += 1
     assert sim.counters.garbled_out > 100
     # A truncated reply shows up as garbled only when the next frame starts (the last one may still

@@ -23,7 +23,7 @@ from gateway.sim import create_simulator, parse_sim_url
 from gateway.sim.slc_ascii import FaultPlan, SlcAsciiSimulator
 
 READ = cmds.read_bytes(0x40, 2)
-PRESET = encode_data_reply("00020040" "0064", 1)
+PRESET = encode_data_reply("020040" "0064", 1)
 
 
 def sim_with(**variants: str) -> SlcAsciiSimulator:
@@ -46,7 +46,7 @@ def test_power_up_id(reading: str, reported: int) -> None:
         wire(sim, encode_command(READ, msg_id))
     sim.power_cycle()
     assert wire(sim, encode_command(READ, 6)) == encode_id_mismatch(reported)
-    assert wire(sim, encode_command(READ, 0)) == encode_data_reply("00020040" "0064", 0)  # 00 always accepted
+    assert wire(sim, encode_command(READ, 0)) == encode_data_reply("020040" "0064", 0)  # 00 always accepted
 
 
 @pytest.mark.parametrize(("reading", "answer"), [("silent", b""), ("error", encode_refused(7))])
@@ -70,11 +70,11 @@ def test_late_replies_come_after_the_reply_time_and_hold_back_the_rest() -> None
 def test_z_garbled_again(reading: str, clean: bool) -> None:
     sim = SlcAsciiSimulator(ladder=False, variants={"z_garbled_again": reading}, faults=FaultPlan(garble=1))
     first = wire(sim, encode_command(READ, 0))
-    assert first != encode_data_reply("00020040" "0064", 0)  # garbled (garble=1: every reply)
+    assert first != encode_data_reply("020040" "0064", 0)  # garbled (garble=1: every reply)
     sim.faults.garble = 0
     again = wire(sim, encode_retransmit(0))
-    assert (again == encode_data_reply("00020040" "0064", 0)) is clean
-    assert wire(sim, encode_retransmit(0)) == encode_data_reply("00020040" "0064", 0)  # only once
+    assert (again == encode_data_reply("020040" "0064", 0)) is clean
+    assert wire(sim, encode_retransmit(0)) == encode_data_reply("020040" "0064", 0)  # only once
 
 
 @pytest.mark.parametrize(("reading", "block"), [("restart", 0), ("keep", 3)])
@@ -93,7 +93,7 @@ def test_transfer_after_power_up(reading: str, block: int) -> None:
 def test_fault_report(reading: str) -> None:
     sim = SlcAsciiSimulator(ladder=False, variants={"fault_report": reading}, faults=FaultPlan(fault_every=1))
     reply = wire(sim, encode_command(READ, 0))
-    answer = encode_data_reply("00020040" "0064", 0)
+    answer = encode_data_reply("020040" "0064", 0)
     assert reply == (answer + encode_fault(0) if reading == "after_reply" else encode_fault(0) + answer)
 
 

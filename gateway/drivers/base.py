@@ -71,7 +71,7 @@ class LinkCounters:
     timeouts: int = 0
     crc_errors: int = 0
     retransmits: int = 0  # SLC ;Z sent
-    id_resyncs: int = 0  # SLC ;I handled
+    id_resyncs: int = 0  # SLC ID 00 resyncs (the one after connecting included)
     enq_sent: int = 0  # DF1 ENQ sent
     nak_received: int = 0  # DF1 NAK received
     refusals: int = 0

@@ -171,7 +171,8 @@ class SlcAsciiDriver(LinkDriver):
     def _sync_counters(self) -> None:
         core, mine = self.session.counters, self.counters
         mine.timeouts, mine.crc_errors = core.timeouts, core.crc_errors
-        mine.retransmits, mine.id_resyncs = core.retransmits, core.id_mismatches
+        # ID resyncs that recovered the numbering, not the first one after connecting
+        mine.retransmits, mine.id_resyncs = core.retransmits, core.id_resyncs - core.handshakes
         mine.faults = core.faults
 
     async def _run_command(self, command: Command) -> Answer:

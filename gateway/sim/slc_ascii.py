@@ -28,7 +28,17 @@ Where the manual leaves the controller's behaviour open, ``VARIANTS`` has a swit
 * ``transfer_after_power_up``: the upload/download block pointer restarts at block 0
   (``restart``) or is kept (``keep``);
 * ``fault_report``: ``;T`` follows the reply to the command (``after_reply``) or comes between
-  the command and its reply (``before_reply``).
+  the command and its reply (``before_reply``);
+* ``count_digits``: the ``<number of bytes>`` of a data reply has 2 digits (``2``, the manual's
+  printed example ``:021FFE``) or 4 (``4``, as the command's own field);
+* ``line_end``: a reply ends with CR (``cr``, "<cr>") or CR LF (``crlf``);
+* ``z_repeats``: ``;Z`` repeats the last reply to an accepted message, ``;E`` included
+  (``accepted``), only the last ``;R`` or data reply (``executed``, "its most recent acknowledge
+  or data message"), or whatever was sent last, ``;I`` included (``any``);
+* ``reply_time``: replies come at once (``prompt``), anywhere within the manual's 0.3 s
+  (``spread``, "Normally the SLC will respond within 0.3 seconds"), or so, with mode changes
+  and writes taking ``slow_delay`` (``slow_changes``, "The exceptions are edit commands and
+  mode changes").
 
 This class does no I/O: ``receive(data, now)`` returns the replies to send, each with a delay.
 ``gateway.sim.serve`` runs it in-process, over TCP or on a pty.
@@ -82,22 +92,27 @@ class FaultPlan:
     seed: int = 1
     late_delay: float = 0.36  # late_replies=some: a late reply comes this long after its command
     late_every: int = 50  # late_replies=some: 1 reply in N is late
+    reply_time: float = 0.3  # reply_time=spread / slow_changes: the longest normal reply time
+    slow_delay: float = 1.0  # reply_time=slow_changes: a mode change or write takes this long
 
     @classmethod
     def from_options(cls, options: dict[str, str]) -> FaultPlan:
         plan = cls()
         for key, text in options.items():
             if key not in ("garble", "drop", "delay", "power_cycle_every", "fault_every", "seed", "late_delay",
-                           "late_every"):
+                           "late_every", "reply_time", "slow_delay"):
                 raise ValueError(f"unknown simulator fault option {key!r}")
             try:
-                value: float = float(text) if key in ("delay", "late_delay") else int(text)
+                value: float = float(text) if key in _SECONDS else int(text)
             except ValueError as exc:
                 raise ValueError(f"simulator option {key}={text!r} is not a number") from exc
             if value < 0:
                 raise ValueError(f"simulator option {key} must not be negative")
             setattr(plan, key, value)
         return plan
+
+
+_SECONDS: Final = ("delay", "late_delay", "reply_time", "slow_delay")
 
 
 @dataclass
@@ -139,6 +154,10 @@ class SlcAsciiSimulator:
         "z_garbled_again": ("no", "once"),
         "transfer_after_power_up": ("restart", "keep"),
         "fault_report": ("after_reply", "before_reply"),
+        "count_digits": ("2", "4"),
+        "line_end": ("cr", "crlf"),
+        "z_repeats": ("accepted", "executed", "any"),
+        "reply_time": ("prompt", "spread", "slow_changes"),
     }
 
     def __init__(
@@ -295,17 +314,31 @@ class SlcAsciiSimulator:
             if fault and self.variants["fault_report"] == "before_reply":
                 self.raise_fault()
                 out.append(Output(plan.delay, framing.encode_fault(0)))
-            if executed:
-                # ;Z repeats "its most recent acknowledge or data message" (or ;E): not ;I.
+            remembered = self._remembers(reply, executed)
+            if remembered:
                 self._last_reply = reply
                 self._last_garbled = False
-            garbled = self._emit(out, reply)
-            if executed:
+            garbled = self._emit(out, reply, slow=executed and self._is_change(event))
+            if remembered:
                 self._last_garbled = garbled
             if fault and self.variants["fault_report"] == "after_reply":
                 self.raise_fault()
                 out.append(Output(plan.delay, framing.encode_fault(0)))
         return self._in_order(out, now)
+
+    def _remembers(self, reply: bytes, executed: bool) -> bool:
+        """Whether ``;Z`` will repeat ``reply`` (the ``z_repeats`` reading)."""
+        reading = self.variants["z_repeats"]
+        if reading == "any":
+            return True
+        if reading == "executed":
+            return executed and not reply.startswith(b";E")
+        return executed  # accepted: ;R, data or ;E, never ;I
+
+    @staticmethod
+    def _is_change(frame: CommandFrame) -> bool:
+        """A mode change or a write (an "edit"): the commands the manual lets take longer."""
+        return frame.code in (0x01, 0x03, 0x06, 0x07)
 
     def _in_order(self, out: list[Output], now: float) -> list[Output]:
         """The line keeps the order: a late reply holds back the replies after it."""
@@ -331,7 +364,7 @@ class SlcAsciiSimulator:
     def fault_frame(self) -> bytes:
         return framing.encode_fault(0)
 
-    def _emit(self, out: list[Output], reply: bytes, *, garble: bool = False) -> bool:
+    def _emit(self, out: list[Output], reply: bytes, *, garble: bool = False, slow: bool = False) -> bool:
         """Put ``reply`` on the line through the faults; True when it went out garbled."""
         plan = self.faults
         if plan.drop and self._rng.randrange(plan.drop) == 0:
@@ -341,12 +374,23 @@ class SlcAsciiSimulator:
         if garbled:
             self.counters.garbled_out += 1
             reply = self._garble(reply)
-        delay = plan.delay
+        delay = plan.delay + self._turnaround(slow)
         if self.variants["late_replies"] == "some" and self._rng.randrange(max(1, plan.late_every)) == 0:
             self.counters.late += 1
             delay = max(delay, plan.late_delay)
+        if self.variants["line_end"] == "crlf":
+            reply += b"\n"
         out.append(Output(delay, reply))
         return garbled
+
+    def _turnaround(self, slow: bool) -> float:
+        """The controller's time to answer, as the ``reply_time`` reading has it."""
+        reading = self.variants["reply_time"]
+        if reading == "prompt":
+            return 0.0
+        if reading == "slow_changes" and slow:
+            return self.faults.slow_delay
+        return self._rng.uniform(0.0, self.faults.reply_time)
 
     def _garble(self, reply: bytes) -> bytes:
         kind = self._rng.randrange(3)
@@ -390,7 +434,7 @@ class SlcAsciiSimulator:
     def _execute(self, frame: CommandFrame) -> str | None:
         code, params = frame.code, frame.params
         if code == 0x08 and not params:  # read FRN ID tag, any mode
-            return f"021FFE{self.model.device_type:02X}{SIMULATED_FRN[self.model]:02X}"
+            return f"{self._count(2)}1FFE{self.model.device_type:02X}{SIMULATED_FRN[self.model]:02X}"
         if code == 0x02 and len(params) == 4:
             return self._read(int.from_bytes(params[0:2], "big"), int.from_bytes(params[2:4], "big"))
         if code == 0x03 and len(params) == 3:
@@ -417,7 +461,7 @@ class SlcAsciiSimulator:
         self._require(count in (1, 2))
         self._require(is_readable(address, count))
         data = self.memory[address : address + count]
-        return f"{count:04X}{address:04X}{data.hex().upper()}"
+        return f"{self._count(count)}{address:04X}{data.hex().upper()}"
 
     def _write_byte(self, address: int, value: int) -> str | None:
         if address == MODE_ADDRESS:
@@ -468,6 +512,10 @@ class SlcAsciiSimulator:
             self.applied_writes.append(("program", 0, len(self.program)))
         return None
 
+    def _count(self, count: int) -> str:
+        """The ``<number of bytes>`` field of a data reply (the ``count_digits`` reading)."""
+        return f"{count:0{int(self.variants['count_digits'])}X}"
+
     @staticmethod
     def _user(counter: int) -> str:
         return f"{counter:04X}"  # "All numbers are in hexadecimal coded binary format"
@@ -477,7 +525,7 @@ class SlcAsciiSimulator:
         seq = self.sequencers.get(rung)
         self._require(seq is not None and step < len(seq.presets))
         assert seq is not None
-        return f"02{self._user(seq.counter)}{seq.presets[step]:04X}"
+        return f"{self._count(2)}{self._user(seq.counter)}{seq.presets[step]:04X}"
 
     def _write_sequencer(self, rung: int, step: int, value: int) -> str | None:
         self._require_run()
@@ -494,7 +542,7 @@ class SlcAsciiSimulator:
         counter = self.resets.get(rung)
         self._require(counter is not None)
         assert counter is not None
-        return f"02{self._user(counter)}{self.word(2 * (counter - 901)):04X}"
+        return f"{self._count(2)}{self._user(counter)}{self.word(2 * (counter - 901)):04X}"
 
     def _write_reset(self, rung: int, value: int) -> str | None:
         self._require_run()

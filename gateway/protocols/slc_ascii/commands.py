@@ -55,16 +55,19 @@ __all__ = [
     "ErrorBit",
     "FrnInfo",
     "Mode",
+    "Reply",
     "ReplyKind",
     "TimeoutClass",
     "UploadBlock",
     "WordReply",
+    "answers",
     "controller_fault",
     "decode_error_bits",
     "download_block",
     "error_description",
     "parse_frn_reply",
     "parse_read_reply",
+    "parse_reply",
     "parse_upload_reply",
     "parse_word_reply",
     "read_bytes",
@@ -578,6 +581,39 @@ def parse_word_reply(body_hex: str) -> WordReply:
         raise ProtocolError(f"{what}: expected a 2-byte word, got {count} byte(s)")
     word = int.from_bytes(data, "big")
     return WordReply(user_address, word & WORD_VALUE_MASK, bool(word & PROTECT_BIT))
+
+
+Reply = bytes | FrnInfo | UploadBlock | WordReply
+
+
+def parse_reply(command: Command, body_hex: str) -> Reply:
+    """The data reply ``body_hex`` to ``command``, parsed by that command's one parser.
+
+    The single place deciding whether a data reply answers a command: the transaction core takes
+    a reply as the answer exactly when this parses it.  Raises :class:`ProtocolError` for a
+    reply that does not answer ``command`` (or a command that expects ``;R``, not data).
+    """
+    code, params = command.code, command.params
+    if command.reply is not ReplyKind.DATA:
+        raise ProtocolError(f"{command.name} is answered by ;R, not by data")
+    if code == CommandCode.READ:
+        return parse_read_reply(int.from_bytes(params[2:4], "big"), int.from_bytes(params[0:2], "big"), body_hex)
+    if code == CommandCode.READ_FRN:
+        return parse_frn_reply(body_hex)
+    if code == CommandCode.UPLOAD:
+        return parse_upload_reply(body_hex)
+    if code in (CommandCode.READ_SEQUENCER_PRESET, CommandCode.READ_RESET_ACCUMULATOR):
+        return parse_word_reply(body_hex)
+    raise ProtocolError(f"{command.name}: no data reply is defined")
+
+
+def answers(command: Command, body_hex: str) -> bool:
+    """Whether the data reply ``body_hex`` answers ``command`` (:func:`parse_reply` parses it)."""
+    try:
+        parse_reply(command, body_hex)
+    except ProtocolError:
+        return False
+    return True
 
 
 # --------------------------------------------------------------------------------------------------

@@ -94,7 +94,6 @@ MAX_RESENDS: Final = 8
 MAX_RESYNCS: Final = 8
 
 _PROBE: Final = cmds.read_frn()
-_PROBE_PREFIX: Final = f"{2:02X}{cmds.FRN_ADDRESS:04X}"
 
 
 def next_id(msg_id: int) -> int:
@@ -146,6 +145,7 @@ class SessionCounters:
     crc_errors: int = 0
     retransmits: int = 0  # ;Z sent
     id_resyncs: int = 0  # ID 00 resyncs (the one after connecting included)
+    handshakes: int = 0  # ... of which the first after connecting (not a recovery)
     id_mismatches: int = 0  # ;I received in a transaction
     resends: int = 0  # copies of a command sent again (same ID)
     faults: int = 0  # ;T received
@@ -193,6 +193,7 @@ class SlcSession:
         self._decoder = ReplyDecoder()
         self._out = bytearray()
         self._next = 0  # ID of the next command; 0: resync first
+        self._handshake_due = True  # the next resync is the first after connecting
         self._last_sent = float("-inf")
         #: no reply of a command copy sent earlier can still come (a write's ;I proof needs it)
         self._clean = True
@@ -226,6 +227,7 @@ class SlcSession:
         self._decoder = ReplyDecoder()
         self._out.clear()
         self._next = 0
+        self._handshake_due = True
         self._clean = True
         self._era_trusted = False
         self._deadline = None
@@ -320,7 +322,7 @@ class SlcSession:
         if isinstance(event, Garbled):
             return _In.GARBLED
         if state is SessionState.RESYNC:
-            if isinstance(event, DataReply) and event.msg_id == 0 and event.body_hex.startswith(_PROBE_PREFIX):
+            if isinstance(event, DataReply) and event.msg_id == 0 and cmds.answers(_PROBE, event.body_hex):
                 return _In.PROBE_ANSWER
             if (not self._is_write and self._copies and isinstance(event, DataReply)
                     and event.msg_id == self._msg_id and self._fits(event)):
@@ -337,17 +339,11 @@ class SlcSession:
         return _In.OURS if self._fits(event) else _In.OTHER
 
     def _fits(self, answer: Ack | DataReply) -> bool:
+        """Whether ``answer`` answers the command: ``;R`` for a write, else what its parser takes."""
         command = self._command
         if command.reply is ReplyKind.ACK:
             return isinstance(answer, Ack)
-        if not isinstance(answer, DataReply):
-            return False
-        if command.code == cmds.CommandCode.READ:
-            # ":<number of bytes> <address> <data>": the echo of our parameters
-            return answer.body_hex.startswith(command.params.hex().upper())
-        if command.code == cmds.CommandCode.READ_FRN:
-            return answer.body_hex.startswith(_PROBE_PREFIX)
-        return True
+        return isinstance(answer, DataReply) and cmds.answers(command, answer.body_hex)
 
     def _step(self, kind: _In, now: float, event: ReplyEvent | None) -> None:
         if kind in (_In.OURS, _In.OURS_REFUSED, _In.ID_OURS, _In.ID_OTHER):
@@ -418,6 +414,9 @@ class SlcSession:
     def _begin_resync(self, now: float) -> None:
         self._resyncs += 1
         self.counters.id_resyncs += 1
+        if self._handshake_due:
+            self._handshake_due = False
+            self.counters.handshakes += 1
         self._probes = 0
         self._heard = False
         self._next = 0
