@@ -72,6 +72,7 @@ class SlcAsciiDriver(LinkDriver):
         down_after_failures: int = 3,
         down_after_seconds: float = 5.0,
         max_resyncs: int = MAX_RESYNCS,
+        write_budget: float | None = None,
     ) -> None:
         super().__init__(
             url,
@@ -87,6 +88,9 @@ class SlcAsciiDriver(LinkDriver):
         self.timeout = timeout
         self.slow_timeout = max(slow_timeout, timeout)
         self.retries = retries
+        #: seconds a write may take to reach its verdict (``;Z`` and copies while they fit);
+        #: None: ``retries`` ``;Z`` (the core's counts)
+        self.write_budget = write_budget
         self.last_fault: ControllerFault | None = None
         self.session = SlcSession(timeout=timeout, retries=retries, max_resyncs=max_resyncs)
         self._waiter: asyncio.Future[None] | None = None
@@ -123,7 +127,9 @@ class SlcAsciiDriver(LinkDriver):
         timeout = self.slow_timeout if command.timeout_class is TimeoutClass.SLOW else self.timeout
         timeout += (2 * command.byte_count + 9 + _LONGEST_REPLY) * self.char_time
         self._aborted = None
-        session.start(command, loop.time(), timeout)
+        now = loop.time()
+        until = now + self.write_budget if self.write_budget is not None and command.is_write else None
+        session.start(command, now, timeout, until=until)
         while session.result is None:
             self._flush()
             if self._aborted is not None or not self.connected:

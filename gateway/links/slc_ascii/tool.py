@@ -35,6 +35,8 @@ from gateway.transport import SerialSettings
 __all__ = ["HINTS", "PROGRAM_FORMAT", "add_options", "load_program_file", "run_slc_ascii_tool", "save_program_file"]
 
 PROGRAM_FORMAT = "slc-gateway-program/1"
+#: Seconds a command-line write may take to reach its verdict.
+WRITE_BUDGET = 10.0
 _MODES = {"run": Mode.RUN, "program": Mode.PROGRAM, "test": Mode.CONTINUOUS_TEST, "save": Mode.SAVE_TO_EEPROM}
 
 #: SLC 100/150 ASCII replies: ":" data / acknowledge or ";" status lines ending in CR.
@@ -83,8 +85,12 @@ async def run_slc_ascii_tool(command: str, args: argparse.Namespace, opener: Ope
         settings=settings,
         timeout=args.timeout or defaults.timeout,
         retries=resolve_retries(command, args.retries),
-        # A probe asks "is an SLC 100/150 there?": one resync, so a wrong guess fails in seconds.
-        max_resyncs=1 if command == "probe" else MAX_RESYNCS,
+        # A probe asks "is an SLC 100/150 there?": a silent line fails at the first resync, so a
+        # wrong guess fails in a second; a controller that answers garbled gets a few more.
+        max_resyncs=3 if command == "probe" else MAX_RESYNCS,
+        # a write asks again (;Z, a resync after proof) for as long as the budget lasts: on a
+        # line that answers at all it gets its verdict, not "outcome unknown" after 3 ;Z
+        write_budget=WRITE_BUDGET,
         trace=args.trace,
         reconnect_min=60.0,
         opener=opener,

@@ -217,7 +217,9 @@ class SlcSession:
         self._heard = False
         self._refused_once = False
         self._copy_sent = 0.0
+        self._began = 0.0
         self._full_timeout = timeout
+        self._until: float | None = None
 
     # --- API ------------------------------------------------------------------------------
 
@@ -235,12 +237,18 @@ class SlcSession:
         self.state = SessionState.IDLE
         self.result = None
 
-    def start(self, command: Command, now: float, timeout: float | None = None) -> None:
+    def start(self, command: Command, now: float, timeout: float | None = None, *,
+              until: float | None = None) -> None:
+        """Begin ``command``.  ``until``: a write's time budget (an absolute time) in place of
+        the counts of ``;Z`` and resends: it asks again while a further wait fits before
+        ``until``, so a write on a line that answers at all gets its verdict; ``UNKNOWN`` only
+        when the budget is spent.  Without it, ``retries`` ``;Z`` and ``max_resends`` copies."""
         if self.state is not SessionState.IDLE:
             raise RuntimeError("a transaction is already running")
         self.result = None
         self._command = command
         self._is_write = command.is_write or command.code == cmds.CommandCode.UPLOAD
+        self._until = until if self._is_write else None
         self._timeout = timeout if timeout is not None else self.timeout
         #: the configured reply time: the last wait before a verdict is never shorter
         self._full_timeout = self._timeout
@@ -249,6 +257,7 @@ class SlcSession:
         self._resends = self._resyncs = self._probes = self._messages = self._copies = 0
         self._z_ever = False
         self._refused_once = False
+        self._began = now
         if self._next == 0 or (self._is_write and not self._era_trusted):
             self._begin_resync(now)
         elif self._is_write and not self._clean:
@@ -385,8 +394,14 @@ class SlcSession:
         self.counters.retransmits += 1
         self.state = SessionState.Z_SENT
         # a write's last ;Z waits the full reply time: its answer may be held back on the line
-        last = self._is_write and self._z_sent >= self.retries
+        last = self._is_write and not self._may_ask_again(now + self._timeout, self._z_sent, self.retries)
         self._send(encode_retransmit(self._msg_id), now, self._full_timeout if last else self._timeout)
+
+    def _may_ask_again(self, now: float, asked: int, limit: int) -> bool:
+        """Whether one more ``;Z`` / copy / probe may go: within the count, or the time budget."""
+        if self._until is None:
+            return asked < limit
+        return now + self._timeout <= self._until
 
     def _quiet_time(self) -> float:
         """How long after our last message no reply to it can come: ``late_bound``, or more
@@ -433,7 +448,7 @@ class SlcSession:
         self.state = SessionState.RESYNC
         # the last try waits the full reply time: a reply held back on the line (one just after
         # the timeout) must not make a silent-line verdict
-        last = self._probes > self.retries
+        last = not self._may_ask_again(now + self._timeout, self._probes, self.retries + 1)
         self._send(encode_command(_PROBE, 0), now, self._full_timeout if last else self._timeout)
 
     def _finish(self, verdict: Verdict, answer: Answer | None = None, reason: str = "") -> None:
@@ -449,7 +464,7 @@ class SlcSession:
 
     def _retry_read(self, now: float, why: str) -> None:
         """A read (or a write proved not executed): resync with ID 00 and ask again."""
-        if self._resyncs >= self.max_resyncs:
+        if not self._may_ask_again(now, self._resyncs, self.max_resyncs):
             self._finish(Verdict.FAILED, reason=f"{why}; gave up after {self._resyncs} resyncs")
             return
         self._begin_resync(now)
@@ -486,7 +501,7 @@ class SlcSession:
     def _on_other_in_z(self, now: float, event: ReplyEvent | None) -> None:
         # The controller's last reply may be older than our command (it never got it), or this
         # is a late reply to an earlier message.  Resending with the same ID is safe either way.
-        if self._resends >= self.max_resends:
+        if not self._may_ask_again(now, self._resends, self.max_resends):
             if self._is_write:
                 self._finish(Verdict.UNKNOWN, reason="the controller keeps answering an older message")
             else:
@@ -501,7 +516,7 @@ class SlcSession:
         if not self._is_write:
             self._retry_read(now, ";I: message ID out of step")
             return
-        if self._z_sent >= self.retries + 1:
+        if not self._may_ask_again(now, self._z_sent, self.retries + 1):
             self._finish(Verdict.UNKNOWN, reason=";I with our ID, and no answer to ;Z")
             return
         self._send_z(now)
@@ -513,7 +528,7 @@ class SlcSession:
             return
         last = event.last_valid_id
         if (self._began_clean and self._copies == 1 and last == self._prev_id and last != 0
-                and self._resends < self.max_resends):
+                and self._may_ask_again(now, self._resends, self.max_resends)):
             # Ambiguous: this ;I may answer our only copy (not executed), or a copy of the previous
             # message that the line repeated, refused after that message ran and heard only now,
             # while ours is on its way (and runs).  A second copy with our ID is safe either way:
@@ -527,7 +542,7 @@ class SlcSession:
             # No copy of the command was, or can still be, executed: a new ID is safe.
             self._retry_read(now, f";I{last:02X}: message ID out of step")
             return
-        if self._z_sent >= self.retries + 1:
+        if not self._may_ask_again(now, self._z_sent, self.retries + 1):
             self._finish(Verdict.UNKNOWN, reason=f";I{last:02X} without proof that the command did not run")
             return
         self._send_z(now)
@@ -546,10 +561,12 @@ class SlcSession:
         self._z_or_give_up(now, "no valid answer")
 
     def _z_or_give_up(self, now: float, why: str) -> None:
-        if self._z_sent < self.retries:
+        if self._may_ask_again(now, self._z_sent, self.retries):
             self._send_z(now)
             return
         what = f"{why} to {self._command.name} after {self._z_sent} retransmit requests"
+        if self._until is not None:
+            what += f" in {format_seconds(now - self._began)} s"
         if self._is_write:
             self._finish(Verdict.UNKNOWN, reason=what)
         else:
@@ -571,7 +588,7 @@ class SlcSession:
             self.counters.timeouts += 1
         else:
             self._heard = True
-        if self._probes > self.retries:
+        if not self._may_ask_again(now, self._probes, self.retries + 1):
             why = (f"no answer to read FRN with ID 00 (resync) within {format_seconds(self._full_timeout)} s "
                    f"after {self._probes} tries")
             if self._heard:
