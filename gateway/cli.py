@@ -1,6 +1,6 @@
 """Command-line interface of slc-gateway.
 
-Commands: run, check-config, simulate, probe, read, write, mode, upload, download.
+Commands: run, check-config, export-tags, simulate, probe, read, write, mode, upload, download.
 
 Exit status 0 on success; 1 with a one-line reason on stderr on any failure; 2 for usage errors.
 No protocol logic lives here: the commands call the drivers, the simulators and the app.
@@ -79,6 +79,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("check-config", help="validate a config file, print the resolved config and Modbus map")
     p.add_argument("config", type=Path)
 
+    p = sub.add_parser("export-tags", help="write every mapped point of a config file as a tag list for SCADA")
+    p.add_argument("config", type=Path)
+    p.add_argument("--format", choices=("csv", "kepware", "json"), default="csv",
+                   help="csv (name,unit,table,address,reference,type,access,description), kepware (its tag CSV "
+                        "import), json; default csv")
+    p.add_argument("-o", "--output", type=Path, metavar="FILE", help="write to FILE instead of standard output")
+    p.add_argument("--unit", type=int, metavar="N", help="only the links of Modbus unit N (a Kepware device)")
+
     p = sub.add_parser("simulate", help="serve a simulated controller over TCP or a pseudo-terminal")
     p.add_argument("model", choices=model_names())
     p.add_argument("--listen", default="127.0.0.1:7001", help="host:port (default 127.0.0.1:7001)")
@@ -142,7 +150,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     command: str = args.command
     if command == "run":
         _setup_logging(max(args.verbose, 1))
-    elif command in ("simulate", "check-config"):
+    elif command in ("simulate", "check-config", "export-tags"):
         _setup_logging(args.verbose)
     else:
         # One-shot tools report a failure once, as the one-line reason below (the link's "down"
@@ -153,6 +161,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _run(args.config, args.trace, args.listen)
         if command == "check-config":
             return _check_config(args.config)
+        if command == "export-tags":
+            return _export_tags(args.config, args.format, args.output, args.unit)
         if command == "simulate":
             return asyncio.run(_simulate(args))
         from gateway import tools
@@ -198,6 +208,24 @@ def _check_config(path: Path) -> int:
     print(config.describe())
     print()
     print(describe_map(config))
+    return 0
+
+
+def _export_tags(path: Path, format_name: str, output: Path | None, unit: int | None) -> int:
+    from gateway.config import load_config
+    from gateway.tags import config_tags, render
+
+    config = load_config(path)
+    if unit is not None and all(link.unit != unit for link in config.link):
+        units = ", ".join(str(link.unit) for link in config.link)
+        raise GatewayError(f"--unit {unit}: no link of {path} is unit {unit} (its units: {units})")
+    text = render(config_tags(config.link, unit), format_name)
+    if output is None:
+        sys.stdout.write(text)
+    else:
+        output.write_text(text, encoding="utf-8", newline="")
+        print(f"slc-gateway export-tags: {text.count(chr(10)) - (format_name != 'json')} tags written to "
+              f"{output}", file=sys.stderr)
     return 0
 
 

@@ -51,7 +51,7 @@ from gateway.modbus.mapping import (
 from gateway.poller import Poller
 from gateway.writes import WriteQueue
 
-__all__ = ["Unit", "UnitOptions", "WritableRange", "WriteStep"]
+__all__ = ["Unit", "UnitOptions", "WritableRange", "WriteStep", "in_writable"]
 
 log = logging.getLogger("gateway.unit")
 
@@ -85,6 +85,15 @@ class UnitOptions(TypedDict):
     write_queue_per_client: NotRequired[int]
     write_queue_per_link: NotRequired[int]
     stagger: NotRequired[float | None]
+
+
+def in_writable(writable: Sequence[WritableRange], table: Table, address: int, count: int) -> bool:
+    """Whether ``writable`` (empty: everything) lets a write to ``address``.. (``count``) of ``table`` through.
+
+    One range must hold the whole write."""
+    return not writable or any(
+        t is table and first <= address and address + count - 1 <= last for t, first, last in writable
+    )
 
 
 def _pack_registers(values: Sequence[int]) -> bytes:
@@ -273,9 +282,7 @@ class Unit(ABC, Generic[R, B]):
     def _check_writable(self, table: Table, address: int, count: int) -> None:
         if self.read_only:
             raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{self.name} is read only")
-        if self.writable and not any(
-            t is table and first <= address and address + count - 1 <= last for t, first, last in self.writable
-        ):
+        if not in_writable(self.writable, table, address, count):
             raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} {address} is not in a writable range")
 
     def _refused_by_image(self, point: RegisterPoint[R]) -> str | None:
