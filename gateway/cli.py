@@ -75,6 +75,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--listen", metavar="HOST:PORT",
         help="serve Modbus TCP here instead of the config's [modbus] listen (e.g. when 5020 is taken)",
     )
+    p.add_argument(
+        "--metrics-listen", metavar="HOST:PORT",
+        help="serve /metrics, /healthz and the status page here instead of the config's [metrics] listen",
+    )
 
     p = sub.add_parser("check-config", help="validate a config file, print the resolved config and Modbus map")
     p.add_argument("config", type=Path)
@@ -158,7 +162,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _setup_logging(args.verbose, logging.ERROR)
     try:
         if command == "run":
-            return _run(args.config, args.trace, args.listen)
+            return _run(args.config, args.trace, args.listen, args.metrics_listen)
         if command == "check-config":
             return _check_config(args.config)
         if command == "export-tags":
@@ -178,17 +182,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
 
 
-def _run(config_path: Path | None, trace: Path | None = None, listen: str | None = None) -> int:
+def _checked_listen(option: str, listen: str) -> str:
+    from gateway.config import parse_listen
+
+    try:
+        parse_listen(listen)
+    except ValueError as exc:
+        raise GatewayError(f"{option}: {exc}") from exc
+    return listen
+
+
+def _run(config_path: Path | None, trace: Path | None = None, listen: str | None = None,
+         metrics_listen: str | None = None) -> int:
     from gateway.app import run_gateway
-    from gateway.config import load_config, parse_listen
+    from gateway.config import MetricsConfig, load_config
 
     config = load_config(config_path or DEMO_CONFIG)
     if listen is not None:
-        try:
-            parse_listen(listen)
-        except ValueError as exc:
-            raise GatewayError(f"--listen: {exc}") from exc
+        listen = _checked_listen("--listen", listen)
         config = config.model_copy(update={"modbus": config.modbus.model_copy(update={"listen": listen})})
+    if metrics_listen is not None:
+        metrics_listen = _checked_listen("--metrics-listen", metrics_listen)
+        metrics = config.metrics or MetricsConfig()
+        config = config.model_copy(update={"metrics": metrics.model_copy(update={"listen": metrics_listen})})
     if trace is not None:
         links = tuple(link.model_copy(update={"trace": trace}) for link in config.link)
         config = config.model_copy(update={"link": links})
