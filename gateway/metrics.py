@@ -24,6 +24,7 @@ Metrics (every name starts with ``slc_gateway_``)::
       write_failures_total          counter  ... of which failed (answered with an exception)
       partial_writes_total          counter  ... of which the controller refused part-way (some registers written)
       write_busy_total              counter  writes answered 0x06 because the link's write queue was full
+      write_duration_seconds        histogram  Modbus write requests, arrival to answer (success or exception)
     per link whose driver reports its own numbers (``driver.metrics() -> dict[str, float]``), same labels
       link_<key>_total              counter  every key, e.g. link_polls_total, link_eots_total
       link_<key>                    gauge    keys of state, not counts: ``active`` and ``*_active``
@@ -67,7 +68,7 @@ from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING, Any, Final, Protocol
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
-from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 
 from gateway.config import parse_listen
 from gateway.logutil import RepeatLog
@@ -169,6 +170,9 @@ class _GatewayCollector:
         write_failures = _counter("write_failures", "Modbus writes that failed.", link)
         partial = _counter("partial_writes", "Modbus writes the controller refused part-way (logged).", link)
         busy = _counter("write_busy", "Modbus writes answered 0x06: the link's write queue was full.", link)
+        latency = HistogramMetricFamily(PREFIX + "write_duration_seconds",
+                                        "Modbus write requests from arrival to answer (success or exception).",
+                                        labels=link)
         for unit in units:
             labels = (unit.name, str(unit.unit_id))
             driver = unit.driver
@@ -189,8 +193,10 @@ class _GatewayCollector:
             write_failures.add_metric(labels, unit.write_failures)
             partial.add_metric(labels, unit.partial_writes)
             busy.add_metric(labels, unit.writes.busy_refusals)
+            histogram = unit.write_latency
+            latency.add_metric(labels, histogram.cumulative(), histogram.total)
         static: list[Metric] = [link_up, connected, age, stale, *plain.values(), retries, byte_count, writes,
-                                write_failures, partial, busy]
+                                write_failures, partial, busy, latency]
         return static + _driver_families(units, {family.name for family in static})
 
     @staticmethod
