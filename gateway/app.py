@@ -143,6 +143,7 @@ class Gateway:
                 allow=list(config.metrics.allow) or None,
                 max_connections=config.metrics.max_connections,
                 log_interval=config.logging.repeat_interval,
+                links=config.link,
             )
         self._task: asyncio.Task[None] | None = None
         self._links: list[asyncio.Task[None]] = []

@@ -1,6 +1,6 @@
 """Command-line interface of slc-gateway.
 
-Commands: run, check-config, simulate, probe, read, write, mode, upload, download.
+Commands: run, check-config, export-tags, simulate, probe, read, write, mode, upload, download.
 
 Exit status 0 on success; 1 with a one-line reason on stderr on any failure; 2 for usage errors.
 No protocol logic lives here: the commands call the drivers, the simulators and the app.
@@ -75,9 +75,21 @@ def build_parser() -> argparse.ArgumentParser:
         "--listen", metavar="HOST:PORT",
         help="serve Modbus TCP here instead of the config's [modbus] listen (e.g. when 5020 is taken)",
     )
+    p.add_argument(
+        "--metrics-listen", metavar="HOST:PORT",
+        help="serve /metrics, /healthz and the status page here instead of the config's [metrics] listen",
+    )
 
     p = sub.add_parser("check-config", help="validate a config file, print the resolved config and Modbus map")
     p.add_argument("config", type=Path)
+
+    p = sub.add_parser("export-tags", help="write every mapped point of a config file as a tag list for SCADA")
+    p.add_argument("config", type=Path)
+    p.add_argument("--format", choices=("csv", "kepware", "json"), default="csv",
+                   help="csv (name,unit,table,address,reference,type,access,description), kepware (its tag CSV "
+                        "import), json; default csv")
+    p.add_argument("-o", "--output", type=Path, metavar="FILE", help="write to FILE instead of standard output")
+    p.add_argument("--unit", type=int, metavar="N", help="only the links of Modbus unit N (a Kepware device)")
 
     p = sub.add_parser("simulate", help="serve a simulated controller over TCP or a pseudo-terminal")
     p.add_argument("model", choices=model_names())
@@ -142,7 +154,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     command: str = args.command
     if command == "run":
         _setup_logging(max(args.verbose, 1))
-    elif command in ("simulate", "check-config"):
+    elif command in ("simulate", "check-config", "export-tags"):
         _setup_logging(args.verbose)
     else:
         # One-shot tools report a failure once, as the one-line reason below (the link's "down"
@@ -150,9 +162,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         _setup_logging(args.verbose, logging.ERROR)
     try:
         if command == "run":
-            return _run(args.config, args.trace, args.listen)
+            return _run(args.config, args.trace, args.listen, args.metrics_listen)
         if command == "check-config":
             return _check_config(args.config)
+        if command == "export-tags":
+            return _export_tags(args.config, args.format, args.output, args.unit)
         if command == "simulate":
             return asyncio.run(_simulate(args))
         from gateway import tools
@@ -168,17 +182,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
 
 
-def _run(config_path: Path | None, trace: Path | None = None, listen: str | None = None) -> int:
+def _checked_listen(option: str, listen: str) -> str:
+    from gateway.config import parse_listen
+
+    try:
+        parse_listen(listen)
+    except ValueError as exc:
+        raise GatewayError(f"{option}: {exc}") from exc
+    return listen
+
+
+def _run(config_path: Path | None, trace: Path | None = None, listen: str | None = None,
+         metrics_listen: str | None = None) -> int:
     from gateway.app import run_gateway
-    from gateway.config import load_config, parse_listen
+    from gateway.config import MetricsConfig, load_config
 
     config = load_config(config_path or DEMO_CONFIG)
     if listen is not None:
-        try:
-            parse_listen(listen)
-        except ValueError as exc:
-            raise GatewayError(f"--listen: {exc}") from exc
+        listen = _checked_listen("--listen", listen)
         config = config.model_copy(update={"modbus": config.modbus.model_copy(update={"listen": listen})})
+    if metrics_listen is not None:
+        metrics_listen = _checked_listen("--metrics-listen", metrics_listen)
+        metrics = config.metrics or MetricsConfig()
+        config = config.model_copy(update={"metrics": metrics.model_copy(update={"listen": metrics_listen})})
     if trace is not None:
         links = tuple(link.model_copy(update={"trace": trace}) for link in config.link)
         config = config.model_copy(update={"link": links})
@@ -198,6 +224,24 @@ def _check_config(path: Path) -> int:
     print(config.describe())
     print()
     print(describe_map(config))
+    return 0
+
+
+def _export_tags(path: Path, format_name: str, output: Path | None, unit: int | None) -> int:
+    from gateway.config import load_config
+    from gateway.tags import config_tags, render
+
+    config = load_config(path)
+    if unit is not None and all(link.unit != unit for link in config.link):
+        units = ", ".join(str(link.unit) for link in config.link)
+        raise GatewayError(f"--unit {unit}: no link of {path} is unit {unit} (its units: {units})")
+    text = render(config_tags(config.link, unit), format_name)
+    if output is None:
+        sys.stdout.write(text)
+    else:
+        output.write_text(text, encoding="utf-8", newline="")
+        print(f"slc-gateway export-tags: {text.count(chr(10)) - (format_name != 'json')} tags written to "
+              f"{output}", file=sys.stderr)
     return 0
 
 

@@ -303,6 +303,22 @@ class Images:
         segment = self._find(table, address)
         return segment is not None and address + count - 1 <= segment.last
 
+    def peek(self, table: Table, address: int) -> tuple[int, int] | None:
+        """``(value, block)`` of one mapped address as last stored, fresh or not; None if unmapped.
+
+        For diagnostics (the status page shows a stale value marked stale); reads use :meth:`registers`
+        and :meth:`bits`, which check freshness.
+        """
+        segment = self._find(table, address)
+        if segment is None:
+            return None
+        i = address - segment.first
+        if segment.image:
+            value = segment.image[2 * i] << 8 | segment.image[2 * i + 1]
+        else:
+            value = segment.bits >> i & 1
+        return value, segment.blocks[i]
+
     def _segment(self, table: Table, address: int, count: int, now: float) -> tuple[_Segment, int, int]:
         segment = self._find(table, address)
         if segment is None:

@@ -24,6 +24,7 @@ Metrics (every name starts with ``slc_gateway_``)::
       write_failures_total          counter  ... of which failed (answered with an exception)
       partial_writes_total          counter  ... of which the controller refused part-way (some registers written)
       write_busy_total              counter  writes answered 0x06 because the link's write queue was full
+      write_duration_seconds        histogram  Modbus write requests, arrival to answer (success or exception)
     per link whose driver reports its own numbers (``driver.metrics() -> dict[str, float]``), same labels
       link_<key>_total              counter  every key, e.g. link_polls_total, link_eots_total
       link_<key>                    gauge    keys of state, not counts: ``active`` and ``*_active``
@@ -44,13 +45,16 @@ Metrics (every name starts with ``slc_gateway_``)::
 ``stale_after``, 503 otherwise, with a JSON body naming each link's state (no paths, no
 configuration beyond the link names and unit ids).
 
+The same listener serves the status page (``/``) and its JSON API (``/api/...``), read-only:
+:mod:`gateway.status`.
+
 The HTTP side is deliberately tiny: one request per connection (``Connection: close``), ``GET``
 and ``HEAD`` only, HTTP/1.0 and HTTP/1.1 only (others get 505), a bounded request head, timeouts
 on reading and writing, an ``allow`` list of client networks (others are closed at accept, before
 a byte is read) and a cap on concurrent connections (``max_connections``; more are closed at
 once). Refusals are logged: the first of each cause at once, then a count per interval with the
-addresses (:class:`gateway.logutil.RepeatLog`). It is meant for a Prometheus scraper and a
-container health check, not for browsers.
+addresses (:class:`gateway.logutil.RepeatLog`). It is meant for a Prometheus scraper, a container
+health check and a status page that asks once a second, not for heavy browsing.
 """
 
 from __future__ import annotations
@@ -64,13 +68,15 @@ from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING, Any, Final, Protocol
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
-from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 
 from gateway.config import parse_listen
 from gateway.logutil import RepeatLog
 from gateway.modbus.admission import IPNetwork, format_address, host_allowed, peer_host
+from gateway.status import StatusPage, data_age, public_error
 
 if TYPE_CHECKING:
+    from gateway.config.link import LinkBase
     from gateway.modbus.server import ModbusTcpServer
     from gateway.unit import Unit
 
@@ -98,8 +104,6 @@ _REASONS: Final = {
     505: "HTTP Version Not Supported",
 }
 _REQUEST_LINE: Final = re.compile(rb"([A-Z]{1,16}) (\S{1,2048}) HTTP/(\d)\.(\d)")
-_USERINFO: Final = re.compile(r"(?<=://)[^/@\s]*@")
-_MAX_ERROR_TEXT: Final = 300
 
 
 class GatewayView(Protocol):
@@ -166,13 +170,16 @@ class _GatewayCollector:
         write_failures = _counter("write_failures", "Modbus writes that failed.", link)
         partial = _counter("partial_writes", "Modbus writes the controller refused part-way (logged).", link)
         busy = _counter("write_busy", "Modbus writes answered 0x06: the link's write queue was full.", link)
+        latency = HistogramMetricFamily(PREFIX + "write_duration_seconds",
+                                        "Modbus write requests from arrival to answer (success or exception).",
+                                        labels=link)
         for unit in units:
             labels = (unit.name, str(unit.unit_id))
             driver = unit.driver
             counters = driver.counters
             link_up.add_metric(labels, 1.0 if driver.available else 0.0)
             connected.add_metric(labels, 1.0 if driver.connected else 0.0)
-            age.add_metric(labels, _data_age(unit, now))
+            age.add_metric(labels, data_age(unit, now))
             stale.add_metric(labels, unit.stale_after)
             for field, family in plain.items():
                 family.add_metric(labels, getattr(counters, field))
@@ -186,8 +193,10 @@ class _GatewayCollector:
             write_failures.add_metric(labels, unit.write_failures)
             partial.add_metric(labels, unit.partial_writes)
             busy.add_metric(labels, unit.writes.busy_refusals)
+            histogram = unit.write_latency
+            latency.add_metric(labels, histogram.cumulative(), histogram.total)
         static: list[Metric] = [link_up, connected, age, stale, *plain.values(), retries, byte_count, writes,
-                                write_failures, partial, busy]
+                                write_failures, partial, busy, latency]
         return static + _driver_families(units, {family.name for family in static})
 
     @staticmethod
@@ -295,19 +304,8 @@ def _driver_families(units: Sequence[Unit[Any, Any]], taken: set[str]) -> list[M
     return list(families.values())
 
 
-def _data_age(unit: Unit[Any, Any], now: float) -> float:
-    """Seconds since the oldest fast-class block was read; +Inf if one never was."""
-    return max(0.0, unit.cache.oldest_age(unit.poller.fast, now))
-
-
 # --------------------------------------------------------------------------------------------
 # Health
-
-
-def _public_error(text: str) -> str:
-    """``last_error`` for the health page: user:password@ removed from URLs, length capped."""
-    text = _USERINFO.sub("", text)
-    return text if len(text) <= _MAX_ERROR_TEXT else text[: _MAX_ERROR_TEXT - 3] + "..."
 
 
 def health(gateway: GatewayView, now: float) -> tuple[bool, dict[str, object]]:
@@ -315,7 +313,7 @@ def health(gateway: GatewayView, now: float) -> tuple[bool, dict[str, object]]:
     links: dict[str, object] = {}
     healthy = True
     for unit in gateway.units:
-        age = _data_age(unit, now)
+        age = data_age(unit, now)
         up = unit.driver.available
         fresh = age < unit.stale_after
         healthy = healthy and up and fresh
@@ -324,7 +322,7 @@ def health(gateway: GatewayView, now: float) -> tuple[bool, dict[str, object]]:
             "up": up,
             "fresh": fresh,
             "age_seconds": round(age, 3) if math.isfinite(age) else None,
-            "last_error": _public_error(unit.driver.last_error),
+            "last_error": public_error(unit.driver.last_error),
         }
     return healthy, {"status": "ok" if healthy else "degraded", "links": links}
 
@@ -340,9 +338,11 @@ class _HttpError(Exception):
 
 
 class MetricsServer:
-    """The ``[metrics]`` listener: ``/metrics`` and ``/healthz`` over HTTP/1.1, one request per connection.
+    """The ``[metrics]`` listener: ``/metrics``, ``/healthz`` and the status page over HTTP/1.1, one
+    request per connection.
 
     ``request_timeout``: seconds a client has to send its request head, and again to take the reply.
+    ``links``: the ``[[link]]`` tables of the units, for the status page (``gateway.status.StatusPage``).
     """
 
     def __init__(
@@ -354,8 +354,10 @@ class MetricsServer:
         allow: Sequence[IPNetwork] | None = None,
         max_connections: int = _MAX_CONNECTIONS,
         log_interval: float = 60.0,
+        links: Sequence[LinkBase] = (),
     ) -> None:
         self.gateway = gateway
+        self.status = StatusPage(gateway, links)
         self.host, self._requested_port = parse_listen(listen)
         self.request_timeout = request_timeout
         self.allow = None if allow is None else tuple(allow)
@@ -383,7 +385,7 @@ class MetricsServer:
             self._handle, self.host, self._requested_port, limit=_MAX_HEAD, reuse_address=True
         )
         log.info(
-            "metrics: serving /metrics and /healthz on http://%s",
+            "metrics: serving /metrics, /healthz and the status page on http://%s",
             ", ".join(format_address(sock.getsockname()) for sock in self._server.sockets),
         )
 
@@ -462,11 +464,18 @@ class MetricsServer:
             writer.close()
             await writer.wait_closed()
 
-    def _route(self, method: str, path: str) -> tuple[int, str, bytes, list[tuple[str, str]]]:
-        if path not in ("/metrics", "/healthz"):
+    def _route(self, method: str, target: str) -> tuple[int, str, bytes, list[tuple[str, str]]]:
+        path, _, query = target.partition("?")
+        if path not in ("/metrics", "/healthz") and not self.status.handles(path):
             raise _HttpError(404)
         if method not in ("GET", "HEAD"):
             raise _HttpError(405)
+        if path not in ("/metrics", "/healthz"):
+            try:
+                return self.status.route(path, query)
+            except Exception:
+                log.exception("metrics: the status page failed")
+                raise _HttpError(500) from None
         if path == "/metrics":
             try:
                 body = generate_latest(self.registry)
@@ -490,7 +499,7 @@ async def _read_head(reader: asyncio.StreamReader) -> bytes:
 
 
 def _parse_head(head: bytes) -> tuple[str, str]:
-    """``(method, path)`` of a request head; the query string is ignored."""
+    """``(method, target)`` of a request head: the target is the path with its query string."""
     request_line = head.split(b"\r\n", 1)[0]
     match = _REQUEST_LINE.fullmatch(request_line)
     if match is None:
@@ -498,5 +507,4 @@ def _parse_head(head: bytes) -> tuple[str, str]:
     method, target, major, minor = match.groups()
     if major != b"1" or minor not in (b"0", b"1"):
         raise _HttpError(505)
-    path = target.split(b"?", 1)[0].decode("ascii", "replace")
-    return method.decode("ascii"), path
+    return method.decode("ascii"), target.decode("ascii", "replace")

@@ -110,6 +110,8 @@ class Poller:
         self.last_success: float | None = None
         #: the last failure of a block read (kept after recovery, for diagnosis)
         self.last_error: GatewayError | None = None
+        #: loop time of ``last_error`` (the end of the round it came in), None before the first
+        self.last_error_at: float | None = None
         #: changes of ``available`` (the first data included)
         self.availability_changes = 0
         self._warned = False  # the current unavailability was logged at WARNING
@@ -182,6 +184,7 @@ class Poller:
         if error is None:
             return
         self.last_error = error
+        self.last_error_at = asyncio.get_running_loop().time()
         if read:
             return
         changed = self.available or self.availability_changes == 0  # (the first round too)

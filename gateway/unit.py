@@ -27,6 +27,7 @@ import asyncio
 import logging
 import struct
 from abc import ABC, abstractmethod
+from bisect import bisect_left
 from collections.abc import Awaitable, Callable, Hashable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
@@ -51,7 +52,7 @@ from gateway.modbus.mapping import (
 from gateway.poller import Poller
 from gateway.writes import WriteQueue
 
-__all__ = ["Unit", "UnitOptions", "WritableRange", "WriteStep"]
+__all__ = ["LATENCY_BUCKETS", "LatencyHistogram", "Unit", "UnitOptions", "WritableRange", "WriteStep", "in_writable"]
 
 log = logging.getLogger("gateway.unit")
 
@@ -85,6 +86,15 @@ class UnitOptions(TypedDict):
     write_queue_per_client: NotRequired[int]
     write_queue_per_link: NotRequired[int]
     stagger: NotRequired[float | None]
+
+
+def in_writable(writable: Sequence[WritableRange], table: Table, address: int, count: int) -> bool:
+    """Whether ``writable`` (empty: everything) lets a write to ``address``.. (``count``) of ``table`` through.
+
+    One range must hold the whole write."""
+    return not writable or any(
+        t is table and first <= address and address + count - 1 <= last for t, first, last in writable
+    )
 
 
 def _pack_registers(values: Sequence[int]) -> bytes:
@@ -149,6 +159,8 @@ class Unit(ABC, Generic[R, B]):
         )
         self.write_requests = 0
         self.write_failures = 0
+        #: seconds from a write request's arrival to its answer, success or exception
+        self.write_latency = LatencyHistogram()
         #: write requests the controller refused after part of them was applied
         self.partial_writes = 0
         driver.write_burst = write_burst
@@ -273,9 +285,7 @@ class Unit(ABC, Generic[R, B]):
     def _check_writable(self, table: Table, address: int, count: int) -> None:
         if self.read_only:
             raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{self.name} is read only")
-        if self.writable and not any(
-            t is table and first <= address and address + count - 1 <= last for t, first, last in self.writable
-        ):
+        if not in_writable(self.writable, table, address, count):
             raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"{table.value} {address} is not in a writable range")
 
     def _refused_by_image(self, point: RegisterPoint[R]) -> str | None:
@@ -364,6 +374,7 @@ class Unit(ABC, Generic[R, B]):
     async def _queue_write(self, table: Table, steps: list[WriteStep], footprint: frozenset[Hashable]) -> None:
         """Queue the steps now (arrival order) and wait for them; errors as Modbus exceptions."""
         self.write_requests += 1
+        started = self._loop_time()
         try:
             try:
                 future = self.writes.submit(current_client.get(), footprint, partial(self._run_steps, table, steps))
@@ -376,6 +387,8 @@ class Unit(ABC, Generic[R, B]):
         except ModbusExceptionReply:
             self.write_failures += 1
             raise
+        finally:
+            self.write_latency.observe(self._loop_time() - started)
 
     async def _run_steps(self, table: Table, steps: list[WriteStep]) -> None:
         done: list[WriteStep] = []
@@ -417,6 +430,33 @@ class Unit(ABC, Generic[R, B]):
         else:
             self.cache.patch(point.block, msb, bytes((value >> 8 & 0xFF,)))
             self.cache.patch(point.block, lsb, bytes((value & 0xFF,)))
+
+
+#: upper bounds (seconds) of the write latency buckets: a write is one or a few serial round trips
+LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+
+
+@dataclass(slots=True)
+class LatencyHistogram:
+    """Counts of durations per bucket (:data:`LATENCY_BUCKETS`, then +Inf), their sum and number."""
+
+    counts: list[int] = field(default_factory=lambda: [0] * (len(LATENCY_BUCKETS) + 1))
+    total: float = 0.0
+    count: int = 0
+
+    def observe(self, seconds: float) -> None:
+        self.counts[bisect_left(LATENCY_BUCKETS, seconds)] += 1
+        self.total += seconds
+        self.count += 1
+
+    def cumulative(self) -> list[tuple[str, int]]:
+        """``(upper bound, count at or below it)`` per bucket, the last ``+Inf`` (Prometheus ``le``)."""
+        out: list[tuple[str, int]] = []
+        running = 0
+        for bound, count in zip((*map(str, LATENCY_BUCKETS), "+Inf"), self.counts, strict=True):
+            running += count
+            out.append((bound, running))
+        return out
 
 
 @dataclass(slots=True)

@@ -238,7 +238,9 @@ async def test_healthz_503_names_the_link_that_never_answers() -> None:
 @pytest.mark.parametrize(
     ("request_bytes", "status"),
     [
-        (b"GET / HTTP/1.1\r\nHost: x\r\n\r\n", 404),
+        (b"GET /index.html HTTP/1.1\r\nHost: x\r\n\r\n", 404),
+        (b"GET /api/units HTTP/1.1\r\n\r\n", 404),
+        (b"POST /api/status HTTP/1.1\r\nContent-Length: 0\r\n\r\n", 405),
         (b"GET /metrics/extra HTTP/1.1\r\n\r\n", 404),
         (b"GET /../healthz HTTP/1.1\r\n\r\n", 404),
         (b"POST /metrics HTTP/1.1\r\nContent-Length: 0\r\n\r\n", 405),

@@ -180,6 +180,8 @@ class UnitDriver(Protocol):
     name: str
     counters: LinkCounters
     last_error: str
+    #: loop time of the last change of ``available`` (None before the first verdict)
+    state_since: float | None
     write_burst: int
     poll_burst: int
 
@@ -248,6 +250,8 @@ class LinkDriver(ABC):
         self._last_ok: float | None = None
         #: link state changes (each counted and logged once)
         self.state_changes = 0
+        #: loop time of the last change of ``available`` (None before the first verdict)
+        self.state_since: float | None = None
 
     # --- public state -----------------------------------------------------------------------
 
@@ -272,6 +276,7 @@ class LinkDriver(ABC):
             return
         self._state = up
         self.state_changes += 1
+        self.state_since = asyncio.get_running_loop().time()
         if up:
             self.last_error = ""
             log.info("link %s: up (%s)", self.name, describe_url(self.url))

@@ -154,6 +154,7 @@ class Df1Station:
         self.write_burst = 1  #: set by the unit; see write_session
         self.poll_burst = 2
         self.last_reply_at: float | None = None  #: loop time of the last reply of this station (any STS)
+        self.state_since: float | None = None  #: loop time of the last change of ``available``
 
     # --- state ------------------------------------------------------------------------------
 
@@ -208,6 +209,7 @@ class Df1Station:
         if self._state is up:
             return
         self._state = up
+        self.state_since = asyncio.get_running_loop().time()
         if up:
             self.last_error = ""
             log.info("link %s: station %d up", self.name, self.station)

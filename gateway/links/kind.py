@@ -15,13 +15,13 @@ closes the runners when it stops.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar, get_args
 
 from gateway.config.link import LinkBase, SerialDefaults
 from gateway.drivers.base import OpenStream
-from gateway.modbus.mapping import Plan, Table
+from gateway.modbus.mapping import Plan, PointLabel, Table
 from gateway.sim.models import SimModel
 from gateway.unit import Unit, UnitOptions, WritableRange
 
@@ -29,6 +29,7 @@ __all__ = [
     "Built",
     "LinkKind",
     "LinkRunner",
+    "PointLabels",
     "ToolHints",
     "block_lines",
     "protocol_of",
@@ -56,6 +57,9 @@ class Built:
     units: Sequence[Unit[Any, Any]]
     runners: Sequence[LinkRunner]
 
+
+#: per ``(table, Modbus address)`` of a link's plan: what the point is in the controller
+PointLabels = Mapping[tuple[Table, int], PointLabel]
 
 #: ``(command, parsed arguments, opener)`` -> exit status: a kind's diagnostic commands (probe, read ...)
 ToolRunner = Callable[[str, argparse.Namespace, OpenStream], Awaitable[int]]
@@ -104,6 +108,9 @@ class LinkKind(Generic[C]):
     controllers: str
     #: the plan's blocks as lines for ``check-config``
     plan_lines: Callable[[Plan[Any, Any]], list[str]] = block_lines
+    #: what each point of a link's plan is in the controller (tag names, types: ``export-tags``);
+    #: None: points are named by table and address
+    point_labels: Callable[[C], PointLabels] | None = None
     #: the ``sim://`` models of controllers of this kind (their names: ``config_model.sim_models``)
     simulators: Sequence[SimModel] = ()
     #: the diagnostic commands (``slc-gateway probe/read/write ... --protocol name``); None: none

@@ -26,6 +26,7 @@ __all__ = [
     "Codec",
     "Half",
     "Plan",
+    "PointLabel",
     "RegisterPoint",
     "Scan",
     "Table",
@@ -104,6 +105,18 @@ class BitPoint(Generic[B]):
     offset: int
     bit: int
     write: B | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class PointLabel:
+    """What a point is in the controller, for tag lists: ``address`` in the controller's own notation
+    (``N7:10``, ``901.PRE``), ``type`` (``int16``, ``uint16``, ``float32``, ``bool`` ...) and a description.
+
+    A 32-bit value's two registers carry the same label."""
+
+    address: str
+    type: str
+    description: str = ""
 
 
 @dataclass

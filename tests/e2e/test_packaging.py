@@ -290,6 +290,7 @@ def test_wheel_contents(installed: Installed) -> None:
         assert wheel.read("gateway/demo.toml") == (ROOT / "config" / "demo.toml").read_bytes()
         assert "gateway/py.typed" in names
         assert "gateway/healthcheck.py" in names
+        assert {"gateway/web/index.html", "gateway/web/status.css", "gateway/web/status.js"} <= names
         entry_points = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
         assert re.search(r"^slc-gateway = gateway\.cli:main$", wheel.read(entry_points).decode(), re.MULTILINE)
     assert not any(name.startswith(("tests/", "bench/")) for name in names)
@@ -347,13 +348,19 @@ def test_run_without_argument_serves_the_demo(installed: Installed, start: Start
     gateway already running on this machine (the demo's 5020) cannot make the test skip or collide."""
     demo = tomllib.loads((ROOT / "config" / "demo.toml").read_text(encoding="utf-8"))
     assert demo["modbus"]["listen"] == f"{HOST}:{DEMO_PORT}"  # what the README promises for `make run`
-    port = free_port()
-    running = start([str(installed.bin / "slc-gateway"), "run", "--listen", f"{HOST}:{port}"])
+    assert demo["metrics"]["listen"] == f"{HOST}:9108"  # the status page the README points to
+    port, metrics_port = free_port(), free_port()
+    running = start([str(installed.bin / "slc-gateway"), "run", "--listen", f"{HOST}:{port}",
+                     "--metrics-listen", f"{HOST}:{metrics_port}"])
     wait_healthy(installed, ["python", "-m", "gateway.healthcheck", f"{HOST}:{port}"], running)
     for link in demo["link"]:
         wait_link_up(port, link["unit"])  # every simulated controller answers
         if link["protocol"] == "slc-ascii":
             assert len(modbus_read(port, link["unit"], 0, 64)) == 64
+    with urllib.request.urlopen(f"http://{HOST}:{metrics_port}/", timeout=5) as response:
+        assert b"status.js" in response.read()  # the status page, from the installed package's data
+    with urllib.request.urlopen(f"http://{HOST}:{metrics_port}/status.js", timeout=5) as response:
+        assert b"api/status" in response.read()
     assert stop(running) == 0, running.output()
     assert "demo" in running.output()
     assert f"serving Modbus TCP on {HOST}:{port}" in running.output()

@@ -9,7 +9,7 @@ Its rooms: the sans-I/O protocol in :mod:`gateway.protocols.df1`, the driver in
 from __future__ import annotations
 
 from gateway.config.df1 import Df1LinkConfig
-from gateway.links.df1.build import build_df1, df1_plan
+from gateway.links.df1.build import build_df1, df1_plan, df1_point_labels
 from gateway.links.df1.tool import HINTS, add_options, run_df1_tool
 from gateway.links.kind import LinkKind
 from gateway.sim.models import DF1LINE, PLC5, SLC504
@@ -20,6 +20,7 @@ KIND: LinkKind[Df1LinkConfig] = LinkKind(
     config_model=Df1LinkConfig,
     build=build_df1,
     plan=df1_plan,
+    point_labels=df1_point_labels,
     controllers="SLC 500 / PLC-5",
     simulators=(SLC504, PLC5, DF1LINE),
     tool=run_df1_tool,

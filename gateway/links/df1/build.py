@@ -21,18 +21,18 @@ from typing import Any
 from gateway.config.df1 import Df1LinkConfig, HalfDuplexLine, group_lines
 from gateway.drivers.df1 import Df1Driver
 from gateway.drivers.df1_half import Df1HalfDuplexLine
-from gateway.links.df1.plan import MapItem, shared_plan_df1
-from gateway.links.df1.plc5_unit import PLC5_MAX_READ_BYTES, Plc5Unit, shared_plan_plc5
+from gateway.links.df1.plan import MapItem, point_labels_df1, shared_plan_df1
+from gateway.links.df1.plc5_unit import PLC5_MAX_READ_BYTES, Plc5Unit, point_labels_plc5, shared_plan_plc5
 from gateway.links.df1.receive import ReceiveWindow
 from gateway.links.df1.unit import PROCESSORS, Df1Unit, PcccDriver, PcccUnit
-from gateway.links.kind import Built, LinkRunner, unit_options
+from gateway.links.kind import Built, LinkRunner, PointLabels, unit_options
 from gateway.modbus.mapping import Plan, Table
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.half_duplex import StationConfig
 from gateway.protocols.df1.pccc import ProcessorFamily
 from gateway.protocols.df1.slave_messages import RegisterTable
 
-__all__ = ["build_df1", "build_line", "df1_plan", "map_items", "station_config", "station_unit"]
+__all__ = ["build_df1", "build_line", "df1_plan", "df1_point_labels", "map_items", "station_config", "station_unit"]
 
 
 def map_items(link: Df1LinkConfig) -> list[MapItem]:
@@ -52,6 +52,11 @@ def df1_plan(link: Df1LinkConfig) -> Plan[Any, Any]:
     if _is_plc5(link):
         return shared_plan_plc5(map_items(link), link.max_read_bytes or PLC5_MAX_READ_BYTES)
     return shared_plan_df1(map_items(link), _max_read(link))
+
+
+def df1_point_labels(link: Df1LinkConfig) -> PointLabels:
+    """What each point of :func:`df1_plan` is in the controller (PLC-5 or SLC 500 addresses)."""
+    return point_labels_plc5(map_items(link)) if _is_plc5(link) else point_labels_df1(map_items(link))
 
 
 def station_unit(driver: PcccDriver, link: Df1LinkConfig) -> PcccUnit[Any, Any]:

@@ -18,10 +18,10 @@ from __future__ import annotations
 import functools
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TypeAlias
 
-from gateway.modbus.mapping import BitPoint, Block, Codec, Half, Plan, RegisterPoint, Scan, Table
+from gateway.modbus.mapping import BitPoint, Block, Codec, Half, Plan, PointLabel, RegisterPoint, Scan, Table
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
 
 __all__ = [
@@ -37,6 +37,7 @@ __all__ = [
     "block_cost",
     "optimal_blocks",
     "plan_df1",
+    "point_labels_df1",
     "shared_plan_df1",
 ]
 
@@ -266,6 +267,23 @@ def plan_df1(items: Sequence[MapItem], max_read_bytes: int, overhead: int = READ
             word_write = word_writes.setdefault(cell.address, Df1WordWrite(cell.address)) if writable else None
             plan.registers(cell.table)[cell.modbus] = RegisterPoint(block, offset, cell.codec, word_write)
     return plan
+
+
+def entry_description(item: MapItem) -> str:
+    """A point's description in tag lists: the map entry it comes from."""
+    return f"map entry {item.address} x{item.count}, {item.type}, {item.scan} scan"
+
+
+def point_labels_df1(items: Sequence[MapItem]) -> dict[tuple[Table, int], PointLabel]:
+    """What each point of :func:`plan_df1` is: its SLC 500 address (``N7:10``, ``B3:0/5``, ``F8:2``)."""
+    labels: dict[tuple[Table, int], PointLabel] = {}
+    interned: dict[SlcAddress, SlcAddress] = {}
+    for item in items:
+        description = entry_description(item)
+        for cell in _cells(item, interned):
+            address = cell.address if cell.bit is None else replace(cell.address, bit=cell.bit)
+            labels[cell.table, cell.modbus] = PointLabel(str(address), item.type, description)
+    return labels
 
 
 @functools.lru_cache(maxsize=256)

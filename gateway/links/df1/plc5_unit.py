@@ -29,14 +29,22 @@ import functools
 import struct
 from collections import defaultdict
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import TypeAlias, Unpack
 
 from gateway.errors import InvalidRequest, ModbusExceptionReply
-from gateway.links.df1.plan import F32_HIGH, F32_LOW, READ_OVERHEAD_BYTES, U16_LE, MapItem, optimal_blocks
+from gateway.links.df1.plan import (
+    F32_HIGH,
+    F32_LOW,
+    READ_OVERHEAD_BYTES,
+    U16_LE,
+    MapItem,
+    entry_description,
+    optimal_blocks,
+)
 from gateway.links.df1.unit import PcccDriver, PcccUnit, _step_bytes
-from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, RegisterPoint, Scan, Table
+from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, PointLabel, RegisterPoint, Scan, Table
 from gateway.protocols.df1.pccc import (
     LogicalBinaryAddress,
     ReadModifyWriteRequest,
@@ -54,6 +62,7 @@ __all__ = [
     "Plc5Unit",
     "Plc5WordWrite",
     "plan_plc5",
+    "point_labels_plc5",
     "shared_plan_plc5",
 ]
 
@@ -203,6 +212,18 @@ def plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTE
             register_target = Plc5WordWrite(word) if writable else None
             plan.registers(cell.table)[cell.modbus] = RegisterPoint(block, offset, cell.codec, register_target)
     return plan
+
+
+def point_labels_plc5(items: Sequence[MapItem]) -> dict[tuple[Table, int], PointLabel]:
+    """What each point of :func:`plan_plc5` is: its PLC-5 address (``N7:10``, ``B3:0/5``, ``T4:1.ACC``)."""
+    labels: dict[tuple[Table, int], PointLabel] = {}
+    for item in items:
+        description = entry_description(item)
+        for cell in _cells(item):
+            word = _word(cell.key, cell.position)
+            address = word if cell.bit is None else replace(word, bit=cell.bit)
+            labels[cell.table, cell.modbus] = PointLabel(str(address), item.type, description)
+    return labels
 
 
 @functools.lru_cache(maxsize=256)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from gateway.config.slc_ascii import SlcAsciiLinkConfig
 from gateway.links.kind import LinkKind
-from gateway.links.slc_ascii.plan import plan_lines, slc_ascii_plan
+from gateway.links.slc_ascii.plan import plan_lines, point_labels, slc_ascii_plan
 from gateway.links.slc_ascii.tool import HINTS, add_options, run_slc_ascii_tool
 from gateway.links.slc_ascii.unit import build_slc_ascii
 from gateway.sim.models import SLC100, SLC150
@@ -23,6 +23,7 @@ KIND: LinkKind[SlcAsciiLinkConfig] = LinkKind(
     plan=lambda link: slc_ascii_plan(),
     controllers="SLC 100/150",
     plan_lines=plan_lines,
+    point_labels=lambda link: point_labels(),
     simulators=(SLC150, SLC100),
     tool=run_slc_ascii_tool,
     hints=HINTS,

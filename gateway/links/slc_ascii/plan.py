@@ -28,7 +28,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, TypeAlias
 
-from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, RegisterPoint, Scan
+from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, PointLabel, RegisterPoint, Scan, Table
 from gateway.protocols.slc_ascii import memory_map as mm
 
 __all__ = [
@@ -41,6 +41,7 @@ __all__ = [
     "byte_read",
     "plan_byte_blocks",
     "plan_lines",
+    "point_labels",
     "slc_ascii_plan",
 ]
 
@@ -147,6 +148,32 @@ def slc_ascii_plan() -> SlcAsciiPlan:
             writable = SlcBitWrite(byte, bit) if mm.is_writable_user_bit(user) else None
             plan.coils[user] = BitPoint(block, offset, bit, writable)
     return plan
+
+
+@functools.cache
+def point_labels() -> dict[tuple[Table, int], PointLabel]:
+    """What each point of :func:`slc_ascii_plan` is: ``901.PRE``, ``@0x86``, user bit ``701`` (the CLI's items)."""
+    plan = slc_ascii_plan()
+    labels: dict[tuple[Table, int], PointLabel] = {}
+    for n, number in enumerate(mm.TIMER_NUMBERS):
+        labels[Table.HOLDING, n] = PointLabel(f"{number}.ACC", "uint16", f"accumulator of {number} (0-9999)")
+        labels[Table.HOLDING, 32 + n] = PointLabel(f"{number}.PRE", "uint16",
+                                                   f"preset of {number} (0-9999, protect bit masked)")
+        labels[Table.INPUT, n] = PointLabel(f"{number}.STEP", "uint16", f"sequencer step counter of {number}")
+    for address in plan.input:
+        if (Table.INPUT, address) not in labels:
+            byte = 2 * address
+            region = mm.region_of(byte)
+            what = region.name if region is not None else "memory"
+            labels[Table.INPUT, address] = PointLabel(f"@0x{byte:02X}", "uint16",
+                                                      f"{what}: bytes {byte:02X}H (high), {byte + 1:02X}H (low)")
+    for table, bits in ((Table.COIL, plan.coils), (Table.DISCRETE, plan.discrete)):
+        for user in bits:
+            byte, bit = mm.user_bit_to_byte(user)
+            region = mm.region_of(byte)
+            what = region.name if region is not None else "memory"
+            labels[table, user] = PointLabel(str(user), "bool", f"{what}: bit {bit} of {byte:02X}H")
+    return labels
 
 
 def byte_read(block: Block) -> tuple[int, int]:

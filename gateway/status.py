@@ -1,0 +1,291 @@
+"""The status page and its JSON API, served on the ``[metrics]`` listener (``gateway.metrics``).
+
+Read-only: nothing here writes to a controller; writes stay on Modbus, where the access rules live.
+
+* ``GET /`` (and ``/status.css``, ``/status.js``): the page, plain files of this package
+  (``gateway/web/``), no build step and nothing fetched from elsewhere; it asks the API every second.
+* ``GET /api/status``: the gateway and one row per unit (a link, or a station of a half-duplex
+  line): name, kind, port (credentials redacted), unit id, up / stale / down and since when, data
+  age (the oldest fast-class value), transactions, errors, retries, the last error and its time.
+* ``GET /api/units/{unit}/{table}?start=&count=``: ``count`` (1..:data:`MAX_COUNT`) values of
+  ``table`` (holding, input, coil, discrete) from ``start``, each with its age and state.  The
+  state is the Modbus answer a read of that one address gets now (the unit's own rule, the one
+  that answers 0x0B): ``fresh``; ``stale`` (0x0B: the value shown is the last one read);
+  ``refused`` (0x04, the controller refuses the block); ``unmapped`` (0x02).
+
+Errors are JSON ``{"error": "..."}`` with 400 (a bad query) or 404 (no such unit or table).
+Times are Unix seconds (``time.time()``); ages are seconds, ``null`` when never read.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import re
+import time
+from collections.abc import Mapping, Sequence
+from importlib import resources
+from typing import TYPE_CHECKING, Any, Final, Protocol
+from urllib.parse import parse_qs
+
+from gateway import __version__
+from gateway.errors import ModbusExceptionReply
+from gateway.links import link_kind
+from gateway.logutil import redact_url
+from gateway.modbus.mapping import Table
+from gateway.tags import Tag, link_tags
+from gateway.transport import describe_url
+
+if TYPE_CHECKING:
+    from gateway.config.link import LinkBase
+    from gateway.modbus.server import ModbusTcpServer
+    from gateway.unit import Unit
+
+__all__ = ["MAX_COUNT", "StatusPage", "StatusView", "data_age", "public_error"]
+
+#: The most values one register view request returns (a Modbus read of registers holds 125).
+MAX_COUNT: Final = 125
+_DEFAULT_COUNT: Final = 16
+_MAX_ERROR_TEXT: Final = 300
+_JSON: Final = "application/json"
+_UNIT_PATH: Final = re.compile(r"/api/units/([^/]{1,16})/([^/]{1,16})")
+_STATES: Final = {
+    ModbusExceptionReply.GATEWAY_TARGET_FAILED: "stale",
+    ModbusExceptionReply.SERVER_DEVICE_FAILURE: "refused",
+    ModbusExceptionReply.ILLEGAL_DATA_ADDRESS: "unmapped",
+}
+#: the page's files: path -> (file in gateway/web, content type)
+_FILES: Final = {
+    "/": ("index.html", "text/html; charset=utf-8"),
+    "/status.css": ("status.css", "text/css; charset=utf-8"),
+    "/status.js": ("status.js", "text/javascript; charset=utf-8"),
+}
+#: the page loads nothing but its own files and the API
+_PAGE_HEADERS: Final = [
+    ("Content-Security-Policy", "default-src 'none'; script-src 'self'; style-src 'self'; "
+                                "connect-src 'self'; img-src 'self'; frame-ancestors 'none'; base-uri 'none'"),
+    ("X-Content-Type-Options", "nosniff"),
+    ("Referrer-Policy", "no-referrer"),
+]
+
+Response = tuple[int, str, bytes, list[tuple[str, str]]]
+
+
+class StatusView(Protocol):
+    """What the page reads from the gateway (:class:`gateway.app.Gateway` has it)."""
+
+    @property
+    def units(self) -> Sequence[Unit[Any, Any]]: ...
+
+    @property
+    def servers(self) -> Sequence[ModbusTcpServer]: ...
+
+
+def data_age(unit: Unit[Any, Any], now: float) -> float:
+    """Seconds since the oldest fast-class block was read; +Inf if one never was."""
+    return max(0.0, unit.cache.oldest_age(unit.poller.fast, now))
+
+
+def public_error(text: str) -> str:
+    """An error for a page or a health answer: credentials in URLs redacted, length capped."""
+    text = redact_url(text)
+    return text if len(text) <= _MAX_ERROR_TEXT else text[: _MAX_ERROR_TEXT - 3] + "..."
+
+
+class _BadRequest(Exception):
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+def _finite(seconds: float) -> float | None:
+    return round(seconds, 3) if math.isfinite(seconds) else None
+
+
+class StatusPage:
+    """Answers ``/``, its files and ``/api/...`` for the metrics server (module docstring).
+
+    ``links``: the ``[[link]]`` tables, in the order of ``gateway.units``, for each row's kind and
+    the register view's tag names (without them the page shows neither).
+    """
+
+    def __init__(self, gateway: StatusView, links: Sequence[LinkBase] = ()) -> None:
+        self.gateway = gateway
+        self._links = {link.name: link for link in links}
+        self._files = {path: resources.files("gateway").joinpath("web", name).read_bytes()
+                       for path, (name, _) in _FILES.items()}
+        self._tags: dict[str, dict[tuple[Table, int], Tag]] = {}
+
+    def handles(self, path: str) -> bool:
+        return path in _FILES or path == "/api/status" or _UNIT_PATH.fullmatch(path) is not None
+
+    def route(self, path: str, query: str) -> Response:
+        """The response to a GET of ``path`` (one :meth:`handles` accepts)."""
+        if path in _FILES:
+            return 200, _FILES[path][1], self._files[path], list(_PAGE_HEADERS)
+        loop_now, wall_now = asyncio.get_running_loop().time(), time.time()
+        try:
+            if path == "/api/status":
+                document = self.status(loop_now, wall_now)
+            else:
+                match = _UNIT_PATH.fullmatch(path)
+                assert match is not None
+                document = self.registers(match[1], match[2], query, loop_now, wall_now)
+            status = 200
+        except _BadRequest as error:
+            status, document = error.status, {"error": str(error)}
+        body = (json.dumps(document, separators=(",", ":"), allow_nan=False) + "\n").encode()
+        return status, _JSON, body, [("X-Content-Type-Options", "nosniff")]
+
+    # --- /api/status ----------------------------------------------------------------------
+
+    def _kind(self, name: str) -> tuple[str, str]:
+        """(protocol, controllers) of a link, from the kind registry."""
+        link = self._links.get(name)
+        if link is None:
+            return "", ""
+        kind = link_kind(link.protocol)
+        return kind.name, kind.controllers
+
+    def status(self, now: float, wall: float) -> dict[str, object]:
+        """The document of ``/api/status`` at loop time ``now`` (Unix time ``wall``)."""
+
+        def at(loop_time: float | None) -> float | None:
+            return None if loop_time is None else round(wall - (now - loop_time), 3)
+
+        rows: list[dict[str, object]] = []
+        up_count = 0
+        for unit in self.gateway.units:
+            driver = unit.driver
+            counters = driver.counters
+            age = data_age(unit, now)
+            up = driver.available
+            fresh = age < unit.stale_after
+            state = "down" if not up else "up" if fresh else "stale"
+            up_count += state == "up"
+            kind, controllers = self._kind(unit.name)
+            error = unit.poller.last_error
+            rows.append({
+                "name": unit.name,
+                "kind": kind,
+                "controllers": controllers,
+                "port": describe_url(driver.url),
+                "unit": unit.unit_id,
+                "state": state,
+                "since": at(driver.state_since),
+                "data_age": _finite(age),
+                "stale_after": unit.stale_after,
+                "transactions": counters.transactions,
+                "errors": counters.errors,
+                "retries": counters.retries,
+                "last_error": public_error(str(error)) if error is not None else public_error(driver.last_error),
+                "last_error_at": at(unit.poller.last_error_at) if error is not None else None,
+            })
+        servers = [{
+            "name": server.name,
+            "connections": server.connection_count,
+            "requests": sum(server.counters.requests.values()),
+            "exceptions": sum(server.counters.exceptions.values()),
+        } for server in self.gateway.servers]
+        return {"version": __version__, "time": round(wall, 3), "links": rows, "up": up_count,
+                "servers": servers}
+
+    # --- /api/units/{unit}/{table} --------------------------------------------------------
+
+    def _unit(self, text: str) -> Unit[Any, Any]:
+        units = {unit.unit_id: unit for unit in self.gateway.units}
+        known = ", ".join(str(u) for u in sorted(units))
+        if not text.isdigit() or int(text) not in units:
+            raise _BadRequest(404, f"no unit {text}: the units are {known}")
+        return units[int(text)]
+
+    def _tags_of(self, unit: Unit[Any, Any]) -> Mapping[tuple[Table, int], Tag]:
+        """The tags of a unit's link by (table, first address), built at the first view of the unit."""
+        tags = self._tags.get(unit.name)
+        if tags is None:
+            link = self._links.get(unit.name)
+            if link is None:
+                tags = {}
+            else:
+                tags = {(tag.table, tag.address): tag for tag in link_tags(link)}
+            self._tags[unit.name] = tags
+        return tags
+
+    def registers(self, unit_text: str, table_text: str, query: str, now: float, wall: float) -> dict[str, object]:
+        """The document of ``/api/units/{unit}/{table}`` (module docstring)."""
+        unit = self._unit(unit_text)
+        try:
+            table = Table(table_text)
+        except ValueError:
+            raise _BadRequest(404, f"no table {table_text!r}: the tables are holding, input, coil, discrete") from None
+        start = _query_int(query, "start", 0, 0, 65535)
+        count = _query_int(query, "count", _DEFAULT_COUNT, 1, MAX_COUNT)
+        if start + count > 65536:
+            raise _BadRequest(400, f"start {start} + count {count} runs past address 65535")
+        registers = table in (Table.HOLDING, Table.INPUT)
+        tags = self._tags_of(unit)
+        values = []
+        for address, (value, state, block) in enumerate(_read(unit, table, start, count, now), start):
+            age = None if block is None else _finite(now - unit.cache.stamps[block])
+            entry: dict[str, object] = {"address": address, "value": value, "state": state, "age": age}
+            tag = tags.get((table, address))
+            if tag is not None:
+                entry["tag"] = tag.name[len(tag.link) + 1 :]
+                entry["type"] = tag.type
+                if tag.word_order:
+                    entry["word_order"] = tag.word_order
+            values.append(entry)
+        return {"unit": unit.unit_id, "link": unit.name, "table": table.value, "start": start, "count": count,
+                "registers": registers, "stale_after": unit.stale_after, "time": round(wall, 3), "values": values}
+
+
+def _query_int(query: str, key: str, default: int, low: int, high: int) -> int:
+    try:
+        fields = parse_qs(query, keep_blank_values=True, strict_parsing=bool(query), max_num_fields=8)
+    except ValueError:
+        raise _BadRequest(400, f"malformed query string {query[:80]!r}") from None
+    texts = fields.get(key)
+    if not texts:
+        return default
+    text = texts[-1].strip()
+    if not text.isdigit() or not low <= int(text) <= high:
+        raise _BadRequest(400, f"{key} must be a whole number {low}-{high}, not {text[:20]!r}")
+    return int(text)
+
+
+def _read(unit: Unit[Any, Any], table: Table, start: int, count: int,
+          now: float) -> list[tuple[int | None, str, int | None]]:
+    """Per address: (value, state, block).  The state is what a Modbus read of that address answers
+    now (``Unit.read_register_bytes`` / ``read_bit_bytes``, the rule that answers 0x0B); a stale value
+    is the one last read (``Images.peek``)."""
+    registers = table in (Table.HOLDING, Table.INPUT)
+    images = unit.images
+    out: list[tuple[int | None, str, int | None]] = []
+    try:
+        if registers:
+            raw = unit.read_register_bytes(table, start, count)
+            fresh = [int.from_bytes(raw[2 * k : 2 * k + 2], "big") for k in range(count)]
+        else:
+            bits = int.from_bytes(unit.read_bit_bytes(table, start, count), "little")
+            fresh = [bits >> k & 1 for k in range(count)]
+    except ModbusExceptionReply:
+        fresh = []  # something in the range is not served: ask address by address
+    for k, address in enumerate(range(start, start + count)):
+        seen = images.peek(table, address)
+        block = None if seen is None else seen[1]
+        if fresh:
+            out.append((fresh[k], "fresh", block))
+            continue
+        try:
+            if registers:
+                value: int | None = int.from_bytes(unit.read_register_bytes(table, address, 1), "big")
+            else:
+                value = unit.read_bit_bytes(table, address, 1)[0] & 1
+            out.append((value, "fresh", block))
+        except ModbusExceptionReply as exc:
+            state = _STATES.get(exc.code, "error")
+            never = block is None or not math.isfinite(unit.cache.stamps[block])
+            value = None if seen is None or never else seen[0]
+            out.append((value, state, block))
+    return out

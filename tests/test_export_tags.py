@@ -1,0 +1,303 @@
+"""``slc-gateway export-tags``: every mapped point as a tag, checked against the map and a running gateway."""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import io
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+from pymodbus.client import AsyncModbusTcpClient
+
+from gateway.app import Gateway
+from gateway.config import load_config, parse_config
+from gateway.links import link_kind
+from gateway.modbus.mapping import STATUS_BASE, Plan, Table
+from gateway.tags import CSV_HEADER, KEPWARE_HEADER, config_tags, link_tags, reference, render
+from tests.cli_support import cli, fails, ok
+from tests.e2e.modbus_support import connect, exception_code
+
+ROOT = Path(__file__).resolve().parent.parent
+DEMO = ROOT / "config" / "demo.toml"
+
+#: every table and data type of both kinds: an SLC 100/150, an SLC 5/04 with both float word
+#: orders, int16 / uint16, bit files, structure members and bits, I/O, and a PLC-5
+MAPS = """
+[modbus]
+listen = "127.0.0.1:0"
+
+[[link]]
+name = "press-1"
+protocol = "slc-ascii"
+port = "sim://slc150"
+unit = 1
+writable = ["holding:32-40", "coil:701-710"]
+
+[[link]]
+name = "press-3"
+protocol = "df1"
+port = "sim://slc504"
+unit = 3
+
+[[link.map]]
+table = "holding"
+start = 0
+address = "N7:0"
+count = 20
+
+[[link.map]]
+table = "holding"
+start = 20
+address = "N7:20"
+count = 4
+type = "uint16"
+
+[[link.map]]
+table = "holding"
+start = 100
+address = "T4:0.ACC"
+count = 3
+
+[[link.map]]
+table = "holding"
+start = 200
+address = "F8:0"
+count = 3
+type = "float32"
+
+[[link.map]]
+table = "input"
+start = 300
+address = "F8:3"
+count = 2
+type = "float32"
+word_order = "low-first"
+
+[[link.map]]
+table = "input"
+start = 0
+address = "I:1.0"
+count = 2
+scan = "slow"
+
+[[link.map]]
+table = "coil"
+start = 0
+address = "B3:0/0"
+count = 20
+
+[[link.map]]
+table = "discrete"
+start = 0
+address = "T4:0/DN"
+count = 3
+
+[[link]]
+name = "line-5"
+protocol = "df1"
+port = "sim://plc5"
+unit = 5
+processor = "plc5"
+read_only = true
+
+[[link.map]]
+table = "holding"
+start = 0
+address = "N7:0"
+count = 4
+
+[[link.map]]
+table = "holding"
+start = 10
+address = "F8:0"
+count = 2
+type = "float32"
+word_order = "low-first"
+
+[[link.map]]
+table = "coil"
+start = 0
+address = "B3/0"
+count = 18
+
+[[link.map]]
+table = "discrete"
+start = 0
+address = "T4:0/DN"
+count = 2
+"""
+
+
+@pytest.fixture(scope="module")
+def config_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("tags") / "maps.toml"
+    path.write_text(MAPS, encoding="utf-8")
+    return path
+
+
+def test_every_point_of_every_plan_is_one_tag_of_its_width() -> None:
+    """Walk the plans (what check-config prints and the units serve): every mapped address is in
+    exactly one tag, a 32-bit tag covers two registers, and nothing else is listed."""
+    config = parse_config(MAPS)
+    for link in config.link:
+        plan = link_kind(link.protocol).plan_of(link)
+        tags = link_tags(link)
+        covered: dict[tuple[Table, int], str] = {}
+        for tag in tags:
+            width = tag.width if tag.table in (Table.HOLDING, Table.INPUT) else 1
+            for address in range(tag.address, tag.address + width):
+                assert (tag.table, address) not in covered, (tag, covered.get((tag.table, address)))
+                covered[tag.table, address] = tag.name
+        mapped = {(table, a) for table in Table for a, _ in _points(plan, table)}
+        status = {(Table.INPUT, a) for a in range(STATUS_BASE, STATUS_BASE + 11)}
+        assert set(covered) == mapped | status, link.name
+        assert len({tag.name for tag in tags}) == len(tags), "tag names are unique within a link"
+
+
+def _points(plan: Plan[Any, Any], table: Table) -> list[tuple[int, object]]:
+    points = plan.registers(table) if table in (Table.HOLDING, Table.INPUT) else plan.bits(table)
+    return sorted(points.items())
+
+
+def by_name(link_name: str) -> dict[str, tuple[str, str, int, str, str]]:
+    config = parse_config(MAPS)
+    link = next(link for link in config.link if link.name == link_name)
+    return {tag.name: (tag.table.value, tag.type_text, tag.address, tag.access, tag.reference)
+            for tag in link_tags(link)}
+
+
+def test_slc_ascii_tags_name_the_controller_items() -> None:
+    tags = by_name("press-1")
+    assert tags["press-1/901.ACC"] == ("holding", "uint16", 0, "read", "400001")  # not in writable
+    assert tags["press-1/901.PRE"] == ("holding", "uint16", 32, "read-write", "400033")
+    assert tags["press-1/910.PRE"] == ("holding", "uint16", 41, "read", "400042")  # past holding:32-40
+    assert tags["press-1/932.STEP"] == ("input", "uint16", 31, "read", "300032")
+    assert tags["press-1/@0x84"] == ("input", "uint16", 66, "read", "300067")
+    assert tags["press-1/@0x102"] == ("input", "uint16", 129, "read", "300130")
+    assert tags["press-1/701"] == ("coil", "bool", 701, "read-write", "000702")
+    assert tags["press-1/711"] == ("coil", "bool", 711, "read", "000712")  # past coil:701-710
+    assert tags["press-1/868"] == ("coil", "bool", 868, "read", "000869")  # a relay the protocol cannot write
+    assert tags["press-1/701@discrete"] == ("discrete", "bool", 701, "read", "100702")
+    assert tags["press-1/11"] == ("discrete", "bool", 11, "read", "100012")
+    assert tags["press-1/951"] == ("discrete", "bool", 951, "read", "100952")
+    assert tags["press-1/status.link_up"] == ("input", "uint16", 1000, "read", "301001")
+    assert tags["press-1/status.transactions"] == ("input", "uint32 high-first", 1003, "read", "301004")
+    assert tags["press-1/status.id_resyncs"] == ("input", "uint32 high-first", 1009, "read", "301010")
+
+
+def test_df1_tags_carry_type_and_word_order() -> None:
+    tags = by_name("press-3")
+    assert tags["press-3/N7:0"] == ("holding", "int16", 0, "read-write", "400001")
+    assert tags["press-3/N7:20"] == ("holding", "uint16", 20, "read-write", "400021")
+    assert tags["press-3/T4:2.ACC"] == ("holding", "int16", 102, "read-write", "400103")
+    assert tags["press-3/F8:0"] == ("holding", "float32 high-first", 200, "read-write", "400201")
+    assert tags["press-3/F8:2"] == ("holding", "float32 high-first", 204, "read-write", "400205")
+    assert tags["press-3/F8:3"] == ("input", "float32 low-first", 300, "read", "300301")
+    assert tags["press-3/F8:4"] == ("input", "float32 low-first", 302, "read", "300303")
+    assert tags["press-3/I:1.1"] == ("input", "int16", 1, "read", "300002")
+    assert tags["press-3/B3:0/15"] == ("coil", "bool", 15, "read-write", "000016")
+    assert tags["press-3/B3:1/3"] == ("coil", "bool", 19, "read-write", "000020")
+    assert tags["press-3/T4:2/DN"] == ("discrete", "bool", 2, "read", "100003")
+    assert not any(name.endswith(("F8:0@holding",)) for name in tags)
+
+
+def test_plc5_tags_and_read_only() -> None:
+    tags = by_name("line-5")
+    assert tags["line-5/N7:3"] == ("holding", "int16", 3, "read", "400004")  # read_only = true
+    assert tags["line-5/F8:1"] == ("holding", "float32 low-first", 12, "read", "400013")
+    assert {name for name in tags if name.startswith("line-5/B3:")} >= {"line-5/B3:0/0", "line-5/B3:1/1"}
+    assert len([name for name in tags if name.startswith("line-5/B3:")]) == 18
+    assert all(access == "read" for _, _, _, access, _ in tags.values())
+
+
+def test_reference_notation() -> None:
+    assert reference(Table.HOLDING, 0) == "400001"
+    assert reference(Table.HOLDING, 65535) == "465536"
+    assert reference(Table.INPUT, 1000) == "301001"
+    assert reference(Table.COIL, 0) == "000001"
+    assert reference(Table.DISCRETE, 9) == "100010"
+
+
+def test_csv_parses_and_matches_the_tags(config_file: Path) -> None:
+    text = ok("export-tags", str(config_file))
+    rows = list(csv.reader(io.StringIO(text)))
+    assert tuple(rows[0]) == CSV_HEADER == ("name", "unit", "table", "address", "reference", "type", "access",
+                                            "description")
+    tags = config_tags(load_config(config_file).link)
+    assert len(rows) - 1 == len(tags)
+    for row, tag in zip(rows[1:], tags, strict=True):
+        name, unit, table, address, ref, type_text, access, description = row
+        assert (name, int(unit), table, int(address), type_text, access, description) == (
+            tag.name, tag.unit, tag.table.value, tag.address, tag.type_text, tag.access, tag.description)
+        assert ref == reference(Table(table), int(address))
+    assert {row[2] for row in rows[1:]} == {"holding", "input", "coil", "discrete"}
+    assert {row[5] for row in rows[1:]} == {"uint16", "int16", "bool", "float32 high-first", "float32 low-first",
+                                            "uint32 high-first"}
+
+
+def test_json_and_kepware_formats(config_file: Path, tmp_path: Path) -> None:
+    document = json.loads(ok("export-tags", str(config_file), "--format", "json"))
+    floats = [tag for tag in document if tag["type"] == "float32"]
+    assert {tag["word_order"] for tag in floats} == {"high-first", "low-first"}
+    assert all(tag["registers"] == 2 for tag in floats)
+    out = tmp_path / "unit3.csv"
+    result = cli("export-tags", str(config_file), "--format", "kepware", "--unit", "3", "-o", str(out))
+    assert result.returncode == 0 and result.stdout == "", result.stderr
+    assert f"written to {out}" in result.stderr
+    rows = list(csv.reader(io.StringIO(out.read_text(encoding="utf-8"))))
+    assert tuple(rows[0]) == KEPWARE_HEADER
+    kepware = {row[0]: row for row in rows[1:]}
+    assert len(kepware) == len(rows) - 1  # unique names
+    assert kepware["press_3.N7_0"][1:5] == ["400001", "Short", "1", "RW"]
+    assert kepware["press_3.N7_20"][1:3] == ["400021", "Word"]
+    assert kepware["press_3.F8_3"][1:5] == ["300301", "Float", "1", "RO"]
+    assert "low-first" in kepware["press_3.F8_3"][-1]
+    assert kepware["press_3.B3_0_15"][1:3] == ["000016", "Boolean"]
+    assert kepware["press_3.status_transactions"][1:3] == ["301004", "DWord"]
+    assert all(name.startswith("press_3.") for name in kepware)  # --unit 3 only
+
+
+def test_config_errors_exit_non_zero_with_one_line(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[[link]]\nname = "a"\nprotocol = "slc-ascii"\nport = "sim://slc150"\nunit = 1\ntimout = 1\n')
+    line = fails("export-tags", str(bad))
+    assert line.startswith("slc-gateway export-tags: ") and "timout" in line and "bad.toml:6" in line
+    assert fails("check-config", str(bad)).replace("check-config", "export-tags") == line
+    assert "no such file" in fails("export-tags", str(tmp_path / "missing.toml")).lower()
+    assert "--unit 9" in fails("export-tags", str(DEMO), "--unit", "9")
+
+
+async def test_every_reference_resolves_on_the_running_demo() -> None:
+    """Every tag of the demo, read with Modbus from the demo gateway: a value, no exception."""
+    config = load_config(DEMO)
+    config = config.model_copy(update={
+        "modbus": config.modbus.model_copy(update={"listen": "127.0.0.1:0"}), "metrics": None})
+    rows = list(csv.DictReader(io.StringIO(render(config_tags(config.link), "csv"))))
+    async with Gateway(config) as gateway, connect(gateway.port) as client:
+        for unit in gateway.units:  # every link's first full scan (the slow class is read first)
+            await _wait_fresh(client, unit.unit_id)
+        failed = []
+        for row in rows:
+            unit, table, address = int(row["unit"]), row["table"], int(row["address"])
+            count = 2 if row["type"].startswith(("float32", "uint32")) else 1
+            read = {"holding": client.read_holding_registers, "input": client.read_input_registers,
+                    "coil": client.read_coils, "discrete": client.read_discrete_inputs}[table]
+            assert row["reference"] == reference(Table(table), address)
+            reply = await read(address, count=count, device_id=unit)
+            if exception_code(reply) is not None:
+                failed.append((row["name"], exception_code(reply)))
+        assert not failed, failed[:20]
+    assert len(rows) > 1000
+
+
+async def _wait_fresh(client: AsyncModbusTcpClient, unit: int) -> None:
+    for _ in range(300):  # the paced demo simulators: a few seconds for the first scans
+        status = await client.read_input_registers(STATUS_BASE, count=2, device_id=unit)
+        # up, and the oldest fast value younger than stale_after (5 s)
+        if not status.isError() and status.registers[0] == 1 and status.registers[1] < 50:
+            return
+        await asyncio.sleep(0.1)
+    raise AssertionError(f"unit {unit}: no fresh data after 30 s")
