@@ -18,7 +18,13 @@ value out of range (e.g. > 9999 on an SLC 100/150)  0x03
 controller refused (``;E``, PCCC STS), protected     0x04
 no answer, link down, stale data                     0x0B
 a write whose outcome is unknown (sent once)         0x0B
+a write not done within ``write_timeout``            0x0B
 =================================================  =====
+
+Every write request is answered within ``write_timeout``.  A write still waiting for the line
+then is withdrawn: nothing of it is written.  A write already on the line is answered 0x0B
+(outcome unknown) and goes on to its verdict, applied at most once, which the ``gateway.audit``
+log reports; a multi-command write sends no further command after the answer.
 """
 
 from __future__ import annotations
@@ -55,6 +61,7 @@ from gateway.writes import WriteQueue
 __all__ = ["LATENCY_BUCKETS", "LatencyHistogram", "Unit", "UnitOptions", "WritableRange", "WriteStep", "in_writable"]
 
 log = logging.getLogger("gateway.unit")
+audit = logging.getLogger("gateway.audit")
 
 ILLEGAL_ADDRESS = ModbusExceptionReply.ILLEGAL_DATA_ADDRESS
 ILLEGAL_VALUE = ModbusExceptionReply.ILLEGAL_DATA_VALUE
@@ -85,6 +92,7 @@ class UnitOptions(TypedDict):
     poll_burst: NotRequired[int]
     write_queue_per_client: NotRequired[int]
     write_queue_per_link: NotRequired[int]
+    write_timeout: NotRequired[float]
     stagger: NotRequired[float | None]
 
 
@@ -125,6 +133,7 @@ class Unit(ABC, Generic[R, B]):
         poll_burst: int = 2,
         write_queue_per_client: int = 8,
         write_queue_per_link: int = 32,
+        write_timeout: float = 0.9,
         stagger: float | None = None,
     ) -> None:
         self.unit_id = unit_id
@@ -166,6 +175,8 @@ class Unit(ABC, Generic[R, B]):
         driver.write_burst = write_burst
         driver.poll_burst = poll_burst
         self.writes = WriteQueue(driver, name, per_client=write_queue_per_client, per_link=write_queue_per_link)
+        #: every write request is answered within this many seconds (see _queue_write)
+        self.write_timeout = write_timeout
 
     # --- protocol hooks ---------------------------------------------------------------------
 
@@ -372,27 +383,63 @@ class Unit(ABC, Generic[R, B]):
         await self._queue_write(Table.COIL, steps, footprint)
 
     async def _queue_write(self, table: Table, steps: list[WriteStep], footprint: frozenset[Hashable]) -> None:
-        """Queue the steps now (arrival order) and wait for them; errors as Modbus exceptions."""
+        """Queue the steps now (arrival order) and wait for them, at most ``write_timeout``;
+        errors as Modbus exceptions."""
         self.write_requests += 1
         started = self._loop_time()
+        deadline = started + self.write_timeout
         try:
             try:
-                future = self.writes.submit(current_client.get(), footprint, partial(self._run_steps, table, steps))
+                future = self.writes.submit(current_client.get(), footprint,
+                                            partial(self._run_steps, table, steps, deadline))
             except ModbusExceptionReply:
                 # Busy: the answer is held a moment, so that a master re-sending at once costs
                 # at most a few answers per second per request it keeps in flight, not a spin.
                 await asyncio.sleep(BUSY_HOLD)
                 raise
-            await asyncio.shield(future)
+            try:
+                async with asyncio.timeout_at(deadline):
+                    await asyncio.shield(future)
+            except TimeoutError:
+                raise self._late_write(table, steps, future) from None
         except ModbusExceptionReply:
             self.write_failures += 1
             raise
         finally:
             self.write_latency.observe(self._loop_time() - started)
 
-    async def _run_steps(self, table: Table, steps: list[WriteStep]) -> None:
+    def _late_write(self, table: Table, steps: list[WriteStep],
+                    future: asyncio.Future[None]) -> ModbusExceptionReply:
+        """The answer to a write not done within ``write_timeout``."""
+        what = f"{table.value} {_span(steps[0].first, steps[-1].last)}"
+        seconds = f"{self.write_timeout:g} s"
+        if self.writes.withdraw(future):
+            audit.info("unit %d: %s not sent within write_timeout %s: withdrawn, nothing written",
+                       self.unit_id, what, seconds)
+            return ModbusExceptionReply(
+                TARGET_FAILED,
+                f"link {self.name}: the line was busy for write_timeout ({seconds}): the write was withdrawn, "
+                "nothing was written; send it again")
+
+        def outcome(done: asyncio.Future[None]) -> None:
+            error = None if done.cancelled() else done.exception()
+            audit.info("unit %d: %s answered 0x0B at write_timeout %s, then: %s", self.unit_id, what, seconds,
+                       "applied" if error is None else error)
+
+        future.add_done_callback(outcome)
+        return ModbusExceptionReply(
+            TARGET_FAILED,
+            f"link {self.name}: no verdict within write_timeout ({seconds}): outcome unknown, applied at most "
+            "once (the audit log gives the outcome)")
+
+    async def _run_steps(self, table: Table, steps: list[WriteStep], deadline: float) -> None:
         done: list[WriteStep] = []
         for step in steps:
+            if done and self._loop_time() >= deadline:
+                # answered 0x0B already: send nothing more of it
+                exc = ModbusExceptionReply(TARGET_FAILED, "write_timeout passed before this command")
+                self._partial_write(table, done, step, exc)
+                raise exc
             try:
                 await _translated(step.run())
             except ModbusExceptionReply as exc:

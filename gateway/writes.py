@@ -98,6 +98,21 @@ class WriteQueue:
             self._worker = loop.create_task(self._work(), name=f"{self.name}-writes")
         return entry.future
 
+    def withdraw(self, future: asyncio.Future[None]) -> bool:
+        """Take the job of ``future`` out of the queue if it has not started; True if it was
+        (its future is then cancelled: nothing of it will be written)."""
+        for client, queue in self._queues.items():
+            for entry in queue:
+                if entry.future is future:
+                    queue.remove(entry)
+                    self._waiting -= 1
+                    if not queue:
+                        del self._queues[client]
+                        self._served.pop(client, None)
+                    future.cancel()
+                    return True
+        return False
+
     def _pick(self) -> _Entry | None:
         """The next job: least recently served client first (one with nothing queued a moment
         ago counts as never served), never ahead of an earlier overlapping job of another."""

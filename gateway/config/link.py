@@ -130,6 +130,8 @@ class LinkBase(Model):
     #: writes that may wait for the line, per client connection and in all (beyond: 0x06)
     write_queue_per_client: int = Field(8, ge=1, le=1000)
     write_queue_per_link: int = Field(32, ge=1, le=10000)
+    #: a Modbus write is answered within this many seconds, done or not (below SCADA timeouts)
+    write_timeout: float = Field(0.9, gt=0, le=600)
     trace: Path | None = None
 
     @field_validator("name")

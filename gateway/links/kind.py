@@ -175,5 +175,6 @@ def unit_options(link: LinkBase) -> UnitOptions:
         poll_burst=link.poll_burst,
         write_queue_per_client=link.write_queue_per_client,
         write_queue_per_link=link.write_queue_per_link,
+        write_timeout=link.write_timeout,
     )
 

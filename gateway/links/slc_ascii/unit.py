@@ -59,6 +59,8 @@ def build_slc_ascii(links: Sequence[SlcAsciiLinkConfig]) -> Built:
             trace=link.trace,
             down_after_failures=link.down_after_failures,
             down_after_seconds=link.down_after_seconds,
+            # a served write asks again (;Z, copies) while its Modbus answer is still owed
+            write_budget=link.write_timeout,
         )
         units.append(SlcAsciiUnit(driver=driver, **unit_options(link)))
     return Built(units, [unit.driver for unit in units])
