@@ -158,3 +158,36 @@ async def test_lost_write_reply_is_settled_by_read_back_never_resent(variant: st
         assert counters.read_backs == 1 and counters.verified == 1 and counters.unknown == 0
     assert sim.word("N7", 0) == 7 and sim.word("N7", 1) == 8
     assert [kind for kind, _w, _d in sim.applied_writes] == ["word_range_write"]
+
+
+def test_one_definition_of_a_write() -> None:
+    """Drivers, cores and the simulators' fault injection share one list of the commands that
+    change a controller; a PLC-5 read-modify-write (the coil write) is one of them."""
+    from gateway.protocols.df1.pccc import encode_command, is_write
+    from gateway.sim.slc500_line import is_write_packet
+
+    n7 = LogicalBinaryAddress.of(0, 7, 0)
+    rmw = ReadModifyWriteRequest(((n7, 0xFFEF, 0x0010),))
+    assert is_write(rmw) and is_write(WordRangeWrite(n7, b"\x01\x00"))
+    assert not is_write(WordRangeRead(n7, 2))
+    assert is_write_packet(encode_command(rmw, dst=1, src=0, tns=7))
+    assert not is_write_packet(encode_command(WordRangeRead(n7, 2), dst=1, src=0, tns=7))
+
+
+async def test_full_duplex_driver_settles_a_read_modify_write_as_a_write() -> None:
+    """``Df1Driver.execute`` without ``write=``: a RMW whose reply is lost is never sent again with a
+    new TNS; a read-back of the word settles it."""
+    sim = make_sim("refuse", drop=1, faults_on="writes")
+    n7 = LogicalBinaryAddress.of(0, 7, 0)
+
+    async def opener(url: str, settings: Any, **_: Any) -> SimStream:
+        return SimStream(sim)
+
+    driver = Df1Driver("sim://plc5", checksum=Checksum.BCC, timeout=0.3, retries=2, opener=opener)
+    await driver.start()
+    try:
+        await driver.execute(ReadModifyWriteRequest(((n7, 0xFFEF, 0x0010),)), "coil")
+        assert driver.transaction_counters.read_backs >= 1 and driver.transaction_counters.verified == 1
+        assert sim.word("N7", 0) & 0x0010
+    finally:
+        await driver.close()
