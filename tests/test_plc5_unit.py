@@ -147,13 +147,11 @@ async def test_writes_are_word_range_write_and_rmw(variant: str) -> None:
 @pytest.mark.parametrize("variant", VARIANTS)
 async def test_lost_write_reply_is_settled_by_read_back_never_resent(variant: str) -> None:
     """Every write executed, its reply never sent (``drop``): the read-back proves it, sent once.
-
-    The simulator's ``faults_on = "writes"`` counts FNC 00 as a write but not yet FNC 26
-    (``gateway.sim.slc500_line._WRITE_FUNCTIONS``), so the RMW read-back is covered by
-    ``test_read_back_of_word_range_write_and_rmw`` and the half-duplex driver tests."""
+    (The RMW: ``test_full_duplex_driver_settles_a_read_modify_write_as_a_write``.)"""
     sim = make_sim(variant, drop=1, faults_on="writes", link_ack_timeout=5.0)
     async with plc5_unit(sim) as unit:
         await write_registers(unit, 0, [7, 8])
+        assert isinstance(unit.driver, Df1Driver)
         counters = unit.driver.transaction_counters
         assert counters.read_backs == 1 and counters.verified == 1 and counters.unknown == 0
     assert sim.word("N7", 0) == 7 and sim.word("N7", 1) == 8
