@@ -189,3 +189,26 @@ async def test_full_duplex_driver_settles_a_read_modify_write_as_a_write() -> No
         assert sim.word("N7", 0) & 0x0010
     finally:
         await driver.close()
+
+
+def test_plc5_packet_limits_come_from_one_table() -> None:
+    """Word range commands (what the gateway polls a PLC-5 with) and typed logical commands to a
+    PLC-5 have different limits in the manuals; one table holds both and everything reads it."""
+    from gateway.links.df1 import plc5_unit
+    from gateway.protocols.df1.pccc import ProcessorFamily
+    from gateway.protocols.df1.pccc.limits import PLC5_TYPED_LOGICAL, PLC5_WORD_RANGE
+    from gateway.sim import plc5 as sim_plc5
+
+    assert (PLC5_WORD_RANGE.max_read_bytes, PLC5_WORD_RANGE.max_write_bytes) == (244, 239)
+    assert ProcessorFamily.PLC5.limits is PLC5_TYPED_LOGICAL
+    assert (PLC5_TYPED_LOGICAL.max_read_bytes, PLC5_TYPED_LOGICAL.max_write_bytes) == (230, 222)
+    assert plc5_unit.PLC5_MAX_READ_BYTES == sim_plc5.MAX_WORD_RANGE_READ == PLC5_WORD_RANGE.max_read_bytes
+    assert plc5_unit.PLC5_MAX_WRITE_BYTES == sim_plc5.MAX_WORD_RANGE_WRITE == PLC5_WORD_RANGE.max_write_bytes
+    n7 = LogicalBinaryAddress.of(0, 7, 0)
+    WordRangeRead(n7, PLC5_WORD_RANGE.max_read_bytes)
+    with pytest.raises(InvalidRequest):
+        WordRangeRead(n7, PLC5_WORD_RANGE.max_read_bytes + 2)
+    room = PLC5_WORD_RANGE.max_write_bytes - len(n7.encode())
+    WordRangeWrite(n7, bytes(room - room % 2))
+    with pytest.raises(InvalidRequest):
+        WordRangeWrite(n7, bytes(room - room % 2 + 2))
