@@ -30,7 +30,6 @@ from gateway.protocols.df1.half_duplex import (
     StationDemoted,
     StationRestored,
     StrayReply,
-    is_reply_to,
 )
 from gateway.protocols.df1.half_duplex_framing import (
     ACK,
@@ -41,6 +40,7 @@ from gateway.protocols.df1.half_duplex_framing import (
     encode_poll,
     encode_slave_message,
 )
+from gateway.protocols.df1.pccc import PcccHeader, reply_matches
 from gateway.sim.df1_half_duplex_slave import VARIANTS, HalfDuplexSlave, SlaveVariant
 from gateway.sim.variants import variant_matrix
 
@@ -269,7 +269,7 @@ def test_reply_timeout_and_late_reply_is_stray() -> None:
 
 
 def test_reply_from_the_polled_station_never_matches_another_stations_request() -> None:
-    """A reply is matched only within the polled station, by swapped DST/SRC, CMD and TNS."""
+    """A reply is matched only within the polled station, by CMD and TNS (``pccc.reply_matches``)."""
     master = make(1, 2, poll_interval=100.0)
     for _ in range(2):
         master.data_to_send()
@@ -280,10 +280,29 @@ def test_reply_from_the_polled_station_never_matches_another_stations_request() 
     master.receive_data(ACK, 0.0)
     assert master.data_to_send() == encode_poll(1)
     # Station 1 answers with a frame that is station 2's reply (a late frame on the line).
-    foreign = reply_to(command(2, 10), b"\x02")
+    foreign = reply_to(command(2, 11), b"\x02")
     master.receive_data(encode_slave_message(foreign, Checksum.BCC), 0.1)
     assert events(master) == [StrayReply(1, foreign)]
-    assert not is_reply_to(cmd1, foreign)
+    assert not reply_matches(cmd1, PcccHeader.decode(foreign))
+
+
+@pytest.mark.parametrize("reading", ["swapped", "unswapped", "own_station", "zero"])
+def test_reply_is_matched_whatever_its_dst_and_src(reading: str) -> None:
+    """1770-6.5.16 p. 6-4 swaps DST / SRC in a reply, but a module may put its own node number in
+    SRC 0 and some devices do not swap: the one matcher (TNS, CMD | 40) takes every reading."""
+    master = make(1, poll_interval=100.0)
+    master.data_to_send()
+    master.receive_data(EOT, 0.0)
+    cmd = command(1, 10)
+    request_id = master.submit(1, cmd, 0.0)
+    master.data_to_send()
+    master.receive_data(ACK, 0.0)
+    assert master.data_to_send() == encode_poll(1)
+    answer = reply_to(cmd, b"\x07")
+    dst_src = {"swapped": answer[:2], "unswapped": cmd[:2], "own_station": bytes((GATEWAY, 1)), "zero": b"\x00\x00"}
+    answer = dst_src[reading] + answer[2:]
+    master.receive_data(encode_slave_message(answer, Checksum.BCC), 0.1)
+    assert events(master) == [ReplyReceived(request_id, 1, answer)]
 
 
 def test_timing_quiet_line_rts_key_up_and_off_delays() -> None:
@@ -487,7 +506,7 @@ def test_noisy_line_exactly_once_and_right_station(
         if isinstance(event, ReplyReceived):
             station, cmd = requests[event.request_id]
             assert event.station == station
-            assert is_reply_to(cmd, event.message)
+            assert reply_matches(cmd, PcccHeader.decode(event.message))
             assert event.message[6] == station and event.message[7:] == cmd[6:]
             concluded.add(event.request_id)
         elif isinstance(event, RequestFailed):

@@ -11,10 +11,11 @@ What the core does
   *identical* bytes are sent again (same TNS, so a slave with duplicate detection executes it once),
   at most ``message_retries`` times.
 * After the ACK the master waits ``reply_wait`` and polls the station (``DLE ENQ STN BCC``) until
-  the reply comes: a slave message whose CMD is the command's with the reply bit, whose TNS is the
-  command's and whose DST/SRC are swapped.  Each ``DLE EOT`` counts one poll; after ``max_polls``
-  polls, or ``reply_timeout`` after the ACK, the request fails.  A reply is only ever matched against
-  the requests of the station that was polled, so it cannot be attributed to another station.
+  the reply comes: a slave message of the polled station that ``pccc.reply_matches`` the command
+  (same TNS, CMD + 40 hex; DST / SRC are not compared, see there).  Each ``DLE EOT`` counts one
+  poll; after ``max_polls`` polls, or ``reply_timeout`` after the ACK, the request fails.  A reply
+  is only ever matched against the requests of the station that was polled, so it cannot be
+  attributed to another station.
 * Every good slave message is acknowledged with ``DLE ACK`` and the station is polled again (up to
   ``max_messages_per_turn``), until it answers ``DLE EOT``.  A repeat of the last message's first six
   bytes before an EOT is the slave resending because our ACK was lost: ACKed and discarded
@@ -78,6 +79,8 @@ from gateway.protocols.df1.half_duplex_framing import (
     encode_master_message,
     encode_poll,
 )
+from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, reply_matches
+from gateway.protocols.df1.pccc.codes import REPLY_BIT
 
 __all__ = [
     "NEED_DATA",
@@ -95,25 +98,10 @@ __all__ = [
     "StationDemoted",
     "StationRestored",
     "StrayReply",
-    "is_reply_to",
 ]
 
-#: PCCC CMD bit that marks a reply (1770-6.5.16 chapter 6: reply CMD = command CMD + 40 hex).
-_REPLY_BIT: Final = 0x40
 #: The first six bytes of a message (DST SRC CMD STS TNS) identify it for duplicate detection.
 _HEAD: Final = 6
-
-
-def is_reply_to(command: bytes, message: bytes) -> bool:
-    """Whether ``message`` is the reply to ``command``: DST/SRC swapped, CMD + 40 hex, same TNS."""
-    return (
-        len(message) >= _HEAD
-        and len(command) >= _HEAD
-        and message[0] == command[1]
-        and message[1] == command[0]
-        and message[2] == command[2] | _REPLY_BIT
-        and message[4:6] == command[4:6]
-    )
 
 
 # ------------------------------------------------------------------------------- state machine
@@ -416,9 +404,10 @@ class HalfDuplexMaster:
         station.last_head = head
         station.counters.messages_received += 1
         number = station.config.station
-        if len(message) > 2 and message[2] & _REPLY_BIT:
+        if len(message) >= HEADER_SIZE and message[2] & REPLY_BIT:
+            reply = PcccHeader.decode(message)
             for request in station.awaiting:
-                if is_reply_to(request.message, message):
+                if reply_matches(request.message, reply):
                     station.awaiting.remove(request)
                     self._events.append(ReplyReceived(request.request_id, number, message))
                     return
