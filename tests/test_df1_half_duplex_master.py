@@ -539,3 +539,38 @@ def test_answer_in_progress_at_the_deadline_is_allowed_to_finish_once() -> None:
     master.handle_timeout(0.36)
     assert master.counters(2).timeouts == 1
     assert master.data_to_send() == encode_poll(2)  # retried; the stale half frame was dropped
+
+
+def test_a_silent_station_does_not_fail_the_replies_of_the_others() -> None:
+    """Station 2 never answers; station 1 does at once.  While station 2's unacknowledged copies
+    take the line, station 1's reply deadline passes: its reply is still collected by a poll (the
+    deadline only makes that poll due), the copies to station 2 are interleaved with other
+    stations' polls, and every copy without its ACK counts towards demoting station 2."""
+    master = make(1, 2, poll_interval=100.0, reply_timeout=0.6, poll_timeout=0.5, retries=5)
+    now = 0.0
+    cmd1, cmd2 = command(1, 10), command(2, 11)
+    first = master.submit(1, cmd1, now)
+    owed: bytes | None = None  # station 1's reply, queued in the slave
+    found: list[MasterEvent] = []
+    for _ in range(200):
+        out = master.data_to_send()
+        if out.startswith(b"\x10\x01\x01"):
+            master.receive_data(ACK, now)
+            owed = reply_to(cmd1, b"\x05")
+            master.submit(2, cmd2, now)  # station 2's command comes while station 1's reply waits
+        elif out.startswith(b"\x10\x05\x01"):
+            master.receive_data(EOT if owed is None else encode_slave_message(owed, Checksum.BCC), now)
+            owed = None
+        found += events(master)
+        if any(isinstance(e, ReplyReceived) for e in found) and not master.is_active(2):
+            break
+        if out and out != ACK:
+            continue
+        deadline = master.next_deadline()
+        assert deadline is not None
+        now = max(now, deadline)
+        master.handle_timeout(now)
+        found += events(master)
+    assert ReplyReceived(first, 1, reply_to(cmd1, b"\x05")) in found
+    assert not any(isinstance(e, RequestFailed) and e.station == 1 for e in found)
+    assert not master.is_active(2) and master.is_active(1)
