@@ -53,7 +53,18 @@ def test_bcc_vector() -> None:
 
 
 def test_crc_vector() -> None:
-    assert crc16(VECTOR) == 0xF863
+    """CRC-16 over the message and ETX (1770-6.5.16 p. 5-6): the caller passes the ETX."""
+    assert crc16(VECTOR + b"\x03") == 0xF863
+    assert encode_frame(VECTOR, Checksum.CRC)[-2:] == (0xF863).to_bytes(2, "little")
+
+
+def test_one_crc16_for_both_framings() -> None:
+    """One CRC function with one contract (exactly the bytes given) serves both framings."""
+    from gateway.protocols.df1 import half_duplex_framing
+
+    assert half_duplex_framing.crc16 is crc16
+    assert half_duplex_framing.bcc is bcc
+    assert crc16(b"\x03", crc16(VECTOR)) == crc16(VECTOR + b"\x03") == 0xF863
 
 
 def test_frame_vectors() -> None:

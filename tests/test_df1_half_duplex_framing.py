@@ -130,8 +130,8 @@ def test_master_crc_covers_stn_stx_data_etx_and_bcc_does_not_cover_stx() -> None
     """p. 5-6/5-7: master CRC over STN, STX, data, ETX; p. 5-2: master BCC over STN and data."""
     crc = encode_master_message(0x20, DATA, Checksum.CRC)
     assert crc[-2:] == crc16(bytes((0x20, 0x02)) + DATA + b"\x03").to_bytes(2, "little")
-    # Not the full-duplex CRC of STN+data (that routine appends ETX only, no STX).
-    assert crc[-2:] != full_duplex.crc16(bytes((0x20,)) + DATA).to_bytes(2, "little")
+    # Not the CRC a slave message would carry for STN+data (ETX only, no STX).
+    assert crc[-2:] != crc16(bytes((0x20,)) + DATA + b"\x03").to_bytes(2, "little")
     assert encode_master_message(0x20, DATA, Checksum.BCC)[-1] == bcc(bytes((0x20,)) + DATA)
     assert all_ways(crc, Checksum.CRC) == [MasterMessage(0x20, DATA)]
 

@@ -30,7 +30,6 @@ from gateway.protocols.df1.half_duplex import (
     StationDemoted,
     StationRestored,
     StrayReply,
-    is_reply_to,
 )
 from gateway.protocols.df1.half_duplex_framing import (
     ACK,
@@ -41,6 +40,7 @@ from gateway.protocols.df1.half_duplex_framing import (
     encode_poll,
     encode_slave_message,
 )
+from gateway.protocols.df1.pccc import PcccHeader, reply_matches
 from gateway.sim.df1_half_duplex_slave import VARIANTS, HalfDuplexSlave, SlaveVariant
 from gateway.sim.variants import variant_matrix
 
@@ -269,7 +269,7 @@ def test_reply_timeout_and_late_reply_is_stray() -> None:
 
 
 def test_reply_from_the_polled_station_never_matches_another_stations_request() -> None:
-    """A reply is matched only within the polled station, by swapped DST/SRC, CMD and TNS."""
+    """A reply is matched only within the polled station, by CMD and TNS (``pccc.reply_matches``)."""
     master = make(1, 2, poll_interval=100.0)
     for _ in range(2):
         master.data_to_send()
@@ -280,10 +280,29 @@ def test_reply_from_the_polled_station_never_matches_another_stations_request() 
     master.receive_data(ACK, 0.0)
     assert master.data_to_send() == encode_poll(1)
     # Station 1 answers with a frame that is station 2's reply (a late frame on the line).
-    foreign = reply_to(command(2, 10), b"\x02")
+    foreign = reply_to(command(2, 11), b"\x02")
     master.receive_data(encode_slave_message(foreign, Checksum.BCC), 0.1)
     assert events(master) == [StrayReply(1, foreign)]
-    assert not is_reply_to(cmd1, foreign)
+    assert not reply_matches(cmd1, PcccHeader.decode(foreign))
+
+
+@pytest.mark.parametrize("reading", ["swapped", "unswapped", "own_station", "zero"])
+def test_reply_is_matched_whatever_its_dst_and_src(reading: str) -> None:
+    """1770-6.5.16 p. 6-4 swaps DST / SRC in a reply, but a module may put its own node number in
+    SRC 0 and some devices do not swap: the one matcher (TNS, CMD | 40) takes every reading."""
+    master = make(1, poll_interval=100.0)
+    master.data_to_send()
+    master.receive_data(EOT, 0.0)
+    cmd = command(1, 10)
+    request_id = master.submit(1, cmd, 0.0)
+    master.data_to_send()
+    master.receive_data(ACK, 0.0)
+    assert master.data_to_send() == encode_poll(1)
+    answer = reply_to(cmd, b"\x07")
+    dst_src = {"swapped": answer[:2], "unswapped": cmd[:2], "own_station": bytes((GATEWAY, 1)), "zero": b"\x00\x00"}
+    answer = dst_src[reading] + answer[2:]
+    master.receive_data(encode_slave_message(answer, Checksum.BCC), 0.1)
+    assert events(master) == [ReplyReceived(request_id, 1, answer)]
 
 
 def test_timing_quiet_line_rts_key_up_and_off_delays() -> None:
@@ -487,7 +506,7 @@ def test_noisy_line_exactly_once_and_right_station(
         if isinstance(event, ReplyReceived):
             station, cmd = requests[event.request_id]
             assert event.station == station
-            assert is_reply_to(cmd, event.message)
+            assert reply_matches(cmd, PcccHeader.decode(event.message))
             assert event.message[6] == station and event.message[7:] == cmd[6:]
             concluded.add(event.request_id)
         elif isinstance(event, RequestFailed):
@@ -520,3 +539,38 @@ def test_answer_in_progress_at_the_deadline_is_allowed_to_finish_once() -> None:
     master.handle_timeout(0.36)
     assert master.counters(2).timeouts == 1
     assert master.data_to_send() == encode_poll(2)  # retried; the stale half frame was dropped
+
+
+def test_a_silent_station_does_not_fail_the_replies_of_the_others() -> None:
+    """Station 2 never answers; station 1 does at once.  While station 2's unacknowledged copies
+    take the line, station 1's reply deadline passes: its reply is still collected by a poll (the
+    deadline only makes that poll due), the copies to station 2 are interleaved with other
+    stations' polls, and every copy without its ACK counts towards demoting station 2."""
+    master = make(1, 2, poll_interval=100.0, reply_timeout=0.6, poll_timeout=0.5, retries=5)
+    now = 0.0
+    cmd1, cmd2 = command(1, 10), command(2, 11)
+    first = master.submit(1, cmd1, now)
+    owed: bytes | None = None  # station 1's reply, queued in the slave
+    found: list[MasterEvent] = []
+    for _ in range(200):
+        out = master.data_to_send()
+        if out.startswith(b"\x10\x01\x01"):
+            master.receive_data(ACK, now)
+            owed = reply_to(cmd1, b"\x05")
+            master.submit(2, cmd2, now)  # station 2's command comes while station 1's reply waits
+        elif out.startswith(b"\x10\x05\x01"):
+            master.receive_data(EOT if owed is None else encode_slave_message(owed, Checksum.BCC), now)
+            owed = None
+        found += events(master)
+        if any(isinstance(e, ReplyReceived) for e in found) and not master.is_active(2):
+            break
+        if out and out != ACK:
+            continue
+        deadline = master.next_deadline()
+        assert deadline is not None
+        now = max(now, deadline)
+        master.handle_timeout(now)
+        found += events(master)
+    assert ReplyReceived(first, 1, reply_to(cmd1, b"\x05")) in found
+    assert not any(isinstance(e, RequestFailed) and e.station == 1 for e in found)
+    assert not master.is_active(2) and master.is_active(1)

@@ -405,7 +405,7 @@ requests = st.one_of(
     st.builds(
         WordRangeRead,
         st.builds(LogicalBinaryAddress.for_element, st.integers(0, 999), st.integers(0, 999)),
-        st.integers(1, 255),
+        st.integers(1, 244),  # pccc.limits.PLC5_WORD_RANGE
         st.integers(0, 0xFFFF),
         st.integers(0, 0xFFFF),
     ),

@@ -227,3 +227,15 @@ def test_1785ke_5_6_word_range_read_logical_ascii_n10_15() -> None:
     assert WordRangeReadParams.decode(read.encode()) == WordRangeReadParams(address, 8, 0, 4)
     reply = bytes.fromhex("10 02 20 29 4F 00 47 01 22 11 44 33 66 55 88 77 10 03 BC")
     assert encode_slave_message(bytes.fromhex("20 29 4F 00 47 01 22 11 44 33 66 55 88 77"), Checksum.BCC) == reply
+
+
+def test_plc5_address_error_is_the_projects_address_error_answered_0x03() -> None:
+    """A bad PLC-5 address is a rule the request broke, as a bad SLC 500 address is: Modbus 0x03."""
+    from gateway.errors import InvalidRequest, modbus_exception
+    from gateway.protocols.df1 import address, plc5_address
+
+    assert plc5_address.AddressError is address.AddressError
+    with pytest.raises(InvalidRequest) as caught:
+        parse_plc5_address("Q9:0")
+    assert modbus_exception(caught.value).code == 0x03
+    assert modbus_exception(plc5_address.AddressError("N7:70000")).code == 0x03

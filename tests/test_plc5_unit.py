@@ -147,14 +147,68 @@ async def test_writes_are_word_range_write_and_rmw(variant: str) -> None:
 @pytest.mark.parametrize("variant", VARIANTS)
 async def test_lost_write_reply_is_settled_by_read_back_never_resent(variant: str) -> None:
     """Every write executed, its reply never sent (``drop``): the read-back proves it, sent once.
-
-    The simulator's ``faults_on = "writes"`` counts FNC 00 as a write but not yet FNC 26
-    (``gateway.sim.slc500_line._WRITE_FUNCTIONS``), so the RMW read-back is covered by
-    ``test_read_back_of_word_range_write_and_rmw`` and the half-duplex driver tests."""
+    (The RMW: ``test_full_duplex_driver_settles_a_read_modify_write_as_a_write``.)"""
     sim = make_sim(variant, drop=1, faults_on="writes", link_ack_timeout=5.0)
     async with plc5_unit(sim) as unit:
         await write_registers(unit, 0, [7, 8])
+        assert isinstance(unit.driver, Df1Driver)
         counters = unit.driver.transaction_counters
         assert counters.read_backs == 1 and counters.verified == 1 and counters.unknown == 0
     assert sim.word("N7", 0) == 7 and sim.word("N7", 1) == 8
     assert [kind for kind, _w, _d in sim.applied_writes] == ["word_range_write"]
+
+
+def test_one_definition_of_a_write() -> None:
+    """Drivers, cores and the simulators' fault injection share one list of the commands that
+    change a controller; a PLC-5 read-modify-write (the coil write) is one of them."""
+    from gateway.protocols.df1.pccc import encode_command, is_write
+    from gateway.sim.slc500_line import is_write_packet
+
+    n7 = LogicalBinaryAddress.of(0, 7, 0)
+    rmw = ReadModifyWriteRequest(((n7, 0xFFEF, 0x0010),))
+    assert is_write(rmw) and is_write(WordRangeWrite(n7, b"\x01\x00"))
+    assert not is_write(WordRangeRead(n7, 2))
+    assert is_write_packet(encode_command(rmw, dst=1, src=0, tns=7))
+    assert not is_write_packet(encode_command(WordRangeRead(n7, 2), dst=1, src=0, tns=7))
+
+
+async def test_full_duplex_driver_settles_a_read_modify_write_as_a_write() -> None:
+    """``Df1Driver.execute`` without ``write=``: a RMW whose reply is lost is never sent again with a
+    new TNS; a read-back of the word settles it."""
+    sim = make_sim("refuse", drop=1, faults_on="writes")
+    n7 = LogicalBinaryAddress.of(0, 7, 0)
+
+    async def opener(url: str, settings: Any, **_: Any) -> SimStream:
+        return SimStream(sim)
+
+    driver = Df1Driver("sim://plc5", checksum=Checksum.BCC, timeout=0.3, retries=2, opener=opener)
+    await driver.start()
+    try:
+        await driver.execute(ReadModifyWriteRequest(((n7, 0xFFEF, 0x0010),)), "coil")
+        assert driver.transaction_counters.read_backs >= 1 and driver.transaction_counters.verified == 1
+        assert sim.word("N7", 0) & 0x0010
+    finally:
+        await driver.close()
+
+
+def test_plc5_packet_limits_come_from_one_table() -> None:
+    """Word range commands (what the gateway polls a PLC-5 with) and typed logical commands to a
+    PLC-5 have different limits in the manuals; one table holds both and everything reads it."""
+    from gateway.links.df1 import plc5_unit
+    from gateway.protocols.df1.pccc import ProcessorFamily
+    from gateway.protocols.df1.pccc.limits import PLC5_TYPED_LOGICAL, PLC5_WORD_RANGE
+    from gateway.sim import plc5 as sim_plc5
+
+    assert (PLC5_WORD_RANGE.max_read_bytes, PLC5_WORD_RANGE.max_write_bytes) == (244, 239)
+    assert ProcessorFamily.PLC5.limits is PLC5_TYPED_LOGICAL
+    assert (PLC5_TYPED_LOGICAL.max_read_bytes, PLC5_TYPED_LOGICAL.max_write_bytes) == (230, 222)
+    assert plc5_unit.PLC5_MAX_READ_BYTES == sim_plc5.MAX_WORD_RANGE_READ == PLC5_WORD_RANGE.max_read_bytes
+    assert plc5_unit.PLC5_MAX_WRITE_BYTES == sim_plc5.MAX_WORD_RANGE_WRITE == PLC5_WORD_RANGE.max_write_bytes
+    n7 = LogicalBinaryAddress.of(0, 7, 0)
+    WordRangeRead(n7, PLC5_WORD_RANGE.max_read_bytes)
+    with pytest.raises(InvalidRequest):
+        WordRangeRead(n7, PLC5_WORD_RANGE.max_read_bytes + 2)
+    room = PLC5_WORD_RANGE.max_write_bytes - len(n7.encode())
+    WordRangeWrite(n7, bytes(room - room % 2))
+    with pytest.raises(InvalidRequest):
+        WordRangeWrite(n7, bytes(room - room % 2 + 2))

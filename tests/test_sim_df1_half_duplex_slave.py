@@ -110,6 +110,19 @@ def test_link_reset_drops_queued_messages() -> None:
 
 
 def test_variant_table_rejects_unknown_readings() -> None:
-    assert set(VARIANTS) == {"bad_frame_reply", "reply_retries", "duplicate_detect", "when_busy"}
+    assert set(VARIANTS) == {"bad_frame_reply", "reply_retries", "duplicate_detect", "when_busy", "reply_addresses"}
     with pytest.raises(ValueError, match="not one of"):
         SlaveVariant.from_choices({"bad_frame_reply": "shout"})
+
+
+@pytest.mark.parametrize("reading", ["swapped", "unswapped", "own_station"])
+def test_reply_addresses_variant(reading: str) -> None:
+    """``reply_addresses``: DST / SRC of the reply as 1770-6.5.16 p. 6-4 has them, or as some
+    devices fill them (docs/controller-variants.md)."""
+    from gateway.sim.slc500_line import address_reply
+
+    command = bytes((3, 0, 0x0F, 0, 0x34, 0x12, 0xA2))
+    reply = bytes((0, 3, 0x4F, 0, 0x34, 0x12))
+    expected = {"swapped": reply, "unswapped": bytes((3, 0)) + reply[2:], "own_station": bytes((0, 9)) + reply[2:]}
+    assert address_reply(command, reply, reading, own_station=9) == expected[reading]
+    assert SlaveVariant.from_choices({"reply_addresses": reading}).reply_addresses == reading

@@ -33,6 +33,7 @@ from gateway.protocols.df1.pccc import (
     ProcessorFamily,
     Request,
 )
+from gateway.protocols.df1.pccc import is_write as pccc_is_write
 from gateway.protocols.df1.transaction import (
     Df1Transactions,
     OutcomeUnknown,
@@ -48,10 +49,6 @@ __all__ = ["DF1_SETTINGS", "Df1Driver", "WriteOutcomeUnknown"]
 
 #: DF1 full duplex default line settings (19200 8N1), kept with the link model's defaults.
 DF1_SETTINGS: Final = DF1_DEFAULTS.settings
-
-_WRITE_TYPES: Final = ("ProtectedTypedLogicalWrite", "ProtectedTypedLogicalMaskedWrite", "TypedWrite",
-                       "WordRangeWrite", "SetProcessorMode")
-
 
 #: Characters of the longest DF1 frame: 6 header + 4 + 236 data bytes, framing, CRC, some DLE doubling.
 _LONGEST_FRAME: Final = 280
@@ -224,7 +221,7 @@ class Df1Driver(LinkDriver):
     async def execute(self, request: Request, name: str = "", *, write: bool | None = None) -> PcccReply:
         """Send ``request`` and return the (successful) reply.  Writes jump ahead of polls."""
         label = name or type(request).__name__
-        is_write = type(request).__name__ in _WRITE_TYPES if write is None else write
+        is_write = pccc_is_write(request) if write is None else write
         priority = Priority.WRITE if is_write else Priority.POLL
         return await self.submit(lambda: self._run(request, label, is_write), priority)
 

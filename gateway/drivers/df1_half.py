@@ -80,6 +80,7 @@ from gateway.protocols.df1.pccc import (
     WordRangeWrite,
     decode_reply,
 )
+from gateway.protocols.df1.pccc import is_write as pccc_is_write
 from gateway.protocols.df1.slave_messages import RegisterTable, Verdict, answer_slave_message
 from gateway.protocols.df1.transaction import read_back_for
 from gateway.transport import SerialSettings, enable_rs485, modem_lines, open_stream
@@ -92,10 +93,6 @@ RTS_MODES: Final = ("toggle", "rs485", "on", "off")
 
 log = logging.getLogger("gateway.link")
 
-_WRITE_TYPES: Final = frozenset({
-    "ProtectedTypedLogicalWrite", "ProtectedTypedLogicalMaskedWrite", "TypedWrite", "WordRangeWrite",
-    "SetProcessorMode", "ReadModifyWriteRequest",
-})
 #: Writes a read-back can settle (``read_back_for``): typed logical, PLC-5 word range and RMW.
 _READ_BACK_TYPES: Final = (
     ProtectedTypedLogicalWrite, ProtectedTypedLogicalMaskedWrite, WordRangeWrite, ReadModifyWriteRequest,
@@ -241,7 +238,7 @@ class Df1Station:
     async def execute(self, request: PcccCommand, name: str = "", *, write: bool | None = None) -> PcccReply:
         """Send ``request`` to this station and return the (successful) reply (module docstring)."""
         label = name or type(request).__name__
-        is_write = type(request).__name__ in _WRITE_TYPES if write is None else write
+        is_write = pccc_is_write(request) if write is None else write
         if not is_write:
             return await self._read(request, label)
         # a write goes on to its verdict even when its caller gives up (as Df1Driver.submit does)

@@ -32,6 +32,7 @@ from gateway.protocols.df1.half_duplex_framing import (
     Poll,
     encode_slave_message,
 )
+from gateway.sim.slc500_line import REPLY_ADDRESSES, address_reply
 from gateway.sim.variants import VariantTable, resolve_variants
 
 __all__ = ["VARIANTS", "HalfDuplexSlave", "SlaveVariant"]
@@ -46,6 +47,8 @@ VARIANTS: Final[VariantTable] = {
     "duplicate_detect": ("on", "off"),
     # §5 row 5: a poll while the reply is not ready: DLE EOT, or no answer at all.
     "when_busy": ("eot", "silent"),
+    # DST / SRC of a reply: swapped (1770-6.5.16 p. 6-4), as the command had them, or SRC = own station.
+    "reply_addresses": REPLY_ADDRESSES,
 }
 
 
@@ -55,6 +58,7 @@ class SlaveVariant:
     reply_retries: int | None = None  #: None: resend until ACKed
     duplicate_detect: bool = True
     silent_when_busy: bool = False
+    reply_addresses: str = "swapped"
 
     @classmethod
     def from_choices(cls, chosen: Mapping[str, str]) -> SlaveVariant:
@@ -65,6 +69,7 @@ class SlaveVariant:
             reply_retries=None if retries == "unlimited" else int(retries),
             duplicate_detect=values["duplicate_detect"] == "on",
             silent_when_busy=values["when_busy"] == "silent",
+            reply_addresses=values["reply_addresses"],
         )
 
 
@@ -179,4 +184,4 @@ class HalfDuplexSlave:
         self.counters.executed += 1
         reply = self.handler(message)
         if reply is not None:
-            self.outgoing.append(_Outgoing(reply))
+            self.outgoing.append(_Outgoing(address_reply(message, reply, self.variant.reply_addresses, self.station)))

@@ -52,6 +52,7 @@ from typing import ClassVar, Final
 
 from gateway.errors import GatewayError
 from gateway.protocols.df1.pccc import Function, PcccHeader, Sts, encode_reply
+from gateway.protocols.df1.pccc.limits import PLC5_WORD_RANGE
 from gateway.protocols.df1.pccc.plc5 import ReadModifyWrite, WordRangeReadParams, WordRangeWriteParams
 from gateway.protocols.df1.plc5_address import (
     AddressError,
@@ -65,10 +66,9 @@ from gateway.sim.slc500_processor import _not_usable, _Refuse  # the SLC process
 
 __all__ = ["MAX_WORD_RANGE_READ", "MAX_WORD_RANGE_WRITE", "Output", "Plc5Simulator"]
 
-#: Word range read: at most 244 data bytes in the reply (KF2 p. 5-57).
-MAX_WORD_RANGE_READ: Final = 244
-#: Word range write: address + data at most 239 bytes (KF2 p. 5-57).
-MAX_WORD_RANGE_WRITE: Final = 239
+#: Word range read: data bytes in the reply; write: address + data bytes (``pccc/limits.py``).
+MAX_WORD_RANGE_READ: Final = PLC5_WORD_RANGE.max_read_bytes
+MAX_WORD_RANGE_WRITE: Final = PLC5_WORD_RANGE.max_write_bytes
 
 _EXTENDED_CMD: Final = 0x0F
 #: SLC protected typed logical read / write / masked write (the ``typed_logical`` variant).

@@ -36,7 +36,10 @@ default; docs/controller-variants.md gives the manuals' words for each):
 * ``bad_frame`` ``nak`` | ``silence`` | ``ignore``: a damaged frame is answered DLE NAK, not
   answered (a DLE ENQ then gets DLE NAK), or not answered at all (ENQ gets the last response);
 * ``enq_answer`` ``last`` | ``nak``: DLE ENQ is answered with the last response symbol, or
-  always with DLE NAK ("a request for retransmission").
+  always with DLE NAK ("a request for retransmission");
+* ``reply_addresses`` ``swapped`` | ``unswapped`` | ``own_station``: DST / SRC of a reply are the
+  command's interchanged (1770-6.5.16 p. 6-4), left as the command had them, or DST = the command's
+  SRC and SRC = the ``station`` option (an SLC on full duplex ignores the command's DST).
 
 Known limit: a duplicated frame is ACKed twice by the host; if the second ACK arrives after
 the next reply frame left, the link takes it for that frame's ACK (see ``gateway.protocols.df1.link``).
@@ -66,7 +69,16 @@ from gateway.protocols.df1.link import (
     SendComplete,
     SendFailed,
 )
-from gateway.sim.slc500_line import corrupt_frame, frame_message, garbage, is_write_packet, split_incoming, split_output
+from gateway.sim.slc500_line import (
+    REPLY_ADDRESSES,
+    address_reply,
+    corrupt_frame,
+    frame_message,
+    garbage,
+    is_write_packet,
+    split_incoming,
+    split_output,
+)
 from gateway.sim.slc500_options import Slc500Counters, Slc500Options
 from gateway.sim.slc500_processor import ExtSts, Slc500Processor
 from gateway.sim.variants import resolve_variants
@@ -92,6 +104,7 @@ class Slc500Simulator(Slc500Processor):
         "ack_order": ("ack_first", "reply_first", "embedded"),
         "bad_frame": tuple(answer.value for answer in BadFrameAnswer),
         "enq_answer": tuple(answer.value for answer in EnqAnswer),
+        "reply_addresses": REPLY_ADDRESSES,
     }
 
     def __init__(
@@ -222,6 +235,8 @@ class Slc500Simulator(Slc500Processor):
             match event:
                 case MessageReceived(payload=payload):
                     reply = self._handle(payload)
+                    if reply is not None:
+                        reply = address_reply(payload, reply, self.variants["reply_addresses"], self.options.station)
                     self._last_reply = reply
                     if reply is None:
                         continue

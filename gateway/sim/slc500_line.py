@@ -9,20 +9,36 @@ import random
 from typing import Final
 
 from gateway.protocols.df1.framing import Checksum, Frame, FrameDecoder, Symbol
+from gateway.protocols.df1.pccc import PcccFormatError, decode_command, is_write
 
-__all__ = ["NOISE_BYTES", "corrupt_frame", "frame_message", "garbage", "is_write_packet", "split_incoming",
+__all__ = ["NOISE_BYTES", "REPLY_ADDRESSES", "address_reply", "corrupt_frame",
+           "frame_message", "garbage", "is_write_packet", "split_incoming",
            "split_output"]
 
 NOISE_BYTES: Final = tuple(b for b in range(256) if b != Symbol.DLE)
 
-#: FNC of the CMD 0F commands that change the controller: typed logical write (AA), masked
-#: write (AB), typed write (67), word range write (00), set processor mode (80).
-_WRITE_FUNCTIONS: Final = frozenset({0xAA, 0xAB, 0x67, 0x00, 0x80})
+#: How a controller fills DST / SRC of a reply (1770-6.5.16 p. 6-4 says: interchange the command's;
+#: the same page lets a module overwrite SRC 0 with its own node number, and an SLC on full duplex
+#: ignores DST): ``swapped`` (the manual), ``unswapped`` (the command's DST / SRC as they came),
+#: ``own_station`` (DST = the command's SRC, SRC = the controller's own address).
+REPLY_ADDRESSES: Final = ("swapped", "unswapped", "own_station")
+
+
+def address_reply(command: bytes, reply: bytes, reading: str, own_station: int) -> bytes:
+    """``reply`` (built with DST / SRC swapped) with the DST / SRC of ``reading``."""
+    if reading == "swapped" or len(reply) < 2 or len(command) < 2:
+        return reply
+    if reading == "unswapped":
+        return command[:2] + reply[2:]
+    return bytes((command[1], own_station)) + reply[2:]
 
 
 def is_write_packet(packet: bytes) -> bool:
-    """A PCCC command packet that changes the controller (CMD 0F with a write FNC)."""
-    return len(packet) > 6 and packet[2] == 0x0F and packet[6] in _WRITE_FUNCTIONS
+    """A PCCC command packet that changes the controller (:func:`~gateway.protocols.df1.pccc.is_write`)."""
+    try:
+        return is_write(decode_command(packet).request)
+    except PcccFormatError:
+        return False
 
 
 def frame_message(frame: bytes, checksum: Checksum) -> bytes | None:

@@ -31,7 +31,7 @@ from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import partial
-from typing import TypeAlias, Unpack
+from typing import Final, TypeAlias, Unpack
 
 from gateway.errors import InvalidRequest, ModbusExceptionReply
 from gateway.links.df1.plan import (
@@ -51,6 +51,7 @@ from gateway.protocols.df1.pccc import (
     WordRangeRead,
     WordRangeWrite,
 )
+from gateway.protocols.df1.pccc.limits import PLC5_WORD_RANGE
 from gateway.protocols.df1.plc5_address import AddressError, Plc5Address, encode_logical_binary, parse_plc5_address
 from gateway.unit import UnitOptions, WriteStep
 
@@ -66,10 +67,9 @@ __all__ = [
     "shared_plan_plc5",
 ]
 
-#: Word range read: SIZE at most 244 bytes (KF2 p. 5-57).
-PLC5_MAX_READ_BYTES = 244
-#: Word range write: address + data at most 239 bytes (KF2 p. 5-57).
-PLC5_MAX_WRITE_BYTES = 239
+#: Word range read: reply data bytes, and write: address + data bytes (``pccc/limits.py``).
+PLC5_MAX_READ_BYTES: Final = PLC5_WORD_RANGE.max_read_bytes
+PLC5_MAX_WRITE_BYTES: Final = PLC5_WORD_RANGE.max_write_bytes
 _STRUCTURES = frozenset("TCR")
 
 

@@ -38,7 +38,8 @@ __all__ = [
 
 
 class AddressError(InvalidRequest):
-    """An SLC 500 address that cannot be parsed or is out of range."""
+    """An SLC 500 or PLC-5 address that cannot be parsed, encoded or is out of range; the message
+    says what is wrong.  A rule the request broke: Modbus 0x03 (``gateway.errors.MODBUS_CODES``)."""
 
 
 class FileType(enum.IntEnum):

@@ -11,17 +11,21 @@ What the core does
   *identical* bytes are sent again (same TNS, so a slave with duplicate detection executes it once),
   at most ``message_retries`` times.
 * After the ACK the master waits ``reply_wait`` and polls the station (``DLE ENQ STN BCC``) until
-  the reply comes: a slave message whose CMD is the command's with the reply bit, whose TNS is the
-  command's and whose DST/SRC are swapped.  Each ``DLE EOT`` counts one poll; after ``max_polls``
-  polls, or ``reply_timeout`` after the ACK, the request fails.  A reply is only ever matched against
-  the requests of the station that was polled, so it cannot be attributed to another station.
+  the reply comes: a slave message of the polled station that ``pccc.reply_matches`` the command
+  (same TNS, CMD + 40 hex; DST / SRC are not compared, see there).  Each ``DLE EOT`` counts one
+  poll; after ``max_polls`` of them the request fails, and so it does at the first EOT after
+  ``reply_timeout`` from the ACK.  The deadline itself only makes the reply's poll due: while the
+  line was busy with other stations the reply may be waiting in the slave, and only its EOT says
+  it is not.  A reply
+  is only ever matched against the requests of the station that was polled, so it cannot be
+  attributed to another station.
 * Every good slave message is acknowledged with ``DLE ACK`` and the station is polled again (up to
   ``max_messages_per_turn``), until it answers ``DLE EOT``.  A repeat of the last message's first six
   bytes before an EOT is the slave resending because our ACK was lost: ACKed and discarded
   (KA p. 11-17).  A bad slave frame is not acknowledged (never NAKed: on half duplex DLE NAK is the
   master's global link reset, Table 2.C) and the station is polled again (KA Figure 11.8).
 * Between commands every station is polled every ``poll_interval`` for the messages it initiates.
-  An answerless poll, or a command still unacknowledged after all its resends, is one failure;
+  An answerless poll, or a master message without its DLE ACK (each copy sent), is one failure;
   ``retries`` failures in a row (no answer of any kind between them) demote a station: its
   requests fail at once and it is polled every ``slow_poll_interval`` until it answers (Kepware's
   auto-demotion; KA p. 11-9 "poll the inactive slaves occasionally").
@@ -78,6 +82,8 @@ from gateway.protocols.df1.half_duplex_framing import (
     encode_master_message,
     encode_poll,
 )
+from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, reply_matches
+from gateway.protocols.df1.pccc.codes import REPLY_BIT
 
 __all__ = [
     "NEED_DATA",
@@ -95,25 +101,10 @@ __all__ = [
     "StationDemoted",
     "StationRestored",
     "StrayReply",
-    "is_reply_to",
 ]
 
-#: PCCC CMD bit that marks a reply (1770-6.5.16 chapter 6: reply CMD = command CMD + 40 hex).
-_REPLY_BIT: Final = 0x40
 #: The first six bytes of a message (DST SRC CMD STS TNS) identify it for duplicate detection.
 _HEAD: Final = 6
-
-
-def is_reply_to(command: bytes, message: bytes) -> bool:
-    """Whether ``message`` is the reply to ``command``: DST/SRC swapped, CMD + 40 hex, same TNS."""
-    return (
-        len(message) >= _HEAD
-        and len(command) >= _HEAD
-        and message[0] == command[1]
-        and message[1] == command[0]
-        and message[2] == command[2] | _REPLY_BIT
-        and message[4:6] == command[4:6]
-    )
 
 
 # ------------------------------------------------------------------------------- state machine
@@ -377,18 +368,35 @@ class HalfDuplexMaster:
         station.awaiting.append(request)
         self._state = LineState.IDLE
 
-    def _on_not_acked(self, now: float) -> None:
+    def _on_naked(self, now: float) -> None:
+        """DLE NAK from a slave (not the manual's: see the module docstring): it heard us; resend."""
         request = self._request
         assert request is not None
+        self._answered(self._stations[request.station])
+        self._resend_or_fail(request, now)
+
+    def _on_ack_timeout(self, now: float) -> None:
+        """No DLE ACK: an answerless exchange, counted towards demotion like a silent poll."""
+        request = self._request
+        assert request is not None
+        station = self._stations[request.station]
+        station.counters.timeouts += 1
+        self._failed(station, now)
+        if not station.active:
+            self._take_request()
+            self._events.append(RequestFailed(request.request_id, request.station, FailReason.NO_ACK, True))
+            self._state = LineState.IDLE
+            return
+        self._resend_or_fail(request, now)
+
+    def _resend_or_fail(self, request: _Request, now: float) -> None:
         station = self._stations[request.station]
         if request.sends <= self.line.message_retries:
             station.counters.retries += 1
             self._send_message(request, now)  # the identical bytes: same TNS
             return
         self._take_request()
-        station.counters.timeouts += 1
         self._events.append(RequestFailed(request.request_id, request.station, FailReason.NO_ACK, True))
-        self._failed(station, now)
         self._state = LineState.IDLE
 
     def _on_eot(self, now: float) -> None:
@@ -398,7 +406,7 @@ class HalfDuplexMaster:
         station.last_head = None  # no resend can follow an EOT (KA p. 11-17)
         for request in list(station.awaiting):
             request.polls += 1
-            if request.polls >= station.config.max_polls:
+            if request.polls >= station.config.max_polls or now >= request.reply_deadline:
                 self._fail_awaiting(station, request, FailReason.NO_REPLY)
         self._poll_again = False
         self._state = LineState.IDLE
@@ -416,9 +424,10 @@ class HalfDuplexMaster:
         station.last_head = head
         station.counters.messages_received += 1
         number = station.config.station
-        if len(message) > 2 and message[2] & _REPLY_BIT:
+        if len(message) >= HEADER_SIZE and message[2] & REPLY_BIT:
+            reply = PcccHeader.decode(message)
             for request in station.awaiting:
-                if is_reply_to(request.message, message):
+                if reply_matches(request.message, reply):
                     station.awaiting.remove(request)
                     self._events.append(ReplyReceived(request.request_id, number, message))
                     return
@@ -545,9 +554,9 @@ class HalfDuplexMaster:
             self._wake = None
             self._current = None
             for station in self._stations.values():
-                for request in list(station.awaiting):
+                for request in station.awaiting:
                     if now >= request.reply_deadline:
-                        self._fail_awaiting(station, request, FailReason.NO_REPLY)
+                        request.poll_at = min(request.poll_at, now)  # ask once more: the EOT decides
             if self._reset_pending:
                 self._reset_pending = False
                 self._reset_all()
@@ -571,7 +580,7 @@ class HalfDuplexMaster:
                 return True
         for station in self._rotation():
             due = [r.poll_at for r in station.awaiting]
-            wake += due + [r.reply_deadline for r in station.awaiting]
+            wake += due + [r.reply_deadline for r in station.awaiting if r.poll_at < r.reply_deadline]
             if (due and min(due) <= now) or (not station.active and station.next_poll_at <= now):
                 self._serve(station)
                 self._send_poll(station.config.station, now)
@@ -604,8 +613,8 @@ _Handler = Callable[[HalfDuplexMaster, float], None]
 _TRANSITIONS: Final[dict[tuple[LineState, Input], _Handler]] = {
     (LineState.TRANSMIT, Input.TX_READY): HalfDuplexMaster._on_tx_ready,
     (LineState.WAIT_ACK, Input.ACK): HalfDuplexMaster._on_acked,
-    (LineState.WAIT_ACK, Input.NAK): HalfDuplexMaster._on_not_acked,
-    (LineState.WAIT_ACK, Input.TIMEOUT): HalfDuplexMaster._on_not_acked,
+    (LineState.WAIT_ACK, Input.NAK): HalfDuplexMaster._on_naked,
+    (LineState.WAIT_ACK, Input.TIMEOUT): HalfDuplexMaster._on_ack_timeout,
     (LineState.WAIT_POLL, Input.EOT): HalfDuplexMaster._on_eot,
     (LineState.WAIT_POLL, Input.MESSAGE): HalfDuplexMaster._on_message,
     (LineState.WAIT_POLL, Input.BAD): HalfDuplexMaster._on_bad_answer,

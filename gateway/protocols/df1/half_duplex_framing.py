@@ -34,6 +34,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Final
 
+from gateway.protocols.df1.checks import bcc, crc16
 from gateway.protocols.df1.framing import Checksum
 
 __all__ = [
@@ -95,32 +96,6 @@ EOT: Final = bytes((Symbol.DLE, Symbol.EOT))
 
 #: Longest message stored (DST .. last data byte); PCCC over DF1 stays under 250 bytes.
 DEFAULT_MAX_MESSAGE: Final = 512
-
-
-def bcc(data: bytes) -> int:
-    """Two's complement of the 8-bit sum of ``data`` (1770-6.5.16 p. 5-5)."""
-    return -sum(data) & 0xFF
-
-
-def _crc_table() -> tuple[int, ...]:
-    table = []
-    for value in range(256):
-        crc = value
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-        table.append(crc)
-    return tuple(table)
-
-
-_CRC_TABLE: Final = _crc_table()
-
-
-def crc16(data: bytes) -> int:
-    """CRC-16 of exactly ``data`` (no implicit ETX): register 0, reflected 0xA001 (p. 5-6 steps 1-5)."""
-    crc = 0
-    for byte in data:
-        crc = (crc >> 8) ^ _CRC_TABLE[(crc ^ byte) & 0xFF]
-    return crc
 
 
 def _check(covered: bytes, summed: bytes, checksum: Checksum) -> bytes:

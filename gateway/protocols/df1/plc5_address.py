@@ -29,6 +29,8 @@ import re
 from dataclasses import dataclass
 from typing import Final
 
+from gateway.protocols.df1.address import AddressError
+
 __all__ = [
     "AddressError",
     "Plc5Address",
@@ -42,10 +44,6 @@ __all__ = [
 #: Most level values the logical binary address can carry (two bytes after FF).
 _MAX_LEVEL: Final = 0xFFFF
 _FF: Final = 0xFF
-
-
-class AddressError(ValueError):
-    """A PLC-5 address that cannot be parsed or encoded; the message says what is wrong."""
 
 
 #: File type letters -> (default file number or None, words per element, octal element/bit numbers)

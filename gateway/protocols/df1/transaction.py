@@ -1,7 +1,7 @@
 """DF1 application layer: one PCCC transaction at a time over a :class:`Df1Link`, sans-I/O.
 
-What it owns: the TNS of each command, matching replies (same TNS, CMD | 0x40; 1770-6.5.16
-ch. 3 "the TNS ... matches a reply with its command"), retries, and the exactly-once verdict of
+What it owns: the TNS of each command, matching replies (``pccc.reply_matches``: same TNS,
+CMD | 0x40; DST / SRC not compared), retries, and the exactly-once verdict of
 a write.  The link below it owns DLE ACK / NAK / ENQ (``link.py``).
 
 Verdicts (events, one per transaction)::
@@ -61,8 +61,8 @@ from gateway.errors import InvalidRequest, format_seconds
 from gateway.protocols.df1.framing import NEED_DATA, NeedData
 from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete, SendFailed, SendFailure
 from gateway.protocols.df1.pccc import (
-    REPLY_BIT,
     PcccFormatError,
+    PcccHeader,
     PcccReply,
     ProtectedTypedLogicalMaskedWrite,
     ProtectedTypedLogicalRead,
@@ -74,6 +74,7 @@ from gateway.protocols.df1.pccc import (
     WordRangeWrite,
     decode_reply,
     encode_command,
+    reply_matches,
 )
 
 __all__ = [
@@ -231,9 +232,6 @@ class _Do(enum.Enum):
     __hash__ = object.__hash__
 
 
-#: CMD of the reply to a read-back (protected typed logical read, CMD 0F).
-_READ_BACK_REPLY: Final = ProtectedTypedLogicalRead.CMD | REPLY_BIT
-
 S, K = TxnState, _In
 _READ, _WRITE = False, True
 
@@ -286,8 +284,10 @@ class _Txn:
     tries: int = 0  #: command frames sent
     verify_tries: int = 0
     tns: set[int] = field(default_factory=set)  #: every TNS the command was sent with
+    sent: list[PcccHeader] = field(default_factory=list)  #: the header of every copy sent
     frame: int = 0  #: link handle of the frame in flight
     verify_tns: int | None = None
+    verify: PcccHeader | None = None  #: header of the read-back in flight
     why: str = ""  #: what went wrong last (for the verdict's message)
 
 
@@ -414,8 +414,7 @@ class Df1Transactions:
         txn = self._txn
         if txn is None:
             return  # a reply to a transaction already settled (late, or the reply to a duplicate)
-        # DST / SRC are not compared: point to point, some devices fill them differently.
-        if txn.read_back is not None and reply.tns == txn.verify_tns and reply.cmd == _READ_BACK_REPLY:
+        if txn.read_back is not None and txn.verify is not None and reply_matches(txn.verify, reply):
             self.link.confirm(txn.frame, now)
             holds = reply.ok and txn.read_back.holds(reply.data)
             if not holds:
@@ -426,7 +425,7 @@ class Df1Transactions:
             self._reply = reply
             self._input(_In.READBACK_HOLDS if holds else _In.READBACK_DIFFERS, now)
             return
-        if reply.tns not in txn.tns or reply.cmd != txn.request.CMD | REPLY_BIT:
+        if not any(reply_matches(sent, reply) for sent in txn.sent):
             return
         if reply.tns != self._current_tns or self._state not in (TxnState.SENDING, TxnState.AWAIT_REPLY):
             self.counters.late_replies += 1  # answers an earlier frame, not the one in flight
@@ -492,6 +491,7 @@ class Df1Transactions:
         self.counters.attempts += 1
         self._deadline = None
         packet = encode_command(txn.request, dst=self.station, src=self.source, tns=tns)
+        txn.sent.append(PcccHeader.decode(packet))
         txn.frame = self.link.send(packet, now, idempotent=not txn.write)
 
     def _send_read_back(self, txn: _Txn, now: float) -> None:
@@ -504,6 +504,7 @@ class Df1Transactions:
         self.counters.read_backs += 1
         self._deadline = None
         packet = encode_command(txn.read_back.request, dst=self.station, src=self.source, tns=tns)
+        txn.verify = PcccHeader.decode(packet)
         txn.frame = self.link.send(packet, now)
 
     def _finish_ids(self, txn: _Txn) -> None:

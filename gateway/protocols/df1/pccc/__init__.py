@@ -31,10 +31,12 @@ from gateway.protocols.df1.pccc.codes import (
     Function,
 )
 from gateway.protocols.df1.pccc.commands import (
+    WRITE_REQUESTS,
     PcccCommand,
     Request,
     decode_command,
     encode_command,
+    is_write,
 )
 from gateway.protocols.df1.pccc.plc5 import (
     DataType,
@@ -73,6 +75,7 @@ from gateway.protocols.df1.pccc.status import (
 
 __all__ = [
     "REPLY_BIT",
+    "WRITE_REQUESTS",
     "Command",
     "DataType",
     "DiagnosticFunction",
@@ -113,6 +116,7 @@ __all__ = [
     "encode_reply",
     "encode_type_data",
     "encode_typed_data",
+    "is_write",
     "reply_matches",
     "slc_read_request",
     "slc_write_request",

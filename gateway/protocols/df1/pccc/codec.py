@@ -266,8 +266,18 @@ def encode_reply(
     return header.encode() + tail + data
 
 
-def reply_matches(command: PcccHeader | bytes, reply: PcccReply) -> bool:
-    """True when ``reply`` answers ``command``: same TNS and CMD | 0x40."""
+def reply_matches(command: PcccHeader | bytes, reply: PcccReply | PcccHeader) -> bool:
+    """True when ``reply`` answers ``command``: the same TNS and CMD | 0x40.  The one matcher of
+    both the full-duplex and the half-duplex cores.
+
+    DST and SRC are not compared.  1770-6.5.16 p. 6-4 forms a reply's DST / SRC by interchanging
+    the command's, but the same page has a module overwrite a SRC of 0 with its own node number
+    (so the reply's DST is that number, not ours), an SLC on full duplex ignores the command's DST
+    (its reply's SRC is its own address), and some devices do not interchange them at all.  The
+    TNS (ch. 3: "matches a reply with its command") identifies the transaction; on a half-duplex
+    line the poll's station number says who answered.  Every reading is in
+    docs/controller-variants.md ("reply_addresses").
+    """
     header = PcccHeader.decode(command) if isinstance(command, bytes | bytearray) else command
     return reply.tns == header.tns and reply.cmd == header.cmd | REPLY_BIT
 

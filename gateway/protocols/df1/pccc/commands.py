@@ -28,7 +28,7 @@ from gateway.protocols.df1.pccc.slc import (
     SetProcessorMode,
 )
 
-__all__ = ["PcccCommand", "Request", "decode_command", "encode_command"]
+__all__ = ["WRITE_REQUESTS", "PcccCommand", "Request", "decode_command", "encode_command", "is_write"]
 
 
 Request = (
@@ -44,6 +44,24 @@ Request = (
     | TypedWrite
     | ReadModifyWriteRequest
 )
+
+#: The commands that change the controller: a reply lost after one of them ran cannot be told from
+#: one that never ran, so these are sent once and settled by a read-back, never resent.  Every
+#: layer (both drivers, the transaction cores, the simulators' fault injection) asks :func:`is_write`.
+WRITE_REQUESTS: Final = (
+    ProtectedTypedLogicalWrite,
+    ProtectedTypedLogicalMaskedWrite,
+    TypedWrite,
+    WordRangeWrite,
+    ReadModifyWriteRequest,
+    SetProcessorMode,
+)
+
+
+def is_write(request: object) -> bool:
+    """Whether ``request`` changes the controller (:data:`WRITE_REQUESTS`)."""
+    return isinstance(request, WRITE_REQUESTS)
+
 
 _REQUEST_TYPES: Final[dict[tuple[int, int], type[Request]]] = {
     (cls.CMD, cls.FNC): cls

@@ -26,6 +26,7 @@ from typing import ClassVar
 from gateway.errors import InvalidRequest
 from gateway.protocols.df1.pccc.codec import LogicalBinaryAddress, PcccFormatError, Reader, check_range
 from gateway.protocols.df1.pccc.codes import Command, Function
+from gateway.protocols.df1.pccc.limits import PLC5_WORD_RANGE
 from gateway.protocols.df1.plc5_address import AddressError, decode_logical_ascii, decode_logical_binary
 
 __all__ = [
@@ -182,7 +183,7 @@ class WordRangeRead:
     total: int | None = None  # default: size // 2
 
     def __post_init__(self) -> None:
-        check_range("byte size", self.size, 1, 0xFF)
+        check_range("byte size", self.size, 1, PLC5_WORD_RANGE.max_read_bytes)
         check_range("packet offset", self.packet_offset, 0, 0xFFFF)
         if self.total is None:
             object.__setattr__(self, "total", (self.size + 1) // 2)
@@ -220,6 +221,8 @@ class WordRangeWrite:
     def __post_init__(self) -> None:
         if not self.data or len(self.data) % 2:
             raise InvalidRequest("PCCC: word range write data must be a non-zero even number of bytes")
+        check_range("address + data bytes", len(self.address.encode()) + len(self.data), 1,
+                    PLC5_WORD_RANGE.max_write_bytes)
         check_range("packet offset", self.packet_offset, 0, 0xFFFF)
         if self.total is None:
             object.__setattr__(self, "total", len(self.data) // 2)
@@ -389,17 +392,19 @@ def _u16(name: str, value: int) -> int:
 class WordRangeReadParams:
     """FNC 01 parameters for an already encoded address (logical binary or ASCII; KF2 p. 5-57).
 
-    ``SIZE`` in bytes: even, 2-244 (KF2 limits).  The header (DST SRC 0F STS TNS FNC) is the codec's.
+    ``SIZE`` in bytes: even, 2 up to ``PLC5_WORD_RANGE.max_read_bytes`` (``limits.py``).  The header
+    (DST SRC 0F STS TNS FNC) is the codec's.
     """
 
     address: bytes  #: an encoded logical binary or ASCII address
-    size: int  #: data bytes to read (even, at most 244)
+    size: int  #: data bytes to read (even, at most PLC5_WORD_RANGE.max_read_bytes)
     packet_offset: int = 0  #: in words
     total_transaction: int | None = None  #: in words; default size / 2
 
     def encode(self) -> bytes:
-        if self.size < 2 or self.size % 2 or self.size > 244:
-            raise AddressError(f"word range read size {self.size}: an even number of bytes 2..244")
+        most = PLC5_WORD_RANGE.max_read_bytes
+        if self.size < 2 or self.size % 2 or self.size > most:
+            raise AddressError(f"word range read size {self.size}: an even number of bytes 2..{most}")
         total = self.size // 2 if self.total_transaction is None else self.total_transaction
         offset = _u16("packet offset", self.packet_offset)
         return word_range_params(offset, _u16("total transaction", total), self.address, bytes((self.size,)))
@@ -427,8 +432,9 @@ class WordRangeWriteParams:
     def encode(self) -> bytes:
         if not self.data or len(self.data) % 2:
             raise AddressError("word range write data must be a whole number of words")
-        if len(self.address) + len(self.data) > 239:
-            raise AddressError("word range write: address + data may be at most 239 bytes (KF2 p. 5-57)")
+        most = PLC5_WORD_RANGE.max_write_bytes
+        if len(self.address) + len(self.data) > most:
+            raise AddressError(f"word range write: address + data may be at most {most} bytes (KF2 p. 5-57)")
         total = len(self.data) // 2 if self.total_transaction is None else self.total_transaction
         offset = _u16("packet offset", self.packet_offset)
         return word_range_params(offset, _u16("total transaction", total), self.address, self.data)

@@ -23,6 +23,7 @@ from typing import ClassVar, Final
 from gateway.protocols.df1.address import FileType, SlcAddress
 from gateway.protocols.df1.pccc.codec import LogicalBinaryAddress, PcccFormatError, Reader, check_range, encode_field
 from gateway.protocols.df1.pccc.codes import Command, DiagnosticFunction, Function
+from gateway.protocols.df1.pccc.limits import PLC5_TYPED_LOGICAL, SLC_MODULAR, SLC_SMALL, SizeLimits
 
 __all__ = [
     "DiagnosticStatus",
@@ -54,27 +55,6 @@ class ProcessorMode(enum.IntEnum):
 # ------------------------------------------------------------------------------ size limits
 
 
-@dataclass(frozen=True, slots=True)
-class SizeLimits:
-    """Data bytes per packet; writes lose 2 bytes per address field in 3-byte form (notes §4.36)."""
-
-    max_read_bytes: int
-    max_write_bytes: int
-
-    def __post_init__(self) -> None:
-        if not (0 < self.max_read_bytes <= 255 and 0 < self.max_write_bytes <= 255):
-            raise ValueError("size limits must be 1-255 bytes (one-byte size field)")
-
-    def write_limit(self, expanded_fields: int = 0) -> int:
-        return max(0, self.max_write_bytes - 2 * expanded_fields)
-
-    def max_read_elements(self, element_bytes: int) -> int:
-        return self.max_read_bytes // element_bytes
-
-    def max_write_elements(self, element_bytes: int, expanded_fields: int = 0) -> int:
-        return self.write_limit(expanded_fields) // element_bytes
-
-
 class ProcessorFamily(enum.Enum):
     """Processor families and their packet size limits (notes §4.36 and the size tables)."""
 
@@ -104,16 +84,14 @@ class ProcessorFamily(enum.Enum):
         return _PROCESSOR_TYPES.get(code)
 
 
-_SMALL: Final = SizeLimits(82, 82)  # 500, 5/01, 5/02: 0-82 bytes (§4.36)
-_MODULAR: Final = SizeLimits(236, 228)  # 500 CPU read LOCAL 236; write without Internet field 228
 _FAMILY_LIMITS: Final = {
-    ProcessorFamily.SLC500_FIXED: _SMALL,
-    ProcessorFamily.SLC5_01: _SMALL,
-    ProcessorFamily.SLC5_02: _SMALL,
-    ProcessorFamily.SLC5_03: _MODULAR,
-    ProcessorFamily.SLC5_04: _MODULAR,
-    ProcessorFamily.SLC5_05: _MODULAR,
-    ProcessorFamily.PLC5: SizeLimits(230, 222),  # "PLC5 Read" / "PLC5 Write - LOCAL" tables
+    ProcessorFamily.SLC500_FIXED: SLC_SMALL,
+    ProcessorFamily.SLC5_01: SLC_SMALL,
+    ProcessorFamily.SLC5_02: SLC_SMALL,
+    ProcessorFamily.SLC5_03: SLC_MODULAR,
+    ProcessorFamily.SLC5_04: SLC_MODULAR,
+    ProcessorFamily.SLC5_05: SLC_MODULAR,
+    ProcessorFamily.PLC5: PLC5_TYPED_LOGICAL,  # typed logical commands; word range: PLC5_WORD_RANGE
 }
 _PROCESSOR_TYPES: Final = {
     0x1A: ProcessorFamily.SLC500_FIXED,
