@@ -98,6 +98,11 @@ class WriteQueue:
             self._worker = loop.create_task(self._work(), name=f"{self.name}-writes")
         return entry.future
 
+    async def drain(self) -> None:
+        """Return when every job taken so far has run (its verdict reached)."""
+        while (worker := self._worker) is not None:
+            await asyncio.shield(worker)
+
     def withdraw(self, future: asyncio.Future[None]) -> bool:
         """Take the job of ``future`` out of the queue if it has not started; True if it was
         (its future is then cancelled: nothing of it will be written)."""

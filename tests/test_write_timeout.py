@@ -50,8 +50,7 @@ def _words(sim: SlcAsciiSimulator) -> list[tuple[int, int]]:
 async def _settle(unit: SlcAsciiUnit) -> None:
     """Wait until the write queue has run everything it took (the line is free again)."""
     async with asyncio.timeout(10):
-        while unit.writes.waiting or unit.writes._worker is not None:
-            await asyncio.sleep(0.05)
+        await unit.writes.drain()
 
 
 async def test_a_write_on_the_line_at_write_timeout_is_answered_0x0B_and_lands_once(
