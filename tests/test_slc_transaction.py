@@ -18,6 +18,8 @@ from hypothesis import strategies as st
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.framing import (
     MAX_ID,
+    CommandDecoder,
+    CommandFrame,
     DataReply,
     encode_ack,
     encode_command,
@@ -128,6 +130,18 @@ READ = cmds.read_bytes(0x40, 2)
 WRITE = cmds.write_word(0x40, 1234)
 
 
+def _barrier(frame: bytes) -> tuple[int, bytes]:
+    """``frame`` is a barrier read (one byte, ID 00): (its address, the controller's answer)."""
+    decoder = CommandDecoder()
+    decoder.receive_data(frame)
+    event = decoder.next_event()
+    assert isinstance(event, CommandFrame), frame
+    assert event.code == cmds.CommandCode.READ and event.msg_id == 0, frame
+    count, address = int.from_bytes(event.params[:2], "big"), int.from_bytes(event.params[2:], "big")
+    assert count == 1, frame
+    return address, encode_data_reply(f"01{address:04X}00", 0)
+
+
 def test_clean_read_whole_byte_by_byte_and_with_trailing_garbage() -> None:
     for chunks in ("whole", "bytes", "garbage"):
         session = _started()
@@ -167,8 +181,8 @@ def test_a_garbled_complete_reply_gets_z_at_once_a_missing_one_after_the_timeout
     assert session.data_to_send() == encode_retransmit(6)
     # silence after ;Z (a power cycle leaves nothing to repeat): a read resyncs and asks again
     session.handle_timeout(1.0 + 2 * TIMEOUT)
-    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
-    session.receive_data(encode_data_reply("021FFE1547", 0), 1.7)
+    _, answer = _barrier(session.data_to_send())
+    session.receive_data(answer, 1.7)
     assert session.data_to_send() == encode_command(READ, 1)
     session.receive_data(encode_data_reply("000200400064", 1), 1.71)
     assert session.take_result().verdict is Verdict.DONE
@@ -258,11 +272,10 @@ def test_i_after_power_up_proves_a_single_copy_was_not_executed(reported: int) -
         # a second copy with our ID first (test_stray_i_of_a_repeated_previous_message_...)
         assert session.data_to_send() == sent
         session.receive_data(encode_id_mismatch(reported), 0.02)
-    assert session.state is SessionState.QUIET  # the line must be quiet before ID 00
-    assert session.data_to_send() == b""
-    session.handle_timeout(session.next_deadline() or 0)
-    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
-    session.receive_data(encode_data_reply("021FFE1547", 0), 0.7)
+    # proof: resync at once with a barrier read, no wait for quiet (its answer echoes its address)
+    assert session.state is SessionState.RESYNC
+    _, answer = _barrier(session.data_to_send())
+    session.receive_data(answer, 0.03)
     assert session.data_to_send() == encode_command(WRITE, 1)  # resent under a new ID
     session.receive_data(encode_ack(1), 0.71)
     assert session.take_result().verdict is Verdict.DONE
@@ -312,9 +325,8 @@ def test_late_i_after_id_rollover_is_proof_for_a_write() -> None:
     session.receive_data(encode_data_reply("000200400064", MAX_ID), 0.4)  # ;Z: an older reply
     assert session.data_to_send() == encode_command(WRITE, 1)  # resent with the same ID
     session.receive_data(encode_id_mismatch(MAX_ID), 0.41)  # power-cycled, retained ID 7F
-    assert session.state is SessionState.QUIET  # proof: ;I<the ID before ours> -> resync, new ID
-    session.handle_timeout(session.next_deadline() or 0)
-    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
+    assert session.state is SessionState.RESYNC  # proof: ;I<the ID before ours> -> resync, new ID
+    _barrier(session.data_to_send())
 
 
 def test_i_00_after_two_copies_is_no_proof() -> None:
@@ -366,8 +378,66 @@ def test_a_read_refused_in_a_numbering_begun_without_quiet_is_asked_again() -> N
     session.data_to_send()
     session.receive_data(encode_refused(1), 0.01)
     assert session.result is None
-    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
-    session.receive_data(encode_data_reply("021FFE1547", 0), 0.02)
+    _, answer = _barrier(session.data_to_send())
+    session.receive_data(answer, 0.02)
     assert session.data_to_send() == encode_command(READ, 1)
     session.receive_data(encode_refused(1), 0.03)
     assert session.take_result().verdict is Verdict.REFUSED
+
+
+# --- barrier resyncs ---------------------------------------------------------------------------
+
+
+def test_a_write_on_an_unclean_line_resyncs_with_a_barrier_at_once() -> None:
+    """After a read that needed ``;Z`` (its first reply may still come) a write does not wait for
+    quiet: a barrier read (ID 00) goes at once, and its answer proves every earlier reply came."""
+    session = _started()
+    session.data_to_send()
+    session.handle_timeout(TIMEOUT)  # reply lost (or late)
+    assert session.data_to_send() == encode_retransmit(5)
+    session.receive_data(encode_data_reply("0200400064", 5), 0.35)
+    assert session.take_result().verdict is Verdict.DONE
+    session.start(WRITE, 0.36)
+    assert session.state is SessionState.RESYNC  # no QUIET wait
+    _, answer = _barrier(session.data_to_send())
+    session.receive_data(encode_data_reply("0200400064", 5), 0.37)  # the late first reply: ignored
+    assert session.data_to_send() == b""
+    session.receive_data(answer, 0.38)
+    assert session.data_to_send() == encode_command(WRITE, 1)
+    session.receive_data(encode_ack(1), 0.39)
+    assert session.take_result().verdict is Verdict.DONE
+    session.start(WRITE, 0.40)  # one message, answered after the barrier: clean, no resync
+    assert session.data_to_send() == encode_command(WRITE, 2)
+
+
+def test_an_earlier_resyncs_barrier_answer_never_ends_a_resync() -> None:
+    """The answer to an earlier resync's barrier read (a repeated frame, a late reply) echoes
+    another address: taken for this resync's, a reply of an earlier message could follow it."""
+    session = _started()
+    session.data_to_send()
+    session.receive_data(encode_id_mismatch(9), 0.01)  # a read meeting ;I resyncs
+    first, first_answer = _barrier(session.data_to_send())
+    session.receive_data(first_answer, 0.02)
+    assert session.data_to_send() == encode_command(READ, 1)
+    session.receive_data(encode_id_mismatch(9), 0.03)  # again
+    second, second_answer = _barrier(session.data_to_send())
+    assert second != first
+    session.receive_data(first_answer, 0.04)  # the line repeats the first barrier's answer
+    assert session.state is SessionState.RESYNC and session.data_to_send() == b""
+    session.receive_data(second_answer, 0.05)
+    assert session.data_to_send() == encode_command(READ, 1)
+
+
+def test_a_refused_barrier_read_falls_back_to_read_frn_after_quiet() -> None:
+    """Program mode refuses reads (``;E00``): the resync waits for quiet and reads the FRN,
+    which every mode answers."""
+    session = _started(WRITE)
+    session.data_to_send()
+    session.receive_data(encode_id_mismatch(0), 0.01)  # power-cycled: proof, resync
+    _barrier(session.data_to_send())
+    session.receive_data(encode_refused(0), 0.02)
+    assert session.state is SessionState.QUIET
+    session.handle_timeout(session.next_deadline() or 0)
+    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
+    session.receive_data(encode_data_reply("021FFE1547", 0), 0.7)
+    assert session.data_to_send() == encode_command(WRITE, 1)

@@ -195,7 +195,9 @@ async def plant(request: pytest.FixtureRequest) -> AsyncIterator[Plant]:
     links: list[str] = []
     main, url = await controllers.add()
     sims[MAIN] = main
-    links.append(link_toml("main", url, MAIN))
+    # write_timeout: test_read_answered_while_a_write_is_pending slows every reply to 0.4 s, past
+    # the default (0.9 s) for a write that waits behind a poll
+    links.append(link_toml("main", url, MAIN, write_timeout=3.0))
     read_only, url = await controllers.add()
     sims[READ_ONLY] = read_only
     links.append(link_toml("read-only", url, READ_ONLY, read_only=True))

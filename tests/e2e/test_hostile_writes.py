@@ -367,7 +367,7 @@ async def test_every_write_is_audited_with_the_client(caplog: pytest.LogCaptureF
 async def flood(port: int, stop: asyncio.Event, in_flight: int = 16) -> dict[str, int]:
     """One connection keeping ``in_flight`` FC6 writes outstanding until ``stop`` (0x06 answers too)."""
     reader, writer = await asyncio.open_connection(HOST, port)
-    outcome = {"ok": 0, "busy": 0, "other": 0}
+    outcome = {"ok": 0, "busy": 0, "late": 0, "other": 0}
     tid = 0
     try:
         for _ in range(in_flight):
@@ -375,7 +375,8 @@ async def flood(port: int, stop: asyncio.Event, in_flight: int = 16) -> dict[str
             writer.write(fc6(tid, tid % 31, tid % 10000))  # accumulators of 901-931 (932 is protected)
         while not stop.is_set():
             pdu = (await read_replies(reader, 1)).popitem()[1]
-            key = "ok" if pdu[0] == 6 else "busy" if pdu[1:2] == bytes((SERVER_BUSY,)) else "other"
+            key = ("ok" if pdu[0] == 6 else "busy" if pdu[1:2] == bytes((SERVER_BUSY,))
+                   else "late" if pdu[1:2] == bytes((TARGET_FAILED,)) else "other")
             outcome[key] += 1
             if key == "busy":
                 await asyncio.sleep(0.005)  # a retry a little later, as a master does after 0x06
@@ -396,6 +397,7 @@ async def test_a_write_flood_leaves_the_fast_class_fresh() -> None:
     for 65 reads at once.
     """
     url = slc_url(paced="1")
+    sim = get_simulator(url)
     async with gateway(slc_link(url)) as gw:
         await until_ready(gw, 0, 64)
         async with connect(gw.port) as client, asyncio.timeout(10):
@@ -423,7 +425,10 @@ async def test_a_write_flood_leaves_the_fast_class_fresh() -> None:
         scans = unit.poller.scans - scans
         slow = [unit.cache.stamps[i] for i in unit.poller.slow]
     assert codes.count(TARGET_FAILED) == 0 and set(codes) == {None}, codes
-    assert outcome["ok"] > 20 and outcome["other"] == 0, outcome  # the flood did reach the line
+    # the flood did reach the line; 16 writes in flight wait longer than write_timeout for it, so
+    # many are answered 0x0B (withdrawn, or on the line with the outcome unknown)
+    assert outcome["other"] == 0, outcome
+    assert sum(1 for kind, _, _ in sim.applied_writes if kind == "word") > 20, outcome
     assert scans >= 2, scans  # whole fast scans completed during the flood
     assert max(slow) > start, "the periodic slow scan did not start during the flood"
     assert writes > 10

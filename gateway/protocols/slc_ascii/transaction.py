@@ -30,13 +30,14 @@ may come between a command and its reply.
 Rules:
 
 * **Resends keep the ID.**  A copy with the same ID is never executed twice (the ID check).
-* **ID 00 (resync) for a write only after quiet.**  The controller's numbering restarts with a
-  harmless read (``#0108``, read FRN, ID 00).  Before a write relies on it, it is sent only when
-  no reply to an earlier message can still come (``late_bound``, 1.5 x the reply time, or more
-  when replies were seen coming later); its answer is then a barrier: no reply of an earlier
-  message follows it, so a reply with the same ID from before is never taken for an answer.
-  Reads resync at once (their answer is checked against its address echo, and any value taken
-  is one the controller held); a write then first resyncs after quiet.
+* **ID 00 (resync) with a barrier.**  The controller's numbering restarts with a harmless read
+  with ID 00 whose answer no earlier message can have: one byte at an address no ID 00 read
+  asked for within the quiet time (its answer echoes the address).  The controller answers in
+  order and the line keeps it, so that answer is a barrier: no reply of an earlier message
+  follows it, and a reply with the same ID from before is never taken for an answer.  A write
+  on a line where an earlier reply may still come (not *clean*) resyncs first.  Only when the
+  controller refuses reads (program mode) does the resync wait for quiet (``late_bound``, 1.5 x
+  the reply time, or more when replies were seen coming later) and read the FRN instead.
 * **Timeouts adapt.**  The reply timeout is 2 x the slowest of the last 32 first replies (at
   least ``min_timeout``, at most the configured one); the waits that decide a verdict (the last
   resync read, a write's last ``;Z``) keep the configured time.  A frame whose next character
@@ -82,6 +83,7 @@ from gateway.protocols.slc_ascii.framing import (
     encode_command,
     encode_retransmit,
 )
+from gateway.protocols.slc_ascii.memory_map import is_readable
 
 __all__ = ["Result", "SessionCounters", "SessionState", "SlcSession", "Verdict", "next_id"]
 
@@ -94,6 +96,8 @@ MAX_RESENDS: Final = 8
 MAX_RESYNCS: Final = 8
 
 _PROBE: Final = cmds.read_frn()
+#: Bytes a barrier read may ask for (every readable byte of the "Reading Data" list).
+_BARRIER_ADDRESSES: Final = tuple(a for a in range(0x113) if is_readable(a, 1))
 
 
 def next_id(msg_id: int) -> int:
@@ -133,6 +137,7 @@ class _In(enum.Enum):
     ID_OTHER = ";I with another ID"
     GARBLED = "a complete reply that fails its check"
     PROBE_ANSWER = "the answer to the ID 00 probe"
+    PROBE_REFUSED = ";E 00 to a barrier read (reads are refused: program mode)"
     TIMEOUT = "deadline passed"
 
 
@@ -200,6 +205,15 @@ class SlcSession:
         self._deadline: float | None = None
         # the transaction
         self._command: Command = _PROBE
+        #: the resync's ID 00 message: read FRN, or a barrier read (see _begin_resync)
+        self._probe: Command = _PROBE
+        #: every ID 00 message of this resync: an answer to any of them ends it
+        self._probes_sent: list[Command] = []
+        #: per barrier address, when it was last asked for; the next one to try
+        self._barrier_sent: dict[int, float] = {}
+        self._barrier_next = 0
+        #: the controller answered a barrier read ;E (program mode): resync with read FRN
+        self._barrier_refused = False
         self._is_write = False
         self._timeout = timeout
         self._msg_id = 0
@@ -258,10 +272,8 @@ class SlcSession:
         self._z_ever = False
         self._refused_once = False
         self._began = now
-        if self._next == 0 or (self._is_write and not self._era_trusted):
+        if self._next == 0 or (self._is_write and not (self._era_trusted and self._clean)):
             self._begin_resync(now)
-        elif self._is_write and not self._clean:
-            self._enter_quiet(now, then_resync=False)
         else:
             self._send_first_copy(now)
 
@@ -331,8 +343,11 @@ class SlcSession:
         if isinstance(event, Garbled):
             return _In.GARBLED
         if state is SessionState.RESYNC:
-            if isinstance(event, DataReply) and event.msg_id == 0 and cmds.answers(_PROBE, event.body_hex):
+            if isinstance(event, DataReply) and event.msg_id == 0 and any(
+                    cmds.answers(probe, event.body_hex) for probe in self._probes_sent):
                 return _In.PROBE_ANSWER
+            if isinstance(event, Refused) and event.msg_id == 0 and self._probe is not _PROBE:
+                return _In.PROBE_REFUSED
             if (not self._is_write and self._copies and isinstance(event, DataReply)
                     and event.msg_id == self._msg_id and self._fits(event)):
                 return _In.OURS  # a read's answer held back on the line: a value it held, take it
@@ -422,34 +437,72 @@ class SlcSession:
         self._clean = True
         if self._quiet_then_resync:
             self._era_trusted = True
+            self._barrier_refused = False  # the controller may take barrier reads again later
+            self._probe = _PROBE
             self._send_probe(now)
         else:
             self._send_first_copy(now)
 
     def _begin_resync(self, now: float) -> None:
+        """Restart the numbering with an ID 00 message whose answer is a *barrier*: no reply to
+        an earlier message can follow it (the controller answers in order, the line keeps it).
+
+        It must be told from every earlier message's answer: a read of one byte at an address
+        no earlier ID 00 read asked for within the quiet time (its answer echoes the address),
+        so it needs no wait.  On a line quiet already, or when the controller refuses reads
+        (program mode), read FRN after quiet instead.  A read may resync at once with read FRN
+        when no barrier read is free (the numbering is then not trusted for writes).
+
+        An answer to any ID 00 message of this resync ends it.  Only the answers to its later
+        tries can still follow: data replies with ID 00, which no command (IDs 01-7F) and no
+        later resync (other addresses) can take for its own.
+        """
         self._resyncs += 1
         self.counters.id_resyncs += 1
         if self._handshake_due:
             self._handshake_due = False
             self.counters.handshakes += 1
         self._probes = 0
+        self._probes_sent.clear()
         self._heard = False
         self._next = 0
-        if self._is_write or now >= self._last_sent + self._quiet_time():
-            self._enter_quiet(now)  # the barrier must be sound: no earlier reply may follow it
+        quiet = now >= self._last_sent + self._quiet_time()
+        if not quiet and not self._barrier_refused and self._barrier_free(now):
+            self._era_trusted = True
+            self._send_probe(now)
+        elif self._is_write or quiet:
+            self._enter_quiet(now)
         else:
-            # A read needs no sound barrier (its reply is checked against its own echo, and
-            # any value it takes was held); the numbering is then not trusted for writes.
             self._era_trusted = False
+            self._probe = _PROBE
             self._send_probe(now)
 
+    def _barrier_free(self, now: float) -> bool:
+        """Choose the next barrier read; False if its address was asked for too recently."""
+        address = _BARRIER_ADDRESSES[self._barrier_next % len(_BARRIER_ADDRESSES)]
+        if now - self._barrier_sent.get(address, float("-inf")) < self._quiet_time():
+            return False
+        self._barrier_next += 1
+        self._barrier_sent[address] = now
+        self._probe = cmds.read_bytes(address, 1)
+        return True
+
     def _send_probe(self, now: float) -> None:
+        if self._probe is not _PROBE and self._probes and not self._barrier_free(now):
+            # a second try asks for another address (the first one's answer may still come);
+            # none free: a write waits for quiet, a read takes read FRN at once
+            if self._is_write:
+                self._enter_quiet(now)
+                return
+            self._era_trusted = False
+            self._probe = _PROBE
         self._probes += 1
         self.state = SessionState.RESYNC
         # the last try waits the full reply time: a reply held back on the line (one just after
         # the timeout) must not make a silent-line verdict
         last = not self._may_ask_again(now + self._timeout, self._probes, self.retries + 1)
-        self._send(encode_command(_PROBE, 0), now, self._full_timeout if last else self._timeout)
+        self._probes_sent.append(self._probe)
+        self._send(encode_command(self._probe, 0), now, self._full_timeout if last else self._timeout)
 
     def _finish(self, verdict: Verdict, answer: Answer | None = None, reason: str = "") -> None:
         self.result = Result(verdict, answer, reason)
@@ -577,7 +630,14 @@ class SlcSession:
         self._next = 1
         self._last_taken = 0
         self._clean = self._era_trusted
+        if self._clean:
+            self._messages = 0  # nothing sent before the barrier can still be answered
         self._send_first_copy(now)
+
+    def _on_probe_refused(self, now: float, event: ReplyEvent | None) -> None:
+        # The controller refuses reads (program mode): resync with read FRN after quiet.
+        self._barrier_refused = True
+        self._enter_quiet(now)
 
     def _on_probe_garbled(self, now: float, event: ReplyEvent | None) -> None:
         # Perhaps the probe's answer: send the (harmless) probe again at once.
@@ -589,7 +649,7 @@ class SlcSession:
         else:
             self._heard = True
         if not self._may_ask_again(now, self._probes, self.retries + 1):
-            why = (f"no answer to read FRN with ID 00 (resync) within {format_seconds(self._full_timeout)} s "
+            why = (f"no answer to {self._probe.name} with ID 00 (resync) within {format_seconds(self._full_timeout)} s "
                    f"after {self._probes} tries")
             if self._heard:
                 self._retry_read(now, why)  # the controller is there, the line is bad: go on
@@ -621,6 +681,7 @@ _TRANSITIONS: Final[dict[tuple[SessionState, _In], _Handler]] = {
     (_S.SENT, _In.TIMEOUT): SlcSession._on_timeout,
     (_S.Z_SENT, _In.TIMEOUT): SlcSession._on_timeout,
     (_S.RESYNC, _In.PROBE_ANSWER): SlcSession._on_probe_answer,
+    (_S.RESYNC, _In.PROBE_REFUSED): SlcSession._on_probe_refused,
     (_S.RESYNC, _In.OURS): SlcSession._on_late_read_answer,
     (_S.RESYNC, _In.GARBLED): SlcSession._on_probe_garbled,
     (_S.RESYNC, _In.TIMEOUT): SlcSession._on_probe_timeout,
