@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 CONFIG ?=
 
-.PHONY: run test lint mbpoll
+.PHONY: run test lint mbpoll interop
 
 $(VENV)/.installed: pyproject.toml
 	python3 -m venv $(VENV)
@@ -28,3 +28,11 @@ test: $(VENV)/.installed mbpoll
 lint: $(VENV)/.installed
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy --strict gateway
+
+# Controllers written independently from the same manuals (../shared/interop), against the
+# installed gateway: `make interop` (correctness), `make interop STRICT=1` (also availability and
+# latency targets).
+INTEROP ?= ../shared/interop/run
+interop: $(VENV)/.installed
+	@test -x $(INTEROP) || { echo "$(INTEROP) not found: clone the project with ../shared beside it"; exit 2; }
+	SLC_GATEWAY=$(VENV)/bin/slc-gateway $(INTEROP) $(if $(STRICT),--strict)
