@@ -5,7 +5,7 @@ it written.  A write already on the line is answered 0x0B (outcome unknown) and 
 verdict, applied at most once; the audit log gives the outcome.  A multi-command write sends no
 further command once it has been answered.
 
-The controller here takes ``slow_delay`` (1 s) to answer a write (the simulator's
+The controller here takes ``slow_delay`` (1 s here) to answer a write (the simulator's
 ``reply_time=slow_changes`` reading, "edit commands and mode changes" take longer) and the
 driver waits for it, so the verdict always comes after ``write_timeout`` (0.2 s).
 """

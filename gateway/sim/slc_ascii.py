@@ -35,10 +35,11 @@ Where the manual leaves the controller's behaviour open, ``VARIANTS`` has a swit
 * ``z_repeats``: ``;Z`` repeats the last reply to an accepted message, ``;E`` included
   (``accepted``), only the last ``;R`` or data reply (``executed``, "its most recent acknowledge
   or data message"), or whatever was sent last, ``;I`` included (``any``);
-* ``reply_time``: replies come at once (``prompt``), anywhere within the manual's 0.3 s
-  (``spread``, "Normally the SLC will respond within 0.3 seconds"), or so, with mode changes
-  and writes taking ``slow_delay`` (``slow_changes``, "The exceptions are edit commands and
-  mode changes").
+* ``reply_time``: replies come at once (``prompt``); 1 in ``late_every`` comes late but inside the
+  manual's 0.3 s (``late_inside``: 0.8-1 x ``reply_time``, "Normally the SLC will respond within
+  0.3 seconds"); every reply anywhere within it (``spread``, a controller 100 times slower than
+  the prompt one); or mode changes and writes take ``slow_delay`` (``slow_changes``, "The
+  exceptions are edit commands and mode changes").
 
 This class does no I/O: ``receive(data, now)`` returns the replies to send, each with a delay.
 ``gateway.sim.serve`` runs it in-process, over TCP or on a pty.
@@ -93,7 +94,7 @@ class FaultPlan:
     late_delay: float = 0.36  # late_replies=some: a late reply comes this long after its command
     late_every: int = 50  # late_replies=some: 1 reply in N is late
     reply_time: float = 0.3  # reply_time=spread / slow_changes: the longest normal reply time
-    slow_delay: float = 1.0  # reply_time=slow_changes: a mode change or write takes this long
+    slow_delay: float = 0.6  # reply_time=slow_changes: a mode change or write takes this long
 
     @classmethod
     def from_options(cls, options: dict[str, str]) -> FaultPlan:
@@ -157,7 +158,7 @@ class SlcAsciiSimulator:
         "count_digits": ("2", "4"),
         "line_end": ("cr", "crlf"),
         "z_repeats": ("accepted", "executed", "any"),
-        "reply_time": ("prompt", "spread", "slow_changes"),
+        "reply_time": ("prompt", "late_inside", "slow_changes", "spread"),
     }
 
     def __init__(
@@ -388,8 +389,12 @@ class SlcAsciiSimulator:
         reading = self.variants["reply_time"]
         if reading == "prompt":
             return 0.0
-        if reading == "slow_changes" and slow:
-            return self.faults.slow_delay
+        if reading == "slow_changes":
+            return self.faults.slow_delay if slow else 0.0
+        if reading == "late_inside":
+            if self._rng.randrange(max(1, self.faults.late_every)) != 0:
+                return 0.0
+            return self._rng.uniform(0.8, 1.0) * self.faults.reply_time
         return self._rng.uniform(0.0, self.faults.reply_time)
 
     def _garble(self, reply: bytes) -> bytes:
