@@ -259,7 +259,7 @@ class Df1Station:
         raise AssertionError("unreachable: the last try returns or raises")
 
     async def _write(self, request: PcccCommand, label: str) -> PcccReply:
-        event, tns = await self.line.exchange(self, request)
+        event, tns = await self.line.exchange(self, request, urgent=True)
         if isinstance(event, ReplyReceived):
             return self._settle(event, request, label, tns)
         if not event.may_have_executed:
@@ -592,7 +592,8 @@ class Df1HalfDuplexLine(LinkDriver):
 
     # --- requests ---------------------------------------------------------------------------
 
-    async def exchange(self, handle: Df1Station, request: PcccCommand) -> tuple[ReplyReceived | RequestFailed, int]:
+    async def exchange(self, handle: Df1Station, request: PcccCommand,
+                       urgent: bool = False) -> tuple[ReplyReceived | RequestFailed, int]:
         """Submit ``request`` for ``handle``'s station; its outcome event and the TNS it used."""
         core = self.core
         if core is None or not self.connected:
@@ -602,7 +603,7 @@ class Df1HalfDuplexLine(LinkDriver):
         try:
             packet = encode_packet(request, dst=handle.station, src=self.source, tns=tns)
             waiter: asyncio.Future[ReplyReceived | RequestFailed] = loop.create_future()
-            request_id = core.submit(handle.station, packet, loop.time())
+            request_id = core.submit(handle.station, packet, loop.time(), urgent=urgent)
             self._waiting[request_id] = waiter
             self._pump()
             try:
