@@ -574,3 +574,86 @@ def test_a_silent_station_does_not_fail_the_replies_of_the_others() -> None:
     assert ReplyReceived(first, 1, reply_to(cmd1, b"\x05")) in found
     assert not any(isinstance(e, RequestFailed) and e.station == 1 for e in found)
     assert not master.is_active(2) and master.is_active(1)
+
+
+# ------------------------------------------------------------------------------- write precedence
+
+
+def after_start_polls(master: HalfDuplexMaster, now: float = 0.0) -> None:
+    """Answer the first background poll of every station with DLE EOT."""
+    while (sent := master.data_to_send()).startswith(b"\x10\x05"):
+        feed(master, EOT, now, "whole")
+    assert sent == b""
+
+
+def test_a_write_goes_before_other_stations_queued_reads_and_its_reply_poll_next() -> None:
+    """AG Figure 1.2: the master sends its outgoing messages before it selects the next station to
+    poll.  A write (``urgent``) queued after reads of other stations is sent first, and its station
+    is polled for the reply before the others' commands go out."""
+    master = make(1, 2, 3, poll_interval=10.0)
+    after_start_polls(master)
+    read2, read3, write1 = command(2, 0x10), command(3, 0x11), command(1, 0x12, b"\xaa\x01")
+    master.submit(2, read2, 0.1)
+    sent = master.data_to_send()
+    assert sent == encode_master_message(2, read2, Checksum.BCC)
+    master.submit(3, read3, 0.1)
+    write_id = master.submit(1, write1, 0.1, urgent=True)
+    feed(master, ACK, 0.11, "whole")  # station 2 has the read: the write goes next, not station 3's read
+    assert master.data_to_send() == encode_master_message(1, write1, Checksum.BCC)
+    feed(master, ACK, 0.12, "whole")
+    assert master.data_to_send() == encode_poll(1)  # the write's reply poll, before anything else
+    answer = reply_to(write1, b"")
+    feed(master, encode_slave_message(answer, Checksum.BCC), 0.13, "whole")
+    assert events(master) == [ReplyReceived(write_id, 1, answer)]
+
+
+def test_a_read_holding_a_writes_place_is_polled_first() -> None:
+    """``max_outstanding`` 1: the station's read awaiting its reply is polled for it before the
+    write can go; the write follows at once."""
+    master = make(1, 2, poll_interval=10.0)
+    after_start_polls(master)
+    read1 = command(1, 0x20)
+    master.submit(1, read1, 0.1)
+    assert master.data_to_send() == encode_master_message(1, read1, Checksum.BCC)
+    master.submit(2, command(2, 0x21), 0.1)
+    write1 = command(1, 0x22, b"\xaa\x01")
+    master.submit(1, write1, 0.1, urgent=True)
+    feed(master, ACK, 0.11, "whole")
+    assert master.data_to_send() == encode_poll(1)  # not station 2's read
+    feed(master, encode_slave_message(reply_to(read1, b"\x01\x00"), Checksum.BCC), 0.12, "whole")
+    assert master.data_to_send() == ACK + encode_master_message(1, write1, Checksum.BCC)
+
+
+def test_writes_hold_other_work_back_at_most_write_precedence() -> None:
+    """A read that has waited ``write_precedence`` goes before the next write: writes cannot
+    starve the polls that keep data fresh."""
+    master = make(1, 2, poll_interval=10.0, line={"write_precedence": 0.5})
+    after_start_polls(master)
+    read2 = command(2, 0x30)
+    write1 = command(1, 0x31, b"\xaa\x01")
+    master.submit(1, write1, 0.0, urgent=True)
+    assert master.data_to_send() == encode_master_message(1, write1, Checksum.BCC)
+    master.submit(2, read2, 0.0)
+    feed(master, ACK, 0.6, "whole")  # the read has waited 0.6 s > 0.5 s
+    assert master.data_to_send() == encode_master_message(2, read2, Checksum.BCC)
+
+
+def test_an_unacknowledged_copy_waits_for_a_write_at_another_station() -> None:
+    """A read's master message without its ACK: while a write waits at another station, the write
+    goes first and the identical copy follows (the other station's frames do not reach this slave)."""
+    master = make(1, 2, poll_interval=10.0, retries=5)
+    after_start_polls(master)
+    read2 = command(2, 0x40)
+    master.submit(2, read2, 0.0)
+    copy = master.data_to_send()
+    assert copy == encode_master_message(2, read2, Checksum.BCC)
+    write1 = command(1, 0x41, b"\xaa\x01")
+    master.submit(1, write1, 0.1, urgent=True)
+    master.handle_timeout(0.6)  # no ACK from station 2
+    assert master.data_to_send() == encode_master_message(1, write1, Checksum.BCC)
+    feed(master, ACK, 0.61, "whole")
+    assert master.data_to_send() == encode_poll(1)
+    feed(master, encode_slave_message(reply_to(write1, b""), Checksum.BCC), 0.62, "whole")
+    assert master.data_to_send() == ACK + encode_poll(1)  # its turn ends with DLE EOT
+    feed(master, EOT, 0.63, "whole")
+    assert master.data_to_send() == copy  # the write is done: the same copy, same TNS

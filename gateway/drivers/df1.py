@@ -191,7 +191,7 @@ class Df1Driver(LinkDriver):
             event = await waiter
         except BaseException:
             if self._core is core:
-                core.abandon("the request was cancelled")  # the line is free again for the next one
+                core.abandon("the request was cancelled", loop.time())  # the line is free again for the next one
                 self._pump()
             raise
         finally:

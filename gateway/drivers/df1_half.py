@@ -9,20 +9,21 @@ asks for (``next_deadline()`` / ``handle_timeout(now)``) and drives RTS when the
 Each station on the line gets a :class:`Df1Station` handle with the API a DF1 unit uses on
 :class:`~gateway.drivers.df1.Df1Driver`: ``execute(request, name, write=...)`` -> the reply, plus
 ``available``, ``counters``, ``last_sts``, ``add_listener``, ``run()`` / ``close()`` and ``probe()``.
-Requests of different stations are in the core at the same time; it serves them round robin, so a
-dead or slow station never holds up the others.  Verdicts:
+Requests of different stations are in the core at the same time; it serves them round robin (writes
+first), so a dead or slow station never holds up the others.  The sans-I/O transaction layer
+(:class:`~gateway.protocols.df1.half_duplex_transactions.HalfDuplexTransactions`) gives each request
+its verdict - read retries with a new TNS, a write's verdict and read-backs
+(:mod:`gateway.protocols.df1.write_verdict`, shared with full duplex) - and this driver turns it into
+a result:
 
-* the reply, STS 0 -> returned;  STS != 0 -> :class:`~gateway.protocols.df1.pccc.PcccError`;
-* a read without an answer -> sent again with a new TNS (``retries`` more times), then
-  :class:`~gateway.errors.LinkTimeout`;
-* a station demoted to slow poll -> :class:`~gateway.errors.LinkTimeout` at once (Modbus 0x0B);
-* a write is sent as one master frame; the core resends that identical frame (same TNS) when its
-  DLE ACK does not come, which a slave with duplicate detection (the default) ACKs without running it
-  again.  For slaves without duplicate detection (``duplicate_detect=False``) no frame is ever resent;
-* a write whose master frame may have been executed but whose reply never came -> never sent again:
-  a read-back of the target (``read_back_for``) settles it - the written value is there: success;
-  anything else :class:`~gateway.drivers.df1.WriteOutcomeUnknown`.  A write the station never
-  acknowledged nor saw (``may_have_executed`` False) fails with ``LinkTimeout``.
+* done -> the reply;  refused -> :class:`~gateway.protocols.df1.pccc.PcccError`;
+* outcome unknown -> :class:`~gateway.drivers.df1.WriteOutcomeUnknown`;
+* failed (a read without an answer after ``retries + 1`` tries, a write that never left, a station
+  demoted to slow poll) -> :class:`~gateway.errors.LinkTimeout` (Modbus 0x0B).
+
+The core resends an unacknowledged master frame identically (same TNS), which a slave with duplicate
+detection (the default) ACKs without running it again; for slaves without duplicate detection
+(``duplicate_detect=False``) no frame is ever resent.
 
 TNS are allocated per line (the core refuses a TNS already in use on the line).
 
@@ -45,11 +46,11 @@ import random
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import ClassVar, Final, Protocol
+from typing import Final
 
 from gateway.drivers.base import LinkCounters, LinkDriver, OpenStream
 from gateway.drivers.df1 import DF1_SETTINGS, WriteOutcomeUnknown
-from gateway.errors import GatewayError, LinkDown, LinkTimeout, ProtocolError
+from gateway.errors import GatewayError, LinkDown, LinkTimeout
 from gateway.protocols.df1.half_duplex import (
     NEED_DATA,
     FailReason,
@@ -57,7 +58,6 @@ from gateway.protocols.df1.half_duplex import (
     LineConfig,
     MasterEvent,
     MessageDelivered,
-    ReplyReceived,
     RequestFailed,
     SlaveInitiated,
     StationConfig,
@@ -67,22 +67,18 @@ from gateway.protocols.df1.half_duplex import (
     StrayReply,
 )
 from gateway.protocols.df1.half_duplex_framing import Checksum
-from gateway.protocols.df1.pccc import (
-    DiagnosticStatus,
-    DiagnosticStatusInfo,
-    PcccFormatError,
-    PcccHeader,
-    PcccReply,
-    ProtectedTypedLogicalMaskedWrite,
-    ProtectedTypedLogicalWrite,
-    ReadModifyWriteRequest,
-    TnsAllocator,
-    WordRangeWrite,
-    decode_reply,
-)
+from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions, PcccCommand
+from gateway.protocols.df1.pccc import DiagnosticStatus, DiagnosticStatusInfo, PcccReply
 from gateway.protocols.df1.pccc import is_write as pccc_is_write
 from gateway.protocols.df1.slave_messages import RegisterTable, Verdict, answer_slave_message
-from gateway.protocols.df1.transaction import read_back_for
+from gateway.protocols.df1.transaction import (
+    OutcomeUnknown,
+    TransactionDone,
+    TransactionEvent,
+    TransactionFailed,
+    TransactionRefused,
+)
+from gateway.protocols.df1.write_verdict import DEFAULT_RETRIES
 from gateway.transport import SerialSettings, enable_rs485, modem_lines, open_stream
 
 __all__ = ["RTS_MODES", "Df1HalfDuplexLine", "Df1Station", "PcccCommand", "StationTotals"]
@@ -93,33 +89,13 @@ RTS_MODES: Final = ("toggle", "rs485", "on", "off")
 
 log = logging.getLogger("gateway.link")
 
-#: Writes a read-back can settle (``read_back_for``): typed logical, PLC-5 word range and RMW.
-_READ_BACK_TYPES: Final = (
-    ProtectedTypedLogicalWrite, ProtectedTypedLogicalMaskedWrite, WordRangeWrite, ReadModifyWriteRequest,
-)
-
-
-class PcccCommand(Protocol):
-    """Any PCCC request: ``CMD`` / ``FNC`` and the parameters after FNC (the pccc request classes)."""
-
-    CMD: ClassVar[int]
-    FNC: ClassVar[int]
-
-    def encode_params(self) -> bytes: ...
-
-
-def encode_packet(request: PcccCommand, *, dst: int, src: int, tns: int) -> bytes:
-    """``DST SRC CMD 00 TNS FNC params``."""
-    return PcccHeader(dst, src, request.CMD, 0, tns).encode() + bytes((request.FNC,)) + request.encode_params()
-
-
 @dataclass(slots=True)
 class StationTotals(StationCounters):
     """Per-station counters for metrics, summed over reconnects (the core's own reset with it):
     the core's :class:`StationCounters` and the driver's own."""
 
-    read_retries: int = 0  #: reads sent again with a new TNS by this driver
-    read_backs: int = 0  #: writes settled by a read-back
+    read_retries: int = 0  #: reads sent again with a new TNS
+    read_backs: int = 0  #: read-backs sent for writes whose answer was lost
     stray_replies: int = 0
     slave_messages: int = 0  #: messages the station initiated (acknowledged and answered)
     slave_writes: int = 0  #: ... of them writes stored in the station's register table
@@ -173,7 +149,11 @@ class Df1Station:
     def totals(self) -> StationTotals:
         """Polls, EOTs, retries, demotions ... of this station since the line started."""
         core = self.line.core
-        return self._base.add(core.counters(self.station)) if core is not None else self._base
+        total = self._base.add(core.counters(self.station)) if core is not None else self._base.add(StationCounters())
+        txns = self.line.txns.counters(self.station)
+        total.read_retries += txns.read_retries
+        total.read_backs += txns.read_backs
+        return total
 
     def data_age(self, now: float | None = None) -> float | None:
         """Seconds since this station last answered a command of ours; None before its first reply."""
@@ -240,74 +220,45 @@ class Df1Station:
         label = name or type(request).__name__
         is_write = pccc_is_write(request) if write is None else write
         if not is_write:
-            return await self._read(request, label)
+            return await self._run(request, label, False)
         # a write goes on to its verdict even when its caller gives up (as Df1Driver.submit does)
-        task = asyncio.ensure_future(self._write(request, label))
+        task = asyncio.ensure_future(self._run(request, label, True))
         task.add_done_callback(_observe)
         return await asyncio.shield(task)
 
-    async def _read(self, request: PcccCommand, label: str) -> PcccReply:
-        tries = self.line.retries + 1
-        for attempt in range(tries):
-            if attempt:
-                self._base.read_retries += 1
-            event, tns = await self.line.exchange(self, request)
-            if isinstance(event, ReplyReceived):
-                return self._settle(event, request, label, tns)
-            if event.reason is FailReason.STATION_DEMOTED or attempt == tries - 1:
-                return self._fail(event, label, attempt + 1)
-        raise AssertionError("unreachable: the last try returns or raises")
-
-    async def _write(self, request: PcccCommand, label: str) -> PcccReply:
-        event, tns = await self.line.exchange(self, request)
-        if isinstance(event, ReplyReceived):
-            return self._settle(event, request, label, tns)
-        if not event.may_have_executed:
-            return self._fail(event, label, 1)
-        read_back = read_back_for(request) if isinstance(request, _READ_BACK_TYPES) else None
-        why = f"{event.reason.value}; the write may have been applied"
-        if read_back is not None:
-            self._base.read_backs += 1
-            try:
-                got = await self._read(read_back.request, f"read-back of {label}")
-            except (LinkTimeout, GatewayError) as exc:
-                why += f" (the read-back failed: {exc})"
-            else:
-                if read_back.holds(got.data):
-                    self.counters.transactions += 1
-                    return PcccReply(self.line.source, self.station, request.CMD | 0x40, 0, tns)
-                why += f" (the read-back gave {got.data.hex(' ')}, not the value written)"
-        self.counters.timeouts += 1
-        message = f"link {self.name}: {label}: {why}"
-        self._note(False, message)
-        raise WriteOutcomeUnknown(message)
-
-    def _settle(self, event: ReplyReceived, request: PcccCommand, label: str, tns: int) -> PcccReply:
-        try:
-            reply = decode_reply(event.message)
-        except PcccFormatError as exc:
-            self._note(False, f"link {self.name}: {label}: {exc}")
-            raise ProtocolError(f"link {self.name}: {label}: {exc}") from exc
-        self.last_reply_at = asyncio.get_running_loop().time()
-        self._note(True)
-        if not reply.ok:
-            self.counters.refusals += 1
-            self.last_sts = reply.sts
-            reply.raise_for_status(command=label, fnc=request.FNC)
-        return reply
-
-    def _fail(self, event: RequestFailed, label: str, tries: int) -> PcccReply:
-        self.counters.timeouts += 1
-        if event.reason is FailReason.STATION_DEMOTED:
-            message = (
-                f"link {self.name}: {label}: station {self.station} does not answer polls; it is polled "
-                f"every {self.config.slow_poll_interval:g} s until it does (check its power, cable and "
-                f"station number)"
-            )
-        else:
-            message = f"link {self.name}: {label}: {event.reason.value} (after {tries} tries)"
-        self._note(False, message)
-        raise LinkTimeout(message)
+    async def _run(self, request: PcccCommand, label: str, is_write: bool) -> PcccReply:
+        """One transaction; the sans-I/O layer gives its verdict, this turns it into a result."""
+        event = await self.line.transact(self, request, is_write)
+        match event:
+            case TransactionDone(reply=reply):
+                self.last_reply_at = asyncio.get_running_loop().time()
+                self._note(True)
+                return reply
+            case TransactionRefused(reply=reply):
+                self.last_reply_at = asyncio.get_running_loop().time()
+                self._note(True)
+                self.counters.refusals += 1
+                self.last_sts = reply.sts
+                reply.raise_for_status(command=label, fnc=request.FNC)
+                raise AssertionError("unreachable: a refusal has STS != 0")
+            case OutcomeUnknown(reason=reason):
+                self.counters.timeouts += 1
+                message = f"link {self.name}: {label}: {reason}"
+                self._note(False, message)
+                raise WriteOutcomeUnknown(message)
+            case TransactionFailed(reason=reason):
+                self.counters.timeouts += 1
+                if reason.startswith(FailReason.STATION_DEMOTED.value):
+                    message = (
+                        f"link {self.name}: {label}: station {self.station} does not answer polls; it is polled "
+                        f"every {self.config.slow_poll_interval:g} s until it does (check its power, cable and "
+                        f"station number)"
+                    )
+                else:
+                    message = f"link {self.name}: {label}: {reason}"
+                self._note(False, message)
+                raise LinkTimeout(message)
+        raise AssertionError(f"unexpected transaction event {event!r}")
 
     def _note(self, ok: bool, error: str = "") -> None:
         if ok:
@@ -355,7 +306,7 @@ class Df1HalfDuplexLine(LinkDriver):
         source: int = 0,
         ack_timeout: float = 0.5,
         message_retries: int = 3,
-        retries: int = 2,
+        retries: int = DEFAULT_RETRIES,
         pre_transmit_delay: float = 0.0,
         rts_send_delay: float = 0.0,
         rts_off_delay: float = 0.0,
@@ -407,9 +358,10 @@ class Df1HalfDuplexLine(LinkDriver):
         self.stations: dict[int, Df1Station] = {
             c.station: Df1Station(self, c, names.get(c.station, f"{self.name}/{c.station}")) for c in stations
         }
-        self._tns = TnsAllocator(random.randrange(1, 0x10000) if first_tns is None else first_tns)
+        first = random.randrange(1, 0x10000) if first_tns is None else first_tns
+        self.txns = HalfDuplexTransactions(source=source, retries=retries, first_tns=first)
         self.core: HalfDuplexMaster | None = None
-        self._waiting: dict[int, asyncio.Future[ReplyReceived | RequestFailed]] = {}
+        self._waiting: dict[int, asyncio.Future[TransactionEvent]] = {}  #: by transaction handle
         self._timer: asyncio.TimerHandle | None = None
         self._users = 0
         self.stray_replies = 0
@@ -466,12 +418,10 @@ class Df1HalfDuplexLine(LinkDriver):
         if self.core is not None:
             for handle in self.stations.values():
                 handle._bank(self.core)
-        for waiter in self._waiting.values():
-            if not waiter.done():
-                waiter.set_exception(LinkDown(f"line {self.name}: reconnected; the request was lost with the line"))
-        self._waiting.clear()
         self._setup_modem_lines()
         self.core = HalfDuplexMaster(self._line_config(), self._configs)
+        lost = f"line {self.name}: reconnected; the request was lost with the line"
+        self.txns.attach(self.core, loop.time(), reason=lost)
         self.core.start(loop.time(), link_reset=self.link_reset)
         self._pump()
 
@@ -517,7 +467,7 @@ class Df1HalfDuplexLine(LinkDriver):
 
     def data_received(self, data: bytes) -> None:
         if self.core is not None:
-            self.core.receive_data(data, asyncio.get_running_loop().time())
+            self.txns.receive_data(data, asyncio.get_running_loop().time())
             self._pump()
 
     def _pump(self) -> None:
@@ -530,19 +480,19 @@ class Df1HalfDuplexLine(LinkDriver):
         out = core.data_to_send()
         if out and self.connected:
             self.send(out)
-        while (event := core.next_event()) is not NEED_DATA:
+        while (event := self.txns.next_event()) is not NEED_DATA:
             self._dispatch(event)
         self._arm_timer()
 
-    def _dispatch(self, event: MasterEvent) -> None:
-        if isinstance(event, RequestFailed) and event.request_id in self._replies:
+    def _dispatch(self, event: TransactionEvent | MasterEvent) -> None:
+        if isinstance(event, TransactionDone | TransactionRefused | OutcomeUnknown | TransactionFailed):
+            waiter = self._waiting.pop(event.handle, None)
+            if waiter is not None and not waiter.done():
+                waiter.set_result(event)
+        elif isinstance(event, RequestFailed) and event.request_id in self._replies:
             station = self._replies.pop(event.request_id)
             self.stations[station]._base.slave_replies_lost += 1
             log.debug("line %s: station %d never acknowledged the reply to its message", self.name, station)
-        elif isinstance(event, ReplyReceived | RequestFailed):
-            waiter = self._waiting.pop(event.request_id, None)
-            if waiter is not None and not waiter.done():
-                waiter.set_result(event)
         elif isinstance(event, StationDemoted):
             handle = self.stations[event.station]
             handle._report(False, f"station {event.station} does not answer polls (demoted to slow poll)")
@@ -587,28 +537,22 @@ class Df1HalfDuplexLine(LinkDriver):
     def _on_timer(self) -> None:
         self._timer = None
         if self.connected and self.core is not None:
-            self.core.handle_timeout(asyncio.get_running_loop().time())
+            self.txns.handle_timeout(asyncio.get_running_loop().time())
             self._pump()
 
     # --- requests ---------------------------------------------------------------------------
 
-    async def exchange(self, handle: Df1Station, request: PcccCommand) -> tuple[ReplyReceived | RequestFailed, int]:
-        """Submit ``request`` for ``handle``'s station; its outcome event and the TNS it used."""
-        core = self.core
-        if core is None or not self.connected:
+    async def transact(self, handle: Df1Station, request: PcccCommand, write: bool) -> TransactionEvent:
+        """Run one transaction for ``handle``'s station; its verdict event."""
+        txns = self.txns
+        if self.core is None or not self.connected:
             raise LinkDown(f"link {handle.name} is down: {self.last_error or 'not connected'}")
         loop = asyncio.get_running_loop()
-        tns = self._tns.allocate()
+        waiter: asyncio.Future[TransactionEvent] = loop.create_future()
+        txn = txns.start(handle.station, request, loop.time(), write=write)
+        self._waiting[txn] = waiter
+        self._pump()
         try:
-            packet = encode_packet(request, dst=handle.station, src=self.source, tns=tns)
-            waiter: asyncio.Future[ReplyReceived | RequestFailed] = loop.create_future()
-            request_id = core.submit(handle.station, packet, loop.time())
-            self._waiting[request_id] = waiter
-            self._pump()
-            try:
-                return await waiter, tns
-            finally:
-                self._waiting.pop(request_id, None)
+            return await waiter
         finally:
-            self._tns.release(tns)
-
+            self._waiting.pop(txn, None)

@@ -29,6 +29,13 @@ What the core does
   ``retries`` failures in a row (no answer of any kind between them) demote a station: its
   requests fail at once and it is polled every ``slow_poll_interval`` until it answers (Kepware's
   auto-demotion; KA p. 11-9 "poll the inactive slaves occasionally").
+* Writes first: a command submitted ``urgent`` (a write, or its read-back) is queued ahead of its
+  station's other commands and goes before other stations' work - its station's reply poll when
+  due (also for the read that holds its place under ``max_outstanding``), else the write itself;
+  an unacknowledged copy of another station's message waits for it.  AG Figure 1.2 (the master
+  checks for and sends its outgoing messages before it selects the next station to poll); KA
+  p. 11-9.  Work that has waited ``write_precedence`` goes before the next write, so writes never
+  starve the polls that keep every station's data fresh.
 * Timing: the line is quiet ``pre_transmit_delay`` after the last byte heard before the master
   transmits; ``rts`` goes true ``rts_send_delay`` before the first byte and false ``rts_off_delay``
   after the last one (transmission time = bytes x ``char_time``); answer timers start when the last
@@ -138,6 +145,8 @@ class _Request:
     poll_at: float = 0.0
     reply_deadline: float = 0.0
     expects_reply: bool = True  #: False: the reply to a slave's own command; done at its DLE ACK
+    urgent: bool = False  #: a write (or its read-back): served before other stations' work
+    queued_at: float = 0.0  #: when it was submitted
 
 
 @dataclass(slots=True)
@@ -209,8 +218,11 @@ class HalfDuplexMaster:
             self._reset_pending = True
         self._kick(now)
 
-    def submit(self, station: int, message: bytes, now: float) -> int:
-        """Queue a command packet for ``station``; returns the request id used in its events."""
+    def submit(self, station: int, message: bytes, now: float, *, urgent: bool = False) -> int:
+        """Queue a command packet for ``station``; returns the request id used in its events.
+
+        ``urgent`` (a write, or the read-back of one): queued ahead of the station's other commands
+        and served before other stations' work (see :meth:`_schedule`)."""
         target = self._stations.get(station)
         if target is None:
             raise ValueError(f"station {station} is not on this line (stations: {self._order})")
@@ -228,7 +240,13 @@ class HalfDuplexMaster:
             self._events.append(RequestFailed(request_id, station, FailReason.STATION_DEMOTED, False))
             return request_id
         frame = encode_master_message(station, message, self.line.checksum)
-        target.queue.append(_Request(request_id, station, message, frame))
+        request = _Request(request_id, station, message, frame, urgent=urgent, queued_at=now)
+        if urgent:
+            # behind the replies to the slave's own messages and the urgent requests already queued
+            at = next((i for i, r in enumerate(target.queue) if r.expects_reply and not r.urgent), len(target.queue))
+            target.queue.insert(at, request)
+        else:
+            target.queue.append(request)
         self._kick(now)
         return request_id
 
@@ -393,6 +411,14 @@ class HalfDuplexMaster:
         station = self._stations[request.station]
         if request.sends <= self.line.message_retries:
             station.counters.retries += 1
+            if not request.urgent and self._urgent_waiting(now, besides=request.station):
+                # A write waits at another station: it goes first, this copy at the station's next
+                # turn.  Other stations' frames do not reach this slave, so its duplicate detection
+                # still sees the identical copy next.
+                self._take_request()
+                station.queue.appendleft(request)
+                self._state = LineState.IDLE
+                return
             self._send_message(request, now)  # the identical bytes: same TNS
             return
         self._take_request()
@@ -565,19 +591,64 @@ class HalfDuplexMaster:
             if not self._pick(now):
                 return
 
+    def _held_back(self, now: float) -> bool:
+        """Other work has waited ``write_precedence`` for writes: it goes next (writes cannot starve
+        the polls that keep every station's data fresh)."""
+        since = now - self.line.write_precedence
+        for station in self._stations.values():
+            if not station.active:
+                continue
+            if any(not r.urgent and r.queued_at <= since for r in station.queue):
+                return True
+            if any(not r.urgent and r.poll_at <= since for r in station.awaiting):
+                return True
+        return False
+
+    def _urgent_waiting(self, now: float, besides: int | None = None) -> _Station | None:
+        """The first station (round robin) with a write that can move now: its reply poll is due,
+        or it is queued and the station can take it (``max_outstanding``).  None while other work
+        has been held back too long (:meth:`_held_back`)."""
+        if self._held_back(now):
+            return None
+        for station in self._rotation():
+            if station.config.station == besides or not station.active:
+                continue
+            if not any(r.urgent for r in itertools.chain(station.queue, station.awaiting)):
+                continue
+            if any(r.poll_at <= now for r in station.awaiting) or (
+                station.queue and len(station.awaiting) < station.config.max_outstanding
+            ):
+                return station
+        return None
+
+    def _pick_urgent(self, now: float) -> bool:
+        """A write (or its read-back) goes before other stations' work: the station's reply poll
+        when due (its reply, or the reply of the read that holds its place), else the queued write."""
+        station = self._urgent_waiting(now)
+        if station is None:
+            return False
+        self._serve(station)
+        if any(r.poll_at <= now for r in station.awaiting):
+            self._send_poll(station.config.station, now, again=self._turn_station == station.config.station)
+        else:
+            self._send_message(station.queue.popleft(), now)
+        return True
+
     def _pick(self, now: float) -> bool:
         turn = self._turn_station
         again = self._poll_again
         self._poll_again = False
+        if self._pick_urgent(now):
+            return True
         if again and turn is not None and self._turn_polls < self.line.max_messages_per_turn:
             self._send_poll(turn, now, again=True)
             return True
-        wake: list[float] = []
         for station in self._rotation():
             if station.active and station.queue and not station.queue[0].expects_reply:
-                self._serve(station)  # a slave's MSG waits for this reply: before anything else
+                self._serve(station)  # a slave's MSG waits for this reply: before other work
                 self._send_message(station.queue.popleft(), now)
                 return True
+        wake: list[float] = []
         for station in self._rotation():
             due = [r.poll_at for r in station.awaiting]
             wake += due + [r.reply_deadline for r in station.awaiting if r.poll_at < r.reply_deadline]

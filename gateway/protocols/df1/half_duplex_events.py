@@ -83,10 +83,12 @@ class LineConfig:
     rts_off_delay: float = 0.0  #: last byte to RTS off (RM p. 13-59)
     echo: bool = False  #: 2-wire RS-485: the master hears its own bytes
     max_messages_per_turn: int = 8  #: polls of one station in a row while it has messages
+    #: how long writes (urgent requests) may go ahead of other waiting work
+    write_precedence: float = 1.0
 
     def __post_init__(self) -> None:
         _positive("ack_timeout", self.ack_timeout, allow_zero=False)
-        for name in ("char_time", "pre_transmit_delay", "rts_send_delay", "rts_off_delay"):
+        for name in ("char_time", "pre_transmit_delay", "rts_send_delay", "rts_off_delay", "write_precedence"):
             _positive(name, getattr(self, name))
         if self.message_retries < 0 or self.max_messages_per_turn < 1:
             raise ValueError("message_retries must be >= 0 and max_messages_per_turn >= 1")

@@ -17,13 +17,11 @@ The rules, under every reading of the manuals in docs/controller-variants.md:
 
 * A read is idempotent: on a lost frame or a missing reply it is sent again with a new TNS
   (at most ``retries`` more times).  A late reply to any of its TNS is still a valid answer.
-* A write is sent once.  Without its reply - no DLE ACK, a DLE NAK (no proof: see ``link.py``),
-  an ACK but no reply - it may have run (with duplicate detection off, S4516-DF1 manual §4.2 /
-  §5.2, "Detect Duplicate Messages should be unchecked", a second copy would run again), so it
-  is never resent: the core reads the target back (protected typed logical read of the same
-  bytes).  If the controller holds the written value (under the write's mask) the write is
-  done; if the read-back shows anything else, or cannot be made, the outcome is unknown.
-  A late reply to the write itself during the read-back settles it (STS 0: done).
+* A write is sent once and never resent.  Its verdict - done, refused, read it back, outcome
+  unknown - is :class:`~gateway.protocols.df1.write_verdict.WriteVerdict`'s, shared with half
+  duplex: without its reply (no DLE ACK, a DLE NAK - no proof, see ``link.py`` - an ACK but no
+  reply) the core reads the target back (protected typed logical read of the same bytes) at most
+  ``retries + 1`` times; a late reply to the write itself during the read-back settles it.
 * A reply that arrives before the frame's DLE ACK completes the frame at the link
   (:meth:`Df1Link.confirm`), so it is never retransmitted after its answer is in.
 
@@ -34,10 +32,9 @@ States and transitions (:data:`_TRANSITIONS`; inputs are classified before the l
     SENDING / AWAIT_REPLY --reply STS 0--> IDLE (Done)        --reply STS!=0--> IDLE (Refused)
     SENDING --link gave up (NAKs, no ACK) / AWAIT_REPLY --timeout:
           read:  SENDING new TNS (retries left) | IDLE (Failed)
-          write: VERIFY (read-back) if a read-back exists | IDLE (OutcomeUnknown)
-    VERIFY --read-back holds--> IDLE (Done, verified)   --differs / refused--> IDLE (OutcomeUnknown)
-    VERIFY --no answer--> VERIFY again (retries left) | IDLE (OutcomeUnknown)
-    VERIFY --late reply to the write--> IDLE (Done | Refused)
+          write: the verdict's step: VERIFY_SENDING (read-back) | IDLE (OutcomeUnknown)
+    VERIFY_SENDING --link ACK--> VERIFY_AWAIT_REPLY
+    VERIFY_* --read-back reply / no answer / late reply to the write--> the verdict's step
 
 Usage (the caller owns the port and the clock; one transaction at a time)::
 
@@ -53,7 +50,6 @@ from __future__ import annotations
 
 import enum
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final
 
@@ -64,17 +60,21 @@ from gateway.protocols.df1.pccc import (
     PcccFormatError,
     PcccHeader,
     PcccReply,
-    ProtectedTypedLogicalMaskedWrite,
-    ProtectedTypedLogicalRead,
-    ProtectedTypedLogicalWrite,
-    ReadModifyWriteRequest,
     Request,
     TnsAllocator,
-    WordRangeRead,
-    WordRangeWrite,
     decode_reply,
     encode_command,
     reply_matches,
+)
+from gateway.protocols.df1.write_verdict import (
+    DEFAULT_RETRIES,
+    ReadBack,
+    SendReadBack,
+    Verdict,
+    VerdictKind,
+    WriteStep,
+    WriteVerdict,
+    read_back_for,
 )
 
 __all__ = [
@@ -141,55 +141,6 @@ class TransactionCounters:
     late_replies: int = 0  #: replies to an earlier attempt of the same transaction, accepted
 
 
-# ------------------------------------------------------------------------------------ read-back
-
-
-@dataclass(frozen=True, slots=True)
-class ReadBack:
-    """How to verify a write: the read to send and whether its data shows the write applied."""
-
-    request: ProtectedTypedLogicalRead | WordRangeRead
-    holds: Callable[[bytes], bool]
-
-
-def read_back_for(request: Request) -> ReadBack | None:
-    """The read-back of a protected typed logical (masked) write, a PLC-5 word range write or a
-    one-word read-modify-write; None for other commands."""
-    if isinstance(request, ProtectedTypedLogicalWrite):
-        data = request.data
-        read = ProtectedTypedLogicalRead(
-            request.file_type, request.file_number, request.element, request.sub_element, len(data)
-        )
-        return ReadBack(read, lambda got: got == data)
-    if isinstance(request, ProtectedTypedLogicalMaskedWrite):
-        data, mask = request.data, request.mask.to_bytes(2, "little")
-        read = ProtectedTypedLogicalRead(
-            request.file_type, request.file_number, request.element, request.sub_element, len(data)
-        )
-        # the mask's low byte applies to even bytes, its high byte to odd ones (notes §4.36)
-
-        def holds(got: bytes) -> bool:
-            return len(got) == len(data) and all(
-                (got[i] & mask[i % 2]) == (data[i] & mask[i % 2]) for i in range(len(data))
-            )
-
-        return ReadBack(read, holds)
-    if isinstance(request, WordRangeWrite) and request.packet_offset == 0:
-        # PLC-5 word range write (issue #12): read the same words back with a word range read
-        words = request.data
-        return ReadBack(WordRangeRead(request.address, len(words)), lambda got: got == words)
-    if isinstance(request, ReadModifyWriteRequest) and len(request.sets) == 1:
-        # PLC-5 coil write: the bits the masks force (AND 0 or OR 1) hold the OR mask's value (p. 7-20)
-        address, and_mask, or_mask = request.sets[0]
-        forced = (~and_mask | or_mask) & 0xFFFF
-
-        def forced_bits_hold(got: bytes) -> bool:
-            return len(got) == 2 and int.from_bytes(got, "little") & forced == or_mask & forced
-
-        return ReadBack(WordRangeRead(address, 2), forced_bits_hold)
-    return None
-
-
 # ---------------------------------------------------------------------------------------- table
 
 
@@ -209,10 +160,8 @@ class _In(enum.Enum):
     LINK_NAKED = "every copy of our frame was NAKed: it never arrived"
     LINK_LOST = "the link gave up on our frame; the peer may have it"
     TIMEOUT = "no reply within the reply timeout"
-    REPLY_OK = "the reply to our command, STS 0"
-    REPLY_REFUSED = "the reply to our command, STS != 0"
-    READBACK_HOLDS = "the read-back shows the written value"
-    READBACK_DIFFERS = "the read-back shows another value, or was refused"
+    REPLY = "the reply to our command (any STS)"
+    READBACK_REPLY = "the reply to the read-back (any STS)"
 
     __hash__ = object.__hash__
 
@@ -221,13 +170,11 @@ class _Do(enum.Enum):
     SEND = "send the command with a new TNS"
     AWAIT = "start the reply timer"
     RETRY = "send the command again with a new TNS if tries are left, else fail"
-    VERIFY = "send the read-back if the write has one, else outcome unknown"
-    VERIFY_AGAIN = "send the read-back again if tries are left, else outcome unknown"
-    DONE = "report TransactionDone"
-    DONE_VERIFIED = "report TransactionDone(verified=True)"
-    REFUSED = "report TransactionRefused"
-    UNKNOWN = "report OutcomeUnknown"
-    IGNORE = "nothing"
+    ANSWERED = "report TransactionDone (STS 0) or TransactionRefused"
+    WRITE_REPLY = "the write's reply: the verdict's step"
+    WRITE_LOST = "no answer to the write: the verdict's step"
+    READBACK_LOST = "no answer to the read-back: the verdict's step"
+    READBACK_REPLY = "the read-back's reply: the verdict's step"
 
     __hash__ = object.__hash__
 
@@ -235,41 +182,35 @@ class _Do(enum.Enum):
 S, K = TxnState, _In
 _READ, _WRITE = False, True
 
-#: (state, input, is_write) -> (action, next state).  Pairs missing from the table are ignored.
-_TRANSITIONS: Final[dict[tuple[TxnState, _In, bool], tuple[_Do, TxnState]]] = {}
-for _w in (_READ, _WRITE):
-    _TRANSITIONS.update({
-        (S.IDLE, K.START, _w): (_Do.SEND, S.SENDING),
-        (S.SENDING, K.LINK_ACKED, _w): (_Do.AWAIT, S.AWAIT_REPLY),
-        (S.SENDING, K.REPLY_OK, _w): (_Do.DONE, S.IDLE),
-        (S.SENDING, K.REPLY_REFUSED, _w): (_Do.REFUSED, S.IDLE),
-        (S.AWAIT_REPLY, K.REPLY_OK, _w): (_Do.DONE, S.IDLE),
-        (S.AWAIT_REPLY, K.REPLY_REFUSED, _w): (_Do.REFUSED, S.IDLE),
-    })
-_TRANSITIONS.update({
+#: (state, input, is_write) -> (action, next state).  Pairs missing from the table are ignored:
+#: an ACK or a timeout while IDLE, a read-back input for a read, and so on.
+_TRANSITIONS: Final[dict[tuple[TxnState, _In, bool], tuple[_Do, TxnState]]] = {
+    (S.IDLE, K.START, _READ): (_Do.SEND, S.SENDING),
+    (S.IDLE, K.START, _WRITE): (_Do.SEND, S.SENDING),
+    (S.SENDING, K.LINK_ACKED, _READ): (_Do.AWAIT, S.AWAIT_REPLY),
+    (S.SENDING, K.LINK_ACKED, _WRITE): (_Do.AWAIT, S.AWAIT_REPLY),
     # reads: idempotent, simply sent again
+    (S.SENDING, K.REPLY, _READ): (_Do.ANSWERED, S.IDLE),
+    (S.AWAIT_REPLY, K.REPLY, _READ): (_Do.ANSWERED, S.IDLE),
     (S.SENDING, K.LINK_NAKED, _READ): (_Do.RETRY, S.SENDING),
     (S.SENDING, K.LINK_LOST, _READ): (_Do.RETRY, S.SENDING),
     (S.AWAIT_REPLY, K.TIMEOUT, _READ): (_Do.RETRY, S.SENDING),
-    # writes: may have run; find out, never send again
-    (S.SENDING, K.LINK_NAKED, _WRITE): (_Do.VERIFY, S.VERIFY_SENDING),
-    (S.SENDING, K.LINK_LOST, _WRITE): (_Do.VERIFY, S.VERIFY_SENDING),
-    (S.AWAIT_REPLY, K.TIMEOUT, _WRITE): (_Do.VERIFY, S.VERIFY_SENDING),
+    # writes: the verdict decides (write_verdict.py); never sent again
+    (S.SENDING, K.REPLY, _WRITE): (_Do.WRITE_REPLY, S.IDLE),
+    (S.AWAIT_REPLY, K.REPLY, _WRITE): (_Do.WRITE_REPLY, S.IDLE),
+    (S.SENDING, K.LINK_NAKED, _WRITE): (_Do.WRITE_LOST, S.VERIFY_SENDING),
+    (S.SENDING, K.LINK_LOST, _WRITE): (_Do.WRITE_LOST, S.VERIFY_SENDING),
+    (S.AWAIT_REPLY, K.TIMEOUT, _WRITE): (_Do.WRITE_LOST, S.VERIFY_SENDING),
     (S.VERIFY_SENDING, K.LINK_ACKED, _WRITE): (_Do.AWAIT, S.VERIFY_AWAIT_REPLY),
-    (S.VERIFY_SENDING, K.LINK_NAKED, _WRITE): (_Do.VERIFY_AGAIN, S.VERIFY_SENDING),
-    (S.VERIFY_SENDING, K.LINK_LOST, _WRITE): (_Do.VERIFY_AGAIN, S.VERIFY_SENDING),
-    (S.VERIFY_AWAIT_REPLY, K.TIMEOUT, _WRITE): (_Do.VERIFY_AGAIN, S.VERIFY_SENDING),
-    (S.VERIFY_SENDING, K.READBACK_HOLDS, _WRITE): (_Do.DONE_VERIFIED, S.IDLE),
-    (S.VERIFY_AWAIT_REPLY, K.READBACK_HOLDS, _WRITE): (_Do.DONE_VERIFIED, S.IDLE),
-    (S.VERIFY_SENDING, K.READBACK_DIFFERS, _WRITE): (_Do.UNKNOWN, S.IDLE),
-    (S.VERIFY_AWAIT_REPLY, K.READBACK_DIFFERS, _WRITE): (_Do.UNKNOWN, S.IDLE),
-    # a late reply to the write itself settles it
-    (S.VERIFY_SENDING, K.REPLY_OK, _WRITE): (_Do.DONE, S.IDLE),
-    (S.VERIFY_AWAIT_REPLY, K.REPLY_OK, _WRITE): (_Do.DONE, S.IDLE),
-    (S.VERIFY_SENDING, K.REPLY_REFUSED, _WRITE): (_Do.REFUSED, S.IDLE),
-    (S.VERIFY_AWAIT_REPLY, K.REPLY_REFUSED, _WRITE): (_Do.REFUSED, S.IDLE),
-})
-del _w
+    (S.VERIFY_SENDING, K.LINK_NAKED, _WRITE): (_Do.READBACK_LOST, S.VERIFY_SENDING),
+    (S.VERIFY_SENDING, K.LINK_LOST, _WRITE): (_Do.READBACK_LOST, S.VERIFY_SENDING),
+    (S.VERIFY_AWAIT_REPLY, K.TIMEOUT, _WRITE): (_Do.READBACK_LOST, S.VERIFY_SENDING),
+    (S.VERIFY_SENDING, K.READBACK_REPLY, _WRITE): (_Do.READBACK_REPLY, S.IDLE),
+    (S.VERIFY_AWAIT_REPLY, K.READBACK_REPLY, _WRITE): (_Do.READBACK_REPLY, S.IDLE),
+    # a late reply to the write itself during the read-back
+    (S.VERIFY_SENDING, K.REPLY, _WRITE): (_Do.WRITE_REPLY, S.IDLE),
+    (S.VERIFY_AWAIT_REPLY, K.REPLY, _WRITE): (_Do.WRITE_REPLY, S.IDLE),
+}
 
 
 # ---------------------------------------------------------------------------------------- core
@@ -279,16 +220,22 @@ del _w
 class _Txn:
     handle: int
     request: Request
-    write: bool
-    read_back: ReadBack | None
+    verdict: WriteVerdict | None  #: a write's verdict; None for a read
     tries: int = 0  #: command frames sent
-    verify_tries: int = 0
     tns: set[int] = field(default_factory=set)  #: every TNS the command was sent with
     sent: list[PcccHeader] = field(default_factory=list)  #: the header of every copy sent
     frame: int = 0  #: link handle of the frame in flight
     verify_tns: int | None = None
     verify: PcccHeader | None = None  #: header of the read-back in flight
     why: str = ""  #: what went wrong last (for the verdict's message)
+
+    @property
+    def write(self) -> bool:
+        return self.verdict is not None
+
+    @property
+    def read_back(self) -> ReadBack | None:
+        return None if self.verdict is None else self.verdict.read_back
 
 
 class Df1Transactions:
@@ -301,7 +248,7 @@ class Df1Transactions:
         station: int,
         source: int = 0,
         reply_timeout: float = 1.0,
-        retries: int = 3,
+        retries: int = DEFAULT_RETRIES,
         first_tns: int = 1,
     ) -> None:
         if reply_timeout <= 0:
@@ -340,7 +287,8 @@ class Df1Transactions:
             raise InvalidRequest("DF1: a transaction is already running")
         handle = self._next_handle
         self._next_handle += 1
-        self._txn = _Txn(handle, request, write, read_back_for(request) if write else None)
+        verdict = WriteVerdict(request, retries=self.retries, now=now) if write else None
+        self._txn = _Txn(handle, request, verdict)
         self.counters.started += 1
         self._input(_In.START, now)
         return handle
@@ -374,20 +322,15 @@ class Df1Transactions:
                 self._txn.why = f"no reply within {format_seconds(self.reply_timeout)} s of the DLE ACK"
             self._input(_In.TIMEOUT, now)
 
-    def abandon(self, reason: str) -> None:
+    def abandon(self, reason: str, now: float = 0.0) -> None:
         """The link is gone (port lost): settle the running transaction without a reply."""
         txn = self._txn
         if txn is None:
             return
-        self._deadline = None
-        self._state = TxnState.IDLE
-        self._finish_ids(txn)
-        self._txn = None
-        if txn.write and (txn.tries > 0):
-            self.counters.unknown += 1
-            self._events.append(OutcomeUnknown(txn.handle, reason))
+        if txn.verdict is not None:
+            self._follow(txn, txn.verdict.abandon(reason, now), now)
         else:
-            self._events.append(TransactionFailed(txn.handle, reason))
+            self._settle(TransactionFailed(txn.handle, reason))
 
     # ------------------------------------------------------------------------------- internals
 
@@ -414,16 +357,10 @@ class Df1Transactions:
         txn = self._txn
         if txn is None:
             return  # a reply to a transaction already settled (late, or the reply to a duplicate)
-        if txn.read_back is not None and txn.verify is not None and reply_matches(txn.verify, reply):
+        if txn.verify is not None and reply_matches(txn.verify, reply):
             self.link.confirm(txn.frame, now)
-            holds = reply.ok and txn.read_back.holds(reply.data)
-            if not holds:
-                txn.why = (
-                    f"the read-back was refused ({reply.error()})" if not reply.ok
-                    else f"the read-back gave {reply.data.hex(' ')}, not the value written"
-                )
             self._reply = reply
-            self._input(_In.READBACK_HOLDS if holds else _In.READBACK_DIFFERS, now)
+            self._input(_In.READBACK_REPLY, now)
             return
         if not any(reply_matches(sent, reply) for sent in txn.sent):
             return
@@ -432,7 +369,7 @@ class Df1Transactions:
         else:
             self.link.confirm(txn.frame, now)
         self._reply = reply
-        self._input(_In.REPLY_OK if reply.ok else _In.REPLY_REFUSED, now)
+        self._input(_In.REPLY, now)
 
     def _input(self, what: _In, now: float) -> None:
         txn = self._txn
@@ -443,9 +380,9 @@ class Df1Transactions:
             return
         action, next_state = entry
         self._state = next_state
+        reply, self._reply = self._reply, None
+        verdict = txn.verdict
         match action:
-            case _Do.IGNORE:
-                pass
             case _Do.SEND:
                 self._send_command(txn, now)
             case _Do.AWAIT:
@@ -456,32 +393,42 @@ class Df1Transactions:
                 else:
                     tries = txn.tries
                     self._settle(TransactionFailed(txn.handle, f"{txn.why} (after {tries} tries)"))
-            case _Do.VERIFY | _Do.VERIFY_AGAIN:
-                if txn.read_back is not None and txn.verify_tries <= self.retries:
-                    self._send_read_back(txn, now)
-                else:
-                    self._unknown(txn)
-            case _Do.DONE:
-                reply = self._reply
+            case _Do.ANSWERED:
                 assert reply is not None
-                self._settle(TransactionDone(txn.handle, reply))
-            case _Do.DONE_VERIFIED:
-                reply = self._reply
+                self._settle(TransactionDone(txn.handle, reply) if reply.ok else TransactionRefused(txn.handle, reply))
+            case _Do.WRITE_REPLY:
+                assert reply is not None and verdict is not None
+                self._follow(txn, verdict.reply(reply, now), now)
+            case _Do.WRITE_LOST:
+                assert verdict is not None
+                self._follow(txn, verdict.lost(txn.why, now), now)
+            case _Do.READBACK_LOST:
+                assert verdict is not None
+                self._follow(txn, verdict.read_back_lost(txn.why, now), now)
+            case _Do.READBACK_REPLY:
+                assert reply is not None and verdict is not None
+                self._follow(txn, verdict.read_back_reply(reply, now), now)
+
+    def _follow(self, txn: _Txn, step: WriteStep, now: float) -> None:
+        """Carry out the verdict's step: a read-back to send, or the verdict as an event."""
+        match step:
+            case None:
+                pass
+            case SendReadBack(request=request):
+                self._state = TxnState.VERIFY_SENDING
+                self._send_read_back(txn, request, now)
+            case Verdict(kind=VerdictKind.DONE, reply=reply, verified=verified):
                 assert reply is not None
-                self.counters.verified += 1
-                self._settle(TransactionDone(txn.handle, reply, verified=True))
-            case _Do.REFUSED:
-                reply = self._reply
+                self.counters.verified += verified
+                self._settle(TransactionDone(txn.handle, reply, verified=verified))
+            case Verdict(kind=VerdictKind.REFUSED, reply=reply):
                 assert reply is not None
                 self._settle(TransactionRefused(txn.handle, reply))
-            case _Do.UNKNOWN:
-                self._unknown(txn)
-        self._reply = None
-
-    def _unknown(self, txn: _Txn) -> None:
-        self.counters.unknown += 1
-        verify = "" if txn.read_back is None else "; the read-back did not prove it applied"
-        self._settle(OutcomeUnknown(txn.handle, f"{txn.why}{verify}: the write may or may not have been applied"))
+            case Verdict(kind=VerdictKind.FAILED, reason=reason):
+                self._settle(TransactionFailed(txn.handle, reason))
+            case Verdict(reason=reason):
+                self.counters.unknown += 1
+                self._settle(OutcomeUnknown(txn.handle, reason))
 
     def _send_command(self, txn: _Txn, now: float) -> None:
         tns = self._tns.allocate()
@@ -494,16 +441,14 @@ class Df1Transactions:
         txn.sent.append(PcccHeader.decode(packet))
         txn.frame = self.link.send(packet, now, idempotent=not txn.write)
 
-    def _send_read_back(self, txn: _Txn, now: float) -> None:
-        assert txn.read_back is not None
+    def _send_read_back(self, txn: _Txn, request: Request, now: float) -> None:
         if txn.verify_tns is not None:
             self._tns.release(txn.verify_tns)
         tns = self._tns.allocate()
         txn.verify_tns = tns
-        txn.verify_tries += 1
         self.counters.read_backs += 1
         self._deadline = None
-        packet = encode_command(txn.read_back.request, dst=self.station, src=self.source, tns=tns)
+        packet = encode_command(request, dst=self.station, src=self.source, tns=tns)
         txn.verify = PcccHeader.decode(packet)
         txn.frame = self.link.send(packet, now)
 
