@@ -306,8 +306,9 @@ async def run(args: argparse.Namespace) -> None:
     recovered = await recovery(args.outage) if not args.no_recovery else float("nan")
     print(f"\nrecovery after a {args.outage:g} s outage: first fresh read of all 31 presets "
           f"{recovered:.2f} s after the device server returned (target <= 2 s)")
-    result(worst_harsh_fresh_pct=100 * worst_harsh, worst_write_s=worst_write, wrong_values=wrong, double_writes=doubles,
-           acked_writes_lost=lost, recovery_s=recovered, variants=len(variants), seconds=args.seconds)
+    result(worst_harsh_fresh_pct=100 * worst_harsh, worst_write_s=worst_write, wrong_values=wrong,
+           double_writes=doubles, acked_writes_lost=lost, recovery_s=recovered, variants=len(variants),
+           seconds=args.seconds)
 
 
 def main() -> None:

@@ -19,7 +19,6 @@ poll cadence kept (ratio near 1).
 from __future__ import annotations
 
 import argparse
-import asyncio
 import contextlib
 import socket
 import statistics
@@ -162,7 +161,8 @@ unit = 1
                 else:
                     idle_reads, idle_stale = idle_reads + reads, idle_stale + stale
             ratios.append(rates[True] / rates[False])
-            print(f"  {target} pair {pair + 1}: {rates[False]:.1f} tx/s idle, {rates[True]:.1f} tx/s loaded", flush=True)
+            print(f"  {target} pair {pair + 1}: {rates[False]:.1f} tx/s idle, {rates[True]:.1f} tx/s loaded",
+                  flush=True)
     return {"target": target, "idle_reads": idle_reads, "idle_stale": idle_stale, "loaded_reads": loaded_reads,
             "loaded_stale": loaded_stale, "cadence_ratio": statistics.median(ratios)}
 

@@ -565,3 +565,26 @@ def test_confirm_completes_the_frame_and_the_next_answer_is_owed_to_it() -> None
     assert link.tx_state is TxState.AWAIT_ACK and link.next_event() is NEED_DATA
     link.receive_data(ACK_SYMBOL, 0.3)
     assert link.next_event() == SendComplete(second)
+
+
+def test_the_ack_wait_adapts_to_the_peers_measured_ack_times() -> None:
+    """After 8 ACKs that came 10 ms after the frame's last character, a lost ACK is asked for
+    with DLE ENQ after 2 x 10 ms plus the frame's time, not after the whole ACK timeout."""
+    char_time = 0.001
+    link = Df1Link(checksum=Checksum.BCC, ack_timeout=1.0, char_time=char_time)
+    now = 0.0
+    for n in range(8):
+        link.send(packet(n + 1), now)
+        frame = link.data_to_send()
+        assert link.next_deadline() == pytest.approx(now + 1.0)  # too few ACKs seen to adapt
+        now += len(frame) * char_time + 0.010
+        link.receive_data(ACK_SYMBOL, now)
+        assert link.next_event() == SendComplete(n + 1)
+        now += 0.1
+    link.send(packet(9), now)
+    frame = link.data_to_send()
+    assert link.next_deadline() == pytest.approx(now + len(frame) * char_time + 0.05)  # the 50 ms floor
+    link.handle_timeout(now + len(frame) * char_time + 0.05)
+    assert link.data_to_send() == ENQ_SYMBOL
+    link.receive_data(ACK_SYMBOL, now + 0.1)  # the ENQ's answer: the frame's ACK
+    assert link.next_event() == SendComplete(9)

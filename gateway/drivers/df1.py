@@ -109,6 +109,7 @@ class Df1Driver(LinkDriver):
             ack_timeout=self.ack_timeout + _LONGEST_FRAME * self.char_time,
             max_enq=self.retries,
             max_nak=self.retries,
+            char_time=self.char_time,
         )
         return Df1Transactions(
             link,

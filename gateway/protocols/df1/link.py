@@ -243,6 +243,8 @@ class Df1Link:
         max_message: int = DEFAULT_MAX_MESSAGE,
         bad_frame: BadFrameAnswer = BadFrameAnswer.NAK,
         enq_answer: EnqAnswer = EnqAnswer.LAST_RESPONSE,
+        char_time: float = 0.0,
+        min_ack_timeout: float = 0.05,
     ) -> None:
         if ack_timeout <= 0:
             raise ValueError("ack_timeout must be positive")
@@ -256,6 +258,12 @@ class Df1Link:
         self.max_message: Final = max_message
         self.bad_frame: Final = bad_frame
         self.enq_answer: Final = enq_answer
+        #: seconds per character on the line: a frame's ACK comes after its last character
+        self.char_time: Final = char_time
+        #: the ACK wait adapts to the peer's measured ACK times (see _ack_wait), never below this
+        self.min_ack_timeout: Final = min(min_ack_timeout, ack_timeout)
+        self._ack_times: deque[float] = deque(maxlen=32)
+        self._sent_at = 0.0
         self.counters = LinkCounters()
         self._decoder = FrameDecoder(checksum, max_message=max_message)
         self._events: deque[LinkEvent] = deque()
@@ -321,6 +329,9 @@ class Df1Link:
                     self.counters.acks_received += 1
                     stale = self._frame_unsent or self._answer_owed
                     self._answer_owed = False
+                    if (not stale and self._tx_state is TxState.AWAIT_ACK and self._current is not None
+                            and self._enq_count == 0 and self._nak_count == 0):
+                        self._ack_times.append(now - self._sent_at - len(self._current[2]) * self.char_time)
                     self._tx_input(_TxInput.STALE if stale else _TxInput.ACK, now)
                 case NakReceived():
                     self.counters.naks_received += 1
@@ -451,7 +462,7 @@ class Df1Link:
                 self._enq_count += 1
                 self.counters.enqs_sent += 1
                 self._out += ENQ_SYMBOL
-                self._deadline = now + self.ack_timeout
+                self._deadline = now + self._ack_wait(len(ENQ_SYMBOL))
             case _TxAction.COMPLETE:
                 self._finish(SendComplete(self._take_current()), now)
             case _TxAction.FAIL_NAK:
@@ -466,7 +477,18 @@ class Df1Link:
         self._out += self._current[2]
         self._frame_unsent = True
         self.counters.frames_sent += 1
-        self._deadline = now + self.ack_timeout
+        self._sent_at = now
+        self._deadline = now + self._ack_wait(len(self._current[2]))
+
+    def _ack_wait(self, length: int) -> float:
+        """How long to wait for the answer to ``length`` bytes just sent: their time on the line
+        plus 2 x the slowest of the last 32 ACKs (at least ``min_ack_timeout``), at most
+        ``ack_timeout``.  An early DLE ENQ is harmless: it asks for the last response symbol, and
+        the peer sends it after it has handled our whole frame (bytes keep their order)."""
+        if len(self._ack_times) < 8:
+            return self.ack_timeout
+        wait = length * self.char_time + max(self.min_ack_timeout, 2 * max(self._ack_times))
+        return min(self.ack_timeout, wait)
 
     def _take_current(self) -> int:
         assert self._current is not None

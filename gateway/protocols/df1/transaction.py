@@ -253,6 +253,11 @@ class Df1Transactions:
     ) -> None:
         if reply_timeout <= 0:
             raise ValueError("reply_timeout must be positive")
+        #: the adaptive reply wait's floor (see _reply_wait)
+        self.min_reply_timeout = min(0.1, reply_timeout)
+        self._reply_times: deque[float] = deque(maxlen=32)
+        self._awaiting_since = 0.0
+        self._wait = reply_timeout
         if retries < 0:
             raise ValueError("retries must not be negative")
         self.link: Final = link
@@ -319,7 +324,7 @@ class Df1Transactions:
             self._deadline = None
             self.counters.reply_timeouts += 1
             if self._txn is not None:
-                self._txn.why = f"no reply within {format_seconds(self.reply_timeout)} s of the DLE ACK"
+                self._txn.why = f"no reply within {format_seconds(self._wait)} s of the DLE ACK"
             self._input(_In.TIMEOUT, now)
 
     def abandon(self, reason: str, now: float = 0.0) -> None:
@@ -368,8 +373,19 @@ class Df1Transactions:
             self.counters.late_replies += 1  # answers an earlier frame, not the one in flight
         else:
             self.link.confirm(txn.frame, now)
+            if self._state is TxnState.AWAIT_REPLY:
+                self._reply_times.append(now - self._awaiting_since)
         self._reply = reply
         self._input(_In.REPLY, now)
+
+    def _reply_wait(self) -> float:
+        """How long to wait for a command's reply after its ACK: 2 x the slowest of the last 32
+        replies (at least ``min_reply_timeout``), at most ``reply_timeout``.  A reply later than
+        that is not lost: a read asks again (its late reply is ignored), a write is read back
+        (its late reply still settles it)."""
+        if len(self._reply_times) < 8:
+            return self.reply_timeout
+        return min(self.reply_timeout, max(self.min_reply_timeout, 2 * max(self._reply_times)))
 
     def _input(self, what: _In, now: float) -> None:
         txn = self._txn
@@ -386,7 +402,13 @@ class Df1Transactions:
             case _Do.SEND:
                 self._send_command(txn, now)
             case _Do.AWAIT:
-                self._deadline = now + self.reply_timeout
+                self._awaiting_since = now
+                # the wait for a reply adapts to the controller's measured reply times; the last
+                # read-back's wait (its silence decides a write's verdict) keeps the full time
+                last = (next_state is TxnState.VERIFY_AWAIT_REPLY and verdict is not None
+                        and verdict.read_backs >= verdict.max_read_backs)
+                self._wait = self.reply_timeout if last else self._reply_wait()
+                self._deadline = now + self._wait
             case _Do.RETRY:
                 if txn.tries <= self.retries:
                     self._send_command(txn, now)
