@@ -158,7 +158,7 @@ class SlcAsciiSimulator:
         "count_digits": ("2", "4"),
         "line_end": ("cr", "crlf"),
         "z_repeats": ("accepted", "executed", "any"),
-        "reply_time": ("prompt", "late_inside", "slow_changes", "spread"),
+        "reply_time": ("prompt", "late_inside", "spread", "slow_changes"),
     }
 
     def __init__(
