@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 CONFIG ?=
 
-.PHONY: run test lint mbpoll
+.PHONY: run test lint mbpoll mutation
 
 $(VENV)/.installed: pyproject.toml
 	python3 -m venv $(VENV)
@@ -28,3 +28,10 @@ test: $(VENV)/.installed mbpoll
 lint: $(VENV)/.installed
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy --strict gateway
+
+# Mutation testing of the protocol cores, writes.py, image.py, cache.py and modbus/handler.py
+# (tools/mutation.py, docs/mutation.md): about 30 minutes on 2 cores; not part of `make test`.
+# MUTATION_ARGS: module paths or globs, --keep, --report (see tools/mutation.py).
+mutation: $(VENV)/.installed
+	@$(PY) -c 'import mutmut' 2>/dev/null || $(PY) -m pip install -q -e '.[test,mutation]'
+	$(PY) tools/mutation.py $(MUTATION_ARGS)
