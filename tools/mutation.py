@@ -14,6 +14,13 @@ those tested; ``no tests`` (no selected test runs the function) counts as surviv
 second score leaves out the mutants ``docs/mutation.md`` lists as equivalent.  Exit status 1
 when a module is below ``--min`` (95 %) counting the equivalent ones out.
 
+mutmut runs every mutant in a process forked after the modules were imported, so a function that
+runs only at import (a table built once: ``_crc_table``, ``_build_user_bits``) is never run
+mutated there, and its mutants would survive whatever the tests check.  This script finds the
+functions the modules call while being imported and gives each surviving mutant of one a fresh
+interpreter (``MUTANT_UNDER_TEST`` set before the import) with the tests of its module; killed
+there counts as killed (the ``import`` column).
+
 mutmut works on a copy of the tree in ``mutants/`` (git-ignored).  Without ``--keep`` that copy
 is removed first: mutmut keeps a mutant's result until the code of its function changes, so a
 test added since would not be given the chance to kill an old survivor.
@@ -22,6 +29,7 @@ test added since would not be given the chance to kill an old survivor.
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import fnmatch
 import json
 import os
@@ -37,6 +45,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 MUTANTS = ROOT / "mutants"
 EQUIVALENTS_DOC = ROOT / "docs" / "mutation.md"
+FRESH = MUTANTS / "fresh-interpreter.json"  # import-time mutants rechecked: name -> killed
 
 # mutmut's exit codes of a mutant run (mutmut/stats.py)
 KILLED = {1, 3}
@@ -54,17 +63,24 @@ class Module:
     timeout: int = 0
     survived: list[str] = field(default_factory=list)
     no_tests: list[str] = field(default_factory=list)
-    other: list[str] = field(default_factory=list)  # not checked, suspicious, segfault
+    other: list[str] = field(default_factory=list)  # suspicious, segfault, interrupted
     skipped: int = 0
+    not_run: int = 0  # no result yet (the run was stopped, or the module not selected)
+    import_killed: int = 0  # survived mutmut, killed in a fresh interpreter (import-time code)
 
     @property
     def tested(self) -> int:
-        return self.killed + self.timeout + len(self.survived) + len(self.no_tests) + len(self.other)
+        return (self.killed + self.timeout + self.import_killed + len(self.survived) + len(self.no_tests)
+                + len(self.other))
+
+    @property
+    def mutants(self) -> int:
+        return self.tested + self.skipped + self.not_run
 
     def score(self, equivalent: frozenset[str] | set[str] = frozenset()) -> float | None:
         alive = [m for m in self.survived + self.no_tests + self.other if m not in equivalent]
         total = self.tested - (len(self.survived + self.no_tests + self.other) - len(alive))
-        return None if total == 0 else 100.0 * (self.killed + self.timeout) / total
+        return None if total == 0 else 100.0 * (self.killed + self.timeout + self.import_killed) / total
 
 
 def configured_modules() -> list[str]:
@@ -96,8 +112,11 @@ def load(module: str) -> Module:
     if not meta.exists():
         return result
     codes: dict[str, int | None] = json.loads(meta.read_text(encoding="utf-8"))["exit_code_by_key"]
+    fresh: dict[str, bool] = json.loads(FRESH.read_text(encoding="utf-8")) if FRESH.exists() else {}
     for name, code in sorted(codes.items(), key=lambda item: _natural(item[0])):
-        if code in KILLED or code in TYPE_CHECKED:
+        if code in SURVIVED and fresh.get(name):
+            result.import_killed += 1
+        elif code in KILLED or code in TYPE_CHECKED:
             result.killed += 1
         elif code in TIMEOUT:
             result.timeout += 1
@@ -107,6 +126,8 @@ def load(module: str) -> Module:
             result.no_tests.append(name)
         elif code in SKIPPED:
             result.skipped += 1
+        elif code is None:
+            result.not_run += 1
         else:
             result.other.append(name)
     return result
@@ -123,7 +144,56 @@ def run_mutmut(selected: list[str], children: int) -> None:
     print("$", " ".join(command), flush=True)
     # type_check_command runs "mypy": the one of this interpreter's environment
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
-    subprocess.run(command, cwd=ROOT, check=False, stdout=subprocess.DEVNULL, env=env)
+    subprocess.run(command, cwd=ROOT, check=False, env=env)
+
+
+def _in_mutants(code: str, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-c", code], cwd=MUTANTS, env=env, capture_output=True, text=True,
+                          check=False)
+
+
+def import_time_functions(modules: list[str]) -> set[str]:
+    """The mutated functions the modules call while they are imported (mutmut's stats mode)."""
+    code = ("import importlib, sys\nfrom mutmut.state import state\n"
+            f"for m in {[dotted(m) for m in modules]!r}: importlib.import_module(m)\n"
+            "print('\\n'.join(sorted(state()._stats)))")
+    done = _in_mutants(code, dict(os.environ, MUTANT_UNDER_TEST="stats"))
+    if done.returncode:
+        raise SystemExit(f"importing the mutated modules failed:\n{done.stderr}")
+    return set(done.stdout.split())
+
+
+def recheck_import_time_mutants(modules: list[str], children: int) -> None:
+    """Run each survivor of an import-time function in a fresh interpreter, with its module's tests."""
+    functions = import_time_functions(modules)
+    stats = json.loads((MUTANTS / "mutmut-stats.json").read_text(encoding="utf-8"))
+    tests_of: dict[str, list[str]] = stats["tests_by_mangled_function_name"]
+    fresh: dict[str, bool] = json.loads(FRESH.read_text(encoding="utf-8")) if FRESH.exists() else {}
+    jobs: list[tuple[str, list[str]]] = []
+    for module in modules:
+        row = load(module)
+        prefix = dotted(module) + "."
+        tests = sorted({t for f, ts in tests_of.items() if f.startswith(prefix) for t in ts},
+                       key=lambda t: (Path(module).stem not in t.split("::")[0], t))
+        for name in row.survived:
+            if name.rpartition("__mutmut_")[0] in functions and tests:
+                jobs.append((name, tests))
+    if not jobs:
+        return
+    print(f"{len(jobs)} surviving mutants of import-time functions: rechecking each in a fresh interpreter",
+          flush=True)
+    pytest_args = ["-x", "-q", "-p", "no:cacheprovider", "--hypothesis-profile=mutation"]
+
+    def run(job: tuple[str, list[str]]) -> tuple[str, bool]:
+        name, tests = job
+        done = subprocess.run([sys.executable, "-m", "pytest", *pytest_args, *tests], cwd=MUTANTS,
+                              env=dict(os.environ, MUTANT_UNDER_TEST=name), capture_output=True, check=False)
+        return name, done.returncode != 0
+
+    with concurrent.futures.ThreadPoolExecutor(max_workers=children) as pool:
+        for name, killed in pool.map(run, jobs):
+            fresh[name] = killed
+    FRESH.write_text(json.dumps(fresh, indent=1), encoding="utf-8")
 
 
 def report(modules: list[str], minimum: float) -> bool:
@@ -131,14 +201,15 @@ def report(modules: list[str], minimum: float) -> bool:
     rows = [load(m) for m in modules]
     width = max(len(m) for m in modules)
     print()
-    print(f"{'module':<{width}}  mutants  killed  timeout  survived  no tests  score  w/o equiv.")
+    print(f"{'module':<{width}}  mutants  killed  timeout  import  survived  no tests  not run  score  w/o equiv.")
     ok = True
     for row in rows:
         raw, net = row.score(), row.score(equivalent)
-        if net is not None and net < minimum:
+        if net is None or net < minimum or row.not_run:
             ok = False
-        print(f"{row.path:<{width}}  {row.tested:7d}  {row.killed:6d}  {row.timeout:7d}  {len(row.survived):8d}  "
-              f"{len(row.no_tests):8d}  {_pct(raw)}  {_pct(net)}")
+        print(f"{row.path:<{width}}  {row.mutants:7d}  {row.killed:6d}  {row.timeout:7d}  {row.import_killed:6d}  "
+              f"{len(row.survived):8d}  "
+              f"{len(row.no_tests):8d}  {row.not_run:7d}  {_pct(raw)}  {_pct(net)}")
     print()
     for row in rows:
         for kind, names in (("survived", row.survived), ("no tests", row.no_tests), ("not killed", row.other)):
@@ -175,6 +246,9 @@ def main() -> int:
                 (MUTANTS / module).unlink(missing_ok=True)
         start = time.monotonic()
         run_mutmut(selected, args.children)
+        if not args.modules:
+            FRESH.unlink(missing_ok=True)
+        recheck_import_time_mutants(selected, args.children)
         print(f"mutmut ran {(time.monotonic() - start) / 60:.1f} min")
     return 0 if report(selected, args.min) else 1
 
