@@ -16,8 +16,10 @@ when a module is below ``--min`` (95 %) counting the equivalent ones out.
 
 mutmut runs every mutant in a process forked after the modules were imported, so a function that
 runs only at import (a table built once: ``_crc_table``, ``_build_user_bits``) is never run
-mutated there, and its mutants would survive whatever the tests check.  This script finds the
-functions the modules call while being imported and gives each surviving mutant of one a fresh
+mutated there, and its mutants would survive whatever the tests check; the same holds for the
+functions a test module calls while it is collected (``parametrize`` lists of commands built by the
+builders under test).  This script finds the functions called while the modules are imported and
+the tests collected, and gives each surviving mutant of one a fresh
 interpreter (``MUTANT_UNDER_TEST`` set before the import) with the tests of its module; killed
 there counts as killed (the ``import`` column).
 
@@ -153,9 +155,13 @@ def _in_mutants(code: str, env: dict[str, str]) -> subprocess.CompletedProcess[s
 
 
 def import_time_functions(modules: list[str]) -> set[str]:
-    """The mutated functions the modules call while they are imported (mutmut's stats mode)."""
-    code = ("import importlib, sys\nfrom mutmut.state import state\n"
+    """The mutated functions that run while the modules are imported or the tests collected
+    (a ``parametrize`` list built by the functions under test): mutmut's stats mode records them."""
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["mutmut"]
+    collect = ["--collect-only", "-qq", "-p", "no:cacheprovider", *config["pytest_add_cli_args_test_selection"]]
+    code = ("import importlib, io, contextlib, pytest\nfrom mutmut.state import state\n"
             f"for m in {[dotted(m) for m in modules]!r}: importlib.import_module(m)\n"
+            f"with contextlib.redirect_stdout(io.StringIO()): pytest.main({collect!r})\n"
             "print('\\n'.join(sorted(state()._stats)))")
     done = _in_mutants(code, dict(os.environ, MUTANT_UNDER_TEST="stats"))
     if done.returncode:
