@@ -227,3 +227,55 @@ def test_1785ke_5_6_word_range_read_logical_ascii_n10_15() -> None:
     assert WordRangeReadParams.decode(read.encode()) == WordRangeReadParams(address, 8, 0, 4)
     reply = bytes.fromhex("10 02 20 29 4F 00 47 01 22 11 44 33 66 55 88 77 10 03 BC")
     assert encode_slave_message(bytes.fromhex("20 29 4F 00 47 01 22 11 44 33 66 55 88 77"), Checksum.BCC) == reply
+
+
+# ---------------------------------------------------------------------------------------------
+# Issue 22: behaviours the mutation run found unchecked
+
+
+@pytest.mark.parametrize(
+    ("address", "text"),
+    [
+        (Plc5Address("O", 0, 0o17, bit=0o15), "O:17/15"),  # default file numbers are left out
+        (Plc5Address("I", 1, 0, bit=7), "I:0/7"),
+        (Plc5Address("S", 2, 3), "S:3"),
+        (Plc5Address("O", 3, 1), "O3:1"),  # other file numbers of O, I, S are written
+        (Plc5Address("I", 0, 1), "I0:1"),
+        (Plc5Address("S", 1, 3), "S1:3"),
+        (Plc5Address("B", 3, 2, bit=5), "B3:2/5"),
+        (Plc5Address("T", 4, 1, sub_element=2), "T4:1.ACC"),
+    ],
+)
+def test_str_is_what_a_programmer_types(address: Plc5Address, text: str) -> None:
+    assert str(address) == text
+    assert parse_plc5_address(text) == address
+
+
+def test_str_of_a_sub_element_without_a_name_is_its_number() -> None:
+    assert str(Plc5Address("N", 7, 0, sub_element=3)) == "N7:0.3"
+
+
+@pytest.mark.parametrize(("text", "element", "bit"), [("B3/16", 1, 0), ("B3/300", 18, 12), ("B3/15999", 999, 15)])
+def test_direct_bit_addresses_count_16_bits_per_word(text: str, element: int, bit: int) -> None:
+    address = parse_plc5_address(text)
+    assert (address.element, address.bit) == (element, bit)
+
+
+def test_a_direct_bit_past_15999_is_refused() -> None:
+    with pytest.raises(AddressError, match="beyond 15999"):
+        parse_plc5_address("B3/16000")
+
+
+@pytest.mark.parametrize("text", ["", "   ", "N7:0\u00e9", "N7\x00:0"])
+def test_logical_ascii_refuses_what_cannot_be_sent(text: str) -> None:
+    with pytest.raises(AddressError, match="cannot be sent"):
+        encode_logical_ascii(text)
+
+
+def test_logical_ascii_sends_a_typed_address_without_its_blanks() -> None:
+    assert encode_logical_ascii("  N7:0 ") == b"\x00$N7:0\x00"
+
+
+def test_logical_ascii_decodes_an_empty_address_and_a_byte_that_is_not_ascii() -> None:
+    assert decode_logical_ascii(b"\x00$\x00N7:0\x00") == ("", 3)
+    assert decode_logical_ascii(b"xx\x00$N7\xff\x00", 2) == ("N7\ufffd", 8)
