@@ -352,3 +352,25 @@ async def test_a_job_that_fails_after_its_caller_gave_up_is_not_reported_as_neve
     gc.collect()
     await asyncio.sleep(0)
     assert not [r for r in caplog.records if "never retrieved" in r.getMessage()]
+
+
+async def test_a_client_whose_queue_emptied_is_a_newcomer_again_whatever_it_was_served_before() -> None:
+    q, driver, log = queue()
+    futures = [q.submit(c, frozenset({(c, n)}), job(log, f"{c}{n}")) for c in "ab" for n in range(2)]
+    await asyncio.gather(*futures)
+    assert log == ["a0", "b0", "a1", "b1"]  # "a" was served before "b"
+    log.clear()
+    gate = asyncio.Event()
+
+    async def held() -> None:
+        await gate.wait()
+
+    futures = [q.submit("c", frozenset({"c"}), held)]
+    await asyncio.sleep(0)
+    futures.append(q.submit("b", frozenset({"b"}), job(log, "b2")))
+    futures.append(q.submit("a", frozenset({"a"}), job(log, "a2")))
+    extended = driver.extended
+    gate.set()
+    await asyncio.gather(*futures)
+    assert log == ["b2", "a2"]  # both newcomers: in arrival order, not by how long ago they were served
+    assert driver.extended - extended == 2  # and each a newcomer's write extends the burst
