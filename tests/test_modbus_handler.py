@@ -16,6 +16,7 @@ the backend coroutines (one task per request).
 from __future__ import annotations
 
 import asyncio
+import logging
 import struct
 from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
@@ -462,3 +463,52 @@ async def test_pipelined_streams_every_request_gets_its_own_reply_in_a_valid_ord
         assert calls == wanted[: len(calls)] and len(calls) >= echoed
     else:
         assert calls == wanted
+
+
+# --- counters, the backend-failure log and the audit trail ------------------------------------
+
+
+async def test_backend_failures_are_counted_each_and_logged_with_traceback_once_per_type(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    backend = SpecBackend(read_now_path=False)
+    server = ModbusTcpServer(_typed(backend), HOST, 0)
+    await server.start()
+    reader, writer = await asyncio.open_connection(HOST, server.port)
+    caplog.set_level(logging.DEBUG, logger="gateway.modbus.server")
+    try:
+        for n in range(3):
+            writer.write(frame(n, FAILING_UNIT, struct.pack(">BHH", 3, 0, 1)))
+            assert (await read_reply(reader))[2] == bytes([0x83, 0x04])
+        assert server.counters.backend_errors == 3
+        assert server.counters.exceptions.get(0x04) == 3
+        failures = [r for r in caplog.records if "backend failed" in r.getMessage()]
+        assert [r.levelno for r in failures] == [logging.ERROR, logging.DEBUG, logging.DEBUG]
+        assert failures[0].exc_info is not None
+    finally:
+        writer.close()
+        await server.close()
+
+
+@pytest.mark.parametrize("read_now_path", [True, False], ids=["read_now", "backend_call"])
+async def test_every_write_is_audited_with_its_function_code_span_and_outcome(
+    read_now_path: bool, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="gateway.audit")
+    backend = SpecBackend(read_now_path)
+    requests = [
+        (2, struct.pack(">BHH", 6, 12, 0xBEEF), "FC6 holding 12: ok"),
+        (2, struct.pack(">BHHBHH", 16, 30, 2, 4, 1, 2), "FC16 holding 30-31: ok"),
+        (2, struct.pack(">BHH", 5, 7, 0xFF00), "FC5 coil 7: ok"),
+        (2, struct.pack(">BHHB", 15, 20, 3, 1) + b"\x05", "FC15 coil 20-22: ok"),
+        (2, struct.pack(">BHH", 6, HOLE.start, 1), f"FC6 holding {HOLE.start}: 0x02 "),
+        (FAILING_UNIT, struct.pack(">BHH", 6, 1, 1), "FC6 holding 1: 0x04 RuntimeError"),
+    ]
+    async with serving(backend) as (reader, writer):
+        for n, (unit, pdu, _) in enumerate(requests):
+            writer.write(frame(1000 + n, unit, pdu))
+            await read_reply(reader)
+    lines = [r.getMessage() for r in caplog.records if r.name == "gateway.audit"]
+    assert len(lines) == len(requests)
+    for line, (unit, _, expected) in zip(lines, requests, strict=True):
+        assert f"unit {unit} {expected}" in line, (line, expected)
