@@ -500,3 +500,31 @@ def test_request_validation() -> None:
         ProtectedTypedLogicalRead(FileType.INTEGER, 0x10000, 0, 0, 2)
     with pytest.raises(InvalidRequest):
         encode_command(DiagnosticStatus(), dst=256, src=0, tns=0)
+
+
+# --- the refusal as the gateway reports it (issue 22: survivors of the mutation run) ------------
+
+
+def test_a_refusal_names_the_command_its_codes_and_the_manuals_text_for_that_function() -> None:
+    reply = decode_reply(H("00 01 4F F0 09 00 0C"))  # SET PROCESSOR MODE refused: keyswitch not in REM
+    error = reply.error(command="set mode RUN", fnc=Function.SET_PROCESSOR_MODE)
+    assert error is not None
+    assert error.command == "set mode RUN" and error.code == 0xF0 and error.sts == 0xF0 and error.ext_sts == 0x0C
+    assert error.reason == error.description == "Condition cannot be generated (keyswitch not in REM)"
+    assert str(error) == ("set mode RUN: controller refused: STS 0xF0 EXT STS 0x0C: "
+                          "Condition cannot be generated (keyswitch not in REM)")
+    with pytest.raises(ControllerRefused) as raised:
+        reply.raise_for_status(command="set mode RUN", fnc=Function.SET_PROCESSOR_MODE)
+    assert str(raised.value) == str(error)
+
+
+def test_a_refusal_without_a_command_name_or_ext_sts_or_owner_has_no_empty_parts() -> None:
+    error = decode_reply(H("00 01 4F 10 01 00")).error()
+    assert error is not None and error.command == "" and error.owner_node is None
+    assert str(error).startswith("controller refused: STS 0x10: ")
+    assert "EXT STS" not in str(error) and "owner" not in str(error) and "XX" not in str(error)
+
+
+def test_an_unknown_local_error_names_its_low_nibble() -> None:
+    assert describe_status(0x0C) == "Unknown local error 0x0C"
+    assert describe_status(0x1C) == "Unknown local error 0x0C; Illegal command or format"

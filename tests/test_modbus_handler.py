@@ -138,9 +138,10 @@ def frame(tid: int, unit: int, pdu: bytes) -> bytes:
 
 
 async def read_reply(reader: asyncio.StreamReader) -> tuple[int, int, bytes]:
-    """One reply frame: (transaction id, unit, PDU).  The 5 s bound only keeps a broken server
-    from hanging the test; nothing here depends on how fast the reply comes."""
-    async with asyncio.timeout(5.0):
+    """One reply frame: (transaction id, unit, PDU).  The 2 s bound only keeps a broken server
+    from hanging the test (as in test_modbus_server.py); nothing here depends on how fast the reply
+    comes."""
+    async with asyncio.timeout(2.0):
         header = await reader.readexactly(7)
         tid, protocol, length, unit = struct.unpack(">HHHB", header)
         assert protocol == 0, f"reply with protocol id {protocol}"
