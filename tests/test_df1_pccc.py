@@ -560,7 +560,7 @@ def test_every_field_of_an_slc_command_is_range_checked_and_named(
         found = re.fullmatch(rf"PCCC: {name} 1000000 out of range (\d+)-(\d+)", str(info.value))
         assert found, (field, str(info.value))
         low, high = int(found[1]), int(found[2])
-        assert (low, high) in ((0, 0xFF), (1, 0xFF), (0, 0xFFFF)), (field, low, high)
+        assert (low, high) in ((0, 0xFF), (1, 0xFF), (0, 0xFFFF), (1, 0xFFFF)), (field, low, high)
         cls(**{**valid, field: low})
         cls(**{**valid, field: high})
         for outside in (low - 1, high + 1):
@@ -588,3 +588,32 @@ def test_size_limits_are_one_size_byte_and_writes_lose_two_bytes_per_expanded_fi
             SizeLimits(read, write)
     limits = SizeLimits(200, 3)
     assert limits.write_limit() == 3 and limits.write_limit(1) == 1 and limits.write_limit(2) == 0
+
+
+_N7 = LogicalBinaryAddress(0x0F, (0, 7, 0, 0))
+_PLC5_COMMANDS: list[tuple[type, dict[str, object], dict[str, str]]] = [
+    (WordRangeRead, dict(address=_N7, size=4), {"size": "byte size", "packet_offset": "packet offset",
+                                                 "total": "total transaction"}),
+    (WordRangeWrite, dict(address=_N7, data=b"\x01\x00"), {"packet_offset": "packet offset",
+                                                           "total": "total transaction"}),
+    (TypedRead, dict(address=_N7, count=2), {"count": "element count", "packet_offset": "packet offset",
+                                             "total": "total transaction"}),
+    (TypedWrite, dict(address=_N7, data_type=4, element_size=2, data=b"\x01\x00"),
+     {"packet_offset": "packet offset", "total": "total transaction"}),
+]
+
+
+@pytest.mark.parametrize(("cls", "valid", "fields"), _PLC5_COMMANDS, ids=lambda v: getattr(v, "__name__", ""))
+def test_every_field_of_a_plc5_command_is_range_checked_and_named(
+    cls: type, valid: dict[str, object], fields: dict[str, str]
+) -> None:
+    test_every_field_of_an_slc_command_is_range_checked_and_named(cls, valid, fields)
+
+
+def test_read_modify_write_masks_are_16_bit_and_named() -> None:
+    from gateway.protocols.df1.pccc import ReadModifyWriteRequest
+
+    ReadModifyWriteRequest(((_N7, 0, 0xFFFF), (_N7, 0xFFFF, 0)))
+    for sets, name in ((((_N7, 0x10000, 0),), "AND mask"), (((_N7, 0, -1),), "OR mask")):
+        with pytest.raises(InvalidRequest, match=f"PCCC: {name} "):
+            ReadModifyWriteRequest(sets)
