@@ -617,3 +617,14 @@ def test_read_modify_write_masks_are_16_bit_and_named() -> None:
     for sets, name in ((((_N7, 0x10000, 0),), "AND mask"), (((_N7, 0, -1),), "OR mask")):
         with pytest.raises(InvalidRequest, match=f"PCCC: {name} "):
             ReadModifyWriteRequest(sets)
+
+
+def test_a_remote_error_whose_ext_sts_byte_is_missing_says_so() -> None:
+    assert describe_status(0xF0) == "Error code in EXT STS, but the EXT STS byte is missing"
+
+
+def test_a_pccc_error_without_command_or_description_has_empty_ones() -> None:
+    from gateway.protocols.df1.pccc import PcccError
+
+    error = PcccError("refused", sts=0x10)
+    assert (error.command, error.description, error.reason, error.code) == ("", "", "", 0x10)

@@ -279,3 +279,22 @@ def test_logical_ascii_sends_a_typed_address_without_its_blanks() -> None:
 def test_logical_ascii_decodes_an_empty_address_and_a_byte_that_is_not_ascii() -> None:
     assert decode_logical_ascii(b"\x00$\x00N7:0\x00") == ("", 3)
     assert decode_logical_ascii(b"xx\x00$N7\xff\x00", 2) == ("N7\ufffd", 8)
+
+
+def test_file_numbers_run_to_999() -> None:
+    assert Plc5Address("N", 999, 0).file_number == 999
+    with pytest.raises(AddressError, match="file number 1000 out of range"):
+        Plc5Address("N", 1000, 0)
+
+
+@pytest.mark.parametrize(("text", "what"), [("O:8", "element 8 is octal"), ("O:0/8", "bit 8 is octal"),
+                                            ("I:19", "element 19 is octal")])
+def test_an_octal_field_with_8_or_9_is_refused_naming_the_field(text: str, what: str) -> None:
+    with pytest.raises(AddressError, match=what):
+        parse_plc5_address(text)
+
+
+@pytest.mark.parametrize("mask", [0x00, 0x10, 0x1F])
+def test_a_logical_binary_mask_naming_no_level_1_to_4_is_refused(mask: int) -> None:
+    with pytest.raises(AddressError, match="names no level"):
+        decode_logical_binary(bytes([mask, 0, 7, 0, 0, 0]))

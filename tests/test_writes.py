@@ -286,7 +286,7 @@ async def test_stopping_the_gateway_fails_the_waiting_writes_with_0x0B_and_runs_
     assert isinstance(results[0], asyncio.CancelledError)
     for result in results[1:]:
         assert isinstance(result, ModbusExceptionReply) and result.code == 0x0B, result
-        assert "stopping" in str(result)
+        assert str(result) == "the gateway is stopping"
     assert log == [] and q.waiting == 0
     # a write submitted afterwards starts a new worker
     await q.submit("d", frozenset({9}), job(log, "d"))
