@@ -568,3 +568,21 @@ def test_error_bits_of_both_bytes_are_decoded_at_the_edges() -> None:
     both = set(decode_error_bits(0xFF, 0)) | set(decode_error_bits(0, 0xFF))
     assert decode_error_bits(0xFF, 0xFF) == tuple(sorted(both)) and len(both) == 14
     assert decode_error_bits(0, 0) == ()
+
+
+def test_a_controller_fault_lists_each_error_or_says_none_is_set() -> None:
+    from gateway.protocols.slc_ascii.commands import error_description
+
+    assert str(controller_fault(0, 0)) == "controller fault (84H=0x00, 85H=0x00): no error bit set"
+    assert str(controller_fault(0x03, 0)) == (
+        f"controller fault (84H=0x03, 85H=0x00): {error_description(1)}; {error_description(2)}")
+
+
+@pytest.mark.parametrize(("b84", "b85", "named"), [(256, 0, "byte 84H 256"), (0, 256, "byte 85H 256")])
+def test_an_error_byte_out_of_range_is_named(b84: int, b85: int, named: str) -> None:
+    with pytest.raises(InvalidRequest, match=f"^{named} is out of range: a byte is 0-255$"):
+        decode_error_bits(b84, b85)
+
+
+def test_the_frn_probe_is_named_as_the_manual_names_it() -> None:
+    assert read_frn().name == "read FRN"
