@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 CONFIG ?=
 
-.PHONY: run test lint mbpoll interop
+.PHONY: run test lint mbpoll interop mutation
 
 $(VENV)/.installed: pyproject.toml
 	python3 -m venv $(VENV)
@@ -36,3 +36,10 @@ INTEROP ?= ../shared/interop/run
 interop: $(VENV)/.installed
 	@test -x $(INTEROP) || { echo "$(INTEROP) not found: clone the project with ../shared beside it"; exit 2; }
 	SLC_GATEWAY=$(VENV)/bin/slc-gateway $(INTEROP) $(if $(STRICT),--strict)
+
+# Mutation testing of the protocol cores, writes.py, image.py, cache.py and modbus/handler.py
+# (tools/mutation.py, docs/mutation.md): about 30 minutes on 2 cores; not part of `make test`.
+# MUTATION_ARGS: module paths or globs, --keep, --report (see tools/mutation.py).
+mutation: $(VENV)/.installed
+	@$(PY) -c 'import mutmut' 2>/dev/null || $(PY) -m pip install -q -e '.[test,mutation]'
+	$(PY) tools/mutation.py $(MUTATION_ARGS)

@@ -3,6 +3,14 @@
 from __future__ import annotations
 
 import pytest
+from hypothesis import Phase, settings
+
+# `make mutation` runs the tests with --hypothesis-profile=mutation: the same examples for every
+# mutant (derandomize, no example database) and no shrinking (a mutant is killed by the first
+# failure; nobody reads the minimal example).
+settings.register_profile(
+    "mutation", derandomize=True, database=None, phases=[Phase.explicit, Phase.generate], print_blob=False
+)
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:

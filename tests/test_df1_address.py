@@ -255,3 +255,12 @@ def test_parse_never_raises_anything_else(text: str) -> None:
         parse_address(text)
     except AddressError:
         pass
+
+
+@pytest.mark.parametrize(("text", "element", "sub_element", "bit"),
+                         [("R6/50", 1, 0, 2), ("R6/40", 0, 2, 8), ("R6/47", 0, 2, 15), ("B3/50", 3, 0, 2)])
+def test_absolute_bits_of_control_files_count_3_words_per_element(
+    text: str, element: int, sub_element: int, bit: int
+) -> None:
+    address = parse_address(text)
+    assert (address.element, address.sub_element, address.bit) == (element, sub_element, bit)

@@ -500,3 +500,131 @@ def test_request_validation() -> None:
         ProtectedTypedLogicalRead(FileType.INTEGER, 0x10000, 0, 0, 2)
     with pytest.raises(InvalidRequest):
         encode_command(DiagnosticStatus(), dst=256, src=0, tns=0)
+
+
+# --- the refusal as the gateway reports it (issue 22: survivors of the mutation run) ------------
+
+
+def test_a_refusal_names_the_command_its_codes_and_the_manuals_text_for_that_function() -> None:
+    reply = decode_reply(H("00 01 4F F0 09 00 0C"))  # SET PROCESSOR MODE refused: keyswitch not in REM
+    error = reply.error(command="set mode RUN", fnc=Function.SET_PROCESSOR_MODE)
+    assert error is not None
+    assert error.command == "set mode RUN" and error.code == 0xF0 and error.sts == 0xF0 and error.ext_sts == 0x0C
+    assert error.reason == error.description == "Condition cannot be generated (keyswitch not in REM)"
+    assert str(error) == ("set mode RUN: controller refused: STS 0xF0 EXT STS 0x0C: "
+                          "Condition cannot be generated (keyswitch not in REM)")
+    with pytest.raises(ControllerRefused) as raised:
+        reply.raise_for_status(command="set mode RUN", fnc=Function.SET_PROCESSOR_MODE)
+    assert str(raised.value) == str(error)
+
+
+def test_a_refusal_without_a_command_name_or_ext_sts_or_owner_has_no_empty_parts() -> None:
+    error = decode_reply(H("00 01 4F 10 01 00")).error()
+    assert error is not None and error.command == "" and error.owner_node is None
+    assert str(error).startswith("controller refused: STS 0x10: ")
+    assert "EXT STS" not in str(error) and "owner" not in str(error) and "XX" not in str(error)
+
+
+def test_an_unknown_local_error_names_its_low_nibble() -> None:
+    assert describe_status(0x0C) == "Unknown local error 0x0C"
+    assert describe_status(0x1C) == "Unknown local error 0x0C; Illegal command or format"
+
+
+# --- range checks of the SLC 500 PCCC commands: each field's range, and the error names it -------
+
+_SLC_COMMANDS: list[tuple[type, dict[str, object], dict[str, str]]] = [
+    (ProtectedTypedLogicalRead, dict(file_type=0x89, file_number=7, element=0, sub_element=0, size=2),
+     {"file_type": "file type", "size": "byte size", "file_number": "file number", "element": "element",
+      "sub_element": "sub element"}),
+    (ProtectedTypedLogicalWrite, dict(file_type=0x89, file_number=7, element=0, sub_element=0, data=b"\x00\x01"),
+     {"file_type": "file type", "file_number": "file number", "element": "element", "sub_element": "sub element"}),
+    (ProtectedTypedLogicalMaskedWrite,
+     dict(file_type=0x85, file_number=3, element=0, sub_element=0, mask=0x0004, data=b"\x00\x04"),
+     {"file_type": "file type", "mask": "bit mask", "file_number": "file number", "element": "element",
+      "sub_element": "sub element"}),
+    (ReadFileInfo, dict(file_number=7), {"file_number": "file number"}),
+    (SetProcessorMode, dict(mode=1), {"mode": "mode"}),
+]
+
+
+@pytest.mark.parametrize(("cls", "valid", "fields"), _SLC_COMMANDS, ids=lambda v: getattr(v, "__name__", ""))
+def test_every_field_of_an_slc_command_is_range_checked_and_named(
+    cls: type, valid: dict[str, object], fields: dict[str, str]
+) -> None:
+    import re
+
+    cls(**valid)
+    for field, name in fields.items():
+        with pytest.raises(InvalidRequest) as info:
+            cls(**{**valid, field: 10**6})
+        found = re.fullmatch(rf"PCCC: {name} 1000000 out of range (\d+)-(\d+)", str(info.value))
+        assert found, (field, str(info.value))
+        low, high = int(found[1]), int(found[2])
+        assert (low, high) in ((0, 0xFF), (1, 0xFF), (0, 0xFFFF), (1, 0xFFFF)), (field, low, high)
+        cls(**{**valid, field: low})
+        cls(**{**valid, field: high})
+        for outside in (low - 1, high + 1):
+            with pytest.raises(InvalidRequest, match=rf"PCCC: {name} {outside} out of range"):
+                cls(**{**valid, field: outside})
+
+
+@pytest.mark.parametrize(("cls", "low"), [(ProtectedTypedLogicalWrite, 1), (ProtectedTypedLogicalMaskedWrite, 0)])
+def test_the_data_of_an_slc_write_is_one_size_byte_long(cls: type, low: int) -> None:
+    valid = _SLC_COMMANDS[1 if cls is ProtectedTypedLogicalWrite else 2][1]
+    cls(**{**valid, "data": bytes(255)})
+    cls(**{**valid, "data": bytes(low)})
+    with pytest.raises(InvalidRequest, match="PCCC: byte size 256 out of range"):
+        cls(**{**valid, "data": bytes(256)})
+    if low:
+        with pytest.raises(InvalidRequest, match="PCCC: byte size 0 out of range"):
+            cls(**{**valid, "data": b""})
+
+
+def test_size_limits_are_one_size_byte_and_writes_lose_two_bytes_per_expanded_field() -> None:
+    for read, write in ((1, 1), (255, 255)):
+        SizeLimits(read, write)
+    for read, write in ((0, 1), (1, 0), (256, 1), (1, 256)):
+        with pytest.raises(ValueError, match="1-255"):
+            SizeLimits(read, write)
+    limits = SizeLimits(200, 3)
+    assert limits.write_limit() == 3 and limits.write_limit(1) == 1 and limits.write_limit(2) == 0
+
+
+_N7 = LogicalBinaryAddress(0x0F, (0, 7, 0, 0))
+_PLC5_COMMANDS: list[tuple[type, dict[str, object], dict[str, str]]] = [
+    (WordRangeRead, dict(address=_N7, size=4), {"size": "byte size", "packet_offset": "packet offset",
+                                                 "total": "total transaction"}),
+    (WordRangeWrite, dict(address=_N7, data=b"\x01\x00"), {"packet_offset": "packet offset",
+                                                           "total": "total transaction"}),
+    (TypedRead, dict(address=_N7, count=2), {"count": "element count", "packet_offset": "packet offset",
+                                             "total": "total transaction"}),
+    (TypedWrite, dict(address=_N7, data_type=4, element_size=2, data=b"\x01\x00"),
+     {"packet_offset": "packet offset", "total": "total transaction"}),
+]
+
+
+@pytest.mark.parametrize(("cls", "valid", "fields"), _PLC5_COMMANDS, ids=lambda v: getattr(v, "__name__", ""))
+def test_every_field_of_a_plc5_command_is_range_checked_and_named(
+    cls: type, valid: dict[str, object], fields: dict[str, str]
+) -> None:
+    test_every_field_of_an_slc_command_is_range_checked_and_named(cls, valid, fields)
+
+
+def test_read_modify_write_masks_are_16_bit_and_named() -> None:
+    from gateway.protocols.df1.pccc import ReadModifyWriteRequest
+
+    ReadModifyWriteRequest(((_N7, 0, 0xFFFF), (_N7, 0xFFFF, 0)))
+    for sets, name in ((((_N7, 0x10000, 0),), "AND mask"), (((_N7, 0, -1),), "OR mask")):
+        with pytest.raises(InvalidRequest, match=f"PCCC: {name} "):
+            ReadModifyWriteRequest(sets)
+
+
+def test_a_remote_error_whose_ext_sts_byte_is_missing_says_so() -> None:
+    assert describe_status(0xF0) == "Error code in EXT STS, but the EXT STS byte is missing"
+
+
+def test_a_pccc_error_without_command_or_description_has_empty_ones() -> None:
+    from gateway.protocols.df1.pccc import PcccError
+
+    error = PcccError("refused", sts=0x10)
+    assert (error.command, error.description, error.reason, error.code) == ("", "", "", 0x10)

@@ -239,3 +239,74 @@ def test_plc5_address_error_is_the_projects_address_error_answered_0x03() -> Non
         parse_plc5_address("Q9:0")
     assert modbus_exception(caught.value).code == 0x03
     assert modbus_exception(plc5_address.AddressError("N7:70000")).code == 0x03
+
+
+# ---------------------------------------------------------------------------------------------
+# Behaviours a mutation run found unchecked
+
+
+@pytest.mark.parametrize(
+    ("address", "text"),
+    [
+        (Plc5Address("O", 0, 0o17, bit=0o15), "O:17/15"),  # default file numbers are left out
+        (Plc5Address("I", 1, 0, bit=7), "I:0/7"),
+        (Plc5Address("S", 2, 3), "S:3"),
+        (Plc5Address("O", 3, 1), "O3:1"),  # other file numbers of O, I, S are written
+        (Plc5Address("I", 0, 1), "I0:1"),
+        (Plc5Address("S", 1, 3), "S1:3"),
+        (Plc5Address("B", 3, 2, bit=5), "B3:2/5"),
+        (Plc5Address("T", 4, 1, sub_element=2), "T4:1.ACC"),
+    ],
+)
+def test_str_is_what_a_programmer_types(address: Plc5Address, text: str) -> None:
+    assert str(address) == text
+    assert parse_plc5_address(text) == address
+
+
+def test_str_of_a_sub_element_without_a_name_is_its_number() -> None:
+    assert str(Plc5Address("N", 7, 0, sub_element=3)) == "N7:0.3"
+
+
+@pytest.mark.parametrize(("text", "element", "bit"), [("B3/16", 1, 0), ("B3/300", 18, 12), ("B3/15999", 999, 15)])
+def test_direct_bit_addresses_count_16_bits_per_word(text: str, element: int, bit: int) -> None:
+    address = parse_plc5_address(text)
+    assert (address.element, address.bit) == (element, bit)
+
+
+def test_a_direct_bit_past_15999_is_refused() -> None:
+    with pytest.raises(AddressError, match="beyond 15999"):
+        parse_plc5_address("B3/16000")
+
+
+@pytest.mark.parametrize("text", ["", "   ", "N7:0\u00e9", "N7\x00:0"])
+def test_logical_ascii_refuses_what_cannot_be_sent(text: str) -> None:
+    with pytest.raises(AddressError, match="cannot be sent"):
+        encode_logical_ascii(text)
+
+
+def test_logical_ascii_sends_a_typed_address_without_its_blanks() -> None:
+    assert encode_logical_ascii("  N7:0 ") == b"\x00$N7:0\x00"
+
+
+def test_logical_ascii_decodes_an_empty_address_and_a_byte_that_is_not_ascii() -> None:
+    assert decode_logical_ascii(b"\x00$\x00N7:0\x00") == ("", 3)
+    assert decode_logical_ascii(b"xx\x00$N7\xff\x00", 2) == ("N7\ufffd", 8)
+
+
+def test_file_numbers_run_to_999() -> None:
+    assert Plc5Address("N", 999, 0).file_number == 999
+    with pytest.raises(AddressError, match="file number 1000 out of range"):
+        Plc5Address("N", 1000, 0)
+
+
+@pytest.mark.parametrize(("text", "what"), [("O:8", "element 8 is octal"), ("O:0/8", "bit 8 is octal"),
+                                            ("I:19", "element 19 is octal")])
+def test_an_octal_field_with_8_or_9_is_refused_naming_the_field(text: str, what: str) -> None:
+    with pytest.raises(AddressError, match=what):
+        parse_plc5_address(text)
+
+
+@pytest.mark.parametrize("mask", [0x00, 0x10, 0x1F])
+def test_a_logical_binary_mask_naming_no_level_1_to_4_is_refused(mask: int) -> None:
+    with pytest.raises(AddressError, match="names no level"):
+        decode_logical_binary(bytes([mask, 0, 7, 0, 0, 0]))

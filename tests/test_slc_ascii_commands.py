@@ -506,3 +506,83 @@ def test_controller_fault() -> None:
     assert "error 62 (84H bit 7)" in str(fault)
     assert controller_fault(0, 0).errors == ()
     assert "no error bit set" in str(controller_fault(0, 0))
+
+
+# ---------------------------------------------------------------------------------------------
+# Which commands are writes (issue 22): the SLC core resends a write under a new ID only with proof
+# that it did not run, and resyncs on a quiet line before it; a write taken for a read could run
+# twice.  Built inside the test (not in a parametrize list, which runs at collection).
+
+
+def test_every_command_that_changes_the_controller_is_a_write_and_no_other() -> None:
+    writes = [
+        write_word(0x0040, 1), write_byte(0x00A6, 1), set_mode(Mode.RUN), set_mode(Mode.PROGRAM),
+        download_block(0, BLOCK, controller=ControllerType.SLC100), write_sequencer_preset(0x10, 0, 5),
+        write_reset_accumulator(0x20, 5),
+    ]
+    reads = [read_bytes(0x0040, 2), read_frn(), upload_block(), read_sequencer_preset(0x10, 0),
+             read_reset_accumulator(0x20)]
+    assert [c.is_write for c in writes] == [True] * len(writes)
+    assert [c.is_write for c in reads] == [False] * len(reads)
+    assert [c.reply for c in writes] == [ReplyKind.ACK] * len(writes)
+    assert [c.reply for c in reads] == [ReplyKind.DATA] * len(reads)
+    assert upload_block().params == b"" and read_frn().params == b""
+
+
+@pytest.mark.parametrize("value", [1, 9999])
+def test_a_sequencer_preset_may_be_1_to_9999(value: int) -> None:
+    assert write_sequencer_preset(0x10, 0, value).params[-2:] == value.to_bytes(2, "big")
+
+
+@pytest.mark.parametrize("value", [0, 9999])
+def test_a_reset_accumulator_may_be_0_to_9999(value: int) -> None:
+    assert write_reset_accumulator(0x20, value).params[-2:] == value.to_bytes(2, "big")
+
+
+@pytest.mark.parametrize("value", [-1, 10000])
+def test_a_reset_accumulator_out_of_range_is_refused(value: int) -> None:
+    with pytest.raises(InvalidRequest, match="out of range"):
+        write_reset_accumulator(0x20, value)
+
+
+def test_a_bit_write_keeps_the_other_bits_of_any_current_byte() -> None:
+    from gateway.protocols.slc_ascii.commands import write_item_bit
+    from gateway.protocols.slc_ascii.memory_map import parse_item
+
+    item = parse_item("703")  # relay 703: bit 2 of A6H
+    assert write_item_bit(item, 0, True).params == b"\x00\xa6\x04"
+    assert write_item_bit(item, 0, False).params == b"\x00\xa6\x00"
+    assert write_item_bit(item, 0xFF, True).params == b"\x00\xa6\xff"
+    for current in (True, False, -1, 256, "0"):
+        with pytest.raises(InvalidRequest, match="is not in 0-255"):
+            write_item_bit(item, current, True)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(("b84", "b85"), [(0, 256), (0, True), (-1, 0)])
+def test_decode_error_bits_refuses_what_is_not_a_byte(b84: int, b85: int) -> None:
+    with pytest.raises(InvalidRequest):
+        decode_error_bits(b84, b85)
+
+
+def test_error_bits_of_both_bytes_are_decoded_at_the_edges() -> None:
+    both = set(decode_error_bits(0xFF, 0)) | set(decode_error_bits(0, 0xFF))
+    assert decode_error_bits(0xFF, 0xFF) == tuple(sorted(both)) and len(both) == 14
+    assert decode_error_bits(0, 0) == ()
+
+
+def test_a_controller_fault_lists_each_error_or_says_none_is_set() -> None:
+    from gateway.protocols.slc_ascii.commands import error_description
+
+    assert str(controller_fault(0, 0)) == "controller fault (84H=0x00, 85H=0x00): no error bit set"
+    assert str(controller_fault(0x03, 0)) == (
+        f"controller fault (84H=0x03, 85H=0x00): {error_description(1)}; {error_description(2)}")
+
+
+@pytest.mark.parametrize(("b84", "b85", "named"), [(256, 0, "byte 84H 256"), (0, 256, "byte 85H 256")])
+def test_an_error_byte_out_of_range_is_named(b84: int, b85: int, named: str) -> None:
+    with pytest.raises(InvalidRequest, match=f"^{named} is out of range: a byte is 0-255$"):
+        decode_error_bits(b84, b85)
+
+
+def test_the_frn_probe_is_named_as_the_manual_names_it() -> None:
+    assert read_frn().name == "read FRN"

@@ -601,3 +601,37 @@ def test_line_splitter_matches_the_byte_by_byte_reference(chunks: list[bytes], s
             lines.append(line)
         assert lines == reference.pending
         assert fast.buffered == len(reference.buffer)
+
+
+# ---------------------------------------------------------------------------------------------
+# What goes on the wire is upper-case hex, as every frame the manual prints (issue 22: the decoders
+# accept lower case, so a round trip cannot tell; a controller may not).
+
+
+@given(msg_id=st.integers(0, MAX_ID), address=st.sampled_from([0x00AA, 0x00FE, 0x0040]),
+       value=st.integers(0, 9999))
+def test_every_frame_the_host_sends_is_upper_case_hex(msg_id: int, address: int, value: int) -> None:
+    import re
+
+    command = cmds.write_word(address & 0x7E, value) if address != 0x00AA else cmds.write_byte(0xAA, value & 0xFF)
+    frame = encode_command(command, msg_id)
+    assert re.fullmatch(rb"#[0-9A-F]+\r", frame), frame
+    text = frame[1:-3]
+    assert text == b"%02X%02X%s%02X" % (command.byte_count, command.code, command.params.hex().upper().encode(),
+                                        msg_id)
+    assert frame[-3:-1] == b"%02X" % crc(text)
+    z = encode_retransmit(msg_id)
+    assert z == b";Z%02X%02X\r" % (msg_id, crc(b"Z%02X" % msg_id))
+
+
+@pytest.mark.parametrize(("encode", "letter"), [(encode_ack, b"R"), (encode_refused, b"E"), (encode_fault, b"T"),
+                                                (encode_id_mismatch, b"I")])
+def test_the_controllers_frames_are_upper_case(encode: Callable[[int], bytes], letter: bytes) -> None:
+    for msg_id in (0x0A, 0x7F, 0x3C):
+        assert encode(msg_id) == b";%s%02X%02X\r" % (letter, msg_id, crc(letter + b"%02X" % msg_id))
+    reply = encode_data_reply("021ffe15ab", 0x7E)
+    assert reply == b":021FFE15AB7E%02X\r" % crc(b"021FFE15AB7E")
+
+
+def test_a_fault_report_carries_id_00_unless_told() -> None:
+    assert encode_fault() == encode_fault(0)

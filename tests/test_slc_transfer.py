@@ -231,3 +231,13 @@ def test_no_transition_out_of_done() -> None:
     run(download, ScriptedSlc())
     with pytest.raises(AssertionError):
         download.answered(ack())
+
+
+def test_a_block_number_beyond_the_controllers_last_is_a_protocol_error_not_a_restart() -> None:
+    """No pass of an SLC 100 upload has a block past its last: such a reply is not a power cycle
+    or a lost reply to recover from, it is not this controller's answer."""
+    upload = Upload(SLC100)
+    assert upload.answered(block_reply(0)) is None
+    beyond = DataReply(f"{SLC100.last_block + 1:02X}" + "00" * BLOCK_SIZE, 1)
+    with pytest.raises(ProtocolError, match="beyond the last"):
+        upload.answered(beyond)

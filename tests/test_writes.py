@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 from collections.abc import AsyncIterator
 from typing import Any
 
@@ -212,3 +213,164 @@ async def test_a_session_on_a_lost_link_fails_its_writes_with_link_down() -> Non
             pass
 
 
+
+
+# --------------------------------------------------------------------------------------------
+# Bounds, stopping, and the order of several clients (issue 22: mutants of writes.py that survived)
+
+
+async def test_default_bounds_are_8_writes_per_connection_and_32_per_link() -> None:
+    q, _, log = queue()
+    gate = asyncio.Event()
+
+    async def held() -> None:
+        await gate.wait()
+
+    running = q.submit("x", frozenset(), held)
+    await asyncio.sleep(0)  # running: no longer waiting
+    futures = [q.submit("a", frozenset({("a", n)}), job(log, f"a{n}")) for n in range(8)]
+    with pytest.raises(ModbusExceptionReply, match="this connection has 8 writes waiting for link fake"):
+        q.submit("a", frozenset({"a9"}), job(log, "a9"))
+    futures += [q.submit(c, frozenset({(c, n)}), job(log, f"{c}{n}")) for c in "bcd" for n in range(8)]
+    assert q.waiting == 32
+    with pytest.raises(ModbusExceptionReply, match="32 writes are waiting for link fake"):
+        q.submit("e", frozenset({"e"}), job(log, "e"))
+    gate.set()
+    await asyncio.gather(running, *futures)
+    assert len(log) == 32 and q.waiting == 0 and q.busy_refusals == 2
+
+
+@pytest.mark.parametrize(("per_client", "per_link"), [(1, 1), (1, 5), (5, 1)])
+async def test_bounds_of_one_are_allowed_and_hold(per_client: int, per_link: int) -> None:
+    q, _, log = queue(per_client=per_client, per_link=per_link)
+    gate = asyncio.Event()
+
+    async def held() -> None:
+        await gate.wait()
+
+    running = q.submit("x", frozenset(), held)
+    await asyncio.sleep(0)
+    first = q.submit("a", frozenset({1}), job(log, "a1"))
+    for client, word in [("a", 2), ("b", 3)]:
+        if q.waiting >= per_link or (client == "a" and per_client == 1):
+            with pytest.raises(ModbusExceptionReply):
+                q.submit(client, frozenset({word}), job(log, f"{client}{word}"))
+        else:
+            q.submit(client, frozenset({word}), job(log, f"{client}{word}"))
+    gate.set()
+    await asyncio.gather(running, first)
+
+
+@pytest.mark.parametrize("bounds", [{"per_client": 0}, {"per_link": 0}, {"per_client": -1, "per_link": 4}])
+def test_bounds_below_one_are_refused(bounds: dict[str, int]) -> None:
+    with pytest.raises(ValueError, match="at least 1"):
+        queue(**bounds)
+
+
+async def test_stopping_the_gateway_fails_the_waiting_writes_with_0x0B_and_runs_none_of_them() -> None:
+    """The gateway stops by cancelling its tasks: the write running is cancelled, and every write
+    still waiting is answered 0x0B (nothing of it reaches the controller)."""
+    q, _, log = queue()
+    gate = asyncio.Event()
+
+    async def held() -> None:
+        await gate.wait()
+
+    running = q.submit("a", frozenset({1}), held)
+    waiting = [q.submit(c, frozenset({n}), job(log, c)) for n, c in enumerate("abc", start=2)]
+    await asyncio.sleep(0)
+    workers = [t for t in asyncio.all_tasks() if t.get_name() == "fake-writes"]
+    assert len(workers) == 1
+    workers[0].cancel()
+    results = await asyncio.gather(running, *waiting, return_exceptions=True)
+    assert isinstance(results[0], asyncio.CancelledError)
+    for result in results[1:]:
+        assert isinstance(result, ModbusExceptionReply) and result.code == 0x0B, result
+        assert str(result) == "the gateway is stopping"
+    assert log == [] and q.waiting == 0
+    # a write submitted afterwards starts a new worker
+    await q.submit("d", frozenset({9}), job(log, "d"))
+    assert log == ["d"]
+
+
+async def test_three_clients_take_turns_and_a_client_whose_queue_emptied_counts_as_never_served() -> None:
+    """Round robin by least recently served; clients with nothing served since their queue was
+    last empty go first, in the order their first waiting write arrived."""
+    q, _, log = queue()
+    futures = [q.submit(c, frozenset({(c, n)}), job(log, f"{c}{n}")) for c in "abc" for n in range(3)]
+    await asyncio.gather(*futures)
+    assert log == ["a0", "b0", "c0", "a1", "b1", "c1", "a2", "b2", "c2"]
+    log.clear()
+    gate = asyncio.Event()
+
+    async def held() -> None:
+        await gate.wait()
+        log.append("held")
+
+    futures = [q.submit("a", frozenset({"a"}), held)]
+    await asyncio.sleep(0)  # "a" is being served
+    futures += [q.submit("a", frozenset({("a", n)}), job(log, f"a{n}")) for n in range(2)]
+    futures += [q.submit("b", frozenset({("b", n)}), job(log, f"b{n}")) for n in range(2)]
+    futures.append(q.submit("c", frozenset({"c"}), job(log, "c")))
+    gate.set()
+    await asyncio.gather(*futures)
+    assert log == ["held", "a0", "b0", "c", "a1", "b1"]
+
+
+async def test_an_overlapping_write_waits_for_an_earlier_one_behind_another_clients_head() -> None:
+    q, _, log = queue()
+    gate = asyncio.Event()
+
+    async def held() -> None:
+        await gate.wait()
+        log.append("held")
+
+    futures = [q.submit("z", frozenset({"z"}), held)]
+    await asyncio.sleep(0)
+    futures.append(q.submit("a", frozenset({1}), job(log, "a-1")))
+    futures.append(q.submit("a", frozenset({2}), job(log, "a-2")))
+    futures.append(q.submit("b", frozenset({2}), job(log, "b-2")))  # overlaps a's second job
+    futures.append(q.submit("b", frozenset(), job(log, "b-none")))  # overlaps nothing
+    gate.set()
+    await asyncio.gather(*futures)
+    assert log == ["held", "a-1", "a-2", "b-2", "b-none"]
+
+
+async def test_a_job_that_fails_after_its_caller_gave_up_is_not_reported_as_never_retrieved(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    q, _, _ = queue()
+
+    async def fails() -> None:
+        raise ModbusExceptionReply(0x04, "refused")
+
+    future = q.submit("a", frozenset({1}), fails)
+    cancelled = q.submit("a", frozenset({2}), fails)
+    cancelled.cancel()  # its caller gave up before it ran
+    await asyncio.wait([future])  # done, its exception not retrieved by anyone
+    del future, cancelled
+    gc.collect()
+    await asyncio.sleep(0)
+    assert not [r for r in caplog.records if "never retrieved" in r.getMessage()]
+
+
+async def test_a_client_whose_queue_emptied_is_a_newcomer_again_whatever_it_was_served_before() -> None:
+    q, driver, log = queue()
+    futures = [q.submit(c, frozenset({(c, n)}), job(log, f"{c}{n}")) for c in "ab" for n in range(2)]
+    await asyncio.gather(*futures)
+    assert log == ["a0", "b0", "a1", "b1"]  # "a" was served before "b"
+    log.clear()
+    gate = asyncio.Event()
+
+    async def held() -> None:
+        await gate.wait()
+
+    futures = [q.submit("c", frozenset({"c"}), held)]
+    await asyncio.sleep(0)
+    futures.append(q.submit("b", frozenset({"b"}), job(log, "b2")))
+    futures.append(q.submit("a", frozenset({"a"}), job(log, "a2")))
+    extended = driver.extended
+    gate.set()
+    await asyncio.gather(*futures)
+    assert log == ["b2", "a2"]  # both newcomers: in arrival order, not by how long ago they were served
+    assert driver.extended - extended == 2  # and each a newcomer's write extends the burst

@@ -1,0 +1,244 @@
+"""The SLC 100/150 transaction core: the rules that keep a write from running twice or a reply lying.
+
+Each test names a rule of :mod:`gateway.protocols.slc_ascii.transaction` and plays one line
+history through the core's public surface: frames out (``data_to_send``), bytes in
+(``receive_data``), a fake clock (``handle_timeout`` at ``next_deadline``), the verdict.  The
+controller is the simulator (:class:`SlcAsciiSimulator`): every reply is the one it gives to the
+frame the core sent; the test only decides each reply's fate on the line (delivered now, later,
+twice, or lost) and when the controller power-cycles.  Issue 22 found each of these rules
+could be broken by a one-line change with the rest of the suite passing.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from gateway.protocols.slc_ascii import commands as cmds
+from gateway.protocols.slc_ascii.framing import NEED_DATA, CommandDecoder, CommandFrame
+from gateway.protocols.slc_ascii.transaction import SlcSession, Verdict
+from gateway.sim.slc_ascii import SlcAsciiSimulator
+
+TIMEOUT = 0.3
+READ = cmds.read_bytes(0x40, 2)
+
+
+class Wire:
+    """The core and the simulator, with the line's fate of every frame decided by the test."""
+
+    def __init__(self, **variants: str) -> None:
+        self.sim = SlcAsciiSimulator(ladder=False, variants=variants)
+        self.session = SlcSession(timeout=TIMEOUT, retries=3)
+        self.now = 0.0
+        #: every frame the core sent: (time, ID, the command's code, or None for ;Z)
+        self.sent: list[tuple[float, int, int | None]] = []
+        #: every reply delivered to the core
+        self.delivered: list[bytes] = []
+        self._decoder = CommandDecoder()
+
+    def out(self) -> list[bytes]:
+        """The frames the core sends now (recorded)."""
+        data = self.session.data_to_send()
+        self._decoder.receive_data(data)
+        while (event := self._decoder.next_event()) is not NEED_DATA:
+            code = event.code if isinstance(event, CommandFrame) else None
+            self.sent.append((self.now, event.msg_id, code))  # type: ignore[union-attr]
+        return [f + b"\r" for f in data.split(b"\r") if f]
+
+    def controller(self, frames: list[bytes]) -> list[bytes]:
+        """The frames reach the controller: its replies, in order."""
+        return [out.data for frame in frames for out in self.sim.receive(frame, self.now)]
+
+    def deliver(self, replies: list[bytes], dt: float = 0.005) -> None:
+        for reply in replies:
+            self.now += dt
+            self.delivered.append(reply)
+            self.session.receive_data(reply, self.now)
+
+    def wait(self) -> None:
+        """Nothing arrives until the core's next deadline."""
+        deadline = self.session.next_deadline()
+        assert deadline is not None
+        self.now = max(self.now, deadline)
+        self.session.handle_timeout(self.now)
+
+    def exchange(self) -> None:
+        """A perfect line until the transaction ends (time passes only while the core waits)."""
+        while self.session.result is None:
+            frames = self.out()
+            if frames:
+                self.deliver(self.controller(frames))
+            else:
+                self.wait()
+        self.out()
+
+    def run(self, command: cmds.Command) -> Verdict:
+        self.session.start(command, self.now)
+        self.exchange()
+        return self.session.take_result().verdict
+
+    def applied(self, value: int) -> int:
+        return sum(1 for kind, _, v in self.sim.applied_writes if kind == "word" and v == value)
+
+
+def in_step(**variants: str) -> Wire:
+    """A session in step with its controller after two reads on a perfect line."""
+    wire = Wire(**variants)
+    assert wire.run(READ) is Verdict.DONE
+    assert wire.run(READ) is Verdict.DONE
+    return wire
+
+
+def last_resync_began_after_quiet(wire: Wire, before: int) -> bool:
+    """Whether the last run of ID 00 frames before ``wire.sent[before]`` has one sent at least
+    ``late_bound`` after the frame before it (so no reply to an earlier message could follow)."""
+    last = max(i for i in range(before) if wire.sent[i][1] == 0 and wire.sent[i][2] is not None)
+    first = last
+    while first > 0 and wire.sent[first - 1][1] == 0 and wire.sent[first - 1][2] is not None:
+        first -= 1
+    gaps = [wire.sent[i][0] - wire.sent[i - 1][0] for i in range(max(first, 1), last + 1)]
+    return first == 0 or max(gaps) >= wire.session.late_bound - 1e-9
+
+
+def test_a_write_never_goes_out_in_a_numbering_begun_without_quiet() -> None:
+    """A read that meets ``;I`` resyncs at once, without waiting for the line to be quiet: replies
+    to earlier messages may still come, so that numbering is not trusted for writes.  The next
+    write first waits for quiet and resyncs again (its ``;I`` proof rests on that barrier)."""
+    wire = in_step()
+    wire.sim.power_cycle()  # the next read meets ;I00, and resyncs at once
+    assert wire.run(READ) is Verdict.DONE
+    ids = [msg_id for _, msg_id, code in wire.sent[-3:] if code is not None]
+    assert ids == [3, 0, 1], f"expected the read, an immediate resync and the read again, not {ids}"
+    assert wire.run(cmds.write_word(0x40, 77)) is Verdict.DONE
+    write = next(i for i, (_, _, code) in enumerate(wire.sent) if code == cmds.CommandCode.WRITE)
+    assert last_resync_began_after_quiet(wire, write), f"write sent in an untrusted numbering: {wire.sent}"
+    assert wire.applied(77) == 1
+
+
+@pytest.mark.parametrize("kind", ["write", "read"])
+def test_after_an_unknown_or_failed_outcome_the_next_command_begins_with_a_resync(kind: str) -> None:
+    """When a transaction ends without an answer the controller's ID state is unknown (it may
+    have taken our ID, or power-cycled): the next command begins with an ID 00 resync."""
+    wire = in_step()
+    command = cmds.write_word(0x42, 55) if kind == "write" else READ
+    wire.session.start(command, wire.now)
+    while wire.session.result is None:  # the controller hears everything, every reply is lost
+        frames = wire.out()
+        if frames:
+            wire.controller(frames)
+        else:
+            wire.wait()
+    assert wire.session.take_result().verdict is (Verdict.UNKNOWN if kind == "write" else Verdict.FAILED)
+    before = len(wire.sent)
+    assert wire.run(READ) is Verdict.DONE
+    first_id = wire.sent[before][1]
+    assert first_id == 0, f"the command after an unknown outcome went with ID {first_id:02X}, not a resync"
+
+
+def test_after_a_transaction_of_several_messages_a_write_waits_for_quiet_before_its_first_copy() -> None:
+    """A transaction that sent more than one message may still have replies on the way when it
+    ends, and a ``;I`` among them would answer the next write's first copy, which the core may
+    take as proof that the write did not run.  So the next write's first copy waits until no reply
+    to an earlier message can still come (``late_bound`` after the last message)."""
+    wire = in_step()
+    wire.session.start(READ, wire.now)
+    wire.controller(wire.out())  # the reply is lost
+    wire.wait()  # ;Z
+    wire.deliver(wire.controller(wire.out()))  # the ;Z fetches the answer: DONE, after two messages
+    assert wire.session.take_result().verdict is Verdict.DONE
+    last_message = wire.sent[-1][0]
+    wire.session.start(cmds.write_word(0x44, 88), wire.now)
+    while not any(f.startswith(b"#") for f in wire.out()):
+        wire.wait()
+    assert wire.now >= last_message + wire.session.late_bound - 1e-9, (
+        f"the write's first copy went {wire.now - last_message:.3f} s after the last message, "
+        f"before late_bound ({wire.session.late_bound:.3f} s)"
+    )
+
+
+def test_stray_i_from_a_transaction_of_several_messages_never_makes_the_next_write_run_twice() -> None:
+    """The write before ours needed a second copy: its first copy ran but its ack was held back on
+    the line, the ``;Z`` met an older reply (which the line repeated late) and the core resent the
+    command with the same ID; the controller refused that copy with ``;I`` and the ID, and the line
+    repeats that frame too.  Both ``;I`` arrive after our write's first copy went out and ran.
+    Taken as answers to our write's copies they look like proof that it did not run, and it would
+    be sent again under a new ID: applied twice."""
+    wire = in_step()
+    session = wire.session
+    older = wire.delivered[-1]  # the reply to the read before
+    session.start(cmds.write_word(0x44, 11), wire.now)
+    first = wire.out()
+    late_ack = wire.controller(first)  # the write runs; its ack is held back
+    wire.wait()  # the reply timeout: ;Z
+    z_answer = wire.controller(wire.out())  # the controller repeats the ack, also held back
+    wire.deliver([older])  # the older reply, repeated by the line: the core resends (same ID)
+    second = wire.out()
+    assert second == first, "a resend keeps the ID"
+    stray = wire.controller(second)  # ;I with this write's ID: it already ran
+    assert len(stray) == 1 and stray[0].startswith(b";I")
+    wire.deliver(late_ack)
+    assert session.take_result().verdict is Verdict.DONE  # three messages: copy, ;Z, copy
+    session.start(cmds.write_word(0x44, 12), wire.now)
+    ours = wire.controller(wire.out())  # our first copy, if the core sends it now, runs
+    wire.deliver(z_answer + stray + stray + ours)  # what the line held back, then our replies
+    wire.exchange()
+    assert wire.applied(11) == 1
+    assert wire.applied(12) == 1, f"write applied {wire.applied(12)} times"
+    assert session.take_result().verdict is Verdict.DONE
+
+
+@pytest.mark.parametrize("kind", ["read", "write"])
+def test_e_after_a_z_is_never_taken_for_a_refusal_even_after_a_resend(kind: str) -> None:
+    """``z_after_power_up=error``: a controller power-cycled since its last reply answers ``;Z``
+    with ``;E`` and the ``;Z``'s ID (ours).  That ``;E`` says nothing of our command, also when
+    the core has resent the command since the ``;Z`` (an older reply, repeated late by the line,
+    came first and looked like the ``;Z``'s answer): a read asks again, and a write whose first
+    copy may have run ends UNKNOWN.  REFUSED would tell SCADA the controller refused a legal read,
+    or a write it ran."""
+    wire = in_step(z_after_power_up="error")
+    session = wire.session
+    older = wire.delivered[-1]
+    command = cmds.write_word(0x40, 66) if kind == "write" else READ
+    session.start(command, wire.now)
+    wire.controller(wire.out())  # the command runs (a write is applied); its reply is lost
+    wire.sim.power_cycle()  # and the controller power-cycles: no last reply to repeat
+    wire.wait()  # the reply timeout: ;Z
+    e_to_z = wire.controller(wire.out())
+    assert len(e_to_z) == 1 and e_to_z[0].startswith(b";E"), e_to_z
+    wire.deliver([older])  # before the ;E: the older reply, repeated by the line: a resend
+    resent = wire.out()
+    assert len(resent) == 1 and resent[0].startswith(b"#"), resent
+    wire.deliver(e_to_z)
+    if kind == "write":
+        result = session.take_result()
+        assert result.verdict is Verdict.UNKNOWN, f"{result}: the write ran"
+        assert wire.applied(66) == 1
+    else:
+        assert session.result is None or session.result.verdict is not Verdict.REFUSED, session.result
+        wire.deliver(wire.controller(resent))  # ;I00: the power-cycled controller expects 00
+        wire.exchange()
+        assert session.take_result().verdict is Verdict.DONE
+
+
+@pytest.mark.xfail(strict=True, reason="landed core: a line that repeats a frame both ways makes a write run twice "
+                                       "(reported to the lead with issue 22)")
+def test_a_line_that_repeats_frames_both_ways_never_makes_a_write_run_twice() -> None:
+    """The line repeats our previous write's frame: the controller runs it and refuses the copy with
+    ``;I`` and its ID, and the line repeats that ``;I`` too.  Both arrive after our write's first
+    copy went out and ran.  The first is not proof (``test_stray_i_of_a_repeated_previous_message_
+    never_makes_a_write_run_twice``): the core sends a second copy with our ID.  The repeated ``;I``
+    is no answer to that copy either; taken for one, it looks like proof that our write did not
+    run, and the write is sent again under a new ID: applied twice."""
+    wire = in_step()
+    session = wire.session
+    session.start(cmds.write_word(0x42, 21), wire.now)
+    replies = wire.controller(wire.out() * 2)  # the line repeats the frame: ;R and ;I
+    assert [r[:2] for r in replies] == [b";R", b";I"], replies
+    ack, stray = replies
+    wire.deliver([ack])
+    assert session.take_result().verdict is Verdict.DONE
+    session.start(cmds.write_word(0x42, 22), wire.now)
+    ours = wire.controller(wire.out())  # our write runs
+    wire.deliver([stray, stray, *ours])  # the ;I, the line's repeat of it, then our ack
+    wire.exchange()
+    assert wire.applied(21) == 1
+    assert wire.applied(22) == 1, f"write applied {wire.applied(22)} times"

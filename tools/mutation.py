@@ -1,0 +1,263 @@
+"""Mutation testing of the protocol cores and the safety-critical generic modules (``make mutation``).
+
+Runs mutmut (``[tool.mutmut]`` in pyproject.toml: the modules, the fast unit tests) and prints,
+per module, how many mutants the tests killed, and every surviving mutant, marked when
+``docs/mutation.md`` lists it as equivalent::
+
+    .venv/bin/python tools/mutation.py                    # all modules, from scratch
+    .venv/bin/python tools/mutation.py gateway/writes.py  # one module (or several; a glob works)
+    .venv/bin/python tools/mutation.py --report           # the table of the last run, no run
+    .venv/bin/python tools/mutation.py --keep ...         # keep mutmut's results of unchanged code
+
+The score of a module is the share of its mutants killed (a timeout counts as killed) among
+those tested; ``no tests`` (no selected test runs the function) counts as surviving.  The
+second score leaves out the mutants ``docs/mutation.md`` lists as equivalent.  Exit status 1
+when a module is below ``--min`` (95 %) counting the equivalent ones out.
+
+mutmut runs every mutant in a process forked after the modules were imported, so a function that
+runs only at import (a table built once: ``_crc_table``, ``_build_user_bits``) is never run
+mutated there, and its mutants would survive whatever the tests check; the same holds for the
+functions a test module calls while it is collected (``parametrize`` lists of commands built by the
+builders under test).  This script finds the functions called while the modules are imported and
+the tests collected, and gives each surviving mutant of one a fresh
+interpreter (``MUTANT_UNDER_TEST`` set before the import) with the tests of its module; killed
+there counts as killed (the ``import`` column).
+
+mutmut works on a copy of the tree in ``mutants/`` (git-ignored).  Without ``--keep`` that copy
+is removed first: mutmut keeps a mutant's result until the code of its function changes, so a
+test added since would not be given the chance to kill an old survivor.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import fnmatch
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+MUTANTS = ROOT / "mutants"
+EQUIVALENTS_DOC = ROOT / "docs" / "mutation.md"
+FRESH = MUTANTS / "fresh-interpreter.json"  # import-time mutants rechecked: name -> killed
+
+# mutmut's exit codes of a mutant run (mutmut/stats.py)
+KILLED = {1, 3}
+TIMEOUT = {36, 24, -24, 152, 255}
+SURVIVED = {0}
+NO_TESTS = {5, 33}
+SKIPPED = {34}
+TYPE_CHECKED = {37}
+
+
+@dataclass
+class Module:
+    path: str
+    killed: int = 0
+    timeout: int = 0
+    survived: list[str] = field(default_factory=list)
+    no_tests: list[str] = field(default_factory=list)
+    other: list[str] = field(default_factory=list)  # suspicious, segfault, interrupted
+    skipped: int = 0
+    not_run: int = 0  # no result yet (the run was stopped, or the module not selected)
+    import_killed: int = 0  # survived mutmut, killed in a fresh interpreter (import-time code)
+
+    @property
+    def tested(self) -> int:
+        return (self.killed + self.timeout + self.import_killed + len(self.survived) + len(self.no_tests)
+                + len(self.other))
+
+    @property
+    def mutants(self) -> int:
+        return self.tested + self.skipped + self.not_run
+
+    def score(self, equivalent: frozenset[str] | set[str] = frozenset()) -> float | None:
+        alive = [m for m in self.survived + self.no_tests + self.other if m not in equivalent]
+        total = self.tested - (len(self.survived + self.no_tests + self.other) - len(alive))
+        return None if total == 0 else 100.0 * (self.killed + self.timeout + self.import_killed) / total
+
+
+def configured_modules() -> list[str]:
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["mutmut"]
+    patterns: list[str] = config["only_mutate"]
+    found = sorted(
+        str(p.relative_to(ROOT))
+        for source in config["source_paths"]
+        for p in (ROOT / source).rglob("*.py")
+        if any(fnmatch.fnmatch(str(p.relative_to(ROOT)), pattern) for pattern in patterns)
+    )
+    return [m for m in found if not m.endswith("__init__.py") or (ROOT / m).stat().st_size > 0]
+
+
+def dotted(module: str) -> str:
+    return module.removesuffix(".py").replace("/", ".")
+
+
+def equivalent_mutants() -> set[str]:
+    """The mutant names ``docs/mutation.md`` lists (in backquotes) as equivalent."""
+    if not EQUIVALENTS_DOC.exists():
+        return set()
+    return set(re.findall(r"`(gateway\.[\w.ǁ]+__mutmut_\d+)`", EQUIVALENTS_DOC.read_text(encoding="utf-8")))
+
+
+def load(module: str) -> Module:
+    result = Module(module)
+    meta = MUTANTS / (module + ".meta")
+    if not meta.exists():
+        return result
+    codes: dict[str, int | None] = json.loads(meta.read_text(encoding="utf-8"))["exit_code_by_key"]
+    fresh: dict[str, bool] = json.loads(FRESH.read_text(encoding="utf-8")) if FRESH.exists() else {}
+    for name, code in sorted(codes.items(), key=lambda item: _natural(item[0])):
+        if code in SURVIVED and fresh.get(name):
+            result.import_killed += 1
+        elif code in KILLED or code in TYPE_CHECKED:
+            result.killed += 1
+        elif code in TIMEOUT:
+            result.timeout += 1
+        elif code in SURVIVED:
+            result.survived.append(name)
+        elif code in NO_TESTS:
+            result.no_tests.append(name)
+        elif code in SKIPPED:
+            result.skipped += 1
+        elif code is None:
+            result.not_run += 1
+        else:
+            result.other.append(name)
+    return result
+
+
+def _natural(name: str) -> tuple[str, int]:
+    stem, _, number = name.rpartition("__mutmut_")
+    return stem, int(number) if number.isdigit() else 0
+
+
+def run_mutmut(selected: list[str], children: int) -> None:
+    names = [] if selected == configured_modules() else [dotted(m) + ".*" for m in selected]
+    command = [str(Path(sys.executable).parent / "mutmut"), "run", "--max-children", str(children), *names]
+    print("$", " ".join(command), flush=True)
+    # type_check_command runs "mypy": the one of this interpreter's environment
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    subprocess.run(command, cwd=ROOT, check=False, env=env)
+
+
+def _in_mutants(code: str, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-c", code], cwd=MUTANTS, env=env, capture_output=True, text=True,
+                          check=False)
+
+
+def import_time_functions(modules: list[str]) -> set[str]:
+    """The mutated functions that run while the modules are imported or the tests collected
+    (a ``parametrize`` list built by the functions under test): mutmut's stats mode records them."""
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["mutmut"]
+    collect = ["--collect-only", "-qq", "-p", "no:cacheprovider", *config["pytest_add_cli_args_test_selection"]]
+    code = ("import importlib, io, contextlib, pytest\nfrom mutmut.state import state\n"
+            f"for m in {[dotted(m) for m in modules]!r}: importlib.import_module(m)\n"
+            f"with contextlib.redirect_stdout(io.StringIO()): pytest.main({collect!r})\n"
+            "print('\\n'.join(sorted(state()._stats)))")
+    done = _in_mutants(code, dict(os.environ, MUTANT_UNDER_TEST="stats"))
+    if done.returncode:
+        raise SystemExit(f"importing the mutated modules failed:\n{done.stderr}")
+    return set(done.stdout.split())
+
+
+def recheck_import_time_mutants(modules: list[str], children: int) -> None:
+    """Run each survivor of an import-time function in a fresh interpreter, with its module's tests."""
+    functions = import_time_functions(modules)
+    stats = json.loads((MUTANTS / "mutmut-stats.json").read_text(encoding="utf-8"))
+    tests_of: dict[str, list[str]] = stats["tests_by_mangled_function_name"]
+    fresh: dict[str, bool] = json.loads(FRESH.read_text(encoding="utf-8")) if FRESH.exists() else {}
+    jobs: list[tuple[str, list[str]]] = []
+    for module in modules:
+        row = load(module)
+        prefix = dotted(module) + "."
+        tests = sorted({t for f, ts in tests_of.items() if f.startswith(prefix) for t in ts},
+                       key=lambda t: (Path(module).stem not in t.split("::")[0], t))
+        for name in row.survived:
+            if name.rpartition("__mutmut_")[0] in functions and tests:
+                jobs.append((name, tests))
+    if not jobs:
+        return
+    print(f"{len(jobs)} surviving mutants of import-time functions: rechecking each in a fresh interpreter",
+          flush=True)
+    pytest_args = ["-x", "-q", "-p", "no:cacheprovider", "--hypothesis-profile=mutation"]
+
+    def run(job: tuple[str, list[str]]) -> tuple[str, bool]:
+        name, tests = job
+        done = subprocess.run([sys.executable, "-m", "pytest", *pytest_args, *tests], cwd=MUTANTS,
+                              env=dict(os.environ, MUTANT_UNDER_TEST=name), capture_output=True, check=False)
+        return name, done.returncode != 0
+
+    with concurrent.futures.ThreadPoolExecutor(max_workers=children) as pool:
+        for name, killed in pool.map(run, jobs):
+            fresh[name] = killed
+    FRESH.write_text(json.dumps(fresh, indent=1), encoding="utf-8")
+
+
+def report(modules: list[str], minimum: float) -> bool:
+    equivalent = equivalent_mutants()
+    rows = [load(m) for m in modules]
+    width = max(len(m) for m in modules)
+    print()
+    print(f"{'module':<{width}}  mutants  killed  timeout  import  survived  no tests  not run  score  w/o equiv.")
+    ok = True
+    for row in rows:
+        raw, net = row.score(), row.score(equivalent)
+        if net is None or net < minimum or row.not_run:
+            ok = False
+        print(f"{row.path:<{width}}  {row.mutants:7d}  {row.killed:6d}  {row.timeout:7d}  {row.import_killed:6d}  "
+              f"{len(row.survived):8d}  "
+              f"{len(row.no_tests):8d}  {row.not_run:7d}  {_pct(raw)}  {_pct(net)}")
+    print()
+    for row in rows:
+        for kind, names in (("survived", row.survived), ("no tests", row.no_tests), ("not killed", row.other)):
+            for name in names:
+                mark = "  (equivalent: docs/mutation.md)" if name in equivalent else ""
+                print(f"{kind}: {name}{mark}")
+    print()
+    print("Show one: .venv/bin/mutmut show <name>.  Rerun: .venv/bin/python tools/mutation.py [module ...]")
+    return ok
+
+
+def _pct(value: float | None) -> str:
+    return "    -" if value is None else f"{value:5.1f}"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("modules", nargs="*", help="module paths or globs (default: all in [tool.mutmut])")
+    parser.add_argument("--report", action="store_true", help="print the last run's results, run nothing")
+    parser.add_argument("--keep", action="store_true", help="keep mutmut's results of unchanged functions")
+    parser.add_argument("--children", type=int, default=os.cpu_count() or 2, help="parallel mutants (CPU count)")
+    parser.add_argument("--min", type=float, default=95.0, help="lowest acceptable score per module (95)")
+    args = parser.parse_args()
+    every = configured_modules()
+    selected = [m for m in every if not args.modules or any(fnmatch.fnmatch(m, p) for p in args.modules)]
+    if not selected:
+        parser.error(f"no configured module matches {args.modules}")
+    if not args.report:
+        if not args.keep and not args.modules and MUTANTS.exists():
+            shutil.rmtree(MUTANTS)
+        elif not args.keep:
+            for module in selected:  # forget these modules' results, keep the others'
+                (MUTANTS / (module + ".meta")).unlink(missing_ok=True)
+                (MUTANTS / module).unlink(missing_ok=True)
+        start = time.monotonic()
+        run_mutmut(selected, args.children)
+        if not args.modules:
+            FRESH.unlink(missing_ok=True)
+        recheck_import_time_mutants(selected, args.children)
+        print(f"mutmut ran {(time.monotonic() - start) / 60:.1f} min")
+    return 0 if report(selected, args.min) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
