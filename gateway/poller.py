@@ -1,7 +1,9 @@
 """Per link: scan the read plan, fast class continuously and slow class every few seconds.
 
 The slow class is read whole at start and after a link loss; its periodic scans are spread
-over the fast rounds of ``slow_interval`` (a share of it before each fast round).
+over the fast rounds of half of ``slow_interval`` (a share of it before each fast round), the
+first one starting half a ``slow_interval`` after the whole read: so every slow block is read
+again within one ``slow_interval`` of its last read.
 
 Every block is one request on the driver's queue at poll priority, so a write waits at most
 for the one poll transaction already on the line.  A block that fails keeps its last value
@@ -216,13 +218,19 @@ class Poller:
                 if whole_slow or not self.fast or self.slow_interval <= 0:
                     ok = await self._scan(self.slow, _SLOW)
                     whole_slow = not ok
+                    if ok and self.fast:
+                        # the first spread scan reads its last blocks by one slow_interval
+                        # after this whole read, as every later one does after the one before
+                        next_slow = started + self.slow_interval / 2
                 else:
                     pending_slow = list(self.slow)
             if ok and pending_slow:
-                # A periodic slow scan is spread over the fast rounds of the slow interval, so
-                # the fast class is not held up by the whole slow class at once (when writes
-                # share the line, that alone would age it past stale_after).
-                share = max(1, -(-len(self.slow) * max(last_round, self.fast_interval) // self.slow_interval))
+                # A periodic slow scan is spread over the fast rounds of half the slow interval,
+                # so the fast class is not held up by the whole slow class at once (when writes
+                # share the line, that alone would age it past stale_after), and each slow block
+                # is read again one slow_interval after its last read.
+                rounds = self.slow_interval / 2
+                share = max(1, -(-len(self.slow) * max(last_round, self.fast_interval) // rounds))
                 chunk, pending_slow = pending_slow[: int(share)], pending_slow[int(share) :]
                 ok = await self._scan(chunk, _SLOW_SHARE)
             if ok:
