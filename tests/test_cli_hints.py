@@ -121,9 +121,9 @@ def test_an_ascii_probe_of_a_df1_controller_names_the_flag(fake: MakeFake, tmp_p
     trace = tmp_path / "probe.trace"
     reason = fails("probe", controller.url, "--trace", str(trace))
     assert "look like DF1" in reason and "--protocol df1" in reason
-    assert "after 2 tries" in reason  # a probe gives up after one retry ...
+    assert "after 2 tries" in reason  # a probe gives up after one retry per resync ...
     sent = [line for line in trace.read_text().splitlines() if " TX " in line]
-    assert len(sent) == 2  # ... so within a few seconds
+    assert len(sent) == 6  # ... and 3 resyncs of a controller that answers: within a few seconds
 
 
 def test_a_df1_probe_of_an_ascii_controller_names_the_flag(fake: MakeFake, tmp_path: Path) -> None:

@@ -872,6 +872,7 @@ def test_variants_table_defaults_and_bad_names() -> None:
         "ack_order": ("ack_first", "reply_first", "embedded"),
         "bad_frame": ("nak", "silence", "ignore"),
         "enq_answer": ("last", "nak"),
+        "reply_addresses": ("swapped", "unswapped", "own_station"),
     }
     assert variant_sim().variants == {name: values[0] for name, values in Slc500Simulator.VARIANTS.items()}
     with pytest.raises(ValueError, match="unknown variant 'dup'"):
