@@ -264,3 +264,12 @@ def test_absolute_bits_of_control_files_count_3_words_per_element(
 ) -> None:
     address = parse_address(text)
     assert (address.element, address.sub_element, address.bit) == (element, sub_element, bit)
+
+
+def test_file_numbers_and_io_words_stop_at_255() -> None:
+    assert SlcAddress(FileType.INTEGER, 255, 0).file_number == 255
+    with pytest.raises(AddressError, match="file number 256 out of range"):
+        SlcAddress(FileType.INTEGER, 256, 0)
+    assert SlcAddress(FileType.OUTPUT, 0, 1, 255).sub_element == 255
+    with pytest.raises(AddressError, match="sub-element 256 out of range"):
+        SlcAddress(FileType.OUTPUT, 0, 1, 256)

@@ -517,3 +517,67 @@ async def test_every_write_is_audited_with_its_function_code_span_and_outcome(
     assert len(lines) == len(requests)
     for line, (unit, _, expected) in zip(lines, requests, strict=True):
         assert f"unit {unit} {expected}" in line, (line, expected)
+
+
+@dataclass
+class CodeBackend(SpecBackend):
+    """Every write answers ModbusExceptionReply(code); every read_now returns one byte too many."""
+
+    code: int = 0x01
+
+    async def write_registers(self, unit: int, address: int, values: Sequence[int]) -> None:
+        raise ModbusExceptionReply(self.code, "from the backend")
+
+    def _read_now(self, unit: int, function_code: int, address: int, count: int) -> bytes:
+        return super()._read_now(unit, function_code, address, count) + b"\x00"
+
+
+@pytest.mark.parametrize(("code", "answered"), [(0x01, 0x01), (0xFF, 0xFF), (0x0B, 0x0B), (0x00, 0x04),
+                                                (0x100, 0x04), (-1, 0x04)])
+async def test_a_backend_exception_code_is_answered_if_it_fits_a_byte_else_0x04(code: int, answered: int) -> None:
+    backend = CodeBackend(read_now_path=True, code=code)
+    async with serving(backend) as (reader, writer):
+        writer.write(frame(77, 1, struct.pack(">BHH", 6, 3, 9)))
+        assert await read_reply(reader) == (77, 1, bytes([0x86, answered]))
+
+
+async def test_a_backend_returning_the_wrong_number_of_bytes_is_a_device_failure(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    backend = CodeBackend(read_now_path=True)
+    async with serving(backend) as (reader, writer):
+        writer.write(frame(78, 1, struct.pack(">BHH", 3, 3, 2)))
+        assert await read_reply(reader) == (78, 1, bytes([0x83, 0x04]))
+    assert any("returned 5 data bytes for 2 values (4 expected)" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.parametrize(("pdu", "accepted"), [
+    (struct.pack(">BHHB", 15, 0, 1968, 246) + bytes(246), True),  # the FC15 maximum
+    (struct.pack(">BHHB", 15, 0, 1969, 247) + bytes(247), False),
+    (struct.pack(">BHHB", 15, 0, 8, 1) + b"\xff", True),  # 8 coils: one byte, not two
+    (struct.pack(">BHHB", 15, 0, 8, 2) + b"\xff\x00", False),
+    (struct.pack(">BHHB", 15, 0, 9, 2) + b"\xff\x01", True),
+    (struct.pack(">BHHB", 16, 0, 123, 246) + bytes(246), True),  # the FC16 maximum
+])
+async def test_write_quantities_at_the_limits_of_the_specification(pdu: bytes, accepted: bool) -> None:
+    backend = SpecBackend(read_now_path=True)
+    async with serving(backend) as (reader, writer):
+        writer.write(frame(79, 1, pdu[:253]))
+        _, _, reply = await read_reply(reader)
+    assert reply == (pdu[:5] if accepted else bytes([pdu[0] | 0x80, 0x03]))
+
+
+async def test_requests_are_counted_by_function_code_unknown_ones_too() -> None:
+    backend = SpecBackend(read_now_path=True)
+    server = ModbusTcpServer(_typed(backend), HOST, 0)
+    await server.start()
+    reader, writer = await asyncio.open_connection(HOST, server.port)
+    try:
+        for n, pdu in enumerate([struct.pack(">BHH", 3, 0, 1)] * 3 + [struct.pack(">BHH", 6, 0, 1), b"\x2b\x0e"]):
+            writer.write(frame(n, 1 if n != 2 else 9, pdu))
+            await read_reply(reader)
+        assert server.counters.requests == {3: 3, 6: 1, 0x2B: 1}
+        assert server.counters.exceptions == {0x0A: 1, 0x01: 1}
+    finally:
+        writer.close()
+        await server.close()

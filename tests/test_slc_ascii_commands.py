@@ -586,3 +586,13 @@ def test_an_error_byte_out_of_range_is_named(b84: int, b85: int, named: str) -> 
 
 def test_the_frn_probe_is_named_as_the_manual_names_it() -> None:
     assert read_frn().name == "read FRN"
+
+
+def test_a_command_code_is_a_byte_and_a_data_word_may_be_9999() -> None:
+    assert Command(0xFF, b"", "code FF", ReplyKind.ACK, TimeoutClass.NORMAL, is_write=False).code == 0xFF
+    for code in (True, 0x100, -1):
+        with pytest.raises(InvalidRequest, match="is not a byte"):
+            Command(code, b"", "bad", ReplyKind.ACK, TimeoutClass.NORMAL, is_write=False)
+    assert write_word(0x0040, 9999).params == b"\x00\x40\x27\x0f"
+    with pytest.raises(InvalidRequest, match="out of range"):
+        write_word(0x0040, 10000)
