@@ -502,7 +502,7 @@ def test_request_validation() -> None:
         encode_command(DiagnosticStatus(), dst=256, src=0, tns=0)
 
 
-# --- the refusal as the gateway reports it (issue 22: survivors of the mutation run) ------------
+# --- the refusal as the gateway reports it (survivors of a mutation run) ------------
 
 
 def test_a_refusal_names_the_command_its_codes_and_the_manuals_text_for_that_function() -> None:

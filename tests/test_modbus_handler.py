@@ -252,7 +252,7 @@ def check_reply(request: tuple[int, int, bytes], reply: tuple[int, int, bytes], 
             assert value in held.get((table, a), {initial(table, a)}), f"{table} {a} = {value}: never held"
 
 
-# --- the two bugs the suite missed (issue 22) --------------------------------------------------
+# --- two bugs a mutation run found the suite missed --------------------------------------------------
 
 
 @pytest.mark.parametrize("read_now_path", [True, False], ids=["read_now", "backend_call"])

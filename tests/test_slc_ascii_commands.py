@@ -509,7 +509,7 @@ def test_controller_fault() -> None:
 
 
 # ---------------------------------------------------------------------------------------------
-# Which commands are writes (issue 22): the SLC core resends a write under a new ID only with proof
+# Which commands are writes: the SLC core resends a write under a new ID only with proof
 # that it did not run, and resyncs on a quiet line before it; a write taken for a read could run
 # twice.  Built inside the test (not in a parametrize list, which runs at collection).
 

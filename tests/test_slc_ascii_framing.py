@@ -604,7 +604,7 @@ def test_line_splitter_matches_the_byte_by_byte_reference(chunks: list[bytes], s
 
 
 # ---------------------------------------------------------------------------------------------
-# What goes on the wire is upper-case hex, as every frame the manual prints (issue 22: the decoders
+# What goes on the wire is upper-case hex, as every frame the manual prints (a mutation run: the decoders
 # accept lower case, so a round trip cannot tell; a controller may not).
 
 

@@ -216,7 +216,7 @@ async def test_a_session_on_a_lost_link_fails_its_writes_with_link_down() -> Non
 
 
 # --------------------------------------------------------------------------------------------
-# Bounds, stopping, and the order of several clients (issue 22: mutants of writes.py that survived)
+# Bounds, stopping, and the order of several clients (mutants of writes.py that survived)
 
 
 async def test_default_bounds_are_8_writes_per_connection_and_32_per_link() -> None:
