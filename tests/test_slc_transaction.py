@@ -272,10 +272,19 @@ def test_i_after_power_up_proves_a_single_copy_was_not_executed(reported: int) -
         # a second copy with our ID first (test_stray_i_of_a_repeated_previous_message_...)
         assert session.data_to_send() == sent
         session.receive_data(encode_id_mismatch(reported), 0.02)
-    # proof: resync at once with a barrier read, no wait for quiet (its answer echoes its address)
-    assert session.state is SessionState.RESYNC
-    _, answer = _barrier(session.data_to_send())
-    session.receive_data(answer, 0.03)
+        # proof, once no answer to our copies can still come (the line may have repeated the ;I)
+        assert session.state is SessionState.PROVING
+        now = session.next_deadline() or 0
+        session.handle_timeout(now)
+        # proof; the line is quiet by now, so the resync reads the FRN
+        assert session.state is SessionState.RESYNC
+        assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
+        session.receive_data(encode_data_reply("021FFE1547", 0), now + 0.01)
+    else:
+        # proof: resync at once with a barrier read (its answer echoes its address)
+        assert session.state is SessionState.RESYNC
+        _, answer = _barrier(session.data_to_send())
+        session.receive_data(answer, 0.03)
     assert session.data_to_send() == encode_command(WRITE, 1)  # resent under a new ID
     session.receive_data(encode_ack(1), 0.71)
     assert session.take_result().verdict is Verdict.DONE
@@ -325,8 +334,10 @@ def test_late_i_after_id_rollover_is_proof_for_a_write() -> None:
     session.receive_data(encode_data_reply("000200400064", MAX_ID), 0.4)  # ;Z: an older reply
     assert session.data_to_send() == encode_command(WRITE, 1)  # resent with the same ID
     session.receive_data(encode_id_mismatch(MAX_ID), 0.41)  # power-cycled, retained ID 7F
-    assert session.state is SessionState.RESYNC  # proof: ;I<the ID before ours> -> resync, new ID
-    _barrier(session.data_to_send())
+    assert session.state is SessionState.PROVING  # no answer with our ID may still come ...
+    session.handle_timeout(session.next_deadline() or 0)
+    assert session.state is SessionState.RESYNC  # ... proof: ;I<the ID before ours> -> resync, new ID
+    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)  # the line is quiet by now
 
 
 def test_i_00_after_two_copies_is_no_proof() -> None:

@@ -233,8 +233,6 @@ def test_e_after_a_z_is_never_taken_for_a_refusal_even_after_a_resend(kind: str)
         assert session.take_result().verdict is Verdict.DONE
 
 
-@pytest.mark.xfail(strict=True, reason="landed core: a line that repeats a frame both ways makes a write run twice "
-                                       "(a known defect of the core)")
 def test_a_line_that_repeats_frames_both_ways_never_makes_a_write_run_twice() -> None:
     """The line repeats our previous write's frame: the controller runs it and refuses the copy with
     ``;I`` and its ID, and the line repeats that ``;I`` too.  Both arrive after our write's first

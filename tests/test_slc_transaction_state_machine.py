@@ -94,17 +94,12 @@ class ModelLine:
             fate = next(self.command_fates)
             if fate == "lost":
                 continue
-            for copy in range(2 if fate == "twice" else 1):
+            for _ in range(2 if fate == "twice" else 1):
                 for out in self.sim.receive(frame, self.now):
-                    self._reply(out.data, self.now + 0.001 + out.delay, repeat=copy == 0)
+                    self._reply(out.data, self.now + 0.001 + out.delay)
 
-    def _reply(self, reply: bytes, arrival: float, repeat: bool = True) -> None:
+    def _reply(self, reply: bytes, arrival: float) -> None:
         fate = next(self.reply_fates)
-        if fate == "twice" and not repeat:
-            # The reply to a repeated frame is not repeated in its turn: with both, the landed core
-            # can apply a write twice (test_slc_transaction_safety.py, the strict xfail).
-            fate = "ok"
-
         if fate == "drop":
             return
         if fate == "garble":

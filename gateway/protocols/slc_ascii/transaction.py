@@ -125,6 +125,7 @@ class SessionState(enum.Enum):
     RESYNC = "resync"  # the ID 00 probe sent, waiting for its answer
     SENT = "sent"  # a copy of the command sent
     Z_SENT = "z_sent"  # ;Z sent, waiting for the controller's last reply
+    PROVING = "proving"  # a write's proof of non-execution in, waiting until no reply to our copies can come
 
 
 class _In(enum.Enum):
@@ -232,6 +233,7 @@ class SlcSession:
         self._refused_once = False
         self._copy_sent = 0.0
         self._began = 0.0
+        self._why = ""
         self._full_timeout = timeout
         self._until: float | None = None
 
@@ -591,6 +593,15 @@ class SlcSession:
             self._send_copy(now)
             return
         proof = self._began_clean and (self._copies == 1 or (last == self._prev_id and last != 0))
+        if proof and self._copies > 1:
+            # ;I with the ID before ours to our second copy: proof, unless the line repeated the
+            # stray ;I that made us send that copy (a line that repeats frames both ways).  Then
+            # the answers to our copies are still on their way: wait until none can still come;
+            # one with our ID settles it the other way.
+            self._why = f";I{last:02X}: message ID out of step"
+            self.state = SessionState.PROVING
+            self._deadline = self._last_sent + self._quiet_time()
+            return
         if proof:
             # No copy of the command was, or can still be, executed: a new ID is safe.
             self._retry_read(now, f";I{last:02X}: message ID out of step")
@@ -599,6 +610,10 @@ class SlcSession:
             self._finish(Verdict.UNKNOWN, reason=f";I{last:02X} without proof that the command did not run")
             return
         self._send_z(now)
+
+    def _on_proved(self, now: float, event: ReplyEvent | None) -> None:
+        # No answer with our ID came while one still could: no copy ran, a new ID is safe.
+        self._retry_read(now, self._why)
 
     def _on_garbled(self, now: float, event: ReplyEvent | None) -> None:
         # A complete reply failed its check: ask for it again at once.
@@ -686,4 +701,10 @@ _TRANSITIONS: Final[dict[tuple[SessionState, _In], _Handler]] = {
     (_S.RESYNC, _In.GARBLED): SlcSession._on_probe_garbled,
     (_S.RESYNC, _In.TIMEOUT): SlcSession._on_probe_timeout,
     (_S.QUIET, _In.TIMEOUT): SlcSession._on_quiet,
+    # PROVING, ID_OTHER / OTHER: another stray reply of the repeated message: ignored
+    (_S.PROVING, _In.OURS): SlcSession._on_answer,
+    (_S.PROVING, _In.OURS_REFUSED): SlcSession._on_refused,
+    (_S.PROVING, _In.ID_OURS): SlcSession._on_id_ours,
+    (_S.PROVING, _In.GARBLED): SlcSession._on_garbled,
+    (_S.PROVING, _In.TIMEOUT): SlcSession._on_proved,
 }
