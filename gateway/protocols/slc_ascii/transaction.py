@@ -228,7 +228,6 @@ class SlcSession:
         self._probes = 0
         self._messages = 0
         self._began_clean = True
-        self._quiet_then_resync = True
         self._heard = False
         self._refused_once = False
         self._copy_sent = 0.0
@@ -425,8 +424,8 @@ class SlcSession:
         when answers were seen coming later than that (a controller slower than configured)."""
         return max(self.late_bound, 1.5 * max(self._lateness, default=0.0))
 
-    def _enter_quiet(self, now: float, *, then_resync: bool = True) -> None:
-        self._quiet_then_resync = then_resync
+    def _enter_quiet(self, now: float) -> None:
+        """Wait until no reply to our last message can still come, then resync with read FRN."""
         quiet_at = self._last_sent + self._quiet_time()
         if now >= quiet_at:
             self._after_quiet(now)
@@ -437,13 +436,10 @@ class SlcSession:
 
     def _after_quiet(self, now: float) -> None:
         self._clean = True
-        if self._quiet_then_resync:
-            self._era_trusted = True
-            self._barrier_refused = False  # the controller may take barrier reads again later
-            self._probe = _PROBE
-            self._send_probe(now)
-        else:
-            self._send_first_copy(now)
+        self._era_trusted = True
+        self._barrier_refused = False  # the controller may take barrier reads again later
+        self._probe = _PROBE
+        self._send_probe(now)
 
     def _begin_resync(self, now: float) -> None:
         """Restart the numbering with an ID 00 message whose answer is a *barrier*: no reply to
