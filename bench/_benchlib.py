@@ -121,7 +121,7 @@ def rss_mib() -> float:
 def df1_simulator_available() -> bool:
     """The SLC 5/04 simulator (``gateway/sim/slc500.py``) is being written separately."""
     try:
-        import gateway.sim.slc500  # noqa: F401
+        import gateway.kinds.df1.sim.slc500  # noqa: F401
     except ImportError:
         return False
     return True
@@ -373,7 +373,7 @@ class CompletionLog:
 
 def slc_bare_frames() -> list[bytes]:
     """SLC 100/150 read requests of the default map's fast class, IDs 00, 01..7F, 01..7F ..."""
-    from gateway.links.slc_ascii.plan import slc_ascii_plan
+    from gateway.kinds.slc_ascii.plan import slc_ascii_plan
     from gateway.modbus.mapping import Scan
     from gateway.protocols.slc_ascii import commands as cmds
     from gateway.protocols.slc_ascii.framing import encode_command
@@ -391,7 +391,7 @@ def df1_bare_frames(
     entries: Sequence[dict[str, object]] = DF1_MAP, count: int = 4000, first_tns: int = 30000
 ) -> list[bytes]:
     """DF1 command frames (CRC) of the map's read plan, consecutive TNS from ``first_tns``."""
-    from gateway.links.df1.plan import MapItem, plan_df1
+    from gateway.kinds.df1.plan import MapItem, plan_df1
     from gateway.protocols.df1.framing import Checksum, encode_frame
     from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, encode_command
 

@@ -42,9 +42,9 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
 from gateway.config import parse_config
+from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
 from gateway.sim import create_simulator, get_simulator, reset_simulators
 from gateway.sim.serve import serve_tcp
-from gateway.sim.slc_ascii import SlcAsciiSimulator
 
 HOST = "127.0.0.1"
 MIXES: dict[str, dict[str, int]] = {

@@ -38,11 +38,11 @@ from typing import Any
 
 from _benchlib import DF1_MAP, print_machine, result, table
 
-from gateway.drivers.df1 import Df1Driver
-from gateway.drivers.slc_ascii import SlcAsciiDriver
-from gateway.links.df1.plan import MapItem
-from gateway.links.df1.unit import Df1Unit
-from gateway.links.slc_ascii.unit import SlcAsciiUnit
+from gateway.kinds.df1.driver import Df1Driver
+from gateway.kinds.df1.plan import MapItem
+from gateway.kinds.df1.unit import Df1Unit
+from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
+from gateway.kinds.slc_ascii.unit import SlcAsciiUnit
 from gateway.modbus.mapping import Block, Scan
 from gateway.protocols.df1.framing import NEED_DATA as DF1_NEED_DATA
 from gateway.protocols.df1.framing import Checksum, encode_frame
@@ -154,14 +154,14 @@ def canned_replies(model: str, frames: Sequence[bytes]) -> dict[bytes, bytes]:
 
 
 def slc_blocks() -> tuple[list[Block], list[Block]]:
-    from gateway.links.slc_ascii.plan import slc_ascii_plan
+    from gateway.kinds.slc_ascii.plan import slc_ascii_plan
 
     blocks = slc_ascii_plan().blocks
     return [b for b in blocks if b.scan is Scan.SLOW], [b for b in blocks if b.scan is Scan.FAST]
 
 
 def df1_blocks() -> list[Block]:
-    from gateway.links.df1.plan import plan_df1
+    from gateway.kinds.df1.plan import plan_df1
 
     return plan_df1([MapItem(**e) for e in DF1_MAP], 236).blocks  # type: ignore[arg-type]
 

@@ -2,7 +2,7 @@
 
 Three live SLC 5/0x stations (1, 2, 5) and one absent (9) on one line at 19200 baud; 1 in 6 slave
 frames corrupted, 1 in 10 master frames unheard by their station.  The line master is built from
-the same ``[[link]]`` keys (defaults) as ``slc-gateway run`` uses (``gateway.links.df1.build``).
+the same ``[[link]]`` keys (defaults) as ``slc-gateway run`` uses (``gateway.kinds.df1.build``).
 Each live station is read (N7:0-19, one protected typed logical read) over and over; every
 ``--write-every`` s a one-word write (N7:10) goes to the next live station in turn, as the interop
 check's FC6 does.  Reported per checksum:
@@ -12,7 +12,7 @@ check's FC6 does.  Reported per checksum:
 
 Two targets, each named in the output:
 
-* ``--target sim``: the project's multi-drop line simulator (``gateway.sim.df1_multidrop``),
+* ``--target sim``: the project's multi-drop line simulator (``gateway.kinds.df1.sim.df1_multidrop``),
   paced at the baud rate;
 * ``--target peer``: the independent peer ``../shared/interop/peers/df1_halfduplex_peer.py``
   (``--peer PATH``), over TCP, paced by itself.
@@ -34,13 +34,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from _benchlib import percentile, print_machine, result, table
 
-from gateway.config.df1 import Df1LinkConfig, group_lines
-from gateway.drivers.df1_half import Df1HalfDuplexLine, Df1Station
 from gateway.errors import GatewayError
-from gateway.links.df1.build import build_line
+from gateway.kinds.df1.build import build_line
+from gateway.kinds.df1.config import Df1LinkConfig, group_lines
+from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, Df1Station
+from gateway.kinds.df1.sim.df1_multidrop import MultidropLine
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, ProtectedTypedLogicalWrite
-from gateway.sim.df1_multidrop import MultidropLine
 from gateway.sim.serve import SimStream
 from gateway.streams import SerialSettings
 from gateway.transport import ByteStream

@@ -216,11 +216,11 @@ def memory_per_link(units: int = 20) -> dict[str, float]:
     import gc
     import tracemalloc
 
-    from gateway.drivers.df1 import Df1Driver
-    from gateway.drivers.slc_ascii import SlcAsciiDriver
-    from gateway.links.df1.plan import MapItem
-    from gateway.links.df1.unit import Df1Unit
-    from gateway.links.slc_ascii.unit import SlcAsciiUnit
+    from gateway.kinds.df1.driver import Df1Driver
+    from gateway.kinds.df1.plan import MapItem
+    from gateway.kinds.df1.unit import Df1Unit
+    from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
+    from gateway.kinds.slc_ascii.unit import SlcAsciiUnit
 
     def slc(i: int) -> object:
         return SlcAsciiUnit(driver=SlcAsciiDriver("sim://slc150"), unit_id=1, name=f"slc{i}")

@@ -8,7 +8,7 @@ and our DLE ACK, built with the protocol encoders (CRC; DLE doubling of the head
 bytes included - an element number 16 is sent as DLE DLE; elements >= 255 take a 3-byte field).
 Reply data are costed as zeros (their DLE doubling depends on the values).
 
-The optimum is found independently of ``gateway.links.df1.plan``:
+The optimum is found independently of ``gateway.kinds.df1.plan``:
 
 * the needed words are computed here from the entries (N: word k; F: words 2k, 2k+1; T/C .ACC:
   word 3k+2; B bits: word bit//16);
@@ -35,7 +35,7 @@ import statistics
 
 from _benchlib import print_machine, result, table
 
-from gateway.links.df1.plan import MapItem, plan_df1
+from gateway.kinds.df1.plan import MapItem, plan_df1
 from gateway.protocols.df1.framing import Checksum, encode_frame
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, encode_command
 

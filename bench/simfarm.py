@@ -32,6 +32,7 @@ import selectors
 import sys
 import threading
 
+import gateway.kinds  # noqa: F401  (registers the built-in kinds' sim:// models)
 from gateway.sim import create_simulator
 from gateway.sim.serve import LineModel, SimDevice
 from gateway.transport import SerialSettings

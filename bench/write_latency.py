@@ -55,7 +55,7 @@ from gateway.config import parse_config
 
 def slc_times() -> tuple[list[float], float]:
     """(poll transaction durations of one fast scan, write transaction duration), seconds."""
-    from gateway.links.slc_ascii.plan import slc_ascii_plan
+    from gateway.kinds.slc_ascii.plan import slc_ascii_plan
     from gateway.modbus.mapping import Scan
 
     polls = []
@@ -69,7 +69,7 @@ def slc_times() -> tuple[list[float], float]:
 
 
 def df1_times() -> tuple[list[float], float]:
-    from gateway.links.df1.plan import MapItem, plan_df1
+    from gateway.kinds.df1.plan import MapItem, plan_df1
     from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, ProtectedTypedLogicalWrite
 
     polls = []

@@ -12,7 +12,7 @@ from typing import Any
 from gateway.config import GatewayConfig, parse_listen
 from gateway.config.link import LinkBase
 from gateway.errors import ConfigError, ModbusExceptionReply
-from gateway.links import LinkKind, LinkRunner, link_kind, link_kinds
+from gateway.kinds import LinkKind, LinkRunner, link_kind, link_kinds
 from gateway.metrics import MetricsServer
 from gateway.modbus.admission import RolePolicy
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Table
@@ -166,7 +166,7 @@ class Gateway:
                 for runner in self.runners:
                     self._links.append(group.create_task(runner.run(), name=f"{runner.name}-link"))
                 for unit in self.units:
-                    group.create_task(unit.poller.run(), name=f"{unit.name}-poller")
+                    group.create_task(unit.run(), name=f"{unit.name}-poller")
                 for server in self.servers:
                     group.create_task(server.serve_forever(), name=f"{server.name}-server")
                 self._started.set()

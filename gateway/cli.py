@@ -21,7 +21,7 @@ from typing import Any
 
 from gateway import __version__
 from gateway.errors import GatewayError
-from gateway.links import LinkKind, kind_names, link_kinds
+from gateway.kinds import LinkKind, kind_names, link_kinds
 from gateway.sim import model_names
 from gateway.sim.models import sim_models
 

@@ -45,7 +45,7 @@ ModbusExceptionReply     its own ``code``
 =======================  =====  ===============================================================
 
 A protocol's unit may translate its refusals more finely before this table sees them (a PCCC
-refusal naming a bad address answers 0x02: ``gateway.links.df1.unit.pccc_exception``).
+refusal naming a bad address answers 0x02: ``gateway.kinds.df1.unit.pccc_exception``).
 """
 
 from __future__ import annotations

@@ -162,7 +162,7 @@ class _GatewayCollector:
         }
         retries = _counter(
             "retries",
-            "Protocol retries by kind (retransmit: SLC ;Z, id_resync: SLC ;I, enq, nak: DF1).",
+            "Protocol retries by kind (each link kind names its own: docs/metrics.md lists them).",
             (*link, "kind"),
         )
         byte_count = _counter("bytes", "Bytes on the link by direction.", (*link, "direction"))
@@ -183,10 +183,8 @@ class _GatewayCollector:
             stale.add_metric(labels, unit.stale_after)
             for field, family in plain.items():
                 family.add_metric(labels, getattr(counters, field))
-            retries.add_metric((*labels, "retransmit"), counters.retransmits)
-            retries.add_metric((*labels, "id_resync"), counters.id_resyncs)
-            retries.add_metric((*labels, "enq"), counters.enq_sent)
-            retries.add_metric((*labels, "nak"), counters.nak_received)
+            for retry_kind, count in counters.retries_by_kind.items():
+                retries.add_metric((*labels, retry_kind), count)
             byte_count.add_metric((*labels, "tx"), counters.bytes_sent)
             byte_count.add_metric((*labels, "rx"), counters.bytes_received)
             writes.add_metric(labels, unit.write_requests)

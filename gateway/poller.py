@@ -21,7 +21,7 @@ data unavailable; the first block read makes it available again.  Each change is
 never per retry, and never twice with the driver's words:
 
 * the link's own state is the driver's to log (``link X: down: ...`` after several failures in
-  a row, ``link X: up`` at the first answer; ``gateway.drivers.base``).  When the polls fail
+  a row, ``link X: up`` at the first answer; ``gateway.line_driver``).  When the polls fail
   because of the link (``LinkError``: down, no answer), the poller's change is logged at DEBUG
   only: the driver's line is the one message the operator needs, and one unanswered round on
   a noisy line (not yet a link down) is no news for an operator;

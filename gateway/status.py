@@ -31,7 +31,7 @@ from urllib.parse import parse_qs
 
 from gateway import __version__
 from gateway.errors import ModbusExceptionReply
-from gateway.links import link_kind
+from gateway.kinds import link_kind
 from gateway.logutil import redact_url
 from gateway.modbus.mapping import Table
 from gateway.tags import Tag, link_tags
@@ -84,7 +84,7 @@ class StatusView(Protocol):
 
 def data_age(unit: Unit[Any, Any], now: float) -> float:
     """Seconds since the oldest fast-class block was read; +Inf if one never was."""
-    return max(0.0, unit.cache.oldest_age(unit.poller.fast, now))
+    return unit.data_age(now)
 
 
 def public_error(text: str) -> str:
@@ -165,7 +165,7 @@ class StatusPage:
             state = "down" if not up else "up" if fresh else "stale"
             up_count += state == "up"
             kind, controllers = self._kind(unit.name)
-            error = unit.poller.last_error
+            error = unit.last_error
             rows.append({
                 "name": unit.name,
                 "kind": kind,
@@ -180,7 +180,7 @@ class StatusPage:
                 "errors": counters.errors,
                 "retries": counters.retries,
                 "last_error": public_error(str(error)) if error is not None else public_error(driver.last_error),
-                "last_error_at": at(unit.poller.last_error_at) if error is not None else None,
+                "last_error_at": at(unit.last_error_at) if error is not None else None,
             })
         servers = [{
             "name": server.name,

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from typing import Any, Final
 
 from gateway.config.link import LinkBase
-from gateway.links import link_kind, unit_options
+from gateway.kinds import link_kind, unit_options
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Half, PointLabel, RegisterPoint, Table
 from gateway.unit import in_writable
 
@@ -44,7 +44,6 @@ _STATUS_TEXT: Final = {
     "transactions": "transactions the controller answered",
     "errors": "failed transactions",
     "retries": "protocol retries",
-    "id_resyncs": "ID resyncs",
 }
 
 
@@ -130,10 +129,12 @@ def link_tags(link: LinkBase) -> list[Tag]:
         for address in sorted(bits):
             add(table, address, bits[address].write is not None)
     address = STATUS_BASE
+    kind_key, kind_text = link_kind(link.protocol).status_counter
     for key, width in STATUS_REGISTERS:
-        tags.append(Tag(f"{link.name}/status.{key}", link.name, link.unit, Table.INPUT, address,
+        name, text = (kind_key, kind_text) if key == "kind_counter" else (key, _STATUS_TEXT.get(key, key))
+        tags.append(Tag(f"{link.name}/status.{name}", link.name, link.unit, Table.INPUT, address,
                         "uint32" if width == 2 else "uint16", "high-first" if width == 2 else "", False,
-                        f"status: {_STATUS_TEXT.get(key, key)}"))
+                        f"status: {text}"))
         address += width
     return tags
 

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from typing import Any
 
 from gateway.errors import ControllerRefused, InvalidRequest, LinkTimeout
-from gateway.links import LinkKind, kind_names, link_kind, link_kinds
+from gateway.kinds import LinkKind, kind_names, link_kind, link_kinds
 from gateway.sim import parse_sim_url
 from gateway.tools_common import print_result, resolve_retries
 from gateway.transport import ByteStream, SerialSettings, open_stream

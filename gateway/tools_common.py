@@ -1,6 +1,6 @@
 """What every link kind's CLI tool shares: result printing and the retry default.
 
-Every link kind's tool (``gateway.links.<kind>.tool``) uses these, and :mod:`gateway.tools`
+Every link kind's tool (``gateway.kinds.<kind>.tool``) uses these, and :mod:`gateway.tools`
 re-exports them; keeping them here lets ``tools`` hand a command to a kind's tool without the
 tool importing ``tools`` back (the ``tools <-> tools_df1`` import circle of issue 11).
 """

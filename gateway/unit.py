@@ -1,5 +1,11 @@
 """One controller served as one Modbus unit: driver + read plan + cache + poller + access rules.
 
+A unit is *polled* (the default: its poller reads the plan's blocks from the controller) or not
+(``polled=False``: the kind's runner owns the line and fills the image itself, with
+:meth:`Unit.store` when data arrives and :meth:`Unit.heard` when the peer is heard from; a
+non-polled value never ages on its own and is stale only once the peer has been silent for
+``stale_after``).  Everything else (the image, the status block, writes, access rules) is the same.
+
 Reads are answered from the register and bit images (``gateway.image``), which the cache fills
 when a block is stored; writes go through to the controller and are answered only after it
 confirmed them, then patch the cache (never its read times).
@@ -41,9 +47,9 @@ from typing import Any, Generic, NotRequired, TypedDict, TypeVar
 
 from gateway.cache import BlockCache
 from gateway.clients import current_client
-from gateway.drivers.base import UnitDriver
 from gateway.errors import ControllerRefused, GatewayError, ModbusExceptionReply, modbus_exception
 from gateway.image import ImageMiss, Images
+from gateway.line_driver import UnitDriver
 from gateway.modbus.mapping import (
     STATUS_BASE,
     STATUS_REGISTERS,
@@ -135,6 +141,7 @@ class Unit(ABC, Generic[R, B]):
         write_queue_per_link: int = 32,
         write_timeout: float = 0.9,
         stagger: float | None = None,
+        polled: bool = True,
     ) -> None:
         self.unit_id = unit_id
         self.name = name
@@ -143,7 +150,8 @@ class Unit(ABC, Generic[R, B]):
         self.stale_after = stale_after
         self.read_only = read_only
         self.writable = tuple(writable)
-        period = {Scan.FAST: fast_interval, Scan.SLOW: slow_interval}
+        # a value that is not polled does not age on its own (see the module doc)
+        period = {Scan.FAST: fast_interval, Scan.SLOW: slow_interval} if polled else dict.fromkeys(Scan, float("inf"))
         #: per block: the largest age at which its bytes are still served
         self._max_age = [stale_after + period[block.scan] for block in plan.blocks]
         #: the four tables decoded when a block is stored (a read is a slice)
@@ -154,8 +162,10 @@ class Unit(ABC, Generic[R, B]):
             fast=[i for i, block in enumerate(plan.blocks) if block.scan is Scan.FAST],
         )
         #: the controller is silent after this long without an answer to a poll (the poller asks
-        #: every fast_interval, or only every slow_interval when the plan has no fast class)
-        self._silent_after = min(self._max_age, default=stale_after)
+        #: every fast_interval, or only every slow_interval when the plan has no fast class); a
+        #: non-polled peer, after stale_after without a message
+        self._silent_after = min(self._max_age, default=stale_after) if polled else stale_after
+        #: None: not polled (the kind's runner fills the image)
         self.poller = Poller(
             name,
             plan.blocks,
@@ -165,7 +175,7 @@ class Unit(ABC, Generic[R, B]):
             slow_interval=slow_interval,
             responding=lambda: driver.available,
             stagger=stagger,  # None: a share of fast_interval from the name (gateway.poller.default_stagger)
-        )
+        ) if polled else None
         self.write_requests = 0
         self.write_failures = 0
         #: seconds from a write request's arrival to its answer, success or exception
@@ -177,6 +187,37 @@ class Unit(ABC, Generic[R, B]):
         self.writes = WriteQueue(driver, name, per_client=write_queue_per_client, per_link=write_queue_per_link)
         #: every write request is answered within this many seconds (see _queue_write)
         self.write_timeout = write_timeout
+
+    # --- what runs, and what fills the image ---------------------------------------------------
+
+    async def run(self) -> None:
+        """Poll until cancelled; a unit that is not polled has nothing to run (its runner fills it)."""
+        if self.poller is not None:
+            await self.poller.run()
+
+    def store(self, block: int, data: bytes, now: float) -> None:
+        """New bytes of block ``block`` (its index in the plan), read or received at loop time ``now``."""
+        self.cache.store(block, data, now)
+
+    def heard(self, now: float) -> None:
+        """The peer was heard from at ``now`` without new data (a non-polled unit is not silent)."""
+        self.cache.newest = max(self.cache.newest, now)
+
+    def data_age(self, now: float) -> float:
+        """Polled: seconds since the oldest fast-class block was read.  Not polled: since the peer was
+        last heard.  +Inf: never."""
+        if self.poller is None:
+            return max(0.0, now - self.cache.newest)
+        return max(0.0, self.cache.oldest_fast_age(now))
+
+    @property
+    def last_error(self) -> GatewayError | None:
+        """The error of the last failed poll (None: the last poll succeeded, or none ran)."""
+        return self.poller.last_error if self.poller is not None else None
+
+    @property
+    def last_error_at(self) -> float | None:
+        return self.poller.last_error_at if self.poller is not None else None
 
     # --- protocol hooks ---------------------------------------------------------------------
 
@@ -198,8 +239,9 @@ class Unit(ABC, Generic[R, B]):
     def last_fault_number(self) -> int: ...
 
     @property
-    def id_resyncs(self) -> int:
-        return self.driver.counters.id_resyncs
+    def kind_counter(self) -> int:
+        """The status block's kind counter (1009-1010): what it counts is the kind's ``status_counter``."""
+        return 0
 
     # --- reads ------------------------------------------------------------------------------
 
@@ -249,7 +291,7 @@ class Unit(ABC, Generic[R, B]):
         return now - self.cache.newest > self._silent_after
 
     def _stale(self, block: int | None = None) -> ModbusExceptionReply:
-        refused = self.poller.refused.get(block) if block is not None else None
+        refused = self.poller.refused.get(block) if block is not None and self.poller is not None else None
         if refused is not None:
             return self.refusal_exception(refused[0])
         return ModbusExceptionReply(TARGET_FAILED, f"{self.name}: no fresh data (stale after {self.stale_after:g} s)")
@@ -260,7 +302,7 @@ class Unit(ABC, Generic[R, B]):
 
     def status_values(self, now: float) -> dict[str, int]:
         counters = self.driver.counters
-        age = self.cache.oldest_fast_age(now)
+        age = self.data_age(now)
         return {
             "link_up": 1 if self.driver.available else 0,
             "data_age": min(65535, int(age * 10)) if age != float("inf") else 65535,
@@ -268,7 +310,7 @@ class Unit(ABC, Generic[R, B]):
             "transactions": counters.transactions,
             "errors": counters.errors,
             "retries": counters.retries,
-            "id_resyncs": self.id_resyncs,
+            "kind_counter": self.kind_counter,
         }
 
     def _status(self, address: int, count: int, now: float) -> list[int]:

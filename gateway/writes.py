@@ -4,7 +4,7 @@ Every write request (one FC5, FC6, FC15 or FC16, validated whole beforehand) bec
 queued here the moment it arrives: the server starts one task per request in arrival order and
 nothing awaits before the queue, so queue order is arrival order, across all connections.
 One worker per link runs the jobs one at a time inside a write session of the driver
-(``LinkDriver.write_session``): writes go ahead of polls, and after ``write_burst`` write
+(``LineDriver.write_session``): writes go ahead of polls, and after ``write_burst`` write
 transactions in a row ``poll_burst`` poll transactions get the line.
 
 Order.  Jobs of one client run in arrival order, always.  Between clients the worker serves
@@ -30,8 +30,8 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Hashable
 from dataclasses import dataclass, field
 
-from gateway.drivers.base import UnitDriver
 from gateway.errors import LinkError, ModbusExceptionReply, modbus_exception
+from gateway.line_driver import UnitDriver
 
 __all__ = ["WriteQueue"]
 

@@ -12,9 +12,9 @@ import itertools
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
+from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
 from gateway.protocols.slc_ascii.commands import Command
 from gateway.protocols.slc_ascii.transaction import Result, SlcSession
-from gateway.sim.slc_ascii import SlcAsciiSimulator
 
 #: what happens to one reply
 FATES = ("ok", "drop", "garble", "truncate", "late")

@@ -1,7 +1,7 @@
 """The DF1 command-line tools on a half-duplex multi-drop line (``--duplex half --station N``) and on
 a PLC-5 (``--processor plc5``: word range commands, PLC-5 addresses) - issue #12.
 
-The line is the in-process multi-drop simulator (:class:`gateway.sim.df1_multidrop.MultidropLine`)
+The line is the in-process multi-drop simulator (:class:`gateway.kinds.df1.sim.df1_multidrop.MultidropLine`)
 served over TCP (``serve_tcp``, as a serial device server would be) from an event loop in a thread
 of its own; the CLI (``gateway.cli.main``) runs in the test's thread with its own loop, as a
 subprocess would, and talks to it through a ``socket://`` URL.  Stations hold ``N7:k = 100 n + k``
@@ -20,11 +20,11 @@ from typing import Any
 import pytest
 
 from gateway.cli import main
+from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
+from gateway.kinds.df1.sim.plc5 import Plc5Simulator
+from gateway.kinds.df1.sim.slc500_options import Slc500Options
 from gateway.protocols.df1.half_duplex_framing import Checksum
-from gateway.sim.df1_multidrop import LineOptions, MultidropLine
-from gateway.sim.plc5 import Plc5Simulator
 from gateway.sim.serve import close_tcp, serve_tcp
-from gateway.sim.slc500_options import Slc500Options
 
 HOST = "127.0.0.1"
 FAST = ("--poll-timeout", "0.1", "--ack-timeout", "0.1", "--timeout", "1")

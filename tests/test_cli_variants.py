@@ -10,7 +10,7 @@ from __future__ import annotations
 import pytest
 from cli_support import cli, fails, ok_json
 
-from gateway.sim.slc_ascii import SlcAsciiSimulator
+from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
 
 PRESETS = [f"{901 + n}.PRE" for n in range(32)]
 #: the simulator's presets: 100 + 10 n, and 932 protected (bit 15 masked when read: 500)

@@ -14,15 +14,10 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from gateway.config import (
-    DF1_DEFAULTS,
-    SLC_ASCII_DEFAULTS,
-    Df1LinkConfig,
     GatewayConfig,
     LoggingConfig,
-    MapEntry,
     MetricsConfig,
     ModbusConfig,
-    SlcAsciiLinkConfig,
     TlsConfig,
     WritableRange,
     link_models,
@@ -32,8 +27,9 @@ from gateway.config import (
     protocol_defaults,
     protocol_names,
 )
-from gateway.config.df1 import classify_address
 from gateway.errors import ConfigError
+from gateway.kinds.df1.config import DF1_DEFAULTS, Df1LinkConfig, MapEntry, classify_address
+from gateway.kinds.slc_ascii.config import SLC_ASCII_DEFAULTS, SlcAsciiLinkConfig
 from gateway.protocols.df1.address import parse_address
 
 _PEM_CACHE: dict[str, bytes] = {}
@@ -1442,8 +1438,8 @@ def test_drivers_and_tools_agree_with_the_serial_defaults_of_the_config() -> Non
     """config/slc_ascii.py and config/df1.py hold the serial defaults; the CLI tools read them there.
     The drivers keep a default of their own (for code that builds one without a config) until the
     link-kind registry passes the config's in: this keeps the two from drifting apart."""
-    from gateway.drivers.df1 import DF1_SETTINGS, Df1Driver
-    from gateway.drivers.slc_ascii import SLC_ASCII_SETTINGS, SlcAsciiDriver
+    from gateway.kinds.df1.driver import DF1_SETTINGS, Df1Driver
+    from gateway.kinds.slc_ascii.driver import SLC_ASCII_SETTINGS, SlcAsciiDriver
 
     assert SLC_ASCII_SETTINGS == SLC_ASCII_DEFAULTS.settings
     assert inspect.signature(SlcAsciiDriver).parameters["timeout"].default == SLC_ASCII_DEFAULTS.timeout

@@ -7,7 +7,7 @@ from typing import Any
 import pytest
 from pydantic import ValidationError
 
-from gateway.config.df1 import LINE_KEYS, Df1LinkConfig, group_lines, line_problems
+from gateway.kinds.df1.config import LINE_KEYS, Df1LinkConfig, group_lines, line_problems
 
 
 def link(name: str, unit: int, **keys: Any) -> Df1LinkConfig:

@@ -1,6 +1,6 @@
 """Half-duplex lines built from ``[[link]]`` configs, end to end over TCP against the multi-drop simulator.
 
-Two lines, as the DF1 link kind builds them (``gateway.links.df1.build.build_df1``): SLC 5/04 stations 1-3 (BCC)
+Two lines, as the DF1 link kind builds them (``gateway.kinds.df1.build.build_df1``): SLC 5/04 stations 1-3 (BCC)
 behind one device server port, PLC-5 stations 5 and 6 (CRC) behind another; station 3 absent.  Every
 unit reads its own station's values (never another's), the absent one fails with 0x0B promptly,
 a write lands once on the right station, and an MSG of station 2 lands in its register table.
@@ -14,16 +14,16 @@ from typing import Any
 
 import pytest
 
-from gateway.config.df1 import Df1LinkConfig, line_problems
-from gateway.drivers.df1_half import Df1Station
 from gateway.errors import LinkTimeout
-from gateway.links.df1.build import build_df1
-from gateway.links.df1.plc5_unit import Plc5Unit
-from gateway.links.df1.unit import Df1Unit
+from gateway.kinds.df1.build import build_df1
+from gateway.kinds.df1.config import Df1LinkConfig, line_problems
+from gateway.kinds.df1.half_duplex_driver import Df1Station
+from gateway.kinds.df1.plc5_unit import Plc5Unit
+from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
+from gateway.kinds.df1.unit import Df1Unit
 from gateway.modbus.mapping import Table
 from gateway.protocols.df1.half_duplex_framing import Checksum
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeWrite, encode_command
-from gateway.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.sim.serve import close_tcp, serve_tcp
 from gateway.unit import Unit
 

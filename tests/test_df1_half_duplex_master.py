@@ -16,6 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from gateway.kinds.df1.sim.df1_half_duplex_slave import VARIANTS, HalfDuplexSlave, SlaveVariant
 from gateway.protocols.df1.half_duplex import (
     NEED_DATA,
     FailReason,
@@ -41,7 +42,6 @@ from gateway.protocols.df1.half_duplex_framing import (
     encode_slave_message,
 )
 from gateway.protocols.df1.pccc import PcccHeader, reply_matches
-from gateway.sim.df1_half_duplex_slave import VARIANTS, HalfDuplexSlave, SlaveVariant
 from gateway.sim.variants import variant_matrix
 
 GATEWAY = 0x00  # the master's own DF1 address (SRC of its commands)

@@ -16,7 +16,8 @@ from dataclasses import replace
 import pytest
 from test_df1_half_duplex_master import events, feed
 
-from gateway.drivers.df1_half import Df1HalfDuplexLine
+from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.protocols.df1.half_duplex import (
     FailReason,
     HalfDuplexMaster,
@@ -42,7 +43,6 @@ from gateway.protocols.df1.pccc import (
     encode_command,
 )
 from gateway.protocols.df1.slave_messages import RegisterTable, Verdict, answer_slave_message
-from gateway.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.sim.serve import SimStream
 from gateway.transport import ByteStream
 

@@ -16,6 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from gateway.kinds.df1.sim.slc500 import Slc500Options, Slc500Simulator
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import ACK_SYMBOL, ENQ_SYMBOL, NAK_SYMBOL, NEED_DATA, Checksum, encode_frame
 from gateway.protocols.df1.link import Df1Link
@@ -38,7 +39,6 @@ from gateway.protocols.df1.transaction import (
     TxnState,
     read_back_for,
 )
-from gateway.sim.slc500 import Slc500Options, Slc500Simulator
 from gateway.sim.variants import variant_matrix
 
 N, B = FileType.INTEGER, FileType.BIT

@@ -1,6 +1,6 @@
 """``Df1Driver`` paired with the simulated SLC 5/04, in-process (``sim://``) and over TCP.
 
-No mocks: the driver talks DF1 full duplex to ``gateway.sim.slc500`` through a ``SimStream``
+No mocks: the driver talks DF1 full duplex to ``gateway.kinds.df1.sim.slc500`` through a ``SimStream``
 or through real sockets on 127.0.0.1 (``serve_tcp`` + ``socket://``, a serial device server in
 raw mode).  Every simulator is its own instance (``instance=``/``seed=`` in the URL, or created
 directly for TCP), so no two tests share controller state.
@@ -27,8 +27,9 @@ from urllib.parse import urlencode
 
 import pytest
 
-from gateway.drivers.df1 import Df1Driver, WriteOutcomeUnknown
 from gateway.errors import LinkDown, LinkTimeout
+from gateway.kinds.df1.driver import Df1Driver, WriteOutcomeUnknown
+from gateway.kinds.df1.sim.slc500 import Slc500Simulator
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.pccc import (
@@ -43,7 +44,6 @@ from gateway.protocols.df1.pccc import (
 )
 from gateway.sim import create_simulator, get_simulator, reset_simulators
 from gateway.sim.serve import SimStream, close_tcp, serve_tcp
-from gateway.sim.slc500 import Slc500Simulator
 from gateway.sim.variants import variant_matrix
 
 HOST = "127.0.0.1"
@@ -326,12 +326,12 @@ async def test_every_acknowledged_write_applied_exactly_once_under_faults(transp
         counters = sim.counters
         assert counters.corrupted and counters.dropped and counters.withheld_acks
         assert counters.duplicates and counters.noise
-        assert driver.counters.nak_received == 0  # the host's frames arrive intact; the simulator NAKs none
-        assert driver.counters.enq_sent > 0  # withheld ACKs were recovered by ENQ
+        assert driver.counters.retries_by_kind.get("nak", 0) == 0  # the simulator NAKs no frame
+        assert driver.counters.retries_by_kind.get("enq", 0) > 0  # withheld ACKs were recovered by ENQ
 
 
 # --------------------------------------------------------------------------------------------
-# Every reading of the manuals (gateway.sim.slc500 VARIANTS): driver + simulator over TCP
+# Every reading of the manuals (gateway.kinds.df1.sim.slc500 VARIANTS): driver + simulator over TCP
 
 VARIANTS = list(variant_matrix(Slc500Simulator.VARIANTS))
 

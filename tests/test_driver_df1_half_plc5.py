@@ -13,16 +13,16 @@ from typing import Any
 
 import pytest
 
-from gateway.drivers.df1_half import Df1HalfDuplexLine
 from gateway.errors import LinkTimeout
-from gateway.links.df1.plan import MapItem
-from gateway.links.df1.plc5_unit import Plc5Unit
+from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.plan import MapItem
+from gateway.kinds.df1.plc5_unit import Plc5Unit
+from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
+from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.modbus.mapping import Table
 from gateway.protocols.df1.half_duplex import StationConfig
 from gateway.protocols.df1.half_duplex_framing import Checksum
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeRead
-from gateway.sim.df1_multidrop import LineOptions, MultidropLine
-from gateway.sim.plc5 import Plc5Simulator
 from gateway.sim.serve import SimStream
 from gateway.transport import ByteStream
 

@@ -15,15 +15,15 @@ from pathlib import Path
 
 import pytest
 
-from gateway.drivers.base import Priority
-from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import ControllerRefused, GatewayError, LinkDown, LinkTimeout, ProtocolError, WriteOutcomeUnknown
+from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
+from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
+from gateway.line_driver import Priority
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import ControllerType, Mode
 from gateway.protocols.slc_ascii.framing import DataReply
 from gateway.sim import get_simulator, reset_simulators
 from gateway.sim.serve import close_tcp, serve_tcp
-from gateway.sim.slc_ascii import SlcAsciiSimulator
 from gateway.transport import SerialSettings
 
 #: Word addresses a test may write: accumulators and presets 901-931 (932 is protected).
@@ -125,8 +125,8 @@ async def heavy_fault_run(fault_seed: int, op_seed: int) -> None:
     assert len(errors) < 40, errors[:5]
     assert reads_ok > 950
     # every ;Z the driver sent reached the simulator (in-process, the host-to-controller side is clean)
-    assert driver.counters.retransmits == sim.counters.retransmits
-    assert driver.counters.id_resyncs > 0
+    assert driver.counters.retries_by_kind.get("retransmit", 0) == sim.counters.retransmits
+    assert driver.counters.retries_by_kind.get("id_resync", 0) > 0
     assert driver.counters.crc_errors > 0
     assert driver.counters.timeouts >= sim.counters.dropped
 
@@ -147,7 +147,7 @@ async def test_a_write_whose_every_reply_is_lost_times_out_and_is_applied_once()
         # one failed transaction is not a lost link (down after 3 in a row, or 5 s of silence)
         assert driver.available
         assert "no valid answer" in driver.last_error
-        assert driver.counters.retransmits == 3 == sim.counters.retransmits
+        assert driver.counters.retries_by_kind.get("retransmit", 0) == 3 == sim.counters.retransmits
         assert driver.counters.timeouts == 4
         assert driver.counters.errors == 1
     # never resent: the driver had no proof that the controller had not executed it
@@ -222,7 +222,7 @@ async def test_power_cycle_is_followed_by_a_resync_with_id_00() -> None:
     # "ID resyncs" counts the ID 00 resyncs that recovered the numbering (one per ;I here, not the
     # one after connecting), not ;I replies
     assert sim.counters.id_mismatches >= 2
-    assert driver.counters.id_resyncs == sim.counters.id_mismatches
+    assert driver.counters.retries_by_kind.get("id_resync", 0) == sim.counters.id_mismatches
     assert [w[2] for w in sim.applied_writes] == list(range(1, 11))
     assert driver.counters.timeouts == 0
 
@@ -238,7 +238,8 @@ async def test_id_resyncs_count_resyncs_not_id_mismatch_replies() -> None:
         for value in range(1, 13):
             await driver.write_word(0x50, value)
     assert sim.counters.power_cycles >= 2
-    assert sim.counters.power_cycles <= driver.counters.id_resyncs < sim.counters.id_mismatches
+    resyncs = driver.counters.retries_by_kind.get("id_resync", 0)
+    assert sim.counters.power_cycles <= resyncs < sim.counters.id_mismatches
     assert [w[2] for w in sim.applied_writes] == list(range(1, 13))
 
 
@@ -255,7 +256,7 @@ async def test_refusal_raises_controller_refused_without_retry(quiet: tuple[SlcA
     assert sim.counters.refusals == 1
     assert sim.counters.retransmits == 0
     assert driver.counters.refusals == 1
-    assert driver.counters.retransmits == 0
+    assert driver.counters.retries_by_kind.get("retransmit", 0) == 0
     assert driver.counters.errors == 0
     assert driver.available  # the controller answered
     assert sim.word(0x7E) == 0x8000 | 500
@@ -298,7 +299,8 @@ async def test_counters_on_a_clean_line(quiet: tuple[SlcAsciiDriver, SlcAsciiSim
     # after connecting, one read FRN with ID 00 restarts the controller's numbering
     assert c.bytes_sent == len(b"#010800A3\r") + 10 * len(b"#0502000200400100\r")
     assert c.bytes_received == len(b":021FFE15470031\r") + 10 * len(b":020040006400XX\r")
-    assert (c.errors, c.timeouts, c.crc_errors, c.retransmits, c.id_resyncs, c.refusals, c.faults) == (0,) * 7
+    assert (c.errors, c.timeouts, c.crc_errors, c.refusals, c.faults) == (0,) * 5
+    assert not any(c.retries_by_kind.values())
     assert c.retries == 0
     assert c.reconnects == 0
 
@@ -312,15 +314,16 @@ async def test_counters_follow_dropped_and_garbled_replies() -> None:
             await driver.read(0x84, 2)
     c = driver.counters
     assert c.transactions == 100
-    assert c.retransmits == sim.counters.retransmits > 0
+    retransmits = c.retries_by_kind.get("retransmit", 0)
+    assert retransmits == sim.counters.retransmits > 0
     # a lost reply costs one wait to the deadline and one ;Z; a complete garbled one a ;Z at
     # once (no wait); a truncated one is seen only when the next frame starts, or at the deadline
     assert sim.counters.dropped <= c.timeouts < sim.counters.dropped + sim.counters.garbled_out
     # every lost or garbled reply costs a ;Z, or (a read whose ;Z met silence) an ID 00 resync
     resyncs = driver.session.counters.id_resyncs - 1  # not the one after connecting
-    assert sim.counters.dropped + sim.counters.garbled_out <= c.retransmits + resyncs + sim.counters.commands - 101
-    assert c.retransmits <= sim.counters.dropped + sim.counters.garbled_out
-    assert c.retries == c.retransmits + c.id_resyncs
+    assert sim.counters.dropped + sim.counters.garbled_out <= retransmits + resyncs + sim.counters.commands - 101
+    assert retransmits <= sim.counters.dropped + sim.counters.garbled_out
+    assert c.retries == retransmits + c.retries_by_kind.get("id_resync", 0)
     assert c.crc_errors >= sim.counters.garbled_out - 1  # the last truncated one may still be pending
 
 

@@ -17,7 +17,6 @@ import pytest
 
 import gateway
 from gateway import errors
-from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import (
     MODBUS_CODES,
     ConfigError,
@@ -36,6 +35,7 @@ from gateway.errors import (
     modbus_code,
     modbus_exception,
 )
+from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.sim import get_simulator
 from gateway.unit import _translated
 
@@ -105,7 +105,7 @@ def test_local_and_remote_errors() -> None:
     assert not issubclass(ConfigError, LocalError | RemoteError)
     # a write whose outcome is unknown is a timeout to code that only asks "did it answer?"
     assert issubclass(WriteOutcomeUnknown, LinkTimeout)
-    from gateway.drivers.df1 import WriteOutcomeUnknown as reexported
+    from gateway.kinds.df1.driver import WriteOutcomeUnknown as reexported
 
     assert reexported is WriteOutcomeUnknown
 

@@ -14,7 +14,7 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
 from gateway.config import load_config, parse_config
-from gateway.links import link_kind
+from gateway.kinds import link_kind
 from gateway.modbus.mapping import STATUS_BASE, Plan, Table
 from gateway.tags import CSV_HEADER, KEPWARE_HEADER, config_tags, link_tags, reference, render
 from tests.cli_support import cli, fails, ok

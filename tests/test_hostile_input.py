@@ -51,9 +51,9 @@ from hypothesis import strategies as st
 from gateway.app import Gateway
 from gateway.cli import main as cli_main
 from gateway.config import parse_config
-from gateway.drivers.df1 import Df1Driver
-from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import GatewayError
+from gateway.kinds.df1.driver import Df1Driver
+from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.protocols.df1 import framing as df1_framing
 from gateway.protocols.df1.framing import Checksum, FrameDecoder, encode_frame
 from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete, SendFailed

@@ -178,12 +178,12 @@ GENERIC = (
 #: What names a protocol: its sans-I/O core, its driver, its kind package, its config model.
 PROTOCOL_MODULES = (
     "gateway.protocols.",
-    "gateway.drivers.slc_ascii",
-    "gateway.drivers.df1",
-    "gateway.links.slc_ascii",
-    "gateway.links.df1",
-    "gateway.config.slc_ascii",
-    "gateway.config.df1",
+    "gateway.kinds.slc_ascii.driver",
+    "gateway.kinds.df1.driver",
+    "gateway.kinds.slc_ascii",
+    "gateway.kinds.df1",
+    "gateway.kinds.slc_ascii.config",
+    "gateway.kinds.df1.config",
 )
 
 
@@ -203,4 +203,4 @@ def test_protocol_names_are_spelt_out_in_at_most_three_modules() -> None:
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, ast.Constant) and node.value in ("slc-ascii", "df1"):
                 spelt.add(name)
-    assert spelt == {"gateway.config.slc_ascii", "gateway.config.df1"}
+    assert spelt == {"gateway.kinds.slc_ascii.config", "gateway.kinds.df1.config"}

@@ -1,7 +1,7 @@
 """Adding a protocol is one package and one registry entry (issue 11's acceptance).
 
 This file is that package: a tiny "echo" controller kind (config model, codec, plan, driver, unit,
-simulator) defined here and registered with :func:`gateway.links.register_link_kind` without
+simulator) defined here and registered with :func:`gateway.kinds.register_link_kind` without
 editing any module of ``gateway/``.  A config with ``protocol = "echo"`` then loads, the Gateway
 polls the simulated controller over ``sim://echo`` and serves it over Modbus TCP, reads and writes.
 
@@ -26,9 +26,8 @@ from pymodbus.client import AsyncModbusTcpClient
 from gateway.app import Gateway, describe_map
 from gateway.config import parse_config
 from gateway.config.link import LinkBase, Parity, SerialDefaults
-from gateway.drivers.base import LinkDriver, Priority
 from gateway.errors import ConfigError, GatewayError, LinkTimeout
-from gateway.links import (
+from gateway.kinds import (
     Built,
     LinkKind,
     kind_names,
@@ -37,6 +36,7 @@ from gateway.links import (
     unit_options,
     unregister_link_kind,
 )
+from gateway.line_driver import LineDriver, Priority
 from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, RegisterPoint, Scan
 from gateway.sim import get_simulator, model_names, reset_simulators
 from gateway.sim.models import SimModel
@@ -135,7 +135,7 @@ def _make_simulator(faults: Mapping[str, str], ladder: bool, variants: Mapping[s
     return EchoSimulator()
 
 
-class EchoDriver(LinkDriver):
+class EchoDriver(LineDriver):
     """One transaction at a time: send a command, wait for its ``expect`` bytes."""
 
     def __init__(self, url: str, *, name: str, settings: SerialSettings, timeout: float) -> None:

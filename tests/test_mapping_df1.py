@@ -1,4 +1,4 @@
-"""DF1 map entries -> Modbus points, and the read planner (``gateway.links.df1.plan``).
+"""DF1 map entries -> Modbus points, and the read planner (``gateway.kinds.df1.plan``).
 
 Expected word positions are worked out here from the SLC 500 addressing reference (one word per
 N/B/S element, two per float, three per timer/counter/control structure; I/O words by slot), not
@@ -16,7 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway.links.df1.plan import (
+from gateway.kinds.df1.plan import (
     F32_HIGH,
     F32_LOW,
     READ_OVERHEAD_BYTES,
@@ -351,7 +351,7 @@ def test_optimal_blocks_matches_exhaustive_search(case: tuple[list[tuple[int, in
 def test_links_with_the_same_map_share_one_plan() -> None:
     """Identical machines' links hold one plan (and so one image layout); a different map or
     size limit gets its own."""
-    from gateway.links.df1.plan import shared_plan_df1
+    from gateway.kinds.df1.plan import shared_plan_df1
 
     items = [MapItem(table="holding", start=0, address="N7:0", count=10)]
     same = [MapItem(table="holding", start=0, address="N7:0", count=10)]

@@ -1,6 +1,6 @@
 """The PLC-5 unit: word range read / write and read-modify-write, against the simulated PLC-5.
 
-Both variants of the simulator (``typed_logical`` refuse | accept, ``gateway.sim.plc5``): the unit
+Both variants of the simulator (``typed_logical`` refuse | accept, ``gateway.kinds.df1.sim.plc5``): the unit
 never sends a typed logical command, so it works the same with both, and the simulator's
 ``applied_writes`` prove which command changed memory.  The driver is a real ``Df1Driver`` over an
 in-process ``SimStream``.  Expected values come from the simulator's memory (``sim.word``), never
@@ -16,18 +16,18 @@ from typing import Any
 
 import pytest
 
-from gateway.drivers.df1 import Df1Driver
 from gateway.errors import InvalidRequest
-from gateway.links.df1.plan import MapItem
-from gateway.links.df1.plc5_unit import Plc5BitWrite, Plc5Read, Plc5Unit, Plc5WordWrite, plan_plc5
+from gateway.kinds.df1.driver import Df1Driver
+from gateway.kinds.df1.plan import MapItem
+from gateway.kinds.df1.plc5_unit import Plc5BitWrite, Plc5Read, Plc5Unit, Plc5WordWrite, plan_plc5
+from gateway.kinds.df1.sim.plc5 import Plc5Simulator
+from gateway.kinds.df1.sim.slc500 import Slc500Options
 from gateway.modbus.mapping import Table
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, ReadModifyWriteRequest, WordRangeRead, WordRangeWrite
 from gateway.protocols.df1.plc5_address import parse_plc5_address
 from gateway.protocols.df1.transaction import read_back_for
-from gateway.sim.plc5 import Plc5Simulator
 from gateway.sim.serve import SimStream
-from gateway.sim.slc500 import Slc500Options
 
 VARIANTS = ("refuse", "accept")
 
@@ -161,8 +161,8 @@ async def test_lost_write_reply_is_settled_by_read_back_never_resent(variant: st
 def test_one_definition_of_a_write() -> None:
     """Drivers, cores and the simulators' fault injection share one list of the commands that
     change a controller; a PLC-5 read-modify-write (the coil write) is one of them."""
+    from gateway.kinds.df1.sim.slc500_line import is_write_packet
     from gateway.protocols.df1.pccc import encode_command, is_write
-    from gateway.sim.slc500_line import is_write_packet
 
     n7 = LogicalBinaryAddress.of(0, 7, 0)
     rmw = ReadModifyWriteRequest(((n7, 0xFFEF, 0x0010),))
@@ -194,7 +194,7 @@ async def test_full_duplex_driver_settles_a_read_modify_write_as_a_write() -> No
 def test_plc5_packet_limits_come_from_one_table() -> None:
     """Word range commands (what the gateway polls a PLC-5 with) and typed logical commands to a
     PLC-5 have different limits in the manuals; one table holds both and everything reads it."""
-    from gateway.links.df1 import plc5_unit
+    from gateway.kinds.df1 import plc5_unit
     from gateway.protocols.df1.pccc import ProcessorFamily
     from gateway.protocols.df1.pccc.limits import PLC5_TYPED_LOGICAL, PLC5_WORD_RANGE
     from gateway.sim import plc5 as sim_plc5

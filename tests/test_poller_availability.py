@@ -16,8 +16,8 @@ from typing import cast
 import pytest
 
 from gateway.cache import BlockCache
-from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import ControllerRefused, GatewayError, LinkDown, LinkTimeout, ProtocolError
+from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.modbus.mapping import Block, Scan
 from gateway.poller import MAX_STAGGER, Poller, default_stagger
 from gateway.sim import get_simulator

@@ -9,8 +9,8 @@ import uuid
 import pytest
 
 from gateway.cache import BlockCache
-from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import LinkDown, LinkTimeout
+from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.modbus.mapping import Block, Scan
 from gateway.poller import Poller
 from gateway.sim import get_simulator

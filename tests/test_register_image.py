@@ -21,12 +21,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gateway.app import GatewayBackend
-from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import ControllerRefused, ModbusExceptionReply
-from gateway.links.df1 import plan as df1_plan
-from gateway.links.slc_ascii import plan as slc_plan
-from gateway.links.slc_ascii.plan import slc_ascii_plan
-from gateway.links.slc_ascii.unit import SlcAsciiUnit
+from gateway.kinds.df1 import plan as df1_plan
+from gateway.kinds.slc_ascii import plan as slc_plan
+from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
+from gateway.kinds.slc_ascii.plan import slc_ascii_plan
+from gateway.kinds.slc_ascii.unit import SlcAsciiUnit
 from gateway.modbus.mapping import (
     STATUS_BASE,
     BitPoint,

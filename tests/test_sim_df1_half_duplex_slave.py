@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from gateway.kinds.df1.sim.df1_half_duplex_slave import VARIANTS, HalfDuplexSlave, SlaveVariant
 from gateway.protocols.df1.half_duplex_framing import (
     ACK,
     EOT,
@@ -13,7 +14,6 @@ from gateway.protocols.df1.half_duplex_framing import (
     encode_poll,
     encode_slave_message,
 )
-from gateway.sim.df1_half_duplex_slave import VARIANTS, HalfDuplexSlave, SlaveVariant
 
 
 def command(station: int, tns: int) -> bytes:
@@ -119,7 +119,7 @@ def test_variant_table_rejects_unknown_readings() -> None:
 def test_reply_addresses_variant(reading: str) -> None:
     """``reply_addresses``: DST / SRC of the reply as 1770-6.5.16 p. 6-4 has them, or as some
     devices fill them (docs/controller-variants.md)."""
-    from gateway.sim.slc500_line import address_reply
+    from gateway.kinds.df1.sim.slc500_line import address_reply
 
     command = bytes((3, 0, 0x0F, 0, 0x34, 0x12, 0xA2))
     reply = bytes((0, 3, 0x4F, 0, 0x34, 0x12))

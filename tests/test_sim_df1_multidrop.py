@@ -7,6 +7,7 @@ import itertools
 
 import pytest
 
+from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.half_duplex import (
     NEED_DATA,
@@ -25,7 +26,6 @@ from gateway.protocols.df1.pccc import (
     decode_reply,
     encode_command,
 )
-from gateway.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.sim.serve import close_tcp, serve_tcp
 from gateway.sim.variants import variant_matrix
 

@@ -1,6 +1,6 @@
 """``sim://plc5`` and ``sim://df1line`` in the simulator catalogue, in a config and behind ``simulate``.
 
-* ``sim://df1line?...`` opens a multi-drop line (``gateway.sim.df1_half_models``): the same URL reaches
+* ``sim://df1line?...`` opens a multi-drop line (``gateway.kinds.df1.sim.df1_half_models``): the same URL reaches
   the same line, so several ``[[link]]`` stations with that port and ``duplex = "half"`` share it;
 * the line paces itself: ``turnaround`` is its option, ``paced=1`` and a line model are clear errors;
 * an unknown option or variant is a clear error naming the choices;
@@ -19,17 +19,18 @@ from cli_support import start_simulator, stop
 
 from gateway.app import Gateway
 from gateway.config import parse_config
-from gateway.drivers.df1_half import Df1HalfDuplexLine
 from gateway.errors import GatewayError, LinkDown, LinkTimeout
-from gateway.links import link_kind
+from gateway.kinds import link_kind
+from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.sim.df1_multidrop import MultidropLine
+from gateway.kinds.df1.sim.plc5 import Plc5Simulator
+from gateway.kinds.df1.simulators import DF1LINE, PLC5
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.half_duplex import StationConfig
 from gateway.protocols.df1.half_duplex_framing import Checksum
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead
 from gateway.sim import get_simulator, open_sim_stream, parse_sim_url, reset_simulators, variants_of
-from gateway.sim.df1_multidrop import MultidropLine
-from gateway.sim.models import DF1LINE, PLC5, sim_models
-from gateway.sim.plc5 import Plc5Simulator
+from gateway.sim.models import sim_models
 from gateway.sim.serve import serve_tcp
 from gateway.streams import SerialSettings
 

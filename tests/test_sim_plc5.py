@@ -10,6 +10,8 @@ import struct
 
 import pytest
 
+from gateway.kinds.df1.sim.plc5 import Plc5Simulator
+from gateway.kinds.df1.sim.slc500 import Slc500Options
 from gateway.protocols.df1.framing import ACK_SYMBOL, Checksum, encode_frame
 from gateway.protocols.df1.pccc.plc5 import ReadModifyWrite
 from gateway.protocols.df1.pccc.plc5 import WordRangeReadParams as WordRangeRead
@@ -19,8 +21,6 @@ from gateway.protocols.df1.plc5_address import (
     encode_logical_binary,
     parse_plc5_address,
 )
-from gateway.sim.plc5 import Plc5Simulator
-from gateway.sim.slc500 import Slc500Options
 from gateway.sim.variants import variant_matrix
 
 VARIANTS = ("refuse", "accept")

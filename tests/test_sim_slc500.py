@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from gateway.kinds.df1.sim.slc500 import Slc500Options, Slc500Simulator
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import (
     ACK_SYMBOL,
@@ -50,7 +51,6 @@ from gateway.protocols.df1.pccc import (
 )
 from gateway.sim import create_simulator
 from gateway.sim.serve import SimStream
-from gateway.sim.slc500 import Slc500Options, Slc500Simulator
 
 N, F, T, C, R, B, S, OUT, INP = (
     FileType.INTEGER,
@@ -988,7 +988,7 @@ def test_faults_on_writes_spares_reads() -> None:
 
 def test_the_processor_executes_commands_without_a_link() -> None:
     """``Slc500Processor.execute``: a command packet in, its reply packet out (no DF1 link, no faults)."""
-    from gateway.sim.slc500_processor import Slc500Processor
+    from gateway.kinds.df1.sim.slc500_processor import Slc500Processor
 
     processor = Slc500Processor(ladder=False)
     reply = processor.execute(encode_command(read(FileType.INTEGER, 7, 201), dst=1, src=0, tns=0x1234))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import pytest
 
+from gateway.kinds.slc_ascii.sim import FaultPlan, SlcAsciiSimulator
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command, ControllerType, Mode, ReplyKind, TimeoutClass
 from gateway.protocols.slc_ascii.framing import (
@@ -24,7 +25,6 @@ from gateway.protocols.slc_ascii.framing import (
     encode_retransmit,
 )
 from gateway.sim import create_simulator
-from gateway.sim.slc_ascii import FaultPlan, SlcAsciiSimulator
 
 
 def raw(code: int, params_hex: str = "") -> Command:

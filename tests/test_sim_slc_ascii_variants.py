@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import pytest
 
+from gateway.kinds.slc_ascii.sim import FaultPlan, SlcAsciiSimulator
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Mode
 from gateway.protocols.slc_ascii.framing import (
@@ -20,7 +21,6 @@ from gateway.protocols.slc_ascii.framing import (
     encode_retransmit,
 )
 from gateway.sim import create_simulator, parse_sim_url
-from gateway.sim.slc_ascii import FaultPlan, SlcAsciiSimulator
 
 READ = cmds.read_bytes(0x40, 2)
 PRESET = encode_data_reply("020040" "0064", 1)

@@ -15,6 +15,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from gateway.kinds.slc_ascii.sim import FaultPlan, SlcAsciiSimulator
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.framing import (
     MAX_ID,
@@ -30,7 +31,6 @@ from gateway.protocols.slc_ascii.framing import (
     encode_retransmit,
 )
 from gateway.protocols.slc_ascii.transaction import SessionState, SlcSession, Verdict, next_id
-from gateway.sim.slc_ascii import FaultPlan, SlcAsciiSimulator
 from gateway.sim.variants import pairwise_cover
 from tests.slc_core_harness import FATES, FakeLine
 

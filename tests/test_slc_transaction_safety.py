@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import pytest
 
+from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.framing import NEED_DATA, CommandDecoder, CommandFrame
 from gateway.protocols.slc_ascii.transaction import SlcSession, Verdict
-from gateway.sim.slc_ascii import SlcAsciiSimulator
 
 TIMEOUT = 0.3
 READ = cmds.read_bytes(0x40, 2)

@@ -39,10 +39,10 @@ from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
+from gateway.kinds.slc_ascii.sim import FaultPlan, SlcAsciiSimulator
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.framing import NEED_DATA, CommandDecoder, CommandFrame, DataReply
 from gateway.protocols.slc_ascii.transaction import Result, SlcSession, Verdict
-from gateway.sim.slc_ascii import FaultPlan, SlcAsciiSimulator
 from gateway.sim.variants import variant_matrix
 
 TIMEOUT = 0.3

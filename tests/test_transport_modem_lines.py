@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from gateway.drivers.df1_half import Df1HalfDuplexLine
+from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
 from gateway.protocols.df1.half_duplex import StationConfig
 from gateway.protocols.df1.half_duplex_framing import Checksum
 from gateway.streams import SerialSettings

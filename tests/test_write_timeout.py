@@ -18,11 +18,11 @@ from collections.abc import AsyncIterator
 
 import pytest
 
-from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import ModbusExceptionReply
-from gateway.links.slc_ascii.unit import SlcAsciiUnit
+from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
+from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
+from gateway.kinds.slc_ascii.unit import SlcAsciiUnit
 from gateway.sim import get_simulator, reset_simulators
-from gateway.sim.slc_ascii import SlcAsciiSimulator
 
 URL = "sim://slc150?ladder=0&variant=reply_time=slow_changes&slow_delay=1.0&instance=write-timeout"
 PRESET_905 = 36  # holding register: preset of 905, controller word 0x48

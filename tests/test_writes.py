@@ -10,8 +10,8 @@ from typing import Any
 
 import pytest
 
-from gateway.drivers.base import LinkDriver, Priority
 from gateway.errors import GatewayError, LinkDown, ModbusExceptionReply
+from gateway.line_driver import LineDriver, Priority
 from gateway.writes import WriteQueue
 
 
@@ -116,7 +116,7 @@ async def test_link_down_fails_every_waiting_write_with_0x0B() -> None:
 # The write session: writes ahead of polls, write_burst writes then poll_burst polls
 
 
-class LineDriver(LinkDriver):
+class LineDriver(LineDriver):
     """A driver whose 'transactions' are sleeps, logged in the order they held the line."""
 
     def __init__(self) -> None:

@@ -21,10 +21,10 @@ loads back to the same configuration (except credentials in port URLs, shown as 
 The modules, each one concern:
 
 * ``schema``: the sections and the whole file (:class:`GatewayConfig`);
-* ``link``: the keys every ``[[link]]`` has (:class:`LinkBase`); ``slc_ascii`` and ``df1``: one
-  link model per protocol, each with its serial defaults and its own keys; ``links``: the
-  discriminated union on ``protocol`` of the models of the registered link kinds
-  (:mod:`gateway.links`);
+* ``link``: the keys every ``[[link]]`` has (:class:`LinkBase`); each link kind's package
+  (``gateway/kinds/<kind>/config.py``) has its model, with its serial defaults and its own keys;
+  ``links``: the discriminated union on ``protocol`` of the models of the registered link kinds
+  (:mod:`gateway.kinds`);
 * ``reporting``: pydantic errors -> one ConfigError with key paths, lines and suggestions;
   ``lines``: the line index of the TOML text;
 * ``writer``: the resolved-config writer (``check-config``'s output);
@@ -34,32 +34,22 @@ The modules, each one concern:
 from __future__ import annotations
 
 from gateway.config._common import parse_listen
-from gateway.config.df1 import DF1_DEFAULTS, Df1LinkConfig, MapEntry, Processor, Table, ValueType
 from gateway.config.link import LinkBase, SerialDefaults, WritableRange, WritableTable
 from gateway.config.links import LinkConfig, LinkProtocol, link_models, protocol_defaults, protocol_names
 from gateway.config.loader import MAX_CONFIG_BYTES, load_config, parse_config
 from gateway.config.schema import GatewayConfig, LoggingConfig, MetricsConfig, ModbusConfig, TlsConfig
-from gateway.config.slc_ascii import SLC_ASCII_DEFAULTS, SlcAsciiLinkConfig
 
 __all__ = [
-    "DF1_DEFAULTS",
     "MAX_CONFIG_BYTES",
-    "SLC_ASCII_DEFAULTS",
-    "Df1LinkConfig",
     "GatewayConfig",
     "LinkBase",
     "LinkConfig",
     "LinkProtocol",
     "LoggingConfig",
-    "MapEntry",
     "MetricsConfig",
     "ModbusConfig",
-    "Processor",
     "SerialDefaults",
-    "SlcAsciiLinkConfig",
-    "Table",
     "TlsConfig",
-    "ValueType",
     "WritableRange",
     "WritableTable",
     "link_models",

@@ -1,6 +1,6 @@
 """``[[link]]``: the keys every link has, whatever its protocol, and ``writable`` ranges.
 
-Each protocol's link model (``gateway.config.slc_ascii``, ``gateway.config.df1``) subclasses
+Each protocol's link model (``gateway.kinds.slc_ascii.config``, ``gateway.kinds.df1.config``) subclasses
 :class:`LinkBase`: it fixes ``protocol`` to its name (the tag of the discriminated union in
 ``gateway.config.links``), gives its serial defaults and adds the keys only it has. Unknown keys
 are refused by the model (``extra="forbid"``), so no list of "keys only for protocol X" is kept.

@@ -1,4 +1,4 @@
-"""The link kinds the config knows, from the registry of link kinds (:mod:`gateway.links`).
+"""The link kinds the config knows, from the registry of link kinds (:mod:`gateway.kinds`).
 
 A ``[[link]]`` is validated by the model of its ``protocol``: the discriminated union
 (``Field(discriminator="protocol")``) of the config models of every registered kind, rebuilt
@@ -50,14 +50,14 @@ LinkProtocol: TypeAlias = str
 
 
 def _by_protocol() -> Mapping[str, type[LinkBase]]:
-    from gateway.links import link_kinds
+    from gateway.kinds import link_kinds
 
     return {name: kind.config_model for name, kind in link_kinds().items()}
 
 
 def protocol_of(model: type[LinkBase]) -> str:
     """The protocol name of a link model: the one value of its ``protocol`` Literal."""
-    from gateway.links.kind import protocol_of as of
+    from gateway.kinds.contract import protocol_of as of
 
     return of(model)
 

@@ -1,7 +1,7 @@
 """The configuration schema: ``[modbus]``, ``[modbus.tls]``, ``[metrics]``, ``[logging]`` and the whole file.
 
-The ``[[link]]`` models live in one module per protocol (``gateway.config.slc_ascii``,
-``gateway.config.df1``) on a common base (``gateway.config.link``); ``gateway.config.links``
+The ``[[link]]`` models live in one module per protocol (``gateway.kinds.slc_ascii.config``,
+``gateway.kinds.df1.config``) on a common base (``gateway.config.link``); ``gateway.config.links``
 puts them together into the discriminated union a link is validated as.
 """
 

@@ -6,7 +6,7 @@ how a write to it reaches the controller.  The cache stores each block's raw byt
 it was read and decodes them at once into the images of the four tables (``gateway.image``);
 serving a Modbus read is a slice of an image, never controller I/O.
 
-Generic: each link kind builds its plans (``gateway.links.<kind>.plan``) with its own
+Generic: each link kind builds its plans (``gateway.kinds.<kind>.plan``) with its own
 :class:`Codec` values and write targets; a plan is generic in its write target types
 (``Plan[R, B]``: ``R`` for holding registers, ``B`` for coils).
 """
@@ -158,5 +158,5 @@ STATUS_REGISTERS = (
     ("transactions", 2),  # 1003-1004
     ("errors", 2),  # 1005-1006
     ("retries", 2),  # 1007-1008
-    ("id_resyncs", 2),  # 1009-1010
+    ("kind_counter", 2),  # 1009-1010: a counter the link's kind names (LinkKind.status_counter)
 )

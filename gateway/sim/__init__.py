@@ -84,7 +84,11 @@ def parse_sim_url(url: str) -> tuple[str, dict[str, str]]:
 
 def model_names() -> tuple[str, ...]:
     """The simulator models, built-in ones first."""
-    return tuple(sim_models())
+    names = tuple(sim_models())
+    if not names:
+        # the kinds' models are registered by the registry of kinds, imported by every entry point
+        raise RuntimeError("no sim:// models are registered: import gateway.kinds before opening a simulator")
+    return names
 
 
 def variants_of(model: str, chosen: Mapping[str, str]) -> dict[str, str]:

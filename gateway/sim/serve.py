@@ -98,6 +98,7 @@ class _Wire:
         self._handles: set[asyncio.TimerHandle] = set()
         self._timer: asyncio.TimerHandle | None = None
         self.closed = False
+        self._arm_timer()  # a device that speaks first (an initiating peer) starts on its own clock
 
     def _later(self, when: float, callback: Callable[[bytes], None], data: bytes) -> None:
         now = self._loop.time()

@@ -34,8 +34,8 @@ from pymodbus.client import AsyncModbusTcpClient, AsyncModbusTlsClient
 from gateway import healthcheck
 from gateway.app import Gateway
 from gateway.config import parse_config
+from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
 from gateway.sim import get_simulator, reset_simulators
-from gateway.sim.slc_ascii import SlcAsciiSimulator
 
 HOST = "127.0.0.1"
 ILLEGAL_ADDRESS = 0x02

@@ -2,7 +2,7 @@
 
 Real sockets on 127.0.0.1, the whole ``Gateway`` (Df1Driver, poller, cache, Df1Unit, Modbus
 server) and two independent Modbus clients: pymodbus's ``AsyncModbusTcpClient`` and Debian's
-``mbpoll`` run as a subprocess.  The controller is ``gateway.sim.slc500`` with its ladder frozen
+``mbpoll`` run as a subprocess.  The controller is ``gateway.kinds.df1.sim.slc500`` with its ladder frozen
 (``ladder=0``: memory changes only by writes) and these faults on the link: 1 in 10 frames
 corrupted, 1 in 15 replies dropped (the command is executed), 1 in 10 ACKs withheld, 1 in 10
 frames duplicated, noise before 1 in 10 outputs.
@@ -16,7 +16,7 @@ What SCADA must see, whatever the line does:
 * nothing hangs (``asyncio.timeout``).
 
 Expected values come from the simulator's memory and its documented initial data table, not
-from ``gateway.links.df1.plan``.  Without ``mbpoll`` its test is skipped, unless
+from ``gateway.kinds.df1.plan``.  Without ``mbpoll`` its test is skipped, unless
 ``SLC_GATEWAY_REQUIRE_MBPOLL=1``, which makes it fail instead.
 """
 
@@ -40,8 +40,8 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
 from gateway.config import parse_config
+from gateway.kinds.df1.sim.slc500 import Slc500Simulator
 from gateway.sim import get_simulator, reset_simulators
-from gateway.sim.slc500 import Slc500Simulator
 
 HOST = "127.0.0.1"
 MAIN, READ_ONLY = 1, 2
@@ -331,7 +331,7 @@ async def test_2000_requests_through_a_faulty_link_values_right_writes_exactly_o
     assert counters.corrupted > 50 and counters.dropped > 30 and counters.withheld_acks > 50
     assert counters.duplicates > 0 and counters.noise > 0
     driver = plant.gw.units[0].driver
-    assert driver.counters.crc_errors > 0 and driver.counters.enq_sent > 0
+    assert driver.counters.crc_errors > 0 and driver.counters.retries_by_kind.get("enq", 0) > 0
 
 
 # ============================================================================================

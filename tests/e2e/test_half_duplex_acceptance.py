@@ -1,6 +1,6 @@
 """Acceptance (issue 12): a DF1 half-duplex multi-drop line end to end, under BCC and CRC.
 
-The multi-drop simulator (``gateway.sim.df1_multidrop``) is served over TCP (a device server in raw
+The multi-drop simulator (``gateway.kinds.df1.sim.df1_multidrop``) is served over TCP (a device server in raw
 mode) and the whole ``Gateway`` (config text -> ``build_df1`` -> one ``Df1HalfDuplexLine`` master per
 port, a unit per station, pollers, Modbus TCP server) is driven with pymodbus:
 
@@ -41,9 +41,9 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
 from gateway.config import parse_config
-from gateway.drivers.df1_half import Df1HalfDuplexLine
-from gateway.sim.df1_half_models import create_line
-from gateway.sim.df1_multidrop import MultidropLine
+from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.sim.df1_half_models import create_line
+from gateway.kinds.df1.sim.df1_multidrop import MultidropLine
 from gateway.sim.serve import close_tcp, serve_tcp
 
 HOST = "127.0.0.1"

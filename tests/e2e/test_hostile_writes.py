@@ -25,9 +25,9 @@ from modbus_support import connect, exception_code
 
 from gateway.app import Gateway
 from gateway.config import parse_config
+from gateway.kinds.df1.sim.slc500 import Slc500Simulator
+from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
 from gateway.sim import get_simulator, reset_simulators
-from gateway.sim.slc500 import Slc500Simulator
-from gateway.sim.slc_ascii import SlcAsciiSimulator
 
 HOST = "127.0.0.1"
 ILLEGAL_ADDRESS, DEVICE_FAILURE, SERVER_BUSY, TARGET_FAILED = 0x02, 0x04, 0x06, 0x0B

@@ -14,10 +14,10 @@ from typing import Any
 
 import pytest
 
-from gateway.drivers.base import LinkDriver
-from gateway.drivers.df1 import Df1Driver
-from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import GatewayError
+from gateway.kinds.df1.driver import Df1Driver
+from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
+from gateway.line_driver import LineDriver
 from gateway.sim import create_simulator
 from gateway.sim.serve import serve_tcp
 
@@ -47,7 +47,7 @@ async def line(request: pytest.FixtureRequest) -> AsyncIterator[Line]:
         await server.wait_closed()
 
 
-def driver_for(line: Line, **options: Any) -> LinkDriver:
+def driver_for(line: Line, **options: Any) -> LineDriver:
     if line.sim.__class__.__name__ == "SlcAsciiSimulator":
         return SlcAsciiDriver(line.proxy.url, timeout=0.1, retries=2, **options)
     return Df1Driver(line.proxy.url, timeout=0.2, retries=2, **options)

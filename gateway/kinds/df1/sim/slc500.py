@@ -1,6 +1,6 @@
 """A simulated SLC 5/04 on DF1 full duplex (controller side), with fault injection.
 
-The processor (data table, ladder, PCCC commands: :mod:`gateway.sim.slc500_processor`) behind a
+The processor (data table, ladder, PCCC commands: :mod:`gateway.kinds.df1.sim.slc500_processor`) behind a
 controller-side :class:`~gateway.protocols.df1.link.Df1Link` (duplicate detection on), so ACK /
 NAK / ENQ, retransmission after DLE NAK and DLE ENQ after the ACK timeout behave as the link
 module specifies (S4516-DF1 Program Development Manual; DF1 manual 1770-6.5.16 ch. 4).
@@ -60,16 +60,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import ClassVar
 
-from gateway.protocols.df1.framing import ACK_SYMBOL, NEED_DATA, Symbol
-from gateway.protocols.df1.link import (
-    BadFrameAnswer,
-    Df1Link,
-    EnqAnswer,
-    MessageReceived,
-    SendComplete,
-    SendFailed,
-)
-from gateway.sim.slc500_line import (
+from gateway.kinds.df1.sim.slc500_line import (
     REPLY_ADDRESSES,
     address_reply,
     corrupt_frame,
@@ -79,8 +70,17 @@ from gateway.sim.slc500_line import (
     split_incoming,
     split_output,
 )
-from gateway.sim.slc500_options import Slc500Counters, Slc500Options
-from gateway.sim.slc500_processor import ExtSts, Slc500Processor
+from gateway.kinds.df1.sim.slc500_options import Slc500Counters, Slc500Options
+from gateway.kinds.df1.sim.slc500_processor import ExtSts, Slc500Processor
+from gateway.protocols.df1.framing import ACK_SYMBOL, NEED_DATA, Symbol
+from gateway.protocols.df1.link import (
+    BadFrameAnswer,
+    Df1Link,
+    EnqAnswer,
+    MessageReceived,
+    SendComplete,
+    SendFailed,
+)
 from gateway.sim.variants import resolve_variants
 
 __all__ = ["ExtSts", "Output", "Slc500Counters", "Slc500Options", "Slc500Processor", "Slc500Simulator"]

@@ -14,8 +14,6 @@ import logging
 from pathlib import Path
 from typing import Final
 
-from gateway.config.slc_ascii import SLC_ASCII_DEFAULTS
-from gateway.drivers.base import LinkDriver, OpenStream, Priority
 from gateway.errors import (
     ControllerFault,
     ControllerRefused,
@@ -25,6 +23,8 @@ from gateway.errors import (
     ProtocolError,
     WriteOutcomeUnknown,
 )
+from gateway.kinds.slc_ascii.config import SLC_ASCII_DEFAULTS
+from gateway.line_driver import LineDriver, OpenStream, Priority
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command, ControllerType, FrnInfo, Mode, TimeoutClass
 from gateway.protocols.slc_ascii.framing import Ack, DataReply
@@ -32,7 +32,10 @@ from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS, SlcSession, Ver
 from gateway.protocols.slc_ascii.transfer import MAX_TRANSFER_RESTARTS, Download, Restart, Upload
 from gateway.transport import SerialSettings, open_stream
 
-__all__ = ["MAX_TRANSFER_RESTARTS", "SLC_ASCII_SETTINGS", "SlcAsciiDriver"]
+#: the retries-metric name of a message-ID resync (also the status block's kind counter)
+ID_RESYNC: Final = "id_resync"
+
+__all__ = ["ID_RESYNC", "MAX_TRANSFER_RESTARTS", "SLC_ASCII_SETTINGS", "SlcAsciiDriver"]
 
 log = logging.getLogger("gateway.link")
 
@@ -53,7 +56,7 @@ _LONGEST_REPLY: Final = 1 + 2 + 30 + 2 + 2 + 1
 _EVEN_PARITY: Final = bytes((b & 0x7F) | ((bin(b & 0x7F).count("1") & 1) << 7) for b in range(256))
 
 
-class SlcAsciiDriver(LinkDriver):
+class SlcAsciiDriver(LineDriver):
     """One SLC 100/150 on one byte stream."""
 
     def __init__(
@@ -178,7 +181,8 @@ class SlcAsciiDriver(LinkDriver):
         core, mine = self.session.counters, self.counters
         mine.timeouts, mine.crc_errors = core.timeouts, core.crc_errors
         # ID resyncs that recovered the numbering, not the first one after connecting
-        mine.retransmits, mine.id_resyncs = core.retransmits, core.id_resyncs - core.handshakes
+        mine.retries_by_kind["retransmit"] = core.retransmits
+        mine.retries_by_kind[ID_RESYNC] = core.id_resyncs - core.handshakes
         mine.faults = core.faults
 
     async def _run_command(self, command: Command) -> Answer:

@@ -3,9 +3,9 @@
 Listed in :mod:`gateway.sim.models` (``PLC5``, ``DF1LINE``) and in the DF1 link kind's ``simulators``:
 
 * ``sim://plc5?checksum=bcc&drop=7&variant=typed_logical=accept`` - a PLC-5 on DF1 full duplex
-  (:class:`~gateway.sim.plc5.Plc5Simulator`; fault options as ``slc504``);
+  (:class:`~gateway.kinds.df1.sim.plc5.Plc5Simulator`; fault options as ``slc504``);
 * ``sim://df1line?stations=1,2,3&dead=3&checksum=crc&corrupt=6&ignore=10&model=plc5&variant=reply_retries=3``
-  - a multi-drop half-duplex line (:class:`~gateway.sim.df1_multidrop.MultidropLine`; options in
+  - a multi-drop half-duplex line (:class:`~gateway.kinds.df1.sim.df1_multidrop.MultidropLine`; options in
   ``docs/df1-half-duplex-line.md``).  Its variants (:data:`LINE_VARIANTS`) are the slave model's
   (``bad_frame_reply``, ``reply_retries``, ``duplicate_detect``, ``when_busy``), for every station,
   and ``typed_logical`` for ``model=plc5`` stations.  The line *paces itself* (:func:`self_paced`):
@@ -18,9 +18,9 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from gateway.sim.df1_half_duplex_slave import VARIANTS as SLAVE_VARIANTS
-from gateway.sim.df1_multidrop import MultidropLine
-from gateway.sim.plc5 import Plc5Simulator
+from gateway.kinds.df1.sim.df1_half_duplex_slave import VARIANTS as SLAVE_VARIANTS
+from gateway.kinds.df1.sim.df1_multidrop import MultidropLine
+from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.sim.variants import VariantTable, parse_variant_args, resolve_variants
 
 __all__ = ["HALF_DUPLEX_MODELS", "LINE_VARIANTS", "create_half_duplex_model", "create_line", "create_plc5",

@@ -3,11 +3,11 @@
 The sans-I/O master core (:class:`~gateway.protocols.df1.half_duplex.HalfDuplexMaster`) decides
 everything on the wire: polling, resends of the identical master frame, demotion of a dead station,
 RTS timing, echo suppression.  :class:`Df1HalfDuplexLine` owns the port (reconnects through
-:class:`~gateway.drivers.base.LinkDriver`), feeds the core every byte, runs the one timer the core
+:class:`~gateway.line_driver.LineDriver`), feeds the core every byte, runs the one timer the core
 asks for (``next_deadline()`` / ``handle_timeout(now)``) and drives RTS when the port can.
 
 Each station on the line gets a :class:`Df1Station` handle with the API a DF1 unit uses on
-:class:`~gateway.drivers.df1.Df1Driver`: ``execute(request, name, write=...)`` -> the reply, plus
+:class:`~gateway.kinds.df1.driver.Df1Driver`: ``execute(request, name, write=...)`` -> the reply, plus
 ``available``, ``counters``, ``last_sts``, ``add_listener``, ``run()`` / ``close()`` and ``probe()``.
 Requests of different stations are in the core at the same time; it serves them round robin (writes
 first), so a dead or slow station never holds up the others.  The sans-I/O transaction layer
@@ -17,7 +17,7 @@ its verdict - read retries with a new TNS, a write's verdict and read-backs
 a result:
 
 * done -> the reply;  refused -> :class:`~gateway.protocols.df1.pccc.PcccError`;
-* outcome unknown -> :class:`~gateway.drivers.df1.WriteOutcomeUnknown`;
+* outcome unknown -> :class:`~gateway.kinds.df1.driver.WriteOutcomeUnknown`;
 * failed (a read without an answer after ``retries + 1`` tries, a write that never left, a station
   demoted to slow poll) -> :class:`~gateway.errors.LinkTimeout` (Modbus 0x0B).
 
@@ -48,9 +48,9 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Final
 
-from gateway.drivers.base import LinkCounters, LinkDriver, OpenStream
-from gateway.drivers.df1 import DF1_SETTINGS, WriteOutcomeUnknown
 from gateway.errors import GatewayError, LinkDown, LinkTimeout
+from gateway.kinds.df1.driver import DF1_SETTINGS, WriteOutcomeUnknown
+from gateway.line_driver import LineCounters, LineDriver, OpenStream
 from gateway.protocols.df1.half_duplex import (
     NEED_DATA,
     FailReason,
@@ -117,7 +117,7 @@ class Df1Station:
         self.config = config
         self.station = config.station
         self.name = name
-        self.counters = LinkCounters()
+        self.counters = LineCounters()
         self.last_sts = 0
         self.last_error = ""
         self._base = StationTotals()  #: counters of cores before the current one, and the driver's own
@@ -268,7 +268,7 @@ class Df1Station:
             self.counters.errors += 1
             self._report(False, error)
 
-    # --- the write-session API of LinkDriver (gateway.writes uses it) ------------------------
+    # --- the write-session API of LineDriver (gateway.writes uses it) ------------------------
 
     @contextlib.asynccontextmanager
     async def write_session(self) -> AsyncIterator[None]:
@@ -292,7 +292,7 @@ def _observe(task: asyncio.Future[PcccReply]) -> None:
         task.exception()
 
 
-class Df1HalfDuplexLine(LinkDriver):
+class Df1HalfDuplexLine(LineDriver):
     """The master of one half-duplex line (module docstring).  ``station(n)`` gives the handles."""
 
     def __init__(

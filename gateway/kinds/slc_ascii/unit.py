@@ -5,10 +5,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Unpack
 
-from gateway.config.slc_ascii import SlcAsciiLinkConfig
-from gateway.drivers.slc_ascii import SlcAsciiDriver
-from gateway.links.kind import Built, unit_options
-from gateway.links.slc_ascii.plan import U16_BE_MASKED, SlcBitWrite, SlcWordWrite, byte_read, slc_ascii_plan
+from gateway.kinds.contract import Built, unit_options
+from gateway.kinds.slc_ascii.config import SlcAsciiLinkConfig
+from gateway.kinds.slc_ascii.driver import ID_RESYNC, SlcAsciiDriver
+from gateway.kinds.slc_ascii.plan import U16_BE_MASKED, SlcBitWrite, SlcWordWrite, byte_read, slc_ascii_plan
 from gateway.modbus.mapping import Block, RegisterPoint
 from gateway.unit import Unit, UnitOptions
 
@@ -39,6 +39,11 @@ class SlcAsciiUnit(Unit[SlcWordWrite, SlcBitWrite]):
 
     async def _write_bit(self, target: SlcBitWrite, value: bool) -> None:
         await self.driver.update_byte(target.address, target.bit, value)
+
+    @property
+    def kind_counter(self) -> int:
+        """Message-ID resyncs that recovered the numbering (status registers 1009-1010)."""
+        return self.driver.counters.retries_by_kind.get(ID_RESYNC, 0)
 
     @property
     def last_fault_number(self) -> int:

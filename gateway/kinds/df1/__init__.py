@@ -1,18 +1,18 @@
 """The DF1 link kind: SLC 500 and PLC-5 controllers over DF1 full duplex, with a configured map.
 
 Its rooms: the sans-I/O protocol in :mod:`gateway.protocols.df1`, the driver in
-:mod:`gateway.drivers.df1`, the simulator in :mod:`gateway.sim.slc500`, the ``[[link]]`` model in
-:mod:`gateway.config.df1`; here the plan (``plan``), the unit (``unit``) and the CLI commands
+:mod:`gateway.kinds.df1.driver`, the simulator in :mod:`gateway.kinds.df1.sim.slc500`, the ``[[link]]`` model in
+:mod:`gateway.kinds.df1.config`; here the plan (``plan``), the unit (``unit``) and the CLI commands
 (``tool``).
 """
 
 from __future__ import annotations
 
-from gateway.config.df1 import Df1LinkConfig
-from gateway.links.df1.build import build_df1, df1_plan, df1_point_labels
-from gateway.links.df1.tool import HINTS, add_options, run_df1_tool
-from gateway.links.kind import LinkKind
-from gateway.sim.models import DF1LINE, PLC5, SLC504
+from gateway.kinds.contract import LinkKind
+from gateway.kinds.df1.build import build_df1, df1_plan, df1_point_labels
+from gateway.kinds.df1.config import Df1LinkConfig
+from gateway.kinds.df1.simulators import DF1LINE, PLC5, SLC504
+from gateway.kinds.df1.tool import HINTS, add_options, run_df1_tool
 
 __all__ = ["KIND"]
 

@@ -1,9 +1,9 @@
-"""The processor of the simulated SLC 5/04 (``gateway.sim.slc500``): data table, ladder, PCCC commands.
+"""The processor of the simulated SLC 5/04 (``gateway.kinds.df1.sim.slc500``): data table, ladder, PCCC commands.
 
 :class:`Slc500Processor` is the controller without its serial port: ``execute(packet)`` takes a
-PCCC command packet and returns the reply packet (or None).  :class:`~gateway.sim.slc500.Slc500Simulator`
+PCCC command packet and returns the reply packet (or None).  :class:`~gateway.kinds.df1.sim.slc500.Slc500Simulator`
 puts it behind a DF1 full-duplex link with fault injection; the multi-drop line simulator
-(``gateway.sim.df1_multidrop``) puts it behind a half-duplex one.  No I/O, no clock: the ladder
+(``gateway.kinds.df1.sim.df1_multidrop``) puts it behind a half-duplex one.  No I/O, no clock: the ladder
 runs up to the ``now`` given to :meth:`Slc500Processor.advance`.
 
 Written from the manuals beside the code ("S4516-DF1 Program Development Manual", "SLC 500
@@ -68,6 +68,8 @@ import struct
 from typing import Final
 
 from gateway.errors import GatewayError
+from gateway.kinds.df1.sim.slc500_data import FILE_NAME_RE, SLOTS, TYPED_ID, WORDS_PER_SLOT, DataFile, data_files
+from gateway.kinds.df1.sim.slc500_options import Slc500Counters, Slc500Options
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.pccc import (
     DiagnosticStatus,
@@ -91,8 +93,6 @@ from gateway.protocols.df1.pccc import (
     encode_reply,
     encode_typed_data,
 )
-from gateway.sim.slc500_data import FILE_NAME_RE, SLOTS, TYPED_ID, WORDS_PER_SLOT, DataFile, data_files
-from gateway.sim.slc500_options import Slc500Counters, Slc500Options
 
 __all__ = ["CATALOG", "FRN", "MAX_READ_BYTES", "MAX_WRITE_BYTES", "PROCESSOR_TYPE", "SERIES", "TICK", "ExtSts",
            "Slc500Processor"]

@@ -20,11 +20,11 @@ import re
 from pathlib import Path
 from typing import Any
 
-from gateway.config.slc_ascii import SLC_ASCII_DEFAULTS
-from gateway.drivers.base import OpenStream
-from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import GatewayError, InvalidRequest
-from gateway.links.kind import ToolHints
+from gateway.kinds.contract import ToolHints
+from gateway.kinds.slc_ascii.config import SLC_ASCII_DEFAULTS
+from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
+from gateway.line_driver import OpenStream
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import ControllerType, Mode
 from gateway.protocols.slc_ascii.memory_map import parse_item

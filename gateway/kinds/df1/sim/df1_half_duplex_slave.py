@@ -18,6 +18,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Final
 
+from gateway.kinds.df1.sim.slc500_line import REPLY_ADDRESSES, address_reply
 from gateway.protocols.df1.half_duplex_framing import (
     ACK,
     EOT,
@@ -32,7 +33,6 @@ from gateway.protocols.df1.half_duplex_framing import (
     Poll,
     encode_slave_message,
 )
-from gateway.sim.slc500_line import REPLY_ADDRESSES, address_reply
 from gateway.sim.variants import VariantTable, resolve_variants
 
 __all__ = ["VARIANTS", "HalfDuplexSlave", "SlaveVariant"]

@@ -21,14 +21,14 @@ import random
 from abc import ABC, abstractmethod
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import AbstractAsyncContextManager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 from gateway.errors import GatewayError, LinkDown, LinkError, LinkTimeout, format_seconds
 from gateway.transport import ByteStream, SerialSettings, describe_url, open_stream
 
-__all__ = ["LinkCounters", "LinkDriver", "OpenStream", "Priority", "UnitDriver"]
+__all__ = ["LineCounters", "LineDriver", "OpenStream", "Priority", "UnitDriver"]
 
 log = logging.getLogger("gateway.link")
 
@@ -40,11 +40,11 @@ OpenStream = Callable[..., Awaitable[ByteStream]]
 
 
 class _Session:
-    """A run of writes holding the line (``LinkDriver.write_session``)."""
+    """A run of writes holding the line (``LineDriver.write_session``)."""
 
     __slots__ = ("driver", "extend", "held", "writes")
 
-    def __init__(self, driver: LinkDriver) -> None:
+    def __init__(self, driver: LineDriver) -> None:
         self.driver = driver
         self.held = False
         self.writes = 0
@@ -63,17 +63,15 @@ class Priority(enum.IntEnum):
 
 
 @dataclass
-class LinkCounters:
+class LineCounters:
     """Counters of one link.  ``retries`` is the sum of the protocol's retry kinds."""
 
     transactions: int = 0
     errors: int = 0
     timeouts: int = 0
     crc_errors: int = 0
-    retransmits: int = 0  # SLC ;Z sent
-    id_resyncs: int = 0  # SLC ID 00 resyncs (the one after connecting included)
-    enq_sent: int = 0  # DF1 ENQ sent
-    nak_received: int = 0  # DF1 NAK received
+    #: the protocol's retries, by the names its kind gives them (the ``kind`` label of the retries metric)
+    retries_by_kind: dict[str, int] = field(default_factory=dict)
     refusals: int = 0
     faults: int = 0
     reconnects: int = 0
@@ -82,7 +80,7 @@ class LinkCounters:
 
     @property
     def retries(self) -> int:
-        return self.retransmits + self.id_resyncs + self.enq_sent + self.nak_received
+        return sum(self.retries_by_kind.values())
 
 
 class _Line:
@@ -173,12 +171,12 @@ class _Line:
 class UnitDriver(Protocol):
     """What a unit, its write queue, the metrics and the app use of the driver under a unit.
 
-    A :class:`LinkDriver` is one (one controller per port); so is a station's handle on a shared
-    line (``gateway.drivers.df1_half.Df1Station``), whose line is the runner instead.
+    A :class:`LineDriver` is one (one controller per port); so is a station's handle on a shared
+    line (``gateway.kinds.df1.half_duplex_driver.Df1Station``), whose line is the runner instead.
     """
 
     name: str
-    counters: LinkCounters
+    counters: LineCounters
     last_error: str
     #: loop time of the last change of ``available`` (None before the first verdict)
     state_since: float | None
@@ -199,7 +197,7 @@ class UnitDriver(Protocol):
     def extend_burst(self) -> None: ...
 
 
-class LinkDriver(ABC):
+class LineDriver(ABC):
     """Base of the protocol drivers.  Subclasses implement the protocol hooks."""
 
     def __init__(
@@ -219,7 +217,7 @@ class LinkDriver(ABC):
         self.url = url
         self.name = name or describe_url(url)
         self.settings = settings or SerialSettings()
-        self.counters = LinkCounters()
+        self.counters = LineCounters()
         self.last_error = ""
         #: seconds per character on the current stream's line (0 for an unpaced simulator)
         self.char_time = self.settings.char_time
@@ -235,7 +233,7 @@ class LinkDriver(ABC):
         self._lost: asyncio.Future[None] | None = None
         #: None until the controller first answers or the link first fails; then up (True) or down.
         self._state: bool | None = None
-        self._listeners: list[Callable[[LinkDriver], None]] = []
+        self._listeners: list[Callable[[LineDriver], None]] = []
         self._run_task: asyncio.Task[None] | None = None
         self._closing = False
         #: in a write session: after ``write_burst`` write transactions in a row, up to
@@ -264,7 +262,7 @@ class LinkDriver(ABC):
         """The port is open and the controller answered the last transaction."""
         return self._stream is not None and self._state is True
 
-    def add_listener(self, callback: Callable[[LinkDriver], None]) -> None:
+    def add_listener(self, callback: Callable[[LineDriver], None]) -> None:
         """``callback(driver)`` runs whenever the link goes up or down (``available`` changes)."""
         self._listeners.append(callback)
 
@@ -401,7 +399,7 @@ class LinkDriver(ABC):
             self._stream = None
         self._fail_pending(LinkDown(f"link {self.name} is closed"))
 
-    async def __aenter__(self) -> LinkDriver:
+    async def __aenter__(self) -> LineDriver:
         await self.start()
         return self
 

@@ -1,4 +1,4 @@
-"""Options and counters of the simulated SLC 5/04 (``gateway.sim.slc500``): ``sim://slc504?...``."""
+"""Options and counters of the simulated SLC 5/04 (``gateway.kinds.df1.sim.slc500``): ``sim://slc504?...``."""
 
 from __future__ import annotations
 

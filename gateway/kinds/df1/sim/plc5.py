@@ -19,7 +19,7 @@ This model answers:
   variant (below); read file info (``0F 94``) and set processor mode (``0F 80``) are SLC commands:
   STS 10 hex.
 
-Data table: the same files and initial contents as the SLC 5/04 model (``gateway.sim.slc500``):
+Data table: the same files and initial contents as the SLC 5/04 model (``gateway.kinds.df1.sim.slc500``):
 O0, I1, S2, B3 (64 words), T4 (20), C5 (20), R6 (10), N7 (256), F8 (64 floats), N10, B12, F13.  A
 logical binary address's levels are 1 data table (must be 0), 2 file, 3 element, 4 sub-element
 (p. 13-13); the word it names is ``element * words per element + sub-element`` of the file.  A float
@@ -51,6 +51,9 @@ from collections.abc import Mapping
 from typing import ClassVar, Final
 
 from gateway.errors import GatewayError
+from gateway.kinds.df1.sim.slc500 import ExtSts, Output, Slc500Options, Slc500Simulator
+from gateway.kinds.df1.sim.slc500_data import DataFile
+from gateway.kinds.df1.sim.slc500_processor import _not_usable, _Refuse  # the SLC processor's refusal, one class
 from gateway.protocols.df1.pccc import Function, PcccHeader, Sts, encode_reply
 from gateway.protocols.df1.pccc.limits import PLC5_WORD_RANGE
 from gateway.protocols.df1.pccc.plc5 import ReadModifyWrite, WordRangeReadParams, WordRangeWriteParams
@@ -60,9 +63,6 @@ from gateway.protocols.df1.plc5_address import (
     decode_logical_binary,
     parse_plc5_address,
 )
-from gateway.sim.slc500 import ExtSts, Output, Slc500Options, Slc500Simulator
-from gateway.sim.slc500_data import DataFile
-from gateway.sim.slc500_processor import _not_usable, _Refuse  # the SLC processor's refusal, one class
 
 __all__ = ["MAX_WORD_RANGE_READ", "MAX_WORD_RANGE_WRITE", "Output", "Plc5Simulator"]
 

@@ -1,9 +1,9 @@
-"""The registry of link kinds: protocol name -> :class:`~gateway.links.kind.LinkKind`.
+"""The registry of link kinds: protocol name -> :class:`~gateway.kinds.contract.LinkKind`.
 
 Everything that depends on the protocol of a link (its config model, serial defaults, plan,
 unit factory, simulators, CLI commands) is found here by the link's ``protocol``; no module
 outside a kind's package decides by protocol name.  Adding a protocol means adding one package
-under ``gateway/links/`` that exports a ``KIND``, and one entry in :data:`BUILTIN_KINDS` (or a
+under ``gateway/kinds/`` that exports a ``KIND``, and one entry in :data:`BUILTIN_KINDS` (or a
 call to :func:`register_link_kind` from outside, as the tests do).
 
 An unknown protocol name is an error naming the known ones (:func:`link_kind`), never a fallback.
@@ -15,8 +15,8 @@ from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Any
 
-from gateway.links import df1, slc_ascii
-from gateway.links.kind import Built, LinkKind, LinkRunner, ToolHints, unit_options
+from gateway.kinds import df1, slc_ascii
+from gateway.kinds.contract import Built, LinkKind, LinkRunner, ToolHints, unit_options
 from gateway.sim.models import register_sim_model, unregister_sim_model
 
 __all__ = [
@@ -40,9 +40,9 @@ __all__ = [
 BUILTIN_KINDS: tuple[LinkKind[Any], ...] = (slc_ascii.KIND, df1.KIND)
 
 _kinds: dict[str, LinkKind[Any]] = {kind.name: kind for kind in BUILTIN_KINDS}
-for _kind in BUILTIN_KINDS:  # built-in simulators are in gateway.sim's catalogue already; a new one is added
+for _kind in BUILTIN_KINDS:
     for _model in _kind.simulators:
-        register_sim_model(_model)
+        register_sim_model(_model, builtin=True)
 _version = [0]
 
 #: Every registered kind by protocol name (a read-only view: use register_link_kind to add one).

@@ -16,12 +16,12 @@ import struct
 from functools import partial
 from typing import Any, Protocol, TypeVar, Unpack, get_args
 
-from gateway.config.df1 import Processor
-from gateway.drivers.base import UnitDriver
-from gateway.drivers.df1 import Df1Driver, check_reply_size
 from gateway.errors import ControllerRefused, ModbusExceptionReply
-from gateway.links.df1.plan import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, shared_plan_df1
-from gateway.links.df1.receive import ReceiveWindow
+from gateway.kinds.df1.config import Processor
+from gateway.kinds.df1.driver import Df1Driver, check_reply_size
+from gateway.kinds.df1.plan import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, shared_plan_df1
+from gateway.kinds.df1.receive import ReceiveWindow
+from gateway.line_driver import UnitDriver
 from gateway.modbus.mapping import BitPoint, Block, Half, Plan, RegisterPoint, Table
 from gateway.protocols.df1.address import FileType, SlcAddress
 from gateway.protocols.df1.pccc import (
@@ -68,7 +68,7 @@ def pccc_exception(error: PcccError) -> ModbusExceptionReply:
 
 class PcccDriver(UnitDriver, Protocol):
     """What a PCCC unit needs of its driver: a full-duplex ``Df1Driver``, or a station's handle on a
-    half-duplex line (``gateway.drivers.df1_half.Df1Station``)."""
+    half-duplex line (``gateway.kinds.df1.half_duplex_driver.Df1Station``)."""
 
     last_sts: int
 
@@ -117,10 +117,6 @@ class PcccUnit(Unit[R, B]):
     @property
     def last_fault_number(self) -> int:
         return self.driver.last_sts
-
-    @property
-    def id_resyncs(self) -> int:
-        return 0
 
 
 class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):

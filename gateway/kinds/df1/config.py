@@ -190,7 +190,7 @@ class Df1LinkConfig(LinkBase):
     #: "full": point to point; "half": a station on a multi-drop line / radio channel, polled by
     #: the gateway.  Links with the same ``port`` and ``duplex = "half"`` share one line master.
     duplex: Literal["full", "half"] = "full"
-    # Line keys: every link of one line must give the same values (gateway.config.df1).
+    # Line keys: every link of one line must give the same values (gateway.kinds.df1.config).
     #: quiet time after the last byte heard before the master transmits (2-wire turnaround, radio)
     pre_transmit_delay: float = Field(0.0, ge=0, le=10)
     #: RTS on -> first byte (modem key-up) and last byte -> RTS off (1747-RM001 p. 13-59)
@@ -225,7 +225,7 @@ class Df1LinkConfig(LinkBase):
     receive_file: int = Field(7, ge=0, le=999)
     receive_words: int = Field(0, ge=0, le=10000)
     #: where the unit serves those words (read-only), then one age register per word: Modbus table
-    #: ("input" or "holding") and the address of word 0 (``gateway.links.df1.receive``)
+    #: ("input" or "holding") and the address of word 0 (``gateway.kinds.df1.receive``)
     receive_table: Literal["input", "holding"] = "input"
     receive_start: int = Field(0, ge=0, le=65535)
 
@@ -324,7 +324,7 @@ def _overlaps(entries: Sequence[MapEntry]) -> list[tuple[Loc, str]]:
 #
 # Each station stays one ``[[link]]`` (its own ``unit``, ``station`` and map).  Links with the same
 # ``port``, ``protocol = "df1"`` and ``duplex = "half"`` are the stations of one line and share one
-# line master (``gateway.drivers.df1_half.Df1HalfDuplexLine``).  Across the links of a line:
+# line master (``gateway.kinds.df1.half_duplex_driver.Df1HalfDuplexLine``).  Across the links of a line:
 #
 # * the serial settings (baud rate, data bits, parity, stop bits), the checksum, the gateway's own
 #   address (``source``) and the line keys (delays, RTS / DTR, echo, ACK timeout, message retries,

@@ -1,4 +1,4 @@
-"""The data table of the simulated SLC 5/04 (``gateway.sim.slc500``): files as flat byte images."""
+"""The data table of the simulated SLC 5/04 (``gateway.kinds.df1.sim.slc500``): files as flat byte images."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """What a link kind (a protocol) provides: :class:`LinkKind`, and what its factory returns.
 
-A kind is one package under ``gateway/links/`` that exports one ``KIND``; the registry
-(:mod:`gateway.links`) maps protocol names to kinds.  Nothing outside a kind's package names its
+A kind is one package under ``gateway/kinds/`` that exports one ``KIND``; the registry
+(:mod:`gateway.kinds`) maps protocol names to kinds.  Nothing outside a kind's package names its
 protocol: the app, the config, the CLI and the simulators ask the registry.
 
 The unit factory gets **every** ``[[link]]`` of its kind at once (``build(links)``) and returns
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar, get_args
 
 from gateway.config.link import LinkBase, SerialDefaults
-from gateway.drivers.base import OpenStream
+from gateway.line_driver import OpenStream
 from gateway.modbus.mapping import Plan, PointLabel, Table
 from gateway.sim.models import SimModel
 from gateway.unit import Unit, UnitOptions, WritableRange
@@ -119,6 +119,9 @@ class LinkKind(Generic[C]):
     hints: ToolHints | None = None
     #: adds the tool's own command-line options (``--station`` ...) to a tool command's parser
     tool_options: Callable[[argparse.ArgumentParser], None] | None = None
+    #: (tag name, description) of the status block's kind counter, input registers 1009-1010
+    #: (:attr:`gateway.unit.Unit.kind_counter`)
+    status_counter: tuple[str, str] = ("kind_counter", "not used by this kind (always 0)")
 
     @property
     def name(self) -> str:

@@ -21,9 +21,9 @@ import random
 from pathlib import Path
 from typing import Final
 
-from gateway.config.df1 import DF1_DEFAULTS
-from gateway.drivers.base import LinkDriver, OpenStream, Priority
 from gateway.errors import GatewayError, LinkTimeout, ProtocolError, WriteOutcomeUnknown
+from gateway.kinds.df1.config import DF1_DEFAULTS
+from gateway.line_driver import LineDriver, OpenStream, Priority
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.link import Df1Link
 from gateway.protocols.df1.pccc import (
@@ -54,7 +54,7 @@ DF1_SETTINGS: Final = DF1_DEFAULTS.settings
 _LONGEST_FRAME: Final = 280
 
 
-class Df1Driver(LinkDriver):
+class Df1Driver(LineDriver):
     """One DF1 full-duplex link to one node."""
 
     def __init__(
@@ -157,8 +157,8 @@ class Df1Driver(LinkDriver):
                 waiter.set_result(event)
         counters = core.link.counters
         enq, nak, bad = self._link_base
-        self.counters.enq_sent = enq + counters.enqs_sent
-        self.counters.nak_received = nak + counters.naks_received
+        self.counters.retries_by_kind["enq"] = enq + counters.enqs_sent
+        self.counters.retries_by_kind["nak"] = nak + counters.naks_received
         self.counters.crc_errors = bad + counters.bad_frames
         self._arm_timer()
 

@@ -2,7 +2,7 @@
 
 ``processor = "plc5"`` reads and writes with word range commands and PLC-5 addresses, never with the
 SLC typed logical commands (``0F A2`` / ``AA`` / ``AB``), which 1770-6.5.16 lists for the SLC 500 and
-MicroLogix only (a PLC-5 may answer them STS 10; ``gateway.sim.plc5`` variant ``typed_logical``):
+MicroLogix only (a PLC-5 may answer them STS 10; ``gateway.kinds.df1.sim.plc5`` variant ``typed_logical``):
 
 * blocks: word range read ``0F 01`` (1770-KF2 p. 5-57; 1785-KE p. 5-6), logical binary address of
   the block's first word (``07 00 07 1E`` for N7:30, 1770-6.5.16 p. 13-12);
@@ -19,7 +19,7 @@ Addresses are the forms users type (``N7:0``, ``B3/5``, ``B3:0/5``, ``T4:1.ACC``
 ``F8:2``, ``I:010`` octal), parsed by :mod:`gateway.protocols.df1.plc5_address`; the read plan is
 :func:`plan_plc5` (the cost model and block choice of ``mapping_df1``, on PLC-5 word positions).
 
-The unit is the SLC :class:`~gateway.links.df1.unit.Df1Unit` with its commands replaced; it only needs a
+The unit is the SLC :class:`~gateway.kinds.df1.unit.Df1Unit` with its commands replaced; it only needs a
 driver with ``execute(request, name, write=...)`` (``Df1Driver`` or a half-duplex ``Df1Station``).
 """
 
@@ -34,7 +34,7 @@ from functools import partial
 from typing import Final, TypeAlias, Unpack
 
 from gateway.errors import InvalidRequest, ModbusExceptionReply
-from gateway.links.df1.plan import (
+from gateway.kinds.df1.plan import (
     F32_HIGH,
     F32_LOW,
     READ_OVERHEAD_BYTES,
@@ -43,7 +43,7 @@ from gateway.links.df1.plan import (
     entry_description,
     optimal_blocks,
 )
-from gateway.links.df1.unit import PcccDriver, PcccUnit, _step_bytes
+from gateway.kinds.df1.unit import PcccDriver, PcccUnit, _step_bytes
 from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, PointLabel, RegisterPoint, Scan, Table
 from gateway.protocols.df1.pccc import (
     LogicalBinaryAddress,

@@ -1,8 +1,8 @@
 """A simulated DF1 half-duplex multi-drop line: several SLC 5/0x (or PLC-5) stations on one byte stream.
 
-Each station is a :class:`~gateway.sim.df1_half_duplex_slave.HalfDuplexSlave` (the slave actions of
+Each station is a :class:`~gateway.kinds.df1.sim.df1_half_duplex_slave.HalfDuplexSlave` (the slave actions of
 1775-KA p. 11-11/11-12, with the variant switches of that model) in front of a controller model
-whose command execution is the SLC 5/04 simulator's (``gateway.sim.slc500``; the PLC-5 model with
+whose command execution is the SLC 5/04 simulator's (``gateway.kinds.df1.sim.slc500``; the PLC-5 model with
 ``model="plc5"``).  The line itself is the medium they share, with its timing and its faults:
 
 * **timing** - ``char_time`` seconds per character on the medium (11 bits / baud; 0 = instantaneous);
@@ -47,12 +47,12 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import ClassVar, Final
 
+from gateway.kinds.df1.sim.df1_half_duplex_slave import VARIANTS as SLAVE_VARIANTS
+from gateway.kinds.df1.sim.df1_half_duplex_slave import HalfDuplexSlave, SlaveVariant
+from gateway.kinds.df1.sim.plc5 import Plc5Simulator
+from gateway.kinds.df1.sim.slc500 import Output, Slc500Options, Slc500Simulator
+from gateway.kinds.df1.sim.slc500_line import corrupt_frame
 from gateway.protocols.df1.half_duplex_framing import Checksum, Symbol
-from gateway.sim.df1_half_duplex_slave import VARIANTS as SLAVE_VARIANTS
-from gateway.sim.df1_half_duplex_slave import HalfDuplexSlave, SlaveVariant
-from gateway.sim.plc5 import Plc5Simulator
-from gateway.sim.slc500 import Output, Slc500Options, Slc500Simulator
-from gateway.sim.slc500_line import corrupt_frame
 
 __all__ = ["LineCounters", "LineOptions", "MultidropLine", "SlcStation"]
 

@@ -1,4 +1,4 @@
-"""The simulated SLC 5/04's side of the wire (``gateway.sim.slc500``): cutting bytes into frames
+"""The simulated SLC 5/04's side of the wire (``gateway.kinds.df1.sim.slc500``): cutting bytes into frames
 and symbols, and the damage its fault injection does to them.  No I/O; the randomness comes from
 the simulator's seeded generator.
 """
