@@ -98,13 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--garble", type=int, default=0, metavar="N", help="corrupt 1 in N replies")
     p.add_argument("--drop", type=int, default=0, metavar="N", help="drop 1 in N replies")
     p.add_argument("--delay", type=float, default=0.0, metavar="S", help="add S seconds to every reply")
-    p.add_argument("--power-cycle-every", type=int, default=0, metavar="N", help="power-cycle every N commands")
-    p.add_argument("--fault-every", type=int, default=0, metavar="N", help="emit ;T every N commands (slc100/150)")
-    p.add_argument("--withhold-ack", type=int, default=0, metavar="N", help="df1: withhold 1 in N ACKs")
-    p.add_argument("--duplicate", type=int, default=0, metavar="N", help="df1: send 1 in N replies twice")
-    p.add_argument("--noise", type=int, default=0, metavar="N", help="df1: garbage between frames, 1 in N")
-    p.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc")
-    p.add_argument("--station", type=int, default=1, help="df1: our node number (default 1)")
+    for kind in link_kinds().values():  # each kind's own simulator options (its name in their help)
+        if kind.simulate_options is not None:
+            kind.simulate_options(p)
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--no-ladder", action="store_true", help="freeze the ladder: values change only when written")
     p.add_argument("--paced", action="store_true", help="pace characters at --baudrate (a real line's speed)")
@@ -115,17 +111,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a reading of the manual where it leaves behaviour open (repeatable; "
                         "docs/controller-variants.md lists them)")
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
-                   help="any option of the model's sim:// URL (repeatable), e.g. for df1line: stations=1,2,3,4 "
-                        "dead=4 corrupt=6 ignore=10 model=plc5 (docs/df1-half-duplex-line.md lists them)")
+                   help="any option of the model's sim:// URL (repeatable), e.g. stations=1,2,3,4 (the gateway.sim "
+                        "module doc and each model's doc in docs/ list them)")
 
     p = sub.add_parser("probe", help="print the controller type and firmware revision")
     _add_link_options(p)
 
-    p = sub.add_parser("read", help="read items: 901.ACC 901.PRE 701 11 @0x84 (df1: N7:0 T4:1.ACC F8:2)")
+    p = sub.add_parser("read", help="read items: " + _per_kind(lambda kind: kind.item_examples[0]))
     _add_link_options(p)
     p.add_argument("items", nargs="+", metavar="ITEM")
 
-    p = sub.add_parser("write", help="write items: 905.PRE=1234 701=1 (df1: N7:0=5 B3:0/3=1)")
+    p = sub.add_parser("write", help="write items: " + _per_kind(lambda kind: kind.item_examples[1]))
     _add_link_options(p)
     p.add_argument("assignments", nargs="+", metavar="ITEM=VALUE")
 

@@ -29,7 +29,7 @@ import struct
 import sys
 from collections.abc import Sequence
 
-__all__ = ["POLICY_LINK", "POLICY_SERVING", "check", "main"]
+__all__ = ["POLICY_LINK", "POLICY_SERVING", "check", "run_healthcheck"]
 
 STATUS_LINK_UP = 1000
 #: What each policy demands, as printed on every line of output.
@@ -39,7 +39,7 @@ _MBAP = struct.Struct(">HHHB")  # transaction id, protocol id (0), length, unit 
 _TID = 0x4843  # "HC"
 
 
-def _address(text: str) -> tuple[str, int]:
+def _listen_address(text: str) -> tuple[str, int]:
     host, colon, port = text.rpartition(":")
     if not colon or not port.isdigit() or not 0 < int(port) < 65536 or not host:
         raise argparse.ArgumentTypeError(f"{text!r}: expected HOST:PORT, e.g. 127.0.0.1:5020 or [::1]:5020")
@@ -79,12 +79,12 @@ def check(host: str, port: int, unit: int = 1, timeout: float = 3.0) -> int:
     return value
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def run_healthcheck(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m gateway.healthcheck",
         description="Modbus TCP health check of slc-gateway: read a unit's status register 1000.",
     )
-    parser.add_argument("address", nargs="?", type=_address, default=("127.0.0.1", 5020), metavar="HOST:PORT")
+    parser.add_argument("address", nargs="?", type=_listen_address, default=("127.0.0.1", 5020), metavar="HOST:PORT")
     parser.add_argument("unit", nargs="?", type=_unit, default=1, metavar="UNIT")
     parser.add_argument(
         "--require-link", action="store_true",
@@ -108,4 +108,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_healthcheck())

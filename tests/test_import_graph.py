@@ -1,4 +1,4 @@
-"""No import circles in gateway/ (issue 11).
+"""No import circles in gateway/, and the package's structure rules.
 
 The graph is built from the source with :mod:`ast`, not by importing: every ``import`` and
 ``from ... import`` anywhere in a module counts, at module level, inside functions and under
@@ -163,17 +163,30 @@ def test_the_check_finds_a_deliberate_cycle(tmp_path: Path, files: dict[str, str
     assert find_cycles(import_graph(tmp_path, "pkg")) == expected
 
 
-#: The modules that must not know any protocol (issue 11): they find a link's kind in the registry.
+#: The modules that must not know any protocol: they find a link's kind in the registry.
 GENERIC = (
     "gateway.app",
     "gateway.cache",
     "gateway.cli",
+    "gateway.config",
+    "gateway.config.link",
+    "gateway.config.links",
+    "gateway.config.schema",
     "gateway.image",
+    "gateway.line_driver",
+    "gateway.metrics",
+    "gateway.modbus.handler",
     "gateway.modbus.mapping",
     "gateway.poller",
     "gateway.sim",
+    "gateway.sim.models",
+    "gateway.sim.serve",
+    "gateway.status",
+    "gateway.tags",
     "gateway.tools",
+    "gateway.transport",
     "gateway.unit",
+    "gateway.writes",
 )
 #: What names a protocol: its sans-I/O core, its driver, its kind package, its config model.
 PROTOCOL_MODULES = (
@@ -204,3 +217,36 @@ def test_protocol_names_are_spelt_out_in_at_most_three_modules() -> None:
             if isinstance(node, ast.Constant) and node.value in ("slc-ascii", "df1"):
                 spelt.add(name)
     assert spelt == {"gateway.kinds.slc_ascii.config", "gateway.kinds.df1.config"}
+
+
+MAX_MODULE_LINES = 600
+
+
+def test_no_module_is_over_600_lines() -> None:
+    modules = module_names(ROOT, "gateway")
+    sizes = {name: len(path.read_text(encoding="utf-8").splitlines()) for name, path in modules.items()}
+    assert {name: lines for name, lines in sizes.items() if lines > MAX_MODULE_LINES} == {}
+
+
+def top_level_names(root: Path, package: str) -> dict[str, list[str]]:
+    """Function and class name -> the modules that define it at their top level."""
+    defined: dict[str, list[str]] = {}
+    for name, path in module_names(root, package).items():
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+                defined.setdefault(node.name, []).append(name)
+    return defined
+
+
+def test_no_name_is_defined_in_two_modules() -> None:
+    """One meaning per name: a function or class name is defined in one module of gateway/ only
+    (private ones too), so that a name found in a traceback or a grep means one thing."""
+    twice = {name: modules for name, modules in top_level_names(ROOT, "gateway").items() if len(modules) > 1}
+    assert twice == {}
+
+
+def test_the_name_check_finds_a_name_defined_twice(tmp_path: Path) -> None:
+    _write(tmp_path, {"pkg/__init__.py": "", "pkg/a.py": "def verdict() -> None: ...\n",
+                      "pkg/b.py": "class verdict: ...\nclass Other: ...\n"})
+    names = top_level_names(tmp_path, "pkg")
+    assert names["verdict"] == ["pkg.a", "pkg.b"] and names["Other"] == ["pkg.b"]

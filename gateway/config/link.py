@@ -12,7 +12,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import ClassVar, Literal, get_args
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
@@ -20,7 +20,7 @@ from gateway.config._common import Loc, Model, Problems, array, check_port_url, 
 from gateway.config.writer import table_lines
 from gateway.streams import SerialSettings
 
-__all__ = ["BAUDRATES", "LinkBase", "Parity", "SerialDefaults", "WritableRange", "WritableTable"]
+__all__ = ["BAUDRATES", "LinkBase", "Parity", "SerialDefaults", "WritableRange", "WritableTable", "protocol_of"]
 
 WritableTable = Literal["holding", "coil"]
 Parity = Literal["N", "E", "O"]
@@ -234,3 +234,9 @@ class LinkBase(Model):
     def describe_lines(self) -> list[str]:
         """This link as ``[[link]]`` TOML (the resolved-config writer's part for it)."""
         return table_lines("[[link]]", self)
+
+
+def protocol_of(model: type[LinkBase]) -> str:
+    """The protocol name of a link model: the one value of its ``protocol`` Literal."""
+    (name,) = get_args(model.model_fields["protocol"].annotation)
+    return str(name)

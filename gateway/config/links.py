@@ -28,7 +28,7 @@ from pydantic import (
 from pydantic_core import InitErrorDetails
 
 from gateway.config._common import Problems, check_port_url, sim_model
-from gateway.config.link import LinkBase
+from gateway.config.link import LinkBase, protocol_of
 
 __all__ = [
     "LinkConfig",
@@ -53,13 +53,6 @@ def _by_protocol() -> Mapping[str, type[LinkBase]]:
     from gateway.kinds import link_kinds
 
     return {name: kind.config_model for name, kind in link_kinds().items()}
-
-
-def protocol_of(model: type[LinkBase]) -> str:
-    """The protocol name of a link model: the one value of its ``protocol`` Literal."""
-    from gateway.kinds.contract import protocol_of as of
-
-    return of(model)
 
 
 def link_models() -> tuple[type[LinkBase], ...]:

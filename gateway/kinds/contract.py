@@ -17,9 +17,9 @@ from __future__ import annotations
 import argparse
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Generic, Protocol, TypeVar, get_args
+from typing import Any, Generic, Protocol, TypeVar
 
-from gateway.config.link import LinkBase, SerialDefaults
+from gateway.config.link import LinkBase, SerialDefaults, protocol_of
 from gateway.line_driver import OpenStream
 from gateway.modbus.mapping import Plan, PointLabel, Table
 from gateway.sim.models import SimModel
@@ -79,12 +79,6 @@ class ToolHints:
     check: str
 
 
-def protocol_of(model: type[LinkBase]) -> str:
-    """The protocol name of a link model: the one value of its ``protocol`` Literal."""
-    (name,) = get_args(model.model_fields["protocol"].annotation)
-    return str(name)
-
-
 def block_lines(plan: Plan[Any, Any]) -> list[str]:
     """One line per block of a read plan (``check-config``): its scan class and label."""
     return [f"{block.scan.value:4} {block.label}" for block in plan.blocks]
@@ -119,6 +113,10 @@ class LinkKind(Generic[C]):
     hints: ToolHints | None = None
     #: adds the tool's own command-line options (``--station`` ...) to a tool command's parser
     tool_options: Callable[[argparse.ArgumentParser], None] | None = None
+    #: adds the kind's own options to ``slc-gateway simulate`` (its simulators' fault options)
+    simulate_options: Callable[[argparse.ArgumentParser], None] | None = None
+    #: examples of the items of ``slc-gateway read`` and ``write``, for help texts
+    item_examples: tuple[str, str] = ("", "")
     #: (tag name, description) of the status block's kind counter, input registers 1009-1010
     #: (:attr:`gateway.unit.Unit.kind_counter`)
     status_counter: tuple[str, str] = ("kind_counter", "not used by this kind (always 0)")

@@ -23,7 +23,7 @@ from typing import Protocol
 from gateway.errors import GatewayError, LinkDown
 from gateway.streams import ByteStream, SerialSettings
 
-__all__ = ["LineModel", "SimDevice", "SimOutput", "SimStream", "close_tcp", "serve_pty", "serve_tcp"]
+__all__ = ["LineModel", "Output", "SimDevice", "SimOutput", "SimStream", "close_tcp", "serve_pty", "serve_tcp"]
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +33,14 @@ class SimOutput(Protocol):
     def delay(self) -> float: ...
     @property
     def data(self) -> bytes: ...
+
+
+@dataclass(frozen=True, slots=True)
+class Output:
+    """A simulated device's :class:`SimOutput`: bytes to put on the line after ``delay`` seconds."""
+
+    delay: float
+    data: bytes
 
 
 class SimDevice(Protocol):

@@ -13,7 +13,8 @@ import pytest
 
 from gateway.app import Gateway
 from gateway.config import parse_config
-from gateway.healthcheck import POLICY_LINK, POLICY_SERVING, check, main
+from gateway.healthcheck import POLICY_LINK, POLICY_SERVING, check
+from gateway.healthcheck import run_healthcheck as main
 from gateway.sim import reset_simulators
 
 ROOT = Path(__file__).resolve().parents[2]

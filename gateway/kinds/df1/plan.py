@@ -168,7 +168,7 @@ def optimal_blocks(
 
 
 @dataclass(frozen=True, slots=True)
-class _Cell:
+class _SlcCell:
     table: Table
     modbus: int
     address: SlcAddress  # the word (for bits: the word holding the bit)
@@ -177,13 +177,13 @@ class _Cell:
     scan: Scan
 
 
-def _cells(item: MapItem, words: dict[SlcAddress, SlcAddress]) -> list[_Cell]:
+def _slc_cells(item: MapItem, words: dict[SlcAddress, SlcAddress]) -> list[_SlcCell]:
     """The cells of one map entry.  ``words`` interns word addresses across the plan: the 16
     coils of one word share one address object (a plan lives as long as its links)."""
     base = parse_address(item.address)
     table = Table(item.table)
     scan = Scan(item.scan)
-    cells: list[_Cell] = []
+    cells: list[_SlcCell] = []
     if table in (Table.COIL, Table.DISCRETE):
         step_elements = base.file_type in _STRUCTURES
         first_bit = base.bit or 0
@@ -195,25 +195,25 @@ def _cells(item: MapItem, words: dict[SlcAddress, SlcAddress]) -> list[_Cell]:
                 word, bit = base.offset(absolute // 16), absolute % 16
             word = SlcAddress(word.file_type, word.file_number, word.element, word.sub_element, None)
             word = words.setdefault(word, word)
-            cells.append(_Cell(table, item.start + k, word, None, bit, scan))
+            cells.append(_SlcCell(table, item.start + k, word, None, bit, scan))
         return cells
     if item.type == "float32":
         high, low = (0, 1) if item.word_order == "high-first" else (1, 0)
         for k in range(item.count):
             address = base.offset(k)
-            cells.append(_Cell(table, item.start + 2 * k + high, address, F32_HIGH, None, scan))
-            cells.append(_Cell(table, item.start + 2 * k + low, address, F32_LOW, None, scan))
+            cells.append(_SlcCell(table, item.start + 2 * k + high, address, F32_HIGH, None, scan))
+            cells.append(_SlcCell(table, item.start + 2 * k + low, address, F32_LOW, None, scan))
         return cells
     for k in range(item.count):
         address = base.offset(k)
-        cells.append(_Cell(table, item.start + k, address, U16_LE, None, scan))
+        cells.append(_SlcCell(table, item.start + k, address, U16_LE, None, scan))
     return cells
 
 
 def plan_df1(items: Sequence[MapItem], max_read_bytes: int, overhead: int = READ_OVERHEAD_BYTES) -> Df1Plan:
     """The read plan and Modbus points of a DF1 link's map."""
     interned: dict[SlcAddress, SlcAddress] = {}
-    cells = [cell for item in items for cell in _cells(item, interned)]
+    cells = [cell for item in items for cell in _slc_cells(item, interned)]
     max_words = max_read_bytes // 2
     # Needed spans per (scan, key); a word read by the fast class is not read again by the slow.
     fast_words: set[tuple[Key, int]] = set()
@@ -246,7 +246,7 @@ def plan_df1(items: Sequence[MapItem], max_read_bytes: int, overhead: int = READ
             entries.append((start, words, index))
         where[scan, key] = entries
 
-    def find(cell: _Cell) -> tuple[int, int]:
+    def find(cell: _SlcCell) -> tuple[int, int]:
         key, position = _locate(cell.address)
         scan = Scan.FAST if (key, position) in fast_words else cell.scan
         for start, words, index in where[scan, key]:
@@ -280,7 +280,7 @@ def point_labels_df1(items: Sequence[MapItem]) -> dict[tuple[Table, int], PointL
     interned: dict[SlcAddress, SlcAddress] = {}
     for item in items:
         description = entry_description(item)
-        for cell in _cells(item, interned):
+        for cell in _slc_cells(item, interned):
             address = cell.address if cell.bit is None else replace(cell.address, bit=cell.bit)
             labels[cell.table, cell.modbus] = PointLabel(str(address), item.type, description)
     return labels

@@ -117,7 +117,7 @@ def _position(address: Plc5Address) -> int:
     return address.element * _words_per_element(address.file_type) + (address.sub_element or 0)
 
 
-def _word(key: _Key, position: int) -> Plc5Address:
+def _word_address(key: _Key, position: int) -> Plc5Address:
     """The address of word ``position`` of a file: element (and sub-element of a structure)."""
     file_type, file_number = key
     size = _words_per_element(file_type)
@@ -128,7 +128,7 @@ def _word(key: _Key, position: int) -> Plc5Address:
 
 
 @dataclass(frozen=True, slots=True)
-class _Cell:
+class _Plc5Cell:
     table: Table
     modbus: int
     key: _Key
@@ -138,7 +138,7 @@ class _Cell:
     scan: Scan
 
 
-def _cells(item: MapItem) -> list[_Cell]:
+def _plc5_cells(item: MapItem) -> list[_Plc5Cell]:
     try:
         base = parse_plc5_address(item.address)
     except AddressError as exc:
@@ -147,7 +147,7 @@ def _cells(item: MapItem) -> list[_Cell]:
     key = (base.file_type, base.file_number)
     first = _position(base)
     structure = base.file_type in _STRUCTURES
-    cells: list[_Cell] = []
+    cells: list[_Plc5Cell] = []
     if table in (Table.COIL, Table.DISCRETE):
         first_bit = base.bit or 0
         for k in range(item.count):
@@ -155,7 +155,7 @@ def _cells(item: MapItem) -> list[_Cell]:
                 position, bit = first + 3 * k, first_bit
             else:  # B3/5 or B3:0/5, count 20: bits 5..24 of the file
                 position, bit = first + (first_bit + k) // 16, (first_bit + k) % 16
-            cells.append(_Cell(table, item.start + k, key, position, None, bit, scan))
+            cells.append(_Plc5Cell(table, item.start + k, key, position, None, bit, scan))
         return cells
     if base.bit is not None:
         raise InvalidRequest(f"map address {item.address!r}: a register maps a word, not a bit")
@@ -165,20 +165,20 @@ def _cells(item: MapItem) -> list[_Cell]:
         high, low = (0, 1) if item.word_order == "high-first" else (1, 0)
         for k in range(item.count):
             position = first + 2 * k
-            cells.append(_Cell(table, item.start + 2 * k + high, key, position, F32_HIGH, None, scan))
-            cells.append(_Cell(table, item.start + 2 * k + low, key, position, F32_LOW, None, scan))
+            cells.append(_Plc5Cell(table, item.start + 2 * k + high, key, position, F32_HIGH, None, scan))
+            cells.append(_Plc5Cell(table, item.start + 2 * k + low, key, position, F32_LOW, None, scan))
         return cells
     if base.file_type == "F":
         raise InvalidRequest(f"map address {item.address!r}: an F file holds floats: type = \"float32\"")
     step = 3 if structure and base.sub_element is not None else 1  # T4:0.ACC, count 3: ACC of T4:0-2
     for k in range(item.count):
-        cells.append(_Cell(table, item.start + k, key, first + step * k, U16_LE, None, scan))
+        cells.append(_Plc5Cell(table, item.start + k, key, first + step * k, U16_LE, None, scan))
     return cells
 
 
 def plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTES) -> Plc5Plan:
     """The read plan and Modbus points of a PLC-5 map (PLC-5 addresses; word range reads)."""
-    cells = [cell for item in items for cell in _cells(item)]
+    cells = [cell for item in items for cell in _plc5_cells(item)]
     max_words = min(max_read_bytes, PLC5_MAX_READ_BYTES) // 2
     fast = {(c.key, c.position) for c in cells if c.scan is Scan.FAST}
     needed: dict[tuple[Scan, _Key], set[tuple[int, int]]] = defaultdict(set)
@@ -190,7 +190,7 @@ def plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTE
     for (scan, key), spans in sorted(needed.items(), key=lambda kv: (kv[0][0].value, kv[0][1])):
         entries = []
         for start, words in optimal_blocks(spans, _words_per_element(key[0]), max_words, READ_OVERHEAD_BYTES):
-            address = _word(key, start)
+            address = _word_address(key, start)
             index = len(plan.blocks)
             plan.blocks.append(Block(Plc5Read(address, words), 2 * words, scan, f"{address} ({words} words)"))
             entries.append((start, words, index))
@@ -203,7 +203,7 @@ def plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTE
             if start <= cell.position < start + words
         )
         writable = cell.table in (Table.HOLDING, Table.COIL)
-        word = _word(cell.key, cell.position)
+        word = _word_address(cell.key, cell.position)
         if cell.bit is not None:
             target = Plc5BitWrite(word, cell.bit) if writable else None
             plan.bits(cell.table)[cell.modbus] = BitPoint(block, offset + cell.bit // 8, cell.bit % 8, target)
@@ -219,8 +219,8 @@ def point_labels_plc5(items: Sequence[MapItem]) -> dict[tuple[Table, int], Point
     labels: dict[tuple[Table, int], PointLabel] = {}
     for item in items:
         description = entry_description(item)
-        for cell in _cells(item):
-            word = _word(cell.key, cell.position)
+        for cell in _plc5_cells(item):
+            word = _word_address(cell.key, cell.position)
             address = word if cell.bit is None else replace(word, bit=cell.bit)
             labels[cell.table, cell.modbus] = PointLabel(str(address), item.type, description)
     return labels
@@ -236,7 +236,7 @@ def shared_plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_RE
     return _shared(tuple(items), max_read_bytes)
 
 
-def _logical(address: Plc5Address) -> LogicalBinaryAddress:
+def _logical_address(address: Plc5Address) -> LogicalBinaryAddress:
     return LogicalBinaryAddress.of(*address.levels)
 
 
@@ -266,14 +266,15 @@ class Plc5Unit(PcccUnit[Plc5WordWrite, Plc5BitWrite]):
         read = block.request
         if not isinstance(read, Plc5Read):
             raise TypeError(f"{block.label}: not a PLC-5 read")
-        reply = await self.driver.execute(WordRangeRead(_logical(read.address), 2 * read.words), f"read {block.label}")
+        request = WordRangeRead(_logical_address(read.address), 2 * read.words)
+        reply = await self.driver.execute(request, f"read {block.label}")
         data: bytes = reply.data
         if len(data) != 2 * read.words:
             raise InvalidRequest(f"read {block.label}: the PLC-5 answered {len(data)} bytes, not {2 * read.words}")
         return data
 
     async def _write_words(self, address: Plc5Address, data: bytes) -> None:
-        await self._execute(WordRangeWrite(_logical(address), data), f"write {address}", write=True)
+        await self._execute(WordRangeWrite(_logical_address(address), data), f"write {address}", write=True)
 
     async def _write_register(self, target: Plc5WordWrite, value: int) -> None:
         await self._write_words(target.address, value.to_bytes(2, "little"))
@@ -324,15 +325,15 @@ class Plc5Unit(PcccUnit[Plc5WordWrite, Plc5BitWrite]):
         """Consecutive coils of one word in one read-modify-write (only their bits change, p. 7-20)."""
         runs: list[list[tuple[int, BitPoint[Plc5BitWrite], bool]]] = []
         for modbus, point, value in checked:
-            target = _target(point)
-            if runs and runs[-1][-1][0] == modbus - 1 and _target(runs[-1][-1][1]).address == target.address:
+            target = _bit_target(point)
+            if runs and runs[-1][-1][0] == modbus - 1 and _bit_target(runs[-1][-1][1]).address == target.address:
                 runs[-1].append((modbus, point, value))
             else:
                 runs.append([(modbus, point, value)])
         return [
             WriteStep(
                 run[0][0], run[-1][0],
-                partial(self._write_bits, _target(run[0][1]).address, [(_target(p).bit, v) for _, p, v in run]),
+                partial(self._write_bits, _bit_target(run[0][1]).address, [(_bit_target(p).bit, v) for _, p, v in run]),
                 bit_patches=[(p, v) for _, p, v in run],
             )
             for run in runs
@@ -343,7 +344,7 @@ class Plc5Unit(PcccUnit[Plc5WordWrite, Plc5BitWrite]):
         for bit, on in bits:
             forced |= 1 << bit
             set_bits |= (1 << bit) if on else 0
-        request = ReadModifyWriteRequest(((_logical(address), 0xFFFF & ~forced | set_bits, set_bits),))
+        request = ReadModifyWriteRequest(((_logical_address(address), 0xFFFF & ~forced | set_bits, set_bits),))
         label = f"write {address}/" + ",".join(str(b) for b, _ in bits)
         await self._execute(request, label, write=True)
 
@@ -351,7 +352,7 @@ class Plc5Unit(PcccUnit[Plc5WordWrite, Plc5BitWrite]):
         await self._write_bits(target.address, [(target.bit, value)])
 
 
-def _target(point: BitPoint[Plc5BitWrite]) -> Plc5BitWrite:
+def _bit_target(point: BitPoint[Plc5BitWrite]) -> Plc5BitWrite:
     target = point.write
     if target is None:
         raise ModbusExceptionReply(ModbusExceptionReply.ILLEGAL_DATA_ADDRESS, "coil is not writable")

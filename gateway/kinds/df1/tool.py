@@ -52,7 +52,8 @@ from gateway.tools_common import print_result, resolve_retries
 
 __all__ = [
     "HINTS",
-    "add_options",
+    "add_df1_options",
+    "add_df1_sim_options",
     "decode_plc5_value",
     "decode_value",
     "encode_plc5_write",
@@ -210,7 +211,7 @@ class _Target(Protocol):
     async def probe(self) -> DiagnosticStatusInfo: ...
 
 
-def add_options(parser: argparse.ArgumentParser) -> None:
+def add_df1_options(parser: argparse.ArgumentParser) -> None:
     """The options only DF1 commands take."""
     parser.add_argument("--station", type=int, default=1, help="df1: destination node (default 1)")
     parser.add_argument("--source", type=int, default=0, help="df1: our node (default 0)")
@@ -242,7 +243,7 @@ async def run_df1_tool(command: str, args: argparse.Namespace, opener: OpenStrea
                                  "use the keyswitch or the programming software")
     elif command != "probe":
         raise InvalidRequest(f"{command} is not available for DF1 links")
-    async with _open(command, args, opener) as target:
+    async with _open_target(command, args, opener) as target:
         if command == "probe":
             info = await target.probe()
             family = info.family
@@ -272,7 +273,7 @@ async def run_df1_tool(command: str, args: argparse.Namespace, opener: OpenStrea
 
 
 @contextlib.asynccontextmanager
-async def _open(command: str, args: argparse.Namespace, opener: OpenStream) -> AsyncIterator[_Target]:
+async def _open_target(command: str, args: argparse.Namespace, opener: OpenStream) -> AsyncIterator[_Target]:
     """The full-duplex driver, or station ``--station`` of a half-duplex line master (``--duplex half``)."""
     settings = DF1_DEFAULTS.settings
     if args.baudrate:
@@ -317,3 +318,12 @@ def _half_duplex_timeout(line: Df1HalfDuplexLine, station: int, exc: LinkTimeout
     if core is not None and not core.is_active(station):
         return LinkTimeout(f"station {station} does not answer on {line.url}: {check}")
     return LinkTimeout(f"station {station} does not answer on {line.url} ({exc}): {check}")
+
+
+def add_df1_sim_options(parser: argparse.ArgumentParser) -> None:
+    """The fault options and line settings of the DF1 simulators (``slc-gateway simulate``)."""
+    parser.add_argument("--withhold-ack", type=int, default=0, metavar="N", help="df1: withhold 1 in N ACKs")
+    parser.add_argument("--duplicate", type=int, default=0, metavar="N", help="df1: send 1 in N replies twice")
+    parser.add_argument("--noise", type=int, default=0, metavar="N", help="df1: garbage between frames, 1 in N")
+    parser.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc")
+    parser.add_argument("--station", type=int, default=1, help="df1: our node number (default 1)")

@@ -61,6 +61,7 @@ from gateway.protocols.slc_ascii.framing import (
     RetransmitRequest,
 )
 from gateway.protocols.slc_ascii.memory_map import is_readable
+from gateway.sim.serve import Output
 from gateway.sim.variants import resolve_variants
 
 __all__ = ["FaultPlan", "Output", "SlcAsciiSimulator"]
@@ -71,14 +72,6 @@ SIMULATED_FRN: Final = {ControllerType.SLC100: 0x05, ControllerType.SLC150: 0x47
 MODE_ADDRESS: Final = 0x0101
 ERROR_BITS: Final = 0x84
 MEMORY_SIZE: Final = 0x113
-
-
-@dataclass(frozen=True, slots=True)
-class Output:
-    """Bytes to put on the line after ``delay`` seconds of controller turnaround."""
-
-    delay: float
-    data: bytes
 
 
 @dataclass
@@ -422,7 +415,7 @@ class SlcAsciiSimulator:
         self.counters.commands += 1
         try:
             body = self._execute(frame)
-        except _Refuse:
+        except _AnswerE:
             self.counters.refusals += 1
             return framing.encode_refused(msg_id)
         if body is None:
@@ -431,7 +424,7 @@ class SlcAsciiSimulator:
 
     def _require(self, condition: bool) -> None:
         if not condition:
-            raise _Refuse
+            raise _AnswerE
 
     def _require_run(self) -> None:
         self._require(self.mode in (Mode.RUN, Mode.CONTINUOUS_TEST) and self._transfer is None)
@@ -459,7 +452,7 @@ class SlcAsciiSimulator:
             return self._read_reset(int.from_bytes(params[0:2], "big"))
         if code == 0x07 and len(params) == 4:
             return self._write_reset(int.from_bytes(params[0:2], "big"), int.from_bytes(params[2:4], "big"))
-        raise _Refuse
+        raise _AnswerE
 
     def _read(self, count: int, address: int) -> str:
         self._require_run()
@@ -561,5 +554,5 @@ class SlcAsciiSimulator:
         return None
 
 
-class _Refuse(Exception):
+class _AnswerE(Exception):
     """Internal: answer ;E."""

@@ -32,7 +32,15 @@ from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS
 from gateway.tools_common import print_result, resolve_retries
 from gateway.transport import SerialSettings
 
-__all__ = ["HINTS", "PROGRAM_FORMAT", "add_options", "load_program_file", "run_slc_ascii_tool", "save_program_file"]
+__all__ = [
+    "HINTS",
+    "PROGRAM_FORMAT",
+    "add_slc_ascii_options",
+    "add_slc_ascii_sim_options",
+    "load_program_file",
+    "run_slc_ascii_tool",
+    "save_program_file",
+]
 
 PROGRAM_FORMAT = "slc-gateway-program/1"
 #: Seconds a command-line write may take to reach its verdict.
@@ -57,7 +65,7 @@ HINTS = ToolHints(
 )
 
 
-def add_options(parser: argparse.ArgumentParser) -> None:
+def add_slc_ascii_options(parser: argparse.ArgumentParser) -> None:
     """The options only SLC 100/150 commands take."""
     parser.add_argument(
         "--bytesize", type=int, choices=(7, 8),
@@ -198,3 +206,10 @@ def load_program_file(path: Path, controller: ControllerType) -> bytes:
     if hashlib.sha256(program).hexdigest() != document.get("sha256"):
         raise InvalidRequest(f"{path}: checksum mismatch: the file is damaged")
     return program
+
+
+def add_slc_ascii_sim_options(parser: argparse.ArgumentParser) -> None:
+    """The fault options of the SLC 100/150 simulators (``slc-gateway simulate``)."""
+    parser.add_argument("--power-cycle-every", type=int, default=0, metavar="N",
+                        help="slc100/150: power-cycle every N commands")
+    parser.add_argument("--fault-every", type=int, default=0, metavar="N", help="slc100/150: emit ;T every N commands")

@@ -54,7 +54,7 @@ from gateway.kinds.df1.sim.slc500 import Output, Slc500Options, Slc500Simulator
 from gateway.kinds.df1.sim.slc500_line import corrupt_frame
 from gateway.protocols.df1.half_duplex_framing import Checksum, Symbol
 
-__all__ = ["LineCounters", "LineOptions", "MultidropLine", "SlcStation"]
+__all__ = ["LineOptions", "MultidropCounters", "MultidropLine", "SlcStation"]
 
 _OPTION_NAMES: Final = (
     "checksum", "stations", "dead", "slow", "busy_polls", "turnaround", "latency", "char_time", "corrupt",
@@ -176,7 +176,7 @@ class LineOptions:
 
 
 @dataclass(slots=True)
-class LineCounters:
+class MultidropCounters:
     master_bytes: int = 0
     slave_bytes: int = 0
     collisions: int = 0  #: master transmissions that overlapped a slave's
@@ -215,7 +215,7 @@ class MultidropLine:
         model's (e.g. ``{"typed_logical": "accept"}`` for ``model="plc5"``)."""
         self.options = options or LineOptions()
         self.variant = SlaveVariant.from_choices(variants or {})
-        self.counters = LineCounters()
+        self.counters = MultidropCounters()
         self._rng = random.Random(self.options.seed)
         checksum = self.options.checksum
         #: every configured station's controller (a dead one keeps its table, it just never answers)

@@ -53,7 +53,7 @@ from typing import ClassVar, Final
 from gateway.errors import GatewayError
 from gateway.kinds.df1.sim.slc500 import ExtSts, Output, Slc500Options, Slc500Simulator
 from gateway.kinds.df1.sim.slc500_data import DataFile
-from gateway.kinds.df1.sim.slc500_processor import _not_usable, _Refuse  # the SLC processor's refusal, one class
+from gateway.kinds.df1.sim.slc500_processor import _AnswerSts, _not_usable  # the SLC processor's refusal, one class
 from gateway.protocols.df1.pccc import Function, PcccHeader, Sts, encode_reply
 from gateway.protocols.df1.pccc.limits import PLC5_WORD_RANGE
 from gateway.protocols.df1.pccc.plc5 import ReadModifyWrite, WordRangeReadParams, WordRangeWriteParams
@@ -136,10 +136,10 @@ class Plc5Simulator(Slc500Simulator):
                 self._read_modify_write(params)
             elif fnc in _TYPED_LOGICAL or fnc in _SLC_ONLY:
                 self._count("unsupported")
-                raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
+                raise _AnswerSts(Sts.ILLEGAL_COMMAND_OR_FORMAT)
             else:
                 return super()._handle(packet)  # typed read / write (67 / 68) and the rest
-        except _Refuse as refusal:
+        except _AnswerSts as refusal:
             self.counters.refusals += 1
             return encode_reply(header, sts=refusal.sts, ext_sts=refusal.ext_sts)
         except (AddressError, IndexError):
@@ -158,9 +158,9 @@ class Plc5Simulator(Slc500Simulator):
         else:
             mask = address[0]
             if mask & ~0x0F:
-                raise _Refuse(Sts.EXTENDED, ExtSts.MORE_LEVELS)
+                raise _AnswerSts(Sts.EXTENDED, ExtSts.MORE_LEVELS)
             if not mask & 0x02:
-                raise _Refuse(Sts.EXTENDED, ExtSts.FEWER_LEVELS)
+                raise _AnswerSts(Sts.EXTENDED, ExtSts.FEWER_LEVELS)
             levels, _end = decode_logical_binary(address)
         section, file_number, element, sub = (*levels, 0, 0, 0, 0)[:4]
         data_file = self._files.get(file_number)
@@ -174,20 +174,20 @@ class Plc5Simulator(Slc500Simulator):
     def _check_mask(mask: bytes) -> None:
         """Level count first: a mask naming levels past 4 is EXT STS 03, even when the rest is garbled."""
         if mask and mask[0] != 0 and mask[0] & ~0x0F:
-            raise _Refuse(Sts.EXTENDED, ExtSts.MORE_LEVELS)
+            raise _AnswerSts(Sts.EXTENDED, ExtSts.MORE_LEVELS)
 
     @staticmethod
     def _span(data_file: DataFile, offset: int, size: int) -> None:
         if offset + size > len(data_file.data):
-            raise _Refuse(Sts.EXTENDED, ExtSts.WRONG_SIZE)
+            raise _AnswerSts(Sts.EXTENDED, ExtSts.WRONG_SIZE)
 
     def _word_range_read(self, params: bytes) -> bytes:
         self._check_mask(params[4:5])
         request = WordRangeReadParams.decode(params)
         if request.size > MAX_WORD_RANGE_READ:
-            raise _Refuse(Sts.EXTENDED, ExtSts.TOO_LARGE)
+            raise _AnswerSts(Sts.EXTENDED, ExtSts.TOO_LARGE)
         if request.size % 2 or request.size == 0:
-            raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
+            raise _AnswerSts(Sts.ILLEGAL_COMMAND_OR_FORMAT)
         data_file, offset = self._target(request.address)
         offset += request.packet_offset * 2
         self._span(data_file, offset, request.size)
@@ -197,9 +197,9 @@ class Plc5Simulator(Slc500Simulator):
         self._check_mask(params[4:5])
         request = WordRangeWriteParams.decode(params)
         if len(request.address) + len(request.data) > MAX_WORD_RANGE_WRITE:
-            raise _Refuse(Sts.EXTENDED, ExtSts.TOO_LARGE)
+            raise _AnswerSts(Sts.EXTENDED, ExtSts.TOO_LARGE)
         if not request.data or len(request.data) % 2:
-            raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
+            raise _AnswerSts(Sts.ILLEGAL_COMMAND_OR_FORMAT)
         data_file, offset = self._target(request.address)
         offset += request.packet_offset * 2
         self._span(data_file, offset, len(request.data))
@@ -210,7 +210,7 @@ class Plc5Simulator(Slc500Simulator):
         self._check_mask(params[0:1])
         request = ReadModifyWrite.decode(params)
         if not request.sets:
-            raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
+            raise _AnswerSts(Sts.ILLEGAL_COMMAND_OR_FORMAT)
         targets = [(self._target(address), and_mask, or_mask) for address, and_mask, or_mask in request.sets]
         for (data_file, offset), and_mask, or_mask in targets:  # all checked above: apply every set
             word = data_file.word(offset)

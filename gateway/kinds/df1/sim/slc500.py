@@ -57,7 +57,6 @@ from __future__ import annotations
 import random
 from collections import deque
 from collections.abc import Mapping
-from dataclasses import dataclass
 from typing import ClassVar
 
 from gateway.kinds.df1.sim.slc500_line import (
@@ -81,17 +80,10 @@ from gateway.protocols.df1.link import (
     SendComplete,
     SendFailed,
 )
+from gateway.sim.serve import Output
 from gateway.sim.variants import resolve_variants
 
 __all__ = ["ExtSts", "Output", "Slc500Counters", "Slc500Options", "Slc500Processor", "Slc500Simulator"]
-
-
-@dataclass(frozen=True, slots=True)
-class Output:
-    """Bytes to put on the line after ``delay`` seconds."""
-
-    delay: float
-    data: bytes
 
 
 class Slc500Simulator(Slc500Processor):

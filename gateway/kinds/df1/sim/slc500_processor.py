@@ -132,7 +132,7 @@ class ExtSts(enum.IntEnum):
     ILLEGAL_DATA_TYPE = 0x11
 
 
-class _Refuse(Exception):
+class _AnswerSts(Exception):
     """Internal: answer with this STS (and EXT STS)."""
 
     def __init__(self, sts: int, ext_sts: int | None = None) -> None:
@@ -141,8 +141,8 @@ class _Refuse(Exception):
         self.ext_sts = ext_sts
 
 
-def _not_usable() -> _Refuse:
-    return _Refuse(Sts.EXTENDED, ExtSts.NOT_USABLE)
+def _not_usable() -> _AnswerSts:
+    return _AnswerSts(Sts.EXTENDED, ExtSts.NOT_USABLE)
 
 
 def _signed(value: int) -> int:
@@ -321,7 +321,7 @@ class Slc500Processor:
             return encode_reply(header, sts=Sts.ILLEGAL_COMMAND_OR_FORMAT)
         try:
             data = self._execute(command.request)
-        except _Refuse as refusal:
+        except _AnswerSts as refusal:
             self.counters.refusals += 1
             return encode_reply(header, sts=refusal.sts, ext_sts=refusal.ext_sts)
         return encode_reply(header, data=data)
@@ -357,7 +357,7 @@ class Slc500Processor:
                 return info.raw
             case WordRangeRead() | WordRangeWrite():
                 self._count("unsupported")  # PLC-5 commands (notes §4.0 command table)
-                raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
+                raise _AnswerSts(Sts.ILLEGAL_COMMAND_OR_FORMAT)
         return b""
 
     def _logical_target(
@@ -368,7 +368,7 @@ class Slc500Processor:
     ) -> tuple[DataFile, int]:
         """(file, byte offset) of a three-address-field command moving ``size`` bytes."""
         if size > limit:
-            raise _Refuse(Sts.EXTENDED, ExtSts.TOO_LARGE)
+            raise _AnswerSts(Sts.EXTENDED, ExtSts.TOO_LARGE)
         data_file = self._files.get(request.file_number)
         if data_file is None or data_file.file_type != request.file_type:
             raise _not_usable()
@@ -376,7 +376,7 @@ class Slc500Processor:
             raise _not_usable()
         offset = request.element * data_file.element_bytes + request.sub_element * 2
         if offset + size > len(data_file.data):
-            raise _Refuse(Sts.EXTENDED, ExtSts.WRONG_SIZE)
+            raise _AnswerSts(Sts.EXTENDED, ExtSts.WRONG_SIZE)
         return data_file, offset
 
     def _logical_read(self, request: ProtectedTypedLogicalRead) -> bytes:
@@ -406,9 +406,9 @@ class Slc500Processor:
     def _typed_target(self, address: LogicalBinaryAddress, packet_offset: int) -> tuple[DataFile, int]:
         """(file, element) of a logical binary address: levels section, file, element, sub-element."""
         if address.mask & ~0x0F:
-            raise _Refuse(Sts.EXTENDED, ExtSts.MORE_LEVELS)
+            raise _AnswerSts(Sts.EXTENDED, ExtSts.MORE_LEVELS)
         if not address.mask & 0x02:
-            raise _Refuse(Sts.EXTENDED, ExtSts.FEWER_LEVELS)
+            raise _AnswerSts(Sts.EXTENDED, ExtSts.FEWER_LEVELS)
         levels = iter(address.levels)
         section, file_number, element, sub_element = (next(levels) if address.mask & (1 << n) else 0 for n in range(4))
         data_file = self._files.get(file_number)
@@ -419,12 +419,12 @@ class Slc500Processor:
 
     def _typed_span(self, data_file: DataFile, element: int, size: int) -> int:
         if size > MAX_READ_BYTES:
-            raise _Refuse(Sts.EXTENDED, ExtSts.TOO_LARGE)
+            raise _AnswerSts(Sts.EXTENDED, ExtSts.TOO_LARGE)
         offset = element * data_file.typed_element_bytes
         if offset >= len(data_file.data):
             raise _not_usable()
         if offset + size > len(data_file.data):
-            raise _Refuse(Sts.EXTENDED, ExtSts.WRONG_SIZE)
+            raise _AnswerSts(Sts.EXTENDED, ExtSts.WRONG_SIZE)
         return offset
 
     def _typed_read(self, request: TypedRead) -> bytes:
@@ -443,10 +443,10 @@ class Slc500Processor:
         if data_file.file_type is FileType.OUTPUT:  # "typed write, you can not write outputs" (notes §4.0)
             raise _not_usable()
         if len(request.data) > MAX_WRITE_BYTES:
-            raise _Refuse(Sts.EXTENDED, ExtSts.TOO_LARGE)
+            raise _AnswerSts(Sts.EXTENDED, ExtSts.TOO_LARGE)
         element_bytes = data_file.typed_element_bytes
         if request.data_type != TYPED_ID[data_file.file_type] or request.element_size != element_bytes:
-            raise _Refuse(Sts.EXTENDED, ExtSts.ILLEGAL_DATA_TYPE)
+            raise _AnswerSts(Sts.EXTENDED, ExtSts.ILLEGAL_DATA_TYPE)
         offset = self._typed_span(data_file, element, len(request.data))
         data_file.data[offset : offset + len(request.data)] = request.data
         sub = 0
@@ -457,12 +457,12 @@ class Slc500Processor:
     def _file_info(self, request: ReadFileInfo) -> bytes:
         data_file = self._files.get(request.file_number)
         if data_file is None:
-            raise _Refuse(Sts.ADDRESSING_PROBLEM)  # "50h bad address; file doesn't exist" (notes §7.5)
+            raise _AnswerSts(Sts.ADDRESSING_PROBLEM)  # "50h bad address; file doesn't exist" (notes §7.5)
         count = len(data_file.data) // data_file.typed_element_bytes
         return FileInfo(len(data_file.data), count, data_file.file_type).encode()
 
     def _set_processor_mode(self, request: SetProcessorMode) -> None:
         if request.mode not in tuple(ProcessorMode):
-            raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
+            raise _AnswerSts(Sts.ILLEGAL_COMMAND_OR_FORMAT)
         self.set_mode(request.mode)
         self.applied_writes.append(("mode", "S:1", bytes((request.mode,))))
