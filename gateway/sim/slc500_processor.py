@@ -91,6 +91,7 @@ from gateway.protocols.df1.pccc import (
     encode_reply,
     encode_typed_data,
 )
+from gateway.protocols.df1.pccc.slc import Echo, ProtectedTypedLogicalTwoFieldRead, ProtectedTypedLogicalTwoFieldWrite
 from gateway.sim.slc500_data import FILE_NAME_RE, SLOTS, TYPED_ID, WORDS_PER_SLOT, DataFile, data_files
 from gateway.sim.slc500_options import Slc500Counters, Slc500Options
 
@@ -357,6 +358,9 @@ class Slc500Processor:
                 return info.raw
             case WordRangeRead() | WordRangeWrite():
                 self._count("unsupported")  # PLC-5 commands (notes §4.0 command table)
+                raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
+            case ProtectedTypedLogicalTwoFieldRead() | ProtectedTypedLogicalTwoFieldWrite() | Echo():
+                self._count("unsupported")  # commands this simulator does not model
                 raise _Refuse(Sts.ILLEGAL_COMMAND_OR_FORMAT)
         return b""
 
