@@ -11,6 +11,8 @@
 * :mod:`.params` - the fields of a command's parameters, listed once per request class; encoding,
   decoding and range checks come from that list
 * :mod:`.commands` - the :data:`Request` union and the command encoder / decoder
+* :mod:`.target` (with :mod:`.target_table`, :mod:`.target_transfer`) - the other side: the gateway
+  answering the commands a PLC's MSG instructions send it (DF1 target mode); not re-exported here
 
 Manuals: "S4516-DF1 Program Development Manual" (after A-B 1770-6.5.16) and the "SLC 500 PCCC
 command notes".  This package re-exports the names importers used when PCCC was one module.
