@@ -93,6 +93,7 @@ from gateway.protocols.df1.pccc import (
     encode_reply,
     encode_typed_data,
 )
+from gateway.protocols.df1.pccc.slc import Echo, ProtectedTypedLogicalTwoFieldRead, ProtectedTypedLogicalTwoFieldWrite
 
 __all__ = ["CATALOG", "FRN", "MAX_READ_BYTES", "MAX_WRITE_BYTES", "PROCESSOR_TYPE", "SERIES", "TICK", "ExtSts",
            "Slc500Processor"]
@@ -357,6 +358,9 @@ class Slc500Processor:
                 return info.raw
             case WordRangeRead() | WordRangeWrite():
                 self._count("unsupported")  # PLC-5 commands (notes §4.0 command table)
+                raise _AnswerSts(Sts.ILLEGAL_COMMAND_OR_FORMAT)
+            case ProtectedTypedLogicalTwoFieldRead() | ProtectedTypedLogicalTwoFieldWrite() | Echo():
+                self._count("unsupported")  # commands this simulator does not model
                 raise _AnswerSts(Sts.ILLEGAL_COMMAND_OR_FORMAT)
         return b""
 

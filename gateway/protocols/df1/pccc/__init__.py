@@ -3,11 +3,16 @@
 * :mod:`.codes` - CMD / FNC codes and the reply bit (S4516-DF1 manual §2.2; notes §4.0)
 * :mod:`.status` - STS / EXT STS tables, :func:`describe_status`, :class:`PcccError` (Appendix A)
 * :mod:`.codec` - header, replies, field encodings, logical binary addresses, TNS (§2.2, §2.6)
-* :mod:`.slc` - SLC 500 commands: typed logical read / write / masked write, file info, set mode,
-  diagnostic status, packet size limits (§2.6.2; notes §4.36, §6.0, §7.3, §7.5, §7.6)
+* :mod:`.slc` - SLC 500 commands: typed logical read / write (two and three address fields) /
+  masked write, file info, set mode, diagnostic status, echo, packet size limits (§2.6.2; notes
+  §4.36, §6.0, §7.3, §7.5, §7.6)
 * :mod:`.plc5` - PLC-5 commands: word range read / write, typed read / write, read-modify-write
   (§2.6.1; notes §5.0, §7.4; 1770-6.5.16 p. 7-20)
+* :mod:`.params` - the fields of a command's parameters, listed once per request class; encoding,
+  decoding and range checks come from that list
 * :mod:`.commands` - the :data:`Request` union and the command encoder / decoder
+* :mod:`.target` (with :mod:`.target_table`, :mod:`.target_transfer`) - the other side: the gateway
+  answering the commands a PLC's MSG instructions send it (DF1 target mode); not re-exported here
 
 Manuals: "S4516-DF1 Program Development Manual" (after A-B 1770-6.5.16) and the "SLC 500 PCCC
 command notes".  This package re-exports the names importers used when PCCC was one module.
@@ -55,11 +60,14 @@ from gateway.protocols.df1.pccc.plc5 import (
 from gateway.protocols.df1.pccc.slc import (
     DiagnosticStatus,
     DiagnosticStatusInfo,
+    Echo,
     FileInfo,
     ProcessorFamily,
     ProcessorMode,
     ProtectedTypedLogicalMaskedWrite,
     ProtectedTypedLogicalRead,
+    ProtectedTypedLogicalTwoFieldRead,
+    ProtectedTypedLogicalTwoFieldWrite,
     ProtectedTypedLogicalWrite,
     ReadFileInfo,
     SetProcessorMode,
@@ -81,6 +89,7 @@ __all__ = [
     "DiagnosticFunction",
     "DiagnosticStatus",
     "DiagnosticStatusInfo",
+    "Echo",
     "FileInfo",
     "Function",
     "LogicalBinaryAddress",
@@ -93,6 +102,8 @@ __all__ = [
     "ProcessorMode",
     "ProtectedTypedLogicalMaskedWrite",
     "ProtectedTypedLogicalRead",
+    "ProtectedTypedLogicalTwoFieldRead",
+    "ProtectedTypedLogicalTwoFieldWrite",
     "ProtectedTypedLogicalWrite",
     "ReadFileInfo",
     "ReadModifyWriteRequest",

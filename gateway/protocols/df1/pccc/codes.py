@@ -33,7 +33,9 @@ class Function(enum.IntEnum):
     TYPED_READ = 0x68
     SET_PROCESSOR_MODE = 0x80
     READ_FILE_INFO = 0x94
+    PROTECTED_TYPED_LOGICAL_READ_TWO_FIELDS = 0xA1
     PROTECTED_TYPED_LOGICAL_READ = 0xA2
+    PROTECTED_TYPED_LOGICAL_WRITE_TWO_FIELDS = 0xA9
     PROTECTED_TYPED_LOGICAL_WRITE = 0xAA
     PROTECTED_TYPED_LOGICAL_MASKED_WRITE = 0xAB
 
@@ -41,4 +43,5 @@ class Function(enum.IntEnum):
 class DiagnosticFunction(enum.IntEnum):
     """FNC byte of CMD 0x06 (notes §4.0 command table)."""
 
+    ECHO = 0x00  # "diagnostic loop" in the notes and the 1770-KF2 manual
     DIAGNOSTIC_STATUS = 0x03

@@ -8,53 +8,43 @@ in :mod:`.slc` and :mod:`.plc5`; this module only dispatches on ``(CMD, FNC)``. 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Final
+from typing import Final, get_args
 
 from gateway.errors import InvalidRequest
+from gateway.protocols.df1.pccc import plc5, slc
 from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccFormatError, PcccHeader, Reader
-from gateway.protocols.df1.pccc.plc5 import (
-    ReadModifyWriteRequest,
-    TypedRead,
-    TypedWrite,
-    WordRangeRead,
-    WordRangeWrite,
-)
-from gateway.protocols.df1.pccc.slc import (
-    DiagnosticStatus,
-    ProtectedTypedLogicalMaskedWrite,
-    ProtectedTypedLogicalRead,
-    ProtectedTypedLogicalWrite,
-    ReadFileInfo,
-    SetProcessorMode,
-)
 
 __all__ = ["WRITE_REQUESTS", "PcccCommand", "Request", "decode_command", "encode_command", "is_write"]
 
 
 Request = (
-    ProtectedTypedLogicalRead
-    | ProtectedTypedLogicalWrite
-    | ProtectedTypedLogicalMaskedWrite
-    | ReadFileInfo
-    | SetProcessorMode
-    | DiagnosticStatus
-    | WordRangeRead
-    | WordRangeWrite
-    | TypedRead
-    | TypedWrite
-    | ReadModifyWriteRequest
+    slc.ProtectedTypedLogicalRead
+    | slc.ProtectedTypedLogicalWrite
+    | slc.ProtectedTypedLogicalMaskedWrite
+    | slc.ProtectedTypedLogicalTwoFieldRead
+    | slc.ProtectedTypedLogicalTwoFieldWrite
+    | slc.ReadFileInfo
+    | slc.SetProcessorMode
+    | slc.DiagnosticStatus
+    | slc.Echo
+    | plc5.WordRangeRead
+    | plc5.WordRangeWrite
+    | plc5.TypedRead
+    | plc5.TypedWrite
+    | plc5.ReadModifyWriteRequest
 )
 
 #: The commands that change the controller: a reply lost after one of them ran cannot be told from
 #: one that never ran, so these are sent once and settled by a read-back, never resent.  Every
 #: layer (both drivers, the transaction cores, the simulators' fault injection) asks :func:`is_write`.
 WRITE_REQUESTS: Final = (
-    ProtectedTypedLogicalWrite,
-    ProtectedTypedLogicalMaskedWrite,
-    TypedWrite,
-    WordRangeWrite,
-    ReadModifyWriteRequest,
-    SetProcessorMode,
+    slc.ProtectedTypedLogicalWrite,
+    slc.ProtectedTypedLogicalMaskedWrite,
+    slc.ProtectedTypedLogicalTwoFieldWrite,
+    plc5.TypedWrite,
+    plc5.WordRangeWrite,
+    plc5.ReadModifyWriteRequest,
+    slc.SetProcessorMode,
 )
 
 
@@ -63,22 +53,8 @@ def is_write(request: object) -> bool:
     return isinstance(request, WRITE_REQUESTS)
 
 
-_REQUEST_TYPES: Final[dict[tuple[int, int], type[Request]]] = {
-    (cls.CMD, cls.FNC): cls
-    for cls in (
-        ProtectedTypedLogicalRead,
-        ProtectedTypedLogicalWrite,
-        ProtectedTypedLogicalMaskedWrite,
-        ReadFileInfo,
-        SetProcessorMode,
-        DiagnosticStatus,
-        WordRangeRead,
-        WordRangeWrite,
-        TypedRead,
-        TypedWrite,
-        ReadModifyWriteRequest,
-    )
-}
+#: Every request class by its ``(CMD, FNC)``: the members of :data:`Request`.
+_REQUEST_TYPES: Final[dict[tuple[int, int], type[Request]]] = {(cls.CMD, cls.FNC): cls for cls in get_args(Request)}
 
 
 @dataclass(frozen=True, slots=True)

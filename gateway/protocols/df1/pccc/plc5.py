@@ -13,7 +13,8 @@ Word range and typed commands (CMD 0F)::
 with a logical binary ADDRESS (:class:`~gateway.protocols.df1.pccc.codec.LogicalBinaryAddress`) or,
 for the byte-level builders at the end, any encoded address (logical binary or logical ASCII, see
 :mod:`gateway.protocols.df1.plc5_address`).  This module is the one home of PLC-5 word range and
-read-modify-write packet building; ``plc5_address`` keeps the addresses only.  It does no I/O.
+read-modify-write packet building; ``plc5_address`` keeps the addresses only.  Each request class
+lists its fields once in ``PARAMS`` (:mod:`.params`).  It does no I/O.
 """
 
 from __future__ import annotations
@@ -21,15 +22,17 @@ from __future__ import annotations
 import enum
 import struct
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar, Final
 
 from gateway.errors import InvalidRequest
 from gateway.protocols.df1.pccc.codec import LogicalBinaryAddress, PcccFormatError, Reader, check_range
 from gateway.protocols.df1.pccc.codes import Command, Function
 from gateway.protocols.df1.pccc.limits import PLC5_WORD_RANGE
+from gateway.protocols.df1.pccc.params import Byte, Bytes, Decoded, LogicalAddress, Parameters, Wire, Word
 from gateway.protocols.df1.plc5_address import AddressError, decode_logical_ascii, decode_logical_binary
 
 __all__ = [
+    "PLC5_HEAD",
     "DataType",
     "ReadModifyWrite",
     "ReadModifyWriteRequest",
@@ -166,9 +169,17 @@ def decode_typed_data(data: bytes) -> TypedData:
 
 # ------------------------------------------------------------------------------- requests
 
+#: ``PACKET OFFSET(2) TOTAL TRANS(2) ADDRESS``: the head of the word range and typed commands
+#: (S4516 §2.6.1; 1770-6.5.16 p. 7-30; KF2 p. 5-57), offset and total low byte first.
+PLC5_HEAD: Final[tuple[Wire, ...]] = (
+    Word("packet_offset", "packet offset"),
+    Word("total", "total transaction"),
+    LogicalAddress("address"),
+)
+
 
 @dataclass(frozen=True, slots=True)
-class WordRangeRead:
+class WordRangeRead(Parameters):
     """PLC-5 word range read (CMD 0F, FNC 01; S4516-DF1 manual §2.6.1).
 
     ``packet_offset`` and ``total`` are in words (elements), ``size`` in bytes.
@@ -176,6 +187,7 @@ class WordRangeRead:
 
     CMD: ClassVar[int] = Command.EXTENDED
     FNC: ClassVar[int] = Function.WORD_RANGE_READ
+    PARAMS: ClassVar[tuple[Wire, ...]] = (*PLC5_HEAD, Byte("size", "byte size", 1, PLC5_WORD_RANGE.max_read_bytes))
 
     address: LogicalBinaryAddress
     size: int
@@ -183,35 +195,22 @@ class WordRangeRead:
     total: int | None = None  # default: size // 2
 
     def __post_init__(self) -> None:
-        check_range("byte size", self.size, 1, PLC5_WORD_RANGE.max_read_bytes)
-        check_range("packet offset", self.packet_offset, 0, 0xFFFF)
+        self.check_params()
         if self.total is None:
-            object.__setattr__(self, "total", (self.size + 1) // 2)
-        check_range("total transaction", self.total_words, 0, 0xFFFF)
+            self.fill_default("total", (self.size + 1) // 2)
 
     @property
     def total_words(self) -> int:
         return self.total if self.total is not None else (self.size + 1) // 2
 
-    def encode_params(self) -> bytes:
-        return word_range_params(self.packet_offset, self.total_words, self.address.encode(), bytes((self.size,)))
-
-    @classmethod
-    def decode_params(cls, reader: Reader) -> WordRangeRead:
-        offset = reader.u16("packet offset")
-        total = reader.u16("total transaction")
-        address = LogicalBinaryAddress.read(reader)
-        size = reader.u8("size")
-        reader.end("the size")
-        return cls(address, size, offset, total)
-
 
 @dataclass(frozen=True, slots=True)
-class WordRangeWrite:
+class WordRangeWrite(Parameters):
     """PLC-5 word range write (CMD 0F, FNC 00; S4516-DF1 manual §2.6.1); even data bytes."""
 
     CMD: ClassVar[int] = Command.EXTENDED
     FNC: ClassVar[int] = Function.WORD_RANGE_WRITE
+    PARAMS: ClassVar[tuple[Wire, ...]] = (*PLC5_HEAD, Bytes("data", "write data"))
 
     address: LogicalBinaryAddress
     data: bytes
@@ -223,35 +222,22 @@ class WordRangeWrite:
             raise InvalidRequest("PCCC: word range write data must be a non-zero even number of bytes")
         check_range("address + data bytes", len(self.address.encode()) + len(self.data), 1,
                     PLC5_WORD_RANGE.max_write_bytes)
-        check_range("packet offset", self.packet_offset, 0, 0xFFFF)
+        self.check_params()
         if self.total is None:
-            object.__setattr__(self, "total", len(self.data) // 2)
-        check_range("total transaction", self.total_words, 0, 0xFFFF)
+            self.fill_default("total", len(self.data) // 2)
 
     @property
     def total_words(self) -> int:
         return self.total if self.total is not None else len(self.data) // 2
 
-    def encode_params(self) -> bytes:
-        return word_range_params(self.packet_offset, self.total_words, self.address.encode(), self.data)
-
-    @classmethod
-    def decode_params(cls, reader: Reader) -> WordRangeWrite:
-        offset = reader.u16("packet offset")
-        total = reader.u16("total transaction")
-        address = LogicalBinaryAddress.read(reader)
-        data = reader.rest()
-        if not data or len(data) % 2:
-            raise reader.fail("PCCC: word range write data must be a non-zero even number of bytes")
-        return cls(address, data, offset, total)
-
 
 @dataclass(frozen=True, slots=True)
-class TypedRead:
+class TypedRead(Parameters):
     """Typed read (CMD 0F, FNC 68; notes §7.4): ``count`` elements, logical binary address."""
 
     CMD: ClassVar[int] = Command.EXTENDED
     FNC: ClassVar[int] = Function.TYPED_READ
+    PARAMS: ClassVar[tuple[Wire, ...]] = (*PLC5_HEAD, Word("count", "element count", 1))
 
     address: LogicalBinaryAddress
     count: int
@@ -259,39 +245,42 @@ class TypedRead:
     total: int | None = None  # default: count
 
     def __post_init__(self) -> None:
-        check_range("element count", self.count, 1, 0xFFFF)
-        check_range("packet offset", self.packet_offset, 0, 0xFFFF)
+        self.check_params()
         if self.total is None:
-            object.__setattr__(self, "total", self.count)
-        check_range("total transaction", self.total_elements, 0, 0xFFFF)
+            self.fill_default("total", self.count)
 
     @property
     def total_elements(self) -> int:
         return self.total if self.total is not None else self.count
 
-    def encode_params(self) -> bytes:
-        return (
-            struct.pack("<HH", self.packet_offset, self.total_elements)
-            + self.address.encode()
-            + self.count.to_bytes(2, "little")
-        )
 
-    @classmethod
-    def decode_params(cls, reader: Reader) -> TypedRead:
-        offset = reader.u16("packet offset")
-        total = reader.u16("total transaction")
-        address = LogicalBinaryAddress.read(reader)
-        count = reader.u16("size")
-        reader.end("the size")
-        return cls(address, count, offset, total)
+@dataclass(frozen=True, slots=True)
+class _TypedBody:
+    """The type/data parameter(s) and the data of a typed write (notes §7.4, type/data note)."""
+
+    def encode(self, request: Any) -> bytes:
+        return encode_typed_data(request.data_type, request.element_size, request.data)
+
+    def decode(self, reader: Reader, decoded: Decoded) -> None:
+        try:
+            typed = decode_typed_data(reader.rest())
+        except (PcccFormatError, InvalidRequest) as exc:
+            raise reader.fail(str(exc)) from exc
+        if not typed.data or not typed.element_size:
+            raise reader.fail("PCCC: typed write without data")
+        decoded.values.update(data_type=typed.data_type, element_size=typed.element_size, data=typed.data)
+
+    def check(self, request: Any) -> None:
+        """``TypedWrite.__post_init__`` checks the data against the element size."""
 
 
 @dataclass(frozen=True, slots=True)
-class TypedWrite:
+class TypedWrite(Parameters):
     """Typed write (CMD 0F, FNC 67; notes §7.4): type/data parameter then the data."""
 
     CMD: ClassVar[int] = Command.EXTENDED
     FNC: ClassVar[int] = Function.TYPED_WRITE
+    PARAMS: ClassVar[tuple[Wire, ...]] = (*PLC5_HEAD, _TypedBody())
 
     address: LogicalBinaryAddress
     data_type: int
@@ -303,10 +292,9 @@ class TypedWrite:
     def __post_init__(self) -> None:
         if self.element_size <= 0 or not self.data or len(self.data) % self.element_size:
             raise InvalidRequest(f"PCCC: typed write data must be whole {self.element_size}-byte elements")
-        check_range("packet offset", self.packet_offset, 0, 0xFFFF)
+        self.check_params()
         if self.total is None:
-            object.__setattr__(self, "total", self.count)
-        check_range("total transaction", self.total_elements, 0, 0xFFFF)
+            self.fill_default("total", self.count)
 
     @property
     def count(self) -> int:
@@ -316,29 +304,35 @@ class TypedWrite:
     def total_elements(self) -> int:
         return self.total if self.total is not None else self.count
 
-    def encode_params(self) -> bytes:
-        return (
-            struct.pack("<HH", self.packet_offset, self.total_elements)
-            + self.address.encode()
-            + encode_typed_data(self.data_type, self.element_size, self.data)
-        )
 
-    @classmethod
-    def decode_params(cls, reader: Reader) -> TypedWrite:
-        offset = reader.u16("packet offset")
-        total = reader.u16("total transaction")
-        address = LogicalBinaryAddress.read(reader)
-        try:
-            typed = decode_typed_data(reader.rest())
-        except (PcccFormatError, InvalidRequest) as exc:
-            raise reader.fail(str(exc)) from exc
-        if not typed.data or not typed.element_size:
-            raise reader.fail("PCCC: typed write without data")
-        return cls(address, typed.data_type, typed.element_size, typed.data, offset, total)
+@dataclass(frozen=True, slots=True)
+class _MaskSets:
+    """Repeated ``ADDRESS AND(2) OR(2)`` sets up to the end of the packet (1770-6.5.16 p. 7-20)."""
+
+    attr: str
+
+    def encode(self, request: Any) -> bytes:
+        sets: tuple[tuple[LogicalBinaryAddress, int, int], ...] = getattr(request, self.attr)
+        return b"".join(a.encode() + struct.pack("<HH", m_and, m_or) for a, m_and, m_or in sets)
+
+    def decode(self, reader: Reader, decoded: Decoded) -> None:
+        sets: list[tuple[LogicalBinaryAddress, int, int]] = []
+        while not sets or reader.pos < len(reader.data):
+            address = LogicalBinaryAddress.read(reader)
+            sets.append((address, reader.u16("AND mask"), reader.u16("OR mask")))
+        decoded.values[self.attr] = tuple(sets)
+
+    def check(self, request: Any) -> None:
+        sets: tuple[tuple[LogicalBinaryAddress, int, int], ...] = getattr(request, self.attr)
+        if not sets:
+            raise InvalidRequest("PCCC: read-modify-write needs at least one address")
+        for _address, and_mask, or_mask in sets:
+            check_range("AND mask", and_mask, 0, 0xFFFF)
+            check_range("OR mask", or_mask, 0, 0xFFFF)
 
 
 @dataclass(frozen=True, slots=True)
-class ReadModifyWriteRequest:
+class ReadModifyWriteRequest(Parameters):
     """Read-modify-write (CMD 0F, FNC 26; 1770-6.5.16 p. 7-20, KF2 p. 5-48): ``ADDRESS AND(2) OR(2)`` sets.
 
     Each addressed word becomes ``(word & AND) | OR`` in the controller, in one command: the coil
@@ -347,27 +341,9 @@ class ReadModifyWriteRequest:
 
     CMD: ClassVar[int] = Command.EXTENDED
     FNC: ClassVar[int] = Function.READ_MODIFY_WRITE
+    PARAMS: ClassVar[tuple[Wire, ...]] = (_MaskSets("sets"),)
 
     sets: tuple[tuple[LogicalBinaryAddress, int, int], ...]
-
-    def __post_init__(self) -> None:
-        if not self.sets:
-            raise InvalidRequest("PCCC: read-modify-write needs at least one address")
-        for _address, and_mask, or_mask in self.sets:
-            check_range("AND mask", and_mask, 0, 0xFFFF)
-            check_range("OR mask", or_mask, 0, 0xFFFF)
-
-    def encode_params(self) -> bytes:
-        return b"".join(a.encode() + struct.pack("<HH", m_and, m_or) for a, m_and, m_or in self.sets)
-
-    @classmethod
-    def decode_params(cls, reader: Reader) -> ReadModifyWriteRequest:
-        sets: list[tuple[LogicalBinaryAddress, int, int]] = []
-        while True:
-            address = LogicalBinaryAddress.read(reader)
-            sets.append((address, reader.u16("AND mask"), reader.u16("OR mask")))
-            if reader.pos >= len(reader.data):
-                return cls(tuple(sets))
 
 
 # ------------------------------------------------------ byte-level builders (any encoded address)
@@ -376,8 +352,10 @@ class ReadModifyWriteRequest:
 def word_range_params(packet_offset: int, total: int, address: bytes, tail: bytes) -> bytes:
     """``PACKET OFFSET(2) TOTAL TRANS(2) ADDRESS tail`` (S4516 §2.6.1; KF2 p. 5-57), low byte first.
 
-    The one layout of the word range read (tail = SIZE byte) and write (tail = data) parameters,
-    shared by :class:`WordRangeRead` / :class:`WordRangeWrite` and the byte-level builders below.
+    :data:`PLC5_HEAD` and a tail, for an address already encoded (logical binary or logical
+    ASCII): the word range read (tail = SIZE byte) and write (tail = data) parameters of the
+    byte-level builders below.  For a logical binary address it gives the bytes
+    :class:`WordRangeRead` / :class:`WordRangeWrite` encode.
     """
     return struct.pack("<HH", packet_offset, total) + address + tail
 

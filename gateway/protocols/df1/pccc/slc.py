@@ -4,13 +4,15 @@ Manuals: S4516-DF1 Program Development Manual §2.6.2 (protected typed logical r
 three address fields, CMD 0F FNC A2 / AA); SLC 500 PCCC command notes §4.0 (command set), §4.36
 (protected typed logical write with mask, FNC AB, and the packet size tables), §6.0 (diagnostic
 status processor type codes), §6.5 / §7.5 (read file info, FNC 94), §7.3 (a command to write bits),
-§7.6 (set processor mode, FNC 80).
+§7.6 (set processor mode, FNC 80); 1770-6.5.16 pp. 7-17 / 7-18 (FNC A2 / AA) and 1756-PM020F
+pp. 91-92 (the two-address-field forms, FNC A1 / A9).
 
-Three-address-field commands::
+Typed logical commands::
 
-    FNC  SIZE  FILE#  TYPE  ELEMENT#  SUB#  [MASK_lo MASK_hi]  [DATA...]
+    FNC  SIZE  FILE#  TYPE  ELEMENT#  [SUB#]  [MASK_lo MASK_hi]  [DATA...]
 
-FILE#, ELEMENT# and SUB# are one byte for 0-254, else ``FF lo hi``.  This module does no I/O.
+FILE#, ELEMENT# and SUB# are one byte for 0-254, else ``FF lo hi``.  Each request class lists
+its fields once in ``PARAMS`` (:mod:`.params`).  This module does no I/O.
 """
 
 from __future__ import annotations
@@ -18,27 +20,28 @@ from __future__ import annotations
 import enum
 import struct
 from dataclasses import dataclass
-from typing import ClassVar, Final
+from typing import Any, ClassVar, Final
 
 from gateway.protocols.df1.address import FileType, SlcAddress
-from gateway.protocols.df1.pccc.codec import LogicalBinaryAddress, PcccFormatError, Reader, check_range, encode_field
+from gateway.protocols.df1.pccc.codec import LogicalBinaryAddress, PcccFormatError, Reader, check_range
 from gateway.protocols.df1.pccc.codes import Command, DiagnosticFunction, Function
 from gateway.protocols.df1.pccc.limits import PLC5_TYPED_LOGICAL, SLC_MODULAR, SLC_SMALL, SizeLimits
+from gateway.protocols.df1.pccc.params import (
+    AddressField,
+    Byte,
+    Bytes,
+    Decoded,
+    Parameters,
+    SizeOf,
+    Wire,
+    Word,
+)
 
 __all__ = [
-    "DiagnosticStatus",
-    "DiagnosticStatusInfo",
-    "FileInfo",
-    "ProcessorFamily",
-    "ProcessorMode",
-    "ProtectedTypedLogicalMaskedWrite",
-    "ProtectedTypedLogicalRead",
-    "ProtectedTypedLogicalWrite",
-    "ReadFileInfo",
-    "SetProcessorMode",
-    "SizeLimits",
-    "slc_read_request",
-    "slc_write_request",
+    "THREE_ADDRESS_FIELDS", "TWO_ADDRESS_FIELDS", "DiagnosticStatus", "DiagnosticStatusInfo", "Echo", "FileInfo",
+    "ProcessorFamily", "ProcessorMode", "ProtectedTypedLogicalMaskedWrite", "ProtectedTypedLogicalRead",
+    "ProtectedTypedLogicalTwoFieldRead", "ProtectedTypedLogicalTwoFieldWrite", "ProtectedTypedLogicalWrite",
+    "ReadFileInfo", "SetProcessorMode", "SizeLimits", "slc_read_request", "slc_write_request",
 ]
 
 
@@ -104,197 +107,168 @@ _PROCESSOR_TYPES: Final = {
 
 # ------------------------------------------------------------------------------- requests
 
+#: FILE# TYPE ELEMENT# of the typed logical commands with two address fields (0F A1 / A9).
+TWO_ADDRESS_FIELDS: Final[tuple[Wire, ...]] = (
+    AddressField("file_number", "file number"),
+    Byte("file_type", "file type"),
+    AddressField("element", "element"),
+)
+#: FILE# TYPE ELEMENT# SUB# of the typed logical commands with three address fields (0F A2 / AA / AB).
+THREE_ADDRESS_FIELDS: Final[tuple[Wire, ...]] = (*TWO_ADDRESS_FIELDS, AddressField("sub_element", "sub element"))
+#: SIZE of a read: the data bytes asked for.
+_READ_SIZE: Final = Byte("size", "byte size", 1)
+#: SIZE of a write (the length of its data, sent ahead of the address) and the data at the end.
+_WRITE_SIZE: Final = SizeOf("data", "byte size", 1)
+_WRITE_DATA: Final = Bytes("data", "write data")
+
 
 @dataclass(frozen=True, slots=True)
-class ProtectedTypedLogicalRead:
-    """SLC 500 protected typed logical read with three address fields (CMD 0F, FNC A2)."""
+class _TwoFieldAddress(Parameters):
+    """The address of the typed logical commands: file type, file number, element."""
+
+    file_type: int
+    file_number: int
+    element: int
+
+
+@dataclass(frozen=True, slots=True)
+class _ThreeFieldAddress(_TwoFieldAddress):
+    """The address with a sub-element (the word inside a timer, counter or control structure)."""
+
+    sub_element: int
+
+
+@dataclass(frozen=True, slots=True)
+class ProtectedTypedLogicalRead(_ThreeFieldAddress):
+    """SLC 500 protected typed logical read with three address fields (CMD 0F, FNC A2; 1770-6.5.16 p. 7-17)."""
 
     CMD: ClassVar[int] = Command.EXTENDED
     FNC: ClassVar[int] = Function.PROTECTED_TYPED_LOGICAL_READ
+    PARAMS: ClassVar[tuple[Wire, ...]] = (_READ_SIZE, *THREE_ADDRESS_FIELDS)
 
-    file_type: int
-    file_number: int
-    element: int
-    sub_element: int
     size: int  # data bytes to read
-
-    def __post_init__(self) -> None:
-        check_range("file type", self.file_type, 0, 0xFF)
-        check_range("byte size", self.size, 1, 0xFF)
-        for name in ("file_number", "element", "sub_element"):
-            check_range(name.replace("_", " "), getattr(self, name), 0, 0xFFFF)
-
-    @property
-    def expanded_fields(self) -> int:
-        return sum(v >= 0xFF for v in (self.file_number, self.element, self.sub_element))
-
-    def encode_params(self) -> bytes:
-        return bytes((self.size,)) + _encode_three(self)
-
-    @classmethod
-    def decode_params(cls, reader: Reader) -> ProtectedTypedLogicalRead:
-        size = reader.u8("byte size")
-        file_number, file_type, element, sub_element = _read_three(reader)
-        reader.end("the address")
-        return cls(file_type, file_number, element, sub_element, size)
 
 
 @dataclass(frozen=True, slots=True)
-class ProtectedTypedLogicalWrite:
-    """SLC 500 protected typed logical write with three address fields (CMD 0F, FNC AA)."""
+class ProtectedTypedLogicalWrite(_ThreeFieldAddress):
+    """SLC 500 protected typed logical write with three address fields (CMD 0F, FNC AA; 1770-6.5.16 p. 7-18)."""
 
     CMD: ClassVar[int] = Command.EXTENDED
     FNC: ClassVar[int] = Function.PROTECTED_TYPED_LOGICAL_WRITE
+    PARAMS: ClassVar[tuple[Wire, ...]] = (_WRITE_SIZE, *THREE_ADDRESS_FIELDS, _WRITE_DATA)
 
-    file_type: int
-    file_number: int
-    element: int
-    sub_element: int
     data: bytes
-
-    def __post_init__(self) -> None:
-        check_range("file type", self.file_type, 0, 0xFF)
-        check_range("byte size", len(self.data), 1, 0xFF)
-        for name in ("file_number", "element", "sub_element"):
-            check_range(name.replace("_", " "), getattr(self, name), 0, 0xFFFF)
-
-    @property
-    def expanded_fields(self) -> int:
-        return sum(v >= 0xFF for v in (self.file_number, self.element, self.sub_element))
-
-    def encode_params(self) -> bytes:
-        return bytes((len(self.data),)) + _encode_three(self) + self.data
-
-    @classmethod
-    def decode_params(cls, reader: Reader) -> ProtectedTypedLogicalWrite:
-        size = reader.u8("byte size")
-        file_number, file_type, element, sub_element = _read_three(reader)
-        data = reader.take(size, "write data")
-        reader.end("the write data")
-        return cls(file_type, file_number, element, sub_element, data)
 
 
 @dataclass(frozen=True, slots=True)
-class ProtectedTypedLogicalMaskedWrite:
+class ProtectedTypedLogicalMaskedWrite(_ThreeFieldAddress):
     """SLC 500 protected typed logical write with mask (CMD 0F, FNC AB; notes §4.36, §7.3).
 
-    Bits set in ``mask`` are written; the one 16-bit mask applies to every word.
+    Bits set in ``mask`` are written; the one 16-bit mask applies to every word.  The byte size
+    may be 0 (notes §4.36).
     """
 
     CMD: ClassVar[int] = Command.EXTENDED
     FNC: ClassVar[int] = Function.PROTECTED_TYPED_LOGICAL_MASKED_WRITE
+    PARAMS: ClassVar[tuple[Wire, ...]] = (
+        SizeOf("data", "byte size"), *THREE_ADDRESS_FIELDS, Word("mask", "bit mask"), _WRITE_DATA
+    )
 
-    file_type: int
-    file_number: int
-    element: int
-    sub_element: int
     mask: int
     data: bytes
 
-    def __post_init__(self) -> None:
-        check_range("file type", self.file_type, 0, 0xFF)
-        check_range("byte size", len(self.data), 0, 0xFF)
-        check_range("bit mask", self.mask, 0, 0xFFFF)
-        for name in ("file_number", "element", "sub_element"):
-            check_range(name.replace("_", " "), getattr(self, name), 0, 0xFFFF)
 
-    @property
-    def expanded_fields(self) -> int:
-        return sum(v >= 0xFF for v in (self.file_number, self.element, self.sub_element))
+@dataclass(frozen=True, slots=True)
+class ProtectedTypedLogicalTwoFieldRead(_TwoFieldAddress):
+    """Protected typed logical read with two address fields (CMD 0F, FNC A1): no sub-element.
 
-    def encode_params(self) -> bytes:
-        return bytes((len(self.data),)) + _encode_three(self) + self.mask.to_bytes(2, "little") + self.data
+    ``SIZE FILE# TYPE ELEMENT#`` (1756-PM020F p. 91, "SLC Protected Typed Logical Read with 2
+    Address Fields"; 1770-6.5.16 ch. 7 beside the three-field form of p. 7-17).
+    """
 
-    @classmethod
-    def decode_params(cls, reader: Reader) -> ProtectedTypedLogicalMaskedWrite:
-        size = reader.u8("byte size")
-        file_number, file_type, element, sub_element = _read_three(reader)
-        mask = reader.u16("bit mask")
-        data = reader.take(size, "write data")
-        reader.end("the write data")
-        return cls(file_type, file_number, element, sub_element, mask, data)
+    CMD: ClassVar[int] = Command.EXTENDED
+    FNC: ClassVar[int] = Function.PROTECTED_TYPED_LOGICAL_READ_TWO_FIELDS
+    PARAMS: ClassVar[tuple[Wire, ...]] = (_READ_SIZE, *TWO_ADDRESS_FIELDS)
 
-
-def _encode_three(
-    request: ProtectedTypedLogicalRead | ProtectedTypedLogicalWrite | ProtectedTypedLogicalMaskedWrite,
-) -> bytes:
-    return (
-        encode_field("file number", request.file_number)
-        + bytes((request.file_type,))
-        + encode_field("element", request.element)
-        + encode_field("sub-element", request.sub_element)
-    )
-
-
-def _read_three(reader: Reader) -> tuple[int, int, int, int]:
-    file_number = reader.field("file number")
-    file_type = reader.u8("file type")
-    element = reader.field("element")
-    sub_element = reader.field("sub-element")
-    return file_number, file_type, element, sub_element
+    size: int  # data bytes to read
 
 
 @dataclass(frozen=True, slots=True)
-class ReadFileInfo:
+class ProtectedTypedLogicalTwoFieldWrite(_TwoFieldAddress):
+    """Protected typed logical write with two address fields (CMD 0F, FNC A9; 1756-PM020F p. 92)."""
+
+    CMD: ClassVar[int] = Command.EXTENDED
+    FNC: ClassVar[int] = Function.PROTECTED_TYPED_LOGICAL_WRITE_TWO_FIELDS
+    PARAMS: ClassVar[tuple[Wire, ...]] = (_WRITE_SIZE, *TWO_ADDRESS_FIELDS, _WRITE_DATA)
+
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class _DataTableFile:
+    """Read file info's address (notes §7.5): mask 06, major type 80 (data table), the file number."""
+
+    attr: str
+    DATA_TABLE: ClassVar[int] = 0x80
+
+    def encode(self, request: Any) -> bytes:
+        return LogicalBinaryAddress(0x06, (self.DATA_TABLE, getattr(request, self.attr))).encode()
+
+    def decode(self, reader: Reader, decoded: Decoded) -> None:
+        address = LogicalBinaryAddress.read(reader)
+        if address.mask != 0x06 or address.levels[0] != self.DATA_TABLE:
+            raise reader.fail("PCCC: read file info needs mask 06, major type 80 (data table)")
+        decoded.values[self.attr] = address.levels[1]
+
+    def check(self, request: Any) -> None:
+        check_range("file number", getattr(request, self.attr), 0, 0xFFFF)
+
+
+@dataclass(frozen=True, slots=True)
+class ReadFileInfo(Parameters):
     """SLC 5/03, 5/04 read file info (CMD 0F, FNC 94; notes §7.5): ``94 06 80 <file>``."""
 
     CMD: ClassVar[int] = Command.EXTENDED
     FNC: ClassVar[int] = Function.READ_FILE_INFO
-    DATA_TABLE: ClassVar[int] = 0x80  # major file type: data table file
+    PARAMS: ClassVar[tuple[Wire, ...]] = (_DataTableFile("file_number"),)
 
     file_number: int
 
-    def __post_init__(self) -> None:
-        check_range("file number", self.file_number, 0, 0xFFFF)
-
-    def encode_params(self) -> bytes:
-        return LogicalBinaryAddress(0x06, (self.DATA_TABLE, self.file_number)).encode()
-
-    @classmethod
-    def decode_params(cls, reader: Reader) -> ReadFileInfo:
-        address = LogicalBinaryAddress.read(reader)
-        reader.end("the address")
-        if address.mask != 0x06 or address.levels[0] != cls.DATA_TABLE:
-            raise reader.fail("PCCC: read file info needs mask 06, major type 80 (data table)")
-        return cls(address.levels[1])
-
 
 @dataclass(frozen=True, slots=True)
-class SetProcessorMode:
+class SetProcessorMode(Parameters):
     """SLC set processor mode (CMD 0F, FNC 80; notes §7.6); keyswitch must be in REM."""
 
     CMD: ClassVar[int] = Command.EXTENDED
     FNC: ClassVar[int] = Function.SET_PROCESSOR_MODE
+    PARAMS: ClassVar[tuple[Wire, ...]] = (Byte("mode", "mode"),)
 
     mode: int
 
-    def __post_init__(self) -> None:
-        check_range("mode", self.mode, 0, 0xFF)
-
-    def encode_params(self) -> bytes:
-        return bytes((self.mode,))
-
-    @classmethod
-    def decode_params(cls, reader: Reader) -> SetProcessorMode:
-        mode = reader.u8("mode")
-        reader.end("the mode")
-        return cls(mode)
-
 
 @dataclass(frozen=True, slots=True)
-class DiagnosticStatus:
+class DiagnosticStatus(Parameters):
     """Diagnostic status (CMD 06, FNC 03): identify the host processor."""
 
     CMD: ClassVar[int] = Command.DIAGNOSTIC
     FNC: ClassVar[int] = DiagnosticFunction.DIAGNOSTIC_STATUS
+    PARAMS: ClassVar[tuple[Wire, ...]] = ()
 
-    def encode_params(self) -> bytes:
-        return b""
 
-    @classmethod
-    def decode_params(cls, reader: Reader) -> DiagnosticStatus:
-        reader.end("the function code")
-        return cls()
+@dataclass(frozen=True, slots=True)
+class Echo(Parameters):
+    """Echo, also "diagnostic loop" (CMD 06, FNC 00): the node sends ``data`` back unchanged.
+
+    Up to 243 data bytes (1770-KF2 manual p. 5-10, "Diagnostic Loop"; notes §4.0 command table:
+    "echo data sent, debug", PLC-5 and SLC).
+    """
+
+    CMD: ClassVar[int] = Command.DIAGNOSTIC
+    FNC: ClassVar[int] = DiagnosticFunction.ECHO
+    MAX_BYTES: ClassVar[int] = 243
+    PARAMS: ClassVar[tuple[Wire, ...]] = (Bytes("data", "echo data", MAX_BYTES),)
+
+    data: bytes
 
 
 def slc_read_request(address: SlcAddress, size: int | None = None) -> ProtectedTypedLogicalRead:
