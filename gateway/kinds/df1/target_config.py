@@ -125,8 +125,9 @@ def target_file_problems(files: Sequence[TargetFile]) -> list[tuple[Loc, str]]:
                                                       f"and file[{index}])"))
         seen.setdefault(entry.file, index)
         if entry.table == "input" and entry.start <= status_last and entry.last >= STATUS_BASE:
-            problems.append((("file", index, "start"), f"{entry.name} covers input {entry.start}-{entry.last}, which "
-                                                       f"overlaps the status block (input {STATUS_BASE}-{status_last})"))
+            status = f"input {STATUS_BASE}-{status_last}"
+            problems.append((("file", index, "start"), f"{entry.name} covers input {entry.start}-{entry.last}, "
+                                                       f"which overlaps the status block ({status})"))
         for table, first, last, other in spans:
             if table == entry.table and entry.start <= last and first <= entry.last:
                 problems.append((("file", index, "start"), f"{entry.name} ({entry.table} {entry.start}-{entry.last}) "
