@@ -197,7 +197,7 @@ def test_plc5_packet_limits_come_from_one_table() -> None:
     from gateway.kinds.df1 import plc5_unit
     from gateway.protocols.df1.pccc import ProcessorFamily
     from gateway.protocols.df1.pccc.limits import PLC5_TYPED_LOGICAL, PLC5_WORD_RANGE
-    from gateway.sim import plc5 as sim_plc5
+    from gateway.kinds.df1.sim import plc5 as sim_plc5
 
     assert (PLC5_WORD_RANGE.max_read_bytes, PLC5_WORD_RANGE.max_write_bytes) == (244, 239)
     assert ProcessorFamily.PLC5.limits is PLC5_TYPED_LOGICAL

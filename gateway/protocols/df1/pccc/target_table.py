@@ -138,6 +138,12 @@ class TableFile:
         self._raw[index] = raw
         self._written_at[index] = now
 
+    def forget(self, element: int) -> None:
+        """Make the element never-written again (a write whose commit failed is taken back)."""
+        index = self._index(element)
+        self._raw[index] = None
+        self._written_at[index] = None
+
     def read_bytes(self, offset: int, size: int) -> tuple[bytes, tuple[int, ...]]:
         """``size`` bytes of the byte image from ``offset``, and the never-written elements among them."""
         first, last = self._span(offset, size)
