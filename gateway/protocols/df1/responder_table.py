@@ -110,7 +110,7 @@ IGNORED: Final[Mapping[tuple[ResponderState, ResponderInput], str]] = MappingPro
 })
 
 
-def _build_table() -> Mapping[tuple[ResponderState, ResponderInput], tuple[ResponderAction, ResponderState]]:
+def _complete_table() -> Mapping[tuple[ResponderState, ResponderInput], tuple[ResponderAction, ResponderState]]:
     """Every (state, input) pair exactly once: the receiver's, the transmitter's, the ignored."""
     table = {(state, what): (action, state) for state in S for what, action in _RECEIVER.items()}
     for pair, step in (*_TRANSMITTER.items(), *((pair, (A.IGNORE, pair[0])) for pair in IGNORED)):
@@ -124,7 +124,7 @@ def _build_table() -> Mapping[tuple[ResponderState, ResponderInput], tuple[Respo
 
 
 #: (state, input) -> (action, next state), complete: checked at import.
-TRANSITIONS: Final = _build_table()
+TRANSITIONS: Final = _complete_table()
 
 
 class ResponderStep(NamedTuple):
