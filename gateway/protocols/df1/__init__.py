@@ -2,6 +2,7 @@
 
 * :mod:`~gateway.protocols.df1.framing` - DLE framing, BCC / CRC-16, streaming frame decoder
 * :mod:`~gateway.protocols.df1.link` - the full-duplex link state machine (ACK / NAK / ENQ, timers)
+* :mod:`~gateway.protocols.df1.responder` - the full-duplex responder (DF1 target mode: commands in, replies out)
 * :mod:`~gateway.protocols.df1.pccc` - PCCC command / reply packets, STS codes, size limits, TNS
 * :mod:`~gateway.protocols.df1.address` - SLC 500 logical addresses (``N7:0``, ``T4:3.ACC`` ...)
 

@@ -1,0 +1,436 @@
+"""DF1 full-duplex responder: the link layer of the station that a PLC's MSG instruction addresses.
+
+In DF1 target mode the gateway stands where the S4516-DF1 board stands in its manual (§4-§6: a
+PLC-5, SLC 500 or ControlLogix channel 0 in System (point-to-point) mode, its MSG instruction
+aimed at us).  Commands come in, replies go out.  Manual: A-B 1770-6.5.16, chapter 4 ("p. 4-x");
+defaults from the SLC 500 channel 0 configuration, 1747-RM001G p. 13-52 Table 13.15 ("RM").
+
+Receiver (p. 4-8, the RECEIVER program; its last response starts as DLE NAK)::
+
+    good frame, new command     -> DLE ACK, CommandReceived, remember SRC CMD TNS ("save last header")
+    good frame, same SRC CMD TNS -> DLE ACK, not delivered, the stored reply sent again (DuplicateReceived)
+    good frame, sink full       -> DLE NAK ("else if message sink is full send DLE NAK")
+    damaged / < 6 bytes / long  -> DLE NAK ("too small", "too large", BCC/CRC not valid)
+    DLE ENQ inside a frame      -> DLE NAK for the truncated frame (a control symbol other than DLE ETX)
+    DLE ENQ                     -> the last response symbol again (p. 4-8 / 4-9)
+    anything else outside a frame (noise, DLE ETX without DLE STX) -> last response := DLE NAK
+                                   ("else LAST-RESPONSE = NAK"; p. 4-7 "a false control or data symbol")
+
+The receiver's rules do not depend on the transmitter: the two work at the same time (p. 4-2,
+Figure 4.1).  The peer's DLE ACK / DLE NAK for our replies share the circuit with its frames, so one
+may arrive inside a frame: the decoder hands it to the transmitter and keeps the frame (p. 4-8,
+GET-SYMBOL: "if char is an ACK or NAK send it to the transmitter").  Our own response symbols are
+never embedded: every frame and symbol enters the output whole, which a peer with "Embedded
+Responses" enabled or auto-detect (RM) accepts.
+
+Duplicates (``duplicate_detect``, RM default: enabled): "The combination of SRC, CMD, and TNS bytes
+uniquely identifies every message packet ... If all fields are the same, the message is ignored and
+is considered to be a duplicate" (p. 6-3); the receiver compares them with the last message passed
+to the sink (p. 4-8: LAST-HEADER, 4 bytes; p. 4-13: a lost DLE ACK makes the peer send the message
+again, "the receiver discards the duplicate message (if duplicate message detection is enabled)").
+DST and STS are not part of it.  A duplicate is never delivered, so never executed twice; if the
+reply to it was given (:meth:`Df1Responder.send_reply`) and is not on its way, it is queued again.
+
+DST (``check_dst``, default False): the full-duplex receiver never looks at DST (the p. 4-8 program
+tests only the check, the length, the header and the sink); RM p. 13-76 names ignoring "packets
+received that have a destination address other than its own" as half-duplex behaviour, and S4516
+§4.4 / §6.4 need the station address only through a Data Highway bridge.  With ``check_dst`` a
+frame whose DST is not ``station`` is ACKed (it arrived intact) but not delivered, and counted.
+
+Transmitter (p. 4-6 flowchart; RM: ACK timeout 50 x 20 ms, NAK retries 3, ENQ retries 3), one
+reply on the line at a time, the others queued in order::
+
+    IDLE --reply--> AWAIT_ACK --DLE ACK--> IDLE (ReplyDelivered), next reply
+                    AWAIT_ACK --DLE NAK--> the same frame again              (at most nak_limit times)
+                    AWAIT_ACK --ack_timeout--> DLE ENQ                        (at most enq_limit times)
+                    then IDLE (ReplyLost), next reply
+
+A DLE ACK / DLE NAK that arrives while our frame still waits in :meth:`data_to_send` answers an
+older frame and is ignored.  Known limit of the protocol: a frame lost whole leaves no trace, and
+the DLE ENQ that follows is answered with the previous frame's ACK (p. 4-8: the last response), so
+the peer takes it as delivered; the application layer's reply timeout covers that.
+
+All behaviour is one table, :data:`~gateway.protocols.df1.responder_table.TRANSITIONS`
+((state, input) -> (action, next state), a missing pair raises); its events and counters are in
+:mod:`~gateway.protocols.df1.responder_events`.  This module does no I/O: the caller passes ``now``
+and moves the bytes.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Final
+
+from gateway.protocols.df1.framing import (
+    ACK_SYMBOL,
+    DEFAULT_MAX_MESSAGE,
+    ENQ_SYMBOL,
+    NAK_SYMBOL,
+    NEED_DATA,
+    AckReceived,
+    BadFrame,
+    BadFrameReason,
+    Checksum,
+    DecoderEvent,
+    EnqReceived,
+    Frame,
+    FrameDecoder,
+    NakReceived,
+    NeedData,
+    encode_frame,
+)
+from gateway.protocols.df1.responder_events import (
+    CommandReceived,
+    DuplicateReceived,
+    ReplyDelivered,
+    ReplyLossReason,
+    ReplyLost,
+    ResponderCounters,
+    ResponderEvent,
+)
+from gateway.protocols.df1.responder_table import (
+    TRANSITIONS,
+    ResponderAction,
+    ResponderInput,
+    ResponderState,
+    ResponderStep,
+)
+
+__all__ = ["MIN_PACKET", "Df1Responder"]
+
+#: "The minimum number of bytes contained in any one message packet is 6" (S4516 §2): DST SRC CMD
+#: STS TNS; a shorter frame is "too small" (p. 4-8) and is NAKed.
+MIN_PACKET: Final = 6
+
+_DLE: Final = 0x10
+
+S, K, A = ResponderState, ResponderInput, ResponderAction
+
+
+# ------------------------------------------------------------------------------------ responder
+
+
+class Df1Responder:
+    """Sans-I/O DF1 full-duplex responder: commands in, replies out (module docstring).
+
+    ``feed(data, now)`` the bytes read, ``next_event()`` until ``NEED_DATA``, answer every
+    :class:`CommandReceived` with ``send_reply(packet, now)`` (the PCCC target answers every
+    command, errors included: "For each command message sent, a reply message is generated",
+    S4516 §2), write ``data_to_send()``, and call ``handle_timeout(now)`` at ``next_deadline()``.
+    """
+
+    def __init__(
+        self,
+        *,
+        station: int = 0,
+        checksum: Checksum = Checksum.CRC,
+        ack_timeout: float = 1.0,
+        nak_limit: int = 3,
+        enq_limit: int = 3,
+        duplicate_detect: bool = True,
+        check_dst: bool = False,
+        max_pending: int = 4,
+        max_message: int = DEFAULT_MAX_MESSAGE,
+    ) -> None:
+        if not 0 <= station <= 254:
+            raise ValueError("station must be 0..254")
+        if ack_timeout <= 0:
+            raise ValueError("ack_timeout must be positive")
+        if nak_limit < 0 or enq_limit < 0:
+            raise ValueError("nak_limit and enq_limit must not be negative")
+        if max_pending < 1:
+            raise ValueError("max_pending must be at least 1")
+        if max_message < MIN_PACKET:
+            raise ValueError(f"max_message must be at least {MIN_PACKET}")
+        self.station: Final = station
+        self.checksum: Final = checksum
+        self.ack_timeout: Final = ack_timeout
+        self.nak_limit: Final = nak_limit
+        self.enq_limit: Final = enq_limit
+        self.duplicate_detect: Final = duplicate_detect
+        self.check_dst: Final = check_dst
+        #: the message sink's size: commands delivered whose reply was not given yet; p. 4-6
+        #: suggests peers keep one to three messages outstanding
+        self.max_pending: Final = max_pending
+        self.max_message: Final = max_message
+        self.counters = ResponderCounters()
+        #: the last transitions taken, newest last
+        self.history: deque[ResponderStep] = deque(maxlen=64)
+        self._decoder = FrameDecoder(checksum, max_message=max_message)
+        self._events: deque[ResponderEvent] = deque()
+        self._out = bytearray()
+        self._state = S.IDLE
+        self._idle_dle = False  # the last byte was a DLE outside a frame that started nothing yet
+        # receiver
+        self._last_response = NAK_SYMBOL
+        self._last_header: tuple[int, int, int] | None = None  # SRC, CMD, TNS of the last delivered
+        self._last_reply: tuple[int, bytes] | None = None  # handle and packet of its reply
+        self._pending: list[tuple[int, int, int]] = []  # SRC, CMD, TNS of commands awaiting a reply
+        # transmitter
+        self._queue: deque[tuple[int, bytes]] = deque()  # handle, packet
+        self._current: tuple[int, bytes, bytes] | None = None  # handle, packet, frame
+        self._frame_unsent = False
+        self._nak_count = 0
+        self._enq_count = 0
+        self._deadline: float | None = None
+        self._next_handle = 1
+
+    # ------------------------------------------------------------------------------ public API
+
+    @property
+    def state(self) -> ResponderState:
+        return self._state
+
+    @property
+    def pending_commands(self) -> int:
+        """Commands delivered whose reply was not given yet."""
+        return len(self._pending)
+
+    @property
+    def queued_replies(self) -> int:
+        """Replies queued or on the line."""
+        return len(self._queue) + (self._current is not None)
+
+    def feed(self, data: bytes, now: float) -> None:
+        """Consume bytes read from the line."""
+        decoder = self._decoder
+        for i in range(len(data)):
+            byte = data[i]
+            outside = not decoder.in_frame
+            decoder.feed(data[i : i + 1])
+            heard = False
+            while (event := decoder.next_event()) is not NEED_DATA:
+                heard = True
+                self._on_decoded(event, now)
+            if outside and not heard and not decoder.in_frame:
+                # Discarded by the decoder: noise, or the first DLE of DLE DLE (a DLE alone may
+                # still start a symbol with the next byte).
+                if byte != _DLE or self._idle_dle:
+                    self._input(K.NOISE, now)
+                self._idle_dle = byte == _DLE
+            else:
+                self._idle_dle = False
+
+    def next_event(self) -> ResponderEvent | NeedData:
+        """The next event, or ``NEED_DATA``."""
+        if self._events:
+            return self._events.popleft()
+        return NEED_DATA
+
+    def send_reply(self, packet: bytes, now: float) -> int:
+        """Queue a reply packet (DST .. data); returns its handle, which one event will report:
+        :class:`ReplyDelivered` or :class:`ReplyLost`."""
+        packet = bytes(packet)
+        if not MIN_PACKET <= len(packet) <= self.max_message:
+            raise ValueError(f"DF1 reply of {len(packet)} bytes: must be {MIN_PACKET}..{self.max_message}")
+        handle = self._enqueue(packet)
+        header = self._answered(packet)
+        if header is not None and header == self._last_header:
+            self._last_reply = (handle, packet)
+        self._input(K.REPLY, now)
+        return handle
+
+    def data_to_send(self) -> bytes:
+        """Bytes to write to the line (response symbols, reply frames, DLE ENQ), in order."""
+        out = bytes(self._out)
+        self._out.clear()
+        self._frame_unsent = False
+        return out
+
+    def next_deadline(self) -> float | None:
+        """When :meth:`handle_timeout` must be called, or None without a running timer."""
+        return self._deadline
+
+    def handle_timeout(self, now: float) -> None:
+        """Call at or after :meth:`next_deadline`; early calls do nothing."""
+        if self._deadline is None or now < self._deadline:
+            return
+        self._input(K.TIMEOUT_LIMIT if self._enq_count >= self.enq_limit else K.TIMEOUT, now)
+
+    def reset(self) -> None:
+        """Forget the line (port reopened): every reply queued or on the line is lost."""
+        lost = [self._current[:2]] if self._current is not None else []
+        lost += self._queue
+        self._queue.clear()
+        self._current = None
+        self._state = S.IDLE
+        self._deadline = None
+        self._nak_count = self._enq_count = 0
+        self._frame_unsent = self._idle_dle = False
+        self._decoder.reset()
+        self._out.clear()
+        self._last_response = NAK_SYMBOL
+        self._last_header = self._last_reply = None
+        self._pending.clear()
+        for handle, packet in lost:
+            self.counters.replies_lost += 1
+            self._events.append(ReplyLost(handle, packet, ReplyLossReason.RESET))
+
+    # ------------------------------------------------------------------------------ inputs
+
+    def _on_decoded(self, event: DecoderEvent, now: float) -> None:
+        match event:
+            case Frame(message=message):
+                self._on_frame(message, now)
+            case BadFrame(reason=reason):
+                # DLE ETX without DLE STX is a false symbol outside a frame, not a frame (p. 4-8)
+                self._input(K.NOISE if reason is BadFrameReason.MISSING_START else K.BAD_FRAME, now)
+            case EnqReceived(aborted_frame=aborted):
+                self.counters.enqs_received += 1
+                self._input(K.ENQ_IN_FRAME if aborted else K.ENQ, now)
+            case AckReceived():
+                self.counters.acks_received += 1
+                self._input(K.STALE if self._frame_unsent else K.ACK, now)
+            case NakReceived():
+                self.counters.naks_received += 1
+                if self._frame_unsent:
+                    self._input(K.STALE, now)
+                else:
+                    self._input(K.NAK_LIMIT if self._nak_count >= self.nak_limit else K.NAK, now)
+
+    def _on_frame(self, message: bytes, now: float) -> None:
+        self.counters.frames_received += 1
+        if len(message) < MIN_PACKET:
+            self._input(K.BAD_FRAME, now)
+        elif self.check_dst and message[0] != self.station:
+            self._input(K.NOT_FOR_US, now)
+        elif self.duplicate_detect and _header(message) == self._last_header:
+            self._input(K.DUPLICATE, now, message)
+        elif len(self._pending) >= self.max_pending:
+            self._input(K.SINK_FULL, now)
+        else:
+            self._input(K.COMMAND, now, message)
+
+    # ------------------------------------------------------------------------------ the machine
+
+    def _input(self, what: ResponderInput, now: float, message: bytes = b"") -> None:
+        key = (self._state, what)
+        try:
+            action, next_state = TRANSITIONS[key]
+        except KeyError:
+            raise RuntimeError(f"DF1 responder: no transition for {key}") from None
+        self.history.append(ResponderStep(self._state, what, action, next_state))
+        self._state = next_state
+        counters = self.counters
+        match action:
+            case A.IGNORE:
+                pass
+            case A.DELIVER:
+                self._respond(ACK_SYMBOL)
+                header = _header(message)
+                self._last_header, self._last_reply = header, None
+                self._pending.append(header)
+                counters.commands_delivered += 1
+                src, cmd, tns = header
+                self._events.append(CommandReceived(message, src, message[0], cmd, tns))
+            case A.ACK_DUPLICATE:
+                self._respond(ACK_SYMBOL)
+                counters.duplicates += 1
+                handle = None
+                if self._last_reply is not None and not self._on_its_way(self._last_reply[0]):
+                    packet = self._last_reply[1]
+                    handle = self._enqueue(packet)
+                    self._last_reply = (handle, packet)
+                    counters.replies_resent += 1
+                src, cmd, tns = _header(message)
+                self._events.append(DuplicateReceived(message, src, cmd, tns, handle))
+                if handle is not None:
+                    self._input(K.REPLY, now)
+            case A.ACK_ONLY:
+                self._respond(ACK_SYMBOL)
+                counters.not_for_us += 1
+            case A.REFUSE:
+                self._respond(NAK_SYMBOL)
+                counters.sink_full += 1
+            case A.REJECT:
+                self._respond(NAK_SYMBOL)
+                counters.bad_frames += 1
+            case A.ANSWER_ENQ:
+                self._respond(self._last_response)
+            case A.LAST_NAK:
+                self._last_response = NAK_SYMBOL
+                counters.noise += 1
+            case A.TRANSMIT:
+                handle, packet = self._queue.popleft()
+                self._current = (handle, packet, encode_frame(packet, self.checksum))
+                self._nak_count = self._enq_count = 0
+                self._write_current(now)
+            case A.RETRANSMIT:
+                self._nak_count += 1
+                counters.retransmissions += 1
+                self._write_current(now)
+            case A.ENQUIRE:
+                self._enq_count += 1
+                counters.enqs_sent += 1
+                self._out += ENQ_SYMBOL
+                self._deadline = now + self.ack_timeout
+            case A.COMPLETE:
+                handle, packet = self._take_current()
+                counters.replies_delivered += 1
+                self._finish(ReplyDelivered(handle, packet), now)
+            case A.LOSE_NAK | A.LOSE_NO_RESPONSE:
+                handle, packet = self._take_current()
+                counters.replies_lost += 1
+                reason = ReplyLossReason.NAK_LIMIT if action is A.LOSE_NAK else ReplyLossReason.NO_RESPONSE
+                self._finish(ReplyLost(handle, packet, reason), now)
+
+    # ------------------------------------------------------------------------------ helpers
+
+    def _respond(self, symbol: bytes) -> None:
+        self._last_response = symbol
+        self._out += symbol
+        if symbol == ACK_SYMBOL:
+            self.counters.acks_sent += 1
+        else:
+            self.counters.naks_sent += 1
+
+    def _enqueue(self, packet: bytes) -> int:
+        handle = self._next_handle
+        self._next_handle += 1
+        self._queue.append((handle, packet))
+        return handle
+
+    def _on_its_way(self, handle: int) -> bool:
+        """Reply ``handle`` is queued or on the line."""
+        current = self._current is not None and self._current[0] == handle
+        return current or any(queued == handle for queued, _ in self._queue)
+
+    def _answered(self, reply: bytes) -> tuple[int, int, int] | None:
+        """Take the pending command ``reply`` answers (CMD | 0x40, same TNS; its DST = the command's
+        SRC if one such is pending, p. 6-4) off the sink; its header, or None."""
+        cmd, tns = reply[2] & ~0x40, _tns(reply)
+        matches = [header for header in self._pending if header[1] == cmd and header[2] == tns]
+        if not matches:
+            return None
+        header = next((header for header in matches if header[0] == reply[0]), matches[0])
+        self._pending.remove(header)
+        return header
+
+    def _write_current(self, now: float) -> None:
+        assert self._current is not None
+        self._out += self._current[2]
+        self._frame_unsent = True
+        self.counters.frames_sent += 1
+        self._deadline = now + self.ack_timeout
+
+    def _take_current(self) -> tuple[int, bytes]:
+        assert self._current is not None
+        handle, packet, _ = self._current
+        self._current = None
+        self._deadline = None
+        self._frame_unsent = False
+        return handle, packet
+
+    def _finish(self, event: ReplyDelivered | ReplyLost, now: float) -> None:
+        self._events.append(event)
+        if self._queue:
+            self._input(K.REPLY, now)
+
+
+def _tns(packet: bytes) -> int:
+    return packet[4] | packet[5] << 8
+
+
+def _header(packet: bytes) -> tuple[int, int, int]:
+    """SRC, CMD, TNS: what identifies a message packet (p. 6-3)."""
+    return packet[1], packet[2], _tns(packet)

@@ -1,0 +1,96 @@
+"""Events and counters of the DF1 full-duplex responder (``gateway.protocols.df1.responder``).
+
+What the responder reports to its driver (``next_event()``) and its link statistics.  Sans-I/O:
+plain data.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+__all__ = [
+    "CommandReceived",
+    "DuplicateReceived",
+    "ReplyDelivered",
+    "ReplyLossReason",
+    "ReplyLost",
+    "ResponderCounters",
+    "ResponderEvent",
+]
+
+
+@dataclass(frozen=True, slots=True)
+class CommandReceived:
+    """A new command (PCCC packet, DST .. data), ACKed; answer it with :meth:`Df1Responder.send_reply`."""
+
+    packet: bytes
+    src: int
+    dst: int
+    cmd: int
+    tns: int
+
+
+@dataclass(frozen=True, slots=True)
+class DuplicateReceived:
+    """The peer sent the last command again (its DLE ACK was lost); ACKed, not delivered.
+
+    ``reply_handle`` is the handle of the stored reply queued again, or None (no reply given yet,
+    or it is still on its way).
+    """
+
+    packet: bytes
+    src: int
+    cmd: int
+    tns: int
+    reply_handle: int | None
+
+
+@dataclass(frozen=True, slots=True)
+class ReplyDelivered:
+    """The peer ACKed the reply queued as ``handle``."""
+
+    handle: int
+    packet: bytes
+
+
+class ReplyLossReason(enum.Enum):
+    NAK_LIMIT = "DLE NAK after every retransmission"
+    NO_RESPONSE = "no DLE ACK after every DLE ENQ"
+    RESET = "the link was reset before the reply was acknowledged"
+
+
+@dataclass(frozen=True, slots=True)
+class ReplyLost:
+    """The responder gave up on the reply queued as ``handle``; the peer may or may not have it."""
+
+    handle: int
+    packet: bytes
+    reason: ReplyLossReason
+
+
+ResponderEvent = CommandReceived | DuplicateReceived | ReplyDelivered | ReplyLost
+
+
+@dataclass(slots=True)
+class ResponderCounters:
+    """Link statistics of the responder."""
+
+    frames_received: int = 0  #: frames with a valid check: commands, duplicates, refused, not for us
+    commands_delivered: int = 0
+    duplicates: int = 0  #: duplicates ACKed and not delivered
+    not_for_us: int = 0  #: frames ACKed but not delivered because of their DST (``check_dst``)
+    sink_full: int = 0  #: new commands NAKed because ``max_pending`` commands await their reply
+    bad_frames: int = 0  #: damaged, too short, too long, or cut by DLE ENQ: NAKed
+    noise: int = 0  #: bytes and symbols outside a frame that start nothing
+    acks_sent: int = 0
+    naks_sent: int = 0
+    enqs_received: int = 0
+    frames_sent: int = 0  #: reply frames written, retransmissions included
+    retransmissions: int = 0  #: reply frames sent again after a DLE NAK
+    replies_resent: int = 0  #: stored replies queued again for a duplicate command
+    enqs_sent: int = 0
+    acks_received: int = 0
+    naks_received: int = 0
+    replies_delivered: int = 0
+    replies_lost: int = 0
