@@ -244,6 +244,9 @@ def describe_map(config: GatewayConfig) -> str:
                 lines.append(f"  {table.value:9} {text}")
         status_last = STATUS_BASE + sum(width for _, width in STATUS_REGISTERS) - 1
         lines.append(f"  {'status':9} input {STATUS_BASE}-{status_last}")
-        lines.append(f"  read plan: {len(plan.blocks)} blocks ({fast} fast, {len(plan.blocks) - fast} slow)")
+        if kind.is_polled(link):
+            lines.append(f"  read plan: {len(plan.blocks)} blocks ({fast} fast, {len(plan.blocks) - fast} slow)")
+        else:
+            lines.append("  not polled: the peer sends its data; served as it arrives")
         lines.extend(f"    {line}" for line in kind.plan_lines(plan))
     return "\n".join(lines)

@@ -37,7 +37,7 @@ Loc = tuple[str | int, ...]
 _HOST_LABEL_RE = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?")
 _PORT_RE = re.compile(r"[0-9]{1,5}")
 _COM_RE = re.compile(r"(?:\\\\\.\\)?COM[1-9][0-9]{0,2}", re.IGNORECASE)
-_SIM_NAME_RE = re.compile(r"[A-Za-z0-9_]{1,40}")
+_SIM_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]{0,39}")
 
 
 class Model(BaseModel):

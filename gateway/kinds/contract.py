@@ -117,6 +117,8 @@ class LinkKind(Generic[C]):
     simulate_options: Callable[[argparse.ArgumentParser], None] | None = None
     #: examples of the items of ``slc-gateway read`` and ``write``, for help texts
     item_examples: tuple[str, str] = ("", "")
+    #: whether a link's unit is polled (False: the kind's runner fills its image, see gateway.unit)
+    is_polled: Callable[[C], bool] = lambda link: True
     #: (tag name, description) of the status block's kind counter, input registers 1009-1010
     #: (:attr:`gateway.unit.Unit.kind_counter`)
     status_counter: tuple[str, str] = ("kind_counter", "not used by this kind (always 0)")

@@ -25,14 +25,26 @@ from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
 from gateway.kinds.df1.plan import MapItem, point_labels_df1, shared_plan_df1
 from gateway.kinds.df1.plc5_unit import PLC5_MAX_READ_BYTES, Plc5Unit, point_labels_plc5, shared_plan_plc5
 from gateway.kinds.df1.receive import ReceiveWindow
+from gateway.kinds.df1.target_build import build_target, target_link_labels, target_link_plan
 from gateway.kinds.df1.unit import PROCESSORS, Df1Unit, PcccDriver, PcccUnit
 from gateway.modbus.mapping import Plan, Table
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.half_duplex import StationConfig
 from gateway.protocols.df1.pccc import ProcessorFamily
+from gateway.protocols.df1.pccc.target_table import ElementRef
 from gateway.protocols.df1.slave_messages import RegisterTable
+from gateway.unit import Unit
 
-__all__ = ["build_df1", "build_line", "df1_plan", "df1_point_labels", "map_items", "station_config", "station_unit"]
+__all__ = [
+    "build_df1",
+    "build_line",
+    "df1_plan",
+    "df1_plan_lines",
+    "df1_point_labels",
+    "map_items",
+    "station_config",
+    "station_unit",
+]
 
 
 def map_items(link: Df1LinkConfig) -> list[MapItem]:
@@ -48,14 +60,35 @@ def _max_read(link: Df1LinkConfig) -> int:
 
 
 def df1_plan(link: Df1LinkConfig) -> Plan[Any, Any]:
-    """The read plan of a DF1 link (shared by links with the same map): PLC-5 or SLC 500 addresses."""
+    """The read plan of a DF1 link (shared by links with the same map): PLC-5 or SLC 500 addresses;
+    a target's files."""
+    if link.role == "target":
+        return target_link_plan(link)
     if _is_plc5(link):
         return shared_plan_plc5(map_items(link), link.max_read_bytes or PLC5_MAX_READ_BYTES)
     return shared_plan_df1(map_items(link), _max_read(link))
 
 
+def df1_plan_lines(plan: Plan[Any, Any]) -> list[str]:
+    """``check-config``'s lines for a plan: a read plan's blocks, or a target's files (one block per
+    element, listed as one line per file)."""
+    lines: list[str] = []
+    files: dict[int, list[Any]] = {}
+    for block in plan.blocks:
+        if isinstance(block.request, ElementRef):
+            files.setdefault(block.request.file, []).append(block)
+        else:
+            lines.append(f"{block.scan.value:4} {block.label}")
+    for blocks in files.values():
+        first, last = blocks[0].label, blocks[-1].label.rpartition(":")[2]
+        lines.append(f"file {first}-{last}: {len(blocks)} elements, each with its own time of last write")
+    return lines
+
+
 def df1_point_labels(link: Df1LinkConfig) -> PointLabels:
     """What each point of :func:`df1_plan` is in the controller (PLC-5 or SLC 500 addresses)."""
+    if link.role == "target":
+        return target_link_labels(link)
     return point_labels_plc5(map_items(link)) if _is_plc5(link) else point_labels_df1(map_items(link))
 
 
@@ -135,9 +168,14 @@ def build_line(line: HalfDuplexLine) -> Df1HalfDuplexLine:
 
 
 def build_df1(links: Sequence[Df1LinkConfig]) -> Built:
-    """Every DF1 link's unit, in ``links`` order; runners: each full-duplex driver, each line master."""
-    units: dict[int, PcccUnit[Any, Any]] = {}
+    """Every DF1 link's unit, in ``links`` order; runners: each full-duplex driver, each line master,
+    each target's runner."""
+    units: dict[int, Unit[Any, Any]] = {}
     runners: list[LinkRunner] = []
+    for index, link in enumerate(links):
+        if link.role == "target":
+            target = units[index] = build_target(link)
+            runners.append(target.driver)
     for line in group_lines(links):
         master = build_line(line)
         runners.append(master)

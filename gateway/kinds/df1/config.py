@@ -13,13 +13,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar, Literal, NamedTuple
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from gateway.config._common import Loc, Model, Problems, show
+from gateway.config._common import Loc, Model, Problems, resolve_path, show
 from gateway.config.link import LinkBase, Parity, SerialDefaults
 from gateway.config.writer import table_lines
+from gateway.kinds.df1.target_config import TargetFile, target_file_problems
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
 from gateway.protocols.df1.address import parse_address
 from gateway.protocols.df1.half_duplex_events import DEMOTE_AFTER
@@ -170,7 +172,7 @@ class Df1LinkConfig(LinkBase):
     """``[[link]]`` of an SLC 500 or PLC-5 over DF1 full duplex, with its ``[[link.map]]``."""
 
     serial_defaults: ClassVar[SerialDefaults] = DF1_DEFAULTS
-    sim_models: ClassVar[tuple[str, ...]] = ("slc504", "plc5", "df1line")
+    sim_models: ClassVar[tuple[str, ...]] = ("slc504", "plc5", "df1line", "plc-msg")
 
     protocol: Literal["df1"]
     baudrate: int = DF1_DEFAULTS.baudrate
@@ -229,6 +231,24 @@ class Df1LinkConfig(LinkBase):
     receive_table: Literal["input", "holding"] = "input"
     receive_start: int = Field(0, ge=0, le=65535)
 
+    # --- target mode (README "DF1 target mode"; gateway.kinds.df1.target_config) ---------------
+    #: "master": the gateway polls the controller; "target": the gateway is the station a PLC's
+    #: MSG instructions read and write (``station`` is then the gateway's own node)
+    role: Literal["master", "target"] = "master"
+    #: the data files of a target, ``[[link.file]]``
+    file: tuple[TargetFile, ...] = Field((), strict=False)
+    #: a target's table on disk (SQLite): each write committed before it is acknowledged
+    persist: Path | None = None
+    #: a target answers only frames whose DST is its ``station`` (full duplex ignores DST by default)
+    check_dst: bool = False
+
+    @field_validator("persist", mode="before")
+    @classmethod
+    def _persist_path(cls, value: object, info: ValidationInfo) -> Path | None:
+        if value is None or value == "":
+            return None
+        return resolve_path(value, info, must_exist=False)
+
     @field_validator("map", mode="after")
     @classmethod
     def _check_addresses(cls, entries: tuple[MapEntry, ...], info: ValidationInfo) -> tuple[MapEntry, ...]:
@@ -248,11 +268,26 @@ class Df1LinkConfig(LinkBase):
 
     def problems(self) -> list[tuple[Loc, str]]:
         problems = super().problems()
+        if self.role == "target":
+            return problems + self._target_problems()
+        for key in ("file", "persist", "check_dst"):
+            if key in self.model_fields_set:
+                problems.append(((key,), f'{key} is for a link with role = "target" (the gateway answers a PLC\'s '
+                                         'MSG instructions); drop it, or set role = "target"'))
         if not self.map:
             problems.insert(0, (("map",), "a df1 link needs at least one [[link.map]] entry"))
         problems.extend(_overlaps(self.map))
         problems.extend(self._receive_problems())
         return problems
+
+    def _target_problems(self) -> list[tuple[Loc, str]]:
+        problems: list[tuple[Loc, str]] = []
+        for key in sorted(self.model_fields_set & _MASTER_KEYS):
+            problems.append(((key,), f'{key} is not used by a df1 link with role = "target" (the PLC sends the '
+                                     "commands; the gateway answers from [[link.file]]): drop it"))
+        if self.duplex != "full":
+            problems.append((("duplex",), 'a df1 link with role = "target" is full duplex: drop duplex'))
+        return problems + target_file_problems(self.file)
 
     @property
     def receive_last(self) -> int:
@@ -291,10 +326,29 @@ class Df1LinkConfig(LinkBase):
         return line_problems(links)
 
     def describe_lines(self) -> list[str]:
-        lines = table_lines("[[link]]", self, skip=("map",))
+        target = self.role == "target"
+        unused = _MASTER_KEYS | {"duplex"} if target else {"file", "persist", "check_dst"}
+        if target and "stale_after" not in self.model_fields_set:
+            unused = unused | {"stale_after"}
+        lines = table_lines("[[link]]", self, skip=("map", "file", *sorted(unused)))
+        if "stale_after" in unused:
+            lines.insert(-1, "# stale_after not set: a target's values do not go stale when the PLC is silent")
         for entry in self.map:
             lines += table_lines("[[link.map]]", entry, indent="  ")
+        for target_file in self.file:
+            lines += table_lines("[[link.file]]", target_file, indent="  ")
         return lines
+
+
+#: keys only a master (polling) link uses: refused on a target
+_MASTER_KEYS = frozenset({
+    "map", "processor", "source", "max_read_bytes", "max_write_bytes", "fast_interval", "slow_interval",
+    "write_burst", "poll_burst", "retries", "timeout", "down_after_failures", "down_after_seconds",
+    "receive_file", "receive_words", "receive_table", "receive_start", "poll_timeout", "reply_wait", "max_polls",
+    "poll_interval", "demote_after", "slow_poll_interval", "pre_transmit_delay", "rts_send_delay", "rts_off_delay",
+    "rts", "dtr", "echo", "message_retries", "link_reset", "write_queue_per_client",
+    "write_queue_per_link", "write_timeout",
+})
 
 
 def _overlaps(entries: Sequence[MapEntry]) -> list[tuple[Loc, str]]:
