@@ -372,6 +372,13 @@ def test_next_id_rolls_over_from_7f_to_01() -> None:
     assert next_id(0x7F) == 1
 
 
+def test_the_ids_after_a_resync_run_01_to_7f_and_never_return_to_00() -> None:
+    ids = [0]
+    for _ in range(0x7F + 3):
+        ids.append(next_id(ids[-1]))
+    assert ids == [0, *range(1, 0x80), 1, 2, 3]
+
+
 def test_ids_run_through_a_rollover_against_the_simulator() -> None:
     sim, session = _fresh(VARIANTS[0])
     line = FakeLine(sim, session, iter(()), iter(()))
