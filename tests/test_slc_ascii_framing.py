@@ -27,7 +27,6 @@ from gateway.protocols.slc_ascii.framing import (
     Garbled,
     HostEvent,
     IdMismatch,
-    IdSequencer,
     Refused,
     ReplyDecoder,
     ReplyEvent,
@@ -426,27 +425,6 @@ def test_garbled_commands_then_recovery(bad: bytes, feeder: Feeder) -> None:
     assert len(events) == 2
     assert isinstance(events[0], Garbled)
     assert events[1] == CommandFrame(0x08, b"", 0)
-
-
-# ---------------------------------------------------------------------------------------------
-# Message IDs
-
-
-def test_id_sequence_starts_at_00_and_rolls_over_to_01() -> None:
-    ids = IdSequencer()
-    assert ids.peek == 0
-    taken = [ids.take() for _ in range(1 + 0x7F + 3)]
-    assert taken == [0, *range(1, 0x80), 1, 2, 3]
-    assert 0 not in taken[1:]
-
-
-def test_id_sequence_reset_restarts_at_00() -> None:
-    ids = IdSequencer()
-    for _ in range(10):
-        ids.take()
-    ids.reset()
-    assert ids.peek == 0
-    assert [ids.take(), ids.take()] == [0, 1]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ from gateway.errors import ProtocolError
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.framing import DataReply, encode_data_reply
 from gateway.protocols.slc_ascii.memory_map import is_readable
-from gateway.protocols.slc_ascii.transaction import SlcSession, Verdict
+from gateway.protocols.slc_ascii.transaction import SlcSession, SlcVerdict
 
 TIMEOUT = 0.3
 
@@ -40,7 +40,7 @@ def _handshake(session: SlcSession, frn_body: str, *, crlf: bool, lower: bool) -
     session.receive_data(_frame(frn_body, 0, crlf=crlf, lower=lower), 0.01)
 
 
-def _run(command: cmds.Command, frn_body: str, reply_body: str, *, crlf: bool, lower: bool) -> Verdict | None:
+def _run(command: cmds.Command, frn_body: str, reply_body: str, *, crlf: bool, lower: bool) -> SlcVerdict | None:
     """A fresh session: handshake, then ``command`` answered with ``reply_body`` (ID 01)."""
     session = SlcSession(timeout=TIMEOUT, retries=3)
     session.start(command, 0.0)
@@ -67,7 +67,7 @@ def test_every_read_reply_form_is_the_answer(read: tuple[int, int], digits: int,
     body = f"{_count(count, digits)}{address:04X}{data[:count].hex().upper()}"
     command = cmds.read_bytes(address, count)
     assert cmds.parse_reply(command, body) == data[:count]  # the parser takes it ...
-    assert _run(command, frn, body, crlf=crlf, lower=lower) is Verdict.DONE  # ... and so does the core
+    assert _run(command, frn, body, crlf=crlf, lower=lower) is SlcVerdict.DONE  # ... and so does the core
 
 
 @settings(max_examples=100, deadline=None)
@@ -80,7 +80,7 @@ def test_every_frn_reply_form_completes_the_resync(frn: str, crlf: bool, lower: 
     sent = session.data_to_send()
     assert sent.startswith(b"#010801"), f"FRN reply {frn!r} did not end the resync: sent {sent!r}"
     session.receive_data(_frame(frn, 1, crlf=crlf, lower=lower), 0.02)
-    assert session.result is not None and session.result.verdict is Verdict.DONE
+    assert session.result is not None and session.result.verdict is SlcVerdict.DONE
     assert isinstance(session.result.answer, DataReply)
     assert cmds.parse_reply(cmds.read_frn(), session.result.answer.body_hex) == cmds.parse_frn_reply(frn)
 
@@ -93,7 +93,7 @@ def test_every_word_reply_form_is_the_answer(digits: int, frn: str, user: int, w
     command = cmds.read_sequencer_preset(0x10, 1) if sequencer else cmds.read_reset_accumulator(0x20)
     body = f"{_count(2, digits)}{user:04X}{word:04X}"
     assert cmds.parse_reply(command, body).value == word & 0x7FFF  # type: ignore[union-attr]
-    assert _run(command, frn, body, crlf=crlf, lower=False) is Verdict.DONE
+    assert _run(command, frn, body, crlf=crlf, lower=False) is SlcVerdict.DONE
 
 
 @settings(max_examples=400, deadline=None)
@@ -112,4 +112,4 @@ def test_the_core_takes_a_data_reply_exactly_when_the_parser_parses_it(read: tup
     except ProtocolError:
         parses = False
     verdict = _run(command, "021FFE1547", body, crlf=False, lower=False)
-    assert (verdict is Verdict.DONE) is parses, (body, verdict)
+    assert (verdict is SlcVerdict.DONE) is parses, (body, verdict)

@@ -30,7 +30,7 @@ from gateway.protocols.slc_ascii.framing import (
     encode_refused,
     encode_retransmit,
 )
-from gateway.protocols.slc_ascii.transaction import SessionState, SlcSession, Verdict, next_id
+from gateway.protocols.slc_ascii.transaction import SessionState, SlcSession, SlcVerdict, next_id
 from gateway.sim.variants import pairwise_cover
 from tests.slc_core_harness import FATES, FakeLine
 
@@ -65,21 +65,21 @@ def _check_run(variants: dict[str, str], fate_list: list[str], cycle_list: list[
             result = line.run(cmds.write_word(address, value))
             # the controller may have applied it: it may hold it from now on
             held[address].add(value)
-            if result.verdict is Verdict.DONE:
+            if result.verdict is SlcVerdict.DONE:
                 acknowledged.append((address, value))
-            elif result.verdict is Verdict.UNKNOWN:
+            elif result.verdict is SlcVerdict.UNKNOWN:
                 unknown.append((address, value))
             else:
                 refused_or_failed.append((address, value))
         else:
             result = line.run(cmds.read_bytes(address, 2))
-            if result.verdict is Verdict.DONE:
+            if result.verdict is SlcVerdict.DONE:
                 assert isinstance(result.answer, DataReply)
                 got = int.from_bytes(cmds.parse_read_reply(address, 2, result.answer.body_hex), "big")
                 assert got in held[address], f"read 0x{address:02X} = {got}: never held {sorted(held[address])}"
             else:
                 # reads never fail for want of proof: only when the line stays bad past the bounds
-                assert result.verdict is Verdict.FAILED
+                assert result.verdict is SlcVerdict.FAILED
     applied = Counter((a, v) for kind, a, v in sim.applied_writes if kind == "word")
     assert all(n == 1 for n in applied.values()), f"a write applied twice: {applied}"
     for write in acknowledged:
@@ -108,7 +108,7 @@ def test_reads_succeed_on_a_harsh_line(variants: dict[str, str]) -> None:
     for n in range(200):
         address = 0x40 + 2 * (n % 32)
         result = line.run(cmds.read_bytes(address, 2))
-        assert result.verdict is Verdict.DONE, result.reason
+        assert result.verdict is SlcVerdict.DONE, result.reason
         got = int.from_bytes(cmds.parse_read_reply(address, 2, result.answer.body_hex), "big")  # type: ignore[union-attr]
         assert got == sim.word(address)
 
@@ -155,7 +155,7 @@ def test_clean_read_whole_byte_by_byte_and_with_trailing_garbage() -> None:
         else:
             session.receive_data(b"\x00~" + reply + b"\r\n\x7f", 0.01)
         result = session.take_result()
-        assert result.verdict is Verdict.DONE
+        assert result.verdict is SlcVerdict.DONE
         assert session.data_to_send() == b""
 
 
@@ -170,7 +170,7 @@ def test_a_garbled_complete_reply_gets_z_at_once_a_missing_one_after_the_timeout
     session.handle_timeout(0.2)  # early: nothing happens
     assert session.data_to_send() == b""
     session.receive_data(encode_data_reply("000200400064", 5), 0.05)
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
 
     # nothing at all: the timeout is waited out, then ;Z
     session.start(READ, 1.0)
@@ -185,7 +185,7 @@ def test_a_garbled_complete_reply_gets_z_at_once_a_missing_one_after_the_timeout
     session.receive_data(answer, 1.7)
     assert session.data_to_send() == encode_command(READ, 1)
     session.receive_data(encode_data_reply("000200400064", 1), 1.71)
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
 
 
 def test_a_reply_cut_short_gets_z_after_the_character_gap_not_the_timeout() -> None:
@@ -198,7 +198,7 @@ def test_a_reply_cut_short_gets_z_after_the_character_gap_not_the_timeout() -> N
     assert session.data_to_send() == encode_retransmit(5)
     assert session.counters.crc_errors == 1
     session.receive_data(reply, 0.1)
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
 
 
 def test_a_frame_in_pieces_is_not_cut_short() -> None:
@@ -210,7 +210,7 @@ def test_a_frame_in_pieces_is_not_cut_short() -> None:
         now += session.char_gap / 2
         session.handle_timeout(now)
         session.receive_data(reply[i : i + 1], now)
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
     assert session.counters.crc_errors == 0
 
 
@@ -220,7 +220,7 @@ def test_a_write_answered_by_its_z_is_done_once() -> None:
     session.handle_timeout(TIMEOUT)
     assert session.data_to_send() == encode_retransmit(5)
     session.receive_data(encode_ack(5), 0.35)
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
 
 
 def test_a_write_with_no_answer_is_unknown_never_resent() -> None:
@@ -231,7 +231,7 @@ def test_a_write_with_no_answer_is_unknown_never_resent() -> None:
         now = session.next_deadline() or now
         session.handle_timeout(now)
         sent.append(session.data_to_send())
-    assert session.take_result().verdict is Verdict.UNKNOWN
+    assert session.take_result().verdict is SlcVerdict.UNKNOWN
     assert sent.count(encode_command(WRITE, 5)) == 1
     assert sent[1:] == [encode_retransmit(5)] * 3 + [b""]
 
@@ -243,14 +243,14 @@ def test_a_refusal_after_z_is_not_taken_for_a_refusal_of_the_write() -> None:
     session.data_to_send()
     session.handle_timeout(TIMEOUT)
     session.receive_data(encode_refused(5), 0.35)
-    assert session.take_result().verdict is Verdict.UNKNOWN
+    assert session.take_result().verdict is SlcVerdict.UNKNOWN
 
 
 def test_a_refusal_of_the_command_itself_is_refused() -> None:
     session = _started(WRITE)
     session.data_to_send()
     session.receive_data(encode_refused(5), 0.01)
-    assert session.take_result().verdict is Verdict.REFUSED
+    assert session.take_result().verdict is SlcVerdict.REFUSED
 
 
 def test_t_between_command_and_reply_is_noted_and_does_not_disturb() -> None:
@@ -258,7 +258,7 @@ def test_t_between_command_and_reply_is_noted_and_does_not_disturb() -> None:
     session.data_to_send()
     session.receive_data(encode_fault(0) + encode_data_reply("000200400064", 5), 0.01)
     assert session.fault_pending
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
 
 
 @pytest.mark.parametrize("reported", [4, 0], ids=["retained", "zero"])
@@ -287,7 +287,7 @@ def test_i_after_power_up_proves_a_single_copy_was_not_executed(reported: int) -
         session.receive_data(answer, 0.03)
     assert session.data_to_send() == encode_command(WRITE, 1)  # resent under a new ID
     session.receive_data(encode_ack(1), 0.71)
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
 
 
 def test_stray_i_of_a_repeated_previous_message_never_makes_a_write_run_twice() -> None:
@@ -301,7 +301,7 @@ def test_stray_i_of_a_repeated_previous_message_never_makes_a_write_run_twice() 
     assert session.data_to_send() == sent  # the same ID again, never a new one
     session.receive_data(encode_ack(5), 0.02)  # the ack of the first copy, which ran
     result = session.take_result()
-    assert result.verdict is Verdict.DONE
+    assert result.verdict is SlcVerdict.DONE
     # and when the ack of the first copy is lost: the second copy is refused with our ID
     session = _started(WRITE)
     sent = session.data_to_send()
@@ -310,7 +310,7 @@ def test_stray_i_of_a_repeated_previous_message_never_makes_a_write_run_twice() 
     session.receive_data(encode_id_mismatch(5), 0.02)
     assert session.data_to_send() == encode_retransmit(5)
     session.receive_data(encode_ack(5), 0.03)
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
 
 
 def test_late_i_after_id_rollover_is_proof_for_a_write() -> None:
@@ -326,7 +326,7 @@ def test_late_i_after_id_rollover_is_proof_for_a_write() -> None:
     session.start(cmds.read_bytes(0x40, 2), 0.0)
     assert session.data_to_send() == encode_command(cmds.read_bytes(0x40, 2), MAX_ID)
     session.receive_data(encode_data_reply("000200400064", MAX_ID), 0.01)
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
     session.start(WRITE, 0.02)
     assert session.data_to_send() == encode_command(WRITE, 1)  # 7F rolls over to 01, never 80 or 00
     session.handle_timeout(0.02 + TIMEOUT)  # reply lost
@@ -354,7 +354,7 @@ def test_i_00_after_two_copies_is_no_proof() -> None:
         assert session.data_to_send() in (b"", encode_retransmit(5))
         now = session.next_deadline() or now
         session.handle_timeout(now)
-    assert session.take_result().verdict is Verdict.UNKNOWN
+    assert session.take_result().verdict is SlcVerdict.UNKNOWN
 
 
 def test_i_with_our_id_fetches_the_answer_with_z() -> None:
@@ -363,7 +363,7 @@ def test_i_with_our_id_fetches_the_answer_with_z() -> None:
     session.receive_data(encode_id_mismatch(5), 0.01)
     assert session.data_to_send() == encode_retransmit(5)
     session.receive_data(encode_ack(5), 0.02)
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
 
 
 def test_next_id_rolls_over_from_7f_to_01() -> None:
@@ -372,11 +372,18 @@ def test_next_id_rolls_over_from_7f_to_01() -> None:
     assert next_id(0x7F) == 1
 
 
+def test_the_ids_after_a_resync_run_01_to_7f_and_never_return_to_00() -> None:
+    ids = [0]
+    for _ in range(0x7F + 3):
+        ids.append(next_id(ids[-1]))
+    assert ids == [0, *range(1, 0x80), 1, 2, 3]
+
+
 def test_ids_run_through_a_rollover_against_the_simulator() -> None:
     sim, session = _fresh(VARIANTS[0])
     line = FakeLine(sim, session, iter(()), iter(()))
     for _ in range(300):
-        assert line.run(READ).verdict is Verdict.DONE
+        assert line.run(READ).verdict is SlcVerdict.DONE
     assert sim.counters.id_mismatches == 0
     assert session.counters.id_resyncs == 1  # only the one after connecting
 
@@ -393,7 +400,7 @@ def test_a_read_refused_in_a_numbering_begun_without_quiet_is_asked_again() -> N
     session.receive_data(answer, 0.02)
     assert session.data_to_send() == encode_command(READ, 1)
     session.receive_data(encode_refused(1), 0.03)
-    assert session.take_result().verdict is Verdict.REFUSED
+    assert session.take_result().verdict is SlcVerdict.REFUSED
 
 
 # --- barrier resyncs ---------------------------------------------------------------------------
@@ -407,7 +414,7 @@ def test_a_write_on_an_unclean_line_resyncs_with_a_barrier_at_once() -> None:
     session.handle_timeout(TIMEOUT)  # reply lost (or late)
     assert session.data_to_send() == encode_retransmit(5)
     session.receive_data(encode_data_reply("0200400064", 5), 0.35)
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
     session.start(WRITE, 0.36)
     assert session.state is SessionState.RESYNC  # no QUIET wait
     _, answer = _barrier(session.data_to_send())
@@ -416,7 +423,7 @@ def test_a_write_on_an_unclean_line_resyncs_with_a_barrier_at_once() -> None:
     session.receive_data(answer, 0.38)
     assert session.data_to_send() == encode_command(WRITE, 1)
     session.receive_data(encode_ack(1), 0.39)
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
     session.start(WRITE, 0.40)  # one message, answered after the barrier: clean, no resync
     assert session.data_to_send() == encode_command(WRITE, 2)
 

@@ -16,7 +16,7 @@ import pytest
 from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.framing import NEED_DATA, CommandDecoder, CommandFrame
-from gateway.protocols.slc_ascii.transaction import SlcSession, Verdict
+from gateway.protocols.slc_ascii.transaction import SlcSession, SlcVerdict
 
 TIMEOUT = 0.3
 READ = cmds.read_bytes(0x40, 2)
@@ -74,7 +74,7 @@ class Wire:
                 self.wait()
         self.out()
 
-    def run(self, command: cmds.Command) -> Verdict:
+    def run(self, command: cmds.Command) -> SlcVerdict:
         self.session.start(command, self.now)
         self.exchange()
         return self.session.take_result().verdict
@@ -86,8 +86,8 @@ class Wire:
 def in_step(**variants: str) -> Wire:
     """A session in step with its controller after two reads on a perfect line."""
     wire = Wire(**variants)
-    assert wire.run(READ) is Verdict.DONE
-    assert wire.run(READ) is Verdict.DONE
+    assert wire.run(READ) is SlcVerdict.DONE
+    assert wire.run(READ) is SlcVerdict.DONE
     return wire
 
 
@@ -119,10 +119,10 @@ def test_a_write_never_goes_out_in_a_numbering_begun_without_a_barrier() -> None
     after quiet): its ``;I`` proof rests on no reply of an earlier message following it."""
     wire = in_step()
     wire.sim.power_cycle()  # the next read meets ;I00, and resyncs at once
-    assert wire.run(READ) is Verdict.DONE
+    assert wire.run(READ) is SlcVerdict.DONE
     ids = [msg_id for _, msg_id, code in wire.sent[-3:] if code is not None]
     assert ids == [3, 0, 1], f"expected the read, an immediate resync and the read again, not {ids}"
-    assert wire.run(cmds.write_word(0x40, 77)) is Verdict.DONE
+    assert wire.run(cmds.write_word(0x40, 77)) is SlcVerdict.DONE
     write = next(i for i, (_, _, code) in enumerate(wire.sent) if code == cmds.CommandCode.WRITE)
     assert began_with_a_barrier(wire, write), f"write sent in an untrusted numbering: {wire.sent}"
     assert wire.applied(77) == 1
@@ -141,9 +141,9 @@ def test_after_an_unknown_or_failed_outcome_the_next_command_begins_with_a_resyn
             wire.controller(frames)
         else:
             wire.wait()
-    assert wire.session.take_result().verdict is (Verdict.UNKNOWN if kind == "write" else Verdict.FAILED)
+    assert wire.session.take_result().verdict is (SlcVerdict.UNKNOWN if kind == "write" else SlcVerdict.FAILED)
     before = len(wire.sent)
-    assert wire.run(READ) is Verdict.DONE
+    assert wire.run(READ) is SlcVerdict.DONE
     first_id = wire.sent[before][1]
     assert first_id == 0, f"the command after an unknown outcome went with ID {first_id:02X}, not a resync"
 
@@ -158,9 +158,9 @@ def test_after_a_transaction_of_several_messages_a_write_goes_out_after_a_barrie
     wire.controller(wire.out())  # the reply is lost
     wire.wait()  # ;Z
     wire.deliver(wire.controller(wire.out()))  # the ;Z fetches the answer: DONE, after two messages
-    assert wire.session.take_result().verdict is Verdict.DONE
+    assert wire.session.take_result().verdict is SlcVerdict.DONE
     last = len(wire.sent) - 1
-    assert wire.run(cmds.write_word(0x44, 88)) is Verdict.DONE
+    assert wire.run(cmds.write_word(0x44, 88)) is SlcVerdict.DONE
     write = next(i for i in range(last + 1, len(wire.sent)) if wire.sent[i][2] == cmds.CommandCode.WRITE)
     quiet = wire.sent[write][0] - wire.sent[last][0] >= wire.session.late_bound - 1e-9
     resynced = any(wire.sent[i][1] == 0 for i in range(last + 1, write))
@@ -190,14 +190,14 @@ def test_stray_i_from_a_transaction_of_several_messages_never_makes_the_next_wri
     stray = wire.controller(second)  # ;I with this write's ID: it already ran
     assert len(stray) == 1 and stray[0].startswith(b";I")
     wire.deliver(late_ack)
-    assert session.take_result().verdict is Verdict.DONE  # three messages: copy, ;Z, copy
+    assert session.take_result().verdict is SlcVerdict.DONE  # three messages: copy, ;Z, copy
     session.start(cmds.write_word(0x44, 12), wire.now)
     ours = wire.controller(wire.out())  # our first copy, if the core sends it now, runs
     wire.deliver(z_answer + stray + stray + ours)  # what the line held back, then our replies
     wire.exchange()
     assert wire.applied(11) == 1
     assert wire.applied(12) == 1, f"write applied {wire.applied(12)} times"
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
 
 
 @pytest.mark.parametrize("kind", ["read", "write"])
@@ -224,13 +224,13 @@ def test_e_after_a_z_is_never_taken_for_a_refusal_even_after_a_resend(kind: str)
     wire.deliver(e_to_z)
     if kind == "write":
         result = session.take_result()
-        assert result.verdict is Verdict.UNKNOWN, f"{result}: the write ran"
+        assert result.verdict is SlcVerdict.UNKNOWN, f"{result}: the write ran"
         assert wire.applied(66) == 1
     else:
-        assert session.result is None or session.result.verdict is not Verdict.REFUSED, session.result
+        assert session.result is None or session.result.verdict is not SlcVerdict.REFUSED, session.result
         wire.deliver(wire.controller(resent))  # ;I00: the power-cycled controller expects 00
         wire.exchange()
-        assert session.take_result().verdict is Verdict.DONE
+        assert session.take_result().verdict is SlcVerdict.DONE
 
 
 def test_a_line_that_repeats_frames_both_ways_never_makes_a_write_run_twice() -> None:
@@ -247,7 +247,7 @@ def test_a_line_that_repeats_frames_both_ways_never_makes_a_write_run_twice() ->
     assert [r[:2] for r in replies] == [b";R", b";I"], replies
     ack, stray = replies
     wire.deliver([ack])
-    assert session.take_result().verdict is Verdict.DONE
+    assert session.take_result().verdict is SlcVerdict.DONE
     session.start(cmds.write_word(0x42, 22), wire.now)
     ours = wire.controller(wire.out())  # our write runs
     wire.deliver([stray, stray, *ours])  # the ;I, the line's repeat of it, then our ack

@@ -42,7 +42,7 @@ from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, pr
 from gateway.kinds.slc_ascii.sim import FaultPlan, SlcAsciiSimulator
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.framing import NEED_DATA, CommandDecoder, CommandFrame, DataReply
-from gateway.protocols.slc_ascii.transaction import Result, SlcSession, Verdict
+from gateway.protocols.slc_ascii.transaction import Result, SlcSession, SlcVerdict
 from gateway.sim.variants import variant_matrix
 
 TIMEOUT = 0.3
@@ -160,7 +160,7 @@ class SlcCoreOnAFaultyLine(RuleBasedStateMachine):
         super().__init__()
         self.line: ModelLine | None = None
         self.values = itertools.count(1)
-        self.outcome: dict[tuple[int, int], Verdict] = {}  # write -> its verdict
+        self.outcome: dict[tuple[int, int], SlcVerdict] = {}  # write -> its verdict
         self.initial: dict[int, int] = {}
         self.checked_frames = 0
         self.after_unknown_from = -1  # index in line.sent of the first frame after an UNKNOWN/FAILED
@@ -190,7 +190,7 @@ class SlcCoreOnAFaultyLine(RuleBasedStateMachine):
         return self.line
 
     def _ended(self, result: Result) -> None:
-        if result.verdict in (Verdict.UNKNOWN, Verdict.FAILED):
+        if result.verdict in (SlcVerdict.UNKNOWN, SlcVerdict.FAILED):
             self.after_unknown_from = len(self._line().sent)
 
     @precondition(lambda self: self.line is not None)
@@ -206,13 +206,13 @@ class SlcCoreOnAFaultyLine(RuleBasedStateMachine):
     def read(self, address: int) -> None:
         line = self._line()
         result = line.run(cmds.read_bytes(address, 2))
-        if result.verdict is Verdict.DONE:
+        if result.verdict is SlcVerdict.DONE:
             assert isinstance(result.answer, DataReply)
             got = int.from_bytes(cmds.parse_read_reply(address, 2, result.answer.body_hex), "big")
             held = {self.initial[address]} | {v for kind, a, v in line.sim.applied_writes if a == address}
             assert got in held, f"read 0x{address:02X} = {got}: the controller never held it ({sorted(held)})"
         else:
-            assert result.verdict is Verdict.FAILED, result
+            assert result.verdict is SlcVerdict.FAILED, result
         self._ended(result)
 
     @precondition(lambda self: self.line is not None)
@@ -228,9 +228,9 @@ class SlcCoreOnAFaultyLine(RuleBasedStateMachine):
         twice = {w: n for w, n in applied.items() if n > 1}
         assert not twice, f"writes applied more than once: {twice} ({self._outcomes(twice)})"
         for write, verdict in self.outcome.items():
-            if verdict is Verdict.DONE:
+            if verdict is SlcVerdict.DONE:
                 assert applied[write] == 1, f"write {write} acknowledged, but never applied"
-            elif verdict in (Verdict.REFUSED, Verdict.FAILED):
+            elif verdict in (SlcVerdict.REFUSED, SlcVerdict.FAILED):
                 assert applied[write] == 0, f"write {write} answered {verdict.name}, but applied"
         unreported = set(applied) - set(self.outcome)
         assert not unreported, f"writes applied that were never asked for: {unreported}"

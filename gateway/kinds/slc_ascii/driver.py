@@ -28,7 +28,7 @@ from gateway.line_driver import LineDriver, OpenStream, Priority
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command, ControllerType, FrnInfo, Mode, TimeoutClass
 from gateway.protocols.slc_ascii.framing import Ack, DataReply
-from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS, SlcSession, Verdict
+from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS, SlcSession, SlcVerdict
 from gateway.protocols.slc_ascii.transfer import MAX_TRANSFER_RESTARTS, Download, Restart, Upload
 from gateway.transport import SerialSettings, open_stream
 
@@ -157,17 +157,17 @@ class SlcAsciiDriver(LineDriver):
         self._flush()
         self._sync_counters()
         result = session.take_result()
-        if result.verdict is Verdict.DONE:
+        if result.verdict is SlcVerdict.DONE:
             assert result.answer is not None
             return result.answer
-        if result.verdict is Verdict.REFUSED:
+        if result.verdict is SlcVerdict.REFUSED:
             self.counters.refusals += 1
             raise ControllerRefused(
                 f"controller refused {command.name} (;E: illegal in this mode or out of range)",
                 command=command.name,
                 reason=result.reason,
             )
-        if result.verdict is Verdict.UNKNOWN:
+        if result.verdict is SlcVerdict.UNKNOWN:
             raise WriteOutcomeUnknown(f"link {self.name}: {command.name}: outcome unknown (applied at most once): "
                                       f"{result.reason}")
         raise LinkTimeout(f"link {self.name}: {command.name}: {result.reason}")

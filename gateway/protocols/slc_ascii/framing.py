@@ -42,7 +42,6 @@ __all__ = [
     "Garbled",
     "HostEvent",
     "IdMismatch",
-    "IdSequencer",
     "NeedData",
     "Refused",
     "ReplyDecoder",
@@ -157,33 +156,6 @@ def encode_id_mismatch(last_valid_id: int) -> bytes:
     """Controller side: ``;I<id><CRC>CR`` where ``id`` is the last valid ID."""
     _check_id(last_valid_id)
     return _frame(b";", b"I" + _hex2(last_valid_id))
-
-
-class IdSequencer:
-    """Message IDs: 00 first (after opening a link or any resync), then 01, 02 ... 7F, 01, 02 ...
-
-    ID 00 is always accepted by the controller and restarts its numbering; the roll-over
-    skips 00 "to eliminate unintended resynchronization".  ``;Z`` does not use up an ID.
-    """
-
-    __slots__ = ("_next",)
-
-    def __init__(self) -> None:
-        self._next = 0
-
-    def take(self) -> int:
-        """The ID for the next message (not ``;Z``)."""
-        msg_id = self._next
-        self._next = 1 if msg_id >= MAX_ID else msg_id + 1
-        return msg_id
-
-    def reset(self) -> None:
-        """Resynchronise: the next message uses ID 00."""
-        self._next = 0
-
-    @property
-    def peek(self) -> int:
-        return self._next
 
 
 # --- events ---------------------------------------------------------------------------------

@@ -1,0 +1,211 @@
+"""The SLC 100/150 session's transition table, as data.
+
+:class:`~gateway.protocols.slc_ascii.transaction.SlcSession` runs one transaction at a time and
+is always in one :class:`SessionState`.  What happens to it is a :class:`SessionInput`: the
+caller's start, a reply as the session classifies it against the running transaction, or a
+deadline.  :data:`TRANSITIONS` maps every (state, input) pair to a :class:`SessionTransition`:
+the :class:`SessionAction` to run and the states the session may be in after it.  An action that
+can end in more than one state (a resend, a resync, a verdict) returns the one it chose, and the
+session checks that it is one of the entry's.
+
+Every pair is listed.  A pair that changes nothing is an ``IGNORE`` entry, whose next state is
+the state itself; a pair the session's classification never produces is an ``UNREACHABLE``
+entry.  :func:`transition` raises :class:`SessionTableError` for an unreachable pair and for
+one missing from the table, so neither can be dropped unnoticed.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Mapping
+from types import MappingProxyType
+from typing import Final, NamedTuple
+
+__all__ = [
+    "TRANSITIONS",
+    "SessionAction",
+    "SessionInput",
+    "SessionState",
+    "SessionTableError",
+    "SessionTransition",
+    "transition",
+]
+
+
+class SessionState(enum.Enum):
+    IDLE = "idle"
+    QUIET = "quiet"  # waiting for the line to be quiet before a resync
+    RESYNC = "resync"  # the ID 00 probe sent, waiting for its answer
+    SENT = "sent"  # a copy of the command sent
+    Z_SENT = "z_sent"  # ;Z sent, waiting for the controller's last reply
+    PROVING = "proving"  # a write's proof of non-execution in, waiting until no reply to our copies can come
+
+
+class SessionInput(enum.Enum):
+    """What happened, as the transition table sees it."""
+
+    START = "the caller starts a transaction"
+    OURS = "answer with our ID that fits the command"
+    OURS_REFUSED = ";E with our ID"
+    OTHER = "an answer with another ID (or one that does not fit)"
+    ID_OURS = ";I with our ID"
+    ID_OTHER = ";I with another ID"
+    GARBLED = "a complete reply that fails its check"
+    PROBE_ANSWER = "the answer to the ID 00 probe"
+    PROBE_REFUSED = ";E 00 to a barrier read (reads are refused: program mode)"
+    STALE = "a reply of no use here: a late one of a finished transaction, or an answer to an earlier message"
+    TIMEOUT = "deadline passed"
+
+
+class SessionAction(enum.Enum):
+    """What the session does; each is one method of :class:`SlcSession`."""
+
+    BEGIN = "resync first, or send the first copy of the command"
+    ANSWER = "DONE with the answer"
+    LATE_READ_ANSWER = "DONE with a read's answer held back on the line; the next transaction resyncs"
+    REFUSED = "a ;E with our ID: REFUSED, or asked again to confirm it, or after ;Z UNKNOWN / asked again"
+    RESEND = "after ;Z the controller answers an older message: resend the command with the same ID"
+    ID_OURS = "an earlier copy was accepted: ;Z fetches its answer"
+    ID_OTHER = "a ;I with another ID: proof of non-execution, a second copy, or ;Z"
+    PROVED = "no answer to our copies came while one still could: resync, and a new ID"
+    GARBLED = "ask for the reply again with ;Z at once, or give up"
+    TIMEOUT = "ask for the reply with ;Z, or give up"
+    Z_TIMEOUT = "silence after ;Z: a read resyncs and asks again, a write asks again or gives up"
+    PROBE_ANSWER = "the barrier: the numbering restarts, send the first copy"
+    PROBE_REFUSED = "the controller refuses reads (program mode): read FRN after quiet"
+    PROBE_GARBLED = "perhaps the probe's answer: send the probe again at once, or give up"
+    PROBE_TIMEOUT = "send the probe again, or give up"
+    QUIET_OVER = "the line is quiet: resync with read FRN"
+    IGNORE = "nothing changes"
+    UNREACHABLE = "the session's classification never gives this input in this state"
+
+
+class SessionTransition(NamedTuple):
+    action: SessionAction
+    #: the states the session may be in after the action (the state itself for IGNORE)
+    next_states: frozenset[SessionState]
+
+
+class SessionTableError(RuntimeError):
+    """A (state, input) pair the table does not allow, or a next state outside an entry's: a bug
+    in the session, never a fault of the line."""
+
+
+def transition(state: SessionState, what: SessionInput) -> SessionTransition:
+    """The table's entry for ``what`` in ``state``; raises :class:`SessionTableError` for a pair
+    that is missing or ``UNREACHABLE``."""
+    entry = TRANSITIONS.get((state, what))
+    if entry is None:
+        raise SessionTableError(f"no transition for {what.name} in {state.name}")
+    if entry.action is SessionAction.UNREACHABLE:
+        raise SessionTableError(f"{what.name} cannot happen in {state.name}")
+    return entry
+
+
+def _states(*states: SessionState) -> frozenset[SessionState]:
+    return frozenset(states)
+
+
+#: a verdict: the transaction is over
+_ENDS: Final = _states(SessionState.IDLE)
+#: a resync: the ID 00 probe goes out, or the session waits for quiet before it
+_RESYNCS: Final = _states(SessionState.RESYNC, SessionState.QUIET)
+#: a verdict, or a resync to ask again (a read, or a write proved not executed)
+_ENDS_OR_RESYNCS: Final = _ENDS | _RESYNCS
+#: ;Z, a verdict or a resync
+_Z_ENDS_OR_RESYNCS: Final = _ENDS_OR_RESYNCS | _states(SessionState.Z_SENT)
+#: a copy of the command, a verdict or a resync
+_COPY_ENDS_OR_RESYNCS: Final = _ENDS_OR_RESYNCS | _states(SessionState.SENT)
+#: anything a ;I with another ID may call for: a second copy, the wait for proof, ;Z, a verdict, a resync
+_AFTER_ID_OTHER: Final = _Z_ENDS_OR_RESYNCS | _states(SessionState.SENT, SessionState.PROVING)
+
+
+def _entry(action: SessionAction, next_states: frozenset[SessionState]) -> SessionTransition:
+    return SessionTransition(action, next_states)
+
+
+def _stay(state: SessionState) -> SessionTransition:
+    return SessionTransition(SessionAction.IGNORE, _states(state))
+
+
+#: the session's classification never gives this input in this state
+_NEVER: Final = SessionTransition(SessionAction.UNREACHABLE, frozenset())
+
+#: (state, input) -> (action, the states it may lead to), for every pair.
+TRANSITIONS: Final[Mapping[tuple[SessionState, SessionInput], SessionTransition]] = MappingProxyType({
+    # No transaction: start() begins one; replies are late ones of finished transactions; there is
+    # no deadline.
+    (SessionState.IDLE, SessionInput.START): _entry(SessionAction.BEGIN, _RESYNCS | _states(SessionState.SENT)),
+    (SessionState.IDLE, SessionInput.STALE): _stay(SessionState.IDLE),
+    (SessionState.IDLE, SessionInput.OURS): _NEVER,
+    (SessionState.IDLE, SessionInput.OURS_REFUSED): _NEVER,
+    (SessionState.IDLE, SessionInput.OTHER): _NEVER,
+    (SessionState.IDLE, SessionInput.ID_OURS): _NEVER,
+    (SessionState.IDLE, SessionInput.ID_OTHER): _NEVER,
+    (SessionState.IDLE, SessionInput.GARBLED): _NEVER,
+    (SessionState.IDLE, SessionInput.PROBE_ANSWER): _NEVER,
+    (SessionState.IDLE, SessionInput.PROBE_REFUSED): _NEVER,
+    (SessionState.IDLE, SessionInput.TIMEOUT): _NEVER,
+    # Waiting for quiet: every reply is a late one of an earlier message.
+    (SessionState.QUIET, SessionInput.TIMEOUT): _entry(SessionAction.QUIET_OVER, _states(SessionState.RESYNC)),
+    (SessionState.QUIET, SessionInput.STALE): _stay(SessionState.QUIET),
+    (SessionState.QUIET, SessionInput.START): _NEVER,
+    (SessionState.QUIET, SessionInput.OURS): _NEVER,
+    (SessionState.QUIET, SessionInput.OURS_REFUSED): _NEVER,
+    (SessionState.QUIET, SessionInput.OTHER): _NEVER,
+    (SessionState.QUIET, SessionInput.ID_OURS): _NEVER,
+    (SessionState.QUIET, SessionInput.ID_OTHER): _NEVER,
+    (SessionState.QUIET, SessionInput.GARBLED): _NEVER,
+    (SessionState.QUIET, SessionInput.PROBE_ANSWER): _NEVER,
+    (SessionState.QUIET, SessionInput.PROBE_REFUSED): _NEVER,
+    # The ID 00 probe is out: its answer, its refusal, a read's answer held back on the line, a
+    # garbled reply; any other reply answers an earlier message (STALE).
+    (SessionState.RESYNC, SessionInput.PROBE_ANSWER): _entry(SessionAction.PROBE_ANSWER, _states(SessionState.SENT)),
+    (SessionState.RESYNC, SessionInput.PROBE_REFUSED): _entry(SessionAction.PROBE_REFUSED, _RESYNCS),
+    (SessionState.RESYNC, SessionInput.OURS): _entry(SessionAction.LATE_READ_ANSWER, _ENDS),
+    (SessionState.RESYNC, SessionInput.GARBLED): _entry(SessionAction.PROBE_GARBLED, _ENDS_OR_RESYNCS),
+    (SessionState.RESYNC, SessionInput.TIMEOUT): _entry(SessionAction.PROBE_TIMEOUT, _ENDS_OR_RESYNCS),
+    (SessionState.RESYNC, SessionInput.STALE): _stay(SessionState.RESYNC),
+    (SessionState.RESYNC, SessionInput.START): _NEVER,
+    (SessionState.RESYNC, SessionInput.OURS_REFUSED): _NEVER,
+    (SessionState.RESYNC, SessionInput.OTHER): _NEVER,
+    (SessionState.RESYNC, SessionInput.ID_OURS): _NEVER,
+    (SessionState.RESYNC, SessionInput.ID_OTHER): _NEVER,
+    # A copy of the command is out.
+    (SessionState.SENT, SessionInput.OURS): _entry(SessionAction.ANSWER, _ENDS),
+    (SessionState.SENT, SessionInput.OURS_REFUSED): _entry(SessionAction.REFUSED, _ENDS_OR_RESYNCS),
+    (SessionState.SENT, SessionInput.OTHER): _stay(SessionState.SENT),  # a late reply to an earlier message
+    (SessionState.SENT, SessionInput.ID_OURS): _entry(SessionAction.ID_OURS, _Z_ENDS_OR_RESYNCS),
+    (SessionState.SENT, SessionInput.ID_OTHER): _entry(SessionAction.ID_OTHER, _AFTER_ID_OTHER),
+    (SessionState.SENT, SessionInput.GARBLED): _entry(SessionAction.GARBLED, _Z_ENDS_OR_RESYNCS),
+    (SessionState.SENT, SessionInput.TIMEOUT): _entry(SessionAction.TIMEOUT, _Z_ENDS_OR_RESYNCS),
+    (SessionState.SENT, SessionInput.START): _NEVER,
+    (SessionState.SENT, SessionInput.PROBE_ANSWER): _NEVER,
+    (SessionState.SENT, SessionInput.PROBE_REFUSED): _NEVER,
+    (SessionState.SENT, SessionInput.STALE): _NEVER,
+    # ;Z is out.
+    (SessionState.Z_SENT, SessionInput.OURS): _entry(SessionAction.ANSWER, _ENDS),
+    (SessionState.Z_SENT, SessionInput.OURS_REFUSED): _entry(SessionAction.REFUSED, _ENDS_OR_RESYNCS),
+    (SessionState.Z_SENT, SessionInput.OTHER): _entry(SessionAction.RESEND, _COPY_ENDS_OR_RESYNCS),
+    (SessionState.Z_SENT, SessionInput.ID_OURS): _entry(SessionAction.ID_OURS, _Z_ENDS_OR_RESYNCS),
+    (SessionState.Z_SENT, SessionInput.ID_OTHER): _entry(SessionAction.ID_OTHER, _AFTER_ID_OTHER),
+    (SessionState.Z_SENT, SessionInput.GARBLED): _entry(SessionAction.GARBLED, _Z_ENDS_OR_RESYNCS),
+    (SessionState.Z_SENT, SessionInput.TIMEOUT): _entry(SessionAction.Z_TIMEOUT, _Z_ENDS_OR_RESYNCS),
+    (SessionState.Z_SENT, SessionInput.START): _NEVER,
+    (SessionState.Z_SENT, SessionInput.PROBE_ANSWER): _NEVER,
+    (SessionState.Z_SENT, SessionInput.PROBE_REFUSED): _NEVER,
+    (SessionState.Z_SENT, SessionInput.STALE): _NEVER,
+    # A write's proof is in; waiting until no answer to our copies can still come.
+    (SessionState.PROVING, SessionInput.OURS): _entry(SessionAction.ANSWER, _ENDS),
+    (SessionState.PROVING, SessionInput.OURS_REFUSED): _entry(SessionAction.REFUSED, _ENDS_OR_RESYNCS),
+    # another stray reply of the repeated message
+    (SessionState.PROVING, SessionInput.OTHER): _stay(SessionState.PROVING),
+    (SessionState.PROVING, SessionInput.ID_OURS): _entry(SessionAction.ID_OURS, _Z_ENDS_OR_RESYNCS),
+    (SessionState.PROVING, SessionInput.ID_OTHER): _stay(SessionState.PROVING),  # as OTHER
+    (SessionState.PROVING, SessionInput.GARBLED): _entry(SessionAction.GARBLED, _Z_ENDS_OR_RESYNCS),
+    (SessionState.PROVING, SessionInput.TIMEOUT): _entry(SessionAction.PROVED, _ENDS_OR_RESYNCS),
+    (SessionState.PROVING, SessionInput.START): _NEVER,
+    (SessionState.PROVING, SessionInput.PROBE_ANSWER): _NEVER,
+    (SessionState.PROVING, SessionInput.PROBE_REFUSED): _NEVER,
+    (SessionState.PROVING, SessionInput.STALE): _NEVER,
+})
