@@ -211,6 +211,19 @@ def test_multi_packet_word_range_write_applies_with_its_last_packet() -> None:
     assert {target.table[7].written_at(e) for e in range(2, 7)} == {3.0}  # one write, all at once
 
 
+def test_the_packets_of_one_transaction_may_write_its_address_in_different_forms() -> None:
+    """The transaction is the element the address names, not its bytes: an independent PLC written
+    from the manuals sent a two-packet word range write with the section level in one packet only."""
+    target = make_target()
+    with_section = LogicalBinaryAddress.of(0, 7, 2, 0)  # mask 0F: section, file, element, sub-element
+    without = LogicalBinaryAddress(0x06, (7, 2))  # mask 06: file, element
+    assert with_section.encode() != without.encode()
+    first = run(target, WordRangeWrite(with_section, H("01 00 02 00"), packet_offset=0, total=4), tns=1)
+    last = run(target, WordRangeWrite(without, H("03 00 04 00"), packet_offset=2, total=4), tns=2)
+    assert first.pending and last.sts == 0 and not last.pending
+    assert [target.table[7].value(e) for e in range(2, 6)] == [1, 2, 3, 4]
+
+
 def test_a_packet_out_of_order_ends_the_transaction_and_nothing_applies() -> None:
     target = make_target()
     run(target, WordRangeWrite(N7(0), H("01 00 02 00"), packet_offset=0, total=6))
@@ -255,9 +268,9 @@ def test_an_abandoned_transaction_expires_and_the_oldest_gives_way() -> None:
     run(target, WordRangeWrite(N7(0), H("01 00"), packet_offset=0, total=2), now=0.0, src=1)
     run(target, WordRangeWrite(N7(0), H("01 00"), packet_offset=0, total=2), now=5.0, src=2)
     crowded = run(target, WordRangeWrite(N7(0), H("01 00"), packet_offset=0, total=2), now=6.0, src=3)
-    assert [t.key for t in crowded.abandoned] == [(1, 0x00, N7(0), 2)]  # (SRC, FNC, address, total)
+    assert [t.key for t in crowded.abandoned] == [(1, 0x00, 7, 0, 2)]  # (SRC, FNC, file, byte, total)
     echo = run(target, Echo(b""), now=15.5)  # any packet: the one of src 2 waited 10.5 s
-    assert [t.key for t in echo.abandoned] == [(2, 0x00, N7(0), 2)]
+    assert [t.key for t in echo.abandoned] == [(2, 0x00, 7, 0, 2)]
     assert run(target, WordRangeWrite(N7(0), H("02 00"), packet_offset=1, total=2), now=16.0, src=3).sts == 0
     assert target.table[7].value(1) == 2
     with pytest.raises(ValueError):

@@ -387,7 +387,7 @@ class PcccTarget:
             raise _Refused(Problem.FORMAT)  # past the total transaction (1770-6.5.16 p. 8-9)
         if not table_file.fits(start, total * unit):
             raise _Refused(Problem.PAST_END)
-        key = (header.src, request.FNC, request.address, total)
+        key = (header.src, request.FNC, table_file.number, start, total)  # the element, however its address is written
         outcome = self.transfers.packet(key, table_file, start, unit, request.packet_offset, total, request.data, now)
         if outcome.out_of_order:
             raise _Refused(Problem.OUT_OF_ORDER, outcome.abandoned)
