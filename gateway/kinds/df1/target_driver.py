@@ -141,6 +141,7 @@ class TargetRunner(LineDriver):
         if sts:
             self.last_sts = sts
             self.refused += 1
+            self.counters.errors += 1  # a command the PLC's MSG gets an error for
         self.note_result(True)
         self.responder.send_reply(reply, now)
 
