@@ -195,9 +195,9 @@ def test_plc5_packet_limits_come_from_one_table() -> None:
     """Word range commands (what the gateway polls a PLC-5 with) and typed logical commands to a
     PLC-5 have different limits in the manuals; one table holds both and everything reads it."""
     from gateway.kinds.df1 import plc5_unit
+    from gateway.kinds.df1.sim import plc5 as sim_plc5
     from gateway.protocols.df1.pccc import ProcessorFamily
     from gateway.protocols.df1.pccc.limits import PLC5_TYPED_LOGICAL, PLC5_WORD_RANGE
-    from gateway.sim import plc5 as sim_plc5
 
     assert (PLC5_WORD_RANGE.max_read_bytes, PLC5_WORD_RANGE.max_write_bytes) == (244, 239)
     assert ProcessorFamily.PLC5.limits is PLC5_TYPED_LOGICAL
