@@ -20,13 +20,17 @@ from gateway.config._common import Loc, Model, Problems, array, check_port_url, 
 from gateway.config.writer import table_lines
 from gateway.streams import SerialSettings
 
-__all__ = ["BAUDRATES", "LinkBase", "Parity", "SerialDefaults", "WritableRange", "WritableTable"]
+__all__ = ["BAUDRATES", "DEFAULT_RETRIES", "LinkBase", "Parity", "SerialDefaults", "WritableRange", "WritableTable"]
 
 WritableTable = Literal["holding", "coil"]
 Parity = Literal["N", "E", "O"]
 
 #: The baud rates a link may use.
 BAUDRATES = (110, 300, 600, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
+
+#: ``retries``: tries after the first before a transaction fails.  The default of the key, of every
+#: kind's driver and of the CLI's ``--retries`` (one value, here).
+DEFAULT_RETRIES = 3
 
 _NAME_RE = re.compile(r"[A-Za-z0-9_.-]{1,40}")
 _WRITABLE_RE = re.compile(r"\s*([a-z]+)\s*:\s*([0-9]{1,6})\s*(?:-\s*([0-9]{1,6})\s*)?")
@@ -116,7 +120,7 @@ class LinkBase(Model):
     parity: Parity
     stopbits: int = 1
     timeout: float = Field(gt=0, le=60)
-    retries: int = Field(3, ge=0, le=10)
+    retries: int = Field(DEFAULT_RETRIES, ge=0, le=10)
     stale_after: float = Field(5.0, gt=0)
     down_after_failures: int = Field(3, ge=1, le=1000)
     down_after_seconds: float = Field(5.0, gt=0)

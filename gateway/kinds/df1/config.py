@@ -328,7 +328,8 @@ def _overlaps(entries: Sequence[MapEntry]) -> list[tuple[Loc, str]]:
 #
 # * the serial settings (baud rate, data bits, parity, stop bits), the checksum, the gateway's own
 #   address (``source``) and the line keys (delays, RTS / DTR, echo, ACK timeout, message retries,
-#   duplicate detection, link reset) must agree: one wire cannot have two;
+#   ``retries`` (the line's one transaction layer retries every station's reads), duplicate
+#   detection, link reset, trace) must agree: one wire cannot have two;
 # * station numbers must be unique on the line.
 #
 # Each problem names both links and says what to change.  Pure: no I/O.
@@ -349,6 +350,7 @@ LINE_KEYS: tuple[str, ...] = (
     "echo",
     "ack_timeout",
     "message_retries",
+    "retries",
     "duplicate_detect",
     "link_reset",
     "trace",

@@ -21,6 +21,7 @@ import random
 from pathlib import Path
 from typing import Final
 
+from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import GatewayError, LinkTimeout, ProtocolError, WriteOutcomeUnknown
 from gateway.kinds.df1.config import DF1_DEFAULTS
 from gateway.line_driver import LineDriver, OpenStream, Priority
@@ -69,7 +70,7 @@ class Df1Driver(LineDriver):
         family: ProcessorFamily = ProcessorFamily.SLC5_04,
         timeout: float = 1.0,
         ack_timeout: float | None = None,
-        retries: int = 3,
+        retries: int = DEFAULT_RETRIES,
         trace: Path | None = None,
         reconnect_min: float = 0.5,
         reconnect_max: float = 1.0,

@@ -48,6 +48,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Final
 
+from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import GatewayError, LinkDown, LinkTimeout
 from gateway.kinds.df1.driver import DF1_SETTINGS, WriteOutcomeUnknown
 from gateway.line_driver import LineCounters, LineDriver, OpenStream
@@ -78,7 +79,6 @@ from gateway.protocols.df1.transaction import (
     TransactionFailed,
     TransactionRefused,
 )
-from gateway.protocols.df1.write_verdict import DEFAULT_RETRIES
 from gateway.transport import SerialSettings, enable_rs485, modem_lines, open_stream
 
 __all__ = ["RTS_MODES", "Df1HalfDuplexLine", "Df1Station", "PcccCommand", "StationTotals"]

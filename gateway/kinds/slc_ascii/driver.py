@@ -14,6 +14,7 @@ import logging
 from pathlib import Path
 from typing import Final
 
+from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import (
     ControllerFault,
     ControllerRefused,
@@ -67,7 +68,7 @@ class SlcAsciiDriver(LineDriver):
         settings: SerialSettings = SLC_ASCII_SETTINGS,
         timeout: float = DEFAULT_TIMEOUT,
         slow_timeout: float = DEFAULT_SLOW_TIMEOUT,
-        retries: int = 3,
+        retries: int = DEFAULT_RETRIES,
         trace: Path | None = None,
         reconnect_min: float = 0.5,
         reconnect_max: float = 1.0,
