@@ -1,5 +1,5 @@
-"""``[[link]]`` keys: the line keys of a half-duplex line (``retries`` among them) and one default
-for ``retries``.
+"""``[[link]]`` keys: the line keys of a half-duplex line (``retries`` among them), one default
+for ``retries``, and the ``down_after_*`` keys reaching every DF1 driver.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from gateway.kinds.df1.config import LINE_KEYS
 from gateway.kinds.df1.driver import Df1Driver
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
+from gateway.link_health import DEFAULT_DOWN_AFTER
 
 MAP = '\n[[link.map]]\ntable = "holding"\nstart = 0\naddress = "N7:0"\ncount = 4\n'
 
@@ -74,3 +75,16 @@ def test_the_drivers_default_retries_is_the_configs() -> None:
     from gateway.protocols.df1.write_verdict import DEFAULT_RETRIES as core_default
 
     assert core_default == DEFAULT_RETRIES  # the sans-I/O cores' own default (what they get is passed)
+
+
+def test_down_after_keys_reach_every_df1_driver() -> None:
+    assert LinkBase.model_fields["down_after_failures"].default == DEFAULT_DOWN_AFTER.failures
+    assert LinkBase.model_fields["down_after_seconds"].default == DEFAULT_DOWN_AFTER.seconds
+    keys = "down_after_failures = 7\ndown_after_seconds = 12.5\n"
+    config = parse_config(
+        full(keys) + half("s1", 2, 1, keys) + half("s2", 3, 2, "down_after_failures = 2\n")
+    )
+    built = build_df1(config.link)
+    drivers = [unit.driver for unit in built.units]
+    assert [(d.down_after_failures, d.down_after_seconds) for d in drivers] == [(7, 12.5), (7, 12.5), (2, 5.0)]
+    assert isinstance(built.runners[1], Df1Driver) and built.runners[1] is drivers[0]

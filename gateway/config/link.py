@@ -18,6 +18,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from gateway.config._common import Loc, Model, Problems, array, check_port_url, resolve_path, show
 from gateway.config.writer import table_lines
+from gateway.link_health import DEFAULT_DOWN_AFTER
 from gateway.streams import SerialSettings
 
 __all__ = ["BAUDRATES", "DEFAULT_RETRIES", "LinkBase", "Parity", "SerialDefaults", "WritableRange", "WritableTable"]
@@ -122,8 +123,8 @@ class LinkBase(Model):
     timeout: float = Field(gt=0, le=60)
     retries: int = Field(DEFAULT_RETRIES, ge=0, le=10)
     stale_after: float = Field(5.0, gt=0)
-    down_after_failures: int = Field(3, ge=1, le=1000)
-    down_after_seconds: float = Field(5.0, gt=0)
+    down_after_failures: int = Field(DEFAULT_DOWN_AFTER.failures, ge=1, le=1000)
+    down_after_seconds: float = Field(DEFAULT_DOWN_AFTER.seconds, gt=0)
     read_only: bool = False
     writable: tuple[WritableRange, ...] = ()
     fast_interval: float = Field(0.0, ge=0)
