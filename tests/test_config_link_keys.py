@@ -1,19 +1,27 @@
-"""``[[link]]`` keys: the line keys of a half-duplex line (``retries`` among them), one default
-for ``retries``, and the ``down_after_*`` keys reaching every DF1 driver.
+"""Each link kind uses every ``[[link]]`` key it accepts, in each of its modes.
+
+A kind declares the keys it does not use, per mode (``LinkBase.mode_key`` / ``unused_keys``); such a
+key given in the file is refused, naming the kind's protocol and mode.  Every other key is read when
+the kind builds its units (checked here by watching the attribute reads of the link's model).
+Also: the line keys of a half-duplex line (``retries`` among them), one default for ``retries``,
+and the ``down_after_*`` keys reaching every DF1 driver.
 """
 
 from __future__ import annotations
 
 import inspect
 import re
+from typing import Any, get_args
 
 import pytest
 
 from gateway.config import parse_config
 from gateway.config.link import DEFAULT_RETRIES, LinkBase
+from gateway.config.links import link_models, protocol_of
 from gateway.errors import ConfigError
+from gateway.kinds import link_kind
 from gateway.kinds.df1.build import build_df1
-from gateway.kinds.df1.config import LINE_KEYS
+from gateway.kinds.df1.config import LINE_KEYS, Df1LinkConfig
 from gateway.kinds.df1.driver import Df1Driver
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
@@ -35,6 +43,82 @@ def error_of(text: str) -> str:
     with pytest.raises(ConfigError) as info:
         parse_config(text)
     return str(info.value)
+
+
+# --- keys a kind does not use in a mode ---------------------------------------------------------
+
+
+def test_write_burst_on_a_half_duplex_link_is_refused_naming_the_kind_and_mode() -> None:
+    text = half(extra="write_burst = 4\n")
+    assert error_of(text) == (
+        '<string>:8: link "s1" (link[0]).write_burst: not used by df1 links with duplex = "half" (the line master '
+        "schedules writes; see docs/df1-half-duplex-line.md)"
+    )
+    assert 'link "s1" (link[0]).poll_burst: not used by df1 links with duplex = "half"' in error_of(
+        half(extra="poll_burst = 1\n")
+    )
+    assert parse_config(full(extra="write_burst = 4\npoll_burst = 3\n")).link[0].write_burst == 4
+
+
+@pytest.mark.parametrize("key", sorted(Df1LinkConfig.unused_keys["full"]))
+def test_half_duplex_keys_on_a_full_duplex_link_are_refused(key: str) -> None:
+    value = Df1LinkConfig.model_fields[key].default
+    message = error_of(full(extra=f"{key} = {_toml(value)}\n"))
+    assert f'<string>:6: link "d" (link[0]).{key}: not used by df1 links with duplex = "full" (a half-duplex ' in (
+        message
+    )
+    # the same key, with the same value, on a station of a half-duplex line
+    assert getattr(parse_config(half(extra=f"{key} = {_toml(value)}\n")).link[0], key) == value
+
+
+def _toml(value: object) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f'"{value}"'
+    return repr(value)
+
+
+def test_every_unused_key_is_a_key_of_its_model_in_a_mode_it_has() -> None:
+    for model in link_models():
+        modes = (None,) if model.mode_key is None else (None, *get_args(model.model_fields[model.mode_key].annotation))
+        for mode, keys in model.unused_keys.items():
+            assert mode in modes, (protocol_of(model), mode)
+            for key in keys:
+                assert key in model.model_fields and key not in ("name", "protocol", "port", "unit"), (mode, key)
+                assert keys[key], (mode, key)  # says why
+
+
+def _links() -> list[LinkBase]:
+    """One link of each kind and mode, with every key it uses at a value that reaches its readers."""
+    text = (
+        '[[link]]\nname = "a"\nprotocol = "slc-ascii"\nport = "sim://slc150"\nunit = 1\n'
+        + full().replace("unit = 1", "unit = 2")
+        + half(unit=3, extra='receive_words = 2\nreceive_start = 100\nreceive_table = "holding"\n')
+    )
+    return list(parse_config(text).link)
+
+
+@pytest.mark.parametrize("index", [0, 1, 2], ids=["slc-ascii", "df1-full", "df1-half"])
+def test_every_key_a_kind_does_not_declare_unused_is_read_when_it_builds_its_units(
+    index: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    link = _links()[index]
+    model = type(link)
+    kind = link_kind(link.protocol)
+    reads: set[str] = set()
+
+    def spy(self: Any, name: str) -> Any:
+        if name in model.model_fields:
+            reads.add(name)
+        return object.__getattribute__(self, name)
+
+    monkeypatch.setattr(model, "__getattribute__", spy)
+    kind.build_units([link])
+    kind.plan_of(link)
+    monkeypatch.undo()
+    unread = set(model.model_fields) - reads - set(link.unused()) - {"protocol"}  # protocol: the union's tag
+    assert not unread, f"{link.protocol} ({link.link_mode}): keys accepted but never read: {sorted(unread)}"
 
 
 # --- line keys across the links of a half-duplex line -------------------------------------------

@@ -111,6 +111,12 @@ class LinkBase(Model):
     sim_models: ClassVar[tuple[str, ...]] = ()
     #: Messages for keys of other protocols' links given on this one (default: "only for X links").
     foreign_key_notes: ClassVar[Mapping[str, str]] = {}
+    #: The key that selects the kind's mode (df1: ``duplex``); None: the kind has one mode.
+    mode_key: ClassVar[str | None] = None
+    #: The keys the kind does not use, by mode (the value of ``mode_key``; None: in every mode),
+    #: each with why (for the message).  Such a key given in the file is refused
+    #: (:meth:`unused_key_problems`); left out, it keeps its default, which nothing reads.
+    unused_keys: ClassVar[Mapping[str | None, Mapping[str, str]]] = {}
 
     name: str
     protocol: str
@@ -201,10 +207,31 @@ class LinkBase(Model):
 
     @model_validator(mode="after")
     def _check_link(self) -> LinkBase:
-        problems = self.problems()
+        problems = self.unused_key_problems() + self.problems()
         if problems:
             raise Problems(*problems)
         return self
+
+    @property
+    def link_mode(self) -> str | None:
+        """The value of ``mode_key`` (None: the kind has one mode)."""
+        return None if self.mode_key is None else str(getattr(self, self.mode_key))
+
+    def unused(self) -> dict[str, str]:
+        """The keys this link's kind does not use in its mode, each with why (``unused_keys``)."""
+        modes, mode = self.unused_keys, self.link_mode
+        return {**modes.get(None, {}), **(modes.get(mode, {}) if mode is not None else {})}
+
+    def unused_key_problems(self) -> list[tuple[Loc, str]]:
+        """A key the kind does not use in this link's mode, given in the file: nothing would read it."""
+        where = f"{self.protocol} links"
+        if self.mode_key is not None:
+            where += f" with {self.mode_key} = {show(self.link_mode)}"
+        return [
+            ((key,), f"not used by {where} ({why})")
+            for key, why in self.unused().items()
+            if key in self.model_fields_set
+        ]
 
     @classmethod
     def problems_across(cls, links: Sequence[LinkBase]) -> list[tuple[Loc, str]]:
@@ -237,5 +264,6 @@ class LinkBase(Model):
         return not self.writable or any((table, address) in r for r in self.writable)
 
     def describe_lines(self) -> list[str]:
-        """This link as ``[[link]]`` TOML (the resolved-config writer's part for it)."""
-        return table_lines("[[link]]", self)
+        """This link as ``[[link]]`` TOML (the resolved-config writer's part for it), without the
+        keys its kind does not use in its mode (refused if given)."""
+        return table_lines("[[link]]", self, skip=self.unused())

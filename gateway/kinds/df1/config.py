@@ -11,7 +11,7 @@ This module is the one place that holds the protocol's serial defaults.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal, NamedTuple
 
@@ -167,10 +167,37 @@ class MapEntry(Model):
 
 
 class Df1LinkConfig(LinkBase):
-    """``[[link]]`` of an SLC 500 or PLC-5 over DF1 full duplex, with its ``[[link.map]]``."""
+    """``[[link]]`` of an SLC 500 or PLC-5 over DF1 full duplex, with its ``[[link.map]]``, or of a
+    station on a DF1 half-duplex line (``duplex = "half"``).  Each mode refuses the keys it does not
+    use (``unused_keys``)."""
 
     serial_defaults: ClassVar[SerialDefaults] = DF1_DEFAULTS
     sim_models: ClassVar[tuple[str, ...]] = ("slc504", "plc5", "df1line")
+    mode_key: ClassVar[str | None] = "duplex"
+    unused_keys: ClassVar[Mapping[str | None, Mapping[str, str]]] = {
+        "half": dict.fromkeys(
+            ("write_burst", "poll_burst"), "the line master schedules writes; see docs/df1-half-duplex-line.md"
+        ),
+        "full": {
+            **dict.fromkeys(
+                ("pre_transmit_delay", "rts_send_delay", "rts_off_delay", "rts", "dtr", "echo", "duplicate_detect",
+                 "link_reset"),
+                "a half-duplex line key: the full-duplex driver has no turnaround, RTS / DTR keying, echo, "
+                "duplicate-detect switch or link reset",
+            ),
+            "ack_timeout": "a half-duplex line key: the full-duplex driver waits timeout for the ACK",
+            "message_retries": "a half-duplex line key: the full-duplex driver sends a frame again up to retries times",
+            **dict.fromkeys(
+                ("poll_timeout", "reply_wait", "max_polls", "poll_interval", "demote_after", "slow_poll_interval"),
+                "a half-duplex station key: a full-duplex controller answers without being polled",
+            ),
+            **dict.fromkeys(
+                ("receive_file", "receive_words", "receive_table", "receive_start"),
+                "a half-duplex station key: on a full-duplex link the gateway takes no messages from the "
+                "controller",
+            ),
+        },
+    }
 
     protocol: Literal["df1"]
     baudrate: int = DF1_DEFAULTS.baudrate
@@ -186,7 +213,7 @@ class Df1LinkConfig(LinkBase):
     max_write_bytes: int = Field(0, ge=0, le=240)
     map: tuple[MapEntry, ...] = Field((), strict=False)
 
-    # --- half duplex (issue #12; docs/df1-half-duplex-line.md) -------------------------------
+    # --- half duplex (docs/df1-half-duplex-line.md) ---------------------------------------------
     #: "full": point to point; "half": a station on a multi-drop line / radio channel, polled by
     #: the gateway.  Links with the same ``port`` and ``duplex = "half"`` share one line master.
     duplex: Literal["full", "half"] = "full"
@@ -261,13 +288,10 @@ class Df1LinkConfig(LinkBase):
 
     def _receive_problems(self) -> list[tuple[Loc, str]]:
         """The receive range (``receive_words`` words then their ages, from ``receive_start`` in
-        ``receive_table``): half duplex only, below 65536, clear of the map and the status block."""
-        if not self.receive_words:
+        ``receive_table``): below 65536, clear of the map and the status block (half duplex only: a
+        full-duplex link refuses the keys, ``unused_keys``)."""
+        if not self.receive_words or self.duplex != "half":
             return []
-        if self.duplex != "half":
-            return [(("receive_words",), 'receive_words is for a station of a half-duplex line (duplex = "half"): '
-                     "on a full-duplex link the gateway takes no messages from the controller; drop it or set "
-                     'duplex = "half"')]
         start = self.receive_start
         table, last = self.receive_table, self.receive_last
         what = f"the receive range ({table} {start}-{last}: {self.receive_words} words, then their ages)"
@@ -291,7 +315,7 @@ class Df1LinkConfig(LinkBase):
         return line_problems(links)
 
     def describe_lines(self) -> list[str]:
-        lines = table_lines("[[link]]", self, skip=("map",))
+        lines = table_lines("[[link]]", self, skip=("map", *self.unused()))
         for entry in self.map:
             lines += table_lines("[[link.map]]", entry, indent="  ")
         return lines

@@ -225,7 +225,8 @@ class Df1Station(LinkHealth):
     async def write_session(self) -> AsyncIterator[None]:
         """A run of writes.  On a half-duplex line the core owns the order (each station's commands
         in turn, round robin between stations, polls between them), so a session only checks that
-        the line is up; ``write_burst`` / ``poll_burst`` are kept for the unit but not used."""
+        the line is up.  ``write_burst`` / ``poll_burst`` are not used: a half-duplex link refuses those
+        keys (``Df1LinkConfig.unused_keys``), so the unit sets their defaults here."""
         if not self.line.connected:
             raise LinkDown(f"link {self.name} is down: {self.line.last_error or 'not connected'}")
         yield
