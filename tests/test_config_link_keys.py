@@ -4,7 +4,7 @@ A kind declares the keys it does not use, per mode (``LinkBase.mode_key`` / ``un
 key given in the file is refused, naming the kind's protocol and mode.  Every other key is read when
 the kind builds its units (checked here by watching the attribute reads of the link's model).
 Also: the line keys of a half-duplex line (``retries`` among them), one default for ``retries``,
-and the ``down_after_*`` keys reaching every DF1 driver.
+and the processor families by name.
 """
 
 from __future__ import annotations
@@ -21,11 +21,13 @@ from gateway.config.links import link_models, protocol_of
 from gateway.errors import ConfigError
 from gateway.kinds import link_kind
 from gateway.kinds.df1.build import build_df1
-from gateway.kinds.df1.config import LINE_KEYS, Df1LinkConfig
+from gateway.kinds.df1.config import LINE_KEYS, Df1LinkConfig, Processor
 from gateway.kinds.df1.driver import Df1Driver
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.unit import PROCESSORS
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.link_health import DEFAULT_DOWN_AFTER
+from gateway.protocols.df1.pccc import ProcessorFamily
 
 MAP = '\n[[link.map]]\ntable = "holding"\nstart = 0\naddress = "N7:0"\ncount = 4\n'
 
@@ -172,3 +174,15 @@ def test_down_after_keys_reach_every_df1_driver() -> None:
     drivers = [unit.driver for unit in built.units]
     assert [(d.down_after_failures, d.down_after_seconds) for d in drivers] == [(7, 12.5), (7, 12.5), (2, 5.0)]
     assert isinstance(built.runners[1], Df1Driver) and built.runners[1] is drivers[0]
+
+
+# --- processor families ------------------------------------------------------------------------
+
+
+def test_every_processor_has_its_family_by_name() -> None:
+    assert set(PROCESSORS) == set(get_args(Processor))
+    assert PROCESSORS["plc5"] is ProcessorFamily.PLC5
+    assert PROCESSORS["slc500"] is ProcessorFamily.SLC500_FIXED
+    for name, family in PROCESSORS.items():
+        if name.startswith("slc5/"):
+            assert family.name == "SLC5_" + name.removeprefix("slc5/"), name
