@@ -5,7 +5,7 @@ before polls) and run one at a time on the line by a worker task.  A reader task
 protocol core with every byte that arrives.  When the stream is lost the driver reopens it by
 itself with capped exponential backoff and jitter; meanwhile requests fail at once with
 ``LinkDown`` (never a hang).  The driver logs when the link goes down and when it recovers,
-not every retry.
+not every retry, by the rule of :class:`~gateway.link_health.LinkHealth` (its base).
 """
 
 from __future__ import annotations
@@ -18,17 +18,25 @@ import heapq
 import itertools
 import logging
 import random
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import AbstractAsyncContextManager
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 from gateway.errors import GatewayError, LinkDown, LinkError, LinkTimeout, format_seconds
+from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LineCounters, LinkHealth
 from gateway.transport import ByteStream, SerialSettings, describe_url, open_stream
 
-__all__ = ["LineCounters", "LineDriver", "OpenStream", "Priority", "UnitDriver"]
+__all__ = [
+    "LineCounters",  # defined in gateway.link_health, with the rule it counts for
+    "LineDriver",
+    "OpenStream",
+    "Priority",
+    "UnitDriver",
+    "retrieve_outcome",
+    "run_to_the_end",
+]
 
 log = logging.getLogger("gateway.link")
 
@@ -60,27 +68,6 @@ class Priority(enum.IntEnum):
 
     WRITE = 0
     POLL = 1
-
-
-@dataclass
-class LineCounters:
-    """Counters of one link.  ``retries`` is the sum of the protocol's retry kinds."""
-
-    transactions: int = 0
-    errors: int = 0
-    timeouts: int = 0
-    crc_errors: int = 0
-    #: the protocol's retries, by the names its kind gives them (the ``kind`` label of the retries metric)
-    retries_by_kind: dict[str, int] = field(default_factory=dict)
-    refusals: int = 0
-    faults: int = 0
-    reconnects: int = 0
-    bytes_sent: int = 0
-    bytes_received: int = 0
-
-    @property
-    def retries(self) -> int:
-        return sum(self.retries_by_kind.values())
 
 
 class _Line:
@@ -197,7 +184,7 @@ class UnitDriver(Protocol):
     def extend_burst(self) -> None: ...
 
 
-class LineDriver(ABC):
+class LineDriver(LinkHealth):
     """Base of the protocol drivers.  Subclasses implement the protocol hooks."""
 
     def __init__(
@@ -211,14 +198,12 @@ class LineDriver(ABC):
         reconnect_max: float = 1.0,
         connect_timeout: float = 5.0,
         opener: OpenStream = open_stream,
-        down_after_failures: int = 3,
-        down_after_seconds: float = 5.0,
+        down_after_failures: int = DEFAULT_DOWN_AFTER.failures,
+        down_after_seconds: float = DEFAULT_DOWN_AFTER.seconds,
     ) -> None:
+        super().__init__(name or describe_url(url), DownAfter(down_after_failures, down_after_seconds))
         self.url = url
-        self.name = name or describe_url(url)
         self.settings = settings or SerialSettings()
-        self.counters = LineCounters()
-        self.last_error = ""
         #: seconds per character on the current stream's line (0 for an unpaced simulator)
         self.char_time = self.settings.char_time
         self._trace = trace
@@ -231,25 +216,12 @@ class LineDriver(ABC):
         self._connected = asyncio.Event()
         self._first_attempt_done = asyncio.Event()
         self._lost: asyncio.Future[None] | None = None
-        #: None until the controller first answers or the link first fails; then up (True) or down.
-        self._state: bool | None = None
-        self._listeners: list[Callable[[LineDriver], None]] = []
         self._run_task: asyncio.Task[None] | None = None
         self._closing = False
         #: in a write session: after ``write_burst`` write transactions in a row, up to
         #: ``poll_burst`` waiting poll transactions get the line
         self.write_burst = 1
         self.poll_burst = 2
-        #: the link is reported down after this many failed transactions in a row, or this long
-        #: without a valid reply while transactions fail (whichever comes first), not on one failure
-        self.down_after_failures = max(1, down_after_failures)
-        self.down_after_seconds = down_after_seconds
-        self._failures_in_row = 0
-        self._last_ok: float | None = None
-        #: link state changes (each counted and logged once)
-        self.state_changes = 0
-        #: loop time of the last change of ``available`` (None before the first verdict)
-        self.state_since: float | None = None
 
     # --- public state -----------------------------------------------------------------------
 
@@ -257,31 +229,8 @@ class LineDriver(ABC):
     def connected(self) -> bool:
         return self._stream is not None
 
-    @property
-    def available(self) -> bool:
-        """The port is open and the controller answered the last transaction."""
-        return self._stream is not None and self._state is True
-
-    def add_listener(self, callback: Callable[[LineDriver], None]) -> None:
-        """``callback(driver)`` runs whenever the link goes up or down (``available`` changes)."""
-        self._listeners.append(callback)
-
-    def _report(self, up: bool, reason: str = "") -> None:
-        """Record the link state; log and tell the listeners only when it changes."""
-        if reason:
-            self.last_error = reason
-        if self._state is up:
-            return
-        self._state = up
-        self.state_changes += 1
-        self.state_since = asyncio.get_running_loop().time()
-        if up:
-            self.last_error = ""
-            log.info("link %s: up (%s)", self.name, describe_url(self.url))
-        else:
-            log.warning("link %s: down: %s", self.name, self.last_error or "unknown reason")
-        for callback in self._listeners:
-            callback(self)
+    def where(self) -> str:
+        return describe_url(self.url)
 
     # --- life cycle -------------------------------------------------------------------------
 
@@ -418,28 +367,34 @@ class LineDriver(ABC):
         session = _SESSION.get()
         if session is not None and session.driver is self:
             return await self._run_in_session(session, op)
-        if self._stream is None:
-            raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
+        self._check_connected()
         await self._line.acquire(int(priority))
         if priority is Priority.WRITE:
-            task = asyncio.ensure_future(self._run_on_line(op))
-            task.add_done_callback(_observe)
-            return await asyncio.shield(task)
+            return await run_to_the_end(self._run_on_line(op))
         return await self._run_on_line(op)
+
+    def _check_connected(self) -> None:
+        """``LinkDown`` when the port is not open (requests fail at once, never hang)."""
+        if self._stream is None:
+            raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
 
     async def _run_on_line(self, op: Callable[[], Awaitable[T]]) -> T:
         """Run ``op`` holding the line; release it however ``op`` ends."""
         try:
-            if self._stream is None:
-                raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
+            return await self._run_op(op)
+        finally:
+            self._line.release()
+
+    async def _run_op(self, op: Callable[[], Awaitable[T]]) -> T:
+        """Run ``op`` (the line is held); a bug in it fails the caller with ``LinkError``, the link lives on."""
+        self._check_connected()
+        try:
             return await op()
         except (GatewayError, asyncio.CancelledError):
             raise
         except Exception as exc:  # a bug: fail the caller, keep the link alive
             log.exception("link %s: unexpected error", self.name)
             raise LinkError(f"link {self.name}: internal error: {exc!r}") from exc
-        finally:
-            self._line.release()
 
     @contextlib.asynccontextmanager
     async def write_session(self) -> AsyncIterator[None]:
@@ -452,8 +407,7 @@ class LineDriver(ABC):
         ``write_burst * write / (write_burst * write + poll_burst * poll)`` of the line time.  A
         write is never interrupted: the line changes hands only between two.
         """
-        if self._stream is None:
-            raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
+        self._check_connected()
         session = _Session(self)
         await self._line.acquire(int(Priority.WRITE))
         session.held = True
@@ -490,20 +444,11 @@ class LineDriver(ABC):
             # last one's release hands the line back here (queued at write priority meanwhile).
             await self._line.wait_grants(target)
         if not session.held:
-            if self._stream is None:
-                raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
+            self._check_connected()
             await self._line.acquire(int(Priority.WRITE))  # LinkDown when the link fails meanwhile
             session.held = True
         session.writes += 1
-        try:
-            if self._stream is None:
-                raise LinkDown(f"link {self.name} is down: {self.last_error or 'not connected'}")
-            return await op()
-        except (GatewayError, asyncio.CancelledError):
-            raise
-        except Exception as exc:  # a bug: fail the caller, keep the link alive
-            log.exception("link %s: unexpected error", self.name)
-            raise LinkError(f"link {self.name}: internal error: {exc!r}") from exc
+        return await self._run_op(op)
 
     def send(self, data: bytes) -> None:
         """Write bytes to the line (from inside an ``op``)."""
@@ -512,29 +457,6 @@ class LineDriver(ABC):
             raise LinkDown(f"link {self.name} is down")
         self.counters.bytes_sent += len(data)
         stream.write(data)
-
-    def note_result(self, ok: bool, error: str = "") -> None:
-        """Record whether the controller answered (drives ``available`` and the up/down log).
-
-        One failure does not make a link down (Kepware's auto-demotion is the model): it goes
-        down after ``down_after_failures`` failed transactions in a row or ``down_after_seconds``
-        without a valid reply, and up again at the first answer.
-        """
-        now = asyncio.get_running_loop().time()
-        if ok:
-            self.counters.transactions += 1
-            self._failures_in_row = 0
-            self._last_ok = now
-            if self._state is not True:
-                self._report(True)
-            return
-        self.counters.errors += 1
-        self._failures_in_row += 1
-        if error:
-            self.last_error = error
-        silent = self._last_ok is not None and now - self._last_ok >= self.down_after_seconds
-        if self._state is None or silent or self._failures_in_row >= self.down_after_failures:
-            self._report(False, error)
 
     # --- protocol hooks ---------------------------------------------------------------------
 
@@ -551,10 +473,21 @@ class LineDriver(ABC):
         """The link is gone: make the request on the line (waiting for an answer) fail with ``exc``."""
 
 
-def _observe(task: asyncio.Future[Any]) -> None:
-    """Retrieve a shielded write's outcome, so an abandoned one logs no 'never retrieved'."""
-    if not task.cancelled():
-        task.exception()
+def retrieve_outcome(future: asyncio.Future[Any]) -> None:
+    """Retrieve a future's outcome, so one whose caller gave up logs no 'exception was never retrieved'.
+
+    A done callback (``future.add_done_callback(retrieve_outcome)``).
+    """
+    if not future.cancelled():
+        future.exception()
+
+
+async def run_to_the_end(work: Awaitable[T]) -> T:
+    """Await ``work`` in a task of its own, shielded: it goes on to its end even when the caller is
+    cancelled (a write on the line reaches its verdict), and its outcome is retrieved either way."""
+    task = asyncio.ensure_future(work)
+    task.add_done_callback(retrieve_outcome)
+    return await asyncio.shield(task)
 
 
 def timeout_error(name: str, what: str, seconds: float, tries: int) -> LinkTimeout:

@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from gateway.config.link import DEFAULT_RETRIES
+
 __all__ = ["DEFAULT_RETRIES", "PROBE_RETRIES", "print_result", "resolve_retries"]
 
 
@@ -22,9 +24,9 @@ def print_result(result: dict[str, Any], as_json: bool) -> None:
             print(f"{key} = {str(value).lower() if isinstance(value, bool) else value}")
 
 
-#: Retries per transaction when --retries is not given.  A probe asks "does anything answer?":
-#: with one retry it gives up within a few seconds on either protocol (DF1: 2 tries of 2 ACK waits).
-DEFAULT_RETRIES = 3
+#: Retries per transaction when --retries is not given: ``DEFAULT_RETRIES``, the ``retries`` key's
+#: default.  A probe asks "does anything answer?": with one retry it gives up within a few seconds
+#: on either protocol (DF1: 2 tries of 2 ACK waits).
 PROBE_RETRIES = 1
 
 

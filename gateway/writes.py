@@ -31,7 +31,7 @@ from collections.abc import Awaitable, Callable, Hashable
 from dataclasses import dataclass, field
 
 from gateway.errors import LinkError, ModbusExceptionReply, modbus_exception
-from gateway.line_driver import UnitDriver
+from gateway.line_driver import UnitDriver, retrieve_outcome
 
 __all__ = ["WriteQueue"]
 
@@ -93,7 +93,7 @@ class WriteQueue:
             queue = self._queues[client] = deque()
         queue.append(entry)
         self._waiting += 1
-        entry.future.add_done_callback(_observe)
+        entry.future.add_done_callback(retrieve_outcome)  # its caller may give up
         if self._worker is None:
             self._worker = loop.create_task(self._work(), name=f"{self.name}-writes")
         return entry.future
@@ -181,9 +181,3 @@ class WriteQueue:
         else:
             if not entry.future.done():
                 entry.future.set_result(None)
-
-
-def _observe(future: asyncio.Future[None]) -> None:
-    """Retrieve the outcome of a job whose caller gave up, so it logs no 'never retrieved'."""
-    if not future.cancelled():
-        future.exception()

@@ -282,13 +282,22 @@ trace = "traces/press.log"
 
 
 def test_describe_lists_every_key() -> None:
-    described = parse_config(VALID).describe()
+    """Every key a link uses is written; a key its kind does not use in its mode (refused if given)
+    is left out, so the output loads back."""
+    half = DF1_LINK.replace('"line-2"', '"station-3"\nduplex = "half"').replace("unit = 2", "unit = 3")
+    config = parse_config(VALID + half.replace("sim://slc504", "sim://df1line"))
+    described = config.describe()
     for key in ModbusConfig.model_fields:
         if key != "tls":
             assert f"\n{key} = " in described
     for key in {key for model in link_models() for key in model.model_fields}:
         if key != "map":
             assert f"\n{key} = " in described
+    for link in config.link:
+        own = "\n".join(link.describe_lines())
+        for key in link.unused():
+            assert f"\n{key} = " not in own, (link.name, key)
+    assert parse_config(described) == config
     for key in MapEntry.model_fields:
         assert f"  {key} = " in described
     assert "[modbus.tls] not configured" in described

@@ -74,7 +74,8 @@ def test_defaults_and_a_valid_range() -> None:
          "(link[0]).receive_start: the receive range (input 995-1002: 4 words, then their ages) overlaps the "
          "unit's status block (input 1000-1010)"),
         ({"receive_words": 4, "receive_start": 20, "duplex": "full"},
-         '(link[0]).receive_words: receive_words is for a station of a half-duplex line (duplex = "half")'),
+         '(link[0]).receive_words: not used by df1 links with duplex = "full" (a half-duplex station key: on a '
+         "full-duplex link the gateway takes no messages from the controller)"),
     ],
 )
 def test_bad_ranges_are_refused(keys: dict[str, Any], message: str) -> None:

@@ -18,15 +18,29 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from gateway.config._common import Loc, Model, Problems, array, check_port_url, resolve_path, show
 from gateway.config.writer import table_lines
+from gateway.link_health import DEFAULT_DOWN_AFTER
 from gateway.streams import SerialSettings
 
-__all__ = ["BAUDRATES", "LinkBase", "Parity", "SerialDefaults", "WritableRange", "WritableTable", "protocol_of"]
+__all__ = [
+    "BAUDRATES",
+    "DEFAULT_RETRIES",
+    "LinkBase",
+    "Parity",
+    "SerialDefaults",
+    "WritableRange",
+    "WritableTable",
+    "protocol_of",
+]
 
 WritableTable = Literal["holding", "coil"]
 Parity = Literal["N", "E", "O"]
 
 #: The baud rates a link may use.
 BAUDRATES = (110, 300, 600, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
+
+#: ``retries``: tries after the first before a transaction fails.  The default of the key, of every
+#: kind's driver and of the CLI's ``--retries`` (one value, here).
+DEFAULT_RETRIES = 3
 
 _NAME_RE = re.compile(r"[A-Za-z0-9_.-]{1,40}")
 _WRITABLE_RE = re.compile(r"\s*([a-z]+)\s*:\s*([0-9]{1,6})\s*(?:-\s*([0-9]{1,6})\s*)?")
@@ -106,6 +120,12 @@ class LinkBase(Model):
     sim_models: ClassVar[tuple[str, ...]] = ()
     #: Messages for keys of other protocols' links given on this one (default: "only for X links").
     foreign_key_notes: ClassVar[Mapping[str, str]] = {}
+    #: The key that selects the kind's mode (df1: ``duplex``); None: the kind has one mode.
+    mode_key: ClassVar[str | None] = None
+    #: The keys the kind does not use, by mode (the value of ``mode_key``; None: in every mode),
+    #: each with why (for the message).  Such a key given in the file is refused
+    #: (:meth:`unused_key_problems`); left out, it keeps its default, which nothing reads.
+    unused_keys: ClassVar[Mapping[str | None, Mapping[str, str]]] = {}
 
     name: str
     protocol: str
@@ -116,10 +136,10 @@ class LinkBase(Model):
     parity: Parity
     stopbits: int = 1
     timeout: float = Field(gt=0, le=60)
-    retries: int = Field(3, ge=0, le=10)
+    retries: int = Field(DEFAULT_RETRIES, ge=0, le=10)
     stale_after: float = Field(5.0, gt=0)
-    down_after_failures: int = Field(3, ge=1, le=1000)
-    down_after_seconds: float = Field(5.0, gt=0)
+    down_after_failures: int = Field(DEFAULT_DOWN_AFTER.failures, ge=1, le=1000)
+    down_after_seconds: float = Field(DEFAULT_DOWN_AFTER.seconds, gt=0)
     read_only: bool = False
     writable: tuple[WritableRange, ...] = ()
     fast_interval: float = Field(0.0, ge=0)
@@ -196,10 +216,35 @@ class LinkBase(Model):
 
     @model_validator(mode="after")
     def _check_link(self) -> LinkBase:
-        problems = self.problems()
+        problems = self.unused_key_problems() + self.problems()
         if problems:
             raise Problems(*problems)
         return self
+
+    @property
+    def link_mode(self) -> str | None:
+        """The value of ``mode_key`` (None: the kind has one mode)."""
+        return None if self.mode_key is None else str(getattr(self, self.mode_key))
+
+    def mode_text(self) -> str:
+        """The link's mode as its key sets it, for messages (``duplex = "half"``)."""
+        return f"{self.mode_key} = {show(self.link_mode)}"
+
+    def unused(self) -> dict[str, str]:
+        """The keys this link's kind does not use in its mode, each with why (``unused_keys``)."""
+        modes, mode = self.unused_keys, self.link_mode
+        return {**modes.get(None, {}), **(modes.get(mode, {}) if mode is not None else {})}
+
+    def unused_key_problems(self) -> list[tuple[Loc, str]]:
+        """A key the kind does not use in this link's mode, given in the file: nothing would read it."""
+        where = f"{self.protocol} links"
+        if self.mode_key is not None:
+            where += f" with {self.mode_text()}"
+        return [
+            ((key,), f"not used by {where} ({why})")
+            for key, why in self.unused().items()
+            if key in self.model_fields_set
+        ]
 
     @classmethod
     def problems_across(cls, links: Sequence[LinkBase]) -> list[tuple[Loc, str]]:
@@ -232,8 +277,9 @@ class LinkBase(Model):
         return not self.writable or any((table, address) in r for r in self.writable)
 
     def describe_lines(self) -> list[str]:
-        """This link as ``[[link]]`` TOML (the resolved-config writer's part for it)."""
-        return table_lines("[[link]]", self)
+        """This link as ``[[link]]`` TOML (the resolved-config writer's part for it), without the
+        keys its kind does not use in its mode (refused if given)."""
+        return table_lines("[[link]]", self, skip=self.unused())
 
 
 def protocol_of(model: type[LinkBase]) -> str:

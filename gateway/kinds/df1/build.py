@@ -27,6 +27,7 @@ from gateway.kinds.df1.plc5_unit import PLC5_MAX_READ_BYTES, Plc5Unit, point_lab
 from gateway.kinds.df1.receive import ReceiveWindow
 from gateway.kinds.df1.target_build import build_target, target_link_labels, target_link_plan
 from gateway.kinds.df1.unit import PROCESSORS, Df1Unit, PcccDriver, PcccUnit
+from gateway.link_health import DownAfter
 from gateway.modbus.mapping import Plan, Table
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.half_duplex import StationConfig
@@ -119,6 +120,8 @@ def full_duplex_driver(link: Df1LinkConfig) -> Df1Driver:
         timeout=link.timeout,
         retries=link.retries,
         trace=link.trace,
+        down_after_failures=link.down_after_failures,
+        down_after_seconds=link.down_after_seconds,
     )
 
 
@@ -137,7 +140,9 @@ def station_config(link: Df1LinkConfig) -> StationConfig:
 
 
 def build_line(line: HalfDuplexLine) -> Df1HalfDuplexLine:
-    """The line master of ``line`` (its links passed ``line_problems``: they agree on the line keys)."""
+    """The line master of ``line`` (its links passed ``line_problems``: they agree on the line keys,
+    ``LINE_KEYS``, so the first link's are the line's); each station goes down by its own link's
+    ``down_after_failures`` / ``down_after_seconds``."""
     first = line.first
     tables = {
         link.station: RegisterTable(file_number=link.receive_file, size=link.receive_words)
@@ -162,6 +167,7 @@ def build_line(line: HalfDuplexLine) -> Df1HalfDuplexLine:
         duplicate_detect=first.duplicate_detect,
         link_reset=first.link_reset,
         station_names={link.station: link.name for link in line.links},
+        down_after={link.station: DownAfter(link.down_after_failures, link.down_after_seconds) for link in line.links},
         register_tables=tables,
         trace=first.trace,
     )

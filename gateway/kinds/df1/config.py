@@ -11,10 +11,10 @@ This module is the one place that holds the protocol's serial defaults.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar, Literal, NamedTuple
+from typing import Any, ClassVar, Final, Literal, NamedTuple
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
@@ -168,11 +168,71 @@ class MapEntry(Model):
         return []
 
 
+#: keys only a target uses: refused on a master link
+_TARGET_ONLY: Final[Mapping[str, str]] = dict.fromkeys(
+    ("file", "persist", "check_dst"),
+    'a key of a link with role = "target" (the gateway answers a PLC\'s MSG instructions)',
+)
+
+
 class Df1LinkConfig(LinkBase):
-    """``[[link]]`` of an SLC 500 or PLC-5 over DF1 full duplex, with its ``[[link.map]]``."""
+    """``[[link]]`` of an SLC 500 or PLC-5 over DF1 full duplex, with its ``[[link.map]]``, or of a
+    station on a DF1 half-duplex line (``duplex = "half"``).  Each mode refuses the keys it does not
+    use (``unused_keys``)."""
 
     serial_defaults: ClassVar[SerialDefaults] = DF1_DEFAULTS
     sim_models: ClassVar[tuple[str, ...]] = ("slc504", "plc5", "df1line", "plc-msg")
+    mode_key: ClassVar[str | None] = "duplex"
+    unused_keys: ClassVar[Mapping[str | None, Mapping[str, str]]] = {
+        "half": {
+            **dict.fromkeys(
+                ("write_burst", "poll_burst"), "the line master schedules writes; see docs/df1-half-duplex-line.md"
+            ),
+            **_TARGET_ONLY,
+        },
+        "full": {
+            **dict.fromkeys(
+                ("pre_transmit_delay", "rts_send_delay", "rts_off_delay", "rts", "dtr", "echo", "duplicate_detect",
+                 "link_reset"),
+                "a half-duplex line key: the full-duplex driver has no turnaround, RTS / DTR keying, echo, "
+                "duplicate-detect switch or link reset",
+            ),
+            "ack_timeout": "a half-duplex line key: the full-duplex driver waits timeout for the ACK",
+            "message_retries": "a half-duplex line key: the full-duplex driver sends a frame again up to retries times",
+            **dict.fromkeys(
+                ("poll_timeout", "reply_wait", "max_polls", "poll_interval", "demote_after", "slow_poll_interval"),
+                "a half-duplex station key: a full-duplex controller answers without being polled",
+            ),
+            **dict.fromkeys(
+                ("receive_file", "receive_words", "receive_table", "receive_start"),
+                "a half-duplex station key: on a full-duplex link the gateway takes no messages from the "
+                "controller",
+            ),
+            **_TARGET_ONLY,
+        },
+        "target": {
+            **dict.fromkeys(
+                ("map", "processor", "source", "max_read_bytes", "max_write_bytes", "fast_interval", "slow_interval",
+                 "write_burst", "poll_burst", "retries", "timeout", "write_queue_per_client", "write_queue_per_link",
+                 "write_timeout"),
+                "the PLC sends the commands; the gateway answers from [[link.file]] and never polls",
+            ),
+            **dict.fromkeys(
+                ("pre_transmit_delay", "rts_send_delay", "rts_off_delay", "rts", "dtr", "echo", "message_retries",
+                 "link_reset", "poll_timeout", "reply_wait", "max_polls", "poll_interval", "demote_after",
+                 "slow_poll_interval", "receive_file", "receive_words", "receive_table", "receive_start", "duplex"),
+                "a target answers on a DF1 full-duplex link",
+            ),
+        },
+    }
+
+    @property
+    def link_mode(self) -> str | None:
+        """``duplex`` of a master link; ``"target"`` for a target (its keys are another set)."""
+        return "target" if self.role == "target" else self.duplex
+
+    def mode_text(self) -> str:
+        return 'role = "target"' if self.role == "target" else f"duplex = {show(self.duplex)}"
 
     protocol: Literal["df1"]
     baudrate: int = DF1_DEFAULTS.baudrate
@@ -188,7 +248,7 @@ class Df1LinkConfig(LinkBase):
     max_write_bytes: int = Field(0, ge=0, le=240)
     map: tuple[MapEntry, ...] = Field((), strict=False)
 
-    # --- half duplex (issue #12; docs/df1-half-duplex-line.md) -------------------------------
+    # --- half duplex (docs/df1-half-duplex-line.md) ---------------------------------------------
     #: "full": point to point; "half": a station on a multi-drop line / radio channel, polled by
     #: the gateway.  Links with the same ``port`` and ``duplex = "half"`` share one line master.
     duplex: Literal["full", "half"] = "full"
@@ -269,25 +329,12 @@ class Df1LinkConfig(LinkBase):
     def problems(self) -> list[tuple[Loc, str]]:
         problems = super().problems()
         if self.role == "target":
-            return problems + self._target_problems()
-        for key in ("file", "persist", "check_dst"):
-            if key in self.model_fields_set:
-                problems.append(((key,), f'{key} is for a link with role = "target" (the gateway answers a PLC\'s '
-                                         'MSG instructions); drop it, or set role = "target"'))
+            return problems + target_file_problems(self.file)
         if not self.map:
             problems.insert(0, (("map",), "a df1 link needs at least one [[link.map]] entry"))
         problems.extend(_overlaps(self.map))
         problems.extend(self._receive_problems())
         return problems
-
-    def _target_problems(self) -> list[tuple[Loc, str]]:
-        problems: list[tuple[Loc, str]] = []
-        for key in sorted(self.model_fields_set & _MASTER_KEYS):
-            problems.append(((key,), f'{key} is not used by a df1 link with role = "target" (the PLC sends the '
-                                     "commands; the gateway answers from [[link.file]]): drop it"))
-        if self.duplex != "full":
-            problems.append((("duplex",), 'a df1 link with role = "target" is full duplex: drop duplex'))
-        return problems + target_file_problems(self.file)
 
     @property
     def receive_last(self) -> int:
@@ -296,13 +343,10 @@ class Df1LinkConfig(LinkBase):
 
     def _receive_problems(self) -> list[tuple[Loc, str]]:
         """The receive range (``receive_words`` words then their ages, from ``receive_start`` in
-        ``receive_table``): half duplex only, below 65536, clear of the map and the status block."""
-        if not self.receive_words:
+        ``receive_table``): below 65536, clear of the map and the status block (half duplex only: a
+        full-duplex link refuses the keys, ``unused_keys``)."""
+        if not self.receive_words or self.duplex != "half":
             return []
-        if self.duplex != "half":
-            return [(("receive_words",), 'receive_words is for a station of a half-duplex line (duplex = "half"): '
-                     "on a full-duplex link the gateway takes no messages from the controller; drop it or set "
-                     'duplex = "half"')]
         start = self.receive_start
         table, last = self.receive_table, self.receive_last
         what = f"the receive range ({table} {start}-{last}: {self.receive_words} words, then their ages)"
@@ -326,10 +370,9 @@ class Df1LinkConfig(LinkBase):
         return line_problems(links)
 
     def describe_lines(self) -> list[str]:
-        target = self.role == "target"
-        unused = _MASTER_KEYS | {"duplex"} if target else {"file", "persist", "check_dst"}
-        if target and "stale_after" not in self.model_fields_set:
-            unused = unused | {"stale_after"}
+        unused = set(self.unused())
+        if self.role == "target" and "stale_after" not in self.model_fields_set:
+            unused.add("stale_after")
         lines = table_lines("[[link]]", self, skip=("map", "file", *sorted(unused)))
         if "stale_after" in unused:
             lines.insert(-1, "# stale_after not set: a target's values do not go stale when the PLC is silent")
@@ -338,17 +381,6 @@ class Df1LinkConfig(LinkBase):
         for target_file in self.file:
             lines += table_lines("[[link.file]]", target_file, indent="  ")
         return lines
-
-
-#: keys only a master (polling) link uses: refused on a target
-_MASTER_KEYS = frozenset({
-    "map", "processor", "source", "max_read_bytes", "max_write_bytes", "fast_interval", "slow_interval",
-    "write_burst", "poll_burst", "retries", "timeout", "down_after_failures", "down_after_seconds",
-    "receive_file", "receive_words", "receive_table", "receive_start", "poll_timeout", "reply_wait", "max_polls",
-    "poll_interval", "demote_after", "slow_poll_interval", "pre_transmit_delay", "rts_send_delay", "rts_off_delay",
-    "rts", "dtr", "echo", "message_retries", "link_reset", "write_queue_per_client",
-    "write_queue_per_link", "write_timeout",
-})
 
 
 def _overlaps(entries: Sequence[MapEntry]) -> list[tuple[Loc, str]]:
@@ -382,7 +414,8 @@ def _overlaps(entries: Sequence[MapEntry]) -> list[tuple[Loc, str]]:
 #
 # * the serial settings (baud rate, data bits, parity, stop bits), the checksum, the gateway's own
 #   address (``source``) and the line keys (delays, RTS / DTR, echo, ACK timeout, message retries,
-#   duplicate detection, link reset) must agree: one wire cannot have two;
+#   ``retries`` (the line's one transaction layer retries every station's reads), duplicate
+#   detection, link reset, trace) must agree: one wire cannot have two;
 # * station numbers must be unique on the line.
 #
 # Each problem names both links and says what to change.  Pure: no I/O.
@@ -403,6 +436,7 @@ LINE_KEYS: tuple[str, ...] = (
     "echo",
     "ack_timeout",
     "message_retries",
+    "retries",
     "duplicate_detect",
     "link_reset",
     "trace",

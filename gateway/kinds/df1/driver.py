@@ -19,11 +19,13 @@ from __future__ import annotations
 import asyncio
 import random
 from pathlib import Path
-from typing import Final
+from typing import Final, Protocol
 
+from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import GatewayError, LinkTimeout, ProtocolError, WriteOutcomeUnknown
 from gateway.kinds.df1.config import DF1_DEFAULTS
 from gateway.line_driver import LineDriver, OpenStream, Priority
+from gateway.link_health import DEFAULT_DOWN_AFTER, LineCounters
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.link import Df1Link
 from gateway.protocols.df1.pccc import (
@@ -45,7 +47,7 @@ from gateway.protocols.df1.transaction import (
 )
 from gateway.transport import SerialSettings, open_stream
 
-__all__ = ["DF1_SETTINGS", "Df1Driver", "WriteOutcomeUnknown"]
+__all__ = ["DF1_SETTINGS", "Df1Driver", "PcccLink", "WriteOutcomeUnknown", "transaction_result"]
 
 #: DF1 full duplex default line settings (19200 8N1), kept with the link model's defaults.
 DF1_SETTINGS: Final = DF1_DEFAULTS.settings
@@ -69,12 +71,14 @@ class Df1Driver(LineDriver):
         family: ProcessorFamily = ProcessorFamily.SLC5_04,
         timeout: float = 1.0,
         ack_timeout: float | None = None,
-        retries: int = 3,
+        retries: int = DEFAULT_RETRIES,
         trace: Path | None = None,
         reconnect_min: float = 0.5,
         reconnect_max: float = 1.0,
         opener: OpenStream = open_stream,
         first_tns: int | None = None,
+        down_after_failures: int = DEFAULT_DOWN_AFTER.failures,
+        down_after_seconds: float = DEFAULT_DOWN_AFTER.seconds,
     ) -> None:
         super().__init__(
             url,
@@ -84,6 +88,8 @@ class Df1Driver(LineDriver):
             reconnect_min=reconnect_min,
             reconnect_max=reconnect_max,
             opener=opener,
+            down_after_failures=down_after_failures,
+            down_after_seconds=down_after_seconds,
         )
         self.checksum = checksum
         self.station = station
@@ -197,27 +203,7 @@ class Df1Driver(LineDriver):
             raise
         finally:
             self._waiting.pop(handle, None)
-        match event:
-            case TransactionDone(reply=reply):
-                self.note_result(True)
-                return reply
-            case TransactionRefused(reply=reply):
-                self.note_result(True)
-                self.counters.refusals += 1
-                self.last_sts = reply.sts
-                reply.raise_for_status(command=name, fnc=getattr(request, "FNC", None))
-                raise AssertionError("unreachable: a refusal has STS != 0")
-            case OutcomeUnknown(reason=reason):
-                self.counters.timeouts += 1
-                message = f"link {self.name}: {name}: {reason}"
-                self.note_result(False, message)
-                raise WriteOutcomeUnknown(message)
-            case TransactionFailed(reason=reason):
-                self.counters.timeouts += 1
-                message = f"link {self.name}: {name}: {reason}"
-                self.note_result(False, message)
-                raise LinkTimeout(message)
-        raise AssertionError(f"unexpected transaction event {event!r}")
+        return transaction_result(self, event, name, getattr(request, "FNC", None))
 
     async def execute(self, request: Request, name: str = "", *, write: bool | None = None) -> PcccReply:
         """Send ``request`` and return the (successful) reply.  Writes jump ahead of polls."""
@@ -229,6 +215,42 @@ class Df1Driver(LineDriver):
     async def probe(self) -> DiagnosticStatusInfo:
         reply = await self.execute(DiagnosticStatus(), "diagnostic status")
         return DiagnosticStatusInfo(reply.data)
+
+
+class PcccLink(Protocol):
+    """What :func:`transaction_result` updates: a full-duplex driver, or a station on a half-duplex line."""
+
+    name: str
+    counters: LineCounters
+    last_sts: int
+
+    def note_result(self, ok: bool, error: str = "") -> None: ...
+
+
+def transaction_result(link: PcccLink, event: TransactionEvent, label: str, fnc: int | None) -> PcccReply:
+    """The verdict of a transaction core as a result (the module docstring's table): the reply, or
+    the exception.  Counts the transaction on ``link`` and judges the link by it (``note_result``)."""
+    match event:
+        case TransactionDone(reply=reply):
+            link.note_result(True)
+            return reply
+        case TransactionRefused(reply=reply):
+            link.note_result(True)
+            link.counters.refusals += 1
+            link.last_sts = reply.sts
+            reply.raise_for_status(command=label, fnc=fnc)
+            raise AssertionError("unreachable: a refusal has STS != 0")
+        case OutcomeUnknown(reason=reason):
+            link.counters.timeouts += 1
+            message = f"link {link.name}: {label}: {reason}"
+            link.note_result(False, message)
+            raise WriteOutcomeUnknown(message)
+        case TransactionFailed(reason=reason):
+            link.counters.timeouts += 1
+            message = f"link {link.name}: {label}: {reason}"
+            link.note_result(False, message)
+            raise LinkTimeout(message)
+    raise AssertionError(f"unexpected transaction event {event!r}")
 
 
 def check_reply_size(reply: PcccReply, size: int, what: str) -> bytes:

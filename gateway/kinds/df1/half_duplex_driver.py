@@ -44,13 +44,15 @@ import contextlib
 import logging
 import random
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Final
 
-from gateway.errors import GatewayError, LinkDown, LinkTimeout
-from gateway.kinds.df1.driver import DF1_SETTINGS, WriteOutcomeUnknown
-from gateway.line_driver import LineCounters, LineDriver, OpenStream
+from gateway.config.link import DEFAULT_RETRIES
+from gateway.errors import GatewayError, LinkDown
+from gateway.kinds.df1.driver import DF1_SETTINGS, transaction_result
+from gateway.line_driver import LineDriver, OpenStream, run_to_the_end
+from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LinkHealth
 from gateway.protocols.df1.half_duplex import (
     NEED_DATA,
     FailReason,
@@ -78,8 +80,7 @@ from gateway.protocols.df1.transaction import (
     TransactionFailed,
     TransactionRefused,
 )
-from gateway.protocols.df1.write_verdict import DEFAULT_RETRIES
-from gateway.transport import SerialSettings, enable_rs485, modem_lines, open_stream
+from gateway.transport import SerialSettings, describe_url, enable_rs485, modem_lines, open_stream
 
 __all__ = ["RTS_MODES", "Df1HalfDuplexLine", "Df1Station", "PcccCommand", "StationTotals"]
 
@@ -109,25 +110,27 @@ class StationTotals(StationCounters):
         return total
 
 
-class Df1Station:
-    """One station on a half-duplex line, with the request API of ``Df1Driver``."""
+class Df1Station(LinkHealth):
+    """One station on a half-duplex line, with the request API of ``Df1Driver``.
 
-    def __init__(self, line: Df1HalfDuplexLine, config: StationConfig, name: str) -> None:
+    Up and down by the rule of every link (:class:`~gateway.link_health.LinkHealth`): its own
+    ``down_after_failures`` / ``down_after_seconds``; a demotion counts as one failure, a
+    restoration as an answer, and the line's lost port makes every station down at once.
+    """
+
+    def __init__(
+        self, line: Df1HalfDuplexLine, config: StationConfig, name: str, down_after: DownAfter = DEFAULT_DOWN_AFTER
+    ) -> None:
+        super().__init__(name, down_after)
         self.line = line
         self.config = config
         self.station = config.station
-        self.name = name
-        self.counters = LineCounters()
         self.last_sts = 0
-        self.last_error = ""
         self._base = StationTotals()  #: counters of cores before the current one, and the driver's own
-        self._state: bool | None = None
-        self._listeners: list[Callable[[Df1Station], None]] = []
         self._closed = False
-        self.write_burst = 1  #: set by the unit; see write_session
+        self.write_burst = 1  #: set by the unit; not used (see write_session)
         self.poll_burst = 2
         self.last_reply_at: float | None = None  #: loop time of the last reply of this station (any STS)
-        self.state_since: float | None = None  #: loop time of the last change of ``available``
 
     # --- state ------------------------------------------------------------------------------
 
@@ -140,10 +143,8 @@ class Df1Station:
     def connected(self) -> bool:
         return self.line.connected
 
-    @property
-    def available(self) -> bool:
-        """The port is open and the station answered its last exchange (not demoted)."""
-        return self.line.connected and self._state is True
+    def where(self) -> str:
+        return f"station {self.station} on {describe_url(self.line.url)}"
 
     @property
     def totals(self) -> StationTotals:
@@ -162,7 +163,7 @@ class Df1Station:
         return (asyncio.get_running_loop().time() if now is None else now) - self.last_reply_at
 
     def metrics(self, now: float | None = None) -> dict[str, float]:
-        """Per-station numbers for the integrator's metrics (issue #12 observability).
+        """Per-station numbers for the integrator's metrics.
 
         ``polls``, ``eots``, ``retries`` (master frames sent again for a missing ACK), ``read_retries``
         (reads sent again with a new TNS), ``timeouts``, ``bad_frames``, ``duplicates``, ``demotions``,
@@ -176,24 +177,6 @@ class Df1Station:
         age = self.data_age(now)
         values["data_age"] = -1.0 if age is None else age
         return values
-
-    def add_listener(self, callback: Callable[[Df1Station], None]) -> None:
-        self._listeners.append(callback)
-
-    def _report(self, up: bool, reason: str = "") -> None:
-        if reason:
-            self.last_error = reason
-        if self._state is up:
-            return
-        self._state = up
-        self.state_since = asyncio.get_running_loop().time()
-        if up:
-            self.last_error = ""
-            log.info("link %s: station %d up", self.name, self.station)
-        else:
-            log.warning("link %s: station %d down: %s", self.name, self.station, self.last_error or "no answer")
-        for callback in self._listeners:
-            callback(self)
 
     def _bank(self, core: HalfDuplexMaster) -> None:
         """The core is being replaced (reconnect): keep its counts."""
@@ -222,51 +205,19 @@ class Df1Station:
         if not is_write:
             return await self._run(request, label, False)
         # a write goes on to its verdict even when its caller gives up (as Df1Driver.submit does)
-        task = asyncio.ensure_future(self._run(request, label, True))
-        task.add_done_callback(_observe)
-        return await asyncio.shield(task)
+        return await run_to_the_end(self._run(request, label, True))
 
     async def _run(self, request: PcccCommand, label: str, is_write: bool) -> PcccReply:
         """One transaction; the sans-I/O layer gives its verdict, this turns it into a result."""
         event = await self.line.transact(self, request, is_write)
-        match event:
-            case TransactionDone(reply=reply):
-                self.last_reply_at = asyncio.get_running_loop().time()
-                self._note(True)
-                return reply
-            case TransactionRefused(reply=reply):
-                self.last_reply_at = asyncio.get_running_loop().time()
-                self._note(True)
-                self.counters.refusals += 1
-                self.last_sts = reply.sts
-                reply.raise_for_status(command=label, fnc=request.FNC)
-                raise AssertionError("unreachable: a refusal has STS != 0")
-            case OutcomeUnknown(reason=reason):
-                self.counters.timeouts += 1
-                message = f"link {self.name}: {label}: {reason}"
-                self._note(False, message)
-                raise WriteOutcomeUnknown(message)
-            case TransactionFailed(reason=reason):
-                self.counters.timeouts += 1
-                if reason.startswith(FailReason.STATION_DEMOTED.value):
-                    message = (
-                        f"link {self.name}: {label}: station {self.station} does not answer polls; it is polled "
-                        f"every {self.config.slow_poll_interval:g} s until it does (check its power, cable and "
-                        f"station number)"
-                    )
-                else:
-                    message = f"link {self.name}: {label}: {reason}"
-                self._note(False, message)
-                raise LinkTimeout(message)
-        raise AssertionError(f"unexpected transaction event {event!r}")
-
-    def _note(self, ok: bool, error: str = "") -> None:
-        if ok:
-            self.counters.transactions += 1
-            self._report(True)
-        else:
-            self.counters.errors += 1
-            self._report(False, error)
+        if isinstance(event, TransactionDone | TransactionRefused):
+            self.last_reply_at = asyncio.get_running_loop().time()
+        elif isinstance(event, TransactionFailed) and event.reason.startswith(FailReason.STATION_DEMOTED.value):
+            event = replace(event, reason=(
+                f"station {self.station} does not answer polls; it is polled every "
+                f"{self.config.slow_poll_interval:g} s until it does (check its power, cable and station number)"
+            ))
+        return transaction_result(self, event, label, request.FNC)
 
     # --- the write-session API of LineDriver (gateway.writes uses it) ------------------------
 
@@ -274,7 +225,8 @@ class Df1Station:
     async def write_session(self) -> AsyncIterator[None]:
         """A run of writes.  On a half-duplex line the core owns the order (each station's commands
         in turn, round robin between stations, polls between them), so a session only checks that
-        the line is up; ``write_burst`` / ``poll_burst`` are kept for the unit but not used."""
+        the line is up.  ``write_burst`` / ``poll_burst`` are not used: a half-duplex link refuses those
+        keys (``Df1LinkConfig.unused_keys``), so the unit sets their defaults here."""
         if not self.line.connected:
             raise LinkDown(f"link {self.name} is down: {self.line.last_error or 'not connected'}")
         yield
@@ -285,11 +237,6 @@ class Df1Station:
     async def probe(self) -> DiagnosticStatusInfo:
         reply = await self.execute(DiagnosticStatus(), "diagnostic status")
         return DiagnosticStatusInfo(reply.data)
-
-
-def _observe(task: asyncio.Future[PcccReply]) -> None:
-    if not task.cancelled():
-        task.exception()
 
 
 class Df1HalfDuplexLine(LineDriver):
@@ -317,6 +264,7 @@ class Df1HalfDuplexLine(LineDriver):
         rts_mode: str = "toggle",
         dtr: bool = True,
         station_names: dict[int, str] | None = None,
+        down_after: Mapping[int, DownAfter] | None = None,
         register_tables: Mapping[int, RegisterTable] | None = None,
         trace: Path | None = None,
         reconnect_min: float = 0.5,
@@ -355,8 +303,11 @@ class Df1HalfDuplexLine(LineDriver):
         self._configs = list(stations)
         HalfDuplexMaster(self._line_config(), self._configs)  # validate now: unique stations, tunables
         names = station_names or {}
+        rules = down_after or {}
         self.stations: dict[int, Df1Station] = {
-            c.station: Df1Station(self, c, names.get(c.station, f"{self.name}/{c.station}")) for c in stations
+            c.station: Df1Station(self, c, names.get(c.station, f"{self.name}/{c.station}"),
+                                  rules.get(c.station, DEFAULT_DOWN_AFTER))
+            for c in stations
         }
         first = random.randrange(1, 0x10000) if first_tns is None else first_tns
         self.txns = HalfDuplexTransactions(source=source, retries=retries, first_tns=first)
@@ -390,6 +341,13 @@ class Df1HalfDuplexLine(LineDriver):
             rts_off_delay=self.rts_off_delay,
             echo=self.echo,
         )
+
+    def _report(self, up: bool, reason: str = "") -> None:
+        """The line's own state (the port); a lost port makes every station on it down at once."""
+        super()._report(up, reason)
+        if not up:
+            for handle in self.stations.values():
+                handle._report(False, self.last_error)
 
     # --- shared life cycle ------------------------------------------------------------------
 
@@ -495,9 +453,9 @@ class Df1HalfDuplexLine(LineDriver):
             log.debug("line %s: station %d never acknowledged the reply to its message", self.name, station)
         elif isinstance(event, StationDemoted):
             handle = self.stations[event.station]
-            handle._report(False, f"station {event.station} does not answer polls (demoted to slow poll)")
+            handle.judge(False, f"station {event.station} does not answer polls (demoted to slow poll)")
         elif isinstance(event, StationRestored):
-            self.stations[event.station]._report(True)
+            self.stations[event.station].judge(True)
         elif isinstance(event, SlaveInitiated):
             self._answer(event)
         elif isinstance(event, MessageDelivered):

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import struct
 from functools import partial
-from typing import Any, Protocol, TypeVar, Unpack, get_args
+from typing import Any, Protocol, TypeVar, Unpack
 
 from gateway.errors import ControllerRefused, ModbusExceptionReply
 from gateway.kinds.df1.config import Processor
@@ -39,22 +39,16 @@ B = TypeVar("B")
 
 __all__ = ["PROCESSORS", "Df1Unit", "PcccDriver", "PcccUnit", "pccc_exception"]
 
-#: ``processor`` names (the config's ``Processor``, in its order) -> families.
-PROCESSORS: dict[str, ProcessorFamily] = dict(
-    zip(
-        get_args(Processor),
-        (
-            ProcessorFamily.SLC500_FIXED,
-            ProcessorFamily.SLC5_01,
-            ProcessorFamily.SLC5_02,
-            ProcessorFamily.SLC5_03,
-            ProcessorFamily.SLC5_04,
-            ProcessorFamily.SLC5_05,
-            ProcessorFamily.PLC5,
-        ),
-        strict=True,
-    )
-)
+#: ``processor`` names (every value of the config's ``Processor``) -> families.
+PROCESSORS: dict[Processor, ProcessorFamily] = {
+    "slc500": ProcessorFamily.SLC500_FIXED,
+    "slc5/01": ProcessorFamily.SLC5_01,
+    "slc5/02": ProcessorFamily.SLC5_02,
+    "slc5/03": ProcessorFamily.SLC5_03,
+    "slc5/04": ProcessorFamily.SLC5_04,
+    "slc5/05": ProcessorFamily.SLC5_05,
+    "plc5": ProcessorFamily.PLC5,
+}
 #: EXT STS codes (CMD 0F) that say the address is wrong: answered as Modbus 0x02.
 _ADDRESS_EXT_STS = frozenset({0x02, 0x03, 0x06, 0x07, 0x0A, 0x13})
 

@@ -14,6 +14,7 @@ import logging
 from pathlib import Path
 from typing import Final
 
+from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import (
     ControllerFault,
     ControllerRefused,
@@ -25,6 +26,7 @@ from gateway.errors import (
 )
 from gateway.kinds.slc_ascii.config import SLC_ASCII_DEFAULTS
 from gateway.line_driver import LineDriver, OpenStream, Priority
+from gateway.link_health import DEFAULT_DOWN_AFTER
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command, ControllerType, FrnInfo, Mode, TimeoutClass
 from gateway.protocols.slc_ascii.framing import Ack, DataReply
@@ -67,13 +69,13 @@ class SlcAsciiDriver(LineDriver):
         settings: SerialSettings = SLC_ASCII_SETTINGS,
         timeout: float = DEFAULT_TIMEOUT,
         slow_timeout: float = DEFAULT_SLOW_TIMEOUT,
-        retries: int = 3,
+        retries: int = DEFAULT_RETRIES,
         trace: Path | None = None,
         reconnect_min: float = 0.5,
         reconnect_max: float = 1.0,
         opener: OpenStream = open_stream,
-        down_after_failures: int = 3,
-        down_after_seconds: float = 5.0,
+        down_after_failures: int = DEFAULT_DOWN_AFTER.failures,
+        down_after_seconds: float = DEFAULT_DOWN_AFTER.seconds,
         max_resyncs: int = MAX_RESYNCS,
         write_budget: float | None = None,
     ) -> None:
