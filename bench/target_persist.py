@@ -33,8 +33,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import os
 import shutil
+import socket
 import sqlite3
 import statistics
 import subprocess
@@ -57,6 +59,7 @@ from gateway.protocols.df1.transaction import Df1Transactions, TransactionDone
 GATEWAY_NODE, PLC_NODE = 1, 0
 FILE, ELEMENTS = 7, 100
 BAUD = 19200
+CONNECT_TIMEOUT = 20.0  # seconds for a gateway process to start and connect
 
 
 def config(port: int, persist: Path | None) -> str:
@@ -100,6 +103,24 @@ def file_system(path: Path) -> str:
     return f"{best[0]} {best[1]}"
 
 
+def fsync_ms(directory: Path, count: int = 200) -> float:
+    """Median milliseconds of one 100-byte write + fsync of a file in ``directory``: the disk's floor
+    under a commit (SQLite in WAL mode with synchronous=FULL syncs the WAL once per commit)."""
+    probe = directory / "fsync-probe"
+    fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    times = []
+    try:
+        for _ in range(count):
+            start = time.perf_counter()
+            os.write(fd, bytes(100))
+            os.fsync(fd)
+            times.append(time.perf_counter() - start)
+    finally:
+        os.close(fd)
+        probe.unlink()
+    return 1000 * statistics.median(times)
+
+
 def process_cpu(pid: int) -> float:
     """User + system CPU seconds of process ``pid`` (from /proc/<pid>/stat)."""
     with open(f"/proc/{pid}/stat", encoding="ascii") as stat:
@@ -116,7 +137,8 @@ class Run:
     writes: int = 0
     other: dict[str, int] = field(default_factory=dict)  # outcomes other than TransactionDone
     seconds: float = 0.0
-    gateway_cpu: float = 0.0
+    gateway_cpu: float = 0.0  # CPU seconds of the gateway process during the run
+    plc_cpu: float = 0.0  # CPU seconds of this process (the PLC) during the run
 
     @property
     def rate(self) -> float:
@@ -124,21 +146,21 @@ class Run:
 
 
 class Plc(asyncio.Protocol):
-    """The initiating station on one gateway's port: one write after another while ``running``."""
+    """The initiating station on one gateway's port: one write after another during a run."""
 
     def __init__(self, words: int) -> None:
         self.words = words
         self.link = Df1Link(checksum=Checksum.CRC, ack_timeout=2.0, min_ack_timeout=2.0)
         self.core = Df1Transactions(self.link, station=GATEWAY_NODE, source=PLC_NODE, reply_timeout=2.0, retries=2)
         self.core.min_reply_timeout = 2.0  # a slow commit is waited for, not taken as a lost reply
-        self.connected = asyncio.get_event_loop().create_future()
+        self.connected: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self.transport: asyncio.Transport | None = None
         self.serial = 0  # writes started
         self.last_done: list[int] = []  # the values of the last write that ended TransactionDone
+        self._pending: list[int] = []  # the values of the write in flight
         self.run: Run | None = None
         self._idle: asyncio.Future[None] | None = None
         self._timer: asyncio.TimerHandle | None = None
-        self._busy = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -157,11 +179,12 @@ class Plc(asyncio.Protocol):
         self.run = run = Run()
         loop = asyncio.get_running_loop()
         self._idle = loop.create_future()
-        cpu, start = process_cpu(pid), time.perf_counter()
+        cpu, own, start = process_cpu(pid), time.process_time(), time.perf_counter()
         self._start(loop.time())
         self._flush()
         await asyncio.sleep(seconds)
         run.seconds, run.gateway_cpu = time.perf_counter() - start, process_cpu(pid) - cpu
+        run.plc_cpu = time.process_time() - own
         counted, self.run = run, None  # from here on: finish the write in flight, count nothing
         await asyncio.wait_for(self._idle, 10)
         return counted
@@ -171,7 +194,6 @@ class Plc(asyncio.Protocol):
         vals = values(self.serial, self.words)
         self._pending = vals
         self.core.start(ProtectedTypedLogicalWrite(FileType.INTEGER, FILE, 0, 0, encode(vals)), now, write=True)
-        self._busy = True
 
     def data_received(self, data: bytes) -> None:
         now = asyncio.get_running_loop().time()
@@ -181,7 +203,6 @@ class Plc(asyncio.Protocol):
 
     def _events(self, now: float) -> None:
         while (event := self.core.next_event()) is not NEED_DATA:
-            self._busy = False
             if isinstance(event, TransactionDone):
                 self.last_done = self._pending
             kind = type(event).__name__
@@ -222,35 +243,26 @@ class Plc(asyncio.Protocol):
 
 @dataclass
 class Side:
-    name: str  # "on" / "off"
-    plc: Plc
-    server: asyncio.Server
+    """One gateway process, the port it connects to, and the PLC on that port."""
+
+    name: str  # "on" / "off": persist
+    listener: socket.socket
     process: subprocess.Popen[bytes]
     log: Path
     db: Path | None
+    plc: Plc | None = None
     runs: list[Run] = field(default_factory=list)
 
 
-async def start_side(name: str, words: int, work: Path, db: Path | None) -> Side:
-    plc = Plc(words)
-    server = await asyncio.get_running_loop().create_server(lambda: plc, HOST, 0)
-    port = server.sockets[0].getsockname()[1]
+def start_side(name: str, work: Path, db: Path | None) -> Side:
+    listener = socket.create_server((HOST, 0))
     path = work / f"gateway-{name}.toml"
-    path.write_text(config(port, db), encoding="utf-8")
+    path.write_text(config(listener.getsockname()[1], db), encoding="utf-8")
     log = work / f"gateway-{name}.log"
     with open(log, "wb") as out:
         process = subprocess.Popen([PYTHON, "-m", "gateway", "run", str(path)], cwd=str(REPO), stdout=out,
                                    stderr=subprocess.STDOUT)
-    return Side(name, plc, server, process, log, db)
-
-
-async def connected(side: Side, timeout: float = 20.0) -> None:
-    try:
-        await asyncio.wait_for(asyncio.shield(side.plc.connected), timeout)
-    except (TimeoutError, ConnectionError) as exc:
-        tail = side.log.read_text(encoding="utf-8", errors="replace")[-2000:]
-        raise SystemExit(f"gateway (persist {side.name}) did not connect ({exc!r}); exit {side.process.poll()}:\n"
-                         f"{tail}") from None
+    return Side(name, listener, process, log, db)
 
 
 def stop(side: Side) -> None:
@@ -261,50 +273,59 @@ def stop(side: Side) -> None:
         except subprocess.TimeoutExpired:
             side.process.kill()
             side.process.wait()
-    side.server.close()
+    side.listener.close()
+
+
+async def attach(side: Side, words: int) -> Plc:
+    """The PLC on ``side``'s port, once the gateway has connected to it."""
+    plc = Plc(words)
+    server = await asyncio.get_running_loop().create_server(lambda: plc, sock=side.listener)
+    try:
+        async with asyncio.timeout(CONNECT_TIMEOUT):
+            await asyncio.shield(plc.connected)
+    except (TimeoutError, ConnectionError) as exc:
+        tail = side.log.read_bytes()[-2000:].decode(errors="replace")
+        raise SystemExit(f"gateway (persist {side.name}) did not connect ({exc!r}); exit {side.process.poll()}:\n"
+                         f"{tail}") from None
+    server.close()  # one connection: the one accepted stays open
+    side.plc = plc
+    return plc
 
 
 def check_persisted(side: Side) -> str:
     """The rows of N7:0.. in the database are the last write the PLC saw done."""
-    assert side.db is not None
+    assert side.db is not None and side.plc is not None
     want = side.plc.last_done
-    with sqlite3.connect(f"file:{side.db}?mode=ro", uri=True) as db:
+    with contextlib.closing(sqlite3.connect(f"file:{side.db}?mode=ro", uri=True)) as db:
         rows = dict(db.execute("SELECT element, value FROM element WHERE file = ? AND element < ?",
                                (FILE, len(want))).fetchall())
-    got = [int.from_bytes(rows.get(k, b""), "little") if k in rows else None for k in range(len(want))]
+    got = [int.from_bytes(rows[k], "little") if k in rows else None for k in range(len(want))]
     if got != want:
         raise SystemExit(f"persisted N7:0-{len(want) - 1} are {got}, the last acknowledged write was {want}")
     return f"persisted N7:0-{len(want) - 1} = the last acknowledged write ({want[0]}..{want[-1]})"
 
 
-async def bench(args: argparse.Namespace, work: Path, db_dir: Path) -> None:
-    db = db_dir / "target-persist-bench.db"
+async def bench(args: argparse.Namespace, sides: dict[str, Side]) -> None:
+    plcs = {name: await attach(side, args.words) for name, side in sides.items()}
+    for name, plc in plcs.items():  # warm-up: imports, the database's first pages, the loops
+        await plc.measure(args.seconds / 3, sides[name].process.pid)
+    for i in range(args.runs):
+        for name in ("on", "off") if i % 2 == 0 else ("off", "on"):
+            sides[name].runs.append(await plcs[name].measure(args.seconds, sides[name].process.pid))
+
+
+def remove_db(db: Path) -> None:
     for suffix in ("", "-wal", "-shm"):
         Path(f"{db}{suffix}").unlink(missing_ok=True)
-    sides = {"on": await start_side("on", args.words, work, db), "off": await start_side("off", args.words, work, None)}
-    try:
-        for side in sides.values():
-            await connected(side)
-        for side in sides.values():  # warm-up: imports, the database's first pages, the loops
-            await side.plc.measure(args.seconds / 3, side.process.pid)
-        for i in range(args.runs):
-            for name in ("on", "off") if i % 2 == 0 else ("off", "on"):
-                side = sides[name]
-                side.runs.append(await side.plc.measure(args.seconds, side.process.pid))
-        print(check_persisted(sides["on"]))
-    finally:
-        for side in sides.values():
-            stop(side)
-    report(args, sides, db_dir)
 
 
-def report(args: argparse.Namespace, sides: dict[str, Side], db_dir: Path) -> None:
+def report(args: argparse.Namespace, sides: dict[str, Side], db_dir: Path, fsync: float) -> None:
     chars, seconds = wire_time(args.words)
     ceiling = 1 / seconds
     print(f"\none write of {args.words} words on the line: {chars} characters (command + ACK, ACK + reply) = "
           f"{seconds * 1000:.2f} ms at {BAUD} 8N1: ceiling {ceiling:.1f} writes/s")
-    print(f"persist: {db_dir} ({file_system(db_dir)}); {args.runs} alternating runs of {args.seconds:g} s, "
-          f"median; gateway and PLC in separate processes\n")
+    print(f"persist: {db_dir} ({file_system(db_dir)}; write + fsync there: {fsync:.3f} ms, median); "
+          f"{args.runs} alternating runs of {args.seconds:g} s, median; gateway and PLC in separate processes\n")
     rows, median = [], {}
     for name, title in (("off", "persist off"), ("on", "persist on")):
         runs = sides[name].runs
@@ -312,20 +333,22 @@ def report(args: argparse.Namespace, sides: dict[str, Side], db_dir: Path) -> No
         median[name] = statistics.median(rates)
         writes = sum(run.writes for run in runs)
         cpu_ms = 1000 * sum(run.gateway_cpu for run in runs) / writes if writes else float("nan")
+        plc_ms = 1000 * sum(run.plc_cpu for run in runs) / writes if writes else float("nan")
         other = {k: sum(run.other.get(k, 0) for run in runs) for run in runs for k in run.other}
-        rows.append([title, median[name], f"{rates[0]:.0f}-{rates[-1]:.0f}", 1000 / median[name], cpu_ms,
+        rows.append([title, median[name], f"{rates[0]:.0f}-{rates[-1]:.0f}", 1000 / median[name], cpu_ms, plc_ms,
                      median[name] / ceiling, ", ".join(f"{k} {v}" for k, v in other.items()) or "none"])
         if other:
             print(f"WARNING: persist {name}: writes that did not end TransactionDone: {other}")
-    rows.append([f"the line, {BAUD} 8N1", ceiling, "-", seconds * 1000, "-", 1.0, "-"])
-    print(table(["", "writes/s", "range of runs", "ms per write", "gateway CPU ms/write", "x the line's ceiling",
-                 "not done"], rows))
+    rows.append([f"the line, {BAUD} 8N1", ceiling, "-", seconds * 1000, "-", "-", 1.0, "-"])
+    print(table(["", "writes/s", "range of runs", "ms per write", "gateway CPU ms/write", "PLC CPU ms/write",
+                 "x the line's ceiling", "not done"], rows))
     ratio = median["on"] / median["off"]
     commit_ms = 1000 / median["on"] - 1000 / median["off"]
     print(f"\npersist on / off: {ratio:.3f}; the commit adds {commit_ms:.2f} ms per write, "
           f"{commit_ms / (seconds * 1000):.1%} of the write's {seconds * 1000:.1f} ms on the line")
     result(words=args.words, runs=args.runs, persist_on_per_s=median["on"], persist_off_per_s=median["off"],
-           ratio=ratio, commit_ms=commit_ms, ceiling_19200_per_s=ceiling, on_x_ceiling=median["on"] / ceiling)
+           ratio=ratio, commit_ms=commit_ms, fsync_ms=fsync, ceiling_19200_per_s=ceiling,
+           on_x_ceiling=median["on"] / ceiling)
 
 
 def main() -> None:
@@ -341,13 +364,23 @@ def main() -> None:
         parser.error("--words: 1 to 117 (234 data bytes, an SLC typed logical write's most on DF1)")
     print_machine()
     work = Path(tempfile.mkdtemp(prefix="target-persist-"))
+    db_dir = args.db_dir or work
+    db_dir.mkdir(parents=True, exist_ok=True)
+    db = db_dir / "target-persist-bench.db"
+    remove_db(db)
+    fsync = fsync_ms(db_dir)
+    sides: dict[str, Side] = {}
     try:
-        db_dir = args.db_dir or work
-        db_dir.mkdir(parents=True, exist_ok=True)
-        asyncio.run(bench(args, work, db_dir))
+        sides["on"] = start_side("on", work, db)
+        sides["off"] = start_side("off", work, None)
+        asyncio.run(bench(args, sides))
+        print(check_persisted(sides["on"]))
     finally:
+        for side in sides.values():
+            stop(side)
+        remove_db(db)
         shutil.rmtree(work, ignore_errors=True)
-
+    report(args, sides, db_dir, fsync)
 
 if __name__ == "__main__":
     main()

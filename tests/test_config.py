@@ -29,6 +29,7 @@ from gateway.config import (
 )
 from gateway.errors import ConfigError
 from gateway.kinds.df1.config import DF1_DEFAULTS, Df1LinkConfig, MapEntry, classify_address
+from gateway.kinds.df1.target_config import TargetFile
 from gateway.kinds.slc_ascii.config import SLC_ASCII_DEFAULTS, SlcAsciiLinkConfig
 from gateway.protocols.df1.address import parse_address
 
@@ -171,7 +172,7 @@ count = 64
 
 def test_example_file_mentions_every_key() -> None:
     text = EXAMPLE.read_text(encoding="utf-8")
-    for model in (ModbusConfig, TlsConfig, MetricsConfig, LoggingConfig, *link_models(), MapEntry):
+    for model in (ModbusConfig, TlsConfig, MetricsConfig, LoggingConfig, *link_models(), MapEntry, TargetFile):
         for key in model.model_fields:
             if key in ("tls", "map"):  # sections, not keys
                 continue
@@ -285,14 +286,19 @@ def test_describe_lists_every_key() -> None:
     """Every key a link uses is written; a key its kind does not use in its mode (refused if given)
     is left out, so the output loads back."""
     half = DF1_LINK.replace('"line-2"', '"station-3"\nduplex = "half"').replace("unit = 2", "unit = 3")
-    config = parse_config(VALID + half.replace("sim://slc504", "sim://df1line"))
+    target = ('[[link]]\nname = "plc"\nprotocol = "df1"\nrole = "target"\nport = "sim://plc-msg"\nunit = 9\n'
+              'persist = "plc.db"\nstale_after = 60.0\n[[link.file]]\nfile = 7\ntype = "N"\nelements = 10\n')
+    config = parse_config(VALID + half.replace("sim://slc504", "sim://df1line") + target)
     described = config.describe()
     for key in ModbusConfig.model_fields:
         if key != "tls":
             assert f"\n{key} = " in described
     for key in {key for model in link_models() for key in model.model_fields}:
-        if key != "map":
+        if key not in ("map", "file"):
             assert f"\n{key} = " in described
+    for key in TargetFile.model_fields:
+        if key != "initial":  # not set: written as a comment
+            assert f"\n  {key} = " in described
     for link in config.link:
         own = "\n".join(link.describe_lines())
         for key in link.unused():
@@ -489,7 +495,7 @@ BAD = [
         ASCII_LINK.replace('"sim://slc150"', '"sim://slc999"'),
         "(link[0]).port",
         "port",
-        "sim://slc150, sim://slc100, sim://slc504, sim://plc5 or sim://df1line",
+        "sim://slc150, sim://slc100, sim://slc504, sim://plc5, sim://df1line or sim://plc-msg",
     ),
     (
         "port-sim-query",
@@ -1007,7 +1013,7 @@ def test_every_df1_only_key_is_refused_on_an_slc_ascii_link() -> None:
         "processor": '"slc5/04"',
         "max_read_bytes": "0",
         "max_write_bytes": "0",
-        # half duplex (issue #12)
+        # half duplex
         "duplex": '"full"',
         "pre_transmit_delay": "0.0",
         "rts_send_delay": "0.0",
@@ -1029,8 +1035,12 @@ def test_every_df1_only_key_is_refused_on_an_slc_ascii_link() -> None:
         "receive_words": "0",
         "receive_table": '"input"',
         "receive_start": "100",
+        # target mode
+        "role": '"target"',
+        "persist": '"x.db"',
+        "check_dst": "false",
     }
-    assert set(values) | {"map"} == set(Df1LinkConfig.model_fields) - set(SlcAsciiLinkConfig.model_fields)
+    assert set(values) | {"map", "file"} == set(Df1LinkConfig.model_fields) - set(SlcAsciiLinkConfig.model_fields)
     text = ASCII_LINK + "".join(f"{key} = {value}\n" for key, value in values.items())
     lines = error_of(text).split("\n")
     assert lines[0] == f"<string>: {len(values)} errors in the configuration:"
@@ -1433,12 +1443,12 @@ def test_a_wrong_simulator_is_reported_with_the_other_problems_of_the_link() -> 
     text = ASCII_LINK.replace("sim://slc150", "sim://slc999") + "retries = 99\n"
     lines = error_of(text).split("\n")
     assert lines[1].endswith("(link[0]).port: sim://slc999: no such simulator: expected sim://slc150, sim://slc100, "
-                             "sim://slc504, sim://plc5 or sim://df1line")
+                             "sim://slc504, sim://plc5, sim://df1line or sim://plc-msg")
 
 
 def test_a_bad_port_names_the_simulators_of_the_links_protocol() -> None:
     error = error_of(DF1_LINK.replace('"sim://slc504"', '"ttyUSB0"'))
-    assert error.endswith("rfc2217://host:port or sim://slc504 | sim://plc5 | sim://df1line")
+    assert error.endswith("rfc2217://host:port or sim://slc504 | sim://plc5 | sim://df1line | sim://plc-msg")
     error = error_of(ASCII_LINK.replace('"sim://slc150"', '"ttyUSB0"'))
     assert error.endswith("rfc2217://host:port or sim://slc150 | sim://slc100")
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import inspect
 import re
+import tempfile
+from pathlib import Path
 from typing import Any, get_args
 
 import pytest
@@ -62,7 +64,10 @@ def test_write_burst_on_a_half_duplex_link_is_refused_naming_the_kind_and_mode()
     assert parse_config(full(extra="write_burst = 4\npoll_burst = 3\n")).link[0].write_burst == 4
 
 
-@pytest.mark.parametrize("key", sorted(Df1LinkConfig.unused_keys["full"]))
+TARGET_KEYS = ("file", "persist", "check_dst")
+
+
+@pytest.mark.parametrize("key", sorted(set(Df1LinkConfig.unused_keys["full"]) - set(TARGET_KEYS)))
 def test_half_duplex_keys_on_a_full_duplex_link_are_refused(key: str) -> None:
     value = Df1LinkConfig.model_fields[key].default
     message = error_of(full(extra=f"{key} = {_toml(value)}\n"))
@@ -81,9 +86,17 @@ def _toml(value: object) -> str:
     return repr(value)
 
 
+@pytest.mark.parametrize("mode", ["full", "half"])
+def test_a_targets_keys_on_a_polling_link_are_refused(mode: str) -> None:
+    text = (full if mode == "full" else half)(extra='persist = "x.db"\ncheck_dst = true\n')
+    message = error_of(text)
+    assert f'persist: not used by df1 links with duplex = "{mode}" (a key of a link with role = "target"' in message
+    assert f'check_dst: not used by df1 links with duplex = "{mode}"' in message
+
+
 def test_every_unused_key_is_a_key_of_its_model_in_a_mode_it_has() -> None:
     for model in link_models():
-        modes = (None,) if model.mode_key is None else (None, *get_args(model.model_fields[model.mode_key].annotation))
+        modes = (None, *model.modes())
         for mode, keys in model.unused_keys.items():
             assert mode in modes, (protocol_of(model), mode)
             for key in keys:
@@ -97,11 +110,14 @@ def _links() -> list[LinkBase]:
         '[[link]]\nname = "a"\nprotocol = "slc-ascii"\nport = "sim://slc150"\nunit = 1\n'
         + full().replace("unit = 1", "unit = 2")
         + half(unit=3, extra='receive_words = 2\nreceive_start = 100\nreceive_table = "holding"\n')
+        + '[[link]]\nname = "t"\nprotocol = "df1"\nrole = "target"\nport = "sim://plc-msg"\nunit = 4\n'
+        'persist = "' + str(Path(tempfile.gettempdir()) / "slc-gateway-keys-test.db") + '"\nstale_after = 30.0\n'
+        '[[link.file]]\nfile = 7\ntype = "N"\nelements = 4\ninitial = 1\n'
     )
     return list(parse_config(text).link)
 
 
-@pytest.mark.parametrize("index", [0, 1, 2], ids=["slc-ascii", "df1-full", "df1-half"])
+@pytest.mark.parametrize("index", [0, 1, 2, 3], ids=["slc-ascii", "df1-full", "df1-half", "df1-target"])
 def test_every_key_a_kind_does_not_declare_unused_is_read_when_it_builds_its_units(
     index: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:

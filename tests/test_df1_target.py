@@ -153,11 +153,11 @@ def test_check_config_refuses_what_a_target_cannot_serve() -> None:
         parse_config(text.replace("start = 200", "start = 20"))
     with pytest.raises(ConfigError, match=r"only a B file maps to coil bits"):
         parse_config(text.replace('type = "B"', 'type = "N"'))
-    with pytest.raises(ConfigError, match=r"map is not used by a df1 link with role = \"target\""):
+    with pytest.raises(ConfigError, match=r"map: not used by df1 links with role = \"target\""):
         parse_config(text.replace("unit = 5", "unit = 5\n" + ONE_MAP_ENTRY))
     with pytest.raises(ConfigError, match=r"overlaps the status block"):
         parse_config(text.replace("start = 200", 'start = 995\ntable = "input"'))
-    with pytest.raises(ConfigError, match=r'persist is for a link with role = "target"'):
+    with pytest.raises(ConfigError, match=r"persist: not used by df1 links with duplex = \"full\" \(a key of a link with role = \"target\""):
         parse_config(text.replace('role = "target"', 'persist = "x.db"').replace(FILES, ONE_MAP_ENTRY))
 
 

@@ -226,6 +226,13 @@ class LinkBase(Model):
         """The value of ``mode_key`` (None: the kind has one mode)."""
         return None if self.mode_key is None else str(getattr(self, self.mode_key))
 
+    @classmethod
+    def modes(cls) -> tuple[str, ...]:
+        """The modes a link of this kind can be in (the values of ``mode_key``; none: one mode)."""
+        if cls.mode_key is None:
+            return ()
+        return tuple(str(value) for value in get_args(cls.model_fields[cls.mode_key].annotation))
+
     def mode_text(self) -> str:
         """The link's mode as its key sets it, for messages (``duplex = "half"``)."""
         return f"{self.mode_key} = {show(self.link_mode)}"

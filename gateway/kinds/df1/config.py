@@ -214,7 +214,7 @@ class Df1LinkConfig(LinkBase):
             **dict.fromkeys(
                 ("map", "processor", "source", "max_read_bytes", "max_write_bytes", "fast_interval", "slow_interval",
                  "write_burst", "poll_burst", "retries", "timeout", "write_queue_per_client", "write_queue_per_link",
-                 "write_timeout"),
+                 "write_timeout", "down_after_failures", "down_after_seconds"),
                 "the PLC sends the commands; the gateway answers from [[link.file]] and never polls",
             ),
             **dict.fromkeys(
@@ -225,6 +225,10 @@ class Df1LinkConfig(LinkBase):
             ),
         },
     }
+
+    @classmethod
+    def modes(cls) -> tuple[str, ...]:
+        return (*super().modes(), "target")
 
     @property
     def link_mode(self) -> str | None:
