@@ -157,7 +157,8 @@ def test_check_config_refuses_what_a_target_cannot_serve() -> None:
         parse_config(text.replace("unit = 5", "unit = 5\n" + ONE_MAP_ENTRY))
     with pytest.raises(ConfigError, match=r"overlaps the status block"):
         parse_config(text.replace("start = 200", 'start = 995\ntable = "input"'))
-    with pytest.raises(ConfigError, match=r'persist: not used by df1 links with duplex = "full" \(a key of a link with role = "target"'):
+    refused = r'persist: not used by df1 links with duplex = "full" \(a key of a link with role = "target"'
+    with pytest.raises(ConfigError, match=refused):
         parse_config(text.replace('role = "target"', 'persist = "x.db"').replace(FILES, ONE_MAP_ENTRY))
 
 
