@@ -20,7 +20,7 @@ from typing import Any
 import pytest
 
 from gateway.cli import main
-from gateway.protocols.df1.half_duplex_framing import Checksum
+from gateway.protocols.df1.framing import Checksum
 from gateway.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.sim.plc5 import Plc5Simulator
 from gateway.sim.serve import close_tcp, serve_tcp

@@ -11,14 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gateway.errors import InvalidRequest
-from gateway.protocols.df1.framing import (
-    ACK_SYMBOL,
-    ENQ_SYMBOL,
-    NAK_SYMBOL,
-    NEED_DATA,
-    Checksum,
-    encode_frame,
-)
+from gateway.protocols.df1.framing import ACK_SYMBOL, ENQ_SYMBOL, NAK_SYMBOL, NEED_DATA, Checksum, encode_frame
 from gateway.protocols.df1.link import (
     Df1Link,
     LinkEvent,

@@ -17,6 +17,14 @@ import pytest
 from test_df1_half_duplex_master import events, feed
 
 from gateway.drivers.df1_half import Df1HalfDuplexLine
+from gateway.protocols.df1.framing import (
+    ACK_SYMBOL,
+    EOT_SYMBOL,
+    Checksum,
+    encode_frame,
+    encode_master_message,
+    encode_poll,
+)
 from gateway.protocols.df1.half_duplex import (
     FailReason,
     HalfDuplexMaster,
@@ -25,14 +33,6 @@ from gateway.protocols.df1.half_duplex import (
     RequestFailed,
     SlaveInitiated,
     StationConfig,
-)
-from gateway.protocols.df1.half_duplex_framing import (
-    ACK,
-    EOT,
-    Checksum,
-    encode_master_message,
-    encode_poll,
-    encode_slave_message,
 )
 from gateway.protocols.df1.pccc import (
     LogicalBinaryAddress,
@@ -129,17 +129,17 @@ def test_core_acks_the_msg_then_sends_the_reply_as_a_master_message(mode: str, c
     master = make(2, 3, checksum=checksum)
     assert master.data_to_send() == encode_poll(2)
     msg = msg_word_range_write(2, 0x10, 0, [5])
-    feed(master, encode_slave_message(msg, checksum) + b"\x00\x10", 0.01, mode)  # with trailing garbage
-    assert master.data_to_send() == ACK + encode_poll(2)
+    feed(master, encode_frame(msg, checksum) + b"\x00\x10", 0.01, mode)  # with trailing garbage
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(2)
     assert events(master) == [SlaveInitiated(2, msg)]
-    feed(master, EOT, 0.02, mode)
+    feed(master, EOT_SYMBOL, 0.02, mode)
     assert master.data_to_send() == encode_poll(3)
     reply = bytes.fromhex("02 00 4F 00 10 00")
     request = master.send_reply(2, reply, 0.025)  # while station 3's poll is out: queued
     assert master.data_to_send() == b""
-    feed(master, EOT, 0.03, mode)
+    feed(master, EOT_SYMBOL, 0.03, mode)
     assert master.data_to_send() == encode_master_message(2, reply, checksum)
-    feed(master, ACK + b"\x55", 0.04, mode)
+    feed(master, ACK_SYMBOL + b"\x55", 0.04, mode)
     assert events(master) == [MessageDelivered(request, 2)]
     assert master.data_to_send() == b""  # nothing polled for; next background poll at 100 s
 
@@ -147,14 +147,14 @@ def test_core_acks_the_msg_then_sends_the_reply_as_a_master_message(mode: str, c
 def test_reply_goes_ahead_of_queued_commands_and_is_resent_identically() -> None:
     master = make(2)
     master.data_to_send()
-    master.receive_data(EOT, 0.0)
+    master.receive_data(EOT_SYMBOL, 0.0)
     command = bytes.fromhex("02 00 0F 00 10 00 A2")  # our own command, same TNS as the slave's MSG
     reply = bytes.fromhex("02 00 4F 00 10 00")
     master.submit(2, command, 0.0)
     sent = master.data_to_send()
     assert sent == encode_master_message(2, command, Checksum.BCC)
     request = master.send_reply(2, reply, 0.0)  # queued while our command waits for its ACK
-    master.receive_data(ACK, 0.1)
+    master.receive_data(ACK_SYMBOL, 0.1)
     assert master.data_to_send() == encode_master_message(2, reply, Checksum.BCC)  # before the reply poll
     master.handle_timeout(0.6)  # no ACK: the same bytes again
     assert master.data_to_send() == encode_master_message(2, reply, Checksum.BCC)

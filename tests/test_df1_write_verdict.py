@@ -13,9 +13,8 @@ from collections.abc import Callable
 import pytest
 
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.framing import ACK_SYMBOL, Checksum, encode_frame
+from gateway.protocols.df1.framing import ACK_SYMBOL, EOT_SYMBOL, Checksum, NeedData, encode_frame, encode_poll
 from gateway.protocols.df1.half_duplex import HalfDuplexMaster, LineConfig, StationConfig
-from gateway.protocols.df1.half_duplex_framing import ACK, EOT, NeedData, encode_poll, encode_slave_message
 from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions
 from gateway.protocols.df1.link import Df1Link
 from gateway.protocols.df1.pccc import (
@@ -128,18 +127,18 @@ def half_duplex(behaviour: Behaviour) -> tuple[TransactionEvent, int]:
     handle = txns.start(1, WRITE, now, write=True)
     for _ in range(5000):
         out = master.data_to_send()
-        if out.startswith(ACK):  # our ACK of the slave's reply
+        if out.startswith(ACK_SYMBOL):  # our ACK of the slave's reply
             pending.pop(0)
-            out = out[len(ACK):]
+            out = out[len(ACK_SYMBOL):]
         if out.startswith(b"\x10\x01"):  # a master message: DLE SOH STN DLE STX ... DLE ETX BCC
             command = decode_command(out[5:out.index(b"\x10\x03")].replace(b"\x10\x10", b"\x10"))
             what = behaviour(command.request)
             if what != "silent":
                 if isinstance(what, bytes):
                     pending.append(encode_reply(command.header, sts=0, data=what))
-                txns.receive_data(ACK, now)
+                txns.receive_data(ACK_SYMBOL, now)
         elif out == encode_poll(1):
-            txns.receive_data(encode_slave_message(pending[0], Checksum.BCC) if pending else EOT, now)
+            txns.receive_data(encode_frame(pending[0], Checksum.BCC) if pending else EOT_SYMBOL, now)
         while not isinstance(event := txns.next_event(), NeedData):
             if isinstance(event, TransactionDone | OutcomeUnknown) and event.handle == handle:
                 return event, txns.counters(1).read_backs

@@ -55,7 +55,8 @@ from gateway.drivers.df1 import Df1Driver
 from gateway.drivers.slc_ascii import SlcAsciiDriver
 from gateway.errors import GatewayError
 from gateway.protocols.df1 import framing as df1_framing
-from gateway.protocols.df1.framing import Checksum, FrameDecoder, encode_frame
+from gateway.protocols.df1.framing import Checksum, encode_frame
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete, SendFailed
 from gateway.protocols.df1.pccc import PcccReply, ProtectedTypedLogicalRead, ProtectedTypedLogicalWrite, decode_reply
 from gateway.protocols.slc_ascii import commands as slc_commands

@@ -8,6 +8,7 @@ import itertools
 import pytest
 
 from gateway.protocols.df1.address import FileType
+from gateway.protocols.df1.framing import EOT_SYMBOL, Checksum, encode_poll
 from gateway.protocols.df1.half_duplex import (
     NEED_DATA,
     HalfDuplexMaster,
@@ -18,7 +19,6 @@ from gateway.protocols.df1.half_duplex import (
     StationConfig,
     StationDemoted,
 )
-from gateway.protocols.df1.half_duplex_framing import EOT, Checksum, encode_poll
 from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalRead,
     ProtectedTypedLogicalWrite,
@@ -196,7 +196,7 @@ def test_radio_latency_and_echo() -> None:
 def test_dead_station_never_answers() -> None:
     line = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1, 2), dead=frozenset({2})))
     assert [o.data for o in line.receive(encode_poll(2), 0.0)] == []
-    assert [o.data for o in line.receive(encode_poll(1), 0.0)] == [EOT]
+    assert [o.data for o in line.receive(encode_poll(1), 0.0)] == [EOT_SYMBOL]
     assert 2 in line.controllers and 2 not in line.slaves
 
 
@@ -221,7 +221,7 @@ async def test_served_over_tcp() -> None:
     reader, writer = await asyncio.open_connection("127.0.0.1", port)
     try:
         writer.write(encode_poll(2))
-        assert await asyncio.wait_for(reader.readexactly(2), 2.0) == EOT
+        assert await asyncio.wait_for(reader.readexactly(2), 2.0) == EOT_SYMBOL
     finally:
         writer.close()
         await close_tcp(server)

@@ -23,8 +23,8 @@ from gateway.drivers.df1_half import Df1HalfDuplexLine
 from gateway.errors import GatewayError, LinkDown, LinkTimeout
 from gateway.links import link_kind
 from gateway.protocols.df1.address import FileType
+from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.half_duplex import StationConfig
-from gateway.protocols.df1.half_duplex_framing import Checksum
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead
 from gateway.sim import get_simulator, open_sim_stream, parse_sim_url, reset_simulators, variants_of
 from gateway.sim.df1_multidrop import MultidropLine

@@ -18,10 +18,12 @@ from gateway.protocols.df1.framing import (
     AckReceived,
     Checksum,
     DecoderEvent,
-    FrameDecoder,
     encode_frame,
 )
-from gateway.protocols.df1.framing import Frame as WireFrame
+from gateway.protocols.df1.framing import (
+    Frame as WireFrame,
+)
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.link import Df1Link, MessageReceived
 from gateway.protocols.df1.pccc import (
     DataType,

@@ -51,6 +51,7 @@ from typing import Final
 from gateway.drivers.base import LinkCounters, LinkDriver, OpenStream
 from gateway.drivers.df1 import DF1_SETTINGS, WriteOutcomeUnknown
 from gateway.errors import GatewayError, LinkDown, LinkTimeout
+from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.half_duplex import (
     NEED_DATA,
     FailReason,
@@ -66,7 +67,6 @@ from gateway.protocols.df1.half_duplex import (
     StationRestored,
     StrayReply,
 )
-from gateway.protocols.df1.half_duplex_framing import Checksum
 from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions, PcccCommand
 from gateway.protocols.df1.pccc import DiagnosticStatus, DiagnosticStatusInfo, PcccReply
 from gateway.protocols.df1.pccc import is_write as pccc_is_write

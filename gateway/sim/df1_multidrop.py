@@ -47,7 +47,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import ClassVar, Final
 
-from gateway.protocols.df1.half_duplex_framing import Checksum, Symbol
+from gateway.protocols.df1.framing import Checksum, Symbol
 from gateway.sim.df1_half_duplex_slave import VARIANTS as SLAVE_VARIANTS
 from gateway.sim.df1_half_duplex_slave import HalfDuplexSlave, SlaveVariant
 from gateway.sim.plc5 import Plc5Simulator

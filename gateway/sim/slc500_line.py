@@ -8,7 +8,8 @@ from __future__ import annotations
 import random
 from typing import Final
 
-from gateway.protocols.df1.framing import Checksum, Frame, FrameDecoder, Symbol
+from gateway.protocols.df1.framing import Checksum, Frame, Symbol
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.pccc import PcccFormatError, decode_command, is_write
 
 __all__ = ["NOISE_BYTES", "REPLY_ADDRESSES", "address_reply", "corrupt_frame",

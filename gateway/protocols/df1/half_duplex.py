@@ -59,6 +59,22 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final
 
+from gateway.protocols.df1.framing import (
+    ACK_SYMBOL,
+    NAK_SYMBOL,
+    NEED_DATA,
+    AckReceived,
+    BadFrame,
+    EotReceived,
+    Frame,
+    MasterMessage,
+    NakReceived,
+    NeedData,
+    Poll,
+    encode_master_message,
+    encode_poll,
+)
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.half_duplex_events import (
     FailReason,
     LineConfig,
@@ -72,22 +88,6 @@ from gateway.protocols.df1.half_duplex_events import (
     StationDemoted,
     StationRestored,
     StrayReply,
-)
-from gateway.protocols.df1.half_duplex_framing import (
-    ACK,
-    NAK,
-    NEED_DATA,
-    AckReceived,
-    BadFrame,
-    EotReceived,
-    HalfDuplexDecoder,
-    MasterMessage,
-    NakReceived,
-    NeedData,
-    Poll,
-    SlaveMessage,
-    encode_master_message,
-    encode_poll,
 )
 from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, reply_matches
 from gateway.protocols.df1.pccc.codes import REPLY_BIT
@@ -173,7 +173,7 @@ class HalfDuplexMaster:
         self.line: Final = line
         self._stations: dict[int, _Station] = {s.station: _Station(s) for s in stations}
         self._order: Final = numbers
-        self._decoder = HalfDuplexDecoder(line.checksum)
+        self._decoder = FrameDecoder(line.checksum, half_duplex=True)
         self._state = LineState.IDLE
         self._out = bytearray()
         self._events: deque[MasterEvent] = deque()
@@ -328,7 +328,7 @@ class HalfDuplexMaster:
             self._tx_at = max(self._tx_at, self._quiet_until + self.line.rts_send_delay)
         self._decoder.feed(data)
         while (event := self._decoder.next_event()) is not NEED_DATA:
-            if isinstance(event, SlaveMessage):
+            if isinstance(event, Frame):
                 self._message = event.message
                 self._step(Input.MESSAGE, now)
             elif isinstance(event, EotReceived):
@@ -442,7 +442,7 @@ class HalfDuplexMaster:
         message = self._message
         self._answered(station)
         self._poll_again = True
-        self._transmit(ACK, LineState.IDLE, now)
+        self._transmit(ACK_SYMBOL, LineState.IDLE, now)
         head = message[:_HEAD]
         if head == station.last_head:
             station.counters.duplicates += 1
@@ -586,7 +586,7 @@ class HalfDuplexMaster:
             if self._reset_pending:
                 self._reset_pending = False
                 self._reset_all()
-                self._transmit(NAK, LineState.IDLE, now)
+                self._transmit(NAK_SYMBOL, LineState.IDLE, now)
                 continue
             if not self._pick(now):
                 return

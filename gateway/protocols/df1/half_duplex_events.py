@@ -9,7 +9,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-from gateway.protocols.df1.half_duplex_framing import Checksum
+from gateway.protocols.df1.framing import Checksum
 
 __all__ = [
     "DEMOTE_AFTER",

@@ -26,6 +26,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import ClassVar, Protocol
 
+from gateway.protocols.df1.framing import NeedData
 from gateway.protocols.df1.half_duplex import (
     NEED_DATA,
     FailReason,
@@ -34,7 +35,6 @@ from gateway.protocols.df1.half_duplex import (
     ReplyReceived,
     RequestFailed,
 )
-from gateway.protocols.df1.half_duplex_framing import NeedData
 from gateway.protocols.df1.pccc import PcccFormatError, PcccHeader, PcccReply, TnsAllocator, decode_reply
 from gateway.protocols.df1.transaction import (
     OutcomeUnknown,

@@ -75,11 +75,11 @@ from gateway.protocols.df1.framing import (
     Checksum,
     EnqReceived,
     Frame,
-    FrameDecoder,
     NakReceived,
     NeedData,
     encode_frame,
 )
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 
 __all__ = [
     "BadFrameAnswer",
