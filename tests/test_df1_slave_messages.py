@@ -41,7 +41,7 @@ from gateway.protocols.df1.pccc import (
     WordRangeWrite,
     encode_command,
 )
-from gateway.protocols.df1.slave_messages import RegisterTable, Verdict, answer_slave_message
+from gateway.protocols.df1.slave_messages import RegisterTable, SlaveMessageVerdict, answer_slave_message
 from gateway.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.sim.serve import SimStream
 from gateway.transport import ByteStream
@@ -69,7 +69,7 @@ def test_word_range_write_to_us_is_stored_with_its_time() -> None:
     table = RegisterTable(file_number=7, size=10)
     packet = msg_word_range_write(3, 0x0102, 4, [11, 0x1010])
     verdict, reply = answer_slave_message(packet, own_station=GATEWAY, table=table, now=12.5)
-    assert verdict is Verdict.STORED
+    assert verdict is SlaveMessageVerdict.STORED
     assert reply == bytes.fromhex("03 00 4F 00 02 01")  # DST/SRC swapped, CMD | 40, same TNS, STS 0
     assert table.values()[4:6] == [11, 0x1010] and table.received_at(4) == 12.5
     assert table.age(5, 13.0) == pytest.approx(0.5) and table.age(0, 13.0) is None
@@ -79,7 +79,7 @@ def test_typed_logical_write_to_us_is_stored() -> None:
     table = RegisterTable(file_number=7, size=10)
     verdict, reply = answer_slave_message(msg_typed_logical_write(2, 9, 0, [1, 2, 3]), own_station=GATEWAY,
                                           table=table, now=1.0)
-    assert verdict is Verdict.STORED and reply == bytes.fromhex("02 00 4F 00 09 00")
+    assert verdict is SlaveMessageVerdict.STORED and reply == bytes.fromhex("02 00 4F 00 09 00")
     assert table.values()[:3] == [1, 2, 3]
 
 
@@ -88,24 +88,26 @@ def test_typed_logical_write_to_us_is_stored() -> None:
     [
         # a read (0F A2): not something the gateway serves to slaves -> STS 10 (p. 8-3)
         (encode_command(ProtectedTypedLogicalRead(0x89, 7, 0, 0, 2), dst=GATEWAY, src=2, tns=5),
-         RegisterTable(), Verdict.UNSUPPORTED, "02 00 4F 10 05 00"),
+         RegisterTable(), SlaveMessageVerdict.UNSUPPORTED, "02 00 4F 10 05 00"),
         # a write for another station: the gateway does not route between slaves -> STS 10
-        (msg_word_range_write(2, 6, 0, [1], dst=9), RegisterTable(), Verdict.UNSUPPORTED, "02 09 4F 10 06 00"),
+        (msg_word_range_write(2, 6, 0, [1], dst=9), RegisterTable(), SlaveMessageVerdict.UNSUPPORTED,
+         "02 09 4F 10 06 00"),
         # a station without a register table -> STS 10
-        (msg_word_range_write(2, 7, 0, [1]), None, Verdict.UNSUPPORTED, "02 00 4F 10 07 00"),
+        (msg_word_range_write(2, 7, 0, [1]), None, SlaveMessageVerdict.UNSUPPORTED, "02 00 4F 10 07 00"),
         # words outside the table -> STS F0, EXT STS 06 "address doesn't point to something usable" (p. 8-4)
-        (msg_word_range_write(2, 8, 9, [1, 2]), RegisterTable(size=10), Verdict.BAD_ADDRESS, "02 00 4F F0 08 00 06"),
+        (msg_word_range_write(2, 8, 9, [1, 2]), RegisterTable(size=10), SlaveMessageVerdict.BAD_ADDRESS,
+         "02 00 4F F0 08 00 06"),
         # another file -> the same
         (encode_command(WordRangeWrite(LogicalBinaryAddress.of(0, 9, 0), b"\x01\x00"), dst=GATEWAY, src=2, tns=1),
-         RegisterTable(), Verdict.BAD_ADDRESS, "02 00 4F F0 01 00 06"),
+         RegisterTable(), SlaveMessageVerdict.BAD_ADDRESS, "02 00 4F F0 01 00 06"),
         # an unknown command -> STS 10; a reply or a runt -> no answer at all
-        (bytes.fromhex("00 02 06 00 03 00 00"), RegisterTable(), Verdict.UNSUPPORTED, "02 00 46 10 03 00"),
-        (bytes.fromhex("00 02 4F 00 03 00"), RegisterTable(), Verdict.NO_ANSWER, None),
-        (bytes.fromhex("00 02 0F"), RegisterTable(), Verdict.NO_ANSWER, None),
+        (bytes.fromhex("00 02 06 00 03 00 00"), RegisterTable(), SlaveMessageVerdict.UNSUPPORTED, "02 00 46 10 03 00"),
+        (bytes.fromhex("00 02 4F 00 03 00"), RegisterTable(), SlaveMessageVerdict.NO_ANSWER, None),
+        (bytes.fromhex("00 02 0F"), RegisterTable(), SlaveMessageVerdict.NO_ANSWER, None),
     ],
 )
 def test_everything_else_gets_the_manuals_error(
-    packet: bytes, table: RegisterTable | None, verdict: Verdict, reply: str | None
+    packet: bytes, table: RegisterTable | None, verdict: SlaveMessageVerdict, reply: str | None
 ) -> None:
     got = answer_slave_message(packet, own_station=GATEWAY, table=table, now=0.0)
     assert got == (verdict, None if reply is None else bytes.fromhex(reply))

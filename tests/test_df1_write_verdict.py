@@ -13,10 +13,10 @@ from collections.abc import Callable
 import pytest
 
 from gateway.protocols.df1.address import FileType
+from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import ACK_SYMBOL, EOT_SYMBOL, Checksum, NeedData, encode_frame, encode_poll
 from gateway.protocols.df1.half_duplex import HalfDuplexMaster, LineConfig, StationConfig
 from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions
-from gateway.protocols.df1.link import Df1Link
 from gateway.protocols.df1.pccc import (
     PcccHeader,
     ProtectedTypedLogicalRead,
@@ -91,7 +91,7 @@ def test_read_backs_follow_the_one_rule() -> None:
 
 def full_duplex(behaviour: Behaviour) -> tuple[TransactionEvent, int]:
     """Df1Transactions with its defaults, CRC, against ``behaviour``; the clock moves to each deadline."""
-    core = Df1Transactions(Df1Link(checksum=Checksum.CRC), station=1, first_tns=0x100)
+    core = Df1Transactions(Df1DataLink(checksum=Checksum.CRC), station=1, first_tns=0x100)
     now = 0.0
     core.start(WRITE, now, write=True)
     for _ in range(1000):

@@ -67,10 +67,10 @@ from gateway.protocols.df1.half_duplex import (
     StationRestored,
     StrayReply,
 )
-from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions, PcccCommand
+from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions, PcccRequestLike
 from gateway.protocols.df1.pccc import DiagnosticStatus, DiagnosticStatusInfo, PcccReply
 from gateway.protocols.df1.pccc import is_write as pccc_is_write
-from gateway.protocols.df1.slave_messages import RegisterTable, Verdict, answer_slave_message
+from gateway.protocols.df1.slave_messages import RegisterTable, SlaveMessageVerdict, answer_slave_message
 from gateway.protocols.df1.transaction import (
     OutcomeUnknown,
     TransactionDone,
@@ -81,7 +81,7 @@ from gateway.protocols.df1.transaction import (
 from gateway.protocols.df1.write_verdict import DEFAULT_RETRIES
 from gateway.transport import SerialSettings, enable_rs485, modem_lines, open_stream
 
-__all__ = ["RTS_MODES", "Df1HalfDuplexLine", "Df1Station", "PcccCommand", "StationTotals"]
+__all__ = ["RTS_MODES", "Df1HalfDuplexLine", "Df1Station", "PcccRequestLike", "StationTotals"]
 
 #: ``rts``: ``toggle`` (the core keys RTS around each transmission), ``rs485`` (the kernel's RS-485
 #: mode does), ``on`` / ``off`` (held; a full-duplex modem, a 4-wire converter).
@@ -215,7 +215,7 @@ class Df1Station:
 
     # --- requests ---------------------------------------------------------------------------
 
-    async def execute(self, request: PcccCommand, name: str = "", *, write: bool | None = None) -> PcccReply:
+    async def execute(self, request: PcccRequestLike, name: str = "", *, write: bool | None = None) -> PcccReply:
         """Send ``request`` to this station and return the (successful) reply (module docstring)."""
         label = name or type(request).__name__
         is_write = pccc_is_write(request) if write is None else write
@@ -226,7 +226,7 @@ class Df1Station:
         task.add_done_callback(_observe)
         return await asyncio.shield(task)
 
-    async def _run(self, request: PcccCommand, label: str, is_write: bool) -> PcccReply:
+    async def _run(self, request: PcccRequestLike, label: str, is_write: bool) -> PcccReply:
         """One transaction; the sans-I/O layer gives its verdict, this turns it into a result."""
         event = await self.line.transact(self, request, is_write)
         match event:
@@ -514,7 +514,7 @@ class Df1HalfDuplexLine(LinkDriver):
         totals.slave_messages += 1
         table = self.register_tables.get(event.station)
         verdict, reply = answer_slave_message(event.message, own_station=self.source, table=table, now=now)
-        if verdict is Verdict.STORED:
+        if verdict is SlaveMessageVerdict.STORED:
             totals.slave_writes += 1
         elif reply is not None:
             totals.slave_refused += 1
@@ -542,7 +542,7 @@ class Df1HalfDuplexLine(LinkDriver):
 
     # --- requests ---------------------------------------------------------------------------
 
-    async def transact(self, handle: Df1Station, request: PcccCommand, write: bool) -> TransactionEvent:
+    async def transact(self, handle: Df1Station, request: PcccRequestLike, write: bool) -> TransactionEvent:
         """Run one transaction for ``handle``'s station; its verdict event."""
         txns = self.txns
         if self.core is None or not self.connected:

@@ -119,7 +119,7 @@ def split_output(data: bytes, checksum: Checksum) -> list[bytes]:
     tokens: list[bytes] = []
     i = 0
     while i < len(data):
-        if data[i] != Symbol.DLE or i + 1 >= len(data):  # cannot happen with Df1Link output; keep it whole
+        if data[i] != Symbol.DLE or i + 1 >= len(data):  # cannot happen with Df1DataLink output; keep it whole
             tokens.append(data[i:])
             break
         if data[i + 1] != Symbol.STX:

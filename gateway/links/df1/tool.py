@@ -29,7 +29,7 @@ from typing import Any, Protocol
 from gateway.config.df1 import DF1_DEFAULTS
 from gateway.drivers.base import OpenStream
 from gateway.drivers.df1 import Df1Driver
-from gateway.drivers.df1_half import Df1HalfDuplexLine, PcccCommand
+from gateway.drivers.df1_half import Df1HalfDuplexLine, PcccRequestLike
 from gateway.errors import InvalidRequest, LinkTimeout
 from gateway.links.df1.unit import PROCESSORS
 from gateway.links.kind import ToolHints
@@ -137,7 +137,7 @@ def decode_plc5_value(address: Plc5Address, data: bytes) -> Any:
     return words[0] - 0x10000 if signed and words[0] & 0x8000 else words[0]
 
 
-def encode_plc5_write(address: Plc5Address, text: str) -> PcccCommand:
+def encode_plc5_write(address: Plc5Address, text: str) -> PcccRequestLike:
     """The PLC-5 command that writes ``text`` to ``address``: word range write, or RMW for a bit."""
     if address.bit is not None:
         try:
@@ -166,7 +166,7 @@ def encode_plc5_write(address: Plc5Address, text: str) -> PcccCommand:
 @dataclass(frozen=True, slots=True)
 class _Read:
     text: str
-    request: PcccCommand
+    request: PcccRequestLike
     decode: Callable[[bytes], Any]
 
 
@@ -174,7 +174,7 @@ class _Read:
 class _Write:
     text: str
     value: str
-    request: PcccCommand
+    request: PcccRequestLike
 
 
 def _read_item(text: str, plc5: bool) -> _Read:

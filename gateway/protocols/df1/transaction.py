@@ -1,4 +1,4 @@
-"""DF1 application layer: one PCCC transaction at a time over a :class:`Df1Link`, sans-I/O.
+"""DF1 application layer: one PCCC transaction at a time over a :class:`Df1DataLink`, sans-I/O.
 
 What it owns: the TNS of each command, matching replies (``pccc.reply_matches``: same TNS,
 CMD | 0x40; DST / SRC not compared), retries, and the exactly-once verdict of
@@ -23,7 +23,7 @@ The rules, under every reading of the manuals in docs/controller-variants.md:
   reply) the core reads the target back (protected typed logical read of the same bytes) at most
   ``retries + 1`` times; a late reply to the write itself during the read-back settles it.
 * A reply that arrives before the frame's DLE ACK completes the frame at the link
-  (:meth:`Df1Link.confirm`), so it is never retransmitted after its answer is in.
+  (:meth:`Df1DataLink.confirm`), so it is never retransmitted after its answer is in.
 
 States and transitions (:data:`_TRANSITIONS`; inputs are classified before the look-up)::
 
@@ -38,7 +38,7 @@ States and transitions (:data:`_TRANSITIONS`; inputs are classified before the l
 
 Usage (the caller owns the port and the clock; one transaction at a time)::
 
-    tx = Df1Transactions(Df1Link(...), station=1, source=0, reply_timeout=1.0, first_tns=tns)
+    tx = Df1Transactions(Df1DataLink(...), station=1, source=0, reply_timeout=1.0, first_tns=tns)
     handle = tx.start(request, now, write=True)
     port.write(tx.data_to_send()); tx.receive_data(port.read(), now); tx.handle_timeout(now)
     while (event := tx.next_event()) is not NEED_DATA: ...
@@ -54,8 +54,8 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from gateway.errors import InvalidRequest, format_seconds
+from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed, SendFailure
 from gateway.protocols.df1.framing import NEED_DATA, NeedData
-from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete, SendFailed, SendFailure
 from gateway.protocols.df1.pccc import (
     PcccFormatError,
     PcccHeader,
@@ -72,7 +72,7 @@ from gateway.protocols.df1.write_verdict import (
     SendReadBack,
     Verdict,
     VerdictKind,
-    WriteStep,
+    VerdictStep,
     WriteVerdict,
     read_back_for,
 )
@@ -243,7 +243,7 @@ class Df1Transactions:
 
     def __init__(
         self,
-        link: Df1Link,
+        link: Df1DataLink,
         *,
         station: int,
         source: int = 0,
@@ -281,9 +281,8 @@ class Df1Transactions:
     def state(self) -> TxnState:
         return self._state
 
-    @property
-    def next_tns(self) -> int:
-        """A TNS to start a successor with (a new link after a reconnect)."""
+    def allocate_tns(self) -> int:
+        """Allocate a TNS to start a successor with (a new data link after a reconnect)."""
         return self._tns.allocate()
 
     def start(self, request: Request, now: float, *, write: bool) -> int:
@@ -431,7 +430,7 @@ class Df1Transactions:
                 assert reply is not None and verdict is not None
                 self._follow(txn, verdict.read_back_reply(reply, now), now)
 
-    def _follow(self, txn: _Txn, step: WriteStep, now: float) -> None:
+    def _follow(self, txn: _Txn, step: VerdictStep, now: float) -> None:
         """Carry out the verdict's step: a read-back to send, or the verdict as an event."""
         match step:
             case None:

@@ -59,8 +59,8 @@ __all__ = [
     "Verdict",
     "VerdictKind",
     "VerdictState",
+    "VerdictStep",
     "WriteInput",
-    "WriteStep",
     "WriteVerdict",
     "read_back_for",
     "read_back_tries",
@@ -154,7 +154,7 @@ class SendReadBack:
 
 
 #: What to do after an input: send a read-back, the verdict, or None (the input changed nothing).
-WriteStep = SendReadBack | Verdict | None
+VerdictStep = SendReadBack | Verdict | None
 
 
 # ---------------------------------------------------------------------------------------- table
@@ -237,29 +237,29 @@ class WriteVerdict:
     def settled(self) -> bool:
         return self._state is VerdictState.SETTLED
 
-    def reply(self, reply: PcccReply, now: float) -> WriteStep:
+    def reply(self, reply: PcccReply, now: float) -> VerdictStep:
         """The write's own reply (matched by the caller), in time or late."""
         return self._input(WriteInput.REPLY, now, reply=reply)
 
-    def lost(self, why: str, now: float, *, may_have_executed: bool = True) -> WriteStep:
+    def lost(self, why: str, now: float, *, may_have_executed: bool = True) -> VerdictStep:
         """No answer to the write; ``may_have_executed`` False: it never reached the controller."""
         self._why = why
         return self._input(WriteInput.LOST if may_have_executed else WriteInput.NEVER_ARRIVED, now)
 
-    def read_back_reply(self, reply: PcccReply, now: float) -> WriteStep:
+    def read_back_reply(self, reply: PcccReply, now: float) -> VerdictStep:
         return self._input(WriteInput.READ_BACK_REPLY, now, reply=reply)
 
-    def read_back_lost(self, why: str, now: float) -> WriteStep:
+    def read_back_lost(self, why: str, now: float) -> VerdictStep:
         self._why = why
         return self._input(WriteInput.READ_BACK_LOST, now)
 
-    def abandon(self, why: str, now: float) -> WriteStep:
+    def abandon(self, why: str, now: float) -> VerdictStep:
         self._why = why
         return self._input(WriteInput.ABANDONED, now)
 
     # ------------------------------------------------------------------------------- internals
 
-    def _input(self, what: WriteInput, now: float, *, reply: PcccReply | None = None) -> WriteStep:
+    def _input(self, what: WriteInput, now: float, *, reply: PcccReply | None = None) -> VerdictStep:
         entry = _TRANSITIONS.get((self._state, what))
         if entry is None:
             return None

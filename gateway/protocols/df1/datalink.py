@@ -1,4 +1,4 @@
-"""DF1 full-duplex link layer: one transmitter and one receiver working at the same time.
+"""DF1 full-duplex data-link layer: one transmitter and one receiver working at the same time.
 
 Manual: "S4516-DF1 Program Development Manual" §2.4 *How the Transmitter Operates*,
 §2.5 *How the Receiver Operates* (after A-B 1770-6.5.16, chapter 2, full-duplex protocol).
@@ -35,7 +35,7 @@ sent with ``idempotent=True`` (reads) are retransmitted on DLE NAK as §2.4 desc
 
 Once a frame has been ACKed the link reports :class:`SendComplete` and never sends it again.
 A DLE ACK / DLE NAK that arrives while the current frame has not yet been taken by
-:meth:`Df1Link.data_to_send` answers an older frame (for instance the second ACK of a duplicated
+:meth:`Df1DataLink.data_to_send` answers an older frame (for instance the second ACK of a duplicated
 frame) and is ignored, so it cannot complete a frame the peer never saw.
 Known limit of the protocol: if a whole frame is lost and the peer answers our ENQ with the ACK
 of the previous frame, the frame is reported complete although it never arrived; the
@@ -45,7 +45,7 @@ frame, so its last response becomes DLE NAK.
 
 Usage (the caller owns the port and the clock)::
 
-    link = Df1Link(checksum=Checksum.CRC, ack_timeout=0.2)
+    link = Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.2)
     handle = link.send(packet, now)
     port.write(link.data_to_send())
     link.receive_data(port.read(), now)
@@ -83,10 +83,10 @@ from gateway.protocols.df1.framing.decoder import FrameDecoder
 
 __all__ = [
     "BadFrameAnswer",
-    "Df1Link",
+    "DataLinkCounters",
+    "DataLinkEvent",
+    "Df1DataLink",
     "EnqAnswer",
-    "LinkCounters",
-    "LinkEvent",
     "MessageReceived",
     "SendComplete",
     "SendFailed",
@@ -144,11 +144,11 @@ class SendFailed:
     reason: SendFailure
 
 
-LinkEvent = MessageReceived | SendComplete | SendFailed
+DataLinkEvent = MessageReceived | SendComplete | SendFailed
 
 
 @dataclass(slots=True)
-class LinkCounters:
+class DataLinkCounters:
     """Link statistics, as in the DF1 full-duplex diagnostic counters (notes §7.7)."""
 
     frames_sent: int = 0  #: every frame written, retransmissions included
@@ -229,8 +229,8 @@ _TX_TRANSITIONS: Final[dict[tuple[TxState, _TxInput], tuple[_TxAction, TxState]]
 # ----------------------------------------------------------------------------------------- link
 
 
-class Df1Link:
-    """Sans-I/O DF1 full-duplex link: frames and ACK/NAK/ENQ in, events and bytes out."""
+class Df1DataLink:
+    """Sans-I/O DF1 full-duplex data-link layer: frames and ACK/NAK/ENQ in, events and bytes out."""
 
     def __init__(
         self,
@@ -264,9 +264,9 @@ class Df1Link:
         self.min_ack_timeout: Final = min(min_ack_timeout, ack_timeout)
         self._ack_times: deque[float] = deque(maxlen=32)
         self._sent_at = 0.0
-        self.counters = LinkCounters()
+        self.counters = DataLinkCounters()
         self._decoder = FrameDecoder(checksum, max_message=max_message)
-        self._events: deque[LinkEvent] = deque()
+        self._events: deque[DataLinkEvent] = deque()
         self._out = bytearray()
         # receiver
         self._last_response = NAK_SYMBOL
@@ -355,7 +355,7 @@ class Df1Link:
                     else:
                         self._respond(self._last_response)
 
-    def next_event(self) -> LinkEvent | NeedData:
+    def next_event(self) -> DataLinkEvent | NeedData:
         """The next :class:`MessageReceived`, :class:`SendComplete`, :class:`SendFailed` or NEED_DATA."""
         if self._events:
             return self._events.popleft()
