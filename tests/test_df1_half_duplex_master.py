@@ -115,7 +115,7 @@ def test_command_ack_poll_reply_ack_poll_eot(mode: str, checksum: Checksum) -> N
 @pytest.mark.parametrize("mode", MODES)
 def test_unacknowledged_message_is_resent_identically_then_fails(mode: str) -> None:
     """KF2 Fig. 4.18: no ACK -> the same frame again (same TNS); after the retries, NO_ACK."""
-    master = make(1, line={"ack_timeout": 0.5, "message_retries": 2}, poll_interval=100.0, retries=10)
+    master = make(1, line={"ack_timeout": 0.5, "message_resends": 2}, poll_interval=100.0, demote_after=10)
     master.data_to_send()
     feed(master, EOT_SYMBOL, 0.0, mode)
     cmd = command(1, 7)
@@ -129,12 +129,12 @@ def test_unacknowledged_message_is_resent_identically_then_fails(mode: str) -> N
     assert master.data_to_send() == frame
     master.handle_timeout(1.1)
     assert events(master) == [RequestFailed(request, 1, FailReason.NO_ACK, may_have_executed=True)]
-    assert master.counters(1).retries == 2
+    assert master.counters(1).resends == 2
 
 
 def test_dead_station_is_demoted_fails_fast_and_comes_back_on_slow_poll() -> None:
     """KA p. 11-9: remove a silent slave from the active list, poll it occasionally (§5 rows 10, 11)."""
-    master = make(2, poll_timeout=0.2, retries=3, poll_interval=1.0, slow_poll_interval=30.0)
+    master = make(2, poll_timeout=0.2, demote_after=3, poll_interval=1.0, slow_poll_interval=30.0)
     now = 0.0
     for _ in range(3):
         assert master.data_to_send() == encode_poll(2)
@@ -156,7 +156,7 @@ def test_dead_station_is_demoted_fails_fast_and_comes_back_on_slow_poll() -> Non
 def test_demoted_station_is_slow_polled_even_while_the_others_always_have_commands() -> None:
     """A demoted station's slow poll takes its turn in the round robin: queued commands of busy
     stations (a gateway polling continuously) must not starve it, or it is never restored."""
-    master = make(1, 2, line={"ack_timeout": 0.1}, poll_timeout=0.1, retries=3, poll_interval=100.0,
+    master = make(1, 2, line={"ack_timeout": 0.1}, poll_timeout=0.1, demote_after=3, poll_interval=100.0,
                   slow_poll_interval=2.0)
     slave = HalfDuplexSlave(1, Checksum.BCC, lambda cmd: reply_to(cmd, b"\x00\x00"))  # station 2 is absent
     tns = itertools.count(1)
@@ -492,7 +492,7 @@ def test_noisy_line_exactly_once_and_right_station(
     slaves = [HalfDuplexSlave(n, checksum, plcs[n], variant) for n in (1, 2, 3)]
     for slave in slaves:  # a slow CPU: the reply is ready only after ``busy_polls`` more polls (§5 row 5)
         slave.handler = slow(slave, plcs[slave.station], busy_polls)
-    master = make(1, 2, 3, 4, checksum=checksum, poll_timeout=0.05, poll_interval=0.5, retries=4)
+    master = make(1, 2, 3, 4, checksum=checksum, poll_timeout=0.05, poll_interval=0.5, demote_after=4)
     rng = random.Random(seed)
     requests: dict[int, tuple[int, bytes]] = {}
     for index in range(12):
@@ -546,7 +546,7 @@ def test_a_silent_station_does_not_fail_the_replies_of_the_others() -> None:
     take the line, station 1's reply deadline passes: its reply is still collected by a poll (the
     deadline only makes that poll due), the copies to station 2 are interleaved with other
     stations' polls, and every copy without its ACK counts towards demoting station 2."""
-    master = make(1, 2, poll_interval=100.0, reply_timeout=0.6, poll_timeout=0.5, retries=5)
+    master = make(1, 2, poll_interval=100.0, reply_timeout=0.6, poll_timeout=0.5, demote_after=5)
     now = 0.0
     cmd1, cmd2 = command(1, 10), command(2, 11)
     first = master.submit(1, cmd1, now)
@@ -641,7 +641,7 @@ def test_writes_hold_other_work_back_at_most_write_precedence() -> None:
 def test_an_unacknowledged_copy_waits_for_a_write_at_another_station() -> None:
     """A read's master message without its ACK: while a write waits at another station, the write
     goes first and the identical copy follows (the other station's frames do not reach this slave)."""
-    master = make(1, 2, poll_interval=10.0, retries=5)
+    master = make(1, 2, poll_interval=10.0, demote_after=5)
     after_start_polls(master)
     read2 = command(2, 0x40)
     master.submit(2, read2, 0.0)

@@ -119,7 +119,7 @@ def test_everything_else_gets_the_manuals_error(
 
 
 def make(*stations: int, checksum: Checksum = Checksum.BCC) -> HalfDuplexMaster:
-    master = HalfDuplexMaster(LineConfig(checksum, ack_timeout=0.5, message_retries=1),
+    master = HalfDuplexMaster(LineConfig(checksum, ack_timeout=0.5, message_resends=1),
                               [replace(StationConfig(s), poll_interval=100.0) for s in stations])
     master.start(0.0)
     return master

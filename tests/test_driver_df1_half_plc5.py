@@ -33,7 +33,7 @@ def make_line(line: MultidropLine, numbers: tuple[int, ...], **kwargs: Any) -> D
     async def opener(url: str, settings: object, **_: object) -> ByteStream:
         return SimStream(line)
 
-    configs = [StationConfig(n, poll_timeout=0.05, reply_timeout=1.0, retries=3, poll_interval=0.2,
+    configs = [StationConfig(n, poll_timeout=0.05, reply_timeout=1.0, demote_after=3, poll_interval=0.2,
                              slow_poll_interval=2.0) for n in numbers]
     return Df1HalfDuplexLine("sim://line", configs, name="line", checksum=line.options.checksum, ack_timeout=0.05,
                              message_retries=3, retries=3, opener=opener, first_tns=1, **kwargs)

@@ -85,10 +85,10 @@ class Harness:
 
 
 def core_for(stations: tuple[int, ...], checksum: Checksum, **line: object) -> HalfDuplexMaster:
-    config = LineConfig(checksum, ack_timeout=0.2, message_retries=4, **line)  # type: ignore[arg-type]
+    config = LineConfig(checksum, ack_timeout=0.2, message_resends=4, **line)  # type: ignore[arg-type]
     return HalfDuplexMaster(
         config,
-        [StationConfig(s, poll_timeout=0.2, reply_timeout=5.0, retries=3, poll_interval=0.5) for s in stations],
+        [StationConfig(s, poll_timeout=0.2, reply_timeout=5.0, demote_after=3, poll_interval=0.5) for s in stations],
     )
 
 

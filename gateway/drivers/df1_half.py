@@ -171,6 +171,7 @@ class Df1Station:
         first reply).  Counters are totals since the line was created (reconnects included).
         """
         values: dict[str, float] = {f.name: getattr(self.totals, f.name) for f in fields(StationTotals)}
+        values["retries"] = values.pop("resends")  # the metric keeps its published name
         core = self.line.core
         values["active"] = 1.0 if core is not None and core.is_active(self.station) else 0.0
         age = self.data_age(now)
@@ -383,7 +384,7 @@ class Df1HalfDuplexLine(LinkDriver):
         return LineConfig(
             self.checksum,
             ack_timeout=self.ack_timeout,
-            message_retries=self.message_retries,
+            message_resends=self.message_retries,
             char_time=self.char_time,
             pre_transmit_delay=self.pre_transmit_delay,
             rts_send_delay=self.rts_send_delay,

@@ -97,7 +97,7 @@ def station_config(link: Df1LinkConfig) -> StationConfig:
         reply_timeout=link.timeout,
         reply_wait=link.reply_wait,
         max_polls=link.max_polls,
-        retries=link.demote_after,
+        demote_after=link.demote_after,
         poll_interval=link.poll_interval,
         slow_poll_interval=link.slow_poll_interval,
     )

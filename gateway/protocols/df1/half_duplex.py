@@ -9,7 +9,7 @@ What the core does
 * A command (a PCCC packet ``DST SRC CMD STS TNS ...``) submitted for a station is sent as a master
   message ``DLE SOH STN DLE STX ... DLE ETX check``; without a ``DLE ACK`` within the ACK timeout the
   *identical* bytes are sent again (same TNS, so a slave with duplicate detection executes it once),
-  at most ``message_retries`` times.
+  at most ``message_resends`` times.
 * After the ACK the master waits ``reply_wait`` and polls the station (``DLE ENQ STN BCC``) until
   the reply comes: a slave message of the polled station that ``pccc.reply_matches`` the command
   (same TNS, CMD + 40 hex; DST / SRC are not compared, see there).  Each ``DLE EOT`` counts one
@@ -26,7 +26,7 @@ What the core does
   master's global link reset, Table 2.C) and the station is polled again (KA Figure 11.8).
 * Between commands every station is polled every ``poll_interval`` for the messages it initiates.
   An answerless poll, or a master message without its DLE ACK (each copy sent), is one failure;
-  ``retries`` failures in a row (no answer of any kind between them) demote a station: its
+  ``demote_after`` failures in a row (no answer of any kind between them) demote a station: its
   requests fail at once and it is polled every ``slow_poll_interval`` until it answers (Kepware's
   auto-demotion; KA p. 11-9 "poll the inactive slaves occasionally").
 * Writes first: a command submitted ``urgent`` (a write, or its read-back) is queued ahead of its
@@ -409,8 +409,8 @@ class HalfDuplexMaster:
 
     def _resend_or_fail(self, request: _Request, now: float) -> None:
         station = self._stations[request.station]
-        if request.sends <= self.line.message_retries:
-            station.counters.retries += 1
+        if request.sends <= self.line.message_resends:
+            station.counters.resends += 1
             if not request.urgent and self._urgent_waiting(now, besides=request.station):
                 # A write waits at another station: it goes first, this copy at the station's next
                 # turn.  Other stations' frames do not reach this slave, so its duplicate detection
@@ -495,7 +495,7 @@ class HalfDuplexMaster:
 
     def _failed(self, station: _Station, now: float) -> None:
         station.failures += 1
-        if station.active and station.failures >= station.config.retries:
+        if station.active and station.failures >= station.config.demote_after:
             station.active = False
             station.next_poll_at = now + station.config.slow_poll_interval
             station.counters.demotions += 1
