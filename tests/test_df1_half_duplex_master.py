@@ -20,17 +20,16 @@ from gateway.protocols.df1.framing import (
     ACK_SYMBOL,
     EOT_SYMBOL,
     NAK_SYMBOL,
+    NEED_DATA,
     Checksum,
     encode_frame,
     encode_master_message,
     encode_poll,
 )
-from gateway.protocols.df1.half_duplex import (
-    NEED_DATA,
+from gateway.protocols.df1.half_duplex import HalfDuplexMaster, LineState
+from gateway.protocols.df1.half_duplex_events import (
     FailReason,
-    HalfDuplexMaster,
     LineConfig,
-    LineState,
     MasterEvent,
     ReplyReceived,
     RequestFailed,

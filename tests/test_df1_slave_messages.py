@@ -25,9 +25,9 @@ from gateway.protocols.df1.framing import (
     encode_master_message,
     encode_poll,
 )
-from gateway.protocols.df1.half_duplex import (
+from gateway.protocols.df1.half_duplex import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex_events import (
     FailReason,
-    HalfDuplexMaster,
     LineConfig,
     MessageDelivered,
     RequestFailed,

@@ -15,7 +15,8 @@ import pytest
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import ACK_SYMBOL, EOT_SYMBOL, Checksum, NeedData, encode_frame, encode_poll
-from gateway.protocols.df1.half_duplex import HalfDuplexMaster, LineConfig, StationConfig
+from gateway.protocols.df1.half_duplex import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex_events import LineConfig, StationConfig
 from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions
 from gateway.protocols.df1.pccc import (
     PcccHeader,

@@ -17,7 +17,7 @@ from gateway.drivers.df1_half import Df1HalfDuplexLine, Df1Station
 from gateway.errors import LinkTimeout
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex import StationConfig
+from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import (
     PcccError,
     ProtectedTypedLogicalMaskedWrite,

@@ -19,7 +19,7 @@ from gateway.links.df1.plan import MapItem
 from gateway.links.df1.plc5_unit import Plc5Unit
 from gateway.modbus.mapping import Table
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex import StationConfig
+from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeRead
 from gateway.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.sim.plc5 import Plc5Simulator

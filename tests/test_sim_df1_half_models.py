@@ -6,7 +6,7 @@ import pytest
 
 from gateway.drivers.df1_half import Df1HalfDuplexLine
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex import StationConfig
+from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeRead
 from gateway.sim.df1_half_models import create_half_duplex_model, self_paced
 from gateway.sim.df1_multidrop import MultidropLine

@@ -8,10 +8,9 @@ import itertools
 import pytest
 
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.framing import EOT_SYMBOL, Checksum, encode_poll
-from gateway.protocols.df1.half_duplex import (
-    NEED_DATA,
-    HalfDuplexMaster,
+from gateway.protocols.df1.framing import EOT_SYMBOL, NEED_DATA, Checksum, encode_poll
+from gateway.protocols.df1.half_duplex import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex_events import (
     LineConfig,
     MasterEvent,
     ReplyReceived,

@@ -24,7 +24,7 @@ from gateway.errors import GatewayError, LinkDown, LinkTimeout
 from gateway.links import link_kind
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex import StationConfig
+from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead
 from gateway.sim import get_simulator, open_sim_stream, parse_sim_url, reset_simulators, variants_of
 from gateway.sim.df1_multidrop import MultidropLine

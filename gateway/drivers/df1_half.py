@@ -51,11 +51,10 @@ from typing import Final
 from gateway.drivers.base import LinkCounters, LinkDriver, OpenStream
 from gateway.drivers.df1 import DF1_SETTINGS, WriteOutcomeUnknown
 from gateway.errors import GatewayError, LinkDown, LinkTimeout
-from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex import (
-    NEED_DATA,
+from gateway.protocols.df1.framing import NEED_DATA, Checksum
+from gateway.protocols.df1.half_duplex import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex_events import (
     FailReason,
-    HalfDuplexMaster,
     LineConfig,
     MasterEvent,
     MessageDelivered,

@@ -28,7 +28,7 @@ from gateway.links.df1.unit import PROCESSORS, Df1Unit, PcccDriver, PcccUnit
 from gateway.links.kind import Built, LinkRunner, PointLabels, unit_options
 from gateway.modbus.mapping import Plan, Table
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex import StationConfig
+from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import ProcessorFamily
 from gateway.protocols.df1.slave_messages import RegisterTable
 

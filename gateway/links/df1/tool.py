@@ -35,7 +35,7 @@ from gateway.links.df1.unit import PROCESSORS
 from gateway.links.kind import ToolHints
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex import StationConfig
+from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import (
     DiagnosticStatusInfo,
     PcccReply,

@@ -26,15 +26,9 @@ from collections import deque
 from dataclasses import dataclass
 from typing import ClassVar, Protocol
 
-from gateway.protocols.df1.framing import NeedData
-from gateway.protocols.df1.half_duplex import (
-    NEED_DATA,
-    FailReason,
-    HalfDuplexMaster,
-    MasterEvent,
-    ReplyReceived,
-    RequestFailed,
-)
+from gateway.protocols.df1.framing import NEED_DATA, NeedData
+from gateway.protocols.df1.half_duplex import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex_events import FailReason, MasterEvent, ReplyReceived, RequestFailed
 from gateway.protocols.df1.pccc import PcccFormatError, PcccHeader, PcccReply, TnsAllocator, decode_reply
 from gateway.protocols.df1.transaction import (
     OutcomeUnknown,
