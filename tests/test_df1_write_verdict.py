@@ -33,11 +33,11 @@ from gateway.protocols.df1.transaction import (
     TransactionEvent,
 )
 from gateway.protocols.df1.write_verdict import (
-    _IGNORED,
-    _TRANSITIONS,
     DEFAULT_RETRIES,
+    TRANSITIONS,
     SendReadBack,
     Verdict,
+    VerdictAction,
     VerdictKind,
     VerdictState,
     WriteInput,
@@ -70,8 +70,11 @@ def reply_lost_read_back_differs(request: object) -> str | bytes:
 
 def test_every_state_and_input_is_a_transition_or_listed_as_ignored() -> None:
     pairs = {(state, what) for state in VerdictState for what in WriteInput}
-    assert set(_TRANSITIONS) | set(_IGNORED) == pairs
-    assert not set(_TRANSITIONS) & set(_IGNORED)
+    assert set(TRANSITIONS) == pairs
+    ignored = {pair for pair, entry in TRANSITIONS.items() if entry.action is VerdictAction.IGNORE}
+    assert all(TRANSITIONS[pair].next_state is pair[0] for pair in ignored)
+    assert all(entry.next_state is VerdictState.SETTLED for pair, entry in TRANSITIONS.items()
+               if entry.action not in (VerdictAction.IGNORE, VerdictAction.READ_BACK))
 
 
 def test_read_backs_follow_the_one_rule() -> None:
