@@ -76,7 +76,7 @@ from gateway.protocols.df1.half_duplex_schedule import (
     LineStations,
     MasterRequest,
     PollStation,
-    StationState,
+    StationRecord,
 )
 from gateway.protocols.df1.half_duplex_transmitter import HalfDuplexTransmitter
 from gateway.protocols.df1.transitions import Transition, require_complete
@@ -441,7 +441,7 @@ class HalfDuplexMaster:
 
     # ------------------------------------------------------------------------------ helpers
 
-    def _polled(self) -> StationState:
+    def _polled(self) -> StationRecord:
         assert self._current is not None
         return self._stations[self._current]
 
@@ -451,12 +451,12 @@ class HalfDuplexMaster:
         self._request = None
         return request
 
-    def _answered(self, station: StationState) -> None:
+    def _answered(self, station: StationRecord) -> None:
         restored = station.answered()
         if restored is not None:
             self._events.append(restored)
 
-    def _failed(self, station: StationState, now: float) -> None:
+    def _failed(self, station: StationRecord, now: float) -> None:
         events = station.failed(now)
         if events:  # demoted: its turn ends
             self._scheduler.poll_again = False

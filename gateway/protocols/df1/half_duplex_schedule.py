@@ -2,7 +2,7 @@
 
 The master core (``half_duplex.py``) owns the line: bytes, timers, its transition table.  This
 module owns what it knows of each station - its queued and awaiting requests, whether it answers
-(demotion), what a message it sends means (:meth:`StationState.received`) - and decides, each time
+(demotion), what a message it sends means (:meth:`StationRecord.received`) - and decides, each time
 the line is free, which exchange comes next (:meth:`ExchangeScheduler.next_exchange`).  Manuals:
 1770-6.5.16 chapter 3; 1775-KA p. 11-9; AG-UM008 Figure 1.2; the reading is in
 ``docs/df1-half-duplex-notes.md``.
@@ -55,7 +55,7 @@ __all__ = [
     "MasterRequest",
     "PollStation",
     "SendRequest",
-    "StationState",
+    "StationRecord",
 ]
 
 #: The first six bytes of a message (DST SRC CMD STS TNS): a PCCC header, and what identifies it.
@@ -80,7 +80,7 @@ class MasterRequest:
 
 
 @dataclass(slots=True)
-class StationState:
+class StationRecord:
     """What the master knows of one station."""
 
     config: StationConfig
@@ -171,15 +171,15 @@ class LineStations:
         if not configs:
             raise ValueError("a half-duplex line needs at least one station")
         self.order: Final = numbers
-        self._by_number: Final = {s.station: StationState(s) for s in configs}
+        self._by_number: Final = {s.station: StationRecord(s) for s in configs}
 
-    def __getitem__(self, number: int) -> StationState:
+    def __getitem__(self, number: int) -> StationRecord:
         return self._by_number[number]
 
-    def __iter__(self) -> Iterator[StationState]:
+    def __iter__(self) -> Iterator[StationRecord]:
         return iter(self._by_number.values())
 
-    def target(self, station: int, message: bytes, what: str) -> StationState:
+    def target(self, station: int, message: bytes, what: str) -> StationRecord:
         """The station a packet (``what``) is for; ValueError for a station not on the line or a
         packet without a PCCC header."""
         target = self._by_number.get(station)
@@ -237,11 +237,11 @@ class ExchangeScheduler:
             self.turn_polls = 0
         self.turn_polls += 1
 
-    def rotation(self) -> list[StationState]:
+    def rotation(self) -> list[StationRecord]:
         order = self._order[self._rr :] + self._order[: self._rr]
         return [self._stations[number] for number in order]
 
-    def serve(self, station: StationState) -> None:
+    def serve(self, station: StationRecord) -> None:
         self._rr = (self._order.index(station.number) + 1) % len(self._order)
 
     def held_back(self, now: float) -> bool:
@@ -257,7 +257,7 @@ class ExchangeScheduler:
                 return True
         return False
 
-    def urgent_waiting(self, now: float, besides: int | None = None) -> StationState | None:
+    def urgent_waiting(self, now: float, besides: int | None = None) -> StationRecord | None:
         """The first station (round robin) with a write that can move now: its reply poll is due,
         or it is queued and the station can take it (``max_outstanding``).  None while other work
         has been held back too long (:meth:`held_back`)."""
