@@ -30,10 +30,8 @@ What the core does
 
 Every change of :class:`LineState` is an entry of :data:`TRANSITIONS`: (state, input) -> (action,
 next state); the scheduler picking the next exchange of a free line is the input ``SCHEDULE``.
-
 The driver loop: ``start(now)`` once; then ``receive_data(data, now)``; ``data_to_send()``; set RTS
-from ``rts``; sleep until ``next_deadline()``; ``handle_timeout(now)``; ``next_event()`` until
-``NEED_DATA``.
+from ``rts``; sleep until ``next_deadline()``; ``handle_timeout(now)``; ``next_event()`` until ``NEED_DATA``.
 
 This module does no I/O.
 """
@@ -82,9 +80,6 @@ from gateway.protocols.df1.half_duplex_transmitter import HalfDuplexTransmitter
 from gateway.protocols.df1.transitions import Transition, require_complete
 
 __all__ = ["TRANSITIONS", "HalfDuplexMaster", "LineState", "MasterAction", "MasterInput"]
-
-
-# ------------------------------------------------------------------------------- state machine
 
 
 class LineState(enum.Enum):
@@ -223,10 +218,7 @@ class HalfDuplexMaster:
         ``urgent`` (a write, or the read-back of one): queued ahead of the station's other commands
         and served before other stations' work (:meth:`ExchangeScheduler.next_exchange`)."""
         target = self._stations.target(station, message, "a command packet")
-        tns = message[4:6]
-        current = self._request
-        if self._stations.tns_in_use(tns) or (current is not None and current.expects_reply
-                                              and current.message[4:6] == tns):
+        if self._stations.tns_in_use(tns := message[4:6], self._request):
             raise ValueError(f"TNS {tns.hex()} is already in use on this line; allocate TNS per line")
         request_id = next(self._ids)
         if not target.active:

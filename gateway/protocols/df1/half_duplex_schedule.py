@@ -189,13 +189,15 @@ class LineStations:
             raise ValueError(f"{what} has at least DST SRC CMD STS TNS (6 bytes)")
         return target
 
-    def tns_in_use(self, tns: bytes) -> bool:
-        """A request queued or awaiting its reply has this TNS (``message[4:6]``)."""
-        return any(
+    def tns_in_use(self, tns: bytes, in_flight: MasterRequest | None) -> bool:
+        """A request queued, awaiting its reply or ``in_flight`` has this TNS (``message[4:6]``)."""
+        if any(
             r.expects_reply and r.message[4:6] == tns
             for station in self
             for r in itertools.chain(station.queue, station.awaiting)
-        )
+        ):
+            return True
+        return in_flight is not None and in_flight.expects_reply and in_flight.message[4:6] == tns
 
 
 @dataclass(frozen=True, slots=True)
