@@ -53,7 +53,7 @@ TABLES = [
           write_verdict.VerdictAction, write_verdict.VerdictState.SENT, write_verdict.VerdictAction.IGNORE),
     Table("half_duplex", half_duplex.TRANSITIONS, frozenset(half_duplex.LineState), half_duplex.MasterInput,
           half_duplex.MasterAction, half_duplex.LineState.IDLE, half_duplex.MasterAction.IGNORE),
-    Table("decoder, full duplex", frame_decoder.FULL_DUPLEX_TRANSITIONS, frame_decoder.FULL_DUPLEX_STATES,
+    Table("decoder, full duplex", frame_decoder.FULL_DUPLEX_TRANSITIONS, frozenset(frame_decoder.FullDuplexState),
           frame_decoder.ByteClass, frame_decoder.DecoderAction, frame_decoder.DecoderState.IDLE, None),
     Table("decoder, half duplex", frame_decoder.HALF_DUPLEX_TRANSITIONS, frozenset(frame_decoder.DecoderState),
           frame_decoder.ByteClass, frame_decoder.DecoderAction, frame_decoder.DecoderState.IDLE, None),

@@ -52,13 +52,13 @@ from gateway.protocols.df1.framing import (
 from gateway.protocols.df1.transitions import Transition, require_complete
 
 __all__ = [
-    "FULL_DUPLEX_STATES",
     "FULL_DUPLEX_TRANSITIONS",
     "HALF_DUPLEX_TRANSITIONS",
     "ByteClass",
     "DecoderAction",
     "DecoderState",
     "FrameDecoder",
+    "FullDuplexState",
 ]
 
 
@@ -77,6 +77,22 @@ class DecoderState(enum.IntEnum):
     HEAD_STN_DLE = 9  #: DLE SOH DLE: the second DLE of STN 10 next
     HEAD_DLE = 10  #: DLE SOH STN: DLE next
     HEAD_STX = 11  #: DLE SOH STN DLE: STX next
+
+
+class FullDuplexState(enum.IntEnum):
+    """The states of the full-duplex table: the first five of :class:`DecoderState`.  IntEnum
+    members compare and hash as their values, so each is the :class:`DecoderState` member of its
+    name for the table's keys (checked at import)."""
+
+    IDLE = 0
+    IDLE_DLE = 1
+    DATA = 2
+    DATA_DLE = 3
+    CHECK = 4
+
+
+if any(DecoderState(state).name != state.name for state in FullDuplexState):
+    raise RuntimeError("FullDuplexState must be the first states of DecoderState")
 
 
 class ByteClass(enum.IntEnum):
@@ -125,10 +141,6 @@ class DecoderAction(enum.IntEnum):
 
 S, C, A = DecoderState, ByteClass, DecoderAction
 _Table = dict[tuple[DecoderState, ByteClass], Transition[DecoderAction, DecoderState]]
-
-#: The states of the full-duplex table.
-FULL_DUPLEX_STATES: Final = frozenset({S.IDLE, S.IDLE_DLE, S.DATA, S.DATA_DLE, S.CHECK})
-
 
 def _full_duplex_table() -> _Table:
     T = Transition
@@ -213,7 +225,7 @@ FULL_DUPLEX_TRANSITIONS: Final = _full_duplex_table()
 #: (state, byte class) -> transition, half duplex.
 HALF_DUPLEX_TRANSITIONS: Final = _half_duplex_table(FULL_DUPLEX_TRANSITIONS)
 
-require_complete(FULL_DUPLEX_TRANSITIONS, FULL_DUPLEX_STATES, ByteClass, "full-duplex decoder")
+require_complete(FULL_DUPLEX_TRANSITIONS, map(DecoderState, FullDuplexState), ByteClass, "full-duplex decoder")
 require_complete(HALF_DUPLEX_TRANSITIONS, DecoderState, ByteClass, "half-duplex decoder")
 
 
