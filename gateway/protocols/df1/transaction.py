@@ -2,7 +2,7 @@
 
 What it owns: the TNS of each command, matching replies (``pccc.reply_matches``: same TNS,
 CMD | 0x40; DST / SRC not compared), retries, and the exactly-once verdict of
-a write.  The link below it owns DLE ACK / NAK / ENQ (``link.py``).
+a write.  The data link below it owns DLE ACK / NAK / ENQ (``datalink.py``).
 
 Verdicts (events, one per transaction)::
 
@@ -19,7 +19,7 @@ The rules, under every reading of the manuals in docs/controller-variants.md:
   (at most ``retries`` more times).  A late reply to any of its TNS is still a valid answer.
 * A write is sent once and never resent.  Its verdict - done, refused, read it back, outcome
   unknown - is :class:`~gateway.protocols.df1.write_verdict.WriteVerdict`'s, shared with half
-  duplex: without its reply (no DLE ACK, a DLE NAK - no proof, see ``link.py`` - an ACK but no
+  duplex: without its reply (no DLE ACK, a DLE NAK - no proof, see ``datalink.py`` - an ACK but no
   reply) the core reads the target back (protected typed logical read of the same bytes) at most
   ``retries + 1`` times; a late reply to the write itself during the read-back settles it.
 * A reply that arrives before the frame's DLE ACK completes the frame at the link
