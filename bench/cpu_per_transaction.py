@@ -44,9 +44,9 @@ from gateway.kinds.df1.unit import Df1Unit
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.kinds.slc_ascii.unit import SlcAsciiUnit
 from gateway.modbus.mapping import Block, Scan
+from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived, SendComplete
 from gateway.protocols.df1.framing import NEED_DATA as DF1_NEED_DATA
 from gateway.protocols.df1.framing import Checksum, encode_frame
-from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, decode_reply
 from gateway.protocols.df1.pccc import encode_command as encode_pccc
 from gateway.protocols.slc_ascii import commands as cmds
@@ -186,7 +186,7 @@ def codec_slc(frames: Sequence[bytes], replies: dict[bytes, bytes], blocks: Sequ
 def codec_df1(frames: Sequence[bytes], replies: dict[bytes, bytes], blocks: Sequence[Block]) -> float:
     n = len(frames)
     reply_list = [replies[f] for f in frames]
-    link = Df1Link(checksum=Checksum.CRC)
+    link = Df1DataLink(checksum=Checksum.CRC)
     start = time.process_time()
     for i in range(n):
         packet = encode_pccc(df1_request(blocks[i % len(blocks)]), dst=1, src=0, tns=(i + 1) & 0xFFFF)

@@ -41,9 +41,8 @@ from gateway.errors import GatewayError
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, Df1Station
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.framing import encode_frame
-from gateway.protocols.df1.half_duplex import StationConfig
-from gateway.protocols.df1.half_duplex_framing import ACK, Checksum, encode_master_message, encode_poll
+from gateway.protocols.df1.framing import ACK_SYMBOL, Checksum, encode_frame, encode_master_message, encode_poll
+from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, encode_command
 from gateway.sim.serve import SimStream
 from gateway.streams import SerialSettings
@@ -65,8 +64,8 @@ def exchange_bytes(station: int, checksum: Checksum) -> int:
     """Bytes of one read on a quiet line: command frame, ACK, poll, reply frame, ACK."""
     command = encode_command(READ, dst=station, src=0, tns=0x1234)
     reply = bytes((0, station, 0x4F, 0, 0x34, 0x12)) + bytes(2 * WORDS)
-    return (len(encode_master_message(station, command, checksum)) + len(ACK) + len(encode_poll(station))
-            + len(encode_frame(reply, checksum)) + len(ACK))
+    return (len(encode_master_message(station, command, checksum)) + len(ACK_SYMBOL) + len(encode_poll(station))
+            + len(encode_frame(reply, checksum)) + len(ACK_SYMBOL))
 
 
 async def run_line(stations: int, baud: int, seconds: float, *, dead: bool = False,

@@ -9,7 +9,7 @@ and sets that against what the line itself allows at 19200 baud 8N1.
 Setup: two gateways (``python -m gateway run``, one process each, so the PLC's CPU is not charged
 to them), the same config but for ``persist``.  Each connects to a local TCP port of this script
 (``socket://``), where the PLC is the gateway's own DF1 master cores
-(:class:`~gateway.protocols.df1.link.Df1Link` +
+(:class:`~gateway.protocols.df1.datalink.Df1DataLink` +
 :class:`~gateway.protocols.df1.transaction.Df1Transactions`, as ``sim://plc-msg`` drives them),
 unpaced: the next write goes out in the same write as the DLE ACK of the last reply.  So what is
 measured is the gateway's cost per write (and loopback TCP, and the PLC's own work), not a line's.
@@ -52,9 +52,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
-from gateway.protocols.df1.link import Df1Link
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalWrite
 from gateway.protocols.df1.transaction import Df1Transactions, TransactionDone
+
+try:  # the full-duplex data-link core: datalink.Df1DataLink, or link.Df1Link in a tree without datalink.py
+    from gateway.protocols.df1.datalink import Df1DataLink
+except ImportError:
+    from gateway.protocols.df1.link import Df1Link as Df1DataLink  # type: ignore[no-redef]
 
 GATEWAY_NODE, PLC_NODE = 1, 0
 FILE, ELEMENTS = 7, 100
@@ -150,7 +154,7 @@ class Plc(asyncio.Protocol):
 
     def __init__(self, words: int) -> None:
         self.words = words
-        self.link = Df1Link(checksum=Checksum.CRC, ack_timeout=2.0, min_ack_timeout=2.0)
+        self.link = Df1DataLink(checksum=Checksum.CRC, ack_timeout=2.0, min_ack_timeout=2.0)
         self.core = Df1Transactions(self.link, station=GATEWAY_NODE, source=PLC_NODE, reply_timeout=2.0, retries=2)
         self.core.min_reply_timeout = 2.0  # a slow commit is waited for, not taken as a lost reply
         self.connected: asyncio.Future[None] = asyncio.get_running_loop().create_future()

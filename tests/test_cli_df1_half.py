@@ -23,7 +23,7 @@ from gateway.cli import main
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.kinds.df1.sim.slc500_options import Slc500Options
-from gateway.protocols.df1.half_duplex_framing import Checksum
+from gateway.protocols.df1.framing import Checksum
 from gateway.sim.serve import close_tcp, serve_tcp
 
 HOST = "127.0.0.1"

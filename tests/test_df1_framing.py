@@ -6,6 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from gateway.protocols.df1.checks import bcc, crc16
 from gateway.protocols.df1.framing import (
     ACK_SYMBOL,
     ENQ_SYMBOL,
@@ -18,12 +19,12 @@ from gateway.protocols.df1.framing import (
     DecoderEvent,
     EnqReceived,
     Frame,
-    FrameDecoder,
     NakReceived,
-    bcc,
-    crc16,
     encode_frame,
+    frame_check,
+    master_check,
 )
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 
 # The brief's vector: an SLC 500 protected typed logical read of N7:0, 10 bytes, DST 1, TNS 1.
 VECTOR = bytes.fromhex("01 00 0F 00 01 00 A2 0A 07 89 00 00")
@@ -58,13 +59,14 @@ def test_crc_vector() -> None:
     assert encode_frame(VECTOR, Checksum.CRC)[-2:] == (0xF863).to_bytes(2, "little")
 
 
-def test_one_crc16_for_both_framings() -> None:
-    """One CRC function with one contract (exactly the bytes given) serves both framings."""
-    from gateway.protocols.df1 import half_duplex_framing
-
-    assert half_duplex_framing.crc16 is crc16
-    assert half_duplex_framing.bcc is bcc
+def test_one_check_contract_for_every_frame() -> None:
+    """One CRC function with one contract (exactly the bytes given) serves every frame: a DLE STX
+    frame's check covers the message and ETX, a half-duplex master message's STN STX message ETX."""
     assert crc16(b"\x03", crc16(VECTOR)) == crc16(VECTOR + b"\x03") == 0xF863
+    assert frame_check(VECTOR, Checksum.CRC) == (0xF863).to_bytes(2, "little")
+    assert frame_check(VECTOR, Checksum.BCC) == bytes((bcc(VECTOR),))
+    assert master_check(1, VECTOR, Checksum.CRC) == crc16(b"\x01\x02" + VECTOR + b"\x03").to_bytes(2, "little")
+    assert master_check(1, VECTOR, Checksum.BCC) == bytes((bcc(b"\x01" + VECTOR),))
 
 
 def test_frame_vectors() -> None:

@@ -22,7 +22,7 @@ from gateway.kinds.df1.plc5_unit import Plc5Unit
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.kinds.df1.unit import Df1Unit
 from gateway.modbus.mapping import Table
-from gateway.protocols.df1.half_duplex_framing import Checksum
+from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeWrite, encode_command
 from gateway.sim.serve import close_tcp, serve_tcp
 from gateway.unit import Unit

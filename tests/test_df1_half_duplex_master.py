@@ -17,12 +17,20 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gateway.kinds.df1.sim.df1_half_duplex_slave import VARIANTS, HalfDuplexSlave, SlaveVariant
-from gateway.protocols.df1.half_duplex import (
+from gateway.protocols.df1.framing import (
+    ACK_SYMBOL,
+    EOT_SYMBOL,
+    NAK_SYMBOL,
     NEED_DATA,
+    Checksum,
+    encode_frame,
+    encode_master_message,
+    encode_poll,
+)
+from gateway.protocols.df1.half_duplex import HalfDuplexMaster, LineState
+from gateway.protocols.df1.half_duplex_events import (
     FailReason,
-    HalfDuplexMaster,
     LineConfig,
-    LineState,
     MasterEvent,
     ReplyReceived,
     RequestFailed,
@@ -31,15 +39,6 @@ from gateway.protocols.df1.half_duplex import (
     StationDemoted,
     StationRestored,
     StrayReply,
-)
-from gateway.protocols.df1.half_duplex_framing import (
-    ACK,
-    EOT,
-    NAK,
-    Checksum,
-    encode_master_message,
-    encode_poll,
-    encode_slave_message,
 )
 from gateway.protocols.df1.pccc import PcccHeader, reply_matches
 from gateway.sim.variants import variant_matrix
@@ -94,17 +93,17 @@ def test_command_ack_poll_reply_ack_poll_eot(mode: str, checksum: Checksum) -> N
     """§3: master message, DLE ACK, poll, reply, DLE ACK, poll again until DLE EOT."""
     master = make(5, checksum=checksum, poll_interval=10.0)
     assert master.data_to_send() == encode_poll(5)  # the first background poll
-    feed(master, EOT, 0.0, mode)
+    feed(master, EOT_SYMBOL, 0.0, mode)
     cmd = command(5, 0x1234)
     request = master.submit(5, cmd, 0.1)
     assert master.data_to_send() == encode_master_message(5, cmd, checksum)
-    feed(master, ACK, 0.1, mode)
+    feed(master, ACK_SYMBOL, 0.1, mode)
     assert master.data_to_send() == encode_poll(5)
     answer = reply_to(cmd, b"\xaa\x10\x55")
-    feed(master, encode_slave_message(answer, checksum), 0.2, mode)
-    assert master.data_to_send() == ACK + encode_poll(5)  # ACK, then poll the same station again
+    feed(master, encode_frame(answer, checksum), 0.2, mode)
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(5)  # ACK, then poll the same station again
     assert events(master) == [ReplyReceived(request, 5, answer)]
-    feed(master, EOT + b"\x00\xff\x10", 0.3, mode)  # trailing garbage after the EOT is ignored
+    feed(master, EOT_SYMBOL + b"\x00\xff\x10", 0.3, mode)  # trailing garbage after the EOT is ignored
     assert master.data_to_send() == b""
     assert master.state is LineState.IDLE
     assert master.next_deadline() == pytest.approx(10.2)  # poll_interval after the last poll
@@ -115,9 +114,9 @@ def test_command_ack_poll_reply_ack_poll_eot(mode: str, checksum: Checksum) -> N
 @pytest.mark.parametrize("mode", MODES)
 def test_unacknowledged_message_is_resent_identically_then_fails(mode: str) -> None:
     """KF2 Fig. 4.18: no ACK -> the same frame again (same TNS); after the retries, NO_ACK."""
-    master = make(1, line={"ack_timeout": 0.5, "message_retries": 2}, poll_interval=100.0, retries=10)
+    master = make(1, line={"ack_timeout": 0.5, "message_resends": 2}, poll_interval=100.0, demote_after=10)
     master.data_to_send()
-    feed(master, EOT, 0.0, mode)
+    feed(master, EOT_SYMBOL, 0.0, mode)
     cmd = command(1, 7)
     request = master.submit(1, cmd, 0.0)
     frame = encode_master_message(1, cmd, Checksum.BCC)
@@ -125,16 +124,16 @@ def test_unacknowledged_message_is_resent_identically_then_fails(mode: str) -> N
     assert master.next_deadline() == pytest.approx(0.5)
     master.handle_timeout(0.5)
     assert master.data_to_send() == frame
-    feed(master, NAK, 0.6, mode)  # a NAKing slave (§5 row 1): resend at once
+    feed(master, NAK_SYMBOL, 0.6, mode)  # a NAKing slave (§5 row 1): resend at once
     assert master.data_to_send() == frame
     master.handle_timeout(1.1)
     assert events(master) == [RequestFailed(request, 1, FailReason.NO_ACK, may_have_executed=True)]
-    assert master.counters(1).retries == 2
+    assert master.counters(1).resends == 2
 
 
 def test_dead_station_is_demoted_fails_fast_and_comes_back_on_slow_poll() -> None:
     """KA p. 11-9: remove a silent slave from the active list, poll it occasionally (§5 rows 10, 11)."""
-    master = make(2, poll_timeout=0.2, retries=3, poll_interval=1.0, slow_poll_interval=30.0)
+    master = make(2, poll_timeout=0.2, demote_after=3, poll_interval=1.0, slow_poll_interval=30.0)
     now = 0.0
     for _ in range(3):
         assert master.data_to_send() == encode_poll(2)
@@ -148,7 +147,7 @@ def test_dead_station_is_demoted_fails_fast_and_comes_back_on_slow_poll() -> Non
     assert master.next_deadline() == pytest.approx(now + 30.0)
     master.handle_timeout(now + 30.0)
     assert master.data_to_send() == encode_poll(2)
-    master.receive_data(EOT, now + 30.1)
+    master.receive_data(EOT_SYMBOL, now + 30.1)
     assert events(master) == [StationRestored(2)]
     assert master.counters(2).demotions == 1
 
@@ -156,7 +155,7 @@ def test_dead_station_is_demoted_fails_fast_and_comes_back_on_slow_poll() -> Non
 def test_demoted_station_is_slow_polled_even_while_the_others_always_have_commands() -> None:
     """A demoted station's slow poll takes its turn in the round robin: queued commands of busy
     stations (a gateway polling continuously) must not starve it, or it is never restored."""
-    master = make(1, 2, line={"ack_timeout": 0.1}, poll_timeout=0.1, retries=3, poll_interval=100.0,
+    master = make(1, 2, line={"ack_timeout": 0.1}, poll_timeout=0.1, demote_after=3, poll_interval=100.0,
                   slow_poll_interval=2.0)
     slave = HalfDuplexSlave(1, Checksum.BCC, lambda cmd: reply_to(cmd, b"\x00\x00"))  # station 2 is absent
     tns = itertools.count(1)
@@ -194,13 +193,13 @@ def test_bad_slave_frame_is_not_acknowledged_and_the_station_is_polled_again() -
     master = make(3, poll_interval=100.0)
     assert master.data_to_send() == encode_poll(3)
     initiated = bytes((GATEWAY, 3, 0x0F, 0x00, 0x01, 0x00, 0xAB))
-    frame = bytearray(encode_slave_message(initiated, Checksum.BCC))
+    frame = bytearray(encode_frame(initiated, Checksum.BCC))
     frame[-1] ^= 0x55
     master.receive_data(bytes(frame), 0.01)
     assert master.data_to_send() == encode_poll(3)
     assert events(master) == []
-    master.receive_data(encode_slave_message(initiated, Checksum.BCC), 0.02)
-    assert master.data_to_send() == ACK + encode_poll(3)
+    master.receive_data(encode_frame(initiated, Checksum.BCC), 0.02)
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(3)
     assert events(master) == [SlaveInitiated(3, initiated)]
 
 
@@ -209,44 +208,44 @@ def test_resent_message_after_lost_ack_is_acknowledged_and_discarded() -> None:
     master = make(4, poll_interval=100.0)
     master.data_to_send()
     initiated = bytes((GATEWAY, 4, 0x0F, 0x00, 0x09, 0x00, 0x01))
-    master.receive_data(encode_slave_message(initiated, Checksum.BCC), 0.0)
-    assert master.data_to_send() == ACK + encode_poll(4)
-    master.receive_data(encode_slave_message(initiated, Checksum.BCC), 0.1)  # our ACK was lost
-    assert master.data_to_send() == ACK + encode_poll(4)
+    master.receive_data(encode_frame(initiated, Checksum.BCC), 0.0)
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(4)
+    master.receive_data(encode_frame(initiated, Checksum.BCC), 0.1)  # our ACK was lost
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(4)
     assert events(master) == [SlaveInitiated(4, initiated)]
     assert master.counters(4).duplicates == 1
-    master.receive_data(EOT, 0.2)
+    master.receive_data(EOT_SYMBOL, 0.2)
     # After an EOT the same head is a new message (the slave reused its TNS, e.g. after a restart).
     later = master.next_deadline()
     assert later is not None
     assert later == pytest.approx(100.1)
     master.handle_timeout(later)
     assert master.data_to_send() == encode_poll(4)
-    master.receive_data(encode_slave_message(initiated, Checksum.BCC), later)
+    master.receive_data(encode_frame(initiated, Checksum.BCC), later)
     assert events(master) == [SlaveInitiated(4, initiated)]
 
 
 def test_reply_polls_stop_after_max_polls() -> None:
     master = make(6, max_polls=3, poll_interval=100.0, reply_timeout=100.0)
     master.data_to_send()
-    master.receive_data(EOT, 0.0)
+    master.receive_data(EOT_SYMBOL, 0.0)
     request = master.submit(6, command(6, 2), 0.0)
     master.data_to_send()
-    master.receive_data(ACK, 0.0)
+    master.receive_data(ACK_SYMBOL, 0.0)
     for _ in range(3):
         assert master.data_to_send() == encode_poll(6)
-        master.receive_data(EOT, 0.0)
+        master.receive_data(EOT_SYMBOL, 0.0)
     assert events(master) == [RequestFailed(request, 6, FailReason.NO_REPLY, may_have_executed=True)]
 
 
 def test_reply_timeout_and_late_reply_is_stray() -> None:
     master = make(6, reply_timeout=1.0, reply_wait=0.4, poll_interval=100.0)
     master.data_to_send()
-    master.receive_data(EOT, 0.0)
+    master.receive_data(EOT_SYMBOL, 0.0)
     cmd = command(6, 3)
     request = master.submit(6, cmd, 0.0)
     master.data_to_send()
-    master.receive_data(ACK, 0.0)
+    master.receive_data(ACK_SYMBOL, 0.0)
     assert master.data_to_send() == b""  # Reply Message Wait Time (RM p. 13-67)
     assert master.next_deadline() == pytest.approx(0.4)
     master.handle_timeout(0.4)
@@ -255,7 +254,7 @@ def test_reply_timeout_and_late_reply_is_stray() -> None:
     while not found:  # polled again after every EOT until the reply timeout (1.0 after the ACK)
         assert master.data_to_send() == encode_poll(6)
         now += 0.15
-        master.receive_data(EOT, now)
+        master.receive_data(EOT_SYMBOL, now)
         found = events(master)
     assert found == [RequestFailed(request, 6, FailReason.NO_REPLY, may_have_executed=True)]
     assert now == pytest.approx(1.0)
@@ -264,7 +263,7 @@ def test_reply_timeout_and_late_reply_is_stray() -> None:
     master.handle_timeout(later)
     assert master.data_to_send() == encode_poll(6)
     late = reply_to(cmd, b"\x01")
-    master.receive_data(encode_slave_message(late, Checksum.BCC), later)
+    master.receive_data(encode_frame(late, Checksum.BCC), later)
     assert events(master) == [StrayReply(6, late)]
 
 
@@ -273,15 +272,15 @@ def test_reply_from_the_polled_station_never_matches_another_stations_request() 
     master = make(1, 2, poll_interval=100.0)
     for _ in range(2):
         master.data_to_send()
-        master.receive_data(EOT, 0.0)
+        master.receive_data(EOT_SYMBOL, 0.0)
     cmd1 = command(1, 10)
     master.submit(1, cmd1, 0.0)
     master.data_to_send()
-    master.receive_data(ACK, 0.0)
+    master.receive_data(ACK_SYMBOL, 0.0)
     assert master.data_to_send() == encode_poll(1)
     # Station 1 answers with a frame that is station 2's reply (a late frame on the line).
     foreign = reply_to(command(2, 11), b"\x02")
-    master.receive_data(encode_slave_message(foreign, Checksum.BCC), 0.1)
+    master.receive_data(encode_frame(foreign, Checksum.BCC), 0.1)
     assert events(master) == [StrayReply(1, foreign)]
     assert not reply_matches(cmd1, PcccHeader.decode(foreign))
 
@@ -292,16 +291,16 @@ def test_reply_is_matched_whatever_its_dst_and_src(reading: str) -> None:
     SRC 0 and some devices do not swap: the one matcher (TNS, CMD | 40) takes every reading."""
     master = make(1, poll_interval=100.0)
     master.data_to_send()
-    master.receive_data(EOT, 0.0)
+    master.receive_data(EOT_SYMBOL, 0.0)
     cmd = command(1, 10)
     request_id = master.submit(1, cmd, 0.0)
     master.data_to_send()
-    master.receive_data(ACK, 0.0)
+    master.receive_data(ACK_SYMBOL, 0.0)
     assert master.data_to_send() == encode_poll(1)
     answer = reply_to(cmd, b"\x07")
     dst_src = {"swapped": answer[:2], "unswapped": cmd[:2], "own_station": bytes((GATEWAY, 1)), "zero": b"\x00\x00"}
     answer = dst_src[reading] + answer[2:]
-    master.receive_data(encode_slave_message(answer, Checksum.BCC), 0.1)
+    master.receive_data(encode_frame(answer, Checksum.BCC), 0.1)
     assert events(master) == [ReplyReceived(request_id, 1, answer)]
 
 
@@ -321,7 +320,7 @@ def test_timing_quiet_line_rts_key_up_and_off_delays() -> None:
     assert not master.rts
     assert master.next_deadline() == pytest.approx(end + 1.0)  # the poll timer runs from the last byte
     initiated = bytes((GATEWAY, 7, 0x0F, 0x00, 0x01, 0x00))
-    master.receive_data(encode_slave_message(initiated, Checksum.BCC), 0.2)
+    master.receive_data(encode_frame(initiated, Checksum.BCC), 0.2)
     assert master.data_to_send() == b""  # the ACK waits for the quiet time, RTS not yet up
     assert not master.rts
     assert master.next_deadline() == pytest.approx(0.25)
@@ -329,7 +328,7 @@ def test_timing_quiet_line_rts_key_up_and_off_delays() -> None:
     assert master.rts
     assert master.next_deadline() == pytest.approx(0.27)
     master.handle_timeout(0.27)
-    assert master.data_to_send() == ACK
+    assert master.data_to_send() == ACK_SYMBOL
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -338,12 +337,12 @@ def test_echo_suppression_strips_own_bytes(mode: str) -> None:
     master = make(8, line={"echo": True}, poll_interval=100.0)
     poll = master.data_to_send()
     assert poll == encode_poll(8)
-    feed(master, poll + EOT, 0.0, mode)
+    feed(master, poll + EOT_SYMBOL, 0.0, mode)
     assert master.counters(8).eots == 1
     assert master.collisions == 0
     master.handle_timeout(100.0)
     poll = master.data_to_send()
-    feed(master, b"\x10\x05\x99" + EOT, 100.0, mode)  # our poll came back garbled: a collision
+    feed(master, b"\x10\x05\x99" + EOT_SYMBOL, 100.0, mode)  # our poll came back garbled: a collision
     assert master.collisions == 1
 
 
@@ -351,17 +350,17 @@ def test_link_reset_sends_dle_nak_and_fails_awaiting_requests() -> None:
     """Table 2.C: DLE NAK makes the slaves drop queued messages; awaited replies will not come."""
     master = make(9, poll_interval=100.0)
     master.data_to_send()
-    master.receive_data(EOT, 0.0)
+    master.receive_data(EOT_SYMBOL, 0.0)
     request = master.submit(9, command(9, 4), 0.0)
     master.data_to_send()
-    master.receive_data(ACK, 0.0)
+    master.receive_data(ACK_SYMBOL, 0.0)
     assert master.data_to_send() == encode_poll(9)
-    master.receive_data(EOT, 0.0)
+    master.receive_data(EOT_SYMBOL, 0.0)
     assert master.data_to_send() == encode_poll(9)  # still waiting for the reply: polled again
     master.reset_link(0.0)
     assert master.data_to_send() == b""  # the reset waits for the exchange in progress
-    master.receive_data(EOT, 0.1)
-    assert master.data_to_send().startswith(NAK)
+    master.receive_data(EOT_SYMBOL, 0.1)
+    assert master.data_to_send().startswith(NAK_SYMBOL)
     assert RequestFailed(request, 9, FailReason.LINK_RESET, may_have_executed=True) in events(master)
 
 
@@ -492,7 +491,7 @@ def test_noisy_line_exactly_once_and_right_station(
     slaves = [HalfDuplexSlave(n, checksum, plcs[n], variant) for n in (1, 2, 3)]
     for slave in slaves:  # a slow CPU: the reply is ready only after ``busy_polls`` more polls (§5 row 5)
         slave.handler = slow(slave, plcs[slave.station], busy_polls)
-    master = make(1, 2, 3, 4, checksum=checksum, poll_timeout=0.05, poll_interval=0.5, retries=4)
+    master = make(1, 2, 3, 4, checksum=checksum, poll_timeout=0.05, poll_interval=0.5, demote_after=4)
     rng = random.Random(seed)
     requests: dict[int, tuple[int, bytes]] = {}
     for index in range(12):
@@ -525,14 +524,14 @@ def test_answer_in_progress_at_the_deadline_is_allowed_to_finish_once() -> None:
     master = make(1, 2, poll_timeout=0.1, poll_interval=100.0)
     assert master.data_to_send() == encode_poll(1)
     initiated = bytes((GATEWAY, 1, 0x0F, 0x00, 0x05, 0x00, 0x42))
-    frame = encode_slave_message(initiated, Checksum.BCC)
+    frame = encode_frame(initiated, Checksum.BCC)
     master.receive_data(frame[:5], 0.09)
     master.handle_timeout(0.1)  # the deadline, mid-frame: extended once
     assert master.data_to_send() == b""
     master.receive_data(frame[5:], 0.15)
-    assert master.data_to_send() == ACK + encode_poll(1)
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(1)
     assert events(master) == [SlaveInitiated(1, initiated)]
-    master.receive_data(EOT, 0.16)
+    master.receive_data(EOT_SYMBOL, 0.16)
     assert master.data_to_send() == encode_poll(2)
     master.receive_data(frame[:5], 0.2)  # a frame that never ends: the grace is used once only
     master.handle_timeout(0.26)
@@ -546,7 +545,7 @@ def test_a_silent_station_does_not_fail_the_replies_of_the_others() -> None:
     take the line, station 1's reply deadline passes: its reply is still collected by a poll (the
     deadline only makes that poll due), the copies to station 2 are interleaved with other
     stations' polls, and every copy without its ACK counts towards demoting station 2."""
-    master = make(1, 2, poll_interval=100.0, reply_timeout=0.6, poll_timeout=0.5, retries=5)
+    master = make(1, 2, poll_interval=100.0, reply_timeout=0.6, poll_timeout=0.5, demote_after=5)
     now = 0.0
     cmd1, cmd2 = command(1, 10), command(2, 11)
     first = master.submit(1, cmd1, now)
@@ -555,16 +554,16 @@ def test_a_silent_station_does_not_fail_the_replies_of_the_others() -> None:
     for _ in range(200):
         out = master.data_to_send()
         if out.startswith(b"\x10\x01\x01"):
-            master.receive_data(ACK, now)
+            master.receive_data(ACK_SYMBOL, now)
             owed = reply_to(cmd1, b"\x05")
             master.submit(2, cmd2, now)  # station 2's command comes while station 1's reply waits
         elif out.startswith(b"\x10\x05\x01"):
-            master.receive_data(EOT if owed is None else encode_slave_message(owed, Checksum.BCC), now)
+            master.receive_data(EOT_SYMBOL if owed is None else encode_frame(owed, Checksum.BCC), now)
             owed = None
         found += events(master)
         if any(isinstance(e, ReplyReceived) for e in found) and not master.is_active(2):
             break
-        if out and out != ACK:
+        if out and out != ACK_SYMBOL:
             continue
         deadline = master.next_deadline()
         assert deadline is not None
@@ -582,7 +581,7 @@ def test_a_silent_station_does_not_fail_the_replies_of_the_others() -> None:
 def after_start_polls(master: HalfDuplexMaster, now: float = 0.0) -> None:
     """Answer the first background poll of every station with DLE EOT."""
     while (sent := master.data_to_send()).startswith(b"\x10\x05"):
-        feed(master, EOT, now, "whole")
+        feed(master, EOT_SYMBOL, now, "whole")
     assert sent == b""
 
 
@@ -598,12 +597,12 @@ def test_a_write_goes_before_other_stations_queued_reads_and_its_reply_poll_next
     assert sent == encode_master_message(2, read2, Checksum.BCC)
     master.submit(3, read3, 0.1)
     write_id = master.submit(1, write1, 0.1, urgent=True)
-    feed(master, ACK, 0.11, "whole")  # station 2 has the read: the write goes next, not station 3's read
+    feed(master, ACK_SYMBOL, 0.11, "whole")  # station 2 has the read: the write goes next, not station 3's read
     assert master.data_to_send() == encode_master_message(1, write1, Checksum.BCC)
-    feed(master, ACK, 0.12, "whole")
+    feed(master, ACK_SYMBOL, 0.12, "whole")
     assert master.data_to_send() == encode_poll(1)  # the write's reply poll, before anything else
     answer = reply_to(write1, b"")
-    feed(master, encode_slave_message(answer, Checksum.BCC), 0.13, "whole")
+    feed(master, encode_frame(answer, Checksum.BCC), 0.13, "whole")
     assert events(master) == [ReplyReceived(write_id, 1, answer)]
 
 
@@ -618,10 +617,10 @@ def test_a_read_holding_a_writes_place_is_polled_first() -> None:
     master.submit(2, command(2, 0x21), 0.1)
     write1 = command(1, 0x22, b"\xaa\x01")
     master.submit(1, write1, 0.1, urgent=True)
-    feed(master, ACK, 0.11, "whole")
+    feed(master, ACK_SYMBOL, 0.11, "whole")
     assert master.data_to_send() == encode_poll(1)  # not station 2's read
-    feed(master, encode_slave_message(reply_to(read1, b"\x01\x00"), Checksum.BCC), 0.12, "whole")
-    assert master.data_to_send() == ACK + encode_master_message(1, write1, Checksum.BCC)
+    feed(master, encode_frame(reply_to(read1, b"\x01\x00"), Checksum.BCC), 0.12, "whole")
+    assert master.data_to_send() == ACK_SYMBOL + encode_master_message(1, write1, Checksum.BCC)
 
 
 def test_writes_hold_other_work_back_at_most_write_precedence() -> None:
@@ -634,14 +633,14 @@ def test_writes_hold_other_work_back_at_most_write_precedence() -> None:
     master.submit(1, write1, 0.0, urgent=True)
     assert master.data_to_send() == encode_master_message(1, write1, Checksum.BCC)
     master.submit(2, read2, 0.0)
-    feed(master, ACK, 0.6, "whole")  # the read has waited 0.6 s > 0.5 s
+    feed(master, ACK_SYMBOL, 0.6, "whole")  # the read has waited 0.6 s > 0.5 s
     assert master.data_to_send() == encode_master_message(2, read2, Checksum.BCC)
 
 
 def test_an_unacknowledged_copy_waits_for_a_write_at_another_station() -> None:
     """A read's master message without its ACK: while a write waits at another station, the write
     goes first and the identical copy follows (the other station's frames do not reach this slave)."""
-    master = make(1, 2, poll_interval=10.0, retries=5)
+    master = make(1, 2, poll_interval=10.0, demote_after=5)
     after_start_polls(master)
     read2 = command(2, 0x40)
     master.submit(2, read2, 0.0)
@@ -651,9 +650,9 @@ def test_an_unacknowledged_copy_waits_for_a_write_at_another_station() -> None:
     master.submit(1, write1, 0.1, urgent=True)
     master.handle_timeout(0.6)  # no ACK from station 2
     assert master.data_to_send() == encode_master_message(1, write1, Checksum.BCC)
-    feed(master, ACK, 0.61, "whole")
+    feed(master, ACK_SYMBOL, 0.61, "whole")
     assert master.data_to_send() == encode_poll(1)
-    feed(master, encode_slave_message(reply_to(write1, b""), Checksum.BCC), 0.62, "whole")
-    assert master.data_to_send() == ACK + encode_poll(1)  # its turn ends with DLE EOT
-    feed(master, EOT, 0.63, "whole")
+    feed(master, encode_frame(reply_to(write1, b""), Checksum.BCC), 0.62, "whole")
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(1)  # its turn ends with DLE EOT
+    feed(master, EOT_SYMBOL, 0.63, "whole")
     assert master.data_to_send() == copy  # the write is done: the same copy, same TNS

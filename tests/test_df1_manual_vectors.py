@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import pytest
 
-from gateway.protocols.df1.framing import NEED_DATA, Checksum, Frame, FrameDecoder, encode_frame
+from gateway.protocols.df1.framing import NEED_DATA, Checksum, Frame, encode_frame
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeRead, WordRangeWrite, decode_reply
 from gateway.protocols.df1.pccc.commands import decode_command, encode_command
 from gateway.protocols.df1.plc5_address import encode_logical_binary, parse_plc5_address

@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from gateway.protocols.df1 import pccc
-from gateway.protocols.df1.half_duplex_framing import Checksum, encode_slave_message
+from gateway.protocols.df1.framing import Checksum, encode_frame
 from gateway.protocols.df1.pccc.plc5 import ReadModifyWrite, WordRangeReadParams, WordRangeWriteParams
 from gateway.protocols.df1.plc5_address import (
     AddressError,
@@ -210,10 +210,10 @@ def test_1785ke_5_5_word_range_write_logical_binary_n10_15() -> None:
     assert decode_logical_binary(address) == ((0, 10, 15, 0), 5)
     write = WordRangeWriteParams(address, bytes.fromhex("22 11 44 33 66 55 88 77"))
     header = bytes.fromhex("29 20 0F 00 46 01 00")  # DST SRC CMD STS TNS(2) FNC 00
-    assert encode_slave_message(header + write.encode(), Checksum.BCC) == frame
+    assert encode_frame(header + write.encode(), Checksum.BCC) == frame
     assert WordRangeWriteParams.decode(write.encode()) == WordRangeWriteParams(address, write.data, 0, 4)
     reply = bytes.fromhex("10 02 20 29 4F 00 46 01 10 03 21")
-    assert encode_slave_message(bytes.fromhex("20 29 4F 00 46 01"), Checksum.BCC) == reply
+    assert encode_frame(bytes.fromhex("20 29 4F 00 46 01"), Checksum.BCC) == reply
 
 
 def test_1785ke_5_6_word_range_read_logical_ascii_n10_15() -> None:
@@ -223,10 +223,10 @@ def test_1785ke_5_6_word_range_read_logical_ascii_n10_15() -> None:
     assert address == bytes.fromhex("00 24 4E 31 30 3A 31 35 00")
     read = WordRangeReadParams(address, size=8)
     header = bytes.fromhex("29 20 0F 00 47 01 01")
-    assert encode_slave_message(header + read.encode(), Checksum.BCC) == frame
+    assert encode_frame(header + read.encode(), Checksum.BCC) == frame
     assert WordRangeReadParams.decode(read.encode()) == WordRangeReadParams(address, 8, 0, 4)
     reply = bytes.fromhex("10 02 20 29 4F 00 47 01 22 11 44 33 66 55 88 77 10 03 BC")
-    assert encode_slave_message(bytes.fromhex("20 29 4F 00 47 01 22 11 44 33 66 55 88 77"), Checksum.BCC) == reply
+    assert encode_frame(bytes.fromhex("20 29 4F 00 47 01 22 11 44 33 66 55 88 77"), Checksum.BCC) == reply
 
 
 def test_plc5_address_error_is_the_projects_address_error_answered_0x03() -> None:

@@ -2,7 +2,7 @@
 
 * the table: complete, and every (state, input) pair walked through a real responder;
 * byte scripts with a fake clock, each fed whole, byte by byte, and followed by trailing garbage;
-* a property test: the responder against the master-side link (``Df1Link``) on a line that drops
+* a property test: the responder against the master-side link (``Df1DataLink``) on a line that drops
   and damages frames and response symbols both ways.
 """
 
@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 
 import gateway.protocols.df1.responder as responder_module
 import gateway.protocols.df1.responder_table as table_module
+from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed
 from gateway.protocols.df1.framing import (
     ACK_SYMBOL,
     ENQ_SYMBOL,
@@ -29,7 +30,6 @@ from gateway.protocols.df1.framing import (
     FrameDecoder,
     encode_frame,
 )
-from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete, SendFailed
 from gateway.protocols.df1.responder import Df1Responder
 from gateway.protocols.df1.responder_events import (
     CommandReceived,
@@ -466,7 +466,7 @@ def frames_in(units: list[bytes], checksum: Checksum) -> set[bytes]:
 
 
 def simulate(faults: list[tuple[str, int]], commands: int, checksum: Checksum) -> None:
-    peer = Df1Link(checksum=checksum, ack_timeout=ACK_TIMEOUT)
+    peer = Df1DataLink(checksum=checksum, ack_timeout=ACK_TIMEOUT)
     responder = Df1Responder(checksum=checksum, ack_timeout=ACK_TIMEOUT)
     to_responder, to_peer = Wire(), Wire()
     script = iter(faults)

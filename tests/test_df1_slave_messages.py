@@ -18,22 +18,22 @@ from test_df1_half_duplex_master import events, feed
 
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
-from gateway.protocols.df1.half_duplex import (
+from gateway.protocols.df1.framing import (
+    ACK_SYMBOL,
+    EOT_SYMBOL,
+    Checksum,
+    encode_frame,
+    encode_master_message,
+    encode_poll,
+)
+from gateway.protocols.df1.half_duplex import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex_events import (
     FailReason,
-    HalfDuplexMaster,
     LineConfig,
     MessageDelivered,
     RequestFailed,
     SlaveInitiated,
     StationConfig,
-)
-from gateway.protocols.df1.half_duplex_framing import (
-    ACK,
-    EOT,
-    Checksum,
-    encode_master_message,
-    encode_poll,
-    encode_slave_message,
 )
 from gateway.protocols.df1.pccc import (
     LogicalBinaryAddress,
@@ -42,7 +42,7 @@ from gateway.protocols.df1.pccc import (
     WordRangeWrite,
     encode_command,
 )
-from gateway.protocols.df1.slave_messages import RegisterTable, Verdict, answer_slave_message
+from gateway.protocols.df1.slave_messages import RegisterTable, SlaveMessageVerdict, answer_slave_message
 from gateway.sim.serve import SimStream
 from gateway.transport import ByteStream
 
@@ -69,7 +69,7 @@ def test_word_range_write_to_us_is_stored_with_its_time() -> None:
     table = RegisterTable(file_number=7, size=10)
     packet = msg_word_range_write(3, 0x0102, 4, [11, 0x1010])
     verdict, reply = answer_slave_message(packet, own_station=GATEWAY, table=table, now=12.5)
-    assert verdict is Verdict.STORED
+    assert verdict is SlaveMessageVerdict.STORED
     assert reply == bytes.fromhex("03 00 4F 00 02 01")  # DST/SRC swapped, CMD | 40, same TNS, STS 0
     assert table.values()[4:6] == [11, 0x1010] and table.received_at(4) == 12.5
     assert table.age(5, 13.0) == pytest.approx(0.5) and table.age(0, 13.0) is None
@@ -79,7 +79,7 @@ def test_typed_logical_write_to_us_is_stored() -> None:
     table = RegisterTable(file_number=7, size=10)
     verdict, reply = answer_slave_message(msg_typed_logical_write(2, 9, 0, [1, 2, 3]), own_station=GATEWAY,
                                           table=table, now=1.0)
-    assert verdict is Verdict.STORED and reply == bytes.fromhex("02 00 4F 00 09 00")
+    assert verdict is SlaveMessageVerdict.STORED and reply == bytes.fromhex("02 00 4F 00 09 00")
     assert table.values()[:3] == [1, 2, 3]
 
 
@@ -88,24 +88,26 @@ def test_typed_logical_write_to_us_is_stored() -> None:
     [
         # a read (0F A2): not something the gateway serves to slaves -> STS 10 (p. 8-3)
         (encode_command(ProtectedTypedLogicalRead(0x89, 7, 0, 0, 2), dst=GATEWAY, src=2, tns=5),
-         RegisterTable(), Verdict.UNSUPPORTED, "02 00 4F 10 05 00"),
+         RegisterTable(), SlaveMessageVerdict.UNSUPPORTED, "02 00 4F 10 05 00"),
         # a write for another station: the gateway does not route between slaves -> STS 10
-        (msg_word_range_write(2, 6, 0, [1], dst=9), RegisterTable(), Verdict.UNSUPPORTED, "02 09 4F 10 06 00"),
+        (msg_word_range_write(2, 6, 0, [1], dst=9), RegisterTable(), SlaveMessageVerdict.UNSUPPORTED,
+         "02 09 4F 10 06 00"),
         # a station without a register table -> STS 10
-        (msg_word_range_write(2, 7, 0, [1]), None, Verdict.UNSUPPORTED, "02 00 4F 10 07 00"),
+        (msg_word_range_write(2, 7, 0, [1]), None, SlaveMessageVerdict.UNSUPPORTED, "02 00 4F 10 07 00"),
         # words outside the table -> STS F0, EXT STS 06 "address doesn't point to something usable" (p. 8-4)
-        (msg_word_range_write(2, 8, 9, [1, 2]), RegisterTable(size=10), Verdict.BAD_ADDRESS, "02 00 4F F0 08 00 06"),
+        (msg_word_range_write(2, 8, 9, [1, 2]), RegisterTable(size=10), SlaveMessageVerdict.BAD_ADDRESS,
+         "02 00 4F F0 08 00 06"),
         # another file -> the same
         (encode_command(WordRangeWrite(LogicalBinaryAddress.of(0, 9, 0), b"\x01\x00"), dst=GATEWAY, src=2, tns=1),
-         RegisterTable(), Verdict.BAD_ADDRESS, "02 00 4F F0 01 00 06"),
+         RegisterTable(), SlaveMessageVerdict.BAD_ADDRESS, "02 00 4F F0 01 00 06"),
         # an unknown command -> STS 10; a reply or a runt -> no answer at all
-        (bytes.fromhex("00 02 06 00 03 00 00"), RegisterTable(), Verdict.UNSUPPORTED, "02 00 46 10 03 00"),
-        (bytes.fromhex("00 02 4F 00 03 00"), RegisterTable(), Verdict.NO_ANSWER, None),
-        (bytes.fromhex("00 02 0F"), RegisterTable(), Verdict.NO_ANSWER, None),
+        (bytes.fromhex("00 02 06 00 03 00 00"), RegisterTable(), SlaveMessageVerdict.UNSUPPORTED, "02 00 46 10 03 00"),
+        (bytes.fromhex("00 02 4F 00 03 00"), RegisterTable(), SlaveMessageVerdict.NO_ANSWER, None),
+        (bytes.fromhex("00 02 0F"), RegisterTable(), SlaveMessageVerdict.NO_ANSWER, None),
     ],
 )
 def test_everything_else_gets_the_manuals_error(
-    packet: bytes, table: RegisterTable | None, verdict: Verdict, reply: str | None
+    packet: bytes, table: RegisterTable | None, verdict: SlaveMessageVerdict, reply: str | None
 ) -> None:
     got = answer_slave_message(packet, own_station=GATEWAY, table=table, now=0.0)
     assert got == (verdict, None if reply is None else bytes.fromhex(reply))
@@ -117,7 +119,7 @@ def test_everything_else_gets_the_manuals_error(
 
 
 def make(*stations: int, checksum: Checksum = Checksum.BCC) -> HalfDuplexMaster:
-    master = HalfDuplexMaster(LineConfig(checksum, ack_timeout=0.5, message_retries=1),
+    master = HalfDuplexMaster(LineConfig(checksum, ack_timeout=0.5, message_resends=1),
                               [replace(StationConfig(s), poll_interval=100.0) for s in stations])
     master.start(0.0)
     return master
@@ -129,17 +131,17 @@ def test_core_acks_the_msg_then_sends_the_reply_as_a_master_message(mode: str, c
     master = make(2, 3, checksum=checksum)
     assert master.data_to_send() == encode_poll(2)
     msg = msg_word_range_write(2, 0x10, 0, [5])
-    feed(master, encode_slave_message(msg, checksum) + b"\x00\x10", 0.01, mode)  # with trailing garbage
-    assert master.data_to_send() == ACK + encode_poll(2)
+    feed(master, encode_frame(msg, checksum) + b"\x00\x10", 0.01, mode)  # with trailing garbage
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(2)
     assert events(master) == [SlaveInitiated(2, msg)]
-    feed(master, EOT, 0.02, mode)
+    feed(master, EOT_SYMBOL, 0.02, mode)
     assert master.data_to_send() == encode_poll(3)
     reply = bytes.fromhex("02 00 4F 00 10 00")
     request = master.send_reply(2, reply, 0.025)  # while station 3's poll is out: queued
     assert master.data_to_send() == b""
-    feed(master, EOT, 0.03, mode)
+    feed(master, EOT_SYMBOL, 0.03, mode)
     assert master.data_to_send() == encode_master_message(2, reply, checksum)
-    feed(master, ACK + b"\x55", 0.04, mode)
+    feed(master, ACK_SYMBOL + b"\x55", 0.04, mode)
     assert events(master) == [MessageDelivered(request, 2)]
     assert master.data_to_send() == b""  # nothing polled for; next background poll at 100 s
 
@@ -147,14 +149,14 @@ def test_core_acks_the_msg_then_sends_the_reply_as_a_master_message(mode: str, c
 def test_reply_goes_ahead_of_queued_commands_and_is_resent_identically() -> None:
     master = make(2)
     master.data_to_send()
-    master.receive_data(EOT, 0.0)
+    master.receive_data(EOT_SYMBOL, 0.0)
     command = bytes.fromhex("02 00 0F 00 10 00 A2")  # our own command, same TNS as the slave's MSG
     reply = bytes.fromhex("02 00 4F 00 10 00")
     master.submit(2, command, 0.0)
     sent = master.data_to_send()
     assert sent == encode_master_message(2, command, Checksum.BCC)
     request = master.send_reply(2, reply, 0.0)  # queued while our command waits for its ACK
-    master.receive_data(ACK, 0.1)
+    master.receive_data(ACK_SYMBOL, 0.1)
     assert master.data_to_send() == encode_master_message(2, reply, Checksum.BCC)  # before the reply poll
     master.handle_timeout(0.6)  # no ACK: the same bytes again
     assert master.data_to_send() == encode_master_message(2, reply, Checksum.BCC)

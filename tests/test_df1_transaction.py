@@ -18,8 +18,8 @@ from hypothesis import strategies as st
 
 from gateway.kinds.df1.sim.slc500 import Slc500Options, Slc500Simulator
 from gateway.protocols.df1.address import FileType
+from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import ACK_SYMBOL, ENQ_SYMBOL, NAK_SYMBOL, NEED_DATA, Checksum, encode_frame
-from gateway.protocols.df1.link import Df1Link
 from gateway.protocols.df1.pccc import (
     PcccHeader,
     ProtectedTypedLogicalMaskedWrite,
@@ -63,7 +63,7 @@ class Host:
     def __init__(self, *, retries: int = 2, chunk: int | None = None) -> None:
         self.now = 0.0
         self.chunk = chunk
-        link = Df1Link(checksum=CRC, ack_timeout=ACK_TIMEOUT, max_enq=retries, max_nak=retries)
+        link = Df1DataLink(checksum=CRC, ack_timeout=ACK_TIMEOUT, max_enq=retries, max_nak=retries)
         self.core = Df1Transactions(link, station=1, source=0, reply_timeout=REPLY_TIMEOUT, retries=retries,
                                     first_tns=0x1234)
         self.events: list[TransactionEvent] = []
@@ -273,9 +273,9 @@ def test_one_transaction_at_a_time_and_bad_settings() -> None:
     with pytest.raises(Exception, match="already running"):
         host.core.start(read(2), 0.0, write=False)
     with pytest.raises(ValueError):
-        Df1Transactions(Df1Link(), station=1, reply_timeout=0)
+        Df1Transactions(Df1DataLink(), station=1, reply_timeout=0)
     with pytest.raises(ValueError):
-        Df1Transactions(Df1Link(), station=1, retries=-1)
+        Df1Transactions(Df1DataLink(), station=1, retries=-1)
 
 
 # -------------------------------------------------------------- property: against the simulator
@@ -318,7 +318,7 @@ def run_against_simulator(
         ladder=False,
         variants=variants,
     )
-    link = Df1Link(checksum=CRC, ack_timeout=0.05, max_enq=2, max_nak=2)
+    link = Df1DataLink(checksum=CRC, ack_timeout=0.05, max_enq=2, max_nak=2)
     core = Df1Transactions(link, station=1, reply_timeout=0.1, retries=2, first_tns=7)
     wire = Wire(iter(fates), iter(damage_at))
     now = 0.0

@@ -13,11 +13,11 @@ from collections.abc import Callable
 import pytest
 
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.framing import ACK_SYMBOL, Checksum, encode_frame
-from gateway.protocols.df1.half_duplex import HalfDuplexMaster, LineConfig, StationConfig
-from gateway.protocols.df1.half_duplex_framing import ACK, EOT, NeedData, encode_poll, encode_slave_message
+from gateway.protocols.df1.datalink import Df1DataLink
+from gateway.protocols.df1.framing import ACK_SYMBOL, EOT_SYMBOL, Checksum, NeedData, encode_frame, encode_poll
+from gateway.protocols.df1.half_duplex import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex_events import LineConfig, StationConfig
 from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions
-from gateway.protocols.df1.link import Df1Link
 from gateway.protocols.df1.pccc import (
     PcccHeader,
     ProtectedTypedLogicalRead,
@@ -33,11 +33,11 @@ from gateway.protocols.df1.transaction import (
     TransactionEvent,
 )
 from gateway.protocols.df1.write_verdict import (
-    _IGNORED,
-    _TRANSITIONS,
     DEFAULT_RETRIES,
+    TRANSITIONS,
     SendReadBack,
     Verdict,
+    VerdictAction,
     VerdictKind,
     VerdictState,
     WriteInput,
@@ -70,8 +70,11 @@ def reply_lost_read_back_differs(request: object) -> str | bytes:
 
 def test_every_state_and_input_is_a_transition_or_listed_as_ignored() -> None:
     pairs = {(state, what) for state in VerdictState for what in WriteInput}
-    assert set(_TRANSITIONS) | set(_IGNORED) == pairs
-    assert not set(_TRANSITIONS) & set(_IGNORED)
+    assert set(TRANSITIONS) == pairs
+    ignored = {pair for pair, entry in TRANSITIONS.items() if entry.action is VerdictAction.IGNORE}
+    assert all(TRANSITIONS[pair].next_state is pair[0] for pair in ignored)
+    assert all(entry.next_state is VerdictState.SETTLED for pair, entry in TRANSITIONS.items()
+               if entry.action not in (VerdictAction.IGNORE, VerdictAction.READ_BACK))
 
 
 def test_read_backs_follow_the_one_rule() -> None:
@@ -92,7 +95,7 @@ def test_read_backs_follow_the_one_rule() -> None:
 
 def full_duplex(behaviour: Behaviour) -> tuple[TransactionEvent, int]:
     """Df1Transactions with its defaults, CRC, against ``behaviour``; the clock moves to each deadline."""
-    core = Df1Transactions(Df1Link(checksum=Checksum.CRC), station=1, first_tns=0x100)
+    core = Df1Transactions(Df1DataLink(checksum=Checksum.CRC), station=1, first_tns=0x100)
     now = 0.0
     core.start(WRITE, now, write=True)
     for _ in range(1000):
@@ -128,18 +131,18 @@ def half_duplex(behaviour: Behaviour) -> tuple[TransactionEvent, int]:
     handle = txns.start(1, WRITE, now, write=True)
     for _ in range(5000):
         out = master.data_to_send()
-        if out.startswith(ACK):  # our ACK of the slave's reply
+        if out.startswith(ACK_SYMBOL):  # our ACK of the slave's reply
             pending.pop(0)
-            out = out[len(ACK):]
+            out = out[len(ACK_SYMBOL):]
         if out.startswith(b"\x10\x01"):  # a master message: DLE SOH STN DLE STX ... DLE ETX BCC
             command = decode_command(out[5:out.index(b"\x10\x03")].replace(b"\x10\x10", b"\x10"))
             what = behaviour(command.request)
             if what != "silent":
                 if isinstance(what, bytes):
                     pending.append(encode_reply(command.header, sts=0, data=what))
-                txns.receive_data(ACK, now)
+                txns.receive_data(ACK_SYMBOL, now)
         elif out == encode_poll(1):
-            txns.receive_data(encode_slave_message(pending[0], Checksum.BCC) if pending else EOT, now)
+            txns.receive_data(encode_frame(pending[0], Checksum.BCC) if pending else EOT_SYMBOL, now)
         while not isinstance(event := txns.next_event(), NeedData):
             if isinstance(event, TransactionDone | OutcomeUnknown) and event.handle == handle:
                 return event, txns.counters(1).read_backs

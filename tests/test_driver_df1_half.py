@@ -17,8 +17,8 @@ from gateway.errors import LinkTimeout
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, Df1Station
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.half_duplex import StationConfig
-from gateway.protocols.df1.half_duplex_framing import Checksum
+from gateway.protocols.df1.framing import Checksum
+from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import (
     PcccError,
     ProtectedTypedLogicalMaskedWrite,
@@ -39,9 +39,9 @@ def opener_for(line: MultidropLine) -> Any:
     return opener
 
 
-def stations(*numbers: int, retries: int = 3, reply_timeout: float = 1.0) -> list[StationConfig]:
+def stations(*numbers: int, demote_after: int = 3, reply_timeout: float = 1.0) -> list[StationConfig]:
     return [
-        StationConfig(n, poll_timeout=0.05, reply_timeout=reply_timeout, retries=retries, poll_interval=0.2,
+        StationConfig(n, poll_timeout=0.05, reply_timeout=reply_timeout, demote_after=demote_after, poll_interval=0.2,
                       slow_poll_interval=2.0)
         for n in numbers
     ]
@@ -56,7 +56,7 @@ def make_driver(
     **kwargs: Any,
 ) -> Df1HalfDuplexLine:
     return Df1HalfDuplexLine(
-        "sim://line", stations(*numbers, retries=demote_after, reply_timeout=reply_timeout), name="line",
+        "sim://line", stations(*numbers, demote_after=demote_after, reply_timeout=reply_timeout), name="line",
         checksum=line.options.checksum, ack_timeout=0.05,
         message_retries=3, retries=3, opener=opener_for(line), first_tns=1, **kwargs,
     )

@@ -20,8 +20,8 @@ from gateway.kinds.df1.plc5_unit import Plc5Unit
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.modbus.mapping import Table
-from gateway.protocols.df1.half_duplex import StationConfig
-from gateway.protocols.df1.half_duplex_framing import Checksum
+from gateway.protocols.df1.framing import Checksum
+from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeRead
 from gateway.sim.serve import SimStream
 from gateway.transport import ByteStream
@@ -33,7 +33,7 @@ def make_line(line: MultidropLine, numbers: tuple[int, ...], **kwargs: Any) -> D
     async def opener(url: str, settings: object, **_: object) -> ByteStream:
         return SimStream(line)
 
-    configs = [StationConfig(n, poll_timeout=0.05, reply_timeout=1.0, retries=3, poll_interval=0.2,
+    configs = [StationConfig(n, poll_timeout=0.05, reply_timeout=1.0, demote_after=3, poll_interval=0.2,
                              slow_poll_interval=2.0) for n in numbers]
     return Df1HalfDuplexLine("sim://line", configs, name="line", checksum=line.options.checksum, ack_timeout=0.05,
                              message_retries=3, retries=3, opener=opener, first_tns=1, **kwargs)

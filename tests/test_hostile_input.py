@@ -55,8 +55,9 @@ from gateway.errors import GatewayError
 from gateway.kinds.df1.driver import Df1Driver
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.protocols.df1 import framing as df1_framing
-from gateway.protocols.df1.framing import Checksum, FrameDecoder, encode_frame
-from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete, SendFailed
+from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed
+from gateway.protocols.df1.framing import Checksum, encode_frame
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.pccc import PcccReply, ProtectedTypedLogicalRead, ProtectedTypedLogicalWrite, decode_reply
 from gateway.protocols.slc_ascii import commands as slc_commands
 from gateway.protocols.slc_ascii import framing as slc_framing
@@ -781,7 +782,7 @@ def test_df1_frame_found_in_noise(before: bytes, after: bytes, message: bytes, c
     checksum=st.sampled_from(list(Checksum)),
 )
 def test_df1_link_takes_any_bytes_and_timing(steps: list[tuple[str, Any]], checksum: Checksum) -> None:
-    link = Df1Link(checksum=checksum, ack_timeout=0.5, max_enq=2, max_nak=2)
+    link = Df1DataLink(checksum=checksum, ack_timeout=0.5, max_enq=2, max_nak=2)
     now = 0.0
     sent: dict[int, bytes] = {}
     settled: set[int] = set()

@@ -18,7 +18,7 @@ from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.metrics import _driver_families
-from gateway.protocols.df1.half_duplex_framing import Checksum
+from gateway.protocols.df1.framing import Checksum
 from gateway.sim.serve import close_tcp, serve_tcp
 from tests.test_metrics import HOST, get, samples, value
 

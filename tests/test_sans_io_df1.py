@@ -31,7 +31,7 @@ def imported_roots(source: str) -> set[str]:
 
 def test_the_package_has_its_cores() -> None:
     names = {path.relative_to(PACKAGE).parts[0].removesuffix(".py") for path in MODULES}
-    assert {"framing", "link", "transaction", "pccc", "address"} <= names
+    assert {"framing", "datalink", "transaction", "pccc", "address", "half_duplex"} <= names
 
 
 @pytest.mark.parametrize("path", MODULES, ids=lambda path: str(path.relative_to(PACKAGE)))

@@ -5,14 +5,14 @@ from __future__ import annotations
 import pytest
 
 from gateway.kinds.df1.sim.df1_half_duplex_slave import VARIANTS, HalfDuplexSlave, SlaveVariant
-from gateway.protocols.df1.half_duplex_framing import (
-    ACK,
-    EOT,
-    NAK,
+from gateway.protocols.df1.framing import (
+    ACK_SYMBOL,
+    EOT_SYMBOL,
+    NAK_SYMBOL,
     Checksum,
+    encode_frame,
     encode_master_message,
     encode_poll,
-    encode_slave_message,
 )
 
 
@@ -40,19 +40,19 @@ def test_poll_with_nothing_to_send_answers_eot_and_other_stations_are_ignored() 
     slave.receive_data(encode_poll(4))
     assert slave.data_to_send() == b""
     slave.receive_data(encode_poll(3))
-    assert slave.data_to_send() == EOT
+    assert slave.data_to_send() == EOT_SYMBOL
 
 
 def test_message_ack_reply_on_poll_then_eot() -> None:
     slave, executed = make(3)
     cmd = command(3, 9)
     slave.receive_data(encode_master_message(3, cmd, Checksum.BCC))
-    assert slave.data_to_send() == ACK
+    assert slave.data_to_send() == ACK_SYMBOL
     assert executed == [cmd]
     slave.receive_data(encode_poll(3))
-    assert slave.data_to_send() == encode_slave_message(answer(cmd), Checksum.BCC)
-    slave.receive_data(ACK + encode_poll(3))
-    assert slave.data_to_send() == EOT
+    assert slave.data_to_send() == encode_frame(answer(cmd), Checksum.BCC)
+    slave.receive_data(ACK_SYMBOL + encode_poll(3))
+    assert slave.data_to_send() == EOT_SYMBOL
 
 
 def test_duplicate_detection_switch() -> None:
@@ -60,14 +60,14 @@ def test_duplicate_detection_switch() -> None:
     frame = encode_master_message(3, command(3, 9), Checksum.BCC)
     slave, executed = make(3)
     slave.receive_data(frame + frame)
-    assert slave.data_to_send() == ACK + ACK
+    assert slave.data_to_send() == ACK_SYMBOL + ACK_SYMBOL
     assert len(executed) == 1
     slave, executed = make(3, duplicate_detect="off")
     slave.receive_data(frame + frame)
     assert len(executed) == 2
 
 
-@pytest.mark.parametrize(("reading", "expected"), [("silent", b""), ("nak", NAK)])
+@pytest.mark.parametrize(("reading", "expected"), [("silent", b""), ("nak", NAK_SYMBOL)])
 def test_bad_frame_reply_switch(reading: str, expected: bytes) -> None:
     frame = bytearray(encode_master_message(3, command(3, 1), Checksum.BCC))
     frame[-1] ^= 1
@@ -82,13 +82,13 @@ def test_reply_retries_switch(reading: str, sends: int) -> None:
     """KA p. 11-12: an unacknowledged message is resent at each poll, up to a limit (or forever)."""
     slave, _ = make(3, reply_retries=reading)
     slave.initiate(b"\x00\x03\x0f\x00\x01\x00")
-    frame = encode_slave_message(b"\x00\x03\x0f\x00\x01\x00", Checksum.BCC)
+    frame = encode_frame(b"\x00\x03\x0f\x00\x01\x00", Checksum.BCC)
     answers = []
     for _ in range(6):
         slave.receive_data(encode_poll(3))
         answers.append(slave.data_to_send())
     assert answers.count(frame) == sends
-    assert answers[sends:] == [EOT] * (6 - sends)
+    assert answers[sends:] == [EOT_SYMBOL] * (6 - sends)
 
 
 def test_silent_when_busy_switch() -> None:
@@ -97,15 +97,15 @@ def test_silent_when_busy_switch() -> None:
     slave.receive_data(encode_poll(3))
     assert slave.data_to_send() == b""
     slave.receive_data(encode_poll(3))
-    assert slave.data_to_send() == EOT
+    assert slave.data_to_send() == EOT_SYMBOL
 
 
 def test_link_reset_drops_queued_messages() -> None:
     """Table 2.C: DLE NAK cancels every message ready to go to the master."""
     slave, _ = make(3)
     slave.initiate(b"\x00\x03\x0f\x00\x01\x00")
-    slave.receive_data(NAK + encode_poll(3))
-    assert slave.data_to_send() == EOT
+    slave.receive_data(NAK_SYMBOL + encode_poll(3))
+    assert slave.data_to_send() == EOT_SYMBOL
     assert slave.counters.link_resets == 1
 
 

@@ -9,9 +9,9 @@ import pytest
 
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.half_duplex import (
-    NEED_DATA,
-    HalfDuplexMaster,
+from gateway.protocols.df1.framing import EOT_SYMBOL, NEED_DATA, Checksum, encode_poll
+from gateway.protocols.df1.half_duplex import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex_events import (
     LineConfig,
     MasterEvent,
     ReplyReceived,
@@ -19,7 +19,6 @@ from gateway.protocols.df1.half_duplex import (
     StationConfig,
     StationDemoted,
 )
-from gateway.protocols.df1.half_duplex_framing import EOT, Checksum, encode_poll
 from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalRead,
     ProtectedTypedLogicalWrite,
@@ -85,10 +84,10 @@ class Harness:
 
 
 def core_for(stations: tuple[int, ...], checksum: Checksum, **line: object) -> HalfDuplexMaster:
-    config = LineConfig(checksum, ack_timeout=0.2, message_retries=4, **line)  # type: ignore[arg-type]
+    config = LineConfig(checksum, ack_timeout=0.2, message_resends=4, **line)  # type: ignore[arg-type]
     return HalfDuplexMaster(
         config,
-        [StationConfig(s, poll_timeout=0.2, reply_timeout=5.0, retries=3, poll_interval=0.5) for s in stations],
+        [StationConfig(s, poll_timeout=0.2, reply_timeout=5.0, demote_after=3, poll_interval=0.5) for s in stations],
     )
 
 
@@ -196,7 +195,7 @@ def test_radio_latency_and_echo() -> None:
 def test_dead_station_never_answers() -> None:
     line = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1, 2), dead=frozenset({2})))
     assert [o.data for o in line.receive(encode_poll(2), 0.0)] == []
-    assert [o.data for o in line.receive(encode_poll(1), 0.0)] == [EOT]
+    assert [o.data for o in line.receive(encode_poll(1), 0.0)] == [EOT_SYMBOL]
     assert 2 in line.controllers and 2 not in line.slaves
 
 
@@ -221,7 +220,7 @@ async def test_served_over_tcp() -> None:
     reader, writer = await asyncio.open_connection("127.0.0.1", port)
     try:
         writer.write(encode_poll(2))
-        assert await asyncio.wait_for(reader.readexactly(2), 2.0) == EOT
+        assert await asyncio.wait_for(reader.readexactly(2), 2.0) == EOT_SYMBOL
     finally:
         writer.close()
         await close_tcp(server)

@@ -26,8 +26,8 @@ from gateway.kinds.df1.sim.df1_multidrop import MultidropLine
 from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.kinds.df1.simulators import DF1LINE, PLC5
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.half_duplex import StationConfig
-from gateway.protocols.df1.half_duplex_framing import Checksum
+from gateway.protocols.df1.framing import Checksum
+from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead
 from gateway.sim import get_simulator, open_sim_stream, parse_sim_url, reset_simulators, variants_of
 from gateway.sim.models import sim_models
@@ -165,7 +165,7 @@ def test_simulate_plc5_serves_a_plc5() -> None:
 async def test_simulate_df1line_takes_the_url_options() -> None:
     """``--option stations=5,6 --option dead=6``: station 5 answers, the dead 6 and the absent 2 do not."""
     for url in _served("df1line", "--checksum", "bcc", "--option", "stations=5,6", "--option", "dead=6"):
-        configs = [StationConfig(n, poll_timeout=0.1, reply_timeout=0.5, retries=2) for n in (2, 5, 6)]
+        configs = [StationConfig(n, poll_timeout=0.1, reply_timeout=0.5, demote_after=2) for n in (2, 5, 6)]
         master = Df1HalfDuplexLine(url, configs, checksum=Checksum.BCC, ack_timeout=0.1)
         stations = {n: master.station(n) for n in (2, 5, 6)}
         await stations[5].start()

@@ -1,4 +1,4 @@
-"""SLC 5/04 DF1 simulator: driven by a host-side Df1Link in memory with a fake clock."""
+"""SLC 5/04 DF1 simulator: driven by a host-side Df1DataLink in memory with a fake clock."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from gateway.kinds.df1.sim.slc500 import Slc500Options, Slc500Simulator
 from gateway.protocols.df1.address import FileType
+from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived
 from gateway.protocols.df1.framing import (
     ACK_SYMBOL,
     ENQ_SYMBOL,
@@ -19,11 +20,12 @@ from gateway.protocols.df1.framing import (
     AckReceived,
     Checksum,
     DecoderEvent,
-    FrameDecoder,
     encode_frame,
 )
-from gateway.protocols.df1.framing import Frame as WireFrame
-from gateway.protocols.df1.link import Df1Link, MessageReceived
+from gateway.protocols.df1.framing import (
+    Frame as WireFrame,
+)
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.pccc import (
     DataType,
     DiagnosticStatus,
@@ -70,7 +72,7 @@ class Bench:
 
     def __init__(self, *, ladder: bool = False, ack_timeout: float = 1.0, **options: str) -> None:
         self.sim = Slc500Simulator.from_options(options, ladder=ladder)
-        self.host = Df1Link(checksum=self.sim.options.checksum, ack_timeout=ack_timeout)
+        self.host = Df1DataLink(checksum=self.sim.options.checksum, ack_timeout=ack_timeout)
         self.now = 0.0
         self.tns = TnsAllocator()
         self.replies: dict[int, list[PcccReply]] = {}
@@ -811,7 +813,7 @@ async def test_through_sim_stream() -> None:
     loop = asyncio.get_running_loop()
     sim = Slc500Simulator.from_options({"delay": "0.01", "noise": "2", "duplicate": "2"}, ladder=True)
     stream = SimStream(sim)
-    host = Df1Link(checksum=Checksum.CRC, ack_timeout=0.5)
+    host = Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.5)
     tns = TnsAllocator()
     try:
 

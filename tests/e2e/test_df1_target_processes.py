@@ -24,8 +24,8 @@ from pathlib import Path
 import pytest
 
 from gateway.protocols.df1.address import FileType
+from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
-from gateway.protocols.df1.link import Df1Link
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalWrite
 from gateway.protocols.df1.transaction import Df1Transactions, TransactionDone
 
@@ -127,7 +127,7 @@ class Plc:
     def __init__(self, listener: socket.socket) -> None:
         listener.settimeout(30)
         self.sock, _ = listener.accept()
-        self.core = Df1Transactions(Df1Link(checksum=Checksum.CRC, ack_timeout=0.5), station=1, reply_timeout=1.0,
+        self.core = Df1Transactions(Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.5), station=1, reply_timeout=1.0,
                                     retries=0)
 
     def send_write(self, element: int, value: int) -> int:

@@ -17,8 +17,8 @@ What df1py3 1.0a45 can send, read from its source (``df1/commands/commands.py``,
   ``create_command(Command0FAA, file_type=FileType.INTEGER, ...)``);
 * CMD 0F FNC AB, protected typed logical masked write (``Command0FAB``: N, B or F, one 16-bit mask
   for every word; ``Command0FABSingleBit``: one bit);
-* CMD 0F FNC 04 with the A2 parameters (``Command0F04``, not exported by ``df1.commands``; no
-  command of 1770-6.5.16 has that FNC): the gateway refuses it, STS 10.
+* CMD 0F FNC 04 with the A2 parameters (``Command0F04``, docstring "protected typed logical read",
+  not exported by ``df1.commands``): not a command the gateway answers, so it refuses it, STS 10.
 
 What it cannot send or receive:
 

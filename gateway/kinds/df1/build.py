@@ -30,7 +30,7 @@ from gateway.kinds.df1.unit import PROCESSORS, Df1Unit, PcccDriver, PcccUnit
 from gateway.link_health import DownAfter
 from gateway.modbus.mapping import Plan, Table
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex import StationConfig
+from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import ProcessorFamily
 from gateway.protocols.df1.pccc.target_table import ElementRef
 from gateway.protocols.df1.slave_messages import RegisterTable
@@ -133,7 +133,7 @@ def station_config(link: Df1LinkConfig) -> StationConfig:
         reply_timeout=link.timeout,
         reply_wait=link.reply_wait,
         max_polls=link.max_polls,
-        retries=link.demote_after,
+        demote_after=link.demote_after,
         poll_interval=link.poll_interval,
         slow_poll_interval=link.slow_poll_interval,
     )

@@ -1,6 +1,6 @@
 """Asyncio driver for DF1 full duplex + PCCC (SLC 500, PLC-5): a thin loop around the cores.
 
-The sans-I/O cores decide everything: :class:`~gateway.protocols.df1.link.Df1Link` (DLE ACK /
+The sans-I/O cores decide everything: :class:`~gateway.protocols.df1.datalink.Df1DataLink` (DLE ACK /
 NAK / ENQ) under :class:`~gateway.protocols.df1.transaction.Df1Transactions` (TNS, reply
 matching, retries, the exactly-once verdict of a write and its read-back).  This module moves
 bytes, runs the one timer the core asks for (``next_deadline()`` / ``handle_timeout(now)``)
@@ -26,8 +26,8 @@ from gateway.errors import GatewayError, LinkTimeout, ProtocolError, WriteOutcom
 from gateway.kinds.df1.config import DF1_DEFAULTS
 from gateway.line_driver import LineDriver, OpenStream, Priority
 from gateway.link_health import DEFAULT_DOWN_AFTER, LineCounters
+from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
-from gateway.protocols.df1.link import Df1Link
 from gateway.protocols.df1.pccc import (
     DiagnosticStatus,
     DiagnosticStatusInfo,
@@ -109,7 +109,7 @@ class Df1Driver(LineDriver):
         self._timer: asyncio.TimerHandle | None = None
 
     def _new_core(self, first_tns: int) -> Df1Transactions:
-        link = Df1Link(
+        link = Df1DataLink(
             checksum=self.checksum,
             # the ACK comes after our whole frame has gone out: allow for the longest frame's time
             ack_timeout=self.ack_timeout + _LONGEST_FRAME * self.char_time,
@@ -138,7 +138,7 @@ class Df1Driver(LineDriver):
         enq, nak, bad = self._link_base
         self._link_base = (enq + old.enqs_sent, nak + old.naks_received, bad + old.bad_frames)
         # a reconnect goes on from the last TNS (a new core: the line state is gone)
-        self._core = self._new_core(self._core.next_tns if self._core.counters.started else self._first_tns)
+        self._core = self._new_core(self._core.allocate_tns() if self._core.counters.started else self._first_tns)
         for waiter in self._waiting.values():
             waiter.cancel()
         self._waiting.clear()

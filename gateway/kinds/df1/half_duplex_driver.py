@@ -53,10 +53,10 @@ from gateway.errors import GatewayError, LinkDown
 from gateway.kinds.df1.driver import DF1_SETTINGS, transaction_result
 from gateway.line_driver import LineDriver, OpenStream, run_to_the_end
 from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LinkHealth
-from gateway.protocols.df1.half_duplex import (
-    NEED_DATA,
+from gateway.protocols.df1.framing import NEED_DATA, Checksum
+from gateway.protocols.df1.half_duplex import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex_events import (
     FailReason,
-    HalfDuplexMaster,
     LineConfig,
     MasterEvent,
     MessageDelivered,
@@ -68,11 +68,10 @@ from gateway.protocols.df1.half_duplex import (
     StationRestored,
     StrayReply,
 )
-from gateway.protocols.df1.half_duplex_framing import Checksum
-from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions, PcccCommand
+from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions, PcccRequestLike
 from gateway.protocols.df1.pccc import DiagnosticStatus, DiagnosticStatusInfo, PcccReply
 from gateway.protocols.df1.pccc import is_write as pccc_is_write
-from gateway.protocols.df1.slave_messages import RegisterTable, Verdict, answer_slave_message
+from gateway.protocols.df1.slave_messages import RegisterTable, SlaveMessageVerdict, answer_slave_message
 from gateway.protocols.df1.transaction import (
     OutcomeUnknown,
     TransactionDone,
@@ -82,7 +81,7 @@ from gateway.protocols.df1.transaction import (
 )
 from gateway.transport import SerialSettings, describe_url, enable_rs485, modem_lines, open_stream
 
-__all__ = ["RTS_MODES", "Df1HalfDuplexLine", "Df1Station", "PcccCommand", "StationTotals"]
+__all__ = ["RTS_MODES", "Df1HalfDuplexLine", "Df1Station", "PcccRequestLike", "StationTotals"]
 
 #: ``rts``: ``toggle`` (the core keys RTS around each transmission), ``rs485`` (the kernel's RS-485
 #: mode does), ``on`` / ``off`` (held; a full-duplex modem, a 4-wire converter).
@@ -172,6 +171,7 @@ class Df1Station(LinkHealth):
         first reply).  Counters are totals since the line was created (reconnects included).
         """
         values: dict[str, float] = {f.name: getattr(self.totals, f.name) for f in fields(StationTotals)}
+        values["retries"] = values.pop("resends")  # the metric keeps its published name
         core = self.line.core
         values["active"] = 1.0 if core is not None and core.is_active(self.station) else 0.0
         age = self.data_age(now)
@@ -198,7 +198,7 @@ class Df1Station(LinkHealth):
 
     # --- requests ---------------------------------------------------------------------------
 
-    async def execute(self, request: PcccCommand, name: str = "", *, write: bool | None = None) -> PcccReply:
+    async def execute(self, request: PcccRequestLike, name: str = "", *, write: bool | None = None) -> PcccReply:
         """Send ``request`` to this station and return the (successful) reply (module docstring)."""
         label = name or type(request).__name__
         is_write = pccc_is_write(request) if write is None else write
@@ -207,7 +207,7 @@ class Df1Station(LinkHealth):
         # a write goes on to its verdict even when its caller gives up (as Df1Driver.submit does)
         return await run_to_the_end(self._run(request, label, True))
 
-    async def _run(self, request: PcccCommand, label: str, is_write: bool) -> PcccReply:
+    async def _run(self, request: PcccRequestLike, label: str, is_write: bool) -> PcccReply:
         """One transaction; the sans-I/O layer gives its verdict, this turns it into a result."""
         event = await self.line.transact(self, request, is_write)
         if isinstance(event, TransactionDone | TransactionRefused):
@@ -334,7 +334,7 @@ class Df1HalfDuplexLine(LineDriver):
         return LineConfig(
             self.checksum,
             ack_timeout=self.ack_timeout,
-            message_retries=self.message_retries,
+            message_resends=self.message_retries,
             char_time=self.char_time,
             pre_transmit_delay=self.pre_transmit_delay,
             rts_send_delay=self.rts_send_delay,
@@ -472,7 +472,7 @@ class Df1HalfDuplexLine(LineDriver):
         totals.slave_messages += 1
         table = self.register_tables.get(event.station)
         verdict, reply = answer_slave_message(event.message, own_station=self.source, table=table, now=now)
-        if verdict is Verdict.STORED:
+        if verdict is SlaveMessageVerdict.STORED:
             totals.slave_writes += 1
         elif reply is not None:
             totals.slave_refused += 1
@@ -500,7 +500,7 @@ class Df1HalfDuplexLine(LineDriver):
 
     # --- requests ---------------------------------------------------------------------------
 
-    async def transact(self, handle: Df1Station, request: PcccCommand, write: bool) -> TransactionEvent:
+    async def transact(self, handle: Df1Station, request: PcccRequestLike, write: bool) -> TransactionEvent:
         """Run one transaction for ``handle``'s station; its verdict event."""
         txns = self.txns
         if self.core is None or not self.connected:

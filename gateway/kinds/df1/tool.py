@@ -30,12 +30,12 @@ from gateway.errors import InvalidRequest, LinkTimeout
 from gateway.kinds.contract import ToolHints
 from gateway.kinds.df1.config import DF1_DEFAULTS
 from gateway.kinds.df1.driver import Df1Driver
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, PcccCommand
+from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, PcccRequestLike
 from gateway.kinds.df1.unit import PROCESSORS
 from gateway.line_driver import OpenStream
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex import StationConfig
+from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import (
     DiagnosticStatusInfo,
     PcccReply,
@@ -138,7 +138,7 @@ def decode_plc5_value(address: Plc5Address, data: bytes) -> Any:
     return words[0] - 0x10000 if signed and words[0] & 0x8000 else words[0]
 
 
-def encode_plc5_write(address: Plc5Address, text: str) -> PcccCommand:
+def encode_plc5_write(address: Plc5Address, text: str) -> PcccRequestLike:
     """The PLC-5 command that writes ``text`` to ``address``: word range write, or RMW for a bit."""
     if address.bit is not None:
         try:
@@ -167,7 +167,7 @@ def encode_plc5_write(address: Plc5Address, text: str) -> PcccCommand:
 @dataclass(frozen=True, slots=True)
 class _Read:
     text: str
-    request: PcccCommand
+    request: PcccRequestLike
     decode: Callable[[bytes], Any]
 
 
@@ -175,7 +175,7 @@ class _Read:
 class _Write:
     text: str
     value: str
-    request: PcccCommand
+    request: PcccRequestLike
 
 
 def _read_item(text: str, plc5: bool) -> _Read:

@@ -1,7 +1,8 @@
 """Sans-I/O DF1 full duplex and PCCC for SLC 500 and PLC-5 controllers.
 
-* :mod:`~gateway.protocols.df1.framing` - DLE framing, BCC / CRC-16, streaming frame decoder
-* :mod:`~gateway.protocols.df1.link` - the full-duplex link state machine (ACK / NAK / ENQ, timers)
+* :mod:`~gateway.protocols.df1.framing` - DLE framing of both duplex modes; its streaming decoder is
+  :mod:`~gateway.protocols.df1.framing.decoder`, the checks (BCC / CRC-16) :mod:`~gateway.protocols.df1.checks`
+* :mod:`~gateway.protocols.df1.datalink` - the full-duplex data-link layer (ACK / NAK / ENQ, timers)
 * :mod:`~gateway.protocols.df1.responder` - the full-duplex responder (DF1 target mode: commands in, replies out)
 * :mod:`~gateway.protocols.df1.pccc` - PCCC command / reply packets, STS codes, size limits, TNS
 * :mod:`~gateway.protocols.df1.address` - SLC 500 logical addresses (``N7:0``, ``T4:3.ACC`` ...)

@@ -9,43 +9,29 @@ What the core does
 * A command (a PCCC packet ``DST SRC CMD STS TNS ...``) submitted for a station is sent as a master
   message ``DLE SOH STN DLE STX ... DLE ETX check``; without a ``DLE ACK`` within the ACK timeout the
   *identical* bytes are sent again (same TNS, so a slave with duplicate detection executes it once),
-  at most ``message_retries`` times.
+  at most ``message_resends`` times.
 * After the ACK the master waits ``reply_wait`` and polls the station (``DLE ENQ STN BCC``) until
   the reply comes: a slave message of the polled station that ``pccc.reply_matches`` the command
   (same TNS, CMD + 40 hex; DST / SRC are not compared, see there).  Each ``DLE EOT`` counts one
   poll; after ``max_polls`` of them the request fails, and so it does at the first EOT after
   ``reply_timeout`` from the ACK.  The deadline itself only makes the reply's poll due: while the
   line was busy with other stations the reply may be waiting in the slave, and only its EOT says
-  it is not.  A reply
-  is only ever matched against the requests of the station that was polled, so it cannot be
-  attributed to another station.
+  it is not.  A reply is only ever matched against the requests of the station that was polled,
+  so it cannot be attributed to another station.
 * Every good slave message is acknowledged with ``DLE ACK`` and the station is polled again (up to
   ``max_messages_per_turn``), until it answers ``DLE EOT``.  A repeat of the last message's first six
   bytes before an EOT is the slave resending because our ACK was lost: ACKed and discarded
   (KA p. 11-17).  A bad slave frame is not acknowledged (never NAKed: on half duplex DLE NAK is the
   master's global link reset, Table 2.C) and the station is polled again (KA Figure 11.8).
-* Between commands every station is polled every ``poll_interval`` for the messages it initiates.
-  An answerless poll, or a master message without its DLE ACK (each copy sent), is one failure;
-  ``retries`` failures in a row (no answer of any kind between them) demote a station: its
-  requests fail at once and it is polled every ``slow_poll_interval`` until it answers (Kepware's
-  auto-demotion; KA p. 11-9 "poll the inactive slaves occasionally").
-* Writes first: a command submitted ``urgent`` (a write, or its read-back) is queued ahead of its
-  station's other commands and goes before other stations' work - its station's reply poll when
-  due (also for the read that holds its place under ``max_outstanding``), else the write itself;
-  an unacknowledged copy of another station's message waits for it.  AG Figure 1.2 (the master
-  checks for and sends its outgoing messages before it selects the next station to poll); KA
-  p. 11-9.  Work that has waited ``write_precedence`` goes before the next write, so writes never
-  starve the polls that keep every station's data fresh.
-* Timing: the line is quiet ``pre_transmit_delay`` after the last byte heard before the master
-  transmits; ``rts`` goes true ``rts_send_delay`` before the first byte and false ``rts_off_delay``
-  after the last one (transmission time = bytes x ``char_time``); answer timers start when the last
-  byte has left.  These are deadlines, never sleeps.
-* Echo suppression (2-wire RS-485): with ``echo`` the master expects to hear its own bytes first and
-  strips them; a byte that differs is a collision, counted, and the exchange runs into its timeout.
+* Which exchange comes next - writes first, round robin, background and slow polls, demotion
+  after ``demote_after`` failures in a row - is ``half_duplex_schedule.py``'s.
+* When bytes may go (quiet time, RTS keying) and echo suppression are ``half_duplex_transmitter.py``'s;
+  answer timers start when the last byte has left, and a collision runs the exchange into its timeout.
 
+Every change of :class:`LineState` is an entry of :data:`TRANSITIONS`: (state, input) -> (action,
+next state); the scheduler picking the next exchange of a free line is the input ``SCHEDULE``.
 The driver loop: ``start(now)`` once; then ``receive_data(data, now)``; ``data_to_send()``; set RTS
-from ``rts``; sleep until ``next_deadline()``; ``handle_timeout(now)``; ``next_event()`` until
-``NEED_DATA``.
+from ``rts``; sleep until ``next_deadline()``; ``handle_timeout(now)``; ``next_event()`` until ``NEED_DATA``.
 
 This module does no I/O.
 """
@@ -56,65 +42,44 @@ import enum
 import itertools
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Final
 
+from gateway.protocols.df1.framing import (
+    ACK_SYMBOL,
+    NAK_SYMBOL,
+    NEED_DATA,
+    AckReceived,
+    BadFrame,
+    EotReceived,
+    Frame,
+    MasterMessage,
+    NakReceived,
+    NeedData,
+    Poll,
+    encode_master_message,
+    encode_poll,
+)
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.half_duplex_events import (
     FailReason,
     LineConfig,
     MasterEvent,
     MessageDelivered,
-    ReplyReceived,
     RequestFailed,
-    SlaveInitiated,
     StationConfig,
     StationCounters,
-    StationDemoted,
-    StationRestored,
-    StrayReply,
 )
-from gateway.protocols.df1.half_duplex_framing import (
-    ACK,
-    NAK,
-    NEED_DATA,
-    AckReceived,
-    BadFrame,
-    EotReceived,
-    HalfDuplexDecoder,
-    MasterMessage,
-    NakReceived,
-    NeedData,
-    Poll,
-    SlaveMessage,
-    encode_master_message,
-    encode_poll,
+from gateway.protocols.df1.half_duplex_schedule import (
+    ExchangeScheduler,
+    LineStations,
+    MasterRequest,
+    PollStation,
+    StationRecord,
 )
-from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, reply_matches
-from gateway.protocols.df1.pccc.codes import REPLY_BIT
+from gateway.protocols.df1.half_duplex_transmitter import HalfDuplexTransmitter
+from gateway.protocols.df1.transitions import Transition, require_complete
 
-__all__ = [
-    "NEED_DATA",
-    "FailReason",
-    "HalfDuplexMaster",
-    "LineConfig",
-    "LineState",
-    "MasterEvent",
-    "MessageDelivered",
-    "ReplyReceived",
-    "RequestFailed",
-    "SlaveInitiated",
-    "StationConfig",
-    "StationCounters",
-    "StationDemoted",
-    "StationRestored",
-    "StrayReply",
-]
-
-#: The first six bytes of a message (DST SRC CMD STS TNS) identify it for duplicate detection.
-_HEAD: Final = 6
-
-
-# ------------------------------------------------------------------------------- state machine
+__all__ = ["TRANSITIONS", "HalfDuplexMaster", "LineState", "MasterAction", "MasterInput"]
 
 
 class LineState(enum.Enum):
@@ -124,80 +89,101 @@ class LineState(enum.Enum):
     WAIT_POLL = "wait-poll"  #: poll sent, waiting for a message or DLE EOT
 
 
-class Input(enum.Enum):
-    TX_READY = "tx-ready"
-    TIMEOUT = "timeout"
-    ACK = "ack"
-    NAK = "nak"
-    EOT = "eot"
-    MESSAGE = "message"
-    BAD = "bad"
+class MasterInput(enum.Enum):
+    SCHEDULE = "the line is free: the scheduler may start an exchange"
+    SEND_MESSAGE = "the line is ready for the pending master message"
+    SEND_POLL = "the line is ready for the pending poll"
+    SEND_SYMBOL = "the line is ready for the pending DLE ACK / DLE NAK"
+    TIMEOUT = "no answer in time"
+    ACK = "DLE ACK"
+    NAK = "DLE NAK"
+    EOT = "DLE EOT"
+    MESSAGE = "a slave message with a good check"
+    BAD = "a damaged slave frame"
 
 
-@dataclass(slots=True)
-class _Request:
-    request_id: int
-    station: int
-    message: bytes
-    frame: bytes
-    sends: int = 0
-    polls: int = 0
-    poll_at: float = 0.0
-    reply_deadline: float = 0.0
-    expects_reply: bool = True  #: False: the reply to a slave's own command; done at its DLE ACK
-    urgent: bool = False  #: a write (or its read-back): served before other stations' work
-    queued_at: float = 0.0  #: when it was submitted
+class MasterAction(enum.Enum):
+    SCHEDULE = "start the next exchange, if one is due"
+    SEND = "put the pending bytes on the line; start the answer timer"
+    ACKED = "the master message arrived: wait for its reply (or report it delivered)"
+    NAKED = "the slave heard the master message: send it again, or fail it"
+    ACK_TIMEOUT = "no DLE ACK: one failure of the station; send the message again, or fail it"
+    EOT = "the slave has nothing to send: count a poll of its awaited replies"
+    MESSAGE = "acknowledge the slave message and deliver it (a reply, or the slave's own command)"
+    BAD_ANSWER = "a damaged answer: poll the station again"
+    POLL_TIMEOUT = "no answer to the poll: one failure of the station"
+    IGNORE = "nothing (counted in ``ignored``)"
 
 
-@dataclass(slots=True)
-class _Station:
-    config: StationConfig
-    active: bool = True
-    failures: int = 0
-    queue: deque[_Request] = field(default_factory=deque)
-    awaiting: list[_Request] = field(default_factory=list)
-    next_poll_at: float = 0.0
-    last_head: bytes | None = None
-    counters: StationCounters = field(default_factory=StationCounters)
+_Table = dict[tuple[LineState, MasterInput], Transition[MasterAction, LineState]]
+
+
+def _build_table() -> _Table:
+    T, L, In, A = Transition, LineState, MasterInput, MasterAction
+    # an action that sends (again) moves on to TRANSMIT, or at once past it when the line is ready
+    sent = frozenset({L.TRANSMIT, L.WAIT_ACK, L.WAIT_POLL})
+    sending = (In.SEND_MESSAGE, In.SEND_POLL, In.SEND_SYMBOL)
+    answers = (In.ACK, In.NAK, In.EOT, In.MESSAGE, In.BAD)
+
+    def ignore(state: LineState, *inputs: MasterInput) -> _Table:
+        return {(state, what): T(A.IGNORE, state) for what in inputs}
+
+    return {
+        (L.IDLE, In.SCHEDULE): T(A.SCHEDULE, L.IDLE, sent),
+        # nothing asked, nothing held, no timer: a stray symbol or frame, or another master's
+        **ignore(L.IDLE, *sending, In.TIMEOUT, *answers),
+        (L.TRANSMIT, In.SEND_MESSAGE): T(A.SEND, L.WAIT_ACK),
+        (L.TRANSMIT, In.SEND_POLL): T(A.SEND, L.WAIT_POLL),
+        (L.TRANSMIT, In.SEND_SYMBOL): T(A.SEND, L.IDLE),
+        # the line is not free and nothing of ours is out yet: what is heard answers nothing
+        **ignore(L.TRANSMIT, In.SCHEDULE, In.TIMEOUT, *answers),
+        (L.WAIT_ACK, In.ACK): T(A.ACKED, L.IDLE),
+        (L.WAIT_ACK, In.NAK): T(A.NAKED, L.IDLE, frozenset({L.TRANSMIT, L.WAIT_ACK})),
+        (L.WAIT_ACK, In.TIMEOUT): T(A.ACK_TIMEOUT, L.IDLE, frozenset({L.TRANSMIT, L.WAIT_ACK})),
+        # a slave must not send unpolled (nor DLE EOT)
+        **ignore(L.WAIT_ACK, In.SCHEDULE, *sending, In.EOT, In.MESSAGE, In.BAD),
+        (L.WAIT_POLL, In.EOT): T(A.EOT, L.IDLE),
+        (L.WAIT_POLL, In.MESSAGE): T(A.MESSAGE, L.TRANSMIT, frozenset({L.IDLE})),  # our DLE ACK
+        (L.WAIT_POLL, In.BAD): T(A.BAD_ANSWER, L.IDLE),
+        (L.WAIT_POLL, In.NAK): T(A.BAD_ANSWER, L.IDLE),
+        (L.WAIT_POLL, In.TIMEOUT): T(A.POLL_TIMEOUT, L.IDLE),
+        # a poll is not acknowledged
+        **ignore(L.WAIT_POLL, In.SCHEDULE, *sending, In.ACK),
+    }
+
+
+#: The master's state machine: (state, input) -> (action, next state or the states it may choose).
+TRANSITIONS: Final = _build_table()
+require_complete(TRANSITIONS, LineState, MasterInput, "half-duplex master")
+
+#: The input that puts the pending bytes on the line, by the state they lead to.
+_SEND_INPUT: Final = {
+    LineState.WAIT_ACK: MasterInput.SEND_MESSAGE,
+    LineState.WAIT_POLL: MasterInput.SEND_POLL,
+    LineState.IDLE: MasterInput.SEND_SYMBOL,
+}
 
 
 class HalfDuplexMaster:
     """The master side of a DF1 half-duplex line (see the module docstring)."""
 
     def __init__(self, line: LineConfig, stations: list[StationConfig]) -> None:
-        numbers = [s.station for s in stations]
-        if len(set(numbers)) != len(numbers):
-            raise ValueError(f"station numbers must be unique on a line, got {sorted(numbers)}")
-        if not stations:
-            raise ValueError("a half-duplex line needs at least one station")
         self.line: Final = line
-        self._stations: dict[int, _Station] = {s.station: _Station(s) for s in stations}
-        self._order: Final = numbers
-        self._decoder = HalfDuplexDecoder(line.checksum)
+        self._stations: Final = LineStations(stations)
+        self._scheduler: Final = ExchangeScheduler(line, self._stations)
+        self._decoder = FrameDecoder(line.checksum, half_duplex=True)
+        self._tx: Final = HalfDuplexTransmitter(line)
         self._state = LineState.IDLE
-        self._out = bytearray()
         self._events: deque[MasterEvent] = deque()
         self._ids = itertools.count(1)
-        self._echo = bytearray()
-        self._quiet_until = float("-inf")
-        self._pending: bytes = b""  #: bytes of the exchange in TRANSMIT
-        self._after: LineState = LineState.IDLE  #: state once _pending is on the wire
-        self._tx_at = 0.0
+        self._send_input = MasterInput.SEND_SYMBOL  #: the input that sends the bytes held in TRANSMIT
         self._deadline: float | None = None
         self._wake: float | None = None  #: IDLE: when the scheduler has something due
-        self._rts_on_at: float | None = None
-        self._rts_off_at: float | None = None
-        self.rts = False
         self._current: int | None = None  #: station of the exchange in progress
-        self._request: _Request | None = None  #: master message in progress
-        self._turn_station: int | None = None
-        self._turn_polls = 0
-        self._poll_again = False
+        self._request: MasterRequest | None = None  #: master message in progress
         self._reset_pending = False
-        self._rr = 0
         self._message = b""  #: the slave message being handled
         self._grace_used = False  #: the answer deadline was extended once for a frame in progress
-        self.collisions = 0
         self.ignored = 0
 
     # ----------------------------------------------------------------------------- public API
@@ -205,6 +191,14 @@ class HalfDuplexMaster:
     @property
     def state(self) -> LineState:
         return self._state
+
+    @property
+    def rts(self) -> bool:
+        return self._tx.rts
+
+    @property
+    def collisions(self) -> int:
+        return self._tx.collisions
 
     def counters(self, station: int) -> StationCounters:
         return self._stations[station].counters
@@ -222,31 +216,16 @@ class HalfDuplexMaster:
         """Queue a command packet for ``station``; returns the request id used in its events.
 
         ``urgent`` (a write, or the read-back of one): queued ahead of the station's other commands
-        and served before other stations' work (see :meth:`_schedule`)."""
-        target = self._stations.get(station)
-        if target is None:
-            raise ValueError(f"station {station} is not on this line (stations: {self._order})")
-        if len(message) < _HEAD:
-            raise ValueError("a command packet has at least DST SRC CMD STS TNS (6 bytes)")
-        tns = message[4:6]
-        for other in self._stations.values():
-            if any(r.expects_reply and r.message[4:6] == tns for r in itertools.chain(other.queue, other.awaiting)):
-                raise ValueError(f"TNS {tns.hex()} is already in use on this line; allocate TNS per line")
-        current = self._request
-        if current is not None and current.expects_reply and current.message[4:6] == tns:
+        and served before other stations' work (:meth:`ExchangeScheduler.next_exchange`)."""
+        target = self._stations.target(station, message, "a command packet")
+        if self._stations.tns_in_use(tns := message[4:6], self._request):
             raise ValueError(f"TNS {tns.hex()} is already in use on this line; allocate TNS per line")
         request_id = next(self._ids)
         if not target.active:
             self._events.append(RequestFailed(request_id, station, FailReason.STATION_DEMOTED, False))
             return request_id
         frame = encode_master_message(station, message, self.line.checksum)
-        request = _Request(request_id, station, message, frame, urgent=urgent, queued_at=now)
-        if urgent:
-            # behind the replies to the slave's own messages and the urgent requests already queued
-            at = next((i for i, r in enumerate(target.queue) if r.expects_reply and not r.urgent), len(target.queue))
-            target.queue.insert(at, request)
-        else:
-            target.queue.append(request)
+        target.enqueue(MasterRequest(request_id, station, message, frame, urgent=urgent, queued_at=now))
         self._kick(now)
         return request_id
 
@@ -258,14 +237,10 @@ class HalfDuplexMaster:
         polled for.  Events: :class:`MessageDelivered` at the ACK, else ``RequestFailed(NO_ACK)``.
         The TNS is the slave's own (its MSG's), so it is not checked against the line's TNS.
         """
-        target = self._stations.get(station)
-        if target is None:
-            raise ValueError(f"station {station} is not on this line (stations: {self._order})")
-        if len(message) < _HEAD:
-            raise ValueError("a reply packet has at least DST SRC CMD STS TNS (6 bytes)")
+        target = self._stations.target(station, message, "a reply packet")
         request_id = next(self._ids)
         frame = encode_master_message(station, message, self.line.checksum)
-        target.queue.appendleft(_Request(request_id, station, message, frame, expects_reply=False))
+        target.enqueue(MasterRequest(request_id, station, message, frame, expects_reply=False))
         self._kick(now)
         return request_id
 
@@ -275,17 +250,15 @@ class HalfDuplexMaster:
         self._kick(now)
 
     def data_to_send(self) -> bytes:
-        data = bytes(self._out)
-        self._out.clear()
-        return data
+        return self._tx.data_to_send()
 
     def next_event(self) -> MasterEvent | NeedData:
         return self._events.popleft() if self._events else NEED_DATA
 
     def next_deadline(self) -> float | None:
-        times = [t for t in (self._rts_on_at, self._rts_off_at) if t is not None]
+        times = self._tx.rts_deadlines()
         if self._state is LineState.TRANSMIT:
-            times.append(self._tx_at)
+            times.append(self._tx.tx_at)
         elif self._state is LineState.IDLE:
             if self._wake is not None:
                 times.append(self._wake)
@@ -294,9 +267,9 @@ class HalfDuplexMaster:
         return min(times) if times else None
 
     def handle_timeout(self, now: float) -> None:
-        self._update_rts(now)
-        if self._state is LineState.TRANSMIT and now >= self._tx_at:
-            self._step(Input.TX_READY, now)
+        self._tx.update_rts(now)
+        if self._state is LineState.TRANSMIT and now >= self._tx.tx_at:
+            self._step(self._send_input, now)
         elif self._state in (LineState.WAIT_ACK, LineState.WAIT_POLL):
             if self._deadline is not None and now >= self._deadline:
                 if self._decoder.in_frame and not self._grace_used:
@@ -305,65 +278,70 @@ class HalfDuplexMaster:
                     self._deadline = now + self._answer_timeout()
                     return
                 self._decoder.reset()
-                self._step(Input.TIMEOUT, now)
+                self._step(MasterInput.TIMEOUT, now)
         elif self._state is LineState.IDLE:
-            self._schedule(now)
+            self._apply(MasterInput.SCHEDULE, now)
 
     def receive_data(self, data: bytes, now: float) -> None:
-        if self._echo:
-            same = 0
-            limit = min(len(data), len(self._echo))
-            while same < limit and data[same] == self._echo[same]:
-                same += 1
-            if same < limit:  # our own bytes came back different: a collision
-                self.collisions += 1
-                self._echo.clear()
-            else:
-                del self._echo[:same]
-            data = data[same:]
+        data = self._tx.heard(data, now, transmitting=self._state is LineState.TRANSMIT)
         if not data:
             return
-        self._quiet_until = max(self._quiet_until, now + self.line.pre_transmit_delay)
-        if self._state is LineState.TRANSMIT:
-            self._tx_at = max(self._tx_at, self._quiet_until + self.line.rts_send_delay)
         self._decoder.feed(data)
         while (event := self._decoder.next_event()) is not NEED_DATA:
-            if isinstance(event, SlaveMessage):
+            if isinstance(event, Frame):
                 self._message = event.message
-                self._step(Input.MESSAGE, now)
+                self._step(MasterInput.MESSAGE, now)
             elif isinstance(event, EotReceived):
-                self._step(Input.EOT, now)
+                self._step(MasterInput.EOT, now)
             elif isinstance(event, AckReceived):
-                self._step(Input.ACK, now)
+                self._step(MasterInput.ACK, now)
             elif isinstance(event, NakReceived):
-                self._step(Input.NAK, now)
+                self._step(MasterInput.NAK, now)
             elif isinstance(event, BadFrame) and not event.master:
-                self._step(Input.BAD, now)
+                self._step(MasterInput.BAD, now)
             elif isinstance(event, Poll | MasterMessage | BadFrame):
                 self.ignored += 1  # another master's frame, or our own echo without echo mode
 
     # --------------------------------------------------------------------------- the table
 
-    def _step(self, what: Input, now: float) -> None:
-        handler = _TRANSITIONS.get((self._state, what))
-        if handler is None:
-            self.ignored += 1
-            return
-        handler(self, now)
-        if self._state is LineState.IDLE:
-            self._schedule(now)
+    def _step(self, what: MasterInput, now: float) -> None:
+        """An input from the line or a timer; a free line then starts the next exchange."""
+        if self._apply(what, now) and self._state is LineState.IDLE:
+            self._apply(MasterInput.SCHEDULE, now)
 
-    def _on_tx_ready(self, now: float) -> None:
-        data = self._pending
-        self._pending = b""
-        self._out += data
-        if self.line.echo:
-            self._echo += data
-        end = now + len(data) * self.line.char_time
-        self._rts_off_at = end + self.line.rts_off_delay
-        self._quiet_until = max(self._quiet_until, self._rts_off_at)
-        self._update_rts(now)
-        self._state = self._after
+    def _apply(self, what: MasterInput, now: float) -> bool:
+        """One transition of :data:`TRANSITIONS`; False when the pair is ignored."""
+        entry = TRANSITIONS[self._state, what]
+        if entry.action is MasterAction.IGNORE:
+            self.ignored += 1
+            return False
+        self._state = entry.next_state
+        _ACTIONS[entry.action](self, now)
+        assert entry.allows(self._state), f"{entry.action.name} ended in {self._state.name}, not in {entry.allowed}"
+        return True
+
+    def _on_schedule(self, now: float) -> None:
+        """The line is free: a pending link reset, else the scheduler's next exchange."""
+        while self._state is LineState.IDLE:
+            self._wake = None
+            self._current = None
+            self._scheduler.mark_overdue(now)
+            if self._reset_pending:
+                self._reset_pending = False
+                self._reset_all()
+                self._transmit(NAK_SYMBOL, LineState.IDLE, now)
+                continue
+            exchange = self._scheduler.next_exchange(now)
+            if exchange is None:
+                self._wake = self._scheduler.wake
+                return
+            if isinstance(exchange, PollStation):
+                self._send_poll(exchange.station, now, again=exchange.again)
+            else:
+                self._send_message(exchange.request, now)
+
+    def _on_send(self, now: float) -> None:
+        end = self._tx.send(now)
         self._grace_used = False
         self._deadline = None if self._state is LineState.IDLE else end + self._answer_timeout()
 
@@ -379,15 +357,14 @@ class HalfDuplexMaster:
         self._answered(station)
         if not request.expects_reply:
             self._events.append(MessageDelivered(request.request_id, request.station))
-            self._state = LineState.IDLE
             return
         request.poll_at = now + station.config.reply_wait
         request.reply_deadline = now + station.config.reply_timeout
         station.awaiting.append(request)
-        self._state = LineState.IDLE
 
     def _on_naked(self, now: float) -> None:
-        """DLE NAK from a slave (not the manual's: see the module docstring): it heard us; resend."""
+        """DLE NAK from a slave (a reading the manuals leave open, docs/df1-half-duplex-notes.md §5):
+        it heard us; resend."""
         request = self._request
         assert request is not None
         self._answered(self._stations[request.station])
@@ -403,27 +380,24 @@ class HalfDuplexMaster:
         if not station.active:
             self._take_request()
             self._events.append(RequestFailed(request.request_id, request.station, FailReason.NO_ACK, True))
-            self._state = LineState.IDLE
             return
         self._resend_or_fail(request, now)
 
-    def _resend_or_fail(self, request: _Request, now: float) -> None:
+    def _resend_or_fail(self, request: MasterRequest, now: float) -> None:
         station = self._stations[request.station]
-        if request.sends <= self.line.message_retries:
-            station.counters.retries += 1
-            if not request.urgent and self._urgent_waiting(now, besides=request.station):
+        if request.sends <= self.line.message_resends:
+            station.counters.resends += 1
+            if not request.urgent and self._scheduler.urgent_waiting(now, besides=request.station):
                 # A write waits at another station: it goes first, this copy at the station's next
                 # turn.  Other stations' frames do not reach this slave, so its duplicate detection
                 # still sees the identical copy next.
                 self._take_request()
                 station.queue.appendleft(request)
-                self._state = LineState.IDLE
                 return
             self._send_message(request, now)  # the identical bytes: same TNS
             return
         self._take_request()
         self._events.append(RequestFailed(request.request_id, request.station, FailReason.NO_ACK, True))
-        self._state = LineState.IDLE
 
     def _on_eot(self, now: float) -> None:
         station = self._polled()
@@ -433,122 +407,68 @@ class HalfDuplexMaster:
         for request in list(station.awaiting):
             request.polls += 1
             if request.polls >= station.config.max_polls or now >= request.reply_deadline:
-                self._fail_awaiting(station, request, FailReason.NO_REPLY)
-        self._poll_again = False
-        self._state = LineState.IDLE
+                self._events.append(station.fail_awaiting(request, FailReason.NO_REPLY))
+        self._scheduler.poll_again = False
 
     def _on_message(self, now: float) -> None:
         station = self._polled()
         message = self._message
         self._answered(station)
-        self._poll_again = True
-        self._transmit(ACK, LineState.IDLE, now)
-        head = message[:_HEAD]
-        if head == station.last_head:
-            station.counters.duplicates += 1
-            return
-        station.last_head = head
-        station.counters.messages_received += 1
-        number = station.config.station
-        if len(message) >= HEADER_SIZE and message[2] & REPLY_BIT:
-            reply = PcccHeader.decode(message)
-            for request in station.awaiting:
-                if reply_matches(request.message, reply):
-                    station.awaiting.remove(request)
-                    self._events.append(ReplyReceived(request.request_id, number, message))
-                    return
-            self._events.append(StrayReply(number, message))
-        else:
-            self._events.append(SlaveInitiated(number, message))
+        self._scheduler.poll_again = True
+        self._transmit(ACK_SYMBOL, LineState.IDLE, now)
+        event = station.received(message)
+        if event is not None:
+            self._events.append(event)
 
     def _on_bad_answer(self, now: float) -> None:
         station = self._polled()
         station.counters.bad_frames += 1
-        self._poll_again = True  # not acknowledged: the slave resends at the next poll
-        self._state = LineState.IDLE
+        self._scheduler.poll_again = True  # not acknowledged: the slave resends at the next poll
 
     def _on_poll_timeout(self, now: float) -> None:
         station = self._polled()
         station.counters.timeouts += 1
-        self._poll_again = station.active
+        self._scheduler.poll_again = station.active
         self._failed(station, now)
-        self._state = LineState.IDLE
 
     # ------------------------------------------------------------------------------ helpers
 
-    def _polled(self) -> _Station:
+    def _polled(self) -> StationRecord:
         assert self._current is not None
         return self._stations[self._current]
 
-    def _take_request(self) -> _Request:
+    def _take_request(self) -> MasterRequest:
         request = self._request
         assert request is not None
         self._request = None
         return request
 
-    def _answered(self, station: _Station) -> None:
-        station.failures = 0
-        if not station.active:
-            station.active = True
-            station.next_poll_at = 0.0
-            self._events.append(StationRestored(station.config.station))
+    def _answered(self, station: StationRecord) -> None:
+        restored = station.answered()
+        if restored is not None:
+            self._events.append(restored)
 
-    def _failed(self, station: _Station, now: float) -> None:
-        station.failures += 1
-        if station.active and station.failures >= station.config.retries:
-            station.active = False
-            station.next_poll_at = now + station.config.slow_poll_interval
-            station.counters.demotions += 1
-            self._poll_again = False
-            self._events.append(StationDemoted(station.config.station))
-            while station.queue:
-                request = station.queue.popleft()
-                self._events.append(
-                    RequestFailed(request.request_id, request.station, FailReason.STATION_DEMOTED, False)
-                )
-            for request in list(station.awaiting):
-                self._fail_awaiting(station, request, FailReason.STATION_DEMOTED)
-
-    def _fail_awaiting(self, station: _Station, request: _Request, reason: FailReason) -> None:
-        station.awaiting.remove(request)
-        self._events.append(RequestFailed(request.request_id, request.station, reason, True))
-
-    def _update_rts(self, now: float) -> None:
-        if self._rts_off_at is not None and now >= self._rts_off_at:
-            self.rts = False
-            self._rts_off_at = None
-        if self._rts_on_at is not None and now >= self._rts_on_at:
-            self.rts = True
-            self._rts_on_at = None
+    def _failed(self, station: StationRecord, now: float) -> None:
+        events = station.failed(now)
+        if events:  # demoted: its turn ends
+            self._scheduler.poll_again = False
+            self._events.extend(events)
 
     def _transmit(self, data: bytes, after: LineState, now: float) -> None:
-        start = max(now, self._quiet_until)
-        self._pending = data
-        self._after = after
+        """Send ``data`` once the line is quiet and RTS is up; the exchange then waits in ``after``."""
+        self._send_input = _SEND_INPUT[after]
         self._state = LineState.TRANSMIT
         self._deadline = None
-        self._tx_at = start + self.line.rts_send_delay
-        if start <= now:
-            self.rts = True
-            self._rts_off_at = None
-        else:
-            self._rts_on_at = start  # after the previous RTS off (start >= quiet_until >= it)
-        if self._tx_at <= now:
-            self._on_tx_ready(now)
+        if self._tx.prepare(data, now):
+            self._apply(self._send_input, now)
 
     def _send_poll(self, number: int, now: float, *, again: bool = False) -> None:
-        station = self._stations[number]
-        station.counters.polls += 1
-        interval = station.config.poll_interval if station.active else station.config.slow_poll_interval
-        station.next_poll_at = now + interval
-        if not again or self._turn_station != number:
-            self._turn_station = number
-            self._turn_polls = 0
-        self._turn_polls += 1
+        self._stations[number].polled(now)
+        self._scheduler.polled(number, again=again)
         self._current = number
         self._transmit(encode_poll(number), LineState.WAIT_POLL, now)
 
-    def _send_message(self, request: _Request, now: float) -> None:
+    def _send_message(self, request: MasterRequest, now: float) -> None:
         request.sends += 1
         self._stations[request.station].counters.messages_sent += 1
         self._request = request
@@ -557,138 +477,24 @@ class HalfDuplexMaster:
 
     def _kick(self, now: float) -> None:
         if self._state is LineState.IDLE:
-            self._schedule(now)
-
-    def _rotation(self) -> list[_Station]:
-        order = self._order[self._rr :] + self._order[: self._rr]
-        return [self._stations[number] for number in order]
-
-    def _serve(self, station: _Station) -> None:
-        self._rr = (self._order.index(station.config.station) + 1) % len(self._order)
-
-    def _schedule(self, now: float) -> None:
-        """IDLE: pick the next exchange.
-
-        Priority: a pending link reset; the station of this turn again while it has messages; then,
-        round robin over the stations, a due poll for a reply, a due slow poll of a demoted
-        station or a queued command (so a slow station's reply polls cannot starve the others, and
-        busy stations cannot starve a demoted one's slow poll: under continuous polling it would
-        never be restored); then background polls of active stations (an active station with
-        traffic is polled for its replies anyway, and every poll restarts its ``poll_interval``).
-        """
-        while self._state is LineState.IDLE:
-            self._wake = None
-            self._current = None
-            for station in self._stations.values():
-                for request in station.awaiting:
-                    if now >= request.reply_deadline:
-                        request.poll_at = min(request.poll_at, now)  # ask once more: the EOT decides
-            if self._reset_pending:
-                self._reset_pending = False
-                self._reset_all()
-                self._transmit(NAK, LineState.IDLE, now)
-                continue
-            if not self._pick(now):
-                return
-
-    def _held_back(self, now: float) -> bool:
-        """Other work has waited ``write_precedence`` for writes: it goes next (writes cannot starve
-        the polls that keep every station's data fresh)."""
-        since = now - self.line.write_precedence
-        for station in self._stations.values():
-            if not station.active:
-                continue
-            if any(not r.urgent and r.queued_at <= since for r in station.queue):
-                return True
-            if any(not r.urgent and r.poll_at <= since for r in station.awaiting):
-                return True
-        return False
-
-    def _urgent_waiting(self, now: float, besides: int | None = None) -> _Station | None:
-        """The first station (round robin) with a write that can move now: its reply poll is due,
-        or it is queued and the station can take it (``max_outstanding``).  None while other work
-        has been held back too long (:meth:`_held_back`)."""
-        if self._held_back(now):
-            return None
-        for station in self._rotation():
-            if station.config.station == besides or not station.active:
-                continue
-            if not any(r.urgent for r in itertools.chain(station.queue, station.awaiting)):
-                continue
-            if any(r.poll_at <= now for r in station.awaiting) or (
-                station.queue and len(station.awaiting) < station.config.max_outstanding
-            ):
-                return station
-        return None
-
-    def _pick_urgent(self, now: float) -> bool:
-        """A write (or its read-back) goes before other stations' work: the station's reply poll
-        when due (its reply, or the reply of the read that holds its place), else the queued write."""
-        station = self._urgent_waiting(now)
-        if station is None:
-            return False
-        self._serve(station)
-        if any(r.poll_at <= now for r in station.awaiting):
-            self._send_poll(station.config.station, now, again=self._turn_station == station.config.station)
-        else:
-            self._send_message(station.queue.popleft(), now)
-        return True
-
-    def _pick(self, now: float) -> bool:
-        turn = self._turn_station
-        again = self._poll_again
-        self._poll_again = False
-        if self._pick_urgent(now):
-            return True
-        if again and turn is not None and self._turn_polls < self.line.max_messages_per_turn:
-            self._send_poll(turn, now, again=True)
-            return True
-        for station in self._rotation():
-            if station.active and station.queue and not station.queue[0].expects_reply:
-                self._serve(station)  # a slave's MSG waits for this reply: before other work
-                self._send_message(station.queue.popleft(), now)
-                return True
-        wake: list[float] = []
-        for station in self._rotation():
-            due = [r.poll_at for r in station.awaiting]
-            wake += due + [r.reply_deadline for r in station.awaiting if r.poll_at < r.reply_deadline]
-            if (due and min(due) <= now) or (not station.active and station.next_poll_at <= now):
-                self._serve(station)
-                self._send_poll(station.config.station, now)
-                return True
-            if station.active and station.queue and len(station.awaiting) < station.config.max_outstanding:
-                self._serve(station)
-                self._send_message(station.queue.popleft(), now)
-                return True
-        for station in self._rotation():
-            if station.next_poll_at <= now:
-                self._serve(station)
-                self._send_poll(station.config.station, now)
-                return True
-            wake.append(station.next_poll_at)
-        self._wake = min(wake) if wake else None
-        return False
+            self._apply(MasterInput.SCHEDULE, now)
 
     def _reset_all(self) -> None:
         """After DLE NAK the slaves' queues are empty: requests awaiting a reply will get none."""
-        for station in self._stations.values():
+        for station in self._stations:
             station.last_head = None
-            for request in list(station.awaiting):
-                self._fail_awaiting(station, request, FailReason.LINK_RESET)
+            self._events.extend(station.fail_awaiting(r, FailReason.LINK_RESET) for r in list(station.awaiting))
 
 
-_Handler = Callable[[HalfDuplexMaster, float], None]
-
-#: (state, input) -> handler.  Pairs not listed are ignored (counted in ``ignored``): an ACK while
-#: polling, a slave message while waiting for an ACK (a slave must not send unpolled), and so on.
-_TRANSITIONS: Final[dict[tuple[LineState, Input], _Handler]] = {
-    (LineState.TRANSMIT, Input.TX_READY): HalfDuplexMaster._on_tx_ready,
-    (LineState.WAIT_ACK, Input.ACK): HalfDuplexMaster._on_acked,
-    (LineState.WAIT_ACK, Input.NAK): HalfDuplexMaster._on_naked,
-    (LineState.WAIT_ACK, Input.TIMEOUT): HalfDuplexMaster._on_ack_timeout,
-    (LineState.WAIT_POLL, Input.EOT): HalfDuplexMaster._on_eot,
-    (LineState.WAIT_POLL, Input.MESSAGE): HalfDuplexMaster._on_message,
-    (LineState.WAIT_POLL, Input.BAD): HalfDuplexMaster._on_bad_answer,
-    (LineState.WAIT_POLL, Input.NAK): HalfDuplexMaster._on_bad_answer,
-    (LineState.WAIT_POLL, Input.TIMEOUT): HalfDuplexMaster._on_poll_timeout,
+#: What each :class:`MasterAction` runs.
+_ACTIONS: Final[dict[MasterAction, Callable[[HalfDuplexMaster, float], None]]] = {
+    MasterAction.SCHEDULE: HalfDuplexMaster._on_schedule,
+    MasterAction.SEND: HalfDuplexMaster._on_send,
+    MasterAction.ACKED: HalfDuplexMaster._on_acked,
+    MasterAction.NAKED: HalfDuplexMaster._on_naked,
+    MasterAction.ACK_TIMEOUT: HalfDuplexMaster._on_ack_timeout,
+    MasterAction.EOT: HalfDuplexMaster._on_eot,
+    MasterAction.MESSAGE: HalfDuplexMaster._on_message,
+    MasterAction.BAD_ANSWER: HalfDuplexMaster._on_bad_answer,
+    MasterAction.POLL_TIMEOUT: HalfDuplexMaster._on_poll_timeout,
 }

@@ -9,7 +9,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-from gateway.protocols.df1.half_duplex_framing import Checksum
+from gateway.protocols.df1.framing import Checksum
 
 __all__ = [
     "DEMOTE_AFTER",
@@ -53,7 +53,7 @@ class StationConfig:
     reply_timeout: float = 5.0  #: from the ACK of a command to its reply
     reply_wait: float = 0.0  #: after the ACK, before the first poll for the reply (RM p. 13-67)
     max_polls: int = 20  #: DLE EOT answers tolerated while waiting for one reply
-    retries: int = DEMOTE_AFTER  #: answerless polls / unacknowledged messages in a row before demotion
+    demote_after: int = DEMOTE_AFTER  #: answerless polls / unacknowledged messages in a row before demotion
     poll_interval: float = 1.0  #: background poll period for slave-initiated messages
     slow_poll_interval: float = 10.0  #: poll period of a demoted station
     max_outstanding: int = 1  #: commands delivered and awaiting their reply at once
@@ -66,8 +66,8 @@ class StationConfig:
         _positive("reply_wait", self.reply_wait)
         _positive("poll_interval", self.poll_interval, allow_zero=False)
         _positive("slow_poll_interval", self.slow_poll_interval, allow_zero=False)
-        if self.max_polls < 1 or self.retries < 1 or self.max_outstanding < 1:
-            raise ValueError("max_polls, retries and max_outstanding must be at least 1")
+        if self.max_polls < 1 or self.demote_after < 1 or self.max_outstanding < 1:
+            raise ValueError("max_polls, demote_after and max_outstanding must be at least 1")
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,7 +76,7 @@ class LineConfig:
 
     checksum: Checksum
     ack_timeout: float = 0.5  #: wait for DLE ACK after a master message
-    message_retries: int = 3  #: resends of an unacknowledged master message
+    message_resends: int = 3  #: identical copies sent again of a master message without its DLE ACK
     char_time: float = 0.0  #: time of one character on the wire (11 bits / baud); 0 = instantaneous
     pre_transmit_delay: float = 0.0  #: quiet time after the last byte heard before transmitting
     rts_send_delay: float = 0.0  #: RTS on to first byte (modem key-up, RM p. 13-59)
@@ -90,8 +90,8 @@ class LineConfig:
         _positive("ack_timeout", self.ack_timeout, allow_zero=False)
         for name in ("char_time", "pre_transmit_delay", "rts_send_delay", "rts_off_delay", "write_precedence"):
             _positive(name, getattr(self, name))
-        if self.message_retries < 0 or self.max_messages_per_turn < 1:
-            raise ValueError("message_retries must be >= 0 and max_messages_per_turn >= 1")
+        if self.message_resends < 0 or self.max_messages_per_turn < 1:
+            raise ValueError("message_resends must be >= 0 and max_messages_per_turn >= 1")
 
 
 # ------------------------------------------------------------------------------------------ events
@@ -166,7 +166,7 @@ class StationCounters:
     eots: int = 0
     messages_sent: int = 0
     messages_received: int = 0
-    retries: int = 0
+    resends: int = 0  #: master messages sent again (identical) for a missing DLE ACK
     timeouts: int = 0
     bad_frames: int = 0
     duplicates: int = 0

@@ -26,15 +26,9 @@ from collections import deque
 from dataclasses import dataclass
 from typing import ClassVar, Protocol
 
-from gateway.protocols.df1.half_duplex import (
-    NEED_DATA,
-    FailReason,
-    HalfDuplexMaster,
-    MasterEvent,
-    ReplyReceived,
-    RequestFailed,
-)
-from gateway.protocols.df1.half_duplex_framing import NeedData
+from gateway.protocols.df1.framing import NEED_DATA, NeedData
+from gateway.protocols.df1.half_duplex import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex_events import FailReason, MasterEvent, ReplyReceived, RequestFailed
 from gateway.protocols.df1.pccc import PcccFormatError, PcccHeader, PcccReply, TnsAllocator, decode_reply
 from gateway.protocols.df1.transaction import (
     OutcomeUnknown,
@@ -48,14 +42,14 @@ from gateway.protocols.df1.write_verdict import (
     SendReadBack,
     Verdict,
     VerdictKind,
-    WriteStep,
+    VerdictStep,
     WriteVerdict,
 )
 
-__all__ = ["HalfDuplexTransactions", "PcccCommand", "TxnCounters", "encode_packet"]
+__all__ = ["HalfDuplexTransactions", "PcccRequestLike", "TxnCounters", "encode_packet"]
 
 
-class PcccCommand(Protocol):
+class PcccRequestLike(Protocol):
     """Any PCCC request: ``CMD`` / ``FNC`` and the parameters after FNC (the pccc request classes)."""
 
     CMD: ClassVar[int]
@@ -64,7 +58,7 @@ class PcccCommand(Protocol):
     def encode_params(self) -> bytes: ...
 
 
-def encode_packet(request: PcccCommand, *, dst: int, src: int, tns: int) -> bytes:
+def encode_packet(request: PcccRequestLike, *, dst: int, src: int, tns: int) -> bytes:
     """``DST SRC CMD 00 TNS FNC params``."""
     return PcccHeader(dst, src, request.CMD, 0, tns).encode() + bytes((request.FNC,)) + request.encode_params()
 
@@ -81,7 +75,7 @@ class TxnCounters:
 class _Txn:
     handle: int
     station: int
-    request: PcccCommand
+    request: PcccRequestLike
     verdict: WriteVerdict | None  #: a write's; None for a read
     tries: int = 0  #: submissions of the request itself
     request_id: int = 0  #: the master's id of what is in flight
@@ -118,7 +112,7 @@ class HalfDuplexTransactions:
                 self._settle(txn, TransactionFailed(txn.handle, reason))
         self.master = master
 
-    def start(self, station: int, request: PcccCommand, now: float, *, write: bool) -> int:
+    def start(self, station: int, request: PcccRequestLike, now: float, *, write: bool) -> int:
         """Begin a transaction for ``station``; returns its handle (events carry it)."""
         handle = self._next_handle
         self._next_handle += 1
@@ -145,7 +139,7 @@ class HalfDuplexTransactions:
 
     # --- internals ------------------------------------------------------------------------------
 
-    def _submit(self, txn: _Txn, request: PcccCommand, now: float, *, read_back: bool) -> None:
+    def _submit(self, txn: _Txn, request: PcccRequestLike, now: float, *, read_back: bool) -> None:
         master = self.master
         assert master is not None
         txn.tns = self._tns.allocate()
@@ -197,7 +191,7 @@ class HalfDuplexTransactions:
         else:
             self._follow(txn, txn.verdict.lost(why, now, may_have_executed=may_have_executed), now)
 
-    def _follow(self, txn: _Txn, step: WriteStep, now: float) -> None:
+    def _follow(self, txn: _Txn, step: VerdictStep, now: float) -> None:
         match step:
             case None:
                 pass

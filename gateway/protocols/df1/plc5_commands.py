@@ -1,6 +1,6 @@
 """PLC-5 requests for the PCCC codec: word range read / write of a PLC-5 address, and the coil write.
 
-What a PLC-5 unit sends (issue #12; 1770-6.5.16 chapter 7, 1770-KF2 p. 5-48 and 5-57):
+What a PLC-5 unit sends (1770-6.5.16 chapter 7, 1770-KF2 p. 5-48 and 5-57):
 
 * registers: word range read ``0F 01`` / word range write ``0F 00`` with a logical binary address of
   every level (``07 00 07 1E`` for N7:30, ``0F 00 04 02 02`` for T4:2.ACC - p. 13-12);

@@ -74,11 +74,11 @@ from gateway.protocols.df1.framing import (
     DecoderEvent,
     EnqReceived,
     Frame,
-    FrameDecoder,
     NakReceived,
     NeedData,
     encode_frame,
 )
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.responder_events import (
     CommandReceived,
     DuplicateReceived,

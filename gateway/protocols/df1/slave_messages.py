@@ -39,7 +39,7 @@ from gateway.protocols.df1.pccc import (
 )
 from gateway.protocols.df1.pccc.plc5 import DataType
 
-__all__ = ["ILLEGAL_COMMAND", "RegisterTable", "SlaveWrite", "Verdict", "answer_slave_message"]
+__all__ = ["ILLEGAL_COMMAND", "RegisterTable", "SlaveMessageVerdict", "SlaveWrite", "answer_slave_message"]
 
 #: 1770-6.5.16 p. 8-3: remote STS 10 hex, "illegal command or format".
 ILLEGAL_COMMAND = 0x10
@@ -49,7 +49,7 @@ _NOT_USABLE = 0x06
 _INTEGER_FILE = 0x89
 
 
-class Verdict(enum.Enum):
+class SlaveMessageVerdict(enum.Enum):
     STORED = "stored"
     BAD_ADDRESS = "address outside the register table"
     UNSUPPORTED = "unsupported command (STS 10)"
@@ -146,17 +146,17 @@ def decode_slave_write(packet: bytes) -> SlaveWrite | None:
 
 def answer_slave_message(
     packet: bytes, *, own_station: int, table: RegisterTable | None, now: float
-) -> tuple[Verdict, bytes | None]:
+) -> tuple[SlaveMessageVerdict, bytes | None]:
     """Store what ``packet`` (a slave-initiated message) writes to us; the reply packet to send back."""
     try:
         header = PcccHeader.decode(packet)
     except PcccFormatError:
-        return Verdict.NO_ANSWER, None
+        return SlaveMessageVerdict.NO_ANSWER, None
     if header.is_reply:
-        return Verdict.NO_ANSWER, None
+        return SlaveMessageVerdict.NO_ANSWER, None
     write = decode_slave_write(packet) if header.dst == own_station else None
     if write is None or table is None:
-        return Verdict.UNSUPPORTED, encode_reply(header, sts=ILLEGAL_COMMAND)
+        return SlaveMessageVerdict.UNSUPPORTED, encode_reply(header, sts=ILLEGAL_COMMAND)
     if not table.store(write, now):
-        return Verdict.BAD_ADDRESS, encode_reply(header, sts=Sts.EXTENDED, ext_sts=_NOT_USABLE)
-    return Verdict.STORED, encode_reply(header)
+        return SlaveMessageVerdict.BAD_ADDRESS, encode_reply(header, sts=Sts.EXTENDED, ext_sts=_NOT_USABLE)
+    return SlaveMessageVerdict.STORED, encode_reply(header)

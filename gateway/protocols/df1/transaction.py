@@ -1,8 +1,8 @@
-"""DF1 application layer: one PCCC transaction at a time over a :class:`Df1Link`, sans-I/O.
+"""DF1 application layer: one PCCC transaction at a time over a :class:`Df1DataLink`, sans-I/O.
 
 What it owns: the TNS of each command, matching replies (``pccc.reply_matches``: same TNS,
 CMD | 0x40; DST / SRC not compared), retries, and the exactly-once verdict of
-a write.  The link below it owns DLE ACK / NAK / ENQ (``link.py``).
+a write.  The data link below it owns DLE ACK / NAK / ENQ (``datalink.py``).
 
 Verdicts (events, one per transaction)::
 
@@ -19,26 +19,27 @@ The rules, under every reading of the manuals in docs/controller-variants.md:
   (at most ``retries`` more times).  A late reply to any of its TNS is still a valid answer.
 * A write is sent once and never resent.  Its verdict - done, refused, read it back, outcome
   unknown - is :class:`~gateway.protocols.df1.write_verdict.WriteVerdict`'s, shared with half
-  duplex: without its reply (no DLE ACK, a DLE NAK - no proof, see ``link.py`` - an ACK but no
+  duplex: without its reply (no DLE ACK, a DLE NAK - no proof, see ``datalink.py`` - an ACK but no
   reply) the core reads the target back (protected typed logical read of the same bytes) at most
   ``retries + 1`` times; a late reply to the write itself during the read-back settles it.
 * A reply that arrives before the frame's DLE ACK completes the frame at the link
-  (:meth:`Df1Link.confirm`), so it is never retransmitted after its answer is in.
+  (:meth:`Df1DataLink.confirm`), so it is never retransmitted after its answer is in.
 
-States and transitions (:data:`_TRANSITIONS`; inputs are classified before the look-up)::
+States and transitions (:data:`TRANSITIONS`; inputs are classified before the look-up; a read and
+a write have their own states, the read-back of a write the VERIFY ones)::
 
-    IDLE ------start------> SENDING
-    SENDING --link ACK----> AWAIT_REPLY (reply timer)
-    SENDING / AWAIT_REPLY --reply STS 0--> IDLE (Done)        --reply STS!=0--> IDLE (Refused)
-    SENDING --link gave up (NAKs, no ACK) / AWAIT_REPLY --timeout:
-          read:  SENDING new TNS (retries left) | IDLE (Failed)
+    IDLE --start a read / a write--> READ_SENDING / WRITE_SENDING
+    *_SENDING --link ACK----> *_AWAIT_REPLY (reply timer)
+    *_SENDING / *_AWAIT_REPLY --reply STS 0--> IDLE (Done)        --reply STS!=0--> IDLE (Refused)
+    *_SENDING --link gave up (NAKs, no ACK) / *_AWAIT_REPLY --timeout:
+          read:  READ_SENDING new TNS (retries left) | IDLE (Failed)
           write: the verdict's step: VERIFY_SENDING (read-back) | IDLE (OutcomeUnknown)
     VERIFY_SENDING --link ACK--> VERIFY_AWAIT_REPLY
     VERIFY_* --read-back reply / no answer / late reply to the write--> the verdict's step
 
 Usage (the caller owns the port and the clock; one transaction at a time)::
 
-    tx = Df1Transactions(Df1Link(...), station=1, source=0, reply_timeout=1.0, first_tns=tns)
+    tx = Df1Transactions(Df1DataLink(...), station=1, source=0, reply_timeout=1.0, first_tns=tns)
     handle = tx.start(request, now, write=True)
     port.write(tx.data_to_send()); tx.receive_data(port.read(), now); tx.handle_timeout(now)
     while (event := tx.next_event()) is not NEED_DATA: ...
@@ -54,8 +55,8 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from gateway.errors import InvalidRequest, format_seconds
+from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed, SendFailure
 from gateway.protocols.df1.framing import NEED_DATA, NeedData
-from gateway.protocols.df1.link import Df1Link, MessageReceived, SendComplete, SendFailed, SendFailure
 from gateway.protocols.df1.pccc import (
     PcccFormatError,
     PcccHeader,
@@ -66,18 +67,20 @@ from gateway.protocols.df1.pccc import (
     encode_command,
     reply_matches,
 )
+from gateway.protocols.df1.transitions import Transition, require_complete
 from gateway.protocols.df1.write_verdict import (
     DEFAULT_RETRIES,
     ReadBack,
     SendReadBack,
     Verdict,
     VerdictKind,
-    WriteStep,
+    VerdictStep,
     WriteVerdict,
     read_back_for,
 )
 
 __all__ = [
+    "TRANSITIONS",
     "Df1Transactions",
     "OutcomeUnknown",
     "ReadBack",
@@ -86,6 +89,8 @@ __all__ = [
     "TransactionEvent",
     "TransactionFailed",
     "TransactionRefused",
+    "TxnAction",
+    "TxnInput",
     "TxnState",
     "read_back_for",
 ]
@@ -146,27 +151,31 @@ class TransactionCounters:
 
 class TxnState(enum.Enum):
     IDLE = "idle"
-    SENDING = "command frame on the link, waiting for DLE ACK"
-    AWAIT_REPLY = "command acknowledged, waiting for its reply"
+    READ_SENDING = "a read's frame on the link, waiting for DLE ACK"
+    READ_AWAIT_REPLY = "a read acknowledged, waiting for its reply"
+    WRITE_SENDING = "a write's frame on the link, waiting for DLE ACK"
+    WRITE_AWAIT_REPLY = "a write acknowledged, waiting for its reply"
     VERIFY_SENDING = "read-back frame on the link"
     VERIFY_AWAIT_REPLY = "read-back acknowledged, waiting for its reply"
 
     __hash__ = object.__hash__
 
 
-class _In(enum.Enum):
-    START = "start a transaction"
+class TxnInput(enum.Enum):
+    START_READ = "start a read"
+    START_WRITE = "start a write"
     LINK_ACKED = "the link has the ACK of our frame"
     LINK_NAKED = "every copy of our frame was NAKed: it never arrived"
     LINK_LOST = "the link gave up on our frame; the peer may have it"
     TIMEOUT = "no reply within the reply timeout"
     REPLY = "the reply to our command (any STS)"
     READBACK_REPLY = "the reply to the read-back (any STS)"
+    ABANDON = "the link is gone (port lost)"
 
     __hash__ = object.__hash__
 
 
-class _Do(enum.Enum):
+class TxnAction(enum.Enum):
     SEND = "send the command with a new TNS"
     AWAIT = "start the reply timer"
     RETRY = "send the command again with a new TNS if tries are left, else fail"
@@ -175,42 +184,72 @@ class _Do(enum.Enum):
     WRITE_LOST = "no answer to the write: the verdict's step"
     READBACK_LOST = "no answer to the read-back: the verdict's step"
     READBACK_REPLY = "the read-back's reply: the verdict's step"
+    ABANDON = "settle without a reply: a read fails, a write gets the verdict's step"
+    IGNORE = "nothing"
 
     __hash__ = object.__hash__
 
 
-S, K = TxnState, _In
-_READ, _WRITE = False, True
+_Table = dict[tuple[TxnState, TxnInput], Transition[TxnAction, TxnState]]
 
-#: (state, input, is_write) -> (action, next state).  Pairs missing from the table are ignored:
-#: an ACK or a timeout while IDLE, a read-back input for a read, and so on.
-_TRANSITIONS: Final[dict[tuple[TxnState, _In, bool], tuple[_Do, TxnState]]] = {
-    (S.IDLE, K.START, _READ): (_Do.SEND, S.SENDING),
-    (S.IDLE, K.START, _WRITE): (_Do.SEND, S.SENDING),
-    (S.SENDING, K.LINK_ACKED, _READ): (_Do.AWAIT, S.AWAIT_REPLY),
-    (S.SENDING, K.LINK_ACKED, _WRITE): (_Do.AWAIT, S.AWAIT_REPLY),
-    # reads: idempotent, simply sent again
-    (S.SENDING, K.REPLY, _READ): (_Do.ANSWERED, S.IDLE),
-    (S.AWAIT_REPLY, K.REPLY, _READ): (_Do.ANSWERED, S.IDLE),
-    (S.SENDING, K.LINK_NAKED, _READ): (_Do.RETRY, S.SENDING),
-    (S.SENDING, K.LINK_LOST, _READ): (_Do.RETRY, S.SENDING),
-    (S.AWAIT_REPLY, K.TIMEOUT, _READ): (_Do.RETRY, S.SENDING),
-    # writes: the verdict decides (write_verdict.py); never sent again
-    (S.SENDING, K.REPLY, _WRITE): (_Do.WRITE_REPLY, S.IDLE),
-    (S.AWAIT_REPLY, K.REPLY, _WRITE): (_Do.WRITE_REPLY, S.IDLE),
-    (S.SENDING, K.LINK_NAKED, _WRITE): (_Do.WRITE_LOST, S.VERIFY_SENDING),
-    (S.SENDING, K.LINK_LOST, _WRITE): (_Do.WRITE_LOST, S.VERIFY_SENDING),
-    (S.AWAIT_REPLY, K.TIMEOUT, _WRITE): (_Do.WRITE_LOST, S.VERIFY_SENDING),
-    (S.VERIFY_SENDING, K.LINK_ACKED, _WRITE): (_Do.AWAIT, S.VERIFY_AWAIT_REPLY),
-    (S.VERIFY_SENDING, K.LINK_NAKED, _WRITE): (_Do.READBACK_LOST, S.VERIFY_SENDING),
-    (S.VERIFY_SENDING, K.LINK_LOST, _WRITE): (_Do.READBACK_LOST, S.VERIFY_SENDING),
-    (S.VERIFY_AWAIT_REPLY, K.TIMEOUT, _WRITE): (_Do.READBACK_LOST, S.VERIFY_SENDING),
-    (S.VERIFY_SENDING, K.READBACK_REPLY, _WRITE): (_Do.READBACK_REPLY, S.IDLE),
-    (S.VERIFY_AWAIT_REPLY, K.READBACK_REPLY, _WRITE): (_Do.READBACK_REPLY, S.IDLE),
-    # a late reply to the write itself during the read-back
-    (S.VERIFY_SENDING, K.REPLY, _WRITE): (_Do.WRITE_REPLY, S.IDLE),
-    (S.VERIFY_AWAIT_REPLY, K.REPLY, _WRITE): (_Do.WRITE_REPLY, S.IDLE),
-}
+
+def _build_table() -> _Table:
+    T, S, K, A = Transition, TxnState, TxnInput, TxnAction
+    idle = frozenset({S.IDLE})
+    starts = (K.START_READ, K.START_WRITE)
+
+    def ignore(state: TxnState, *inputs: TxnInput) -> _Table:
+        return {(state, what): T(A.IGNORE, state) for what in inputs}
+
+    return {
+        (S.IDLE, K.START_READ): T(A.SEND, S.READ_SENDING),
+        (S.IDLE, K.START_WRITE): T(A.SEND, S.WRITE_SENDING),
+        # no transaction: a late answer of a settled one
+        **ignore(S.IDLE, K.LINK_ACKED, K.LINK_NAKED, K.LINK_LOST, K.TIMEOUT, K.REPLY, K.READBACK_REPLY, K.ABANDON),
+        # the link is gone: whatever runs is settled
+        **{(state, K.ABANDON): T(A.ABANDON, S.IDLE) for state in TxnState if state is not S.IDLE},
+        # reads: idempotent, simply sent again
+        (S.READ_SENDING, K.LINK_ACKED): T(A.AWAIT, S.READ_AWAIT_REPLY),
+        (S.READ_SENDING, K.REPLY): T(A.ANSWERED, S.IDLE),
+        (S.READ_SENDING, K.LINK_NAKED): T(A.RETRY, S.READ_SENDING, idle),
+        (S.READ_SENDING, K.LINK_LOST): T(A.RETRY, S.READ_SENDING, idle),
+        **ignore(S.READ_SENDING, *starts, K.TIMEOUT, K.READBACK_REPLY),  # no reply timer yet; no read-back
+        (S.READ_AWAIT_REPLY, K.REPLY): T(A.ANSWERED, S.IDLE),
+        (S.READ_AWAIT_REPLY, K.TIMEOUT): T(A.RETRY, S.READ_SENDING, idle),
+        # the link is done with the frame; no read-back
+        **ignore(S.READ_AWAIT_REPLY, *starts, K.LINK_ACKED, K.LINK_NAKED, K.LINK_LOST, K.READBACK_REPLY),
+        # writes: the verdict decides (write_verdict.py); never sent again
+        (S.WRITE_SENDING, K.LINK_ACKED): T(A.AWAIT, S.WRITE_AWAIT_REPLY),
+        (S.WRITE_SENDING, K.REPLY): T(A.WRITE_REPLY, S.IDLE),
+        (S.WRITE_SENDING, K.LINK_NAKED): T(A.WRITE_LOST, S.VERIFY_SENDING, idle),
+        (S.WRITE_SENDING, K.LINK_LOST): T(A.WRITE_LOST, S.VERIFY_SENDING, idle),
+        **ignore(S.WRITE_SENDING, *starts, K.TIMEOUT, K.READBACK_REPLY),
+        (S.WRITE_AWAIT_REPLY, K.REPLY): T(A.WRITE_REPLY, S.IDLE),
+        (S.WRITE_AWAIT_REPLY, K.TIMEOUT): T(A.WRITE_LOST, S.VERIFY_SENDING, idle),
+        **ignore(S.WRITE_AWAIT_REPLY, *starts, K.LINK_ACKED, K.LINK_NAKED, K.LINK_LOST, K.READBACK_REPLY),
+        # the read-back of a write whose answer was lost
+        (S.VERIFY_SENDING, K.LINK_ACKED): T(A.AWAIT, S.VERIFY_AWAIT_REPLY),
+        (S.VERIFY_SENDING, K.LINK_NAKED): T(A.READBACK_LOST, S.VERIFY_SENDING, idle),
+        (S.VERIFY_SENDING, K.LINK_LOST): T(A.READBACK_LOST, S.VERIFY_SENDING, idle),
+        (S.VERIFY_SENDING, K.READBACK_REPLY): T(A.READBACK_REPLY, S.IDLE),
+        (S.VERIFY_SENDING, K.REPLY): T(A.WRITE_REPLY, S.IDLE),  # a late reply to the write itself
+        **ignore(S.VERIFY_SENDING, *starts, K.TIMEOUT),
+        (S.VERIFY_AWAIT_REPLY, K.TIMEOUT): T(A.READBACK_LOST, S.VERIFY_SENDING, idle),
+        (S.VERIFY_AWAIT_REPLY, K.READBACK_REPLY): T(A.READBACK_REPLY, S.IDLE),
+        (S.VERIFY_AWAIT_REPLY, K.REPLY): T(A.WRITE_REPLY, S.IDLE),
+        **ignore(S.VERIFY_AWAIT_REPLY, *starts, K.LINK_ACKED, K.LINK_NAKED, K.LINK_LOST),
+    }
+
+
+#: The transaction core's state machine: (state, input) -> (action, next state, or the states the
+#: action may choose instead: a retry or a read-back, or the verdict).
+TRANSITIONS: Final = _build_table()
+require_complete(TRANSITIONS, TxnState, TxnInput, "DF1 transactions")
+
+#: The states in which the command itself is in flight (its reply may complete the frame at the link).
+_COMMAND_IN_FLIGHT: Final = frozenset(
+    {TxnState.READ_SENDING, TxnState.READ_AWAIT_REPLY, TxnState.WRITE_SENDING, TxnState.WRITE_AWAIT_REPLY}
+)
 
 
 # ---------------------------------------------------------------------------------------- core
@@ -243,7 +282,7 @@ class Df1Transactions:
 
     def __init__(
         self,
-        link: Df1Link,
+        link: Df1DataLink,
         *,
         station: int,
         source: int = 0,
@@ -281,9 +320,8 @@ class Df1Transactions:
     def state(self) -> TxnState:
         return self._state
 
-    @property
-    def next_tns(self) -> int:
-        """A TNS to start a successor with (a new link after a reconnect)."""
+    def allocate_tns(self) -> int:
+        """Allocate a TNS to start a successor with (a new data link after a reconnect)."""
         return self._tns.allocate()
 
     def start(self, request: Request, now: float, *, write: bool) -> int:
@@ -295,7 +333,7 @@ class Df1Transactions:
         verdict = WriteVerdict(request, retries=self.retries, now=now) if write else None
         self._txn = _Txn(handle, request, verdict)
         self.counters.started += 1
-        self._input(_In.START, now)
+        self._input(TxnInput.START_WRITE if write else TxnInput.START_READ, now)
         return handle
 
     def receive_data(self, data: bytes, now: float) -> None:
@@ -325,17 +363,13 @@ class Df1Transactions:
             self.counters.reply_timeouts += 1
             if self._txn is not None:
                 self._txn.why = f"no reply within {format_seconds(self._wait)} s of the DLE ACK"
-            self._input(_In.TIMEOUT, now)
+            self._input(TxnInput.TIMEOUT, now)
 
     def abandon(self, reason: str, now: float = 0.0) -> None:
         """The link is gone (port lost): settle the running transaction without a reply."""
-        txn = self._txn
-        if txn is None:
-            return
-        if txn.verdict is not None:
-            self._follow(txn, txn.verdict.abandon(reason, now), now)
-        else:
-            self._settle(TransactionFailed(txn.handle, reason))
+        if self._txn is not None:
+            self._txn.why = reason
+        self._input(TxnInput.ABANDON, now)
 
     # ------------------------------------------------------------------------------- internals
 
@@ -347,12 +381,12 @@ class Df1Transactions:
                     self._on_message(payload, now)
                 case SendComplete(handle=handle):
                     if txn is not None and handle == txn.frame:
-                        self._input(_In.LINK_ACKED, now)
+                        self._input(TxnInput.LINK_ACKED, now)
                 case SendFailed(handle=handle, reason=reason):
                     if txn is not None and handle == txn.frame:
                         txn.why = reason.value
                         naked = reason is SendFailure.NAK_LIMIT
-                        self._input(_In.LINK_NAKED if naked else _In.LINK_LOST, now)
+                        self._input(TxnInput.LINK_NAKED if naked else TxnInput.LINK_LOST, now)
 
     def _on_message(self, payload: bytes, now: float) -> None:
         try:
@@ -365,18 +399,18 @@ class Df1Transactions:
         if txn.verify is not None and reply_matches(txn.verify, reply):
             self.link.confirm(txn.frame, now)
             self._reply = reply
-            self._input(_In.READBACK_REPLY, now)
+            self._input(TxnInput.READBACK_REPLY, now)
             return
         if not any(reply_matches(sent, reply) for sent in txn.sent):
             return
-        if reply.tns != self._current_tns or self._state not in (TxnState.SENDING, TxnState.AWAIT_REPLY):
+        if reply.tns != self._current_tns or self._state not in _COMMAND_IN_FLIGHT:
             self.counters.late_replies += 1  # answers an earlier frame, not the one in flight
         else:
             self.link.confirm(txn.frame, now)
-            if self._state is TxnState.AWAIT_REPLY:
+            if self._state in (TxnState.READ_AWAIT_REPLY, TxnState.WRITE_AWAIT_REPLY):
                 self._reply_times.append(now - self._awaiting_since)
         self._reply = reply
-        self._input(_In.REPLY, now)
+        self._input(TxnInput.REPLY, now)
 
     def _reply_wait(self) -> float:
         """How long to wait for a command's reply after its ACK: 2 x the slowest of the last 32
@@ -387,21 +421,24 @@ class Df1Transactions:
             return self.reply_timeout
         return min(self.reply_timeout, max(self.min_reply_timeout, 2 * max(self._reply_times)))
 
-    def _input(self, what: _In, now: float) -> None:
+    def _input(self, what: TxnInput, now: float) -> None:
+        entry = TRANSITIONS[self._state, what]
+        if entry.action is TxnAction.IGNORE:
+            return
         txn = self._txn
-        if txn is None:
-            return
-        entry = _TRANSITIONS.get((self._state, what, txn.write))
-        if entry is None:
-            return
-        action, next_state = entry
+        assert txn is not None, f"{entry.action.name} without a transaction"
+        action, next_state, _ = entry
         self._state = next_state
+        self._act(txn, action, next_state, now)
+        assert entry.allows(self._state), f"{action.name} ended in {self._state.name}"
+
+    def _act(self, txn: _Txn, action: TxnAction, next_state: TxnState, now: float) -> None:
         reply, self._reply = self._reply, None
         verdict = txn.verdict
         match action:
-            case _Do.SEND:
+            case TxnAction.SEND:
                 self._send_command(txn, now)
-            case _Do.AWAIT:
+            case TxnAction.AWAIT:
                 self._awaiting_since = now
                 # the wait for a reply adapts to the controller's measured reply times; the last
                 # read-back's wait (its silence decides a write's verdict) keeps the full time
@@ -409,29 +446,34 @@ class Df1Transactions:
                         and verdict.read_backs >= verdict.max_read_backs)
                 self._wait = self.reply_timeout if last else self._reply_wait()
                 self._deadline = now + self._wait
-            case _Do.RETRY:
+            case TxnAction.RETRY:
                 if txn.tries <= self.retries:
                     self._send_command(txn, now)
                 else:
                     tries = txn.tries
                     self._settle(TransactionFailed(txn.handle, f"{txn.why} (after {tries} tries)"))
-            case _Do.ANSWERED:
+            case TxnAction.ANSWERED:
                 assert reply is not None
                 self._settle(TransactionDone(txn.handle, reply) if reply.ok else TransactionRefused(txn.handle, reply))
-            case _Do.WRITE_REPLY:
+            case TxnAction.WRITE_REPLY:
                 assert reply is not None and verdict is not None
                 self._follow(txn, verdict.reply(reply, now), now)
-            case _Do.WRITE_LOST:
+            case TxnAction.WRITE_LOST:
                 assert verdict is not None
                 self._follow(txn, verdict.lost(txn.why, now), now)
-            case _Do.READBACK_LOST:
+            case TxnAction.READBACK_LOST:
                 assert verdict is not None
                 self._follow(txn, verdict.read_back_lost(txn.why, now), now)
-            case _Do.READBACK_REPLY:
+            case TxnAction.READBACK_REPLY:
                 assert reply is not None and verdict is not None
                 self._follow(txn, verdict.read_back_reply(reply, now), now)
+            case TxnAction.ABANDON:
+                if verdict is not None:
+                    self._follow(txn, verdict.abandon(txn.why, now), now)
+                else:
+                    self._settle(TransactionFailed(txn.handle, txn.why))
 
-    def _follow(self, txn: _Txn, step: WriteStep, now: float) -> None:
+    def _follow(self, txn: _Txn, step: VerdictStep, now: float) -> None:
         """Carry out the verdict's step: a read-back to send, or the verdict as an event."""
         match step:
             case None:

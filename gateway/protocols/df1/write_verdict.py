@@ -21,7 +21,7 @@ Verdicts (:class:`VerdictKind`)::
               refused, never answered ``retries + 1`` times, the write has no read-back, or the
               link went away
 
-States and transitions (:data:`_TRANSITIONS`; pairs in :data:`_IGNORED` change nothing)::
+States and transitions (:data:`TRANSITIONS`; the pairs whose action is IGNORE change nothing)::
 
     SENT --reply OK--> SETTLED (DONE)          --reply STS!=0--> SETTLED (REFUSED)
     SENT --never arrived--> SETTLED (FAILED)   --lost (may have run)--> VERIFYING (read-back) | UNKNOWN
@@ -51,16 +51,19 @@ from gateway.protocols.df1.pccc import (
     WordRangeRead,
     WordRangeWrite,
 )
+from gateway.protocols.df1.transitions import Transition, require_complete
 
 __all__ = [
     "DEFAULT_RETRIES",
+    "TRANSITIONS",
     "ReadBack",
     "SendReadBack",
     "Verdict",
+    "VerdictAction",
     "VerdictKind",
     "VerdictState",
+    "VerdictStep",
     "WriteInput",
-    "WriteStep",
     "WriteVerdict",
     "read_back_for",
     "read_back_tries",
@@ -154,7 +157,7 @@ class SendReadBack:
 
 
 #: What to do after an input: send a read-back, the verdict, or None (the input changed nothing).
-WriteStep = SendReadBack | Verdict | None
+VerdictStep = SendReadBack | Verdict | None
 
 
 # ---------------------------------------------------------------------------------------- table
@@ -179,38 +182,38 @@ class WriteInput(enum.Enum):
     __hash__ = object.__hash__
 
 
-class _Do(enum.Enum):
+class VerdictAction(enum.Enum):
     ANSWERED = "DONE if STS 0, else REFUSED"
     FAIL = "FAILED"
     READ_BACK = "send a read-back if the write has one and tries are left, else UNKNOWN"
     CHECK = "DONE (verified) if the read-back shows the written value, else UNKNOWN"
     UNKNOWN = "UNKNOWN"
+    IGNORE = "nothing: the input changes nothing"
 
     __hash__ = object.__hash__
 
 
-S, K = VerdictState, WriteInput
+S, K, A = VerdictState, WriteInput, VerdictAction
 
 #: (state, input) -> (action, next state); an action that gives a verdict ends in SETTLED.
-_TRANSITIONS: Final[dict[tuple[VerdictState, WriteInput], tuple[_Do, VerdictState]]] = {
-    (S.SENT, K.REPLY): (_Do.ANSWERED, S.SETTLED),
-    (S.SENT, K.NEVER_ARRIVED): (_Do.FAIL, S.SETTLED),
-    (S.SENT, K.LOST): (_Do.READ_BACK, S.VERIFYING),
-    (S.SENT, K.ABANDONED): (_Do.UNKNOWN, S.SETTLED),
-    (S.VERIFYING, K.READ_BACK_REPLY): (_Do.CHECK, S.SETTLED),
-    (S.VERIFYING, K.READ_BACK_LOST): (_Do.READ_BACK, S.VERIFYING),
-    (S.VERIFYING, K.REPLY): (_Do.ANSWERED, S.SETTLED),  # a late reply to the write settles it
-    (S.VERIFYING, K.ABANDONED): (_Do.UNKNOWN, S.SETTLED),
+TRANSITIONS: Final[dict[tuple[VerdictState, WriteInput], Transition[VerdictAction, VerdictState]]] = {
+    (S.SENT, K.REPLY): Transition(A.ANSWERED, S.SETTLED),
+    (S.SENT, K.NEVER_ARRIVED): Transition(A.FAIL, S.SETTLED),
+    # a read-back, or UNKNOWN at once when the write has none
+    (S.SENT, K.LOST): Transition(A.READ_BACK, S.VERIFYING, frozenset({S.SETTLED})),
+    (S.SENT, K.ABANDONED): Transition(A.UNKNOWN, S.SETTLED),
+    (S.SENT, K.READ_BACK_REPLY): Transition(A.IGNORE, S.SENT),  # no read-back was sent
+    (S.SENT, K.READ_BACK_LOST): Transition(A.IGNORE, S.SENT),  # no read-back was sent
+    (S.VERIFYING, K.READ_BACK_REPLY): Transition(A.CHECK, S.SETTLED),
+    # another read-back while tries are left, else UNKNOWN
+    (S.VERIFYING, K.READ_BACK_LOST): Transition(A.READ_BACK, S.VERIFYING, frozenset({S.SETTLED})),
+    (S.VERIFYING, K.REPLY): Transition(A.ANSWERED, S.SETTLED),  # a late reply to the write settles it
+    (S.VERIFYING, K.ABANDONED): Transition(A.UNKNOWN, S.SETTLED),
+    (S.VERIFYING, K.NEVER_ARRIVED): Transition(A.IGNORE, S.VERIFYING),  # it was known to be on the line
+    (S.VERIFYING, K.LOST): Transition(A.IGNORE, S.VERIFYING),  # it was known to be lost
+    **{(S.SETTLED, what): Transition(A.IGNORE, S.SETTLED) for what in WriteInput},  # the verdict is given
 }
-
-#: Pairs that change nothing, each for a reason.
-_IGNORED: Final[dict[tuple[VerdictState, WriteInput], str]] = {
-    (S.SENT, K.READ_BACK_REPLY): "no read-back was sent",
-    (S.SENT, K.READ_BACK_LOST): "no read-back was sent",
-    (S.VERIFYING, K.NEVER_ARRIVED): "the write was already known to be on the line",
-    (S.VERIFYING, K.LOST): "the write was already known to be lost",
-    **{(S.SETTLED, what): "the verdict is given" for what in WriteInput},
-}
+require_complete(TRANSITIONS, VerdictState, WriteInput, "write verdict")
 
 
 # ---------------------------------------------------------------------------------------- the machine
@@ -237,45 +240,50 @@ class WriteVerdict:
     def settled(self) -> bool:
         return self._state is VerdictState.SETTLED
 
-    def reply(self, reply: PcccReply, now: float) -> WriteStep:
+    def reply(self, reply: PcccReply, now: float) -> VerdictStep:
         """The write's own reply (matched by the caller), in time or late."""
         return self._input(WriteInput.REPLY, now, reply=reply)
 
-    def lost(self, why: str, now: float, *, may_have_executed: bool = True) -> WriteStep:
+    def lost(self, why: str, now: float, *, may_have_executed: bool = True) -> VerdictStep:
         """No answer to the write; ``may_have_executed`` False: it never reached the controller."""
         self._why = why
         return self._input(WriteInput.LOST if may_have_executed else WriteInput.NEVER_ARRIVED, now)
 
-    def read_back_reply(self, reply: PcccReply, now: float) -> WriteStep:
+    def read_back_reply(self, reply: PcccReply, now: float) -> VerdictStep:
         return self._input(WriteInput.READ_BACK_REPLY, now, reply=reply)
 
-    def read_back_lost(self, why: str, now: float) -> WriteStep:
+    def read_back_lost(self, why: str, now: float) -> VerdictStep:
         self._why = why
         return self._input(WriteInput.READ_BACK_LOST, now)
 
-    def abandon(self, why: str, now: float) -> WriteStep:
+    def abandon(self, why: str, now: float) -> VerdictStep:
         self._why = why
         return self._input(WriteInput.ABANDONED, now)
 
     # ------------------------------------------------------------------------------- internals
 
-    def _input(self, what: WriteInput, now: float, *, reply: PcccReply | None = None) -> WriteStep:
-        entry = _TRANSITIONS.get((self._state, what))
-        if entry is None:
+    def _input(self, what: WriteInput, now: float, *, reply: PcccReply | None = None) -> VerdictStep:
+        entry = TRANSITIONS[self._state, what]
+        if entry.action is VerdictAction.IGNORE:
             return None
-        action, self._state = entry
+        self._state = entry.next_state
+        step = self._act(entry.action, now, reply)
+        assert entry.allows(self._state), f"{entry.action.name} ended in {self._state.name}"
+        return step
+
+    def _act(self, action: VerdictAction, now: float, reply: PcccReply | None) -> VerdictStep:
         match action:
-            case _Do.ANSWERED:
+            case VerdictAction.ANSWERED:
                 assert reply is not None
                 return self._verdict(VerdictKind.DONE if reply.ok else VerdictKind.REFUSED, now, reply=reply)
-            case _Do.FAIL:
+            case VerdictAction.FAIL:
                 return self._verdict(VerdictKind.FAILED, now, f"{self._why}; the write was never sent")
-            case _Do.READ_BACK:
+            case VerdictAction.READ_BACK:
                 if self.read_back is not None and self.read_backs < self.max_read_backs:
                     self.read_backs += 1
                     return SendReadBack(self.read_back.request, self.read_backs)
                 return self._unknown(now)
-            case _Do.CHECK:
+            case VerdictAction.CHECK:
                 assert reply is not None and self.read_back is not None
                 if reply.ok and self.read_back.holds(reply.data):
                     return self._verdict(VerdictKind.DONE, now, reply=reply, verified=True)
@@ -284,8 +292,10 @@ class WriteVerdict:
                     else f"the read-back gave {reply.data.hex(' ')}, not the value written"
                 )
                 return self._unknown(now)
-            case _Do.UNKNOWN:
+            case VerdictAction.UNKNOWN:
                 return self._unknown(now)
+            case VerdictAction.IGNORE:
+                return None
 
     def _unknown(self, now: float) -> Verdict:
         if self.read_back is None:

@@ -19,20 +19,20 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from gateway.kinds.df1.sim.slc500_line import REPLY_ADDRESSES, address_reply
-from gateway.protocols.df1.half_duplex_framing import (
-    ACK,
-    EOT,
-    NAK,
+from gateway.protocols.df1.framing import (
+    ACK_SYMBOL,
+    EOT_SYMBOL,
+    NAK_SYMBOL,
     NEED_DATA,
     AckReceived,
     BadFrame,
     Checksum,
-    HalfDuplexDecoder,
     MasterMessage,
     NakReceived,
     Poll,
-    encode_slave_message,
+    encode_frame,
 )
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.sim.variants import VariantTable, resolve_variants
 
 __all__ = ["VARIANTS", "HalfDuplexSlave", "SlaveVariant"]
@@ -105,13 +105,13 @@ class HalfDuplexSlave:
     #: messages held back: ``busy`` replies become ready one poll later (a slow CPU)
     busy: int = 0
     counters: SlaveCounters = field(default_factory=SlaveCounters)
-    _decoder: HalfDuplexDecoder = field(init=False)
+    _decoder: FrameDecoder = field(init=False)
     _out: bytearray = field(default_factory=bytearray)
     _last_head: bytes | None = None
     _sent: bool = False  #: outgoing[0] was sent in answer to the last poll
 
     def __post_init__(self) -> None:
-        self._decoder = HalfDuplexDecoder(self.checksum)
+        self._decoder = FrameDecoder(self.checksum, half_duplex=True)
 
     def initiate(self, message: bytes) -> None:
         """Queue a slave-initiated message (an MSG instruction in the controller)."""
@@ -142,7 +142,7 @@ class HalfDuplexSlave:
             elif isinstance(event, BadFrame) and event.master:
                 self.counters.bad_frames += 1
                 if self.variant.bad_frame_reply == "nak":
-                    self._out += NAK
+                    self._out += NAK_SYMBOL
             # Slave frames, EOTs, bad slave frames: another station talking.  Ignored.
 
     def _on_poll(self) -> None:
@@ -161,26 +161,26 @@ class HalfDuplexSlave:
             if self.variant.silent_when_busy:
                 return
             self.counters.eots += 1
-            self._out += EOT
+            self._out += EOT_SYMBOL
             return
         if not self.outgoing:
             self.counters.eots += 1
-            self._out += EOT
+            self._out += EOT_SYMBOL
             return
         head = self.outgoing[0]
         head.sends += 1
         self._sent = True
-        self._out += encode_slave_message(head.message, self.checksum)
+        self._out += encode_frame(head.message, self.checksum)
 
     def _on_message(self, message: bytes) -> None:
         self.counters.messages += 1
         key = message[1:3] + message[4:6]  # KA p. 11-12 compares SRC, CMD and both TNS bytes
         if self.variant.duplicate_detect and key == self._last_head:
             self.counters.duplicates += 1
-            self._out += ACK
+            self._out += ACK_SYMBOL
             return
         self._last_head = key
-        self._out += ACK
+        self._out += ACK_SYMBOL
         self.counters.executed += 1
         reply = self.handler(message)
         if reply is not None:

@@ -52,7 +52,7 @@ from gateway.kinds.df1.sim.df1_half_duplex_slave import HalfDuplexSlave, SlaveVa
 from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.kinds.df1.sim.slc500 import Output, Slc500Options, Slc500Simulator
 from gateway.kinds.df1.sim.slc500_line import corrupt_frame
-from gateway.protocols.df1.half_duplex_framing import Checksum, Symbol
+from gateway.protocols.df1.framing import Checksum, Symbol
 
 __all__ = ["LineOptions", "MultidropCounters", "MultidropLine", "SlcStation"]
 

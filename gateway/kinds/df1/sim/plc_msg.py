@@ -3,7 +3,7 @@
 It plays the initiating station on a DF1 full-duplex link: a PLC-5, SLC 500 or ControlLogix
 channel 0 whose ladder runs MSG instructions at the gateway, as the S4516-DF1 manual's examples
 do.  Its link and transaction layers are the gateway's own master cores
-(:class:`~gateway.protocols.df1.link.Df1Link`, :class:`~gateway.protocols.df1.transaction.Df1Transactions`):
+(:class:`~gateway.protocols.df1.datalink.Df1DataLink`, :class:`~gateway.protocols.df1.transaction.Df1Transactions`):
 DLE ACK / NAK / ENQ, retransmission, one TNS per message.  A MSG whose reply does not come is
 sent again with a new TNS, as a PLC's ladder re-triggers an errored MSG (every command of the
 script is safe to repeat).
@@ -46,8 +46,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from gateway.protocols.df1.address import FileType
+from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
-from gateway.protocols.df1.link import Df1Link
 from gateway.protocols.df1.pccc import (
     DiagnosticStatus,
     LogicalBinaryAddress,
@@ -133,7 +133,7 @@ class PlcMsgSimulator:
         self.cycle_time = cycle
         self.checksum = checksum
         self._crc_bytes = 2 if checksum is Checksum.CRC else 1
-        self.link = Df1Link(checksum=checksum, ack_timeout=1.0)
+        self.link = Df1DataLink(checksum=checksum, ack_timeout=1.0)
         self.core = Df1Transactions(self.link, station=station, source=source, reply_timeout=2.0, retries=2)
         self.faults = {"corrupt": corrupt, "lose_ack": lose_ack, "nak_reply": nak_reply, "duplicate": duplicate}
         self._random = random.Random(seed)

@@ -8,7 +8,8 @@ from __future__ import annotations
 import random
 from typing import Final
 
-from gateway.protocols.df1.framing import Checksum, Frame, FrameDecoder, Symbol
+from gateway.protocols.df1.framing import Checksum, Frame, Symbol
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.pccc import PcccFormatError, decode_command, is_write
 
 __all__ = ["NOISE_BYTES", "REPLY_ADDRESSES", "address_reply", "corrupt_frame",
@@ -118,7 +119,7 @@ def split_output(data: bytes, checksum: Checksum) -> list[bytes]:
     tokens: list[bytes] = []
     i = 0
     while i < len(data):
-        if data[i] != Symbol.DLE or i + 1 >= len(data):  # cannot happen with Df1Link output; keep it whole
+        if data[i] != Symbol.DLE or i + 1 >= len(data):  # cannot happen with Df1DataLink output; keep it whole
             tokens.append(data[i:])
             break
         if data[i + 1] != Symbol.STX:

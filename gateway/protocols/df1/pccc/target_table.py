@@ -19,7 +19,7 @@ L     32-bit signed int     2      91 (1756-PM020F p. 90, "Long   none: the note
 ====  ====================  =====  =============================  ========================
 
 Byte image: every element is little-endian, and a two-word element sends its low-order word
-first (the layout of PCCC replies from the SLC 5/03-5/05, as ``gateway.sim.slc500_processor``
+first (the layout of PCCC replies from the SLC 5/03-5/05, as ``gateway.kinds.df1.sim.slc500_processor``
 documents).  The commands address a file as that flat byte image; :meth:`TableFile.read_bytes` and
 :meth:`TableFile.write_bytes` are the only ways in, and a write changes every element it touches
 or, when it does not fit, none.  An element stores its raw bits (16 or 32), so an F element gives

@@ -1,231 +1,50 @@
-"""DF1 half-duplex framing: poll, master message and slave message frames, and a streaming decoder.
+"""Differential test: the one DF1 decoder in half-duplex mode against the former half-duplex decoder.
 
-Manual: A-B 1770-6.5.16 "DF1 Protocol and Command Set", p. 2-6/2-7 (Tables 2.A, 2.C: symbols),
-p. 5-2 (half-duplex frames), p. 5-5 (BCC), p. 5-6/5-7 (CRC); 1770-KF2 user manual p. 4-24/4-25.
-Reading and test vectors: ``docs/df1-half-duplex-notes.md``.
-
-Frames on the wire::
-
-    poll            DLE ENQ STN BCC                                      (BCC even on a CRC link)
-    master message  DLE SOH STN DLE STX <message> DLE ETX <BCC | CRC lo CRC hi>
-    slave message   DLE STX <message> DLE ETX <BCC | CRC lo CRC hi>    (as full duplex)
-    responses       DLE ACK, DLE NAK (master only: global link reset), DLE EOT (slave: nothing to send)
-
-* STN and message bytes of value 10 hex are sent as ``DLE DLE`` (Table 2.C); check bytes never
-  are (p. 5-5: "a BCC is not treated like data").
-* Poll BCC: two's complement of STN.  Master BCC: two's complement of the sum of STN and the
-  message bytes.  Slave BCC: of the message bytes (p. 5-2).
-* Master CRC: over STN, STX, the message bytes and ETX.  Slave CRC: over the message bytes and
-  ETX (p. 5-6 table, p. 5-7 pseudo code).  Register cleared, reflected 0xA001, low byte first.
-
-The decoder hears everything on the line (a 2-wire bus carries both directions), so one decoder
-serves the master, the slaves and a line monitor.  It never raises on input and never wedges:
-bytes outside a frame are discarded, a new start symbol inside a frame reports the truncated frame
-as :class:`BadFrame` and starts the new one, and a frame longer than ``max_message`` is reported
-as :class:`BadFrame` when its end arrives.
-
-This module does no I/O.
+``ReferenceHalfDuplexDecoder`` below is the byte-at-a-time half-duplex decoder as it stood in
+``gateway/protocols/df1/half_duplex_framing.py`` before full and half duplex shared one framing
+(enum-keyed transition table, one Python call per byte); its events are the shared ones (a slave
+message is a :class:`Frame`).  Both decoders are fed the same byte streams, split at the same
+chunk boundaries, and must report the same events and the same ``in_frame`` after every chunk.
 """
 
 from __future__ import annotations
 
 import enum
+import itertools
 from collections import deque
-from dataclasses import dataclass
 from typing import Final
 
-from gateway.protocols.df1.checks import bcc, crc16
-from gateway.protocols.df1.framing import Checksum
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
-__all__ = [
-    "ACK",
-    "DEFAULT_MAX_MESSAGE",
-    "EOT",
-    "NAK",
-    "NEED_DATA",
-    "AckReceived",
-    "BadFrame",
-    "BadFrameReason",
-    "Checksum",
-    "EotReceived",
-    "HalfDuplexDecoder",
-    "HalfDuplexEvent",
-    "MasterMessage",
-    "NakReceived",
-    "NeedData",
-    "Poll",
-    "SlaveMessage",
-    "Symbol",
-    "bcc",
-    "crc16",
-    "encode_master_message",
-    "encode_poll",
-    "encode_slave_message",
-    "master_check",
-    "slave_check",
-]
+from gateway.protocols.df1.framing import (
+    ACK_SYMBOL,
+    DEFAULT_MAX_MESSAGE,
+    EOT_SYMBOL,
+    NAK_SYMBOL,
+    NEED_DATA,
+    AckReceived,
+    BadFrame,
+    BadFrameReason,
+    Checksum,
+    DecoderEvent,
+    EotReceived,
+    Frame,
+    MasterMessage,
+    NakReceived,
+    NeedData,
+    Poll,
+    Symbol,
+    encode_frame,
+    encode_master_message,
+    encode_poll,
+    frame_check,
+    master_check,
+)
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 
-
-class Symbol(enum.IntEnum):
-    """Half-duplex characters (1770-6.5.16 p. 2-6 Table 2.A; NAK per ANSI X3.4 and AG-UM008 B-5)."""
-
-    SOH = 0x01
-    STX = 0x02
-    ETX = 0x03
-    EOT = 0x04
-    ENQ = 0x05
-    ACK = 0x06
-    DLE = 0x10
-    NAK = 0x15
-
-
-class NeedData(enum.Enum):
-    """Sentinel type: the decoder needs more bytes before it can report anything."""
-
-    NEED_DATA = "NEED_DATA"
-
-    def __repr__(self) -> str:
-        return "NEED_DATA"
-
-
-NEED_DATA: Final = NeedData.NEED_DATA
-
-ACK: Final = bytes((Symbol.DLE, Symbol.ACK))
-NAK: Final = bytes((Symbol.DLE, Symbol.NAK))
-EOT: Final = bytes((Symbol.DLE, Symbol.EOT))
-
-#: Longest message stored (DST .. last data byte); PCCC over DF1 stays under 250 bytes.
-DEFAULT_MAX_MESSAGE: Final = 512
-
-
-def _check(covered: bytes, summed: bytes, checksum: Checksum) -> bytes:
-    if checksum is Checksum.BCC:
-        return bytes((bcc(summed),))
-    return crc16(covered).to_bytes(2, "little")
-
-
-def master_check(station: int, message: bytes, checksum: Checksum) -> bytes:
-    """Check bytes of a master message: BCC over STN + message; CRC over STN STX message ETX."""
-    return _check(bytes((station, Symbol.STX)) + message + bytes((Symbol.ETX,)), bytes((station,)) + message, checksum)
-
-
-def slave_check(message: bytes, checksum: Checksum) -> bytes:
-    """Check bytes of a slave message: BCC over the message; CRC over message ETX."""
-    return _check(message + bytes((Symbol.ETX,)), message, checksum)
-
-
-def _check_station(station: int) -> None:
-    if not 0 <= station <= 0xFF:
-        raise ValueError(f"DF1 station number must be 0..255, got {station}")
-
-
-def _stuff(data: bytes) -> bytes:
-    return data.replace(b"\x10", b"\x10\x10")
-
-
-def encode_poll(station: int) -> bytes:
-    """``DLE ENQ STN BCC``: one BCC byte whatever the link's checksum (p. 5-2, "Important")."""
-    _check_station(station)
-    return b"\x10\x05" + _stuff(bytes((station,))) + bytes((-station & 0xFF,))
-
-
-def encode_master_message(station: int, message: bytes, checksum: Checksum) -> bytes:
-    """``DLE SOH STN DLE STX <message> DLE ETX <check>`` (p. 5-2; KF2 p. 4-25 Example 1)."""
-    _check_station(station)
-    if not message:
-        raise ValueError("a DF1 master message carries at least one message byte")
-    return (
-        b"\x10\x01"
-        + _stuff(bytes((station,)))
-        + b"\x10\x02"
-        + _stuff(message)
-        + b"\x10\x03"
-        + master_check(station, message, checksum)
-    )
-
-
-def encode_slave_message(message: bytes, checksum: Checksum) -> bytes:
-    """``DLE STX <message> DLE ETX <check>``, the full-duplex frame (p. 5-2)."""
-    if not message:
-        raise ValueError("a DF1 slave message carries at least one message byte")
-    return b"\x10\x02" + _stuff(message) + b"\x10\x03" + slave_check(message, checksum)
-
-
-# --------------------------------------------------------------------------------------- events
-
-
-@dataclass(frozen=True, slots=True)
-class Poll:
-    """``DLE ENQ STN BCC`` with a good BCC."""
-
-    station: int
-
-    def __post_init__(self) -> None:
-        _check_station(self.station)
-
-
-@dataclass(frozen=True, slots=True)
-class MasterMessage:
-    """A master message with a good check; ``message`` is unstuffed (DST .. last data byte)."""
-
-    station: int
-    message: bytes
-
-    def __post_init__(self) -> None:
-        _check_station(self.station)
-        if not self.message:
-            raise ValueError("MasterMessage.message must not be empty")
-
-
-@dataclass(frozen=True, slots=True)
-class SlaveMessage:
-    """A slave message with a good check; ``message`` is unstuffed."""
-
-    message: bytes
-
-    def __post_init__(self) -> None:
-        if not self.message:
-            raise ValueError("SlaveMessage.message must not be empty")
-
-
-@dataclass(frozen=True, slots=True)
-class AckReceived:
-    """DLE ACK."""
-
-
-@dataclass(frozen=True, slots=True)
-class NakReceived:
-    """DLE NAK (from the master: global link reset, Table 2.C)."""
-
-
-@dataclass(frozen=True, slots=True)
-class EotReceived:
-    """DLE EOT: the polled slave has nothing to send."""
-
-
-class BadFrameReason(enum.Enum):
-    """Why a frame was rejected.  A half-duplex receiver never NAKs: it stays silent."""
-
-    CHECKSUM = "check bytes do not match"
-    INVALID_DLE_SEQUENCE = "DLE followed by an invalid character"
-    TOO_LONG = "frame longer than the maximum message length"
-    EMPTY = "frame without message bytes"
-    TRUNCATED = "a new symbol started before the frame ended"
-    BAD_STATION = "station number not sent as DLE DLE, or header without DLE STX"
-
-
-@dataclass(frozen=True, slots=True)
-class BadFrame:
-    """A damaged poll or message; ``master`` tells a master frame (DLE SOH / DLE ENQ) from a slave one."""
-
-    reason: BadFrameReason
-    master: bool
-
-
-HalfDuplexEvent = Poll | MasterMessage | SlaveMessage | AckReceived | NakReceived | EotReceived | BadFrame
-
-
-# -------------------------------------------------------------------------------------- decoder
+# ----------------------------------------------------------- reference (former) implementation
 
 
 class _State(enum.Enum):
@@ -346,8 +165,9 @@ def _build_table() -> dict[tuple[_State, _Class], tuple[_Act, _State]]:
 TRANSITIONS: Final = _build_table()
 
 
-class HalfDuplexDecoder:
-    """Streaming half-duplex decoder: ``feed(bytes)`` then ``next_event()`` until ``NEED_DATA``."""
+class ReferenceHalfDuplexDecoder:
+    """The half-duplex decoder as it stood before the framings were one (class name, events and
+    check functions aside)."""
 
     def __init__(self, checksum: Checksum, *, max_message: int = DEFAULT_MAX_MESSAGE) -> None:
         if max_message < 1:
@@ -360,7 +180,7 @@ class HalfDuplexDecoder:
         self._message = bytearray()
         self._check = bytearray()
         self._bad: BadFrameReason | None = None
-        self._events: deque[HalfDuplexEvent] = deque()
+        self._events: deque[DecoderEvent] = deque()
 
     @property
     def in_frame(self) -> bool:
@@ -391,7 +211,7 @@ class HalfDuplexDecoder:
             self._apply(action, byte)
             self._state = next_state
 
-    def next_event(self) -> HalfDuplexEvent | NeedData:
+    def next_event(self) -> DecoderEvent | NeedData:
         """The next frame, symbol or bad frame, or ``NEED_DATA``."""
         if self._events:
             return self._events.popleft()
@@ -458,7 +278,7 @@ class HalfDuplexDecoder:
             expected = (
                 master_check(self._station, message, self.checksum)
                 if self._master
-                else slave_check(message, self.checksum)
+                else frame_check(message, self.checksum)
             )
             if check != expected:
                 bad = BadFrameReason.CHECKSUM
@@ -467,8 +287,154 @@ class HalfDuplexDecoder:
         elif self._master:
             self._events.append(MasterMessage(self._station, message))
         else:
-            self._events.append(SlaveMessage(message))
+            self._events.append(Frame(message))
 
 
 #: Actions that begin a new symbol; inside an open frame they truncate it.
 _STARTS: Final = frozenset({_Act.START_POLL, _Act.START_MASTER, _Act.START_SLAVE, _Act.ACK, _Act.NAK, _Act.EOT})
+
+
+# ------------------------------------------------------------------------------------ harness
+
+Decoder = FrameDecoder | ReferenceHalfDuplexDecoder
+
+
+def _drain(decoder: Decoder) -> list[DecoderEvent]:
+    events: list[DecoderEvent] = []
+    while True:
+        event = decoder.next_event()
+        if isinstance(event, NeedData):
+            assert event is NEED_DATA
+            return events
+        events.append(event)
+
+
+def _run(decoder: Decoder, chunks: list[bytes], drain_after: list[bool]) -> list[object]:
+    """Everything observable: events (drained when asked) and ``in_frame`` after each chunk."""
+    trace: list[object] = []
+    for chunk, drain in zip(chunks, drain_after, strict=True):
+        decoder.feed(chunk)
+        trace.append(decoder.in_frame)
+        if drain:
+            trace.append(_drain(decoder))
+    trace.append(_drain(decoder))
+    return trace
+
+
+def _assert_same(checksum: Checksum, max_message: int, chunks: list[bytes], drains: list[bool]) -> None:
+    new = FrameDecoder(checksum, half_duplex=True, max_message=max_message)
+    ref = ReferenceHalfDuplexDecoder(checksum, max_message=max_message)
+    assert _run(new, chunks, drains) == _run(ref, chunks, drains)
+
+
+# --------------------------------------------------------------------------------- strategies
+
+_SPECIAL = [0x10, 0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x15]
+
+dle_rich = st.lists(st.one_of(st.sampled_from(_SPECIAL), st.integers(0, 255)), max_size=40).map(bytes)
+messages = st.one_of(st.binary(min_size=1, max_size=40), dle_rich.filter(bool))
+stations = st.one_of(st.sampled_from([0x10, 0x00, 0xF0, 0xFF, 0x01, 0x02, 0x03]), st.integers(0, 255))
+symbols = st.sampled_from([ACK_SYMBOL, NAK_SYMBOL, EOT_SYMBOL, b"\x10\x05", b"\x10\x01", b"\x10\x02",
+                           b"\x10\x03", b"\x10", b"\x10\x10", b"\x10\x41"])
+
+
+@st.composite
+def segments(draw: st.DrawFn, checksum: Checksum) -> bytes:
+    kind = draw(st.sampled_from(["poll", "master", "slave", "other", "truncated", "corrupt", "inserted",
+                                 "garbage", "dle", "symbol"]))
+    if kind == "garbage":
+        return draw(st.binary(max_size=60))
+    if kind == "dle":
+        return draw(dle_rich)
+    if kind == "symbol":
+        return draw(symbols)
+    if kind == "poll":
+        return encode_poll(draw(stations))
+    other = Checksum.CRC if checksum is Checksum.BCC else Checksum.BCC
+    use = other if kind == "other" else checksum
+    if draw(st.booleans()):
+        frame = encode_master_message(draw(stations), draw(messages), use)
+    else:
+        frame = encode_frame(draw(messages), use)
+    if kind == "truncated":
+        return frame[: draw(st.integers(0, len(frame) - 1))]
+    if kind == "corrupt":
+        position = draw(st.integers(0, len(frame) - 1))
+        return frame[:position] + bytes((draw(st.integers(0, 255)),)) + frame[position + 1 :]
+    if kind == "inserted":
+        position = draw(st.integers(0, len(frame)))
+        return frame[:position] + draw(st.one_of(symbols, dle_rich)) + frame[position:]
+    return frame
+
+
+@st.composite
+def streams(draw: st.DrawFn) -> tuple[Checksum, int, list[bytes], list[bool]]:
+    checksum = draw(st.sampled_from(list(Checksum)))
+    max_message = draw(st.sampled_from([1, 2, 5, 16, DEFAULT_MAX_MESSAGE]))
+    data = b"".join(draw(st.lists(segments(checksum), max_size=10)))
+    mode = draw(st.sampled_from(["whole", "bytes", "fixed"]))
+    if mode == "whole":
+        chunks = [data]
+    elif mode == "bytes":
+        chunks = [data[i : i + 1] for i in range(len(data))]
+    else:
+        size = draw(st.integers(1, 16))
+        chunks = [data[i : i + size] for i in range(0, len(data), size)]
+    drains = draw(st.lists(st.booleans(), min_size=len(chunks), max_size=len(chunks)))
+    return checksum, max_message, chunks, drains
+
+
+# ---------------------------------------------------------------------------------------- tests
+
+
+@settings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(streams())
+def test_same_events_as_reference(case: tuple[Checksum, int, list[bytes], list[bool]]) -> None:
+    _assert_same(*case)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=400), st.sampled_from(list(Checksum)), st.integers(1, 9))
+def test_same_events_on_raw_noise(data: bytes, checksum: Checksum, size: int) -> None:
+    chunks = [data[i : i + size] for i in range(0, len(data), size)]
+    _assert_same(checksum, DEFAULT_MAX_MESSAGE, chunks, [True] * len(chunks))
+    _assert_same(checksum, 4, [data], [False])
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(dle_rich, st.booleans()), max_size=8), st.sampled_from(list(Checksum)))
+def test_same_after_reset(parts: list[tuple[bytes, bool]], checksum: Checksum) -> None:
+    new = FrameDecoder(checksum, half_duplex=True, max_message=16)
+    ref = ReferenceHalfDuplexDecoder(checksum, max_message=16)
+    frame = encode_master_message(0x10, b"\x01\x10\x02", checksum)
+    for data, reset in parts:
+        for decoder in (new, ref):
+            decoder.feed(data)
+            if reset:
+                decoder.reset()
+            decoder.feed(frame[:4])
+        assert new.in_frame == ref.in_frame
+        assert _drain(new) == _drain(ref)
+
+
+_ALPHABET = bytes([0x10, 0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x15, 0x41])
+
+
+@pytest.mark.parametrize("checksum", list(Checksum))
+@pytest.mark.parametrize("prefix", [b"", b"\x10\x02\x41", b"\x10\x01", b"\x10\x01\x07\x10", b"\x10\x05"])
+def test_every_short_sequence(checksum: Checksum, prefix: bytes) -> None:
+    """All strings of up to 4 significant bytes after each prefix, then an end, whole and byte by byte."""
+    for length in range(5):
+        for combo in itertools.product(_ALPHABET, repeat=length):
+            data = prefix + bytes(combo) + b"\x10\x03\x00\x00"
+            _assert_same(checksum, 2, [data], [True])
+            _assert_same(checksum, 2, [bytes((b,)) for b in data], [True] * len(data))
+
+
+def test_reference_is_exercised() -> None:
+    """Sanity: the reference really decodes (the differential tests compare something)."""
+    ref = ReferenceHalfDuplexDecoder(Checksum.CRC)
+    ref.feed(encode_poll(0x10) + encode_master_message(3, b"\x01", Checksum.CRC) + encode_frame(b"\x02", Checksum.CRC)
+             + b"\x10\x02\x01" + EOT_SYMBOL)
+    assert _drain(ref) == [Poll(0x10), MasterMessage(3, b"\x01"), Frame(b"\x02"),
+                           BadFrame(BadFrameReason.TRUNCATED, False), EotReceived()]

@@ -1,4 +1,4 @@
-"""DF1 full-duplex link layer: one transmitter and one receiver working at the same time.
+"""DF1 full-duplex data-link layer: one transmitter and one receiver working at the same time.
 
 Manual: "S4516-DF1 Program Development Manual" §2.4 *How the Transmitter Operates*,
 §2.5 *How the Receiver Operates* (after A-B 1770-6.5.16, chapter 2, full-duplex protocol).
@@ -35,7 +35,7 @@ sent with ``idempotent=True`` (reads) are retransmitted on DLE NAK as §2.4 desc
 
 Once a frame has been ACKed the link reports :class:`SendComplete` and never sends it again.
 A DLE ACK / DLE NAK that arrives while the current frame has not yet been taken by
-:meth:`Df1Link.data_to_send` answers an older frame (for instance the second ACK of a duplicated
+:meth:`Df1DataLink.data_to_send` answers an older frame (for instance the second ACK of a duplicated
 frame) and is ignored, so it cannot complete a frame the peer never saw.
 Known limit of the protocol: if a whole frame is lost and the peer answers our ENQ with the ACK
 of the previous frame, the frame is reported complete although it never arrived; the
@@ -45,7 +45,7 @@ frame, so its last response becomes DLE NAK.
 
 Usage (the caller owns the port and the clock)::
 
-    link = Df1Link(checksum=Checksum.CRC, ack_timeout=0.2)
+    link = Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.2)
     handle = link.send(packet, now)
     port.write(link.data_to_send())
     link.receive_data(port.read(), now)
@@ -75,22 +75,26 @@ from gateway.protocols.df1.framing import (
     Checksum,
     EnqReceived,
     Frame,
-    FrameDecoder,
     NakReceived,
     NeedData,
     encode_frame,
 )
+from gateway.protocols.df1.framing.decoder import FrameDecoder
+from gateway.protocols.df1.transitions import Transition, require_complete
 
 __all__ = [
+    "TRANSITIONS",
     "BadFrameAnswer",
-    "Df1Link",
+    "DataLinkCounters",
+    "DataLinkEvent",
+    "Df1DataLink",
     "EnqAnswer",
-    "LinkCounters",
-    "LinkEvent",
     "MessageReceived",
     "SendComplete",
     "SendFailed",
     "SendFailure",
+    "TxAction",
+    "TxInput",
     "TxState",
 ]
 
@@ -144,11 +148,11 @@ class SendFailed:
     reason: SendFailure
 
 
-LinkEvent = MessageReceived | SendComplete | SendFailed
+DataLinkEvent = MessageReceived | SendComplete | SendFailed
 
 
 @dataclass(slots=True)
-class LinkCounters:
+class DataLinkCounters:
     """Link statistics, as in the DF1 full-duplex diagnostic counters (notes §7.7)."""
 
     frames_sent: int = 0  #: every frame written, retransmissions included
@@ -180,7 +184,7 @@ class TxState(enum.Enum):
     __hash__ = object.__hash__
 
 
-class _TxInput(enum.Enum):
+class TxInput(enum.Enum):
     SEND = "a frame is queued"
     ACK = "DLE ACK received"
     NAK = "DLE NAK received, retransmissions left"
@@ -190,11 +194,12 @@ class _TxInput(enum.Enum):
     NAK_NOT_PROOF = "DLE NAK for a frame that must not run twice (not resent: the NAK is no proof)"
     CONFIRM = "the application layer saw the reply to the frame"
     STALE = "DLE ACK / DLE NAK before our frame left data_to_send(): an answer to an older frame"
+    RESET = "the line was reset (port reopened)"
 
     __hash__ = object.__hash__  # see TxState
 
 
-class _TxAction(enum.Enum):
+class TxAction(enum.Enum):
     TRANSMIT = "send the next queued frame, start the ACK timer"
     COMPLETE = "report SendComplete"
     RETRANSMIT = "send the same frame again, restart the ACK timer"
@@ -202,35 +207,43 @@ class _TxAction(enum.Enum):
     FAIL_NAK = "report SendFailed(NAK_LIMIT)"
     FAIL_NO_RESPONSE = "report SendFailed(NO_RESPONSE)"
     FAIL_AMBIGUOUS = "report SendFailed(AMBIGUOUS_NAK)"
+    RESET = "forget the line; report SendFailed(LINK_RESET) for the frame in flight and every queued one"
     IGNORE = "nothing (stray symbol or nothing to do)"
 
+    __hash__ = object.__hash__  # see TxState
 
-#: (state, input) -> (action, next state).  Inputs missing from the table cannot happen.
-_TX_TRANSITIONS: Final[dict[tuple[TxState, _TxInput], tuple[_TxAction, TxState]]] = {
-    (TxState.IDLE, _TxInput.SEND): (_TxAction.TRANSMIT, TxState.AWAIT_ACK),
-    (TxState.IDLE, _TxInput.ACK): (_TxAction.IGNORE, TxState.IDLE),
-    (TxState.IDLE, _TxInput.NAK): (_TxAction.IGNORE, TxState.IDLE),
-    (TxState.IDLE, _TxInput.NAK_LIMIT): (_TxAction.IGNORE, TxState.IDLE),
-    (TxState.IDLE, _TxInput.STALE): (_TxAction.IGNORE, TxState.IDLE),
-    (TxState.AWAIT_ACK, _TxInput.STALE): (_TxAction.IGNORE, TxState.AWAIT_ACK),
-    (TxState.AWAIT_ACK, _TxInput.SEND): (_TxAction.IGNORE, TxState.AWAIT_ACK),
-    (TxState.AWAIT_ACK, _TxInput.ACK): (_TxAction.COMPLETE, TxState.IDLE),
-    (TxState.AWAIT_ACK, _TxInput.NAK): (_TxAction.RETRANSMIT, TxState.AWAIT_ACK),
-    (TxState.AWAIT_ACK, _TxInput.NAK_LIMIT): (_TxAction.FAIL_NAK, TxState.IDLE),
-    (TxState.AWAIT_ACK, _TxInput.TIMEOUT): (_TxAction.ENQUIRE, TxState.AWAIT_ACK),
-    (TxState.AWAIT_ACK, _TxInput.TIMEOUT_LIMIT): (_TxAction.FAIL_NO_RESPONSE, TxState.IDLE),
-    (TxState.IDLE, _TxInput.NAK_NOT_PROOF): (_TxAction.IGNORE, TxState.IDLE),
-    (TxState.AWAIT_ACK, _TxInput.NAK_NOT_PROOF): (_TxAction.FAIL_AMBIGUOUS, TxState.IDLE),
-    (TxState.IDLE, _TxInput.CONFIRM): (_TxAction.IGNORE, TxState.IDLE),
-    (TxState.AWAIT_ACK, _TxInput.CONFIRM): (_TxAction.COMPLETE, TxState.IDLE),
-}
+
+def _tx_table() -> dict[tuple[TxState, TxInput], Transition[TxAction, TxState]]:
+    T, In, A, IDLE, AWAIT = Transition, TxInput, TxAction, TxState.IDLE, TxState.AWAIT_ACK
+    return {
+        (IDLE, In.SEND): T(A.TRANSMIT, AWAIT),
+        # nothing awaits an answer: a stray or late symbol, a confirm of a frame already done
+        **{(IDLE, what): T(A.IGNORE, IDLE) for what in (In.ACK, In.NAK, In.NAK_LIMIT, In.NAK_NOT_PROOF, In.STALE,
+                                                           In.CONFIRM, In.TIMEOUT, In.TIMEOUT_LIMIT)},
+        (IDLE, In.RESET): T(A.RESET, IDLE),
+        (AWAIT, In.SEND): T(A.IGNORE, AWAIT),  # queued: it goes when the frame in flight is done
+        (AWAIT, In.STALE): T(A.IGNORE, AWAIT),
+        (AWAIT, In.ACK): T(A.COMPLETE, IDLE),
+        (AWAIT, In.NAK): T(A.RETRANSMIT, AWAIT),
+        (AWAIT, In.NAK_LIMIT): T(A.FAIL_NAK, IDLE),
+        (AWAIT, In.TIMEOUT): T(A.ENQUIRE, AWAIT),
+        (AWAIT, In.TIMEOUT_LIMIT): T(A.FAIL_NO_RESPONSE, IDLE),
+        (AWAIT, In.NAK_NOT_PROOF): T(A.FAIL_AMBIGUOUS, IDLE),
+        (AWAIT, In.CONFIRM): T(A.COMPLETE, IDLE),
+        (AWAIT, In.RESET): T(A.RESET, IDLE),
+    }
+
+
+#: The transmitter's state machine: (state, input) -> (action, next state).
+TRANSITIONS: Final = _tx_table()
+require_complete(TRANSITIONS, TxState, TxInput, "full-duplex transmitter")
 
 
 # ----------------------------------------------------------------------------------------- link
 
 
-class Df1Link:
-    """Sans-I/O DF1 full-duplex link: frames and ACK/NAK/ENQ in, events and bytes out."""
+class Df1DataLink:
+    """Sans-I/O DF1 full-duplex data-link layer: frames and ACK/NAK/ENQ in, events and bytes out."""
 
     def __init__(
         self,
@@ -264,9 +277,9 @@ class Df1Link:
         self.min_ack_timeout: Final = min(min_ack_timeout, ack_timeout)
         self._ack_times: deque[float] = deque(maxlen=32)
         self._sent_at = 0.0
-        self.counters = LinkCounters()
+        self.counters = DataLinkCounters()
         self._decoder = FrameDecoder(checksum, max_message=max_message)
-        self._events: deque[LinkEvent] = deque()
+        self._events: deque[DataLinkEvent] = deque()
         self._out = bytearray()
         # receiver
         self._last_response = NAK_SYMBOL
@@ -309,7 +322,7 @@ class Df1Link:
         handle = self._next_handle
         self._next_handle += 1
         self._queue.append((handle, bytes(payload), idempotent))
-        self._tx_input(_TxInput.SEND, now)
+        self._tx_input(TxInput.SEND, now)
         return handle
 
     def receive_data(self, data: bytes, now: float) -> None:
@@ -332,19 +345,19 @@ class Df1Link:
                     if (not stale and self._tx_state is TxState.AWAIT_ACK and self._current is not None
                             and self._enq_count == 0 and self._nak_count == 0):
                         self._ack_times.append(now - self._sent_at - len(self._current[2]) * self.char_time)
-                    self._tx_input(_TxInput.STALE if stale else _TxInput.ACK, now)
+                    self._tx_input(TxInput.STALE if stale else TxInput.ACK, now)
                 case NakReceived():
                     self.counters.naks_received += 1
                     stale = self._frame_unsent or self._answer_owed
                     self._answer_owed = False
                     if stale:
-                        self._tx_input(_TxInput.STALE, now)
+                        self._tx_input(TxInput.STALE, now)
                     elif self._current is not None and not self._current[3]:
-                        self._tx_input(_TxInput.NAK_NOT_PROOF, now)
+                        self._tx_input(TxInput.NAK_NOT_PROOF, now)
                     elif self._nak_count >= self.max_nak:
-                        self._tx_input(_TxInput.NAK_LIMIT, now)
+                        self._tx_input(TxInput.NAK_LIMIT, now)
                     else:
-                        self._tx_input(_TxInput.NAK, now)
+                        self._tx_input(TxInput.NAK, now)
                 case EnqReceived(aborted_frame=aborted):
                     self.counters.enqs_received += 1
                     if aborted:
@@ -355,7 +368,7 @@ class Df1Link:
                     else:
                         self._respond(self._last_response)
 
-    def next_event(self) -> LinkEvent | NeedData:
+    def next_event(self) -> DataLinkEvent | NeedData:
         """The next :class:`MessageReceived`, :class:`SendComplete`, :class:`SendFailed` or NEED_DATA."""
         if self._events:
             return self._events.popleft()
@@ -377,7 +390,7 @@ class Df1Link:
         if self._deadline is None or now < self._deadline:
             return
         limit = self._enq_count >= self.max_enq
-        self._tx_input(_TxInput.TIMEOUT_LIMIT if limit else _TxInput.TIMEOUT, now)
+        self._tx_input(TxInput.TIMEOUT_LIMIT if limit else TxInput.TIMEOUT, now)
 
     def confirm(self, handle: int, now: float) -> None:
         """The application layer has the reply to frame ``handle``: the peer received it.
@@ -388,26 +401,11 @@ class Df1Link:
         """
         if self._current is not None and self._current[0] == handle and not self._frame_unsent:
             self._answer_owed = True
-            self._tx_input(_TxInput.CONFIRM, now)
+            self._tx_input(TxInput.CONFIRM, now)
 
     def reset(self) -> None:
         """Forget the line state (port reopened): fail every queued frame, clear buffers."""
-        failed = [self._current[0]] if self._current is not None else []
-        failed += [handle for handle, _, _ in self._queue]
-        self._queue.clear()
-        self._current = None
-        self._tx_state = TxState.IDLE
-        self._deadline = None
-        self._nak_count = self._enq_count = 0
-        self._decoder.reset()
-        self._out.clear()
-        self._frame_unsent = False
-        self._answer_owed = False
-        self._last_response = NAK_SYMBOL
-        self._last_delivered = None
-        for handle in failed:
-            self.counters.send_failures += 1
-            self._events.append(SendFailed(handle, SendFailure.LINK_RESET))
+        self._tx_input(TxInput.RESET, 0.0)
 
     # ------------------------------------------------------------------------------- receiver
 
@@ -443,34 +441,52 @@ class Df1Link:
 
     # ---------------------------------------------------------------------------- transmitter
 
-    def _tx_input(self, tx_input: _TxInput, now: float) -> None:
-        action, next_state = _TX_TRANSITIONS[self._tx_state, tx_input]
-        self._tx_state = next_state
+    def _tx_input(self, tx_input: TxInput, now: float) -> None:
+        action, self._tx_state, _ = TRANSITIONS[self._tx_state, tx_input]
         match action:
-            case _TxAction.IGNORE:
+            case TxAction.IGNORE:
                 pass
-            case _TxAction.TRANSMIT:
+            case TxAction.TRANSMIT:
                 handle, payload, idempotent = self._queue.popleft()
                 self._current = (handle, payload, encode_frame(payload, self.checksum), idempotent)
                 self._nak_count = self._enq_count = 0
                 self._write_current(now)
-            case _TxAction.RETRANSMIT:
+            case TxAction.RETRANSMIT:
                 self._nak_count += 1
                 self.counters.retransmissions += 1
                 self._write_current(now)
-            case _TxAction.ENQUIRE:
+            case TxAction.ENQUIRE:
                 self._enq_count += 1
                 self.counters.enqs_sent += 1
                 self._out += ENQ_SYMBOL
                 self._deadline = now + self._ack_wait(len(ENQ_SYMBOL))
-            case _TxAction.COMPLETE:
+            case TxAction.COMPLETE:
                 self._finish(SendComplete(self._take_current()), now)
-            case _TxAction.FAIL_NAK:
+            case TxAction.FAIL_NAK:
                 self._finish(SendFailed(self._take_current(), SendFailure.NAK_LIMIT), now)
-            case _TxAction.FAIL_NO_RESPONSE:
+            case TxAction.FAIL_NO_RESPONSE:
                 self._finish(SendFailed(self._take_current(), SendFailure.NO_RESPONSE), now)
-            case _TxAction.FAIL_AMBIGUOUS:
+            case TxAction.FAIL_AMBIGUOUS:
                 self._finish(SendFailed(self._take_current(), SendFailure.AMBIGUOUS_NAK), now)
+            case TxAction.RESET:
+                self._forget_line()
+
+    def _forget_line(self) -> None:
+        failed = [self._current[0]] if self._current is not None else []
+        failed += [handle for handle, _, _ in self._queue]
+        self._queue.clear()
+        self._current = None
+        self._deadline = None
+        self._nak_count = self._enq_count = 0
+        self._decoder.reset()
+        self._out.clear()
+        self._frame_unsent = False
+        self._answer_owed = False
+        self._last_response = NAK_SYMBOL
+        self._last_delivered = None
+        for handle in failed:
+            self.counters.send_failures += 1
+            self._events.append(SendFailed(handle, SendFailure.LINK_RESET))
 
     def _write_current(self, now: float) -> None:
         assert self._current is not None
@@ -502,4 +518,4 @@ class Df1Link:
             self.counters.send_failures += 1
         self._events.append(event)
         if self._queue:
-            self._tx_input(_TxInput.SEND, now)
+            self._tx_input(TxInput.SEND, now)

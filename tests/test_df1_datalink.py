@@ -1,4 +1,4 @@
-"""DF1 full-duplex link: two Df1Link instances paired in memory with a fake clock and faults."""
+"""DF1 full-duplex link: two Df1DataLink instances paired in memory with a fake clock and faults."""
 
 from __future__ import annotations
 
@@ -11,23 +11,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gateway.errors import InvalidRequest
-from gateway.protocols.df1.framing import (
-    ACK_SYMBOL,
-    ENQ_SYMBOL,
-    NAK_SYMBOL,
-    NEED_DATA,
-    Checksum,
-    encode_frame,
-)
-from gateway.protocols.df1.link import (
-    Df1Link,
-    LinkEvent,
+from gateway.protocols.df1.datalink import (
+    DataLinkEvent,
+    Df1DataLink,
     MessageReceived,
     SendComplete,
     SendFailed,
     SendFailure,
     TxState,
 )
+from gateway.protocols.df1.framing import ACK_SYMBOL, ENQ_SYMBOL, NAK_SYMBOL, NEED_DATA, Checksum, encode_frame
 
 Fault = Callable[[bytes], bytes]
 
@@ -45,13 +38,13 @@ def packet(tns: int, src: int = 0, dst: int = 1) -> bytes:
 class Pair:
     """Two links wired back to back; ``now`` is the fake clock."""
 
-    a: Df1Link
-    b: Df1Link
+    a: Df1DataLink
+    b: Df1DataLink
     a_to_b: Fault = identity
     b_to_a: Fault = identity
     now: float = 0.0
-    a_events: list[LinkEvent] = field(default_factory=list)
-    b_events: list[LinkEvent] = field(default_factory=list)
+    a_events: list[DataLinkEvent] = field(default_factory=list)
+    b_events: list[DataLinkEvent] = field(default_factory=list)
 
     def collect(self) -> None:
         for link, events in ((self.a, self.a_events), (self.b, self.b_events)):
@@ -88,8 +81,8 @@ class Pair:
 def make_pair(
     checksum: Checksum = Checksum.CRC, *, max_nak: int = 3, max_enq: int = 3, duplicate_detect: bool = True
 ) -> Pair:
-    def link() -> Df1Link:
-        return Df1Link(
+    def link() -> Df1DataLink:
+        return Df1DataLink(
             checksum=checksum,
             ack_timeout=0.2,
             max_nak=max_nak,
@@ -156,7 +149,7 @@ def test_messages_delivered_in_order(checksum: Checksum) -> None:
 
 
 def test_one_frame_outstanding_at_a_time() -> None:
-    link = Df1Link(checksum=Checksum.BCC)
+    link = Df1DataLink(checksum=Checksum.BCC)
     link.send(packet(1), 0.0)
     link.send(packet(2), 0.0)
     assert link.data_to_send() == encode_frame(packet(1), Checksum.BCC)
@@ -194,7 +187,7 @@ def test_frame_with_byte_10_in_payload() -> None:
 
 
 def test_receiver_acks_and_naks() -> None:
-    link = Df1Link(checksum=Checksum.BCC)
+    link = Df1DataLink(checksum=Checksum.BCC)
     link.receive_data(encode_frame(packet(1), Checksum.BCC), 0.0)
     assert link.data_to_send() == ACK_SYMBOL
     assert link.next_event() == MessageReceived(packet(1))
@@ -207,7 +200,7 @@ def test_receiver_acks_and_naks() -> None:
 
 
 def test_enq_answered_with_last_response() -> None:
-    link = Df1Link(checksum=Checksum.BCC)
+    link = Df1DataLink(checksum=Checksum.BCC)
     link.receive_data(ENQ_SYMBOL, 0.0)
     assert link.data_to_send() == NAK_SYMBOL  # nothing answered yet
     link.receive_data(encode_frame(packet(1), Checksum.BCC), 0.0)
@@ -222,7 +215,7 @@ def test_enq_answered_with_last_response() -> None:
 
 
 def test_enq_during_a_truncated_frame_is_answered_nak() -> None:
-    link = Df1Link(checksum=Checksum.BCC)
+    link = Df1DataLink(checksum=Checksum.BCC)
     link.receive_data(encode_frame(packet(1), Checksum.BCC), 0.0)
     assert link.data_to_send() == ACK_SYMBOL
     # Frame 2 loses its DLE ETX; the sender's ENQ must not be answered with frame 1's ACK.
@@ -232,7 +225,7 @@ def test_enq_during_a_truncated_frame_is_answered_nak() -> None:
 
 
 def test_duplicate_frame_acked_not_delivered_twice() -> None:
-    link = Df1Link(checksum=Checksum.CRC)
+    link = Df1DataLink(checksum=Checksum.CRC)
     frame = encode_frame(packet(7), Checksum.CRC)
     link.receive_data(frame + frame, 0.0)
     assert link.data_to_send() == ACK_SYMBOL + ACK_SYMBOL
@@ -259,7 +252,7 @@ def test_duplicate_detection_can_be_disabled() -> None:
 
 
 def test_garbage_between_frames() -> None:
-    link = Df1Link(checksum=Checksum.CRC)
+    link = Df1DataLink(checksum=Checksum.CRC)
     frame = encode_frame(packet(1), Checksum.CRC)
     second = encode_frame(packet(2), Checksum.CRC)
     link.receive_data(b"\x00\x55\x10\x33garbage" + frame + b"\xff\xfe" + second, 0)
@@ -269,7 +262,7 @@ def test_garbage_between_frames() -> None:
 
 
 def test_receive_byte_by_byte() -> None:
-    link = Df1Link(checksum=Checksum.CRC)
+    link = Df1DataLink(checksum=Checksum.CRC)
     for byte in encode_frame(packet(1), Checksum.CRC) + ACK_SYMBOL:
         link.receive_data(bytes((byte,)), 0.0)
     assert link.next_event() == MessageReceived(packet(1))
@@ -294,7 +287,7 @@ def test_corrupted_frame_is_nakked_and_resent_unchanged() -> None:
 
 
 def test_answer_before_the_frame_left_is_stale() -> None:
-    link = Df1Link(checksum=Checksum.BCC)
+    link = Df1DataLink(checksum=Checksum.BCC)
     link.send(packet(1), 0.0)
     link.receive_data(ACK_SYMBOL + NAK_SYMBOL, 0.0)  # frame still in the output buffer
     assert link.next_event() is NEED_DATA
@@ -304,7 +297,7 @@ def test_answer_before_the_frame_left_is_stale() -> None:
 
 
 def test_nak_retransmits_the_same_bytes() -> None:
-    link = Df1Link(checksum=Checksum.CRC)
+    link = Df1DataLink(checksum=Checksum.CRC)
     link.send(packet(1), 0.0)
     first = link.data_to_send()
     link.receive_data(NAK_SYMBOL, 0.1)
@@ -382,7 +375,7 @@ def test_no_response_reports_failure_after_max_enq() -> None:
 
 
 def test_timeout_is_configurable_and_early_calls_do_nothing() -> None:
-    link = Df1Link(checksum=Checksum.BCC, ack_timeout=0.3)
+    link = Df1DataLink(checksum=Checksum.BCC, ack_timeout=0.3)
     link.send(packet(1), 10.0)
     link.data_to_send()
     assert link.next_deadline() == pytest.approx(10.3)
@@ -394,7 +387,7 @@ def test_timeout_is_configurable_and_early_calls_do_nothing() -> None:
 
 
 def test_ack_after_enq_completes() -> None:
-    link = Df1Link(checksum=Checksum.BCC, ack_timeout=0.1)
+    link = Df1DataLink(checksum=Checksum.BCC, ack_timeout=0.1)
     link.send(packet(1), 0.0)
     link.data_to_send()
     link.handle_timeout(0.1)
@@ -405,7 +398,7 @@ def test_ack_after_enq_completes() -> None:
 
 
 def test_zero_retries() -> None:
-    link = Df1Link(checksum=Checksum.BCC, max_nak=0, max_enq=0, ack_timeout=0.1)
+    link = Df1DataLink(checksum=Checksum.BCC, max_nak=0, max_enq=0, ack_timeout=0.1)
     link.send(packet(1), 0.0)
     link.data_to_send()
     link.receive_data(NAK_SYMBOL, 0.0)
@@ -416,7 +409,7 @@ def test_zero_retries() -> None:
 
 
 def test_reset_fails_everything_pending() -> None:
-    link = Df1Link(checksum=Checksum.BCC)
+    link = Df1DataLink(checksum=Checksum.BCC)
     link.send(packet(1), 0.0)
     link.send(packet(2), 0.0)
     link.receive_data(b"\x10\x02\x01", 0.0)  # partial frame
@@ -430,13 +423,13 @@ def test_reset_fails_everything_pending() -> None:
 
 
 def test_send_validation() -> None:
-    link = Df1Link(checksum=Checksum.BCC, max_message=16)
+    link = Df1DataLink(checksum=Checksum.BCC, max_message=16)
     with pytest.raises(InvalidRequest):
         link.send(b"", 0.0)
     with pytest.raises(InvalidRequest):
         link.send(bytes(17), 0.0)
     with pytest.raises(ValueError):
-        Df1Link(ack_timeout=0)
+        Df1DataLink(ack_timeout=0)
 
 
 # ---------------------------------------------------------------------------------- soak
@@ -463,7 +456,9 @@ class RandomFaults:
         return bytes(out)
 
 
-def check_exactly_once(sent: list[bytes], handles: list[int], events: list[LinkEvent], delivered: list[bytes]) -> None:
+def check_exactly_once(
+    sent: list[bytes], handles: list[int], events: list[DataLinkEvent], delivered: list[bytes]
+) -> None:
     # Every send resolves exactly once.
     resolved = [e.handle for e in events if isinstance(e, SendComplete | SendFailed)]
     assert sorted(resolved) == sorted(handles)
@@ -529,7 +524,7 @@ def test_soak_both_ways_in_order_without_duplicates(seed: int) -> None:
 
 @pytest.mark.parametrize("enquire_first", [False, True])
 def test_a_nak_never_retransmits_a_frame_sent_as_not_idempotent(enquire_first: bool) -> None:
-    link = Df1Link(checksum=Checksum.CRC, ack_timeout=0.5, max_nak=3)
+    link = Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.5, max_nak=3)
     handle = link.send(packet(1), 0.0, idempotent=False)
     frame = link.data_to_send()
     assert frame == encode_frame(packet(1), Checksum.CRC)
@@ -543,7 +538,7 @@ def test_a_nak_never_retransmits_a_frame_sent_as_not_idempotent(enquire_first: b
 
 
 def test_a_nak_retransmits_an_idempotent_frame() -> None:
-    link = Df1Link(checksum=Checksum.CRC, ack_timeout=0.5)
+    link = Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.5)
     link.send(packet(1), 0.0)
     frame = link.data_to_send()
     link.receive_data(NAK_SYMBOL, 0.1)
@@ -551,7 +546,7 @@ def test_a_nak_retransmits_an_idempotent_frame() -> None:
 
 
 def test_confirm_completes_the_frame_and_the_next_answer_is_owed_to_it() -> None:
-    link = Df1Link(checksum=Checksum.CRC, ack_timeout=0.5)
+    link = Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.5)
     first = link.send(packet(1), 0.0)
     link.data_to_send()
     link.confirm(first + 100, 0.1)  # not the frame in flight: nothing
@@ -571,7 +566,7 @@ def test_the_ack_wait_adapts_to_the_peers_measured_ack_times() -> None:
     """After 8 ACKs that came 10 ms after the frame's last character, a lost ACK is asked for
     with DLE ENQ after 2 x 10 ms plus the frame's time, not after the whole ACK timeout."""
     char_time = 0.001
-    link = Df1Link(checksum=Checksum.BCC, ack_timeout=1.0, char_time=char_time)
+    link = Df1DataLink(checksum=Checksum.BCC, ack_timeout=1.0, char_time=char_time)
     now = 0.0
     for n in range(8):
         link.send(packet(n + 1), now)

@@ -1,0 +1,59 @@
+"""Transition tables of the DF1 cores, as data.
+
+A core's table maps every (state, input) pair to a :class:`Transition`: the action to run and the
+state it leads to.  A pair that changes nothing is an entry too (an ``IGNORE``-style action back
+to the same state), so a pair missing from a table is a bug: the cores index their tables, and a
+missing pair raises ``KeyError`` instead of being dropped.  :func:`require_complete` checks a
+table when its module is imported; ``tests/test_df1_transition_tables.py`` walks every table.
+
+An action that must choose between next states (send again, or give up) names the states it may
+choose besides ``next_state`` in ``or_states``; the core checks its choice with :meth:`Transition.allows`.
+
+This module does no I/O.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Any, Generic, NamedTuple, TypeVar
+
+__all__ = ["Transition", "require_complete"]
+
+ActionT = TypeVar("ActionT")
+StateT = TypeVar("StateT")
+InputT = TypeVar("InputT")
+
+
+class Transition(NamedTuple, Generic[ActionT, StateT]):
+    """One table entry: run ``action``; the core is then in ``next_state`` (or in one of
+    ``or_states``, when the action chooses)."""
+
+    action: ActionT
+    next_state: StateT
+    or_states: frozenset[StateT] = frozenset()
+
+    @property
+    def allowed(self) -> frozenset[StateT]:
+        """Every state this transition may end in."""
+        return self.or_states | {self.next_state}
+
+    def allows(self, state: StateT) -> bool:
+        return state == self.next_state or state in self.or_states
+
+
+def require_complete(
+    table: Mapping[tuple[StateT, InputT], Transition[Any, StateT]],
+    states: Iterable[StateT],
+    inputs: Iterable[InputT],
+    name: str,
+) -> None:
+    """Raise unless ``table`` has exactly the pairs of ``states`` x ``inputs``, and every state
+    it leads to has its row."""
+    states, inputs = list(states), list(inputs)
+    pairs = {(state, what) for state in states for what in inputs}
+    missing, extra = pairs - set(table), set(table) - pairs
+    if missing or extra:
+        raise RuntimeError(f"{name}: missing pairs {sorted(map(str, missing))}, extra pairs {sorted(map(str, extra))}")
+    ends = {state for entry in table.values() for state in entry.allowed}
+    if not ends <= set(states):
+        raise RuntimeError(f"{name}: transitions lead to states without a row: {sorted(map(str, ends - set(states)))}")
