@@ -190,7 +190,11 @@ class Plc(asyncio.Protocol):
         run.seconds, run.gateway_cpu = time.perf_counter() - start, process_cpu(pid) - cpu
         run.plc_cpu = time.process_time() - own
         counted, self.run = run, None  # from here on: finish the write in flight, count nothing
-        await asyncio.wait_for(self._idle, 10)
+        try:
+            await asyncio.wait_for(self._idle, 10)
+        except TimeoutError:
+            raise SystemExit(f"the write in flight did not end within 10 s ({counted.writes} writes done in the "
+                             f"run, others: {counted.other or 'none'})") from None
         return counted
 
     def _start(self, now: float) -> None:

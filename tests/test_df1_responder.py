@@ -27,9 +27,9 @@ from gateway.protocols.df1.framing import (
     NEED_DATA,
     Checksum,
     Frame,
-    FrameDecoder,
     encode_frame,
 )
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.responder import Df1Responder
 from gateway.protocols.df1.responder_events import (
     CommandReceived,

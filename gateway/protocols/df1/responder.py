@@ -306,9 +306,10 @@ class Df1Responder:
     def _input(self, what: ResponderInput, now: float, message: bytes = b"") -> None:
         key = (self._state, what)
         try:
-            action, next_state = TRANSITIONS[key]
+            entry = TRANSITIONS[key]
         except KeyError:
             raise RuntimeError(f"DF1 responder: no transition for {key}") from None
+        action, next_state = entry.action, entry.next_state
         self.history.append(ResponderStep(self._state, what, action, next_state))
         self._state = next_state
         counters = self.counters

@@ -14,6 +14,8 @@ from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Final, NamedTuple
 
+from gateway.protocols.df1.transitions import Transition
+
 __all__ = [
     "IGNORED",
     "TRANSITIONS",
@@ -110,7 +112,7 @@ IGNORED: Final[Mapping[tuple[ResponderState, ResponderInput], str]] = MappingPro
 })
 
 
-def _complete_table() -> Mapping[tuple[ResponderState, ResponderInput], tuple[ResponderAction, ResponderState]]:
+def _complete_table() -> Mapping[tuple[ResponderState, ResponderInput], Transition[ResponderAction, ResponderState]]:
     """Every (state, input) pair exactly once: the receiver's, the transmitter's, the ignored."""
     table = {(state, what): (action, state) for state in S for what, action in _RECEIVER.items()}
     for pair, step in (*_TRANSMITTER.items(), *((pair, (A.IGNORE, pair[0])) for pair in IGNORED)):
@@ -120,10 +122,10 @@ def _complete_table() -> Mapping[tuple[ResponderState, ResponderInput], tuple[Re
     missing = [(state, what) for state in S for what in K if (state, what) not in table]
     if missing:
         raise RuntimeError(f"DF1 responder table: no transition for {missing}")
-    return MappingProxyType(table)
+    return MappingProxyType({pair: Transition(*step) for pair, step in table.items()})
 
 
-#: (state, input) -> (action, next state), complete: checked at import.
+#: (state, input) -> Transition(action, next state), complete: checked at import.
 TRANSITIONS: Final = _complete_table()
 
 
