@@ -137,9 +137,9 @@ DF1_CHAR_TIME = 10 / 19200  # 8N1: start + 8 data + stop
 def slc_read_frames(address: int, count: int) -> tuple[int, int]:
     """(request, reply) characters of one SLC 100/150 read, from the protocol's own encoders."""
     from gateway.protocols.slc_ascii import commands as cmds
-    from gateway.protocols.slc_ascii.framing import encode_command, encode_data_reply
+    from gateway.protocols.slc_ascii.framing import encode_data_reply, frame_command
 
-    request = encode_command(cmds.read_bytes(address, count), 1)
+    request = frame_command(cmds.read_bytes(address, count), 1)
     body = f"{count:04X}{address:04X}" + "00" * count  # count, address, data (the simulator's form)
     return len(request), len(encode_data_reply(body, 1))
 
@@ -147,9 +147,9 @@ def slc_read_frames(address: int, count: int) -> tuple[int, int]:
 def slc_write_word_frames(address: int = 0, value: int = 1234) -> tuple[int, int]:
     """(request, reply) characters of one SLC 100/150 write word (``;R`` acknowledge)."""
     from gateway.protocols.slc_ascii import commands as cmds
-    from gateway.protocols.slc_ascii.framing import encode_ack, encode_command
+    from gateway.protocols.slc_ascii.framing import encode_ack, frame_command
 
-    return len(encode_command(cmds.write_word(address, value), 1)), len(encode_ack(1))
+    return len(frame_command(cmds.write_word(address, value), 1)), len(encode_ack(1))
 
 
 def df1_frames(request: Any, reply_data: bytes, *, tns: int = 0x1234) -> tuple[int, int]:
@@ -376,14 +376,14 @@ def slc_bare_frames() -> list[bytes]:
     from gateway.kinds.slc_ascii.plan import slc_ascii_plan
     from gateway.modbus.mapping import Scan
     from gateway.protocols.slc_ascii import commands as cmds
-    from gateway.protocols.slc_ascii.framing import encode_command
+    from gateway.protocols.slc_ascii.framing import frame_command
 
     blocks = [b for b in slc_ascii_plan().blocks if b.scan is Scan.FAST]
     frames = []
     for i in range(127 * len(blocks)):  # a whole number of ID cycles and of scans
         msg_id = 0 if i == 0 else (i - 1) % 0x7F + 1
         address, count = blocks[i % len(blocks)].request  # type: ignore[misc]
-        frames.append(encode_command(cmds.read_bytes(address, count), msg_id))
+        frames.append(frame_command(cmds.read_bytes(address, count), msg_id))
     return frames  # after the last (ID 7E) comes ID 00 again, always accepted
 
 

@@ -51,7 +51,7 @@ from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, decode_reply
 from gateway.protocols.df1.pccc import encode_command as encode_pccc
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.framing import NEED_DATA, ReplyDecoder
-from gateway.protocols.slc_ascii.framing import encode_command as encode_slc
+from gateway.protocols.slc_ascii.framing import frame_command as encode_slc
 from gateway.sim import create_simulator
 from gateway.transport import ByteStream, SerialSettings
 

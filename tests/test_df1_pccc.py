@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from gateway.errors import ControllerRefused, InvalidRequest, ProtocolError
 from gateway.protocols.df1.address import FileType, parse_address
 from gateway.protocols.df1.pccc import (
-    Command,
+    CmdByte,
     DataType,
     DiagnosticStatus,
     DiagnosticStatusInfo,
@@ -436,7 +436,7 @@ def test_every_request_round_trips(request: Request, dst: int, src: int, tns: in
     command = decode_command(packet)
     assert command.request == request
     assert command.header == PcccHeader(dst, src, request.CMD, 0, tns)
-    assert packet[2] in (Command.DIAGNOSTIC, Command.EXTENDED)
+    assert packet[2] in (CmdByte.DIAGNOSTIC, CmdByte.EXTENDED)
 
 
 @settings(max_examples=300, deadline=None)

@@ -21,8 +21,8 @@ from gateway.protocols.slc_ascii.framing import (
     Refused,
     ReplyDecoder,
     ReplyEvent,
-    encode_command,
     encode_retransmit,
+    frame_command,
 )
 from gateway.sim import create_simulator
 
@@ -51,7 +51,7 @@ class Host:
         return events
 
     def raw_send(self, command: Command, msg_id: int) -> list[ReplyEvent]:
-        return self.send(encode_command(command, msg_id))
+        return self.send(frame_command(command, msg_id))
 
     def do(self, command: Command) -> ReplyEvent:
         """Send with the next ID in sequence and return the single reply."""
@@ -107,14 +107,14 @@ def test_read_words_and_bytes(host: Host, sim: SlcAsciiSimulator) -> None:
 
 
 def test_a_command_fed_byte_by_byte_is_answered_once_at_its_cr(host: Host) -> None:
-    frame = encode_command(cmds.read_frn(), 0)
+    frame = frame_command(cmds.read_frn(), 0)
     for i in range(len(frame) - 1):
         assert host.send(frame[i : i + 1]) == []
     assert host.send(frame[-1:]) == [DataReply("021FFE1547", 0)]
 
 
 def test_commands_with_parity_bit_set_are_understood(host: Host) -> None:
-    frame = bytes(b | 0x80 for b in encode_command(cmds.read_frn(), 0))
+    frame = bytes(b | 0x80 for b in frame_command(cmds.read_frn(), 0))
     assert host.send(frame) == [DataReply("021FFE1547", 0)]
 
 
@@ -465,7 +465,7 @@ def test_garbled_replies_never_decode_as_valid(sim: SlcAsciiSimulator) -> None:
     host = Host(sim)
     good = garbled = 0
     for _ in range(400):
-        for event in host.send(encode_command(cmds.read_bytes(0x40, 2), 0)):
+        for event in host.send(frame_command(cmds.read_bytes(0x40, 2), 0)):
             if isinstance(event, Garbled):
                 garbled += 1
             else:
@@ -481,7 +481,7 @@ def test_garbled_replies_never_decode_as_valid(sim: SlcAsciiSimulator) -> None:
 def test_fault_injection_is_reproducible_with_a_seed() -> None:
     def run(seed: int) -> list[bytes]:
         sim = SlcAsciiSimulator(ControllerType.SLC150, faults=FaultPlan(garble=3, drop=4, seed=seed), ladder=False)
-        return [b"".join(o.data for o in sim.receive(encode_command(cmds.read_frn(), 0), i)) for i in range(50)]
+        return [b"".join(o.data for o in sim.receive(frame_command(cmds.read_frn(), 0), i)) for i in range(50)]
 
     assert run(5) == run(5)
     assert run(5) != run(6)
@@ -508,7 +508,7 @@ def test_fault_every_n_commands(sim: SlcAsciiSimulator) -> None:
 
 def test_reply_delay_is_reported_with_each_output() -> None:
     sim = SlcAsciiSimulator(ControllerType.SLC150, faults=FaultPlan(delay=0.25), ladder=False)
-    outputs = sim.receive(encode_command(cmds.read_frn(), 0), 0.0)
+    outputs = sim.receive(frame_command(cmds.read_frn(), 0), 0.0)
     assert [o.delay for o in outputs] == [0.25]
 
 

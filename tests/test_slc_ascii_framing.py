@@ -33,12 +33,12 @@ from gateway.protocols.slc_ascii.framing import (
     RetransmitRequest,
     crc,
     encode_ack,
-    encode_command,
     encode_data_reply,
     encode_fault,
     encode_id_mismatch,
     encode_refused,
     encode_retransmit,
+    frame_command,
 )
 
 # ---------------------------------------------------------------------------------------------
@@ -191,13 +191,13 @@ def frame_of(lead: str, text: str) -> bytes:
 @pytest.mark.parametrize(
     ("encoded", "lead", "text"),
     [
-        (encode_command(cmds.read_frn(), 0), "#", "010800"),
-        (encode_command(cmds.read_bytes(0x84, 2), 1), "#", "0502" "0002" "0084" "01"),
-        (encode_command(cmds.write_word(0x40, 1234), 2), "#", "0503" "0040" "04D2" "02"),
-        (encode_command(cmds.write_byte(0xA6, 0x55), 0x7F), "#", "0403" "00A6" "55" "7F"),
-        (encode_command(cmds.set_mode(cmds.Mode.PROGRAM), 0x10), "#", "04030101" "06" "10"),
-        (encode_command(cmds.upload_block(), 5), "#", "0100" "05"),
-        (encode_command(cmds.download_block(3, bytes(range(15)), controller=cmds.ControllerType.SLC150), 6),
+        (frame_command(cmds.read_frn(), 0), "#", "010800"),
+        (frame_command(cmds.read_bytes(0x84, 2), 1), "#", "0502" "0002" "0084" "01"),
+        (frame_command(cmds.write_word(0x40, 1234), 2), "#", "0503" "0040" "04D2" "02"),
+        (frame_command(cmds.write_byte(0xA6, 0x55), 0x7F), "#", "0403" "00A6" "55" "7F"),
+        (frame_command(cmds.set_mode(cmds.Mode.PROGRAM), 0x10), "#", "04030101" "06" "10"),
+        (frame_command(cmds.upload_block(), 5), "#", "0100" "05"),
+        (frame_command(cmds.download_block(3, bytes(range(15)), controller=cmds.ControllerType.SLC150), 6),
          "#", "1101" "03" + bytes(range(15)).hex().upper() + "06"),
         (encode_retransmit(9), ";", "Z09"),
         (encode_ack(3), ";", "R03"),
@@ -214,7 +214,7 @@ def test_encoded_frames(encoded: bytes, lead: str, text: str) -> None:
 
 
 def test_manual_frames_literally() -> None:
-    assert encode_command(cmds.read_frn(), 0) == b"#010800A3\r"
+    assert frame_command(cmds.read_frn(), 0) == b"#010800A3\r"
     assert encode_ack(3) == b";R038D\r"
 
 
@@ -227,7 +227,7 @@ def test_manual_frames_literally() -> None:
         lambda i: encode_id_mismatch(i),
         lambda i: encode_retransmit(i),
         lambda i: encode_data_reply("00", i),
-        lambda i: encode_command(cmds.read_frn(), i),
+        lambda i: frame_command(cmds.read_frn(), i),
     ],
 )
 @pytest.mark.parametrize("bad_id", [-1, MAX_ID + 1, 0xFF])
@@ -366,7 +366,7 @@ def test_long_garbage_without_cr_is_dropped_and_the_next_frame_decodes(feeder: F
 
 def test_longest_real_frame_fits() -> None:
     block = cmds.download_block(0xA4, bytes(7) + bytes(8), controller=cmds.ControllerType.SLC150)
-    frame = encode_command(block, 0x7F)
+    frame = frame_command(block, 0x7F)
     assert len(frame) - 1 <= MAX_FRAME
     assert decode_commands(frame) == [CommandFrame(block.code, block.params, 0x7F)]
 
@@ -392,9 +392,9 @@ def test_reply_decoder_ignores_host_frames_leading_character() -> None:
 
 COMMAND_SAMPLES: list[tuple[bytes, HostEvent]] = [
     (b"#010800A3\r", CommandFrame(0x08, b"", 0)),
-    (encode_command(cmds.read_bytes(0x84, 2), 1), CommandFrame(0x02, bytes.fromhex("00020084"), 1)),
-    (encode_command(cmds.write_word(0x40, 1234), 0x7F), CommandFrame(0x03, bytes.fromhex("004004D2"), 0x7F)),
-    (encode_command(cmds.set_mode(cmds.Mode.RUN), 2), CommandFrame(0x03, bytes.fromhex("010180"), 2)),
+    (frame_command(cmds.read_bytes(0x84, 2), 1), CommandFrame(0x02, bytes.fromhex("00020084"), 1)),
+    (frame_command(cmds.write_word(0x40, 1234), 0x7F), CommandFrame(0x03, bytes.fromhex("004004D2"), 0x7F)),
+    (frame_command(cmds.set_mode(cmds.Mode.RUN), 2), CommandFrame(0x03, bytes.fromhex("010180"), 2)),
     (encode_retransmit(9), RetransmitRequest(9)),
 ]
 
@@ -482,7 +482,7 @@ command_strategy = st.builds(
 @settings(max_examples=200)
 @given(command_strategy, ids_strategy, st.integers(min_value=1, max_value=7))
 def test_command_round_trip(command: Command, msg_id: int, chunk: int) -> None:
-    data = encode_command(command, msg_id) + encode_retransmit(msg_id)
+    data = frame_command(command, msg_id) + encode_retransmit(msg_id)
     decoder = CommandDecoder()
     decoded: list[ReplyEvent | HostEvent] = []
     for i in range(0, len(data), chunk):
@@ -592,7 +592,7 @@ def test_every_frame_the_host_sends_is_upper_case_hex(msg_id: int, address: int,
     import re
 
     command = cmds.write_word(address & 0x7E, value) if address != 0x00AA else cmds.write_byte(0xAA, value & 0xFF)
-    frame = encode_command(command, msg_id)
+    frame = frame_command(command, msg_id)
     assert re.fullmatch(rb"#[0-9A-F]+\r", frame), frame
     text = frame[1:-3]
     assert text == b"%02X%02X%s%02X" % (command.byte_count, command.code, command.params.hex().upper().encode(),

@@ -23,12 +23,12 @@ from gateway.protocols.slc_ascii.framing import (
     CommandFrame,
     DataReply,
     encode_ack,
-    encode_command,
     encode_data_reply,
     encode_fault,
     encode_id_mismatch,
     encode_refused,
     encode_retransmit,
+    frame_command,
 )
 from gateway.protocols.slc_ascii.transaction import SessionState, SlcSession, SlcVerdict, next_id
 from gateway.sim.variants import pairwise_cover
@@ -145,7 +145,7 @@ def _barrier(frame: bytes) -> tuple[int, bytes]:
 def test_clean_read_whole_byte_by_byte_and_with_trailing_garbage() -> None:
     for chunks in ("whole", "bytes", "garbage"):
         session = _started()
-        assert session.data_to_send() == encode_command(READ, 5)
+        assert session.data_to_send() == frame_command(READ, 5)
         reply = encode_data_reply("00020040" + "04D2", 5)
         if chunks == "whole":
             session.receive_data(reply, 0.01)
@@ -174,7 +174,7 @@ def test_a_garbled_complete_reply_gets_z_at_once_a_missing_one_after_the_timeout
 
     # nothing at all: the timeout is waited out, then ;Z
     session.start(READ, 1.0)
-    assert session.data_to_send() == encode_command(READ, 6)
+    assert session.data_to_send() == frame_command(READ, 6)
     session.handle_timeout(1.0 + TIMEOUT / 2)
     assert session.data_to_send() == b""
     session.handle_timeout(1.0 + TIMEOUT)
@@ -183,7 +183,7 @@ def test_a_garbled_complete_reply_gets_z_at_once_a_missing_one_after_the_timeout
     session.handle_timeout(1.0 + 2 * TIMEOUT)
     _, answer = _barrier(session.data_to_send())
     session.receive_data(answer, 1.7)
-    assert session.data_to_send() == encode_command(READ, 1)
+    assert session.data_to_send() == frame_command(READ, 1)
     session.receive_data(encode_data_reply("000200400064", 1), 1.71)
     assert session.take_result().verdict is SlcVerdict.DONE
 
@@ -232,7 +232,7 @@ def test_a_write_with_no_answer_is_unknown_never_resent() -> None:
         session.handle_timeout(now)
         sent.append(session.data_to_send())
     assert session.take_result().verdict is SlcVerdict.UNKNOWN
-    assert sent.count(encode_command(WRITE, 5)) == 1
+    assert sent.count(frame_command(WRITE, 5)) == 1
     assert sent[1:] == [encode_retransmit(5)] * 3 + [b""]
 
 
@@ -278,14 +278,14 @@ def test_i_after_power_up_proves_a_single_copy_was_not_executed(reported: int) -
         session.handle_timeout(now)
         # proof; the line is quiet by now, so the resync reads the FRN
         assert session.state is SessionState.RESYNC
-        assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
+        assert session.data_to_send() == frame_command(cmds.read_frn(), 0)
         session.receive_data(encode_data_reply("021FFE1547", 0), now + 0.01)
     else:
         # proof: resync at once with a barrier read (its answer echoes its address)
         assert session.state is SessionState.RESYNC
         _, answer = _barrier(session.data_to_send())
         session.receive_data(answer, 0.03)
-    assert session.data_to_send() == encode_command(WRITE, 1)  # resent under a new ID
+    assert session.data_to_send() == frame_command(WRITE, 1)  # resent under a new ID
     session.receive_data(encode_ack(1), 0.71)
     assert session.take_result().verdict is SlcVerdict.DONE
 
@@ -324,20 +324,20 @@ def test_late_i_after_id_rollover_is_proof_for_a_write() -> None:
     session._last_taken = MAX_ID - 1
     session._era_trusted = True
     session.start(cmds.read_bytes(0x40, 2), 0.0)
-    assert session.data_to_send() == encode_command(cmds.read_bytes(0x40, 2), MAX_ID)
+    assert session.data_to_send() == frame_command(cmds.read_bytes(0x40, 2), MAX_ID)
     session.receive_data(encode_data_reply("000200400064", MAX_ID), 0.01)
     assert session.take_result().verdict is SlcVerdict.DONE
     session.start(WRITE, 0.02)
-    assert session.data_to_send() == encode_command(WRITE, 1)  # 7F rolls over to 01, never 80 or 00
+    assert session.data_to_send() == frame_command(WRITE, 1)  # 7F rolls over to 01, never 80 or 00
     session.handle_timeout(0.02 + TIMEOUT)  # reply lost
     assert session.data_to_send() == encode_retransmit(1)
     session.receive_data(encode_data_reply("000200400064", MAX_ID), 0.4)  # ;Z: an older reply
-    assert session.data_to_send() == encode_command(WRITE, 1)  # resent with the same ID
+    assert session.data_to_send() == frame_command(WRITE, 1)  # resent with the same ID
     session.receive_data(encode_id_mismatch(MAX_ID), 0.41)  # power-cycled, retained ID 7F
     assert session.state is SessionState.PROVING  # no answer with our ID may still come ...
     session.handle_timeout(session.next_deadline() or 0)
     assert session.state is SessionState.RESYNC  # ... proof: ;I<the ID before ours> -> resync, new ID
-    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)  # the line is quiet by now
+    assert session.data_to_send() == frame_command(cmds.read_frn(), 0)  # the line is quiet by now
 
 
 def test_i_00_after_two_copies_is_no_proof() -> None:
@@ -347,7 +347,7 @@ def test_i_00_after_two_copies_is_no_proof() -> None:
     session.handle_timeout(TIMEOUT)
     session.data_to_send()
     session.receive_data(encode_ack(4), 0.35)  # ;Z answered with the previous reply
-    assert session.data_to_send() == encode_command(WRITE, 5)
+    assert session.data_to_send() == frame_command(WRITE, 5)
     session.receive_data(encode_id_mismatch(0), 0.36)
     now = 0.36
     while session.result is None:
@@ -398,7 +398,7 @@ def test_a_read_refused_in_a_numbering_begun_without_quiet_is_asked_again() -> N
     assert session.result is None
     _, answer = _barrier(session.data_to_send())
     session.receive_data(answer, 0.02)
-    assert session.data_to_send() == encode_command(READ, 1)
+    assert session.data_to_send() == frame_command(READ, 1)
     session.receive_data(encode_refused(1), 0.03)
     assert session.take_result().verdict is SlcVerdict.REFUSED
 
@@ -421,11 +421,11 @@ def test_a_write_on_an_unclean_line_resyncs_with_a_barrier_at_once() -> None:
     session.receive_data(encode_data_reply("0200400064", 5), 0.37)  # the late first reply: ignored
     assert session.data_to_send() == b""
     session.receive_data(answer, 0.38)
-    assert session.data_to_send() == encode_command(WRITE, 1)
+    assert session.data_to_send() == frame_command(WRITE, 1)
     session.receive_data(encode_ack(1), 0.39)
     assert session.take_result().verdict is SlcVerdict.DONE
     session.start(WRITE, 0.40)  # one message, answered after the barrier: clean, no resync
-    assert session.data_to_send() == encode_command(WRITE, 2)
+    assert session.data_to_send() == frame_command(WRITE, 2)
 
 
 def test_an_earlier_resyncs_barrier_answer_never_ends_a_resync() -> None:
@@ -436,14 +436,14 @@ def test_an_earlier_resyncs_barrier_answer_never_ends_a_resync() -> None:
     session.receive_data(encode_id_mismatch(9), 0.01)  # a read meeting ;I resyncs
     first, first_answer = _barrier(session.data_to_send())
     session.receive_data(first_answer, 0.02)
-    assert session.data_to_send() == encode_command(READ, 1)
+    assert session.data_to_send() == frame_command(READ, 1)
     session.receive_data(encode_id_mismatch(9), 0.03)  # again
     second, second_answer = _barrier(session.data_to_send())
     assert second != first
     session.receive_data(first_answer, 0.04)  # the line repeats the first barrier's answer
     assert session.state is SessionState.RESYNC and session.data_to_send() == b""
     session.receive_data(second_answer, 0.05)
-    assert session.data_to_send() == encode_command(READ, 1)
+    assert session.data_to_send() == frame_command(READ, 1)
 
 
 def test_a_refused_barrier_read_falls_back_to_read_frn_after_quiet() -> None:
@@ -456,6 +456,6 @@ def test_a_refused_barrier_read_falls_back_to_read_frn_after_quiet() -> None:
     session.receive_data(encode_refused(0), 0.02)
     assert session.state is SessionState.QUIET
     session.handle_timeout(session.next_deadline() or 0)
-    assert session.data_to_send() == encode_command(cmds.read_frn(), 0)
+    assert session.data_to_send() == frame_command(cmds.read_frn(), 0)
     session.receive_data(encode_data_reply("021FFE1547", 0), 0.7)
-    assert session.data_to_send() == encode_command(WRITE, 1)
+    assert session.data_to_send() == frame_command(WRITE, 1)

@@ -118,7 +118,7 @@ class MasterAction(enum.Enum):
 _Table = dict[tuple[LineState, MasterInput], Transition[MasterAction, LineState]]
 
 
-def _build_table() -> _Table:
+def _master_table() -> _Table:
     T, L, In, A = Transition, LineState, MasterInput, MasterAction
     # an action that sends (again) moves on to TRANSMIT, or at once past it when the line is ready
     sent = frozenset({L.TRANSMIT, L.WAIT_ACK, L.WAIT_POLL})
@@ -153,7 +153,7 @@ def _build_table() -> _Table:
 
 
 #: The master's state machine: (state, input) -> (action, next state or the states it may choose).
-TRANSITIONS: Final = _build_table()
+TRANSITIONS: Final = _master_table()
 require_complete(TRANSITIONS, LineState, MasterInput, "half-duplex master")
 
 #: The input that puts the pending bytes on the line, by the state they lead to.

@@ -72,7 +72,7 @@ class TxnCounters:
 
 
 @dataclass(slots=True)
-class _Txn:
+class _HalfDuplexTxn:
     handle: int
     station: int
     request: PcccRequestLike
@@ -93,8 +93,8 @@ class HalfDuplexTransactions:
         self.retries = retries
         self.master: HalfDuplexMaster | None = None
         self._tns = TnsAllocator(first_tns & 0xFFFF)
-        self._txns: dict[int, _Txn] = {}  #: by handle
-        self._by_request: dict[int, _Txn] = {}  #: by the master's request id in flight
+        self._txns: dict[int, _HalfDuplexTxn] = {}  #: by handle
+        self._by_request: dict[int, _HalfDuplexTxn] = {}  #: by the master's request id in flight
         self._events: deque[TransactionEvent | MasterEvent] = deque()
         self._next_handle = 1
         self._counters: dict[int, TxnCounters] = {}
@@ -117,7 +117,7 @@ class HalfDuplexTransactions:
         handle = self._next_handle
         self._next_handle += 1
         verdict = WriteVerdict(request, retries=self.retries, now=now) if write else None
-        txn = _Txn(handle, station, request, verdict)
+        txn = _HalfDuplexTxn(handle, station, request, verdict)
         self._txns[handle] = txn
         self._submit(txn, request, now, read_back=False)
         return handle
@@ -139,7 +139,7 @@ class HalfDuplexTransactions:
 
     # --- internals ------------------------------------------------------------------------------
 
-    def _submit(self, txn: _Txn, request: PcccRequestLike, now: float, *, read_back: bool) -> None:
+    def _submit(self, txn: _HalfDuplexTxn, request: PcccRequestLike, now: float, *, read_back: bool) -> None:
         master = self.master
         assert master is not None
         txn.tns = self._tns.allocate()
@@ -171,7 +171,7 @@ class HalfDuplexTransactions:
                 continue
             self._answered(txn, reply, now)
 
-    def _answered(self, txn: _Txn, reply: PcccReply, now: float) -> None:
+    def _answered(self, txn: _HalfDuplexTxn, reply: PcccReply, now: float) -> None:
         if txn.verdict is None:
             self._settle(txn, TransactionDone(txn.handle, reply) if reply.ok else TransactionRefused(txn.handle, reply))
         elif txn.read_back:
@@ -179,7 +179,7 @@ class HalfDuplexTransactions:
         else:
             self._follow(txn, txn.verdict.reply(reply, now), now)
 
-    def _lost(self, txn: _Txn, why: str, may_have_executed: bool, demoted: bool, now: float) -> None:
+    def _lost(self, txn: _HalfDuplexTxn, why: str, may_have_executed: bool, demoted: bool, now: float) -> None:
         if txn.verdict is None:
             if demoted or txn.tries > self.retries:
                 self._settle(txn, TransactionFailed(txn.handle, f"{why} (after {txn.tries} tries)"))
@@ -191,7 +191,7 @@ class HalfDuplexTransactions:
         else:
             self._follow(txn, txn.verdict.lost(why, now, may_have_executed=may_have_executed), now)
 
-    def _follow(self, txn: _Txn, step: VerdictStep, now: float) -> None:
+    def _follow(self, txn: _HalfDuplexTxn, step: VerdictStep, now: float) -> None:
         match step:
             case None:
                 pass
@@ -209,11 +209,11 @@ class HalfDuplexTransactions:
             case Verdict(reason=reason):
                 self._settle(txn, OutcomeUnknown(txn.handle, reason))
 
-    def _release(self, txn: _Txn) -> None:
+    def _release(self, txn: _HalfDuplexTxn) -> None:
         if self._by_request.pop(txn.request_id, None) is not None:
             self._tns.release(txn.tns)
 
-    def _settle(self, txn: _Txn, event: TransactionEvent) -> None:
+    def _settle(self, txn: _HalfDuplexTxn, event: TransactionEvent) -> None:
         self._txns.pop(txn.handle, None)
         self._events.append(event)
 

@@ -22,12 +22,12 @@ This module does no I/O.  Decoders are fed bytes and hand out events, or ``NEED_
 
 from __future__ import annotations
 
-import enum
 import re
 from collections import deque
 from dataclasses import dataclass
 from typing import Final
 
+from gateway.protocols.need_data import NEED_DATA, NeedData
 from gateway.protocols.slc_ascii.commands import Command
 
 __all__ = [
@@ -49,12 +49,12 @@ __all__ = [
     "RetransmitRequest",
     "crc",
     "encode_ack",
-    "encode_command",
     "encode_data_reply",
     "encode_fault",
     "encode_id_mismatch",
     "encode_refused",
     "encode_retransmit",
+    "frame_command",
 ]
 
 CR: Final = 0x0D
@@ -71,7 +71,7 @@ _HEX_DIGITS: Final = frozenset(b"0123456789ABCDEFabcdef")
 _MASK_BIT_7: Final = bytes(b & 0x7F for b in range(256))
 
 
-def _crc_table() -> tuple[int, ...]:
+def _slc_crc_table() -> tuple[int, ...]:
     """The BASIC loop processes two nibbles per character; precompute it per (checksum ^ char) byte."""
     table = []
     for value in range(256):
@@ -84,7 +84,7 @@ def _crc_table() -> tuple[int, ...]:
     return tuple(table)
 
 
-_CRC_BYTE_TABLE: Final = _crc_table()
+_CRC_BYTE_TABLE: Final = _slc_crc_table()
 
 
 def crc(data: bytes) -> int:
@@ -115,7 +115,7 @@ def _frame(lead: bytes, text: bytes) -> bytes:
     return b"%s%s%02X\r" % (lead, text, crc(text))
 
 
-def encode_command(command: Command, msg_id: int) -> bytes:
+def frame_command(command: Command, msg_id: int) -> bytes:
     """``#<count><code><params><ID><CRC>CR`` for ``command`` with message ``msg_id``."""
     _check_id(msg_id)
     text = b"%02X%02X%s%02X" % (1 + len(command.params), command.code, command.params.hex().upper().encode(), msg_id)
@@ -161,13 +161,8 @@ def encode_id_mismatch(last_valid_id: int) -> bytes:
 # --- events ---------------------------------------------------------------------------------
 
 
-class NeedData(enum.Enum):
-    """The decoder has no complete frame yet; feed it more bytes."""
-
-    NEED_DATA = "NEED_DATA"
 
 
-NEED_DATA: Final = NeedData.NEED_DATA
 
 
 @dataclass(frozen=True, slots=True)

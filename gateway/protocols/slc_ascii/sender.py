@@ -31,7 +31,7 @@ from typing import Final
 
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command
-from gateway.protocols.slc_ascii.framing import MAX_ID, ReplyDecoder, encode_command, encode_retransmit
+from gateway.protocols.slc_ascii.framing import MAX_ID, ReplyDecoder, encode_retransmit, frame_command
 from gateway.protocols.slc_ascii.memory_map import is_readable
 from gateway.protocols.slc_ascii.session_table import SessionState
 from gateway.protocols.slc_ascii.write_proof import Result
@@ -191,7 +191,7 @@ class SlcSender:
         self._copies += 1
         self._z_sent = 0
         self._clean = False
-        self._send(encode_command(self._command, self._msg_id), now, self._timeout)
+        self._send(frame_command(self._command, self._msg_id), now, self._timeout)
         return SessionState.SENT
 
     def _send_z(self, now: float) -> SessionState:
@@ -292,5 +292,5 @@ class SlcSender:
         # the timeout) must not make a silent-line verdict
         last = not self._may_ask_again(now + self._timeout, self._probes, self.retries + 1)
         self._probes_sent.append(self._probe)
-        self._send(encode_command(self._probe, 0), now, self._full_timeout if last else self._timeout)
+        self._send(frame_command(self._probe, 0), now, self._full_timeout if last else self._timeout)
         return SessionState.RESYNC

@@ -79,27 +79,27 @@ _DLE, _STX, _ETX, _ACK = 0x10, 0x02, 0x03, 0x06
 Msg = tuple[str, Callable[[int], Request]]
 
 
-def _words(values: Sequence[int]) -> bytes:
+def _le_words(values: Sequence[int]) -> bytes:
     return b"".join((v & 0xFFFF).to_bytes(2, "little") for v in values)
 
 
-def _counter(cycle: int, n: int) -> list[int]:
+def _counting(cycle: int, n: int) -> list[int]:
     return [(cycle * n + k) & 0x7FFF for k in range(n)]
 
 
 DEMO_SCRIPT: tuple[Msg, ...] = (
     ("SLC typed logical write N7:0-9",
-     lambda c: ProtectedTypedLogicalWrite(FileType.INTEGER, 7, 0, 0, _words(_counter(c, 10)))),
+     lambda c: ProtectedTypedLogicalWrite(FileType.INTEGER, 7, 0, 0, _le_words(_counting(c, 10)))),
     ("SLC typed logical read N7:10-19", lambda c: ProtectedTypedLogicalRead(FileType.INTEGER, 7, 10, 0, 20)),
     ("SLC typed logical write F8:0-3", lambda c: ProtectedTypedLogicalWrite(
         FileType.FLOAT, 8, 0, 0, b"".join(struct.pack("<f", math.sin(c / 10 + k)) for k in range(4)))),
     ("masked write B3:0", lambda c: ProtectedTypedLogicalMaskedWrite(
         FileType.BIT, 3, 0, 0, 0xFFFF, (1 << (c % 16)).to_bytes(2, "little"))),
     ("PLC-5 word range write N7:20-24", lambda c: WordRangeWrite(LogicalBinaryAddress.for_element(7, 20),
-                                                                 _words(_counter(c, 5)))),
+                                                                 _le_words(_counting(c, 5)))),
     ("PLC-5 word range read N7:10-14", lambda c: WordRangeRead(LogicalBinaryAddress.for_element(7, 10), 10)),
     ("PLC-5 typed write N7:30-34", lambda c: TypedWrite(LogicalBinaryAddress.for_element(7, 30), DataType.INTEGER, 2,
-                                                        _words([c & 0x7FFF] * 5))),
+                                                        _le_words([c & 0x7FFF] * 5))),
     ("PLC-5 typed read N7:30-34", lambda c: TypedRead(LogicalBinaryAddress.for_element(7, 30), 5)),
     ("diagnostic status", lambda c: DiagnosticStatus()),
     ("echo", lambda c: Echo(b"slc-gateway %d" % c)),

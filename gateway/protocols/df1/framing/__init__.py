@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from typing import Final
 
 from gateway.protocols.df1.checks import bcc, crc16
+from gateway.protocols.need_data import NEED_DATA, NeedData
 
 __all__ = [
     "ACK_SYMBOL",
@@ -90,16 +91,8 @@ class Checksum(enum.Enum):
         return 1 if self is Checksum.BCC else 2
 
 
-class NeedData(enum.Enum):
-    """Sentinel type: a sans-I/O core needs more input before it can report anything."""
-
-    NEED_DATA = "NEED_DATA"
-
-    def __repr__(self) -> str:
-        return "NEED_DATA"
 
 
-NEED_DATA: Final = NeedData.NEED_DATA
 
 ACK_SYMBOL: Final = bytes((Symbol.DLE, Symbol.ACK))
 NAK_SYMBOL: Final = bytes((Symbol.DLE, Symbol.NAK))

@@ -31,7 +31,7 @@ from gateway.protocols.df1.pccc.codec import (
 )
 from gateway.protocols.df1.pccc.codes import (
     REPLY_BIT,
-    Command,
+    CmdByte,
     DiagnosticFunction,
     Function,
 )
@@ -84,7 +84,7 @@ from gateway.protocols.df1.pccc.status import (
 __all__ = [
     "REPLY_BIT",
     "WRITE_REQUESTS",
-    "Command",
+    "CmdByte",
     "DataType",
     "DiagnosticFunction",
     "DiagnosticStatus",

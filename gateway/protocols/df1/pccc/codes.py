@@ -10,13 +10,13 @@ from __future__ import annotations
 import enum
 from typing import Final
 
-__all__ = ["REPLY_BIT", "Command", "DiagnosticFunction", "Function"]
+__all__ = ["REPLY_BIT", "CmdByte", "DiagnosticFunction", "Function"]
 
 #: CMD bit 6: 0 in a command, 1 in a reply (S4516-DF1 manual §2.2, Appendix B block 1).
 REPLY_BIT: Final = 0x40
 
 
-class Command(enum.IntEnum):
+class CmdByte(enum.IntEnum):
     """CMD byte (notes §4.0 command table)."""
 
     DIAGNOSTIC = 0x06

@@ -26,7 +26,7 @@ from typing import Any, ClassVar, Final
 
 from gateway.errors import InvalidRequest
 from gateway.protocols.df1.pccc.codec import LogicalBinaryAddress, PcccFormatError, Reader, check_range
-from gateway.protocols.df1.pccc.codes import Command, Function
+from gateway.protocols.df1.pccc.codes import CmdByte, Function
 from gateway.protocols.df1.pccc.limits import PLC5_WORD_RANGE
 from gateway.protocols.df1.pccc.params import Byte, Bytes, Decoded, LogicalAddress, Parameters, Wire, Word
 from gateway.protocols.df1.plc5_address import AddressError, decode_logical_ascii, decode_logical_binary
@@ -185,7 +185,7 @@ class WordRangeRead(Parameters):
     ``packet_offset`` and ``total`` are in words (elements), ``size`` in bytes.
     """
 
-    CMD: ClassVar[int] = Command.EXTENDED
+    CMD: ClassVar[int] = CmdByte.EXTENDED
     FNC: ClassVar[int] = Function.WORD_RANGE_READ
     PARAMS: ClassVar[tuple[Wire, ...]] = (*PLC5_HEAD, Byte("size", "byte size", 1, PLC5_WORD_RANGE.max_read_bytes))
 
@@ -208,7 +208,7 @@ class WordRangeRead(Parameters):
 class WordRangeWrite(Parameters):
     """PLC-5 word range write (CMD 0F, FNC 00; S4516-DF1 manual §2.6.1); even data bytes."""
 
-    CMD: ClassVar[int] = Command.EXTENDED
+    CMD: ClassVar[int] = CmdByte.EXTENDED
     FNC: ClassVar[int] = Function.WORD_RANGE_WRITE
     PARAMS: ClassVar[tuple[Wire, ...]] = (*PLC5_HEAD, Bytes("data", "write data"))
 
@@ -235,7 +235,7 @@ class WordRangeWrite(Parameters):
 class TypedRead(Parameters):
     """Typed read (CMD 0F, FNC 68; notes §7.4): ``count`` elements, logical binary address."""
 
-    CMD: ClassVar[int] = Command.EXTENDED
+    CMD: ClassVar[int] = CmdByte.EXTENDED
     FNC: ClassVar[int] = Function.TYPED_READ
     PARAMS: ClassVar[tuple[Wire, ...]] = (*PLC5_HEAD, Word("count", "element count", 1))
 
@@ -278,7 +278,7 @@ class _TypedBody:
 class TypedWrite(Parameters):
     """Typed write (CMD 0F, FNC 67; notes §7.4): type/data parameter then the data."""
 
-    CMD: ClassVar[int] = Command.EXTENDED
+    CMD: ClassVar[int] = CmdByte.EXTENDED
     FNC: ClassVar[int] = Function.TYPED_WRITE
     PARAMS: ClassVar[tuple[Wire, ...]] = (*PLC5_HEAD, _TypedBody())
 
@@ -339,7 +339,7 @@ class ReadModifyWriteRequest(Parameters):
     write of a PLC-5 (no read-then-write race with the ladder).  Addresses must point to a word.
     """
 
-    CMD: ClassVar[int] = Command.EXTENDED
+    CMD: ClassVar[int] = CmdByte.EXTENDED
     FNC: ClassVar[int] = Function.READ_MODIFY_WRITE
     PARAMS: ClassVar[tuple[Wire, ...]] = (_MaskSets("sets"),)
 

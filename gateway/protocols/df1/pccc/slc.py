@@ -24,7 +24,7 @@ from typing import Any, ClassVar, Final
 
 from gateway.protocols.df1.address import FileType, SlcAddress
 from gateway.protocols.df1.pccc.codec import LogicalBinaryAddress, PcccFormatError, Reader, check_range
-from gateway.protocols.df1.pccc.codes import Command, DiagnosticFunction, Function
+from gateway.protocols.df1.pccc.codes import CmdByte, DiagnosticFunction, Function
 from gateway.protocols.df1.pccc.limits import PLC5_TYPED_LOGICAL, SLC_MODULAR, SLC_SMALL, SizeLimits
 from gateway.protocols.df1.pccc.params import (
     AddressField,
@@ -142,7 +142,7 @@ class _ThreeFieldAddress(_TwoFieldAddress):
 class ProtectedTypedLogicalRead(_ThreeFieldAddress):
     """SLC 500 protected typed logical read with three address fields (CMD 0F, FNC A2; 1770-6.5.16 p. 7-17)."""
 
-    CMD: ClassVar[int] = Command.EXTENDED
+    CMD: ClassVar[int] = CmdByte.EXTENDED
     FNC: ClassVar[int] = Function.PROTECTED_TYPED_LOGICAL_READ
     PARAMS: ClassVar[tuple[Wire, ...]] = (_READ_SIZE, *THREE_ADDRESS_FIELDS)
 
@@ -153,7 +153,7 @@ class ProtectedTypedLogicalRead(_ThreeFieldAddress):
 class ProtectedTypedLogicalWrite(_ThreeFieldAddress):
     """SLC 500 protected typed logical write with three address fields (CMD 0F, FNC AA; 1770-6.5.16 p. 7-18)."""
 
-    CMD: ClassVar[int] = Command.EXTENDED
+    CMD: ClassVar[int] = CmdByte.EXTENDED
     FNC: ClassVar[int] = Function.PROTECTED_TYPED_LOGICAL_WRITE
     PARAMS: ClassVar[tuple[Wire, ...]] = (_WRITE_SIZE, *THREE_ADDRESS_FIELDS, _WRITE_DATA)
 
@@ -168,7 +168,7 @@ class ProtectedTypedLogicalMaskedWrite(_ThreeFieldAddress):
     may be 0 (notes §4.36).
     """
 
-    CMD: ClassVar[int] = Command.EXTENDED
+    CMD: ClassVar[int] = CmdByte.EXTENDED
     FNC: ClassVar[int] = Function.PROTECTED_TYPED_LOGICAL_MASKED_WRITE
     PARAMS: ClassVar[tuple[Wire, ...]] = (
         SizeOf("data", "byte size"), *THREE_ADDRESS_FIELDS, Word("mask", "bit mask"), _WRITE_DATA
@@ -186,7 +186,7 @@ class ProtectedTypedLogicalTwoFieldRead(_TwoFieldAddress):
     Address Fields"; 1770-6.5.16 ch. 7 beside the three-field form of p. 7-17).
     """
 
-    CMD: ClassVar[int] = Command.EXTENDED
+    CMD: ClassVar[int] = CmdByte.EXTENDED
     FNC: ClassVar[int] = Function.PROTECTED_TYPED_LOGICAL_READ_TWO_FIELDS
     PARAMS: ClassVar[tuple[Wire, ...]] = (_READ_SIZE, *TWO_ADDRESS_FIELDS)
 
@@ -197,7 +197,7 @@ class ProtectedTypedLogicalTwoFieldRead(_TwoFieldAddress):
 class ProtectedTypedLogicalTwoFieldWrite(_TwoFieldAddress):
     """Protected typed logical write with two address fields (CMD 0F, FNC A9; 1756-PM020F p. 92)."""
 
-    CMD: ClassVar[int] = Command.EXTENDED
+    CMD: ClassVar[int] = CmdByte.EXTENDED
     FNC: ClassVar[int] = Function.PROTECTED_TYPED_LOGICAL_WRITE_TWO_FIELDS
     PARAMS: ClassVar[tuple[Wire, ...]] = (_WRITE_SIZE, *TWO_ADDRESS_FIELDS, _WRITE_DATA)
 
@@ -228,7 +228,7 @@ class _DataTableFile:
 class ReadFileInfo(Parameters):
     """SLC 5/03, 5/04 read file info (CMD 0F, FNC 94; notes §7.5): ``94 06 80 <file>``."""
 
-    CMD: ClassVar[int] = Command.EXTENDED
+    CMD: ClassVar[int] = CmdByte.EXTENDED
     FNC: ClassVar[int] = Function.READ_FILE_INFO
     PARAMS: ClassVar[tuple[Wire, ...]] = (_DataTableFile("file_number"),)
 
@@ -239,7 +239,7 @@ class ReadFileInfo(Parameters):
 class SetProcessorMode(Parameters):
     """SLC set processor mode (CMD 0F, FNC 80; notes §7.6); keyswitch must be in REM."""
 
-    CMD: ClassVar[int] = Command.EXTENDED
+    CMD: ClassVar[int] = CmdByte.EXTENDED
     FNC: ClassVar[int] = Function.SET_PROCESSOR_MODE
     PARAMS: ClassVar[tuple[Wire, ...]] = (Byte("mode", "mode"),)
 
@@ -250,7 +250,7 @@ class SetProcessorMode(Parameters):
 class DiagnosticStatus(Parameters):
     """Diagnostic status (CMD 06, FNC 03): identify the host processor."""
 
-    CMD: ClassVar[int] = Command.DIAGNOSTIC
+    CMD: ClassVar[int] = CmdByte.DIAGNOSTIC
     FNC: ClassVar[int] = DiagnosticFunction.DIAGNOSTIC_STATUS
     PARAMS: ClassVar[tuple[Wire, ...]] = ()
 
@@ -263,7 +263,7 @@ class Echo(Parameters):
     "echo data sent, debug", PLC-5 and SLC).
     """
 
-    CMD: ClassVar[int] = Command.DIAGNOSTIC
+    CMD: ClassVar[int] = CmdByte.DIAGNOSTIC
     FNC: ClassVar[int] = DiagnosticFunction.ECHO
     MAX_BYTES: ClassVar[int] = 243
     PARAMS: ClassVar[tuple[Wire, ...]] = (Bytes("data", "echo data", MAX_BYTES),)

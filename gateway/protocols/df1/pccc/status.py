@@ -14,7 +14,7 @@ import enum
 from typing import Final
 
 from gateway.errors import ControllerRefused
-from gateway.protocols.df1.pccc.codes import REPLY_BIT, Command, Function
+from gateway.protocols.df1.pccc.codes import REPLY_BIT, CmdByte, Function
 
 __all__ = ["OWNER_EXT_STS", "PcccError", "Sts", "describe_status"]
 
@@ -86,13 +86,13 @@ _EXT_STS_0F: Final = {
     0x0B: "Access denied, improper privilege",
     0x0C: "Condition cannot be generated - resource is not available",
     0x0D: "Condition already exists - resource is already available",
-    0x0E: "Command cannot be executed",
+    0x0E: "CmdByte cannot be executed",
     0x0F: "Histogram overflow",
     0x10: "No access",
     0x11: "Illegal data type",
     0x12: "Invalid parameter or invalid data",
     0x13: "Address reference exists to deleted area",
-    0x14: "Command execution failure for unknown reason; possible PLC-3 histogram overflow",
+    0x14: "CmdByte execution failure for unknown reason; possible PLC-3 histogram overflow",
     0x15: "Data conversion error",
     0x16: "Scanner not able to communicate with 1771 rack adapter",
     0x17: "Adapter cannot communicate with module",
@@ -138,7 +138,7 @@ _EXT_STS_0E: Final = {
     0x7D: "No PLC-4 response",
     0x7F: "Invalid PLC-4 selected byte",
 }
-#: Command-specific wording from the SLC notes (§7.5 read file info, §7.6 set processor mode).
+#: CmdByte-specific wording from the SLC notes (§7.5 read file info, §7.6 set processor mode).
 _SPECIFIC: Final[dict[tuple[int, int, int | None], str]] = {
     (Function.READ_FILE_INFO, 0x50, None): "Bad address; file doesn't exist",
     (Function.READ_FILE_INFO, 0xF0, 0x1B): "File protection error",
@@ -150,7 +150,7 @@ OWNER_EXT_STS: Final = frozenset({0x1A, 0x1B})
 
 
 def describe_status(
-    sts: int, ext_sts: int | None = None, *, cmd: int = Command.EXTENDED, fnc: int | None = None
+    sts: int, ext_sts: int | None = None, *, cmd: int = CmdByte.EXTENDED, fnc: int | None = None
 ) -> str:
     """The manual's description of ``STS`` (and ``EXT STS``), e.g. for error messages."""
     if fnc is not None and (fnc, sts, ext_sts) in _SPECIFIC:
