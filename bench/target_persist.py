@@ -51,14 +51,10 @@ from _benchlib import DF1_CHAR_TIME, HOST, PYTHON, REPO, df1_frames, print_machi
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from gateway.protocols.df1.address import FileType
+from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalWrite
 from gateway.protocols.df1.transaction import Df1Transactions, TransactionDone
-
-try:  # the full-duplex data-link core: datalink.Df1DataLink, or link.Df1Link in a tree without datalink.py
-    from gateway.protocols.df1.datalink import Df1DataLink
-except ImportError:
-    from gateway.protocols.df1.link import Df1Link as Df1DataLink  # type: ignore[no-redef]
 
 GATEWAY_NODE, PLC_NODE = 1, 0
 FILE, ELEMENTS = 7, 100
