@@ -23,6 +23,7 @@ SCRIPTS = [
     "write_fairness.py",
     "cpu_per_transaction.py",
     "availability.py",
+    "target_persist.py",
 ]
 
 
