@@ -23,6 +23,7 @@ SCRIPTS = [
     "write_fairness.py",
     "cpu_per_transaction.py",
     "availability.py",
+    "slc_write_verdicts.py",
 ]
 
 
