@@ -150,9 +150,9 @@ def test_after_an_unknown_or_failed_outcome_the_next_command_begins_with_a_resyn
 
 def test_after_a_transaction_of_several_messages_a_write_goes_out_after_a_barrier() -> None:
     """A transaction that sent more than one message may still have replies on the way when it
-    ends, and a ``;I`` among them would answer the next write's first copy, which the core may
-    take as proof that the write did not run.  So the next write's first copy goes out only after
-    a barrier (a resync whose answer no earlier reply can follow) or quiet (``late_bound``)."""
+    ends, and they would meet the next write's copies (a stray ``;I`` proves nothing, but costs
+    the write a copy or a ``;Z``).  So the next write's first copy goes out only after a barrier
+    (a resync whose answer no earlier reply can follow) or quiet (``late_bound``)."""
     wire = in_step()
     wire.session.start(READ, wire.now)
     wire.controller(wire.out())  # the reply is lost
