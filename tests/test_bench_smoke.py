@@ -24,6 +24,7 @@ SCRIPTS = [
     "cpu_per_transaction.py",
     "availability.py",
     "target_persist.py",
+    "slc_write_verdicts.py",
 ]
 
 

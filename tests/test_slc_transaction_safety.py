@@ -150,9 +150,9 @@ def test_after_an_unknown_or_failed_outcome_the_next_command_begins_with_a_resyn
 
 def test_after_a_transaction_of_several_messages_a_write_goes_out_after_a_barrier() -> None:
     """A transaction that sent more than one message may still have replies on the way when it
-    ends, and a ``;I`` among them would answer the next write's first copy, which the core may
-    take as proof that the write did not run.  So the next write's first copy goes out only after
-    a barrier (a resync whose answer no earlier reply can follow) or quiet (``late_bound``)."""
+    ends, and they would meet the next write's copies (a stray ``;I`` proves nothing, but costs
+    the write a copy or a ``;Z``).  So the next write's first copy goes out only after a barrier
+    (a resync whose answer no earlier reply can follow) or quiet (``late_bound``)."""
     wire = in_step()
     wire.session.start(READ, wire.now)
     wire.controller(wire.out())  # the reply is lost
@@ -254,3 +254,90 @@ def test_a_line_that_repeats_frames_both_ways_never_makes_a_write_run_twice() ->
     wire.exchange()
     assert wire.applied(21) == 1
     assert wire.applied(22) == 1, f"write applied {wire.applied(22)} times"
+
+
+def _write_meets_the_stray_i_of_a_repeated_read(wire: Wire, value: int) -> tuple[list[bytes], bytes]:
+    """The line repeats a read: the controller answers it and refuses the copy with ``;I`` and the
+    read's ID.  A write follows; its first copy runs and its ``;R`` is lost, and the read's stray
+    ``;I`` arrives.  Returns the write's frames (the core sends them again at once: a second copy
+    with the same ID) and the stray ``;I``."""
+    session = wire.session
+    session.start(READ, wire.now)
+    answer, stray = wire.controller(wire.out() * 2)
+    assert stray.startswith(b";I"), stray
+    wire.deliver([answer])
+    assert session.take_result().verdict is SlcVerdict.DONE
+    session.start(cmds.write_word(0x40, value), wire.now)
+    first = wire.out()
+    assert len(first) == 1 and first[0].startswith(b"#0503"), first
+    assert [r[:2] for r in wire.controller(first)] == [b";R"]  # the write runs; its ack is lost
+    assert wire.applied(value) == 1
+    wire.deliver([stray])
+    second = wire.out()
+    assert second == first, "a copy with another ID than the first"
+    return second, stray
+
+
+@pytest.mark.parametrize("before_second_copy", ["lost", "power cycle"])
+def test_a_repeated_stray_i_is_no_proof_that_a_write_did_not_run(before_second_copy: str) -> None:
+    """The hypothesis state machine's counterexample, step by step: every reply is at risk and the
+    line repeats frames both ways.  The write's first copy runs, its ``;R`` is lost; the stray
+    ``;I`` of a repeated read makes the core send a second copy with the write's ID, which the line
+    loses (after a power cycle, or alone); then the line's repeat of the stray ``;I`` comes.  No
+    answer with the write's ID follows (the ``;R`` is gone), so waiting for one proves nothing: a
+    ``;I`` with another ID can always be a stale or repeated reply.  Taken for proof, the write
+    goes again under a new ID and runs twice."""
+    wire = in_step()
+    _, stray = _write_meets_the_stray_i_of_a_repeated_read(wire, 31)
+    if before_second_copy == "power cycle":
+        wire.sim.power_cycle()
+    wire.deliver([stray])  # the line's repeat of the stray ;I
+    wire.exchange()  # a perfect line from here on
+    assert wire.applied(31) == 1, f"write applied {wire.applied(31)} times"
+    result = wire.session.take_result()
+    if before_second_copy == "power cycle":
+        # the controller no longer has the ack to repeat: nothing can prove either way
+        assert result.verdict is SlcVerdict.UNKNOWN, result
+    else:
+        assert result.verdict is SlcVerdict.DONE, result  # ;Z fetches the ack
+    writes = [i for i, (_, _, code) in enumerate(wire.sent) if code == cmds.CommandCode.WRITE]
+    assert len({wire.sent[i][1] for i in writes}) == 1, f"the write went under two IDs: {wire.sent}"
+
+
+def test_a_write_that_ran_is_never_answered_failed() -> None:
+    """The second counterexample: as above, and the second copy reaches the power-cycled controller
+    (refused, ``;I00``, lost); from the repeat of the stray ``;I`` on, every reply is lost.  The
+    write ran: FAILED (or REFUSED) would tell SCADA it did not.  UNKNOWN is the only true verdict."""
+    wire = in_step()
+    second, stray = _write_meets_the_stray_i_of_a_repeated_read(wire, 32)
+    wire.sim.power_cycle()
+    assert [r[:4] for r in wire.controller(second)] == [b";I00"]  # lost
+    wire.deliver([stray])
+    session = wire.session
+    while session.result is None:  # the controller hears everything, every reply is lost
+        frames = wire.out()
+        if frames:
+            wire.controller(frames)
+        else:
+            wire.wait()
+    result = session.take_result()
+    assert wire.applied(32) == 1
+    assert result.verdict is SlcVerdict.UNKNOWN, result
+
+
+@pytest.mark.parametrize("power_up_id", ["zero", "retained"])
+def test_i_to_the_lines_repeat_of_a_write_that_ran_is_no_proof(power_up_id: str) -> None:
+    """The line repeats the write's only copy, and the controller power-cycles between the two: the
+    first runs (its ``;R`` is lost), the repeat is refused with ``;I00`` (zero reading) or ``;I``
+    with the write's own ID (retained).  One copy sent, one ``;I`` with another ID back: the same
+    bytes as a controller power-cycled before the write, which never ran.  Not proof either."""
+    wire = in_step(power_up_id=power_up_id)
+    session = wire.session
+    session.start(cmds.write_word(0x42, 41), wire.now)
+    frames = wire.out()
+    assert [r[:2] for r in wire.controller(frames)] == [b";R"]  # runs; the ack is lost
+    wire.sim.power_cycle()
+    wire.deliver(wire.controller(frames))  # the line's repeat of the copy: refused
+    wire.exchange()
+    assert wire.applied(41) == 1, f"write applied {wire.applied(41)} times"
+    assert session.take_result().verdict is SlcVerdict.UNKNOWN

@@ -5,8 +5,9 @@ against the simulator (:class:`SlcAsciiSimulator`, sans-I/O) under any combinati
 (every reading of the manual it has), through :class:`ModelLine`, a fake line with a fake clock.
 The fault script is long and dense, and it never runs out: hundreds of reply fates (delivered,
 dropped, garbled, truncated, late, delivered twice), fates for the frames we send (lost, delivered
-twice: a line that repeats a frame), and power cycles, all repeated for as long as the machine
-runs, so a transaction never gets the perfect line a short burst of faults ends in.
+twice: a line that repeats a frame), and power cycles (before any frame we send, ``;Z`` too, and
+between a frame and the line's repeat of it), all repeated for as long as the machine runs, so a
+transaction never gets the perfect line a short burst of faults ends in.
 
 After every step, whatever the line did:
 
@@ -15,9 +16,10 @@ After every step, whatever the line did:
 * a write answered UNKNOWN was applied at most once;
 * a read answered DONE returns a value the controller held at that address (its initial value or
   one a write applied);
-* a write goes out only in an ID numbering whose ID 00 resync was sent on a quiet line (no reply
-  to an earlier message could still come: ``late_bound`` after the message before it), the rule
-  that makes its ``;I`` a proof;
+* a write goes out only in an ID numbering begun with a barrier: an ID 00 resync sent on a quiet
+  line (no reply to an earlier message could still come: ``late_bound`` after the message before
+  it), or reads no earlier message's answer looks like; so no reply from before carries the
+  write's ID, the only replies its verdict rests on;
 * after a transaction ends UNKNOWN or FAILED the next one begins with an ID 00 resync: the
   controller's ID state is not known.
 
@@ -89,14 +91,16 @@ class ModelLine:
             if not frame:
                 continue
             frame += b"\r"
-            if frame.startswith(b"#") and next(self.power_cycles):
-                self.sim.power_cycle()
             fate = next(self.command_fates)
-            if fate == "lost":
-                continue
-            for _ in range(2 if fate == "twice" else 1):
-                for out in self.sim.receive(frame, self.now):
-                    self._reply(out.data, self.now + 0.001 + out.delay)
+            deliveries = {"lost": 0, "twice": 2}.get(fate, 1)
+            # the controller may power-cycle before any frame, ;Z included, and between a frame and
+            # the line's repeat of it
+            for _ in range(max(1, deliveries)):
+                if next(self.power_cycles):
+                    self.sim.power_cycle()
+                if deliveries:
+                    for out in self.sim.receive(frame, self.now):
+                        self._reply(out.data, self.now + 0.001 + out.delay)
 
     def _reply(self, reply: bytes, arrival: float) -> None:
         fate = next(self.reply_fates)

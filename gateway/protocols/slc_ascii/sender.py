@@ -14,9 +14,11 @@ Rules:
   asked for within the quiet time (its answer echoes the address).  The controller answers in
   order and the line keeps it, so that answer is a barrier: no reply of an earlier message
   follows it, and a reply with the same ID from before is never taken for an answer.  A write
-  on a line where an earlier reply may still come (not *clean*) resyncs first.  Only when the
-  controller refuses reads (program mode) does the resync wait for quiet (``late_bound``, 1.5 x
-  the reply time, or more when replies were seen coming later) and read the FRN instead.
+  on a line where an earlier reply may still come (not *clean*) resyncs first, so that the
+  replies it meets are answers to its own copies (a stray one proves nothing, but costs it a
+  copy or a ``;Z``).  Only when the controller refuses reads (program mode) does the resync wait
+  for quiet (``late_bound``, 1.5 x the reply time, or more when replies were seen coming later)
+  and read the FRN instead.
 * **Timeouts adapt.**  The reply timeout is 2 x the slowest of the last 32 first replies (at
   least ``min_timeout``, at most the configured one); the waits that decide a verdict (the last
   resync read, a write's last ``;Z``) keep the configured time.  A frame whose next character
@@ -110,7 +112,7 @@ class SlcSender:
         self._next = 0  # ID of the next command; 0: resync first
         self._handshake_due = True  # the next resync is the first after connecting
         self._last_sent = float("-inf")
-        #: no reply of a command copy sent earlier can still come (a write's ;I proof needs it)
+        #: no reply of a command copy sent earlier can still come (a write begins only then)
         self._clean = True
         self._deadline: float | None = None
         # the transaction
@@ -127,8 +129,6 @@ class SlcSender:
         self._is_write = False
         self._timeout = timeout
         self._msg_id = 0
-        self._prev_id = 0
-        self._last_taken = 0
         self._copies = 0
         self._z_sent = 0
         self._z_ever = False
@@ -136,12 +136,10 @@ class SlcSender:
         self._resyncs = 0
         self._probes = 0
         self._messages = 0
-        self._began_clean = True
         self._heard = False
         self._refused_once = False
         self._copy_sent = 0.0
         self._began = 0.0
-        self._why = ""
         self._full_timeout = timeout
         self._until: float | None = None
 
@@ -179,11 +177,9 @@ class SlcSender:
         self._deadline = now + timeout
 
     def _send_first_copy(self, now: float) -> SessionState:
-        self._prev_id = self._last_taken
-        self._msg_id = self._last_taken = self._next
+        self._msg_id = self._next
         self._next = next_id(self._next)
         self._copies = 0
-        self._began_clean = self._clean
         return self._send_copy(now)
 
     def _send_copy(self, now: float) -> SessionState:

@@ -38,7 +38,6 @@ class SessionState(enum.Enum):
     RESYNC = "resync"  # the ID 00 probe sent, waiting for its answer
     SENT = "sent"  # a copy of the command sent
     Z_SENT = "z_sent"  # ;Z sent, waiting for the controller's last reply
-    PROVING = "proving"  # a write's proof of non-execution in, waiting until no reply to our copies can come
 
 
 class SessionInput(enum.Enum):
@@ -63,11 +62,11 @@ class SessionAction(enum.Enum):
     BEGIN = "resync first, or send the first copy of the command"
     ANSWER = "DONE with the answer"
     LATE_READ_ANSWER = "DONE with a read's answer held back on the line; the next transaction resyncs"
-    REFUSED = "a ;E with our ID: REFUSED, or asked again to confirm it, or after ;Z UNKNOWN / asked again"
+    REFUSED = ("a ;E with our ID: REFUSED, or a read asks again to confirm it; after ;Z (or to a write's later copy) "
+               "a write is UNKNOWN, a read asks again")
     RESEND = "after ;Z the controller answers an older message: resend the command with the same ID"
     ID_OURS = "an earlier copy was accepted: ;Z fetches its answer"
-    ID_OTHER = "a ;I with another ID: proof of non-execution, a second copy, or ;Z"
-    PROVED = "no answer to our copies came while one still could: resync, and a new ID"
+    ID_OTHER = "a ;I with another ID: a read resyncs; a write sends a second copy with its ID, or ;Z, or ends UNKNOWN"
     GARBLED = "ask for the reply again with ;Z at once, or give up"
     TIMEOUT = "ask for the reply with ;Z, or give up"
     Z_TIMEOUT = "silence after ;Z: a read resyncs and asks again, a write asks again or gives up"
@@ -110,14 +109,14 @@ def _states(*states: SessionState) -> frozenset[SessionState]:
 _ENDS: Final = _states(SessionState.IDLE)
 #: a resync: the ID 00 probe goes out, or the session waits for quiet before it
 _RESYNCS: Final = _states(SessionState.RESYNC, SessionState.QUIET)
-#: a verdict, or a resync to ask again (a read, or a write proved not executed)
+#: a verdict, or a resync to ask again (a read; a write only before its first copy)
 _ENDS_OR_RESYNCS: Final = _ENDS | _RESYNCS
 #: ;Z, a verdict or a resync
 _Z_ENDS_OR_RESYNCS: Final = _ENDS_OR_RESYNCS | _states(SessionState.Z_SENT)
 #: a copy of the command, a verdict or a resync
 _COPY_ENDS_OR_RESYNCS: Final = _ENDS_OR_RESYNCS | _states(SessionState.SENT)
-#: anything a ;I with another ID may call for: a second copy, the wait for proof, ;Z, a verdict, a resync
-_AFTER_ID_OTHER: Final = _Z_ENDS_OR_RESYNCS | _states(SessionState.SENT, SessionState.PROVING)
+#: anything a ;I with another ID may call for: a write's second copy or ;Z, a verdict, a read's resync
+_AFTER_ID_OTHER: Final = _Z_ENDS_OR_RESYNCS | _states(SessionState.SENT)
 
 
 def _entry(action: SessionAction, next_states: frozenset[SessionState]) -> SessionTransition:
@@ -195,17 +194,4 @@ TRANSITIONS: Final[Mapping[tuple[SessionState, SessionInput], SessionTransition]
     (SessionState.Z_SENT, SessionInput.PROBE_ANSWER): _NEVER,
     (SessionState.Z_SENT, SessionInput.PROBE_REFUSED): _NEVER,
     (SessionState.Z_SENT, SessionInput.STALE): _NEVER,
-    # A write's proof is in; waiting until no answer to our copies can still come.
-    (SessionState.PROVING, SessionInput.OURS): _entry(SessionAction.ANSWER, _ENDS),
-    (SessionState.PROVING, SessionInput.OURS_REFUSED): _entry(SessionAction.REFUSED, _ENDS_OR_RESYNCS),
-    # another stray reply of the repeated message
-    (SessionState.PROVING, SessionInput.OTHER): _stay(SessionState.PROVING),
-    (SessionState.PROVING, SessionInput.ID_OURS): _entry(SessionAction.ID_OURS, _Z_ENDS_OR_RESYNCS),
-    (SessionState.PROVING, SessionInput.ID_OTHER): _stay(SessionState.PROVING),  # as OTHER
-    (SessionState.PROVING, SessionInput.GARBLED): _entry(SessionAction.GARBLED, _Z_ENDS_OR_RESYNCS),
-    (SessionState.PROVING, SessionInput.TIMEOUT): _entry(SessionAction.PROVED, _ENDS_OR_RESYNCS),
-    (SessionState.PROVING, SessionInput.START): _NEVER,
-    (SessionState.PROVING, SessionInput.PROBE_ANSWER): _NEVER,
-    (SessionState.PROVING, SessionInput.PROBE_REFUSED): _NEVER,
-    (SessionState.PROVING, SessionInput.STALE): _NEVER,
 })

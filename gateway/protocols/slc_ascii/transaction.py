@@ -1,4 +1,4 @@
-"""SLC 100/150 transaction core, sans-I/O: ``;Z``, ``;I``, resend after proof, ID 00 resync, verdicts.
+"""SLC 100/150 transaction core, sans-I/O: ``;Z``, ``;I``, copies with the same ID, ID 00 resync, verdicts.
 
 Manual: "SLC Programmable Controller Communications Protocol", *Format of Transmission* ([ID],
 ``;I``, ``;Z``, ``;E``, ``;T``).  The caller owns the port and the clock::
@@ -35,8 +35,9 @@ its own:
 
 * **Reads never fail for want of proof.**  A read that meets ``;I``, runs out of ``;Z`` retries
   or gets a ``;E`` that may answer a ``;Z`` resyncs and asks again (``max_resyncs`` times).
-* **Writes are resent under a new ID only after proof of non-execution** (:mod:`write_proof`).
-  Without proof, after the retries, the verdict is ``UNKNOWN``: applied at most once.
+* **A write goes under one ID only** (:mod:`write_proof`): copies with its ID and ``;Z`` until a
+  reply with its ID settles it, else ``UNKNOWN`` (applied at most once).  Only a write none of
+  whose copies went out resyncs again (and may end ``FAILED``).
 * **``;Z`` at once after a complete reply that fails its check**; the timeout is waited out
   only when nothing came.
 """
@@ -226,7 +227,8 @@ class SlcSession(SlcSender):
         return SessionState.IDLE
 
     def _retry_read(self, now: float, why: str) -> SessionState:
-        """A read (or a write proved not executed): resync with ID 00 and ask again."""
+        """A read, or a write none of whose copies went out: resync with ID 00 and ask again."""
+        assert not (self._is_write and self._copies), "a write whose copy went out never goes under a new ID"
         if not self._may_ask_again(now, self._resyncs, self.max_resyncs):
             return self._finish(SlcVerdict.FAILED, reason=f"{why}; gave up after {self._resyncs} resyncs")
         return self._begin_resync(now)
@@ -263,14 +265,15 @@ class SlcSession(SlcSender):
 
     def _on_refused(self, now: float, event: ReplyEvent | None) -> SessionState:
         step = judge_refusal(is_write=self._is_write, era_trusted=self._era_trusted,
-                             refused_once=self._refused_once, z_sent=self._z_ever)
+                             refused_once=self._refused_once, z_sent=self._z_ever, copies=self._copies)
         if step is RefusalStep.CONFIRM:
             self._refused_once = True
             return self._retry_read(now, ";E to be confirmed")
         if step is RefusalStep.REFUSED:
             return self._finish(SlcVerdict.REFUSED, reason="illegal command or parameters for the current mode")
         if step is RefusalStep.UNKNOWN:
-            return self._finish(SlcVerdict.UNKNOWN, reason=";E after ;Z: refused, or no reply kept after a power cycle")
+            return self._finish(SlcVerdict.UNKNOWN, reason=";E after ;Z or to a later copy: refused, or an earlier "
+                                                           "copy ran")
         return self._retry_read(now, ";E after ;Z")
 
     def _on_other_in_z(self, now: float, event: ReplyEvent | None) -> SessionState:
@@ -297,28 +300,20 @@ class SlcSession(SlcSender):
         last = event.last_valid_id
         if not self._is_write:
             return self._retry_read(now, f";I{last:02X}: message ID out of step")
+        # A power-cycled controller's answer to a copy, or a stale or repeated reply: no proof
+        # either way, and never a new ID.
         step = judge_id_mismatch(
-            last_valid_id=last, prev_id=self._prev_id, copies=self._copies, began_clean=self._began_clean,
+            copies=self._copies,
             may_resend=self._may_ask_again(now, self._resends, self.max_resends),
             may_ask_z=self._may_ask_again(now, self._z_sent, self.retries + 1))
         if step is MismatchStep.SECOND_COPY:
             self._resends += 1
             self.counters.resends += 1
             return self._send_copy(now)
-        if step is MismatchStep.AWAIT_PROOF:
-            self._why = f";I{last:02X}: message ID out of step"
-            self._deadline = self._last_sent + self._quiet_time()
-            return SessionState.PROVING
-        if step is MismatchStep.PROVED:
-            # No copy of the command was, or can still be, executed: a new ID is safe.
-            return self._retry_read(now, f";I{last:02X}: message ID out of step")
         if step is MismatchStep.UNKNOWN:
-            return self._finish(SlcVerdict.UNKNOWN, reason=f";I{last:02X} without proof that the command did not run")
+            return self._finish(SlcVerdict.UNKNOWN, reason=f";I{last:02X} and no answer with our ID: the controller "
+                                                           f"may have power-cycled after the command ran")
         return self._send_z(now)
-
-    def _on_proved(self, now: float, event: ReplyEvent | None) -> SessionState:
-        # No answer with our ID came while one still could: no copy ran, a new ID is safe.
-        return self._retry_read(now, self._why)
 
     def _on_garbled(self, now: float, event: ReplyEvent | None) -> SessionState:
         # A complete reply failed its check: ask for it again at once.
@@ -339,7 +334,6 @@ class SlcSession(SlcSender):
     def _on_probe_answer(self, now: float, event: ReplyEvent | None) -> SessionState:
         # The barrier: the controller expects 01 next, and no earlier reply can follow.
         self._next = 1
-        self._last_taken = 0
         self._clean = self._era_trusted
         if self._clean:
             self._messages = 0  # nothing sent before the barrier can still be answered
@@ -384,7 +378,6 @@ _ACTIONS: Final[Mapping[SessionAction, _Action]] = {
     SessionAction.RESEND: SlcSession._on_other_in_z,
     SessionAction.ID_OURS: SlcSession._on_id_ours,
     SessionAction.ID_OTHER: SlcSession._on_id_other,
-    SessionAction.PROVED: SlcSession._on_proved,
     SessionAction.GARBLED: SlcSession._on_garbled,
     SessionAction.TIMEOUT: SlcSession._on_timeout,
     SessionAction.Z_TIMEOUT: SlcSession._on_z_timeout,

@@ -1,26 +1,30 @@
-"""What an SLC 100/150 transaction's replies prove, and the verdict it ends with.
+"""What an SLC 100/150 transaction's replies prove about a write, and the verdict it ends with.
 
 A write must never run twice and must never be reported as not run when it did.  A copy sent
-again with the same ID is safe (the controller refuses a second copy of an accepted message:
-"sequential order"); a copy under a new ID is safe only once no copy of the command ran or can
-still run.  The rules, which :class:`~gateway.protocols.slc_ascii.transaction.SlcSession` applies:
+again with the same ID is safe: the controller refuses a second copy of an accepted message
+("sequential order"), and after a power cycle it accepts nothing but ID 00.  A copy under a new
+ID would be safe only once no copy ran or can still run, and nothing on this line proves that:
+so a write is never sent under a second ID.  Its verdict rests only on replies that carry its
+own ID (within a numbering begun with a barrier, no earlier message's reply has that ID):
 
-* **A ``;I`` with another ID** (:func:`judge_id_mismatch`) is proof of non-execution when the
-  transaction began with no reply of an earlier message still due and it reports the ID before
-  ours (not 00: a controller may report 00 after any power cycle), or is of another kind when
-  only one copy was ever sent (it answers that copy: it was not executed).  A ``;I`` with the ID
-  before ours to the first copy is not proof yet: it may answer a copy of the previous message
-  that the line repeated (refused after the previous message ran), heard while ours is on its
-  way; a second copy with our ID settles it (``;I`` with our ID: ours ran).  The same ``;I`` to
-  a later copy is proof only once no answer to our copies can still come (``late_bound`` after
-  the last): the line may have repeated the stray ``;I`` too, and an answer with our ID settles
-  it the other way.
-* **A ``;I`` with our own ID** proves an earlier copy was accepted: ``;Z`` fetches its answer
-  (``;R`` or ``;E``).
-* **A ``;E`` with our ID** (:func:`judge_refusal`) is a refusal, unless it may answer a ``;Z``
-  (a controller that answers ``;Z`` with ``;E`` after a power cycle, no last reply kept).
-* Without proof, after the retries, the verdict is ``UNKNOWN`` (the gateway answers 0x0B): the
-  command was applied at most once.
+* **``;R`` with our ID**: a copy ran (``DONE``).
+* **``;E`` with our ID** (:func:`judge_refusal`) to the write's only copy, with no ``;Z`` sent:
+  the controller refused it, nothing ran (``REFUSED``).  After a ``;Z`` it may be the
+  controller's ``;E`` to the ``;Z`` (no last reply kept after a power cycle); after a second copy
+  it may be the refusal of that copy by a controller that checks the command before the ID (the
+  manual does not say which check comes first) while an earlier copy ran: ``UNKNOWN`` either way.
+* **``;I`` with our ID**: a copy was accepted; ``;Z`` fetches its answer.
+* **``;I`` with another ID** (:func:`judge_id_mismatch`) proves nothing.  It may answer one of our
+  copies (a power-cycled controller: ``;I00``, or ``;I`` with the last ID it accepted before the
+  power cycle), or be a stale or repeated reply to an earlier message: a line that repeats frames
+  makes the controller refuse the repeat of the previous message, and may repeat that ``;I`` too,
+  and may drop the replies with our ID that would tell the two apart.  It is also what a
+  controller answers to the line's repeat of our own copy when it power-cycled in between, after
+  that copy ran.  So a second copy with our ID (``;I`` with our ID or its ack if ours ran; it runs
+  if ours never got there), then ``;Z``; never a new ID.
+* Without an answer with our ID, after the retries, the verdict is ``UNKNOWN`` (the gateway
+  answers 0x0B): the command ran at most once.  ``FAILED`` is for a write only when none of its
+  copies went out (its resync got no answer).
 """
 
 from __future__ import annotations
@@ -38,8 +42,8 @@ Answer = Ack | DataReply
 class SlcVerdict(enum.Enum):
     DONE = "done"  # answered (;R or data)
     REFUSED = "refused"  # ;E to the command itself: not executed
-    UNKNOWN = "unknown"  # a write without proof either way: executed at most once
-    FAILED = "failed"  # no answer within the bounds (a read, or a write proved not executed)
+    UNKNOWN = "unknown"  # a write without an answer with its ID: executed at most once
+    FAILED = "failed"  # no answer within the bounds (a read, or a write none of whose copies went out)
 
 
 @dataclass(frozen=True, slots=True)
@@ -50,39 +54,25 @@ class Result:
 
 
 class MismatchStep(enum.Enum):
-    """What a write does on a ``;I`` with another ID than ours."""
+    """What a write does on a ``;I`` with another ID than ours (never proof of anything)."""
 
-    SECOND_COPY = "send a second copy with our ID: its answer settles it either way"
-    AWAIT_PROOF = "proof once no answer to our copies can still come"
-    PROVED = "no copy ran or can still run: a new ID is safe"
-    ASK_Z = "no proof: ask for the controller's last reply (;Z)"
-    UNKNOWN = "no proof, and no more asking"
+    SECOND_COPY = "send a second copy with our ID: refused with our ID if ours ran, run if none got there"
+    ASK_Z = "ask for the controller's last reply (;Z): our ack if a copy ran and it kept it"
+    UNKNOWN = "no more asking: outcome unknown"
 
 
-def judge_id_mismatch(*, last_valid_id: int, prev_id: int, copies: int, began_clean: bool,
-                      may_resend: bool, may_ask_z: bool) -> MismatchStep:
-    """A write's step on ``;I<last_valid_id>`` (not our ID).
+def judge_id_mismatch(*, copies: int, may_resend: bool, may_ask_z: bool) -> MismatchStep:
+    """A write's step on ``;I`` with another ID than ours.
 
-    ``prev_id``: the ID before ours; ``copies``: copies of the command sent; ``began_clean``: no
-    reply of an earlier message could still come when the transaction began; ``may_resend`` /
-    ``may_ask_z``: a copy / a ``;Z`` may still go (count or time budget).
+    ``copies``: copies of the command sent; ``may_resend`` / ``may_ask_z``: a copy / a ``;Z`` may
+    still go (count or time budget).  One more copy with our ID after the first: it settles a
+    stray ``;I`` on a controller in step (``;I`` with our ID, or our ack, if ours ran; it runs if
+    ours was lost).  Past that (a power-cycled controller answers every copy so), ``;Z``: it
+    fetches our ack if a copy ran and the controller still has it, an older reply (the command
+    then goes again, same ID) if none ran.
     """
-    previous = last_valid_id == prev_id and last_valid_id != 0
-    if began_clean and copies == 1 and previous and may_resend:
-        # Ambiguous: this ;I may answer our only copy (not executed), or a copy of the previous
-        # message that the line repeated, refused after that message ran and heard only now,
-        # while ours is on its way (and runs).  A second copy with our ID is safe either way:
-        # ;I with our ID (ours ran: ;Z fetches its answer) or ;I with the previous ID again.
+    if copies == 1 and may_resend:
         return MismatchStep.SECOND_COPY
-    proof = began_clean and (copies == 1 or previous)
-    if proof and copies > 1:
-        # ;I with the ID before ours to our second copy: proof, unless the line repeated the
-        # stray ;I that made us send that copy (a line that repeats frames both ways).  Then
-        # the answers to our copies are still on their way: wait until none can still come;
-        # one with our ID settles it the other way.
-        return MismatchStep.AWAIT_PROOF
-    if proof:
-        return MismatchStep.PROVED
     return MismatchStep.ASK_Z if may_ask_z else MismatchStep.UNKNOWN
 
 
@@ -91,23 +81,27 @@ class RefusalStep(enum.Enum):
 
     CONFIRM = "a read in a numbering begun without quiet: ask again under a new numbering"
     REFUSED = "the controller refused the command: it did not run"
-    UNKNOWN = "a write's ;E after ;Z: refused, or no reply kept after a power cycle"
+    UNKNOWN = "a write's ;E after ;Z or to a later copy: refused, or an earlier copy ran"
     ASK_AGAIN = "a read's ;E after ;Z: ask again under a new numbering"
 
 
-def judge_refusal(*, is_write: bool, era_trusted: bool, refused_once: bool, z_sent: bool) -> RefusalStep:
+def judge_refusal(*, is_write: bool, era_trusted: bool, refused_once: bool, z_sent: bool,
+                  copies: int) -> RefusalStep:
     """The step on ``;E`` with our ID.
 
     ``era_trusted``: the numbering began with a barrier sent after quiet; ``refused_once``: this
-    transaction already asked again after a ``;E``; ``z_sent``: a ``;Z`` went out in it.
+    transaction already asked again after a ``;E``; ``z_sent``: a ``;Z`` went out in it;
+    ``copies``: copies of the command sent.
     """
     if not is_write and not era_trusted and not refused_once:
         # A read in a numbering begun without quiet: this ;E may answer an earlier ;Z with the
         # same ID (a controller that answers ;Z with ;E after a power cycle).  Ask again under a
         # new numbering; a second ;E is the controller's refusal.
         return RefusalStep.CONFIRM
-    if not z_sent:
+    if not z_sent and (copies == 1 or not is_write):
         return RefusalStep.REFUSED
     # After a ;Z, a ;E with our ID may be the controller's ;E to the ;Z itself (a reading of the
-    # manual: no last reply after a power cycle), not a refusal of our command.
+    # manual: no last reply after a power cycle), not a refusal of our command.  A write's later
+    # copy may be refused by a controller that checks the command before its ID (the mode changed)
+    # after an earlier copy ran.
     return RefusalStep.UNKNOWN if is_write else RefusalStep.ASK_AGAIN
