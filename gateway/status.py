@@ -175,7 +175,7 @@ class StatusPage:
                 "state": state,
                 "since": at(driver.state_since),
                 "data_age": _finite(age),
-                "stale_after": unit.stale_after,
+                "stale_after": _finite(unit.stale_after),  # null: never stale
                 "transactions": counters.transactions,
                 "errors": counters.errors,
                 "retries": counters.retries,
@@ -237,7 +237,7 @@ class StatusPage:
                     entry["word_order"] = tag.word_order
             values.append(entry)
         return {"unit": unit.unit_id, "link": unit.name, "table": table.value, "start": start, "count": count,
-                "registers": registers, "stale_after": unit.stale_after, "time": round(wall, 3), "values": values}
+                "registers": registers, "stale_after": _finite(unit.stale_after), "time": round(wall, 3), "values": values}
 
 
 def _query_int(query: str, key: str, default: int, low: int, high: int) -> int:

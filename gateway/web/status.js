@@ -72,8 +72,10 @@ function renderLinks(status) {
     cell(row, "Unit", "num unit", link.unit);
     cell(row, "Port", "port", link.port);
     const age = cell(row, "Data age", "num age", seconds(link.data_age));
-    if (link.data_age === null || link.data_age >= link.stale_after) age.classList.add("age-stale");
-    age.title = "oldest fast-class value; stale after " + link.stale_after + " s";
+    if (link.data_age === null || (link.stale_after !== null && link.data_age >= link.stale_after)) {
+      age.classList.add("age-stale");
+    }
+    age.title = link.stale_after === null ? "never stale" : "oldest fast-class value; stale after " + link.stale_after + " s";
     cell(row, "Transactions", "num", number(link.transactions));
     cell(row, "Errors", "num", number(link.errors));
     cell(row, "Retries", "num", number(link.retries));
@@ -178,7 +180,7 @@ function renderRegisters(data) {
   note.className = "note" + (stale ? " bad" : "");
   note.textContent = "unit " + data.unit + " (" + data.link + "), " + data.table + " " + data.start + "–" +
     (data.start + data.count - 1) + ": ages are since each value was read; values older than stale_after (" +
-    data.stale_after + " s) beyond their scan period are stale: Modbus answers them 0x0B" +
+    (data.stale_after === null ? "never" : data.stale_after) + " s) beyond their scan period are stale: Modbus answers them 0x0B" +
     (stale ? " — " + stale + " not fresh now" : "");
 }
 
