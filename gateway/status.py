@@ -237,7 +237,8 @@ class StatusPage:
                     entry["word_order"] = tag.word_order
             values.append(entry)
         return {"unit": unit.unit_id, "link": unit.name, "table": table.value, "start": start, "count": count,
-                "registers": registers, "stale_after": _finite(unit.stale_after), "time": round(wall, 3), "values": values}
+                "registers": registers, "stale_after": _finite(unit.stale_after), "time": round(wall, 3),
+                "values": values}
 
 
 def _query_int(query: str, key: str, default: int, low: int, high: int) -> int:

@@ -17,17 +17,18 @@ import argparse
 import hashlib
 import json
 import re
+import sys
 from pathlib import Path
 from typing import Any
 
-from gateway.errors import GatewayError, InvalidRequest
+from gateway.errors import GatewayError, InvalidRequest, WriteOutcomeUnknown
 from gateway.kinds.contract import ToolHints
 from gateway.kinds.slc_ascii.config import SLC_ASCII_DEFAULTS
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.line_driver import OpenStream
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import ControllerType, Mode
-from gateway.protocols.slc_ascii.memory_map import parse_item
+from gateway.protocols.slc_ascii.memory_map import Item, parse_item
 from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS
 from gateway.tools_common import print_result, resolve_retries
 from gateway.transport import SerialSettings
@@ -123,7 +124,7 @@ async def run_slc_ascii_tool(command: str, args: argparse.Namespace, opener: Ope
                         cmds.write_item_bit(item, 0, bool(value))  # raises the read-only message
                     await driver.update_byte(item.read_address, item.bit, bool(value))
                 else:
-                    await driver.execute(cmds.write_item(item, value))
+                    await _write_and_settle(driver, item_text, item, value)
             print_result({text: value for text, _, value in writes}, args.json)
         elif command == "mode":
             await driver.set_mode(_MODES[args.mode])
@@ -213,3 +214,31 @@ def add_slc_ascii_sim_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--power-cycle-every", type=int, default=0, metavar="N",
                         help="slc100/150: power-cycle every N commands")
     parser.add_argument("--fault-every", type=int, default=0, metavar="N", help="slc100/150: emit ;T every N commands")
+
+
+#: writes sent again after a read-back proved an earlier one did not apply
+WRITE_TRIES = 3
+
+
+async def _write_and_settle(driver: SlcAsciiDriver, text: str, item: Item, value: int) -> None:
+    """Write ``item``; a write whose outcome is unknown is settled by reading the item back.
+
+    The line keeps order and the controller runs a command before it answers the next, so a read
+    sent after the write's last copy sees the write if it ran.  The value read back: the written
+    one -> done; another -> the write did not apply, and it is sent again (as a new write).  The
+    value is absolute, so a write that ran and was then changed by the ladder before the read-back
+    is written again with the same value: the state the user asked for, never a sum.
+    """
+    for attempt in range(1, WRITE_TRIES + 1):
+        try:
+            await driver.execute(cmds.write_item(item, value))
+            return
+        except WriteOutcomeUnknown:
+            found = item.decode(await driver.read(item.read_address, item.read_count))
+            if found == value:
+                print(f"slc-gateway write: {text}: outcome unknown, read back {found}: applied", file=sys.stderr)
+                return
+            if attempt == WRITE_TRIES:
+                raise
+            print(f"slc-gateway write: {text}: outcome unknown, read back {found}: not applied; sending it again",
+                  file=sys.stderr)
