@@ -44,7 +44,8 @@ def make_line(sim: MultidropLine, streams: list[CuttableStream], down_after: dic
         return streams[-1]
 
     configs = [
-        StationConfig(n, poll_timeout=0.05, reply_timeout=0.5, demote_after=50, poll_interval=0.2, slow_poll_interval=2.0)
+        StationConfig(n, poll_timeout=0.05, reply_timeout=0.5, demote_after=50, poll_interval=0.2,
+                      slow_poll_interval=2.0)
         for n in (1, 2)
     ]
     return Df1HalfDuplexLine(
