@@ -90,7 +90,6 @@ class TargetRunner(LineDriver):
             "target_enqs_received": float(c.enqs_received),
             "target_reply_retransmissions": float(c.retransmissions),
             "target_replies_lost": float(c.replies_lost),
-            "target_last_sts": float(self.last_sts),
         }
 
     # --- LineDriver hooks ------------------------------------------------------------------------
