@@ -45,13 +45,12 @@ import logging
 import random
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
-from pathlib import Path
-from typing import Final
+from typing import Final, Unpack
 
 from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import GatewayError, LinkDown
 from gateway.kinds.df1.driver import DF1_SETTINGS, transaction_result
-from gateway.line_driver import LineDriver, OpenStream, run_to_the_end
+from gateway.line_driver import LineDriver, LineDriverOptions, run_to_the_end
 from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LinkHealth
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.half_duplex import HalfDuplexMaster
@@ -79,7 +78,7 @@ from gateway.protocols.df1.transaction import (
     TransactionFailed,
     TransactionRefused,
 )
-from gateway.transport import SerialSettings, describe_url, enable_rs485, modem_lines, open_stream
+from gateway.transport import SerialSettings, describe_url, enable_rs485, modem_lines
 
 __all__ = ["RTS_MODES", "Df1HalfDuplexLine", "Df1Station", "PcccRequestLike", "StationTotals"]
 
@@ -247,7 +246,6 @@ class Df1HalfDuplexLine(LineDriver):
         url: str,
         stations: Sequence[StationConfig],
         *,
-        name: str = "",
         settings: SerialSettings = DF1_SETTINGS,
         checksum: Checksum = Checksum.CRC,
         source: int = 0,
@@ -266,16 +264,10 @@ class Df1HalfDuplexLine(LineDriver):
         station_names: dict[int, str] | None = None,
         down_after: Mapping[int, DownAfter] | None = None,
         register_tables: Mapping[int, RegisterTable] | None = None,
-        trace: Path | None = None,
-        reconnect_min: float = 0.5,
-        reconnect_max: float = 1.0,
-        opener: OpenStream = open_stream,
         first_tns: int | None = None,
+        **line: Unpack[LineDriverOptions],
     ) -> None:
-        super().__init__(
-            url, name=name, settings=settings, trace=trace, reconnect_min=reconnect_min,
-            reconnect_max=reconnect_max, opener=opener,
-        )
+        super().__init__(url, settings=settings, **line)
         if not stations:
             raise ValueError(f"line {self.name}: a half-duplex line needs at least one station")
         self.checksum = checksum
@@ -313,7 +305,6 @@ class Df1HalfDuplexLine(LineDriver):
         self.txns = HalfDuplexTransactions(source=source, retries=retries, first_tns=first)
         self.core: HalfDuplexMaster | None = None
         self._waiting: dict[int, asyncio.Future[TransactionEvent]] = {}  #: by transaction handle
-        self._timer: asyncio.TimerHandle | None = None
         self._users = 0
         self.stray_replies = 0
         #: writes of each station to the gateway's own address (report by exception), by station
@@ -419,9 +410,6 @@ class Df1HalfDuplexLine(LineDriver):
             if not waiter.done():
                 waiter.set_exception(exc)
         self._waiting.clear()
-        if self._timer is not None:
-            self._timer.cancel()
-            self._timer = None
 
     def data_received(self, data: bytes) -> None:
         if self.core is not None:
@@ -440,7 +428,7 @@ class Df1HalfDuplexLine(LineDriver):
             self.send(out)
         while (event := self.txns.next_event()) is not NEED_DATA:
             self._dispatch(event)
-        self._arm_timer()
+        self.follow_deadline(core.next_deadline())
 
     def _dispatch(self, event: TransactionEvent | MasterEvent) -> None:
         if isinstance(event, TransactionDone | TransactionRefused | OutcomeUnknown | TransactionFailed):
@@ -481,21 +469,9 @@ class Df1HalfDuplexLine(LineDriver):
         if reply is not None:
             self._replies[self.core.send_reply(event.station, reply, now)] = event.station
 
-    def _arm_timer(self) -> None:
-        deadline = self.core.next_deadline() if self.core is not None else None
-        timer = self._timer
-        if timer is not None:
-            if deadline is not None and timer.when() == deadline:
-                return
-            timer.cancel()
-            self._timer = None
-        if deadline is not None and self.connected:
-            self._timer = asyncio.get_running_loop().call_at(deadline, self._on_timer)
-
-    def _on_timer(self) -> None:
-        self._timer = None
-        if self.connected and self.core is not None:
-            self.txns.handle_timeout(asyncio.get_running_loop().time())
+    def on_deadline(self, now: float) -> None:
+        if self.core is not None:
+            self.txns.handle_timeout(now)
             self._pump()
 
     # --- requests ---------------------------------------------------------------------------
