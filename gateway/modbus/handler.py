@@ -154,6 +154,10 @@ _EXCEPTION_FRAME: Final = mbap.EXCEPTION_FRAME
 _READ_HEAD: Final = mbap.READ_HEAD
 
 _decoder: Final = DecodePDU(is_server=True)
+#: The most values one read asks for, by function code.
+_MOST_READ: Final[dict[int, int]] = {
+    **dict.fromkeys(REGISTER_READS, MAX_READ_REGISTERS), **dict.fromkeys(BIT_READS, MAX_READ_BITS)
+}
 _BIT_RESPONSES: Final[dict[int, type[ReadCoilsResponse]]] = {
     FunctionCode.READ_COILS: ReadCoilsResponse,
     FunctionCode.READ_DISCRETE_INPUTS: ReadDiscreteInputsResponse,
@@ -213,28 +217,21 @@ class RequestHandler:
             return self._exception(tid, unit, function_code, GATEWAY_PATH_UNAVAILABLE)
 
         size = len(pdu)
-        if function_code in REGISTER_READS:
+        most = _MOST_READ.get(function_code)
+        if most is not None:
             if size != 5:
                 return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
             address, count = _ADDRESS_COUNT.unpack_from(pdu, 1)
-            if not 1 <= count <= MAX_READ_REGISTERS:
+            if not 1 <= count <= most:
                 return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
             if address + count > 0x10000:
                 return self._exception(tid, unit, function_code, ILLEGAL_DATA_ADDRESS)
+            registers = function_code in REGISTER_READS
             if self._read_now is not None:
-                return self._read_at_once(tid, unit, function_code, address, count, 2 * count)
-            return self._read_registers(tid, unit, function_code, address, count)
-
-        if function_code in BIT_READS:
-            if size != 5:
-                return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
-            address, count = _ADDRESS_COUNT.unpack_from(pdu, 1)
-            if not 1 <= count <= MAX_READ_BITS:
-                return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
-            if address + count > 0x10000:
-                return self._exception(tid, unit, function_code, ILLEGAL_DATA_ADDRESS)
-            if self._read_now is not None:
-                return self._read_at_once(tid, unit, function_code, address, count, (count + 7) // 8)
+                data_bytes = 2 * count if registers else (count + 7) // 8
+                return self._read_at_once(tid, unit, function_code, address, count, data_bytes)
+            if registers:
+                return self._read_registers(tid, unit, function_code, address, count)
             return self._read_bits(tid, unit, function_code, address, count)
 
         if function_code in SINGLE_WRITES:
