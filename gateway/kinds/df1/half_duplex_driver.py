@@ -52,21 +52,10 @@ from gateway.errors import GatewayError, LinkDown
 from gateway.kinds.df1.driver import DF1_SETTINGS, transaction_result
 from gateway.line_driver import LineDriver, LineDriverOptions, run_to_the_end
 from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LinkHealth
+from gateway.protocols.df1 import half_duplex_events as master_events
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.half_duplex import HalfDuplexMaster
-from gateway.protocols.df1.half_duplex_events import (
-    FailReason,
-    LineConfig,
-    MasterEvent,
-    MessageDelivered,
-    RequestFailed,
-    SlaveInitiated,
-    StationConfig,
-    StationCounters,
-    StationDemoted,
-    StationRestored,
-    StrayReply,
-)
+from gateway.protocols.df1.half_duplex_events import FailReason, LineConfig, StationConfig, StationCounters
 from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions, PcccRequestLike
 from gateway.protocols.df1.pccc import DiagnosticStatus, DiagnosticStatusInfo, PcccReply
 from gateway.protocols.df1.pccc import is_write as pccc_is_write
@@ -270,19 +259,22 @@ class Df1HalfDuplexLine(LineDriver):
         super().__init__(url, settings=settings, **line)
         if not stations:
             raise ValueError(f"line {self.name}: a half-duplex line needs at least one station")
-        self.checksum = checksum
         self.source = source
         self.retries = retries
-        self.ack_timeout = ack_timeout
         # Without duplicate detection in the slaves (RM p. 13-59 "Duplicate Packet Detect" unchecked) a
         # resent master frame whose first copy arrived is executed again: then no frame is ever resent
         # (reads are retried with a new TNS, writes settled by a read-back), so a write runs once.
         self.duplicate_detect = duplicate_detect
-        self.message_retries = message_retries if duplicate_detect else 0
-        self.pre_transmit_delay = pre_transmit_delay
-        self.rts_send_delay = rts_send_delay
-        self.rts_off_delay = rts_off_delay
-        self.echo = echo
+        #: the core's line tunables but ``char_time``, which each connection sets (``_line_config``)
+        self.tunables = LineConfig(
+            checksum,
+            ack_timeout=ack_timeout,
+            message_resends=message_retries if duplicate_detect else 0,
+            pre_transmit_delay=pre_transmit_delay,
+            rts_send_delay=rts_send_delay,
+            rts_off_delay=rts_off_delay,
+            echo=echo,
+        )
         self.link_reset = link_reset
         if rts_mode not in RTS_MODES:
             raise ValueError(f"line {self.name}: rts = {rts_mode!r}: choose {', '.join(RTS_MODES)}")
@@ -322,16 +314,7 @@ class Df1HalfDuplexLine(LineDriver):
             raise ValueError(f"line {self.name}: no station {number} (stations: {sorted(self.stations)})") from None
 
     def _line_config(self) -> LineConfig:
-        return LineConfig(
-            self.checksum,
-            ack_timeout=self.ack_timeout,
-            message_resends=self.message_retries,
-            char_time=self.char_time,
-            pre_transmit_delay=self.pre_transmit_delay,
-            rts_send_delay=self.rts_send_delay,
-            rts_off_delay=self.rts_off_delay,
-            echo=self.echo,
-        )
+        return replace(self.tunables, char_time=self.char_time)
 
     def _report(self, up: bool, reason: str = "") -> None:
         """The line's own state (the port); a lost port makes every station on it down at once."""
@@ -397,8 +380,9 @@ class Df1HalfDuplexLine(LineDriver):
             self._rts_warned = True
             log.warning("line %s: RTS over RFC 2217 follows the data by a network round trip; prefer the "
                         "device server's RTS toggle for a radio", self.name)
-        if self.rts_mode == "rs485" and enable_rs485(self._stream, delay_before_tx=self.rts_send_delay,
-                                                     delay_before_rx=self.rts_off_delay):
+        tunables = self.tunables
+        if self.rts_mode == "rs485" and enable_rs485(self._stream, delay_before_tx=tunables.rts_send_delay,
+                                                     delay_before_rx=tunables.rts_off_delay):
             return
         if self.rts_mode in ("toggle", "rs485"):  # rs485 refused by the port: the core keys RTS
             self._rts = lines.set_rts
@@ -430,29 +414,29 @@ class Df1HalfDuplexLine(LineDriver):
             self._dispatch(event)
         self.follow_deadline(core.next_deadline())
 
-    def _dispatch(self, event: TransactionEvent | MasterEvent) -> None:
+    def _dispatch(self, event: TransactionEvent | master_events.MasterEvent) -> None:
         if isinstance(event, TransactionDone | TransactionRefused | OutcomeUnknown | TransactionFailed):
             waiter = self._waiting.pop(event.handle, None)
             if waiter is not None and not waiter.done():
                 waiter.set_result(event)
-        elif isinstance(event, RequestFailed) and event.request_id in self._replies:
+        elif isinstance(event, master_events.RequestFailed) and event.request_id in self._replies:
             station = self._replies.pop(event.request_id)
             self.stations[station]._base.slave_replies_lost += 1
             log.debug("line %s: station %d never acknowledged the reply to its message", self.name, station)
-        elif isinstance(event, StationDemoted):
+        elif isinstance(event, master_events.StationDemoted):
             handle = self.stations[event.station]
             handle.judge(False, f"station {event.station} does not answer polls (demoted to slow poll)")
-        elif isinstance(event, StationRestored):
+        elif isinstance(event, master_events.StationRestored):
             self.stations[event.station].judge(True)
-        elif isinstance(event, SlaveInitiated):
+        elif isinstance(event, master_events.SlaveInitiated):
             self._answer(event)
-        elif isinstance(event, MessageDelivered):
+        elif isinstance(event, master_events.MessageDelivered):
             self._replies.pop(event.request_id, None)
-        elif isinstance(event, StrayReply):
+        elif isinstance(event, master_events.StrayReply):
             self.stray_replies += 1
             self.stations[event.station]._base.stray_replies += 1
 
-    def _answer(self, event: SlaveInitiated) -> None:
+    def _answer(self, event: master_events.SlaveInitiated) -> None:
         """Store a slave's write to us and queue the PCCC reply its MSG waits for (module docstring)."""
         assert self.core is not None
         now = asyncio.get_running_loop().time()
