@@ -110,6 +110,7 @@ class Df1Station(LinkHealth):
     ) -> None:
         super().__init__(name, down_after)
         self.line = line
+        self.url = line.url  #: the line's port (for logs)
         self.config = config
         self.station = config.station
         self.last_sts = 0
@@ -122,16 +123,11 @@ class Df1Station(LinkHealth):
     # --- state ------------------------------------------------------------------------------
 
     @property
-    def url(self) -> str:
-        """The line's port (for logs)."""
-        return self.line.url
-
-    @property
     def connected(self) -> bool:
         return self.line.connected
 
     def where(self) -> str:
-        return f"station {self.station} on {describe_url(self.line.url)}"
+        return f"station {self.station} on {describe_url(self.url)}"
 
     @property
     def totals(self) -> StationTotals:
