@@ -22,7 +22,7 @@ from abc import abstractmethod
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import AbstractAsyncContextManager
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol, TypedDict, TypeVar
 
 from gateway.errors import GatewayError, LinkDown, LinkError, LinkTimeout, format_seconds
 from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LineCounters, LinkHealth
@@ -31,6 +31,7 @@ from gateway.transport import ByteStream, SerialSettings, describe_url, open_str
 __all__ = [
     "LineCounters",  # defined in gateway.link_health, with the rule it counts for
     "LineDriver",
+    "LineDriverOptions",
     "OpenStream",
     "Priority",
     "UnitDriver",
@@ -184,6 +185,20 @@ class UnitDriver(Protocol):
     def extend_burst(self) -> None: ...
 
 
+class LineDriverOptions(TypedDict, total=False):
+    """The keyword arguments of :class:`LineDriver` that a kind's driver passes on as they are
+    (``**line: Unpack[LineDriverOptions]``); their defaults are the base's."""
+
+    name: str
+    trace: Path | None
+    reconnect_min: float
+    reconnect_max: float
+    connect_timeout: float
+    opener: OpenStream
+    down_after_failures: int
+    down_after_seconds: float
+
+
 class LineDriver(LinkHealth):
     """Base of the protocol drivers.  Subclasses implement the protocol hooks."""
 
@@ -218,6 +233,7 @@ class LineDriver(LinkHealth):
         self._lost: asyncio.Future[None] | None = None
         self._run_task: asyncio.Task[None] | None = None
         self._closing = False
+        self._timer: asyncio.TimerHandle | None = None  #: at the core's deadline (``follow_deadline``)
         #: in a write session: after ``write_burst`` write transactions in a row, up to
         #: ``poll_burst`` waiting poll transactions get the line
         self.write_burst = 1
@@ -322,7 +338,9 @@ class LineDriver(LinkHealth):
             log.exception("link %s: error handling %d received bytes", self.name, len(data))
 
     def _fail_pending(self, exc: GatewayError) -> None:
-        """The link is gone: the request on the line and every waiting one fail with ``exc``."""
+        """The link is gone: the request on the line and every waiting one fail with ``exc``; the
+        core's timer is stopped (a new connection gets a new core, or a reset one)."""
+        self.follow_deadline(None)
         self.abort(exc)
         self._line.fail_waiting(exc)
 
@@ -458,7 +476,33 @@ class LineDriver(LinkHealth):
         self.counters.bytes_sent += len(data)
         stream.write(data)
 
+    # --- the core's timer -------------------------------------------------------------------
+
+    def follow_deadline(self, deadline: float | None) -> None:
+        """Keep the one timer of the protocol core at ``deadline`` (loop time; None: no timer).
+
+        A driver calls it with ``core.next_deadline()`` after each step of its core; when the
+        deadline comes (the port still open), :meth:`on_deadline` runs.
+        """
+        timer = self._timer
+        if timer is not None:
+            if deadline is not None and timer.when() == deadline:
+                return
+            timer.cancel()
+            self._timer = None
+        if deadline is not None and self.connected:
+            self._timer = asyncio.get_running_loop().call_at(deadline, self._deadline_reached)
+
+    def _deadline_reached(self) -> None:
+        self._timer = None
+        if self.connected:
+            self.on_deadline(asyncio.get_running_loop().time())
+
     # --- protocol hooks ---------------------------------------------------------------------
+
+    def on_deadline(self, now: float) -> None:
+        """The deadline given to :meth:`follow_deadline` has come: ``core.handle_timeout(now)`` and
+        act on what the core does then.  A driver whose core has no timers never gets here."""
 
     @abstractmethod
     def on_connect(self) -> None:

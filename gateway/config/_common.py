@@ -25,6 +25,7 @@ __all__ = [
     "is_host",
     "listen_validator",
     "optional_listen_validator",
+    "optional_output_path",
     "parse_listen",
     "parse_networks",
     "resolve_path",
@@ -223,6 +224,14 @@ def resolve_path(value: object, info: ValidationInfo, *, must_exist: bool) -> Pa
     except OSError as exc:
         raise ValueError(f"cannot use {path}: {exc.strerror or exc}") from None
     return path
+
+
+def optional_output_path(value: object, info: ValidationInfo) -> Path | None:
+    """A file the gateway writes (a trace, a target's table), ``resolve_path`` without ``must_exist``;
+    None when not given or empty."""
+    if value is None or value == "":
+        return None
+    return resolve_path(value, info, must_exist=False)
 
 
 def parse_networks(value: object) -> tuple[IPv4Network | IPv6Network, ...]:

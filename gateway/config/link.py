@@ -12,11 +12,11 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar, Literal, get_args
+from typing import ClassVar, Final, Literal, get_args
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from gateway.config._common import Loc, Model, Problems, array, check_port_url, resolve_path, show
+from gateway.config._common import Loc, Model, Problems, array, check_port_url, optional_output_path, show
 from gateway.config.writer import table_lines
 from gateway.link_health import DEFAULT_DOWN_AFTER
 from gateway.streams import SerialSettings
@@ -43,6 +43,12 @@ BAUDRATES = (110, 300, 600, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
 DEFAULT_RETRIES = 3
 
 _NAME_RE = re.compile(r"[A-Za-z0-9_.-]{1,40}")
+#: The serial keys' allowed values, and the problem (with the value given) when it is another.
+_SERIAL_CHOICES: Final = {
+    "baudrate": (BAUDRATES, f"{{}} is not a standard baud rate ({', '.join(map(str, BAUDRATES))})"),
+    "bytesize": ((7, 8), "must be 7 or 8 (got {})"),
+    "stopbits": ((1, 2), "must be 1 or 2 (got {})"),
+}
 _WRITABLE_RE = re.compile(r"\s*([a-z]+)\s*:\s*([0-9]{1,6})\s*(?:-\s*([0-9]{1,6})\s*)?")
 
 
@@ -167,25 +173,12 @@ class LinkBase(Model):
         check_port_url(value, cls.sim_models)
         return value
 
-    @field_validator("baudrate")
+    @field_validator(*_SERIAL_CHOICES)
     @classmethod
-    def _check_baudrate(cls, value: int) -> int:
-        if value not in BAUDRATES:
-            raise ValueError(f"{value} is not a standard baud rate ({', '.join(map(str, BAUDRATES))})")
-        return value
-
-    @field_validator("bytesize")
-    @classmethod
-    def _check_bytesize(cls, value: int) -> int:
-        if value not in (7, 8):
-            raise ValueError(f"must be 7 or 8 (got {value})")
-        return value
-
-    @field_validator("stopbits")
-    @classmethod
-    def _check_stopbits(cls, value: int) -> int:
-        if value not in (1, 2):
-            raise ValueError(f"must be 1 or 2 (got {value})")
+    def _check_serial(cls, value: int, info: ValidationInfo) -> int:
+        choices, problem = _SERIAL_CHOICES[str(info.field_name)]
+        if value not in choices:
+            raise ValueError(problem.format(value))
         return value
 
     @field_validator("writable", mode="before")
@@ -210,9 +203,7 @@ class LinkBase(Model):
     @field_validator("trace", mode="before")
     @classmethod
     def _trace_path(cls, value: object, info: ValidationInfo) -> Path | None:
-        if value is None or value == "":
-            return None
-        return resolve_path(value, info, must_exist=False)
+        return optional_output_path(value, info)
 
     @model_validator(mode="after")
     def _check_link(self) -> LinkBase:

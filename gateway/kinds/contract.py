@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar
 
 from gateway.config.link import LinkBase, SerialDefaults, protocol_of
-from gateway.line_driver import OpenStream
+from gateway.line_driver import LineDriverOptions, OpenStream
 from gateway.modbus.mapping import Plan, PointLabel, Table
 from gateway.sim.models import SimModel
 from gateway.unit import Unit, UnitOptions, WritableRange
@@ -32,6 +32,7 @@ __all__ = [
     "PointLabels",
     "ToolHints",
     "block_lines",
+    "line_options",
     "protocol_of",
     "unit_options",
 ]
@@ -181,3 +182,13 @@ def unit_options(link: LinkBase) -> UnitOptions:
         write_timeout=link.write_timeout,
     )
 
+
+def line_options(link: LinkBase) -> LineDriverOptions:
+    """The :class:`~gateway.line_driver.LineDriver` keyword arguments every link has (whatever its
+    kind), for a driver that is the link's own (one controller per port)."""
+    return LineDriverOptions(
+        name=link.name,
+        trace=link.trace,
+        down_after_failures=link.down_after_failures,
+        down_after_seconds=link.down_after_seconds,
+    )

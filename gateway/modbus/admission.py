@@ -45,7 +45,7 @@ from __future__ import annotations
 import ipaddress
 import logging
 import ssl
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Final, Literal, Protocol, TypeAlias
 
@@ -165,49 +165,57 @@ _UTF8_STRING: Final = 0x0C
 _EXTENSIONS: Final = 0xA3  # [3] EXPLICIT in TBSCertificate
 
 
+def _elements(data: bytes, start: int, end: int) -> Iterator[tuple[int, int, int]]:
+    """Every DER element from ``start`` to ``end`` in turn, each as :func:`_tlv` gives it."""
+    while start < end:
+        element = _tlv(data, start, end)
+        yield element
+        start = element[2]
+
+
+def _sequence(data: bytes, position: int, end: int, problem: str) -> tuple[int, int]:
+    """``(content start, content end)`` of the SEQUENCE at ``position``; ``ValueError(problem)`` if
+    it is something else."""
+    tag, start, stop = _tlv(data, position, end)
+    if tag != _SEQUENCE:
+        raise ValueError(problem)
+    return start, stop
+
+
 def role_from_certificate(der: bytes) -> str | None:
     """The Modbus role of a DER certificate: None without the extension.
 
     Raises ``ValueError`` if the certificate cannot be walked or the extension's value is not
     a DER UTF8String (R-22); per R-65 only the first role extension counts.
     """
-    tag, start, end = _tlv(der, 0, len(der))  # Certificate
-    if tag != _SEQUENCE:
-        raise ValueError("not a certificate")
-    tag, start, end = _tlv(der, start, end)  # TBSCertificate
-    if tag != _SEQUENCE:
-        raise ValueError("not a certificate")
-    position = start
-    while position < end:
-        tag, content, after = _tlv(der, position, end)
-        position = after
-        if tag != _EXTENSIONS:
-            continue
-        tag, seq_start, seq_end = _tlv(der, content, after)  # SEQUENCE OF Extension
+    start, end = _sequence(der, 0, len(der), "not a certificate")  # Certificate
+    start, end = _sequence(der, start, end, "not a certificate")  # TBSCertificate
+    for tag, content, after in _elements(der, start, end):
+        if tag == _EXTENSIONS:
+            return _role_extension(der, *_sequence(der, content, after, "bad extensions"))  # SEQUENCE OF Extension
+    return None
+
+
+def _role_extension(der: bytes, start: int, end: int) -> str | None:
+    """The role in the first role extension among the Extensions from ``start`` to ``end``."""
+    for tag, field, extension_end in _elements(der, start, end):
         if tag != _SEQUENCE:
-            raise ValueError("bad extensions")
-        extension = seq_start
-        while extension < seq_end:
-            tag, field, extension_end = _tlv(der, extension, seq_end)
-            extension = extension_end
-            if tag != _SEQUENCE:
-                raise ValueError("bad extension")
-            tag, oid_start, oid_end = _tlv(der, field, extension_end)
-            if tag != _OID or der[oid_start:oid_end] != _ROLE_OID_DER:
-                continue
-            tag, value_start, value_end = _tlv(der, oid_end, extension_end)
-            if tag == _BOOLEAN:  # critical
-                tag, value_start, value_end = _tlv(der, value_end, extension_end)
-            if tag != _OCTET_STRING:
-                raise ValueError("role extension without an OCTET STRING value")
-            tag, text_start, text_end = _tlv(der, value_start, value_end)
-            if tag != _UTF8_STRING or text_end != value_end:
-                raise ValueError("the role is not a DER UTF8String (MB-TCP-Security R-22)")
-            try:
-                return der[text_start:text_end].decode("utf-8")
-            except UnicodeDecodeError:
-                raise ValueError("the role is not valid UTF-8") from None
-        return None
+            raise ValueError("bad extension")
+        tag, oid_start, oid_end = _tlv(der, field, extension_end)
+        if tag != _OID or der[oid_start:oid_end] != _ROLE_OID_DER:
+            continue
+        tag, value_start, value_end = _tlv(der, oid_end, extension_end)
+        if tag == _BOOLEAN:  # critical
+            tag, value_start, value_end = _tlv(der, value_end, extension_end)
+        if tag != _OCTET_STRING:
+            raise ValueError("role extension without an OCTET STRING value")
+        tag, text_start, text_end = _tlv(der, value_start, value_end)
+        if tag != _UTF8_STRING or text_end != value_end:
+            raise ValueError("the role is not a DER UTF8String (MB-TCP-Security R-22)")
+        try:
+            return der[text_start:text_end].decode("utf-8")
+        except UnicodeDecodeError:
+            raise ValueError("the role is not valid UTF-8") from None
     return None
 
 

@@ -154,6 +154,12 @@ _EXCEPTION_FRAME: Final = mbap.EXCEPTION_FRAME
 _READ_HEAD: Final = mbap.READ_HEAD
 
 _decoder: Final = DecodePDU(is_server=True)
+#: The most values one read asks for, by function code.
+_MOST_READ: Final[dict[int, int]] = {
+    **dict.fromkeys(REGISTER_READS, MAX_READ_REGISTERS), **dict.fromkeys(BIT_READS, MAX_READ_BITS)
+}
+#: A backend's read of one table (``ModbusBackend.read_*``).
+_BackendRead: TypeAlias = Callable[[int, int, int], Awaitable[Sequence[int]]]
 _BIT_RESPONSES: Final[dict[int, type[ReadCoilsResponse]]] = {
     FunctionCode.READ_COILS: ReadCoilsResponse,
     FunctionCode.READ_DISCRETE_INPUTS: ReadDiscreteInputsResponse,
@@ -170,6 +176,12 @@ class RequestHandler:
         self._logged_errors: set[type[BaseException]] = set()
         read_now = getattr(backend, "read_now", None)
         self._read_now: ReadNow | None = read_now if callable(read_now) else None
+        self._reads: dict[int, _BackendRead] = {
+            FunctionCode.READ_HOLDING_REGISTERS: backend.read_holding_registers,
+            FunctionCode.READ_INPUT_REGISTERS: backend.read_input_registers,
+            FunctionCode.READ_COILS: backend.read_coils,
+            FunctionCode.READ_DISCRETE_INPUTS: backend.read_discrete_inputs,
+        }
 
     def _exception(self, tid: int, unit: int, function_code: int, code: int) -> bytes:
         exceptions = self.counters.exceptions
@@ -213,29 +225,19 @@ class RequestHandler:
             return self._exception(tid, unit, function_code, GATEWAY_PATH_UNAVAILABLE)
 
         size = len(pdu)
-        if function_code in REGISTER_READS:
+        most = _MOST_READ.get(function_code)
+        if most is not None:
             if size != 5:
                 return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
             address, count = _ADDRESS_COUNT.unpack_from(pdu, 1)
-            if not 1 <= count <= MAX_READ_REGISTERS:
+            if not 1 <= count <= most:
                 return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
             if address + count > 0x10000:
                 return self._exception(tid, unit, function_code, ILLEGAL_DATA_ADDRESS)
             if self._read_now is not None:
-                return self._read_at_once(tid, unit, function_code, address, count, 2 * count)
-            return self._read_registers(tid, unit, function_code, address, count)
-
-        if function_code in BIT_READS:
-            if size != 5:
-                return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
-            address, count = _ADDRESS_COUNT.unpack_from(pdu, 1)
-            if not 1 <= count <= MAX_READ_BITS:
-                return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
-            if address + count > 0x10000:
-                return self._exception(tid, unit, function_code, ILLEGAL_DATA_ADDRESS)
-            if self._read_now is not None:
-                return self._read_at_once(tid, unit, function_code, address, count, (count + 7) // 8)
-            return self._read_bits(tid, unit, function_code, address, count)
+                data_bytes = 2 * count if function_code in REGISTER_READS else (count + 7) // 8
+                return self._read_at_once(tid, unit, function_code, address, count, data_bytes)
+            return self._read(tid, unit, function_code, address, count)
 
         if function_code in SINGLE_WRITES:
             if size != 5:
@@ -285,33 +287,16 @@ class RequestHandler:
 
     # -- the backend calls (each is the body of one task) ------------------------------
 
-    async def _read_registers(
-        self, tid: int, unit: int, function_code: int, address: int, count: int
-    ) -> bytes:
+    async def _read(self, tid: int, unit: int, function_code: int, address: int, count: int) -> bytes:
+        """FC1-4 through the backend: the reply frame (registers packed here, bits by pymodbus)."""
         try:
-            if function_code == FunctionCode.READ_HOLDING_REGISTERS:
-                values = await self.backend.read_holding_registers(unit, address, count)
-            else:
-                values = await self.backend.read_input_registers(unit, address, count)
+            values = await self._reads[function_code](unit, address, count)
             if len(values) != count:
-                raise ValueError(f"backend returned {len(values)} registers for {count}")
-            frame = REGISTER_FRAMES[count]
-            return frame.pack(tid, 0, 3 + 2 * count, unit, function_code, 2 * count, *values)
-        except ModbusExceptionReply as reply:
-            return self._exception_reply(tid, unit, function_code, reply)
-        except Exception as error:
-            return self._backend_failed(tid, unit, function_code, error)
-
-    async def _read_bits(self, tid: int, unit: int, function_code: int, address: int, count: int) -> bytes:
-        try:
-            if function_code == FunctionCode.READ_COILS:
-                bits = await self.backend.read_coils(unit, address, count)
-            else:
-                bits = await self.backend.read_discrete_inputs(unit, address, count)
-            if len(bits) != count:
-                raise ValueError(f"backend returned {len(bits)} bits for {count}")
-            response = _BIT_RESPONSES[function_code](bits=list(bits))
-            payload = response.encode()
+                raise ValueError(f"backend returned {len(values)} values for {count}")
+            if function_code in REGISTER_READS:
+                frame = REGISTER_FRAMES[count]
+                return frame.pack(tid, 0, 3 + 2 * count, unit, function_code, 2 * count, *values)
+            payload = _BIT_RESPONSES[function_code](bits=list(map(bool, values))).encode()
             return _MBAP.pack(tid, 0, 2 + len(payload), unit) + bytes((function_code,)) + payload
         except ModbusExceptionReply as reply:
             return self._exception_reply(tid, unit, function_code, reply)

@@ -8,7 +8,8 @@ serving a Modbus read is a slice of an image, never controller I/O.
 
 Generic: each link kind builds its plans (``gateway.kinds.<kind>.plan``) with its own
 :class:`Codec` values and write targets; a plan is generic in its write target types
-(``Plan[R, B]``: ``R`` for holding registers, ``B`` for coils).
+(``Plan[R, B]``: ``R`` for holding registers, ``B`` for coils).  A controller whose memory is
+words has the targets ``WordWrite[A]`` and ``BitWrite[A]``, ``A`` its address type.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ __all__ = [
     "STATUS_BASE",
     "STATUS_REGISTERS",
     "BitPoint",
+    "BitWrite",
     "Block",
     "Codec",
     "Half",
@@ -30,11 +32,14 @@ __all__ = [
     "RegisterPoint",
     "Scan",
     "Table",
+    "WordWrite",
 ]
 
 #: A plan's write target types: R for a holding register, B for a coil (the link kind's own).
 R = TypeVar("R")
 B = TypeVar("B")
+#: The address type of a word-addressed controller (``WordWrite[A]``, ``BitWrite[A]``).
+A = TypeVar("A")
 
 
 class Table(enum.Enum):
@@ -105,6 +110,23 @@ class BitPoint(Generic[B]):
     offset: int
     bit: int
     write: B | None = None
+
+
+# Not slotted: a slotted frozen generic dataclass cannot be made through its alias
+# (``WordWrite[SlcAddress](address)``) on Python 3.11.
+@dataclass(frozen=True)
+class WordWrite(Generic[A]):
+    """A holding register's write target: the word (or the 32-bit value) at ``address``."""
+
+    address: A
+
+
+@dataclass(frozen=True)
+class BitWrite(Generic[A]):
+    """A coil's write target: bit ``bit`` of the word at ``address``."""
+
+    address: A
+    bit: int
 
 
 @dataclass(frozen=True, slots=True)

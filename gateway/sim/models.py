@@ -11,11 +11,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 from gateway.sim.serve import SimDevice
 from gateway.streams import SerialSettings
 
-__all__ = ["SimFactory", "SimModel", "register_sim_model", "sim_models", "unregister_sim_model"]
+__all__ = ["SimFactory", "SimModel", "read_sim_option", "register_sim_model", "sim_models", "unregister_sim_model"]
+
+T = TypeVar("T")
 
 #: (fault options, ladder running, variant values) -> a new simulated controller
 SimFactory = Callable[[Mapping[str, str], bool, Mapping[str, str]], SimDevice]
@@ -39,6 +42,19 @@ class SimModel:
     #: the device paces its own bytes (a multi-drop line judging collisions on its own clock): it is
     #: served without line settings, ``turnaround`` is its own option and ``paced`` does not apply
     self_paced: bool = False
+
+
+def read_sim_option(options: Mapping[str, str], key: str, parse: Callable[[str], T], default: T, *,
+                    what: str = "simulator option") -> T:
+    """``options[key]`` (a ``sim://`` URL's option, white space stripped) read by ``parse``, or
+    ``default`` when it is not given; a ValueError names the option (``what key=text``)."""
+    text = options.get(key)
+    if text is None:
+        return default
+    try:
+        return parse(text.strip())
+    except ValueError:
+        raise ValueError(f"{what} {key}={text!r} cannot be read") from None
 
 
 _models: dict[str, SimModel] = {}

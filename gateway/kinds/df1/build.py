@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from gateway.kinds.contract import Built, LinkRunner, PointLabels, unit_options
+from gateway.kinds.contract import Built, LinkRunner, PointLabels, line_options, unit_options
 from gateway.kinds.df1.config import Df1LinkConfig, HalfDuplexLine, group_lines
 from gateway.kinds.df1.driver import Df1Driver
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
@@ -111,7 +111,6 @@ def full_duplex_driver(link: Df1LinkConfig) -> Df1Driver:
     """The driver of one full-duplex link (one controller per port)."""
     return Df1Driver(
         link.port,
-        name=link.name,
         settings=link.line_settings,
         checksum=_checksum(link),
         station=link.station,
@@ -119,9 +118,7 @@ def full_duplex_driver(link: Df1LinkConfig) -> Df1Driver:
         family=PROCESSORS[link.processor],
         timeout=link.timeout,
         retries=link.retries,
-        trace=link.trace,
-        down_after_failures=link.down_after_failures,
-        down_after_seconds=link.down_after_seconds,
+        **line_options(link),
     )
 
 

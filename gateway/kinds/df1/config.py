@@ -18,7 +18,7 @@ from typing import Any, ClassVar, Final, Literal, NamedTuple
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from gateway.config._common import Loc, Model, Problems, resolve_path, show
+from gateway.config._common import Loc, Model, Problems, optional_output_path, show
 from gateway.config.link import LinkBase, Parity, SerialDefaults
 from gateway.config.writer import table_lines
 from gateway.kinds.df1.target_config import TargetFile, target_file_problems
@@ -309,9 +309,7 @@ class Df1LinkConfig(LinkBase):
     @field_validator("persist", mode="before")
     @classmethod
     def _persist_path(cls, value: object, info: ValidationInfo) -> Path | None:
-        if value is None or value == "":
-            return None
-        return resolve_path(value, info, must_exist=False)
+        return optional_output_path(value, info)
 
     @field_validator("map", mode="after")
     @classmethod

@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import asyncio
 import random
-from pathlib import Path
-from typing import Final, Protocol
+from typing import Final, Protocol, Unpack
 
 from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import GatewayError, LinkTimeout, ProtocolError, WriteOutcomeUnknown
 from gateway.kinds.df1.config import DF1_DEFAULTS
-from gateway.line_driver import LineDriver, OpenStream, Priority
-from gateway.link_health import DEFAULT_DOWN_AFTER, LineCounters
+from gateway.line_driver import LineDriver, LineDriverOptions, Priority
+from gateway.link_health import LineCounters
 from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.pccc import (
@@ -45,7 +44,7 @@ from gateway.protocols.df1.transaction import (
     TransactionFailed,
     TransactionRefused,
 )
-from gateway.transport import SerialSettings, open_stream
+from gateway.transport import SerialSettings
 
 __all__ = ["DF1_SETTINGS", "Df1Driver", "PcccLink", "WriteOutcomeUnknown", "transaction_result"]
 
@@ -63,7 +62,6 @@ class Df1Driver(LineDriver):
         self,
         url: str,
         *,
-        name: str = "",
         settings: SerialSettings = DF1_SETTINGS,
         checksum: Checksum = Checksum.CRC,
         station: int = 1,
@@ -72,25 +70,10 @@ class Df1Driver(LineDriver):
         timeout: float = 1.0,
         ack_timeout: float | None = None,
         retries: int = DEFAULT_RETRIES,
-        trace: Path | None = None,
-        reconnect_min: float = 0.5,
-        reconnect_max: float = 1.0,
-        opener: OpenStream = open_stream,
         first_tns: int | None = None,
-        down_after_failures: int = DEFAULT_DOWN_AFTER.failures,
-        down_after_seconds: float = DEFAULT_DOWN_AFTER.seconds,
+        **line: Unpack[LineDriverOptions],
     ) -> None:
-        super().__init__(
-            url,
-            name=name,
-            settings=settings,
-            trace=trace,
-            reconnect_min=reconnect_min,
-            reconnect_max=reconnect_max,
-            opener=opener,
-            down_after_failures=down_after_failures,
-            down_after_seconds=down_after_seconds,
-        )
+        super().__init__(url, settings=settings, **line)
         self.checksum = checksum
         self.station = station
         self.source = source
@@ -106,7 +89,6 @@ class Df1Driver(LineDriver):
         self._core = self._new_core(self._first_tns)
         self._link_base = (0, 0, 0)  # enq, nak, bad frames of links before this one
         self._waiting: dict[int, asyncio.Future[TransactionEvent]] = {}
-        self._timer: asyncio.TimerHandle | None = None
 
     def _new_core(self, first_tns: int) -> Df1Transactions:
         link = Df1DataLink(
@@ -166,24 +148,11 @@ class Df1Driver(LineDriver):
         self.counters.retries_by_kind["enq"] = enq + counters.enqs_sent
         self.counters.retries_by_kind["nak"] = nak + counters.naks_received
         self.counters.crc_errors = bad + counters.bad_frames
-        self._arm_timer()
+        self.follow_deadline(core.next_deadline())
 
-    def _arm_timer(self) -> None:
-        deadline = self._core.next_deadline()
-        timer = self._timer
-        if timer is not None:
-            if deadline is not None and timer.when() == deadline:
-                return
-            timer.cancel()
-            self._timer = None
-        if deadline is not None:
-            self._timer = asyncio.get_running_loop().call_at(deadline, self._on_timer)
-
-    def _on_timer(self) -> None:
-        self._timer = None
-        if self.connected:
-            self._core.handle_timeout(asyncio.get_running_loop().time())
-            self._pump()
+    def on_deadline(self, now: float) -> None:
+        self._core.handle_timeout(now)
+        self._pump()
 
     # --- transactions -----------------------------------------------------------------------
 

@@ -45,29 +45,17 @@ import logging
 import random
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
-from pathlib import Path
-from typing import Final
+from typing import Final, Unpack
 
 from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import GatewayError, LinkDown
 from gateway.kinds.df1.driver import DF1_SETTINGS, transaction_result
-from gateway.line_driver import LineDriver, OpenStream, run_to_the_end
+from gateway.line_driver import LineDriver, LineDriverOptions, run_to_the_end
 from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LinkHealth
+from gateway.protocols.df1 import half_duplex_events as master_events
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.half_duplex import HalfDuplexMaster
-from gateway.protocols.df1.half_duplex_events import (
-    FailReason,
-    LineConfig,
-    MasterEvent,
-    MessageDelivered,
-    RequestFailed,
-    SlaveInitiated,
-    StationConfig,
-    StationCounters,
-    StationDemoted,
-    StationRestored,
-    StrayReply,
-)
+from gateway.protocols.df1.half_duplex_events import FailReason, LineConfig, StationConfig, StationCounters
 from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions, PcccRequestLike
 from gateway.protocols.df1.pccc import DiagnosticStatus, DiagnosticStatusInfo, PcccReply
 from gateway.protocols.df1.pccc import is_write as pccc_is_write
@@ -79,7 +67,7 @@ from gateway.protocols.df1.transaction import (
     TransactionFailed,
     TransactionRefused,
 )
-from gateway.transport import SerialSettings, describe_url, enable_rs485, modem_lines, open_stream
+from gateway.transport import SerialSettings, describe_url, enable_rs485, modem_lines
 
 __all__ = ["RTS_MODES", "Df1HalfDuplexLine", "Df1Station", "PcccRequestLike", "StationTotals"]
 
@@ -122,6 +110,7 @@ class Df1Station(LinkHealth):
     ) -> None:
         super().__init__(name, down_after)
         self.line = line
+        self.url = line.url  #: the line's port (for logs)
         self.config = config
         self.station = config.station
         self.last_sts = 0
@@ -134,16 +123,11 @@ class Df1Station(LinkHealth):
     # --- state ------------------------------------------------------------------------------
 
     @property
-    def url(self) -> str:
-        """The line's port (for logs)."""
-        return self.line.url
-
-    @property
     def connected(self) -> bool:
         return self.line.connected
 
     def where(self) -> str:
-        return f"station {self.station} on {describe_url(self.line.url)}"
+        return f"station {self.station} on {describe_url(self.url)}"
 
     @property
     def totals(self) -> StationTotals:
@@ -247,7 +231,6 @@ class Df1HalfDuplexLine(LineDriver):
         url: str,
         stations: Sequence[StationConfig],
         *,
-        name: str = "",
         settings: SerialSettings = DF1_SETTINGS,
         checksum: Checksum = Checksum.CRC,
         source: int = 0,
@@ -266,31 +249,28 @@ class Df1HalfDuplexLine(LineDriver):
         station_names: dict[int, str] | None = None,
         down_after: Mapping[int, DownAfter] | None = None,
         register_tables: Mapping[int, RegisterTable] | None = None,
-        trace: Path | None = None,
-        reconnect_min: float = 0.5,
-        reconnect_max: float = 1.0,
-        opener: OpenStream = open_stream,
         first_tns: int | None = None,
+        **line: Unpack[LineDriverOptions],
     ) -> None:
-        super().__init__(
-            url, name=name, settings=settings, trace=trace, reconnect_min=reconnect_min,
-            reconnect_max=reconnect_max, opener=opener,
-        )
+        super().__init__(url, settings=settings, **line)
         if not stations:
             raise ValueError(f"line {self.name}: a half-duplex line needs at least one station")
-        self.checksum = checksum
         self.source = source
         self.retries = retries
-        self.ack_timeout = ack_timeout
         # Without duplicate detection in the slaves (RM p. 13-59 "Duplicate Packet Detect" unchecked) a
         # resent master frame whose first copy arrived is executed again: then no frame is ever resent
         # (reads are retried with a new TNS, writes settled by a read-back), so a write runs once.
         self.duplicate_detect = duplicate_detect
-        self.message_retries = message_retries if duplicate_detect else 0
-        self.pre_transmit_delay = pre_transmit_delay
-        self.rts_send_delay = rts_send_delay
-        self.rts_off_delay = rts_off_delay
-        self.echo = echo
+        #: the core's line tunables but ``char_time``, which each connection sets (``_line_config``)
+        self.tunables = LineConfig(
+            checksum,
+            ack_timeout=ack_timeout,
+            message_resends=message_retries if duplicate_detect else 0,
+            pre_transmit_delay=pre_transmit_delay,
+            rts_send_delay=rts_send_delay,
+            rts_off_delay=rts_off_delay,
+            echo=echo,
+        )
         self.link_reset = link_reset
         if rts_mode not in RTS_MODES:
             raise ValueError(f"line {self.name}: rts = {rts_mode!r}: choose {', '.join(RTS_MODES)}")
@@ -313,7 +293,6 @@ class Df1HalfDuplexLine(LineDriver):
         self.txns = HalfDuplexTransactions(source=source, retries=retries, first_tns=first)
         self.core: HalfDuplexMaster | None = None
         self._waiting: dict[int, asyncio.Future[TransactionEvent]] = {}  #: by transaction handle
-        self._timer: asyncio.TimerHandle | None = None
         self._users = 0
         self.stray_replies = 0
         #: writes of each station to the gateway's own address (report by exception), by station
@@ -331,16 +310,7 @@ class Df1HalfDuplexLine(LineDriver):
             raise ValueError(f"line {self.name}: no station {number} (stations: {sorted(self.stations)})") from None
 
     def _line_config(self) -> LineConfig:
-        return LineConfig(
-            self.checksum,
-            ack_timeout=self.ack_timeout,
-            message_resends=self.message_retries,
-            char_time=self.char_time,
-            pre_transmit_delay=self.pre_transmit_delay,
-            rts_send_delay=self.rts_send_delay,
-            rts_off_delay=self.rts_off_delay,
-            echo=self.echo,
-        )
+        return replace(self.tunables, char_time=self.char_time)
 
     def _report(self, up: bool, reason: str = "") -> None:
         """The line's own state (the port); a lost port makes every station on it down at once."""
@@ -406,8 +376,9 @@ class Df1HalfDuplexLine(LineDriver):
             self._rts_warned = True
             log.warning("line %s: RTS over RFC 2217 follows the data by a network round trip; prefer the "
                         "device server's RTS toggle for a radio", self.name)
-        if self.rts_mode == "rs485" and enable_rs485(self._stream, delay_before_tx=self.rts_send_delay,
-                                                     delay_before_rx=self.rts_off_delay):
+        tunables = self.tunables
+        if self.rts_mode == "rs485" and enable_rs485(self._stream, delay_before_tx=tunables.rts_send_delay,
+                                                     delay_before_rx=tunables.rts_off_delay):
             return
         if self.rts_mode in ("toggle", "rs485"):  # rs485 refused by the port: the core keys RTS
             self._rts = lines.set_rts
@@ -419,9 +390,6 @@ class Df1HalfDuplexLine(LineDriver):
             if not waiter.done():
                 waiter.set_exception(exc)
         self._waiting.clear()
-        if self._timer is not None:
-            self._timer.cancel()
-            self._timer = None
 
     def data_received(self, data: bytes) -> None:
         if self.core is not None:
@@ -440,31 +408,31 @@ class Df1HalfDuplexLine(LineDriver):
             self.send(out)
         while (event := self.txns.next_event()) is not NEED_DATA:
             self._dispatch(event)
-        self._arm_timer()
+        self.follow_deadline(core.next_deadline())
 
-    def _dispatch(self, event: TransactionEvent | MasterEvent) -> None:
+    def _dispatch(self, event: TransactionEvent | master_events.MasterEvent) -> None:
         if isinstance(event, TransactionDone | TransactionRefused | OutcomeUnknown | TransactionFailed):
             waiter = self._waiting.pop(event.handle, None)
             if waiter is not None and not waiter.done():
                 waiter.set_result(event)
-        elif isinstance(event, RequestFailed) and event.request_id in self._replies:
+        elif isinstance(event, master_events.RequestFailed) and event.request_id in self._replies:
             station = self._replies.pop(event.request_id)
             self.stations[station]._base.slave_replies_lost += 1
             log.debug("line %s: station %d never acknowledged the reply to its message", self.name, station)
-        elif isinstance(event, StationDemoted):
+        elif isinstance(event, master_events.StationDemoted):
             handle = self.stations[event.station]
             handle.judge(False, f"station {event.station} does not answer polls (demoted to slow poll)")
-        elif isinstance(event, StationRestored):
+        elif isinstance(event, master_events.StationRestored):
             self.stations[event.station].judge(True)
-        elif isinstance(event, SlaveInitiated):
+        elif isinstance(event, master_events.SlaveInitiated):
             self._answer(event)
-        elif isinstance(event, MessageDelivered):
+        elif isinstance(event, master_events.MessageDelivered):
             self._replies.pop(event.request_id, None)
-        elif isinstance(event, StrayReply):
+        elif isinstance(event, master_events.StrayReply):
             self.stray_replies += 1
             self.stations[event.station]._base.stray_replies += 1
 
-    def _answer(self, event: SlaveInitiated) -> None:
+    def _answer(self, event: master_events.SlaveInitiated) -> None:
         """Store a slave's write to us and queue the PCCC reply its MSG waits for (module docstring)."""
         assert self.core is not None
         now = asyncio.get_running_loop().time()
@@ -481,21 +449,9 @@ class Df1HalfDuplexLine(LineDriver):
         if reply is not None:
             self._replies[self.core.send_reply(event.station, reply, now)] = event.station
 
-    def _arm_timer(self) -> None:
-        deadline = self.core.next_deadline() if self.core is not None else None
-        timer = self._timer
-        if timer is not None:
-            if deadline is not None and timer.when() == deadline:
-                return
-            timer.cancel()
-            self._timer = None
-        if deadline is not None and self.connected:
-            self._timer = asyncio.get_running_loop().call_at(deadline, self._on_timer)
-
-    def _on_timer(self) -> None:
-        self._timer = None
-        if self.connected and self.core is not None:
-            self.txns.handle_timeout(asyncio.get_running_loop().time())
+    def on_deadline(self, now: float) -> None:
+        if self.core is not None:
+            self.txns.handle_timeout(now)
             self._pump()
 
     # --- requests ---------------------------------------------------------------------------

@@ -21,8 +21,21 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from typing import TypeAlias
 
-from gateway.modbus.mapping import BitPoint, Block, Codec, Half, Plan, PointLabel, RegisterPoint, Scan, Table
+from gateway.modbus.mapping import (
+    BitPoint,
+    BitWrite,
+    Block,
+    Codec,
+    Half,
+    Plan,
+    PointLabel,
+    RegisterPoint,
+    Scan,
+    Table,
+    WordWrite,
+)
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
+from gateway.protocols.df1.plc5_address import Plc5Address
 
 __all__ = [
     "F32_HIGH",
@@ -34,6 +47,8 @@ __all__ = [
     "Df1Read",
     "Df1WordWrite",
     "MapItem",
+    "Plc5BitWrite",
+    "Plc5WordWrite",
     "block_cost",
     "optimal_blocks",
     "plan_df1",
@@ -68,21 +83,6 @@ class Df1Read:
 
 
 @dataclass(frozen=True, slots=True)
-class Df1WordWrite:
-    """Typed logical write of one word (or one float) at an address."""
-
-    address: SlcAddress
-
-
-@dataclass(frozen=True, slots=True)
-class Df1BitWrite:
-    """Masked write of one bit of a word."""
-
-    address: SlcAddress  # the word
-    bit: int
-
-
-@dataclass(frozen=True, slots=True)
 class MapItem:
     """One ``[[link.map]]`` entry, as the planner needs it."""
 
@@ -95,6 +95,13 @@ class MapItem:
     scan: str = "fast"
 
 
+#: The write targets of an SLC 500: a typed logical write of the word (or the float) at the
+#: address for a holding register, a masked write of the word for a coil (``gateway.kinds.df1.unit``).
+Df1WordWrite: TypeAlias = WordWrite[SlcAddress]
+Df1BitWrite: TypeAlias = BitWrite[SlcAddress]
+#: The write targets of a PLC-5: a word range write, a read-modify-write (``gateway.kinds.df1.plc5_unit``).
+Plc5WordWrite: TypeAlias = WordWrite[Plc5Address]
+Plc5BitWrite: TypeAlias = BitWrite[Plc5Address]
 #: The plan of a DF1 link: typed word writes to holding registers, masked bit writes to coils.
 Df1Plan: TypeAlias = Plan[Df1WordWrite, Df1BitWrite]
 

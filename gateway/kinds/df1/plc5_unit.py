@@ -40,10 +40,12 @@ from gateway.kinds.df1.plan import (
     READ_OVERHEAD_BYTES,
     U16_LE,
     MapItem,
+    Plc5BitWrite,
+    Plc5WordWrite,
     entry_description,
     optimal_blocks,
 )
-from gateway.kinds.df1.unit import PcccDriver, PcccUnit, _step_bytes
+from gateway.kinds.df1.unit import PcccDriver, PcccUnit, _step_bytes, _word_target
 from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, PointLabel, RegisterPoint, Scan, Table
 from gateway.protocols.df1.pccc import (
     LogicalBinaryAddress,
@@ -79,21 +81,6 @@ class Plc5Read:
 
     address: Plc5Address
     words: int
-
-
-@dataclass(frozen=True, slots=True)
-class Plc5WordWrite:
-    """A holding register's target: the word (or the float) at ``address``."""
-
-    address: Plc5Address
-
-
-@dataclass(frozen=True, slots=True)
-class Plc5BitWrite:
-    """A coil's target: bit ``bit`` of the word at ``address``."""
-
-    address: Plc5Address
-    bit: int
 
 
 Plc5Plan: TypeAlias = Plan[Plc5WordWrite, Plc5BitWrite]
@@ -299,9 +286,7 @@ class Plc5Unit(PcccUnit[Plc5WordWrite, Plc5BitWrite]):
             group.clear()
 
         for step in super()._register_steps(checked):
-            target = step.patches[0][0].write
-            if not isinstance(target, Plc5WordWrite):
-                raise TypeError(f"register {step.first}: not a PLC-5 word write")
+            target = _word_target(step, Plc5Address)
             nbytes = len(_step_bytes(step))
             if group and self._continues(group[0][1], group[-1][1], target.address, size + nbytes):
                 group.append((step, target))

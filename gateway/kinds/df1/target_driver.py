@@ -20,10 +20,10 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Callable, Sequence
-from pathlib import Path
+from typing import Unpack
 
 from gateway.errors import GatewayError
-from gateway.line_driver import LineDriver
+from gateway.line_driver import LineDriver, LineDriverOptions
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.pccc import PcccHeader, encode_reply
 from gateway.protocols.df1.pccc.target import PcccTarget, TargetReply
@@ -50,7 +50,6 @@ class TargetRunner(LineDriver):
         self,
         url: str,
         *,
-        name: str,
         settings: SerialSettings,
         target: PcccTarget,
         station: int,
@@ -58,9 +57,9 @@ class TargetRunner(LineDriver):
         duplicate_detect: bool = True,
         check_dst: bool = False,
         ack_timeout: float = 1.0,
-        trace: Path | None = None,
+        **line: Unpack[LineDriverOptions],
     ) -> None:
-        super().__init__(url, name=name, settings=settings, trace=trace)
+        super().__init__(url, settings=settings, **line)
         self.target = target
         self.responder = Df1Responder(station=station, checksum=checksum, duplicate_detect=duplicate_detect,
                                       check_dst=check_dst, ack_timeout=ack_timeout)
@@ -72,7 +71,6 @@ class TargetRunner(LineDriver):
         self.last_sts = 0
         #: commands refused (STS other than 0)
         self.refused = 0
-        self._timer: asyncio.TimerHandle | None = None
 
     @property
     def duplicates(self) -> int:
@@ -95,13 +93,12 @@ class TargetRunner(LineDriver):
     # --- LineDriver hooks ------------------------------------------------------------------------
 
     def on_connect(self) -> None:
-        self._cancel_timer()
         self.responder.reset()
         while self.responder.next_event() is not NEED_DATA:
             pass  # replies lost with the old connection: their commands were executed and committed
 
     def abort(self, exc: GatewayError) -> None:
-        self._cancel_timer()
+        """Nothing waits on the line: a command's reply is queued at once."""
 
     def data_received(self, data: bytes) -> None:
         now = asyncio.get_running_loop().time()
@@ -126,7 +123,7 @@ class TargetRunner(LineDriver):
         out = responder.data_to_send()
         if out and self.connected:
             self.send(out)
-        self._arm_timer()
+        self.follow_deadline(responder.next_deadline())
 
     def _execute(self, command: CommandReceived, now: float) -> None:
         self.on_heard(now)
@@ -163,21 +160,6 @@ class TargetRunner(LineDriver):
         self.counters.retries_by_kind["enq"] = c.enqs_sent
         self.counters.retries_by_kind["enq_received"] = c.enqs_received
 
-    def _arm_timer(self) -> None:
-        deadline = self.responder.next_deadline()
-        if self._timer is not None and (deadline is None or self._timer.when() != deadline):
-            self._timer.cancel()
-            self._timer = None
-        if deadline is not None and self._timer is None:
-            self._timer = asyncio.get_running_loop().call_at(deadline, self._on_timer)
-
-    def _on_timer(self) -> None:
-        self._timer = None
-        now = asyncio.get_running_loop().time()
+    def on_deadline(self, now: float) -> None:
         self.responder.handle_timeout(now)
         self._pump(now)
-
-    def _cancel_timer(self) -> None:
-        if self._timer is not None:
-            self._timer.cancel()
-            self._timer = None

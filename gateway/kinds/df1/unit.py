@@ -22,7 +22,7 @@ from gateway.kinds.df1.driver import Df1Driver, check_reply_size
 from gateway.kinds.df1.plan import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, shared_plan_df1
 from gateway.kinds.df1.receive import ReceiveWindow
 from gateway.line_driver import UnitDriver
-from gateway.modbus.mapping import BitPoint, Block, Half, Plan, RegisterPoint, Table
+from gateway.modbus.mapping import BitPoint, Block, Half, Plan, RegisterPoint, Table, WordWrite
 from gateway.protocols.df1.address import FileType, SlcAddress
 from gateway.protocols.df1.pccc import (
     PcccError,
@@ -36,6 +36,7 @@ from gateway.unit import Unit, UnitOptions, WriteStep
 
 R = TypeVar("R")
 B = TypeVar("B")
+A = TypeVar("A")
 
 __all__ = ["PROCESSORS", "Df1Unit", "PcccDriver", "PcccUnit", "pccc_exception"]
 
@@ -164,7 +165,7 @@ class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):
         """
         groups: list[list[WriteStep]] = []
         for step in super()._register_steps(checked):
-            target = _word_target(step)
+            target = _word_target(step, SlcAddress)
             if groups and self._joins(groups[-1], target.address, len(_step_bytes(step))):
                 groups[-1].append(step)
             else:
@@ -174,7 +175,7 @@ class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):
             if len(group) == 1:
                 steps.append(group[0])
                 continue
-            first = _word_target(group[0])
+            first = _word_target(group[0], SlcAddress)
             patches = [patch for step in group for patch in step.patches]
             data = b"".join(_step_bytes(step) for step in group)
             steps.append(WriteStep(group[0].first, group[-1].last, partial(self._write_words, first.address, data),
@@ -183,8 +184,8 @@ class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):
 
     def _joins(self, group: list[WriteStep], address: SlcAddress, size: int) -> bool:
         """Whether a write of ``size`` bytes at ``address`` continues ``group`` in one command."""
-        last = _word_target(group[-1])
-        first = _word_target(group[0])
+        last = _word_target(group[-1], SlcAddress)
+        first = _word_target(group[0], SlcAddress)
         a, b = last.address, address
         if a.file_type not in _PLAIN_FILES or a.sub_element or b.sub_element or a.bit is not None:
             return False
@@ -266,9 +267,10 @@ def _step_bytes(step: WriteStep) -> bytes:
     return bytes(out)
 
 
-def _word_target(step: WriteStep) -> Df1WordWrite:
-    """The word a register write step starts at (steps are made from writable points only)."""
+def _word_target(step: WriteStep, address_type: type[A]) -> WordWrite[A]:
+    """The word a register write step starts at, at an ``address_type`` address (SLC or PLC-5;
+    steps are made from writable points only)."""
     target = step.patches[0][0].write
-    if not isinstance(target, Df1WordWrite):
-        raise TypeError(f"register {step.first}: not a DF1 word write")
+    if not (isinstance(target, WordWrite) and isinstance(target.address, address_type)):
+        raise TypeError(f"register {step.first}: not a write of a word at a {address_type.__name__}")
     return target

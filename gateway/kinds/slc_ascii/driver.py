@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from pathlib import Path
-from typing import Final
+from typing import Final, Unpack
 
 from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import (
@@ -25,14 +24,13 @@ from gateway.errors import (
     WriteOutcomeUnknown,
 )
 from gateway.kinds.slc_ascii.config import SLC_ASCII_DEFAULTS
-from gateway.line_driver import LineDriver, OpenStream, Priority
-from gateway.link_health import DEFAULT_DOWN_AFTER
+from gateway.line_driver import LineDriver, LineDriverOptions, Priority
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command, ControllerType, FrnInfo, Mode, TimeoutClass
 from gateway.protocols.slc_ascii.framing import Ack, DataReply
 from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS, SlcSession, SlcVerdict
 from gateway.protocols.slc_ascii.transfer import MAX_TRANSFER_RESTARTS, Download, Restart, Upload
-from gateway.transport import SerialSettings, open_stream
+from gateway.transport import SerialSettings
 
 #: the retries-metric name of a message-ID resync (also the status block's kind counter)
 ID_RESYNC: Final = "id_resync"
@@ -65,31 +63,15 @@ class SlcAsciiDriver(LineDriver):
         self,
         url: str,
         *,
-        name: str = "",
         settings: SerialSettings = SLC_ASCII_SETTINGS,
         timeout: float = DEFAULT_TIMEOUT,
         slow_timeout: float = DEFAULT_SLOW_TIMEOUT,
         retries: int = DEFAULT_RETRIES,
-        trace: Path | None = None,
-        reconnect_min: float = 0.5,
-        reconnect_max: float = 1.0,
-        opener: OpenStream = open_stream,
-        down_after_failures: int = DEFAULT_DOWN_AFTER.failures,
-        down_after_seconds: float = DEFAULT_DOWN_AFTER.seconds,
         max_resyncs: int = MAX_RESYNCS,
         write_budget: float | None = None,
+        **line: Unpack[LineDriverOptions],
     ) -> None:
-        super().__init__(
-            url,
-            name=name,
-            settings=settings,
-            trace=trace,
-            reconnect_min=reconnect_min,
-            reconnect_max=reconnect_max,
-            opener=opener,
-            down_after_failures=down_after_failures,
-            down_after_seconds=down_after_seconds,
-        )
+        super().__init__(url, settings=settings, **line)
         self.timeout = timeout
         self.slow_timeout = max(slow_timeout, timeout)
         self.retries = retries

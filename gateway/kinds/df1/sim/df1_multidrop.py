@@ -45,7 +45,7 @@ import math
 import random
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import ClassVar, Final
+from typing import ClassVar, Final, TypeVar
 
 from gateway.kinds.df1.sim.df1_half_duplex_slave import VARIANTS as SLAVE_VARIANTS
 from gateway.kinds.df1.sim.df1_half_duplex_slave import HalfDuplexSlave, SlaveVariant
@@ -53,6 +53,7 @@ from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.kinds.df1.sim.slc500 import Output, Slc500Options, Slc500Simulator
 from gateway.kinds.df1.sim.slc500_line import corrupt_frame
 from gateway.protocols.df1.framing import Checksum, Symbol
+from gateway.sim.models import read_sim_option
 
 __all__ = ["LineOptions", "MultidropCounters", "MultidropLine", "SlcStation"]
 
@@ -62,13 +63,12 @@ _OPTION_NAMES: Final = (
 )
 _MODELS: Final = ("slc504", "plc5")
 
+T = TypeVar("T")
+
 
 class SlcStation(Slc500Simulator):
-    """The SLC 5/04 model's data table and command execution, without its full-duplex link."""
-
-    def execute(self, packet: bytes) -> bytes | None:
-        """A command packet -> its reply packet, or None when it is not answered."""
-        return self._handle(packet)
+    """The SLC 5/04 model as a station: the line calls its ``execute`` (data table and commands);
+    its full-duplex link is not used."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,14 +121,8 @@ class LineOptions:
             raise ValueError(f"unknown multi-drop line option(s) {', '.join(unknown)} "
                              f"(known: {', '.join(sorted(_OPTION_NAMES))})")
 
-        def get(name: str, parse: Callable[[str], object], default: object) -> object:
-            text = options.get(name)
-            if text is None:
-                return default
-            try:
-                return parse(text.strip())
-            except ValueError:
-                raise ValueError(f"multi-drop line option {name}={text!r} cannot be read") from None
+        def get(name: str, parse: Callable[[str], T], default: T) -> T:
+            return read_sim_option(options, name, parse, default, what="multi-drop line option")
 
         def numbers(text: str) -> tuple[int, ...]:
             return tuple(int(part) for part in text.split(",") if part.strip())
@@ -146,32 +140,30 @@ class LineOptions:
         checksum_text = options.get("checksum", "crc").strip().lower()
         if checksum_text not in ("bcc", "crc"):
             raise ValueError(f"multi-drop line option checksum={checksum_text!r}: choose bcc or crc")
-        slow = get("slow", pairs, {})
-        busy = get("busy_polls", pairs, {})
-        assert isinstance(slow, dict) and isinstance(busy, dict)
+        no_pairs: dict[int, str] = {}
+        no_stations: tuple[int, ...] = ()
+        slow = get("slow", pairs, no_pairs)
+        busy = get("busy_polls", pairs, no_pairs)
         try:
             slow_seconds = {k: float(v) for k, v in slow.items()}
             busy_counts = {k: int(v) for k, v in busy.items()}
         except ValueError:
             raise ValueError("multi-drop line options slow / busy_polls: station:value pairs") from None
-        stations = get("stations", numbers, (1, 2, 3))
-        dead = get("dead", numbers, ())
-        assert isinstance(stations, tuple) and isinstance(dead, tuple)
         return cls(
             checksum=Checksum(checksum_text),
-            stations=stations,
-            dead=frozenset(dead),
+            stations=get("stations", numbers, (1, 2, 3)),
+            dead=frozenset(get("dead", numbers, no_stations)),
             slow=slow_seconds,
             busy_polls=busy_counts,
-            turnaround=float(str(get("turnaround", str, "0"))),
-            latency=float(str(get("latency", str, "0"))),
-            char_time=float(str(get("char_time", str, "0"))),
-            corrupt=int(str(get("corrupt", str, "0"))),
-            ignore=int(str(get("ignore", str, "0"))),
-            lose_symbol=int(str(get("lose_symbol", str, "0"))),
-            echo=str(get("echo", str, "0")).lower() in ("1", "true", "yes"),
-            seed=int(str(get("seed", str, "1"))),
-            model=str(get("model", str, "slc504")).lower(),
+            turnaround=get("turnaround", float, 0.0),
+            latency=get("latency", float, 0.0),
+            char_time=get("char_time", float, 0.0),
+            corrupt=get("corrupt", int, 0),
+            ignore=get("ignore", int, 0),
+            lose_symbol=get("lose_symbol", int, 0),
+            echo=get("echo", lambda text: text.lower() in ("1", "true", "yes"), False),
+            seed=get("seed", int, 1),
+            model=get("model", str.lower, "slc504"),
         )
 
 

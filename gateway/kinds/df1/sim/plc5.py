@@ -47,11 +47,9 @@ replaces the command execution.  No I/O.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from typing import ClassVar, Final
 
-from gateway.errors import GatewayError
-from gateway.kinds.df1.sim.slc500 import ExtSts, Output, Slc500Options, Slc500Simulator
+from gateway.kinds.df1.sim.slc500 import ExtSts, Output, Slc500Simulator
 from gateway.kinds.df1.sim.slc500_data import DataFile
 from gateway.kinds.df1.sim.slc500_processor import _AnswerSts, _not_usable  # the SLC processor's refusal, one class
 from gateway.protocols.df1.pccc import Function, PcccHeader, Sts, encode_reply
@@ -85,44 +83,19 @@ class Plc5Simulator(Slc500Simulator):
         "typed_logical": ("refuse", "accept"),
     }
 
-    def __init__(
-        self,
-        options: Slc500Options | None = None,
-        *,
-        ladder: bool = True,
-        variants: Mapping[str, str] | None = None,
-    ) -> None:
-        super().__init__(options, ladder=ladder, variants=variants)
-        self.accept_typed_logical = self.variants["typed_logical"] == "accept"
-
-    @classmethod
-    def from_options(
-        cls, fault_options: Mapping[str, str], *, ladder: bool = True, variants: Mapping[str, str] | None = None
-    ) -> Plc5Simulator:
-        """From ``sim://plc5?...`` options (the SLC model's options); ValueError for a bad one."""
-        return cls(Slc500Options.from_options(fault_options), ladder=ladder, variants=variants)
+    @property
+    def accept_typed_logical(self) -> bool:
+        """The ``typed_logical`` variant: SLC typed logical commands are served (else STS 10)."""
+        return self.variants["typed_logical"] == "accept"
 
     # --- commands ---------------------------------------------------------------------------
 
-    def execute(self, packet: bytes) -> bytes | None:
-        """A command packet -> its reply packet, or None when it is not answered (public, for the
-        half-duplex line simulator, which runs its own link layer)."""
-        return self._handle(packet)
-
-    def _handle(self, packet: bytes) -> bytes | None:
-        try:
-            header = PcccHeader.decode(packet)
-        except GatewayError:
-            self.counters.ignored += 1
-            return None
-        if header.dst != self.options.station or header.is_reply:
-            self.counters.ignored += 1
-            return None
+    def _answer(self, header: PcccHeader, packet: bytes) -> bytes:
         fnc = packet[6] if len(packet) > 6 else None
         if header.cmd != _EXTENDED_CMD or fnc is None:
-            return super()._handle(packet)  # diagnostic status; malformed packets: STS 10
+            return super()._answer(header, packet)  # diagnostic status; malformed packets: STS 10
         if fnc in _TYPED_LOGICAL and self.accept_typed_logical:
-            return super()._handle(packet)
+            return super()._answer(header, packet)
         params = packet[7:]
         try:
             if fnc == Function.WORD_RANGE_READ:
@@ -138,7 +111,7 @@ class Plc5Simulator(Slc500Simulator):
                 self._count("unsupported")
                 raise _AnswerSts(Sts.ILLEGAL_COMMAND_OR_FORMAT)
             else:
-                return super()._handle(packet)  # typed read / write (67 / 68) and the rest
+                return super()._answer(header, packet)  # typed read / write (67 / 68) and the rest
         except _AnswerSts as refusal:
             self.counters.refusals += 1
             return encode_reply(header, sts=refusal.sts, ext_sts=refusal.ext_sts)

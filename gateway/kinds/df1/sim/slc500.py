@@ -57,7 +57,7 @@ from __future__ import annotations
 import random
 from collections import deque
 from collections.abc import Mapping
-from typing import ClassVar
+from typing import ClassVar, Self
 
 from gateway.kinds.df1.sim.slc500_line import (
     REPLY_ADDRESSES,
@@ -128,8 +128,9 @@ class Slc500Simulator(Slc500Processor):
     @classmethod
     def from_options(
         cls, fault_options: Mapping[str, str], *, ladder: bool = True, variants: Mapping[str, str] | None = None
-    ) -> Slc500Simulator:
-        """From ``sim://slc504?...`` options; ValueError for an unknown option, variant or bad value."""
+    ) -> Self:
+        """From ``sim://slc504?...`` (``sim://plc5?...``) options; ValueError for an unknown option,
+        variant or bad value."""
         return cls(Slc500Options.from_options(fault_options), ladder=ladder, variants=variants)
 
     # --- the line ---------------------------------------------------------------------------

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from gateway.protocols.df1.framing import Checksum
+from gateway.sim.models import read_sim_option
 
 __all__ = ["Slc500Counters", "Slc500Options"]
 
@@ -61,44 +62,24 @@ class Slc500Options:
         if "garble" in options and "corrupt" in options:
             raise ValueError("simulator options garble and corrupt are the same; give only one")
         one_in = {
-            name: _int_option(options, "garble" if name == "corrupt" and "garble" in options else name, 0)
+            name: read_sim_option(options, "garble" if name == "corrupt" and "garble" in options else name, int, 0)
             for name in _ONE_IN_OPTIONS
         }
         return cls(
             checksum=_checksum_option(options.get("checksum", "crc")),
-            station=_int_option(options, "station", 1),
+            station=read_sim_option(options, "station", int, 1),
             corrupt=one_in["corrupt"],
             drop=one_in["drop"],
             withhold_ack=one_in["withhold_ack"],
             duplicate=one_in["duplicate"],
             noise=one_in["noise"],
-            delay=_float_option(options, "delay", 0.0),
-            seed=_int_option(options, "seed", 1),
-            link_ack_timeout=_float_option(options, "link_ack_timeout", 0.5),
+            delay=read_sim_option(options, "delay", float, 0.0),
+            seed=read_sim_option(options, "seed", int, 1),
+            link_ack_timeout=read_sim_option(options, "link_ack_timeout", float, 0.5),
             lose_in=one_in["lose_in"],
             corrupt_in=one_in["corrupt_in"],
             faults_on=options.get("faults_on", "all").strip().lower(),
         )
-
-
-def _int_option(options: Mapping[str, str], key: str, default: int) -> int:
-    text = options.get(key)
-    if text is None:
-        return default
-    try:
-        return int(text.strip())
-    except ValueError:
-        raise ValueError(f"simulator option {key}={text!r} is not a whole number") from None
-
-
-def _float_option(options: Mapping[str, str], key: str, default: float) -> float:
-    text = options.get(key)
-    if text is None:
-        return default
-    try:
-        return float(text.strip())
-    except ValueError:
-        raise ValueError(f"simulator option {key}={text!r} is not a number") from None
 
 
 def _checksum_option(text: str) -> Checksum:

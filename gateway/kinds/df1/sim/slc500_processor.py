@@ -305,7 +305,8 @@ class Slc500Processor:
         self.counters.commands[kind] = self.counters.commands.get(kind, 0) + 1
 
     def _handle(self, packet: bytes) -> bytes | None:
-        """A command packet -> the reply packet, or None when it is not answered."""
+        """A command packet -> the reply packet, or None when it is not answered (module docstring:
+        not for our station, a reply, shorter than a header)."""
         try:
             header = PcccHeader.decode(packet)
         except GatewayError:
@@ -314,6 +315,10 @@ class Slc500Processor:
         if header.dst != self.options.station or header.is_reply:
             self.counters.ignored += 1
             return None
+        return self._answer(header, packet)
+
+    def _answer(self, header: PcccHeader, packet: bytes) -> bytes:
+        """The reply packet to a command for this station."""
         try:
             command = decode_command(packet)
         except GatewayError:
