@@ -27,6 +27,8 @@ Mode selection is the byte write at 0101H, the controller mode byte ("The Memory
 
 from __future__ import annotations
 
+from typing import Final
+
 from gateway.errors import InvalidRequest
 from gateway.protocols.slc_ascii.command_types import (
     BLOCK_SIZE,
@@ -133,6 +135,19 @@ def _word(value: int) -> bytes:
     return value.to_bytes(2, "big")
 
 
+#: The codes of the commands that change the controller, each answered with ``;R``; every other
+#: command reads and is answered with data ("Specific Commands").
+_WRITE_CODES: Final = frozenset({
+    CommandCode.DOWNLOAD, CommandCode.WRITE, CommandCode.WRITE_SEQUENCER_PRESET, CommandCode.WRITE_RESET_ACCUMULATOR,
+})
+
+
+def _command(code: CommandCode, params: bytes, name: str, timeout_class: TimeoutClass = TimeoutClass.NORMAL) -> Command:
+    """Command ``code`` with ``params``: a write is answered ``;R``, a read with data."""
+    is_write = code in _WRITE_CODES
+    return Command(code, params, name, ReplyKind.ACK if is_write else ReplyKind.DATA, timeout_class, is_write=is_write)
+
+
 def read_bytes(address: int, count: int = 1) -> Command:
     """``#0502 <count> <address>``: read 1 or 2 bytes ("Reading Data - Run or Continuous Test Modes").
 
@@ -140,13 +155,10 @@ def read_bytes(address: int, count: int = 1) -> Command:
     ``**`` cell is ever read (see :func:`memory_map.check_readable`).
     """
     check_readable(address, count)
-    return Command(
+    return _command(
         CommandCode.READ,
         _word(count) + _word(address),
         f"read {count} byte{'s' if count == 2 else ''} at 0x{address:04X}",
-        ReplyKind.DATA,
-        TimeoutClass.NORMAL,
-        is_write=False,
     )
 
 
@@ -158,28 +170,14 @@ def write_word(address: int, value: int) -> Command:
     """
     check_word_writable(address)
     check_int("value", value, 0, VALUE_LIMIT - 1, "data words must be less than 2710H (0-9999)")
-    return Command(
-        CommandCode.WRITE,
-        _word(address) + _word(value),
-        f"write word {value} to 0x{address:04X}",
-        ReplyKind.ACK,
-        TimeoutClass.NORMAL,
-        is_write=True,
-    )
+    return _command(CommandCode.WRITE, _word(address) + _word(value), f"write word {value} to 0x{address:04X}")
 
 
 def write_byte(address: int, value: int) -> Command:
     """``#0403 <address> <byte>``: 00A6H-00B4H only, relays 701-820 ("Writing Data Bytes")."""
     check_byte_writable(address)
     check_int("value", value, 0, 0xFF, "a data byte is 0-255")
-    return Command(
-        CommandCode.WRITE,
-        _word(address) + bytes([value]),
-        f"write byte 0x{value:02X} to 0x{address:04X}",
-        ReplyKind.ACK,
-        TimeoutClass.NORMAL,
-        is_write=True,
-    )
+    return _command(CommandCode.WRITE, _word(address) + bytes([value]), f"write byte 0x{value:02X} to 0x{address:04X}")
 
 
 def write_item(item: Item, value: int) -> Command:
@@ -222,19 +220,17 @@ def set_mode(mode: Mode) -> Command:
     except ValueError:
         allowed = ", ".join(f"{m.name} (0x{m.value:02X})" for m in Mode)
         raise InvalidRequest(f"mode {mode!r} is not allowed: the data byte is limited to {allowed}") from None
-    return Command(
+    return _command(
         CommandCode.WRITE,
         _word(MODE_ADDRESS) + bytes([mode]),
         f"set mode {mode.name} (0x{mode.value:02X})",
-        ReplyKind.ACK,
         TimeoutClass.SLOW,
-        is_write=True,
     )
 
 
 def read_frn() -> Command:
     """``#0108``: read the device type and FRN ("Read Device FRN ID Tag - All Modes")."""
-    return Command(CommandCode.READ_FRN, b"", "read FRN", ReplyKind.DATA, TimeoutClass.NORMAL, is_write=False)
+    return _command(CommandCode.READ_FRN, b"", "read FRN")
 
 
 def upload_block() -> Command:
@@ -243,14 +239,7 @@ def upload_block() -> Command:
     The reply carries the block number (see :func:`parse_upload_reply`). Send it once per block,
     in order, until all blocks of the controller type are transferred.
     """
-    return Command(
-        CommandCode.UPLOAD,
-        b"",
-        "upload next program block",
-        ReplyKind.DATA,
-        TimeoutClass.SLOW,
-        is_write=False,
-    )
+    return _command(CommandCode.UPLOAD, b"", "upload next program block", TimeoutClass.SLOW)
 
 
 def download_block(
@@ -278,40 +267,23 @@ def download_block(
         raise InvalidRequest(
             f"block 0x{block:02X} is the last {controller.name} block: "
             "its last 8 bytes are fill and must be zero")
-    return Command(
-        CommandCode.DOWNLOAD,
-        bytes([block]) + data,
-        f"download block 0x{block:02X}",
-        ReplyKind.ACK,
-        TimeoutClass.SLOW,
-        is_write=True,
-    )
+    return _command(CommandCode.DOWNLOAD, bytes([block]) + data, f"download block 0x{block:02X}", TimeoutClass.SLOW)
 
 
 def read_sequencer_preset(rung: int, step: int) -> Command:
     """``#0404 <rung> <step>`` ("Reading Sequencer Preset"); reply: :func:`parse_word_reply`."""
     rung, step = _check_rung(rung), _check_step(step)
-    return Command(
+    return _command(
         CommandCode.READ_SEQUENCER_PRESET,
         _word(rung) + bytes([step]),
         f"read sequencer preset rung {rung} step {step}",
-        ReplyKind.DATA,
-        TimeoutClass.NORMAL,
-        is_write=False,
     )
 
 
 def read_reset_accumulator(rung: int) -> Command:
     """``#0305 <rung>`` ("Reading Reset Accumulator"); reply: :func:`parse_word_reply`."""
     rung = _check_rung(rung)
-    return Command(
-        CommandCode.READ_RESET_ACCUMULATOR,
-        _word(rung),
-        f"read reset accumulator rung {rung}",
-        ReplyKind.DATA,
-        TimeoutClass.NORMAL,
-        is_write=False,
-    )
+    return _command(CommandCode.READ_RESET_ACCUMULATOR, _word(rung), f"read reset accumulator rung {rung}")
 
 
 def write_sequencer_preset(rung: int, step: int, value: int) -> Command:
@@ -320,13 +292,10 @@ def write_sequencer_preset(rung: int, step: int, value: int) -> Command:
     rung, step = _check_rung(rung), _check_step(step)
     check_int(
         "preset", value, 1, VALUE_LIMIT - 1, "a sequencer preset is non-zero and less than 2710H (1-9999)")
-    return Command(
+    return _command(
         CommandCode.WRITE_SEQUENCER_PRESET,
         _word(rung) + bytes([step]) + _word(value),
         f"write sequencer preset {value} to rung {rung} step {step}",
-        ReplyKind.ACK,
-        TimeoutClass.NORMAL,
-        is_write=True,
     )
 
 
@@ -334,11 +303,8 @@ def write_reset_accumulator(rung: int, value: int) -> Command:
     """``#0507 <rung> <accumulator>``: value 0-9999, "less than 2710H" ("Writing Reset Accumulator")."""
     rung = _check_rung(rung)
     check_int("accumulator", value, 0, VALUE_LIMIT - 1, "an accumulator is less than 2710H (0-9999)")
-    return Command(
+    return _command(
         CommandCode.WRITE_RESET_ACCUMULATOR,
         _word(rung) + _word(value),
         f"write reset accumulator {value} to rung {rung}",
-        ReplyKind.ACK,
-        TimeoutClass.NORMAL,
-        is_write=True,
     )

@@ -25,7 +25,7 @@ from __future__ import annotations
 import re
 from collections import deque
 from dataclasses import dataclass
-from typing import Final
+from typing import Final, Generic, TypeVar
 
 from gateway.protocols.need_data import NEED_DATA, NeedData
 from gateway.protocols.slc_ascii.commands import Command
@@ -161,10 +161,6 @@ def encode_id_mismatch(last_valid_id: int) -> bytes:
 # --- events ---------------------------------------------------------------------------------
 
 
-
-
-
-
 @dataclass(frozen=True, slots=True)
 class DataReply:
     """``:`` data reply.  ``body_hex`` is the upper-case hex text between ``:`` and the ID."""
@@ -174,24 +170,28 @@ class DataReply:
 
 
 @dataclass(frozen=True, slots=True)
-class Ack:
+class _IdOnly:
+    """A frame that carries nothing but its message ID; each subclass is one kind of frame."""
+
+    msg_id: int
+
+
+class Ack(_IdOnly):
     """``;R``: the command was valid and executed."""
 
-    msg_id: int
+    __slots__ = ()
 
 
-@dataclass(frozen=True, slots=True)
-class Refused:
+class Refused(_IdOnly):
     """``;E``: the command or its parameters were illegal (mode or range); not executed."""
 
-    msg_id: int
+    __slots__ = ()
 
 
-@dataclass(frozen=True, slots=True)
-class Fault:
+class Fault(_IdOnly):
     """``;T``: the controller detected a fault; read bytes 84H-85H for the reason."""
 
-    msg_id: int
+    __slots__ = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -218,15 +218,16 @@ class CommandFrame:
     msg_id: int
 
 
-@dataclass(frozen=True, slots=True)
-class RetransmitRequest:
+class RetransmitRequest(_IdOnly):
     """Controller side: ``;Z``."""
 
-    msg_id: int
+    __slots__ = ()
 
 
 ReplyEvent = DataReply | Ack | Refused | Fault | IdMismatch | Garbled
 HostEvent = CommandFrame | RetransmitRequest | Garbled
+#: the events of one decoder's side: ``ReplyEvent`` or ``HostEvent``
+_EventT = TypeVar("_EventT")
 
 _SEMICOLON_REPLIES: Final[dict[int, type[Ack] | type[Refused] | type[Fault]]] = {
     ord("R"): Ack,
@@ -325,8 +326,8 @@ def _split_checked(line: bytes) -> tuple[bytes, int] | str:
     return text.upper(), msg_id
 
 
-class _Decoder:
-    """Cuts lines, checks CRC and ID; subclasses turn a checked line into an event."""
+class _Decoder(Generic[_EventT]):
+    """Cuts lines, checks CRC and ID; a subclass turns a checked line into its own event."""
 
     __slots__ = ("_lines",)
 
@@ -349,8 +350,8 @@ class _Decoder:
         line = self._lines.flush()
         return Garbled(line, "frame cut short (no CR)") if line else None
 
-    def _next_checked(self) -> tuple[bytes, bytes, int] | Garbled | NeedData:
-        """(line, upper-cased text through the ID, ID), a Garbled line, or NEED_DATA."""
+    def next_event(self) -> _EventT | Garbled | NeedData:
+        """The next frame's event, a Garbled line, or NEED_DATA."""
         item = self._lines.next_line()
         if item is None:
             return NEED_DATA
@@ -360,21 +361,23 @@ class _Decoder:
         checked = _split_checked(line)
         if isinstance(checked, str):
             return Garbled(line, checked)
-        return line, checked[0], checked[1]
+        text, msg_id = checked
+        return self._event(line, text, msg_id)
+
+    def _event(self, line: bytes, text: bytes, msg_id: int) -> _EventT | Garbled:
+        """The event of ``line``, whose CRC and ID are good; ``text`` is the line upper-cased from after
+        the leading character through the ID."""
+        raise NotImplementedError
 
 
-class ReplyDecoder(_Decoder):
+class ReplyDecoder(_Decoder[ReplyEvent]):
     """Host side: bytes from the controller -> ``ReplyEvent`` or ``NEED_DATA``."""
 
     __slots__ = ()
 
     LEADS = b":;"
 
-    def next_event(self) -> ReplyEvent | NeedData:
-        checked = self._next_checked()
-        if not isinstance(checked, tuple):
-            return checked
-        line, text, msg_id = checked
+    def _event(self, line: bytes, text: bytes, msg_id: int) -> ReplyEvent:
         if line[0] == ord(":"):
             body = text[:-2]
             if not body or len(body) % 2 or not all(c in _HEX_DIGITS for c in body):
@@ -391,18 +394,14 @@ class ReplyDecoder(_Decoder):
         return kind(msg_id)
 
 
-class CommandDecoder(_Decoder):
+class CommandDecoder(_Decoder[HostEvent]):
     """Controller side: bytes from the host -> ``HostEvent`` or ``NEED_DATA`` (used by the simulator)."""
 
     __slots__ = ()
 
     LEADS = b"#;"
 
-    def next_event(self) -> HostEvent | NeedData:
-        checked = self._next_checked()
-        if not isinstance(checked, tuple):
-            return checked
-        line, text, msg_id = checked
+    def _event(self, line: bytes, text: bytes, msg_id: int) -> HostEvent:
         if line[0] == ord(";"):
             if text[0] == ord("Z") and len(text) == 3:
                 return RetransmitRequest(msg_id)

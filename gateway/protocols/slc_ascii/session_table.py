@@ -130,33 +130,31 @@ def _stay(state: SessionState) -> SessionTransition:
 #: the session's classification never gives this input in this state
 _NEVER: Final = SessionTransition(SessionAction.UNREACHABLE, frozenset())
 
+
+def _never(state: SessionState, *inputs: SessionInput) -> dict[tuple[SessionState, SessionInput], SessionTransition]:
+    """``UNREACHABLE`` entries: the session's classification never gives these inputs in ``state``."""
+    return {(state, what): _NEVER for what in inputs}
+
+
 #: (state, input) -> (action, the states it may lead to), for every pair.
 TRANSITIONS: Final[Mapping[tuple[SessionState, SessionInput], SessionTransition]] = MappingProxyType({
     # No transaction: start() begins one; replies are late ones of finished transactions; there is
     # no deadline.
     (SessionState.IDLE, SessionInput.START): _entry(SessionAction.BEGIN, _RESYNCS | _states(SessionState.SENT)),
     (SessionState.IDLE, SessionInput.STALE): _stay(SessionState.IDLE),
-    (SessionState.IDLE, SessionInput.OURS): _NEVER,
-    (SessionState.IDLE, SessionInput.OURS_REFUSED): _NEVER,
-    (SessionState.IDLE, SessionInput.OTHER): _NEVER,
-    (SessionState.IDLE, SessionInput.ID_OURS): _NEVER,
-    (SessionState.IDLE, SessionInput.ID_OTHER): _NEVER,
-    (SessionState.IDLE, SessionInput.GARBLED): _NEVER,
-    (SessionState.IDLE, SessionInput.PROBE_ANSWER): _NEVER,
-    (SessionState.IDLE, SessionInput.PROBE_REFUSED): _NEVER,
-    (SessionState.IDLE, SessionInput.TIMEOUT): _NEVER,
+    **_never(
+        SessionState.IDLE,
+        SessionInput.OURS, SessionInput.OURS_REFUSED, SessionInput.OTHER, SessionInput.ID_OURS, SessionInput.ID_OTHER,
+        SessionInput.GARBLED, SessionInput.PROBE_ANSWER, SessionInput.PROBE_REFUSED, SessionInput.TIMEOUT,
+    ),
     # Waiting for quiet: every reply is a late one of an earlier message.
     (SessionState.QUIET, SessionInput.TIMEOUT): _entry(SessionAction.QUIET_OVER, _states(SessionState.RESYNC)),
     (SessionState.QUIET, SessionInput.STALE): _stay(SessionState.QUIET),
-    (SessionState.QUIET, SessionInput.START): _NEVER,
-    (SessionState.QUIET, SessionInput.OURS): _NEVER,
-    (SessionState.QUIET, SessionInput.OURS_REFUSED): _NEVER,
-    (SessionState.QUIET, SessionInput.OTHER): _NEVER,
-    (SessionState.QUIET, SessionInput.ID_OURS): _NEVER,
-    (SessionState.QUIET, SessionInput.ID_OTHER): _NEVER,
-    (SessionState.QUIET, SessionInput.GARBLED): _NEVER,
-    (SessionState.QUIET, SessionInput.PROBE_ANSWER): _NEVER,
-    (SessionState.QUIET, SessionInput.PROBE_REFUSED): _NEVER,
+    **_never(
+        SessionState.QUIET,
+        SessionInput.START, SessionInput.OURS, SessionInput.OURS_REFUSED, SessionInput.OTHER, SessionInput.ID_OURS,
+        SessionInput.ID_OTHER, SessionInput.GARBLED, SessionInput.PROBE_ANSWER, SessionInput.PROBE_REFUSED,
+    ),
     # The ID 00 probe is out: its answer, its refusal, a read's answer held back on the line, a
     # garbled reply; any other reply answers an earlier message (STALE).
     (SessionState.RESYNC, SessionInput.PROBE_ANSWER): _entry(SessionAction.PROBE_ANSWER, _states(SessionState.SENT)),
@@ -165,11 +163,10 @@ TRANSITIONS: Final[Mapping[tuple[SessionState, SessionInput], SessionTransition]
     (SessionState.RESYNC, SessionInput.GARBLED): _entry(SessionAction.PROBE_GARBLED, _ENDS_OR_RESYNCS),
     (SessionState.RESYNC, SessionInput.TIMEOUT): _entry(SessionAction.PROBE_TIMEOUT, _ENDS_OR_RESYNCS),
     (SessionState.RESYNC, SessionInput.STALE): _stay(SessionState.RESYNC),
-    (SessionState.RESYNC, SessionInput.START): _NEVER,
-    (SessionState.RESYNC, SessionInput.OURS_REFUSED): _NEVER,
-    (SessionState.RESYNC, SessionInput.OTHER): _NEVER,
-    (SessionState.RESYNC, SessionInput.ID_OURS): _NEVER,
-    (SessionState.RESYNC, SessionInput.ID_OTHER): _NEVER,
+    **_never(
+        SessionState.RESYNC,
+        SessionInput.START, SessionInput.OURS_REFUSED, SessionInput.OTHER, SessionInput.ID_OURS, SessionInput.ID_OTHER,
+    ),
     # A copy of the command is out.
     (SessionState.SENT, SessionInput.OURS): _entry(SessionAction.ANSWER, _ENDS),
     (SessionState.SENT, SessionInput.OURS_REFUSED): _entry(SessionAction.REFUSED, _ENDS_OR_RESYNCS),
@@ -178,10 +175,10 @@ TRANSITIONS: Final[Mapping[tuple[SessionState, SessionInput], SessionTransition]
     (SessionState.SENT, SessionInput.ID_OTHER): _entry(SessionAction.ID_OTHER, _AFTER_ID_OTHER),
     (SessionState.SENT, SessionInput.GARBLED): _entry(SessionAction.GARBLED, _Z_ENDS_OR_RESYNCS),
     (SessionState.SENT, SessionInput.TIMEOUT): _entry(SessionAction.TIMEOUT, _Z_ENDS_OR_RESYNCS),
-    (SessionState.SENT, SessionInput.START): _NEVER,
-    (SessionState.SENT, SessionInput.PROBE_ANSWER): _NEVER,
-    (SessionState.SENT, SessionInput.PROBE_REFUSED): _NEVER,
-    (SessionState.SENT, SessionInput.STALE): _NEVER,
+    **_never(
+        SessionState.SENT,
+        SessionInput.START, SessionInput.PROBE_ANSWER, SessionInput.PROBE_REFUSED, SessionInput.STALE,
+    ),
     # ;Z is out.
     (SessionState.Z_SENT, SessionInput.OURS): _entry(SessionAction.ANSWER, _ENDS),
     (SessionState.Z_SENT, SessionInput.OURS_REFUSED): _entry(SessionAction.REFUSED, _ENDS_OR_RESYNCS),
@@ -190,8 +187,8 @@ TRANSITIONS: Final[Mapping[tuple[SessionState, SessionInput], SessionTransition]
     (SessionState.Z_SENT, SessionInput.ID_OTHER): _entry(SessionAction.ID_OTHER, _AFTER_ID_OTHER),
     (SessionState.Z_SENT, SessionInput.GARBLED): _entry(SessionAction.GARBLED, _Z_ENDS_OR_RESYNCS),
     (SessionState.Z_SENT, SessionInput.TIMEOUT): _entry(SessionAction.Z_TIMEOUT, _Z_ENDS_OR_RESYNCS),
-    (SessionState.Z_SENT, SessionInput.START): _NEVER,
-    (SessionState.Z_SENT, SessionInput.PROBE_ANSWER): _NEVER,
-    (SessionState.Z_SENT, SessionInput.PROBE_REFUSED): _NEVER,
-    (SessionState.Z_SENT, SessionInput.STALE): _NEVER,
+    **_never(
+        SessionState.Z_SENT,
+        SessionInput.START, SessionInput.PROBE_ANSWER, SessionInput.PROBE_REFUSED, SessionInput.STALE,
+    ),
 })
