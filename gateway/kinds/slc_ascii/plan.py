@@ -25,10 +25,20 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Iterable
-from dataclasses import dataclass
 from typing import Any, TypeAlias
 
-from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, PointLabel, RegisterPoint, Scan, Table
+from gateway.modbus.mapping import (
+    BitPoint,
+    BitWrite,
+    Block,
+    Codec,
+    Plan,
+    PointLabel,
+    RegisterPoint,
+    Scan,
+    Table,
+    WordWrite,
+)
 from gateway.protocols.slc_ascii import memory_map as mm
 
 __all__ = [
@@ -53,19 +63,10 @@ U16_BE_MASKED = Codec("u16be-masked", 0, 1, mask=True)
 U8 = Codec("u8", None, 0)
 
 
-@dataclass(frozen=True, slots=True)
-class SlcWordWrite:
-    """SLC 100/150 holding register write: write-word command at ``address``."""
-
-    address: int
-
-
-@dataclass(frozen=True, slots=True)
-class SlcBitWrite:
-    """SLC 100/150 coil write: read the relay byte fresh, write it back with ``bit`` changed."""
-
-    address: int
-    bit: int
+#: SLC 100/150 holding register write: write-word command at ``address``
+SlcWordWrite: TypeAlias = WordWrite[int]
+#: SLC 100/150 coil write: read the relay byte fresh, write it back with ``bit`` changed
+SlcBitWrite: TypeAlias = BitWrite[int]
 
 
 #: The plan of an SLC 100/150 link: word writes to holding registers, bit writes to coils.
