@@ -47,6 +47,7 @@ from gateway.protocols.df1.responder_table import (
     ResponderState,
     ResponderStep,
 )
+from gateway.protocols.df1.transitions import Transition
 
 S, K, A = ResponderState, ResponderInput, ResponderAction
 STATION = 1
@@ -98,16 +99,16 @@ def test_the_table_holds_every_pair_once_and_ignored_pairs_do_nothing() -> None:
     assert set(TRANSITIONS) == set(itertools.product(S, K))
     for pair, reason in IGNORED.items():
         assert reason
-        assert TRANSITIONS[pair] == (A.IGNORE, pair[0])
-    assert {pair for pair, (action, _) in TRANSITIONS.items() if action is A.IGNORE} == set(IGNORED)
+        assert TRANSITIONS[pair] == Transition(A.IGNORE, pair[0])
+    assert {pair for pair, entry in TRANSITIONS.items() if entry.action is A.IGNORE} == set(IGNORED)
 
 
 def test_the_receiver_acts_the_same_in_every_state() -> None:
     receiver = (K.COMMAND, K.DUPLICATE, K.NOT_FOR_US, K.SINK_FULL, K.BAD_FRAME, K.ENQ_IN_FRAME, K.ENQ, K.NOISE)
     for what in receiver:
         steps = {TRANSITIONS[state, what] for state in S}
-        assert len({action for action, _ in steps}) == 1, what
-        assert all(TRANSITIONS[state, what][1] is state for state in S)
+        assert len({step.action for step in steps}) == 1, what
+        assert all(TRANSITIONS[state, what].next_state is state for state in S)
 
 
 def test_a_table_with_a_pair_missing_fails_at_import(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -186,7 +187,7 @@ def test_walk_every_pair(pair: tuple[ResponderState, ResponderInput]) -> None:
         assert responder.state is state and responder.data_to_send() == b"" and drain(responder) == []
     else:
         DRIVERS[what](responder)
-    action, next_state = TRANSITIONS[pair]
+    action, next_state, _ = TRANSITIONS[pair]
     assert ResponderStep(state, what, action, next_state) in list(responder.history)[before:]
 
 
