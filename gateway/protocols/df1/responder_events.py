@@ -9,6 +9,8 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+from gateway.protocols.df1.full_duplex import FullDuplexCounters
+
 __all__ = [
     "CommandReceived",
     "DuplicateReceived",
@@ -73,24 +75,14 @@ ResponderEvent = CommandReceived | DuplicateReceived | ReplyDelivered | ReplyLos
 
 
 @dataclass(slots=True)
-class ResponderCounters:
-    """Link statistics of the responder."""
+class ResponderCounters(FullDuplexCounters):
+    """Link statistics of the responder: ``frames_received`` are commands, duplicates, refused and
+    not for us; ``bad_frames`` (damaged, too short, too long, or cut by DLE ENQ) are NAKed."""
 
-    frames_received: int = 0  #: frames with a valid check: commands, duplicates, refused, not for us
     commands_delivered: int = 0
-    duplicates: int = 0  #: duplicates ACKed and not delivered
     not_for_us: int = 0  #: frames ACKed but not delivered because of their DST (``check_dst``)
     sink_full: int = 0  #: new commands NAKed because ``max_pending`` commands await their reply
-    bad_frames: int = 0  #: damaged, too short, too long, or cut by DLE ENQ: NAKed
     noise: int = 0  #: bytes and symbols outside a frame that start nothing
-    acks_sent: int = 0
-    naks_sent: int = 0
-    enqs_received: int = 0
-    frames_sent: int = 0  #: reply frames written, retransmissions included
-    retransmissions: int = 0  #: reply frames sent again after a DLE NAK
     replies_resent: int = 0  #: stored replies queued again for a duplicate command
-    enqs_sent: int = 0
-    acks_received: int = 0
-    naks_received: int = 0
     replies_delivered: int = 0
     replies_lost: int = 0
