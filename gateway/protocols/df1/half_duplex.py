@@ -38,7 +38,6 @@ This module does no I/O.
 
 from __future__ import annotations
 
-import enum
 import itertools
 from collections import deque
 from collections.abc import Callable
@@ -77,19 +76,19 @@ from gateway.protocols.df1.half_duplex_schedule import (
     StationRecord,
 )
 from gateway.protocols.df1.half_duplex_transmitter import HalfDuplexTransmitter
-from gateway.protocols.df1.transitions import Transition, require_complete
+from gateway.protocols.df1.transitions import TableEnum, Transition, require_complete
 
 __all__ = ["TRANSITIONS", "HalfDuplexMaster", "LineState", "MasterAction", "MasterInput"]
 
 
-class LineState(enum.Enum):
+class LineState(TableEnum):
     IDLE = "idle"  #: nothing on the line; the scheduler picks the next exchange
     TRANSMIT = "transmit"  #: bytes waiting for the line to be quiet and RTS key-up
     WAIT_ACK = "wait-ack"  #: master message sent, waiting for DLE ACK
     WAIT_POLL = "wait-poll"  #: poll sent, waiting for a message or DLE EOT
 
 
-class MasterInput(enum.Enum):
+class MasterInput(TableEnum):
     SCHEDULE = "the line is free: the scheduler may start an exchange"
     SEND_MESSAGE = "the line is ready for the pending master message"
     SEND_POLL = "the line is ready for the pending poll"
@@ -102,7 +101,7 @@ class MasterInput(enum.Enum):
     BAD = "a damaged slave frame"
 
 
-class MasterAction(enum.Enum):
+class MasterAction(TableEnum):
     SCHEDULE = "start the next exchange, if one is due"
     SEND = "put the pending bytes on the line; start the answer timer"
     ACKED = "the master message arrived: wait for its reply (or report it delivered)"

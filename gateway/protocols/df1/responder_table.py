@@ -9,12 +9,11 @@ table holds every pair exactly once, checked at import.  Plain data, no I/O.
 
 from __future__ import annotations
 
-import enum
 from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Final, NamedTuple
 
-from gateway.protocols.df1.transitions import Transition
+from gateway.protocols.df1.transitions import TableEnum, Transition
 
 __all__ = [
     "IGNORED",
@@ -26,17 +25,14 @@ __all__ = [
 ]
 
 
-class ResponderState(enum.Enum):
+class ResponderState(TableEnum):
     """The transmitter's state (the receiver keeps only its last response and last header)."""
 
     IDLE = "no reply on the line"
     AWAIT_ACK = "a reply sent, waiting for its DLE ACK"
 
-    # Members are singletons: hashing by identity keeps the table look-up in C.
-    __hash__ = object.__hash__
 
-
-class ResponderInput(enum.Enum):
+class ResponderInput(TableEnum):
     COMMAND = "a good frame with a new command, room in the sink"
     DUPLICATE = "a good frame with the SRC, CMD and TNS of the last command delivered"
     NOT_FOR_US = "a good frame whose DST is not our station (check_dst)"
@@ -53,10 +49,8 @@ class ResponderInput(enum.Enum):
     TIMEOUT = "ACK timer expired, ENQs left"
     TIMEOUT_LIMIT = "ACK timer expired, no ENQ left"
 
-    __hash__ = object.__hash__
 
-
-class ResponderAction(enum.Enum):
+class ResponderAction(TableEnum):
     DELIVER = "DLE ACK; CommandReceived; remember the header"
     ACK_DUPLICATE = "DLE ACK; DuplicateReceived; queue the stored reply again if it is not on its way"
     ACK_ONLY = "DLE ACK; count the frame not for us"
@@ -71,8 +65,6 @@ class ResponderAction(enum.Enum):
     LOSE_NAK = "ReplyLost(NAK_LIMIT); send the next queued reply"
     LOSE_NO_RESPONSE = "ReplyLost(NO_RESPONSE); send the next queued reply"
     IGNORE = "nothing"
-
-    __hash__ = object.__hash__
 
 
 S, K, A = ResponderState, ResponderInput, ResponderAction

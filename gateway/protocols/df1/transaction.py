@@ -49,7 +49,6 @@ This module does no I/O.
 
 from __future__ import annotations
 
-import enum
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Final
@@ -67,7 +66,7 @@ from gateway.protocols.df1.pccc import (
     encode_command,
     reply_matches,
 )
-from gateway.protocols.df1.transitions import Transition, require_complete
+from gateway.protocols.df1.transitions import TableEnum, Transition, require_complete
 from gateway.protocols.df1.write_verdict import (
     DEFAULT_RETRIES,
     ReadBack,
@@ -149,7 +148,7 @@ class TransactionCounters:
 # ---------------------------------------------------------------------------------------- table
 
 
-class TxnState(enum.Enum):
+class TxnState(TableEnum):
     IDLE = "idle"
     READ_SENDING = "a read's frame on the link, waiting for DLE ACK"
     READ_AWAIT_REPLY = "a read acknowledged, waiting for its reply"
@@ -158,10 +157,8 @@ class TxnState(enum.Enum):
     VERIFY_SENDING = "read-back frame on the link"
     VERIFY_AWAIT_REPLY = "read-back acknowledged, waiting for its reply"
 
-    __hash__ = object.__hash__
 
-
-class TxnInput(enum.Enum):
+class TxnInput(TableEnum):
     START_READ = "start a read"
     START_WRITE = "start a write"
     LINK_ACKED = "the link has the ACK of our frame"
@@ -172,10 +169,8 @@ class TxnInput(enum.Enum):
     READBACK_REPLY = "the reply to the read-back (any STS)"
     ABANDON = "the link is gone (port lost)"
 
-    __hash__ = object.__hash__
 
-
-class TxnAction(enum.Enum):
+class TxnAction(TableEnum):
     SEND = "send the command with a new TNS"
     AWAIT = "start the reply timer"
     RETRY = "send the command again with a new TNS if tries are left, else fail"
@@ -186,8 +181,6 @@ class TxnAction(enum.Enum):
     READBACK_REPLY = "the read-back's reply: the verdict's step"
     ABANDON = "settle without a reply: a read fails, a write gets the verdict's step"
     IGNORE = "nothing"
-
-    __hash__ = object.__hash__
 
 
 _Table = dict[tuple[TxnState, TxnInput], Transition[TxnAction, TxnState]]

@@ -51,7 +51,7 @@ from gateway.protocols.df1.pccc import (
     WordRangeRead,
     WordRangeWrite,
 )
-from gateway.protocols.df1.transitions import Transition, require_complete
+from gateway.protocols.df1.transitions import TableEnum, Transition, require_complete
 
 __all__ = [
     "DEFAULT_RETRIES",
@@ -163,15 +163,13 @@ VerdictStep = SendReadBack | Verdict | None
 # ---------------------------------------------------------------------------------------- table
 
 
-class VerdictState(enum.Enum):
+class VerdictState(TableEnum):
     SENT = "the write is on its way; no answer yet"
     VERIFYING = "the write may have run; a read-back is on its way"
     SETTLED = "the verdict is given"
 
-    __hash__ = object.__hash__
 
-
-class WriteInput(enum.Enum):
+class WriteInput(TableEnum):
     REPLY = "the reply to the write (STS 0 or not)"
     NEVER_ARRIVED = "the write provably never reached the controller"
     LOST = "no answer to the write; it may have run"
@@ -179,18 +177,14 @@ class WriteInput(enum.Enum):
     READ_BACK_LOST = "no answer to the read-back"
     ABANDONED = "the link is gone"
 
-    __hash__ = object.__hash__
 
-
-class VerdictAction(enum.Enum):
+class VerdictAction(TableEnum):
     ANSWERED = "DONE if STS 0, else REFUSED"
     FAIL = "FAILED"
     READ_BACK = "send a read-back if the write has one and tries are left, else UNKNOWN"
     CHECK = "DONE (verified) if the read-back shows the written value, else UNKNOWN"
     UNKNOWN = "UNKNOWN"
     IGNORE = "nothing: the input changes nothing"
-
-    __hash__ = object.__hash__
 
 
 S, K, A = VerdictState, WriteInput, VerdictAction
