@@ -51,10 +51,8 @@ from gateway.protocols.df1.framing import (
     BadFrame,
     EotReceived,
     Frame,
-    MasterMessage,
     NakReceived,
     NeedData,
-    Poll,
     encode_master_message,
     encode_poll,
 )
@@ -287,19 +285,22 @@ class HalfDuplexMaster:
             return
         self._decoder.feed(data)
         while (event := self._decoder.next_event()) is not NEED_DATA:
-            if isinstance(event, Frame):
-                self._message = event.message
-                self._step(MasterInput.MESSAGE, now)
-            elif isinstance(event, EotReceived):
-                self._step(MasterInput.EOT, now)
-            elif isinstance(event, AckReceived):
-                self._step(MasterInput.ACK, now)
-            elif isinstance(event, NakReceived):
-                self._step(MasterInput.NAK, now)
-            elif isinstance(event, BadFrame) and not event.master:
-                self._step(MasterInput.BAD, now)
-            elif isinstance(event, Poll | MasterMessage | BadFrame):
-                self.ignored += 1  # another master's frame, or our own echo without echo mode
+            match event:
+                case Frame(message=message):
+                    self._message = message
+                    self._step(MasterInput.MESSAGE, now)
+                case EotReceived():
+                    self._step(MasterInput.EOT, now)
+                case AckReceived():
+                    self._step(MasterInput.ACK, now)
+                case NakReceived():
+                    self._step(MasterInput.NAK, now)
+                case BadFrame(master=False):
+                    self._step(MasterInput.BAD, now)
+                case _:
+                    # a poll or master message (damaged or not): another master's, or our own
+                    # echo without echo mode (a half-duplex decoder reports no DLE ENQ alone)
+                    self.ignored += 1
 
     # --------------------------------------------------------------------------- the table
 
