@@ -30,6 +30,7 @@ from gateway.protocols.df1.framing import (
     encode_frame,
 )
 from gateway.protocols.df1.framing.decoder import FrameDecoder
+from gateway.protocols.df1.full_duplex import TxState
 from gateway.protocols.df1.responder import Df1Responder
 from gateway.protocols.df1.responder_events import (
     CommandReceived,
@@ -44,12 +45,11 @@ from gateway.protocols.df1.responder_table import (
     TRANSITIONS,
     ResponderAction,
     ResponderInput,
-    ResponderState,
     ResponderStep,
 )
 from gateway.protocols.df1.transitions import Transition
 
-S, K, A = ResponderState, ResponderInput, ResponderAction
+S, K, A = TxState, ResponderInput, ResponderAction
 STATION = 1
 
 
@@ -132,7 +132,7 @@ def test_a_missing_pair_raises(monkeypatch: pytest.MonkeyPatch) -> None:
         responder.feed(ENQ_SYMBOL, 0.0)
 
 
-def _in_state(state: ResponderState) -> Df1Responder:
+def _in_state(state: TxState) -> Df1Responder:
     """A responder in ``state`` that delivered C1 and gave its reply R1 (pending: none)."""
     responder = Df1Responder(station=STATION, check_dst=True, max_pending=1, nak_limit=1, enq_limit=1)
     responder.feed(frame(C1), 0.0)
@@ -177,7 +177,7 @@ UNREACHABLE = {(S.IDLE, K.NAK_LIMIT), (S.IDLE, K.STALE), (S.IDLE, K.TIMEOUT), (S
 
 
 @pytest.mark.parametrize("pair", list(itertools.product(S, K)), ids=lambda p: f"{p[0].name}-{p[1].name}")
-def test_walk_every_pair(pair: tuple[ResponderState, ResponderInput]) -> None:
+def test_walk_every_pair(pair: tuple[TxState, ResponderInput]) -> None:
     state, what = pair
     responder = _in_state(state)
     before = len(responder.history)

@@ -65,8 +65,8 @@ from typing import Final
 
 from gateway.errors import InvalidRequest
 from gateway.protocols.df1.framing import ACK_SYMBOL, DEFAULT_MAX_MESSAGE, NAK_SYMBOL, BadFrameReason, Checksum
-from gateway.protocols.df1.full_duplex import FullDuplexCounters, FullDuplexStation
-from gateway.protocols.df1.transitions import TableEnum, Transition, require_complete
+from gateway.protocols.df1.full_duplex import FullDuplexCounters, FullDuplexStation, TxState
+from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete
 
 __all__ = [
     "TRANSITIONS",
@@ -148,13 +148,6 @@ class DataLinkCounters(FullDuplexCounters):
 # ---------------------------------------------------------------------------------- transmitter
 
 
-class TxState(TableEnum):
-    """Transmitter state (manual §2.4)."""
-
-    IDLE = "idle"
-    AWAIT_ACK = "waiting for DLE ACK"
-
-
 class TxInput(TableEnum):
     SEND = "a frame is queued"
     ACK = "DLE ACK received"
@@ -180,7 +173,7 @@ class TxAction(TableEnum):
     IGNORE = "nothing (stray symbol or nothing to do)"
 
 
-def _tx_table() -> dict[tuple[TxState, TxInput], Transition[TxAction, TxState]]:
+def _tx_table() -> Table[TxState, TxInput, TxAction]:
     T, In, A, IDLE, AWAIT = Transition, TxInput, TxAction, TxState.IDLE, TxState.AWAIT_ACK
     return {
         (IDLE, In.SEND): T(A.TRANSMIT, AWAIT),

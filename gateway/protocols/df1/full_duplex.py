@@ -8,8 +8,8 @@ commands and sends replies.  :class:`FullDuplexStation` is the part they have in
 * one output, in order: every response symbol, frame and DLE ENQ enters it whole;
 * the receiver's last response symbol (DLE NAK until a frame has been answered), which a DLE ENQ
   asks for again;
-* the transmitter's queue and its one frame on the line, with the frame's DLE NAK and DLE ENQ
-  counts and its ACK timer (``next_deadline`` / ``handle_timeout``).  While that frame still waits
+* the transmitter's queue and its one frame on the line (:class:`TxState`), with the frame's DLE
+  NAK and DLE ENQ counts and its ACK timer (``next_deadline`` / ``handle_timeout``).  While that frame still waits
   in :meth:`~FullDuplexStation.data_to_send` the peer cannot have answered it: a DLE ACK / DLE NAK
   arriving then belongs to an older frame.
 
@@ -44,8 +44,17 @@ from gateway.protocols.df1.framing import (
     encode_frame,
 )
 from gateway.protocols.df1.framing.decoder import FrameDecoder
+from gateway.protocols.df1.transitions import TableEnum
 
-__all__ = ["FullDuplexCounters", "FullDuplexStation", "QueuedFrame"]
+__all__ = ["FullDuplexCounters", "FullDuplexStation", "QueuedFrame", "TxState"]
+
+
+class TxState(TableEnum):
+    """The transmitter's state, one frame on the line at a time (S4516-DF1 manual §2.4;
+    1770-6.5.16 p. 4-6).  Both stations' transition tables are keyed by it."""
+
+    IDLE = "no frame of ours on the line"
+    AWAIT_ACK = "our frame sent, waiting for its DLE ACK"
 
 
 @dataclass(slots=True)

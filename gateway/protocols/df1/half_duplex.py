@@ -74,7 +74,7 @@ from gateway.protocols.df1.half_duplex_schedule import (
     StationRecord,
 )
 from gateway.protocols.df1.half_duplex_transmitter import HalfDuplexTransmitter
-from gateway.protocols.df1.transitions import TableEnum, Transition, require_complete
+from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete
 
 __all__ = ["TRANSITIONS", "HalfDuplexMaster", "LineState", "MasterAction", "MasterInput"]
 
@@ -112,7 +112,7 @@ class MasterAction(TableEnum):
     IGNORE = "nothing (counted in ``ignored``)"
 
 
-_Table = dict[tuple[LineState, MasterInput], Transition[MasterAction, LineState]]
+_Table = Table[LineState, MasterInput, MasterAction]
 
 
 def _master_table() -> _Table:

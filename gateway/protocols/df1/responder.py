@@ -62,7 +62,7 @@ from collections import deque
 from typing import Final
 
 from gateway.protocols.df1.framing import ACK_SYMBOL, DEFAULT_MAX_MESSAGE, NAK_SYMBOL, BadFrameReason, Checksum
-from gateway.protocols.df1.full_duplex import FullDuplexStation
+from gateway.protocols.df1.full_duplex import FullDuplexStation, TxState
 from gateway.protocols.df1.responder_events import (
     CommandReceived,
     DuplicateReceived,
@@ -76,7 +76,6 @@ from gateway.protocols.df1.responder_table import (
     TRANSITIONS,
     ResponderAction,
     ResponderInput,
-    ResponderState,
     ResponderStep,
 )
 
@@ -88,7 +87,7 @@ MIN_PACKET: Final = 6
 
 _DLE: Final = 0x10
 
-S, K, A = ResponderState, ResponderInput, ResponderAction
+S, K, A = TxState, ResponderInput, ResponderAction
 
 
 # ------------------------------------------------------------------------------------ responder
@@ -147,7 +146,7 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
     # ------------------------------------------------------------------------------ public API
 
     @property
-    def state(self) -> ResponderState:
+    def state(self) -> TxState:
         return self._state
 
     @property

@@ -66,7 +66,7 @@ from gateway.protocols.df1.pccc import (
     encode_command,
     reply_matches,
 )
-from gateway.protocols.df1.transitions import TableEnum, Transition, require_complete
+from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete
 from gateway.protocols.df1.write_verdict import (
     DEFAULT_RETRIES,
     ReadBack,
@@ -183,7 +183,7 @@ class TxnAction(TableEnum):
     IGNORE = "nothing"
 
 
-_Table = dict[tuple[TxnState, TxnInput], Transition[TxnAction, TxnState]]
+_Table = Table[TxnState, TxnInput, TxnAction]
 
 #: The states in which the command itself is in flight (its reply may complete the frame at the link).
 _COMMAND_IN_FLIGHT: Final = frozenset(

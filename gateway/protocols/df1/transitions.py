@@ -20,7 +20,7 @@ import enum
 from collections.abc import Iterable, Mapping
 from typing import Any, Generic, NamedTuple, TypeVar
 
-__all__ = ["TableEnum", "Transition", "require_complete"]
+__all__ = ["Table", "TableEnum", "Transition", "require_complete"]
 
 ActionT = TypeVar("ActionT")
 StateT = TypeVar("StateT")
@@ -52,6 +52,10 @@ class Transition(NamedTuple, Generic[ActionT, StateT]):
 
     def allows(self, state: StateT) -> bool:
         return state == self.next_state or state in self.or_states
+
+
+#: A transition table: (state, input) -> :class:`Transition`; ``Table[State, Input, Action]``.
+Table = dict[tuple[StateT, InputT], Transition[ActionT, StateT]]
 
 
 def require_complete(

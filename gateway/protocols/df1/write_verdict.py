@@ -51,7 +51,7 @@ from gateway.protocols.df1.pccc import (
     WordRangeRead,
     WordRangeWrite,
 )
-from gateway.protocols.df1.transitions import TableEnum, Transition, require_complete
+from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete
 
 __all__ = [
     "DEFAULT_RETRIES",
@@ -190,7 +190,7 @@ class VerdictAction(TableEnum):
 S, K, A = VerdictState, WriteInput, VerdictAction
 
 #: (state, input) -> (action, next state); an action that gives a verdict ends in SETTLED.
-TRANSITIONS: Final[dict[tuple[VerdictState, WriteInput], Transition[VerdictAction, VerdictState]]] = {
+TRANSITIONS: Final[Table[VerdictState, WriteInput, VerdictAction]] = {
     (S.SENT, K.REPLY): Transition(A.ANSWERED, S.SETTLED),
     (S.SENT, K.NEVER_ARRIVED): Transition(A.FAIL, S.SETTLED),
     # a read-back, or UNKNOWN at once when the write has none
