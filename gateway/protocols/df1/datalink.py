@@ -66,7 +66,7 @@ from typing import Final
 from gateway.errors import InvalidRequest
 from gateway.protocols.df1.framing import ACK_SYMBOL, DEFAULT_MAX_MESSAGE, NAK_SYMBOL, BadFrameReason, Checksum
 from gateway.protocols.df1.full_duplex import FullDuplexCounters, FullDuplexStation, TxState
-from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete
+from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
 
 __all__ = [
     "TRANSITIONS",
@@ -178,8 +178,8 @@ def _tx_table() -> Table[TxState, TxInput, TxAction]:
     return {
         (IDLE, In.SEND): T(A.TRANSMIT, AWAIT),
         # nothing awaits an answer: a stray or late symbol, a confirm of a frame already done
-        **{(IDLE, what): T(A.IGNORE, IDLE) for what in (In.ACK, In.NAK, In.NAK_LIMIT, In.NAK_NOT_PROOF, In.STALE,
-                                                           In.CONFIRM, In.TIMEOUT, In.TIMEOUT_LIMIT)},
+        **stay(A.IGNORE, IDLE, In.ACK, In.NAK, In.NAK_LIMIT, In.NAK_NOT_PROOF, In.STALE, In.CONFIRM, In.TIMEOUT,
+               In.TIMEOUT_LIMIT),
         (IDLE, In.RESET): T(A.RESET, IDLE),
         (AWAIT, In.SEND): T(A.IGNORE, AWAIT),  # queued: it goes when the frame in flight is done
         (AWAIT, In.STALE): T(A.IGNORE, AWAIT),

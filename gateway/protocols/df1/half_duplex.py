@@ -74,7 +74,7 @@ from gateway.protocols.df1.half_duplex_schedule import (
     StationRecord,
 )
 from gateway.protocols.df1.half_duplex_transmitter import HalfDuplexTransmitter
-from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete
+from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
 
 __all__ = ["TRANSITIONS", "HalfDuplexMaster", "LineState", "MasterAction", "MasterInput"]
 
@@ -112,40 +112,34 @@ class MasterAction(TableEnum):
     IGNORE = "nothing (counted in ``ignored``)"
 
 
-_Table = Table[LineState, MasterInput, MasterAction]
-
-
-def _master_table() -> _Table:
+def _master_table() -> Table[LineState, MasterInput, MasterAction]:
     T, L, In, A = Transition, LineState, MasterInput, MasterAction
     # an action that sends (again) moves on to TRANSMIT, or at once past it when the line is ready
     sent = frozenset({L.TRANSMIT, L.WAIT_ACK, L.WAIT_POLL})
     sending = (In.SEND_MESSAGE, In.SEND_POLL, In.SEND_SYMBOL)
     answers = (In.ACK, In.NAK, In.EOT, In.MESSAGE, In.BAD)
 
-    def ignore(state: LineState, *inputs: MasterInput) -> _Table:
-        return {(state, what): T(A.IGNORE, state) for what in inputs}
-
     return {
         (L.IDLE, In.SCHEDULE): T(A.SCHEDULE, L.IDLE, sent),
         # nothing asked, nothing held, no timer: a stray symbol or frame, or another master's
-        **ignore(L.IDLE, *sending, In.TIMEOUT, *answers),
+        **stay(A.IGNORE, L.IDLE, *sending, In.TIMEOUT, *answers),
         (L.TRANSMIT, In.SEND_MESSAGE): T(A.SEND, L.WAIT_ACK),
         (L.TRANSMIT, In.SEND_POLL): T(A.SEND, L.WAIT_POLL),
         (L.TRANSMIT, In.SEND_SYMBOL): T(A.SEND, L.IDLE),
         # the line is not free and nothing of ours is out yet: what is heard answers nothing
-        **ignore(L.TRANSMIT, In.SCHEDULE, In.TIMEOUT, *answers),
+        **stay(A.IGNORE, L.TRANSMIT, In.SCHEDULE, In.TIMEOUT, *answers),
         (L.WAIT_ACK, In.ACK): T(A.ACKED, L.IDLE),
         (L.WAIT_ACK, In.NAK): T(A.NAKED, L.IDLE, frozenset({L.TRANSMIT, L.WAIT_ACK})),
         (L.WAIT_ACK, In.TIMEOUT): T(A.ACK_TIMEOUT, L.IDLE, frozenset({L.TRANSMIT, L.WAIT_ACK})),
         # a slave must not send unpolled (nor DLE EOT)
-        **ignore(L.WAIT_ACK, In.SCHEDULE, *sending, In.EOT, In.MESSAGE, In.BAD),
+        **stay(A.IGNORE, L.WAIT_ACK, In.SCHEDULE, *sending, In.EOT, In.MESSAGE, In.BAD),
         (L.WAIT_POLL, In.EOT): T(A.EOT, L.IDLE),
         (L.WAIT_POLL, In.MESSAGE): T(A.MESSAGE, L.TRANSMIT, frozenset({L.IDLE})),  # our DLE ACK
         (L.WAIT_POLL, In.BAD): T(A.BAD_ANSWER, L.IDLE),
         (L.WAIT_POLL, In.NAK): T(A.BAD_ANSWER, L.IDLE),
         (L.WAIT_POLL, In.TIMEOUT): T(A.POLL_TIMEOUT, L.IDLE),
         # a poll is not acknowledged
-        **ignore(L.WAIT_POLL, In.SCHEDULE, *sending, In.ACK),
+        **stay(A.IGNORE, L.WAIT_POLL, In.SCHEDULE, *sending, In.ACK),
     }
 
 

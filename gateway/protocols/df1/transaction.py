@@ -66,7 +66,7 @@ from gateway.protocols.df1.pccc import (
     encode_command,
     reply_matches,
 )
-from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete
+from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
 from gateway.protocols.df1.write_verdict import (
     DEFAULT_RETRIES,
     ReadBack,
@@ -195,9 +195,7 @@ def _build_table() -> _Table:
     T, S, K, A = Transition, TxnState, TxnInput, TxnAction
     idle = frozenset({S.IDLE})
     starts = (K.START_READ, K.START_WRITE)
-
-    def ignore(state: TxnState, *inputs: TxnInput) -> _Table:
-        return {(state, what): T(A.IGNORE, state) for what in inputs}
+    links = (K.LINK_ACKED, K.LINK_NAKED, K.LINK_LOST)
 
     def exchange(
         sending: TxnState, awaiting: TxnState, reply: TxnInput, answered: TxnAction, lost: TxnAction, again: TxnState
@@ -210,17 +208,17 @@ def _build_table() -> _Table:
             (sending, reply): T(answered, S.IDLE),
             (sending, K.LINK_NAKED): T(lost, again, idle),
             (sending, K.LINK_LOST): T(lost, again, idle),
-            **ignore(sending, *starts, K.TIMEOUT),  # no reply timer yet
+            **stay(A.IGNORE, sending, *starts, K.TIMEOUT),  # no reply timer yet
             (awaiting, reply): T(answered, S.IDLE),
             (awaiting, K.TIMEOUT): T(lost, again, idle),
-            **ignore(awaiting, *starts, K.LINK_ACKED, K.LINK_NAKED, K.LINK_LOST),  # the link is done with the frame
+            **stay(A.IGNORE, awaiting, *starts, *links),  # the link is done with the frame
         }
 
     return {
         (S.IDLE, K.START_READ): T(A.SEND, S.READ_SENDING),
         (S.IDLE, K.START_WRITE): T(A.SEND, S.WRITE_SENDING),
         # no transaction: a late answer of a settled one
-        **ignore(S.IDLE, K.LINK_ACKED, K.LINK_NAKED, K.LINK_LOST, K.TIMEOUT, K.REPLY, K.READBACK_REPLY, K.ABANDON),
+        **stay(A.IGNORE, S.IDLE, *links, K.TIMEOUT, K.REPLY, K.READBACK_REPLY, K.ABANDON),
         # the link is gone: whatever runs is settled
         **{(state, K.ABANDON): T(A.ABANDON, S.IDLE) for state in TxnState if state is not S.IDLE},
         # reads: idempotent, simply sent again

@@ -20,7 +20,7 @@ import enum
 from collections.abc import Iterable, Mapping
 from typing import Any, Generic, NamedTuple, TypeVar
 
-__all__ = ["Table", "TableEnum", "Transition", "require_complete"]
+__all__ = ["Table", "TableEnum", "Transition", "require_complete", "stay"]
 
 ActionT = TypeVar("ActionT")
 StateT = TypeVar("StateT")
@@ -56,6 +56,11 @@ class Transition(NamedTuple, Generic[ActionT, StateT]):
 
 #: A transition table: (state, input) -> :class:`Transition`; ``Table[State, Input, Action]``.
 Table = dict[tuple[StateT, InputT], Transition[ActionT, StateT]]
+
+
+def stay(action: ActionT, state: StateT, *inputs: InputT) -> Table[StateT, InputT, ActionT]:
+    """The entries for ``inputs`` in ``state`` that run ``action`` (a table's IGNORE) and stay."""
+    return {(state, what): Transition(action, state) for what in inputs}
 
 
 def require_complete(

@@ -51,7 +51,7 @@ from gateway.protocols.df1.pccc import (
     WordRangeRead,
     WordRangeWrite,
 )
-from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete
+from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
 
 __all__ = [
     "DEFAULT_RETRIES",
@@ -205,7 +205,7 @@ TRANSITIONS: Final[Table[VerdictState, WriteInput, VerdictAction]] = {
     (S.VERIFYING, K.ABANDONED): Transition(A.UNKNOWN, S.SETTLED),
     (S.VERIFYING, K.NEVER_ARRIVED): Transition(A.IGNORE, S.VERIFYING),  # it was known to be on the line
     (S.VERIFYING, K.LOST): Transition(A.IGNORE, S.VERIFYING),  # it was known to be lost
-    **{(S.SETTLED, what): Transition(A.IGNORE, S.SETTLED) for what in WriteInput},  # the verdict is given
+    **stay(A.IGNORE, S.SETTLED, *WriteInput),  # the verdict is given
 }
 require_complete(TRANSITIONS, VerdictState, WriteInput, "write verdict")
 
