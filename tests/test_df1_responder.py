@@ -30,13 +30,12 @@ from gateway.protocols.df1.framing import (
     encode_frame,
 )
 from gateway.protocols.df1.framing.decoder import FrameDecoder
-from gateway.protocols.df1.full_duplex import TxState
+from gateway.protocols.df1.full_duplex import SendFailure, TxState
 from gateway.protocols.df1.responder import Df1Responder
 from gateway.protocols.df1.responder_events import (
     CommandReceived,
     DuplicateReceived,
     ReplyDelivered,
-    ReplyLossReason,
     ReplyLost,
     ResponderEvent,
 )
@@ -283,7 +282,7 @@ SCRIPTS: dict[str, tuple[Script, dict[str, Any]]] = {
     "duplicate after the reply was lost: the reply gets another chance": ([
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
         ("reply", R1), ("out", frame(R1)),
-        ("in", NAK_SYMBOL), ("out", b""), ("events", [ReplyLost(1, R1, ReplyLossReason.NAK_LIMIT)]),
+        ("in", NAK_SYMBOL), ("out", b""), ("events", [ReplyLost(1, R1, SendFailure.NAK_LIMIT)]),
         ("in", frame(C1)), ("out", ACK_SYMBOL + frame(R1)), ("events", [duplicate(C1, 2)]),
         ("in", ACK_SYMBOL), ("events", [ReplyDelivered(2, R1)]),
     ], {"nak_limit": 0}),
@@ -327,7 +326,7 @@ SCRIPTS: dict[str, tuple[Script, dict[str, Any]]] = {
         ("reply", R1), ("reply", R2), ("out", frame(R1)),
         ("in", NAK_SYMBOL), ("out", frame(R1)),
         ("in", NAK_SYMBOL), ("out", frame(R1)),
-        ("in", NAK_SYMBOL), ("out", frame(R2)), ("events", [ReplyLost(1, R1, ReplyLossReason.NAK_LIMIT)]),
+        ("in", NAK_SYMBOL), ("out", frame(R2)), ("events", [ReplyLost(1, R1, SendFailure.NAK_LIMIT)]),
         ("in", ACK_SYMBOL), ("events", [ReplyDelivered(2, R2)]),
     ], {"nak_limit": 2}),
     "timeout: ENQ, then lost": ([
@@ -336,7 +335,7 @@ SCRIPTS: dict[str, tuple[Script, dict[str, Any]]] = {
         ("at", 0.499), ("out", b""),
         ("at", 0.5), ("out", ENQ_SYMBOL), ("deadline", 1.0),
         ("at", 1.0), ("out", ENQ_SYMBOL), ("deadline", 1.5),
-        ("at", 1.5), ("out", b""), ("deadline", None), ("events", [ReplyLost(1, R1, ReplyLossReason.NO_RESPONSE)]),
+        ("at", 1.5), ("out", b""), ("deadline", None), ("events", [ReplyLost(1, R1, SendFailure.NO_RESPONSE)]),
         ("in", ACK_SYMBOL), ("events", []),  # too late: ignored
     ], {"ack_timeout": 0.5, "enq_limit": 2}),
     "ENQ answered NAK: the frame again; ENQ answered ACK: delivered": ([
@@ -405,7 +404,7 @@ def test_reset_loses_every_reply_and_forgets_the_line() -> None:
     responder.send_reply(R2, 0.0)
     drain(responder)
     responder.reset()
-    assert drain(responder) == [ReplyLost(1, R1, ReplyLossReason.RESET), ReplyLost(2, R2, ReplyLossReason.RESET)]
+    assert drain(responder) == [ReplyLost(1, R1, SendFailure.LINK_RESET), ReplyLost(2, R2, SendFailure.LINK_RESET)]
     assert responder.data_to_send() == b"" and responder.next_deadline() is None
     assert responder.state is S.IDLE and responder.pending_commands == 0
     responder.feed(ENQ_SYMBOL + frame(C2), 0.0)

@@ -65,7 +65,7 @@ from typing import Final
 
 from gateway.errors import InvalidRequest
 from gateway.protocols.df1.framing import ACK_SYMBOL, DEFAULT_MAX_MESSAGE, NAK_SYMBOL, BadFrameReason, Checksum
-from gateway.protocols.df1.full_duplex import FullDuplexCounters, FullDuplexStation, TxState
+from gateway.protocols.df1.full_duplex import FullDuplexCounters, FullDuplexStation, SendFailure, TxState
 from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
 
 __all__ = [
@@ -100,15 +100,6 @@ class SendComplete:
     """The frame queued as ``handle`` was acknowledged with DLE ACK."""
 
     handle: int
-
-
-class SendFailure(enum.Enum):
-    """Why the link gave up on a frame (S4516-DF1 sfunc11 return codes 3 and 4/5)."""
-
-    NAK_LIMIT = "DLE NAK received after every retransmission"
-    NO_RESPONSE = "no DLE ACK after every DLE ENQ"
-    LINK_RESET = "the link was reset before the frame was acknowledged"
-    AMBIGUOUS_NAK = "DLE NAK for a frame that must not run twice: the peer may or may not have it"
 
 
 class BadFrameAnswer(enum.Enum):

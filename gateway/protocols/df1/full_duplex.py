@@ -23,6 +23,7 @@ This module does no I/O.
 
 from __future__ import annotations
 
+import enum
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass
@@ -46,7 +47,7 @@ from gateway.protocols.df1.framing import (
 from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.transitions import TableEnum
 
-__all__ = ["FullDuplexCounters", "FullDuplexStation", "QueuedFrame", "TxState"]
+__all__ = ["FullDuplexCounters", "FullDuplexStation", "QueuedFrame", "SendFailure", "TxState"]
 
 
 class TxState(TableEnum):
@@ -55,6 +56,16 @@ class TxState(TableEnum):
 
     IDLE = "no frame of ours on the line"
     AWAIT_ACK = "our frame sent, waiting for its DLE ACK"
+
+
+class SendFailure(enum.Enum):
+    """Why the transmitter gave up on a frame (S4516-DF1 sfunc11 return codes 3 and 4/5)."""
+
+    NAK_LIMIT = "DLE NAK received after every retransmission"
+    NO_RESPONSE = "no DLE ACK after every DLE ENQ"
+    LINK_RESET = "the link was reset before the frame was acknowledged"
+    #: the data link's frames that must not run twice (``datalink.py``); the responder sends none
+    AMBIGUOUS_NAK = "DLE NAK for a frame that must not run twice: the peer may or may not have it"
 
 
 @dataclass(slots=True)

@@ -62,12 +62,11 @@ from collections import deque
 from typing import Final
 
 from gateway.protocols.df1.framing import ACK_SYMBOL, DEFAULT_MAX_MESSAGE, NAK_SYMBOL, BadFrameReason, Checksum
-from gateway.protocols.df1.full_duplex import FullDuplexStation, TxState
+from gateway.protocols.df1.full_duplex import FullDuplexStation, SendFailure, TxState
 from gateway.protocols.df1.responder_events import (
     CommandReceived,
     DuplicateReceived,
     ReplyDelivered,
-    ReplyLossReason,
     ReplyLost,
     ResponderCounters,
     ResponderEvent,
@@ -197,7 +196,7 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
         self._pending.clear()
         for frame in lost:
             self.counters.replies_lost += 1
-            self._events.append(ReplyLost(frame.handle, frame.message, ReplyLossReason.RESET))
+            self._events.append(ReplyLost(frame.handle, frame.message, SendFailure.LINK_RESET))
 
     # ------------------------------------------------------------------------------ inputs
 
@@ -291,7 +290,7 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
             case A.LOSE_NAK | A.LOSE_NO_RESPONSE:
                 frame = self._take_current()
                 counters.replies_lost += 1
-                reason = ReplyLossReason.NAK_LIMIT if action is A.LOSE_NAK else ReplyLossReason.NO_RESPONSE
+                reason = SendFailure.NAK_LIMIT if action is A.LOSE_NAK else SendFailure.NO_RESPONSE
                 self._finish(ReplyLost(frame.handle, frame.message, reason), now)
 
     def _frame_queued(self, now: float) -> None:

@@ -6,16 +6,14 @@ plain data.
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass
 
-from gateway.protocols.df1.full_duplex import FullDuplexCounters
+from gateway.protocols.df1.full_duplex import FullDuplexCounters, SendFailure
 
 __all__ = [
     "CommandReceived",
     "DuplicateReceived",
     "ReplyDelivered",
-    "ReplyLossReason",
     "ReplyLost",
     "ResponderCounters",
     "ResponderEvent",
@@ -56,19 +54,13 @@ class ReplyDelivered:
     packet: bytes
 
 
-class ReplyLossReason(enum.Enum):
-    NAK_LIMIT = "DLE NAK after every retransmission"
-    NO_RESPONSE = "no DLE ACK after every DLE ENQ"
-    RESET = "the link was reset before the reply was acknowledged"
-
-
 @dataclass(frozen=True, slots=True)
 class ReplyLost:
     """The responder gave up on the reply queued as ``handle``; the peer may or may not have it."""
 
     handle: int
     packet: bytes
-    reason: ReplyLossReason
+    reason: SendFailure
 
 
 ResponderEvent = CommandReceived | DuplicateReceived | ReplyDelivered | ReplyLost
