@@ -36,7 +36,6 @@ from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, reply_matc
 from gateway.protocols.df1.pccc.codes import REPLY_BIT
 
 __all__ = [
-    "HEAD",
     "Exchange",
     "ExchangeScheduler",
     "LineStations",
@@ -45,10 +44,6 @@ __all__ = [
     "SendRequest",
     "StationRecord",
 ]
-
-#: The first six bytes of a message (DST SRC CMD STS TNS): a PCCC header, and what identifies it.
-HEAD: Final = 6
-
 
 @dataclass(slots=True)
 class MasterRequest:
@@ -128,7 +123,7 @@ class StationRecord:
         """A good message of this station (already acknowledged): its reply to one of our requests,
         a stray reply, or a command of its own; None for a repeat (it resends when our DLE ACK was
         lost: the first six bytes are the last message's, with no EOT between, KA p. 11-17)."""
-        head = message[:HEAD]
+        head = message[:HEADER_SIZE]
         if head == self.last_head:
             self.counters.duplicates += 1
             return None
@@ -173,7 +168,7 @@ class LineStations:
         target = self._by_number.get(station)
         if target is None:
             raise ValueError(f"station {station} is not on this line (stations: {self.order})")
-        if len(message) < HEAD:
+        if len(message) < HEADER_SIZE:
             raise ValueError(f"{what} has at least DST SRC CMD STS TNS (6 bytes)")
         return target
 
