@@ -373,7 +373,7 @@ class HalfDuplexMaster:
         self._failed(station, now)
         if not station.active:
             self._take_request()
-            self._events.append(RequestFailed(request.request_id, request.station, FailReason.NO_ACK, True))
+            self._events.append(request.failed(FailReason.NO_ACK, True))
             return
         self._resend_or_fail(request, now)
 
@@ -391,7 +391,7 @@ class HalfDuplexMaster:
             self._send_message(request, now)  # the identical bytes: same TNS
             return
         self._take_request()
-        self._events.append(RequestFailed(request.request_id, request.station, FailReason.NO_ACK, True))
+        self._events.append(request.failed(FailReason.NO_ACK, True))
 
     def _on_eot(self, now: float) -> None:
         station = self._polled()

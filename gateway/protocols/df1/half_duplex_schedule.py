@@ -61,6 +61,10 @@ class MasterRequest:
     urgent: bool = False  #: a write (or its read-back): served before other stations' work
     queued_at: float = 0.0  #: when it was submitted
 
+    def failed(self, reason: hd.FailReason, may_have_executed: bool) -> hd.RequestFailed:
+        """The event that reports this request failed."""
+        return hd.RequestFailed(self.request_id, self.station, reason, may_have_executed)
+
 
 @dataclass(slots=True)
 class StationRecord:
@@ -100,13 +104,13 @@ class StationRecord:
         events: list[hd.MasterEvent] = [hd.StationDemoted(self.number)]
         while self.queue:
             request = self.queue.popleft()
-            events.append(hd.RequestFailed(request.request_id, request.station, hd.FailReason.STATION_DEMOTED, False))
+            events.append(request.failed(hd.FailReason.STATION_DEMOTED, False))
         events += [self.fail_awaiting(request, hd.FailReason.STATION_DEMOTED) for request in list(self.awaiting)]
         return events
 
     def fail_awaiting(self, request: MasterRequest, reason: hd.FailReason) -> hd.RequestFailed:
         self.awaiting.remove(request)
-        return hd.RequestFailed(request.request_id, request.station, reason, True)
+        return request.failed(reason, True)
 
     def enqueue(self, request: MasterRequest) -> None:
         """The reply to a slave's own command first, then urgent requests (writes), then the rest."""
