@@ -102,6 +102,17 @@ class SendComplete:
     handle: int
 
 
+@dataclass(frozen=True, slots=True)
+class SendFailed:
+    """The frame queued as ``handle`` was not acknowledged; ``reason`` says why."""
+
+    handle: int
+    reason: SendFailure
+
+
+DataLinkEvent = MessageReceived | SendComplete | SendFailed
+
+
 class BadFrameAnswer(enum.Enum):
     """What a receiver does with a damaged frame (manual §2.5 says NAK; some stay silent)."""
 
@@ -115,17 +126,6 @@ class EnqAnswer(enum.Enum):
 
     LAST_RESPONSE = "last"  #: repeat the last response symbol (1770-6.5.16 ch. 2)
     NAK = "nak"  #: always DLE NAK, "a request for retransmission" (S4516-DF1 manual §2.1)
-
-
-@dataclass(frozen=True, slots=True)
-class SendFailed:
-    """The frame queued as ``handle`` was not acknowledged; ``reason`` says why."""
-
-    handle: int
-    reason: SendFailure
-
-
-DataLinkEvent = MessageReceived | SendComplete | SendFailed
 
 
 @dataclass(slots=True)
