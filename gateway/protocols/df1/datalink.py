@@ -53,7 +53,9 @@ Usage (the caller owns the port and the clock)::
     if (deadline := link.next_deadline()) is not None and now >= deadline:
         link.handle_timeout(now)
 
-This module does no I/O.
+The output, the last response symbol, the transmit queue and the ACK timer are
+:class:`~gateway.protocols.df1.full_duplex.FullDuplexStation`'s, shared with the target-mode
+responder.  This module does no I/O.
 """
 
 from __future__ import annotations

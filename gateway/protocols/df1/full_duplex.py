@@ -9,8 +9,9 @@ commands and sends replies.  :class:`FullDuplexStation` is the part they have in
 * the receiver's last response symbol (DLE NAK until a frame has been answered), which a DLE ENQ
   asks for again;
 * the transmitter's queue and its one frame on the line (:class:`TxState`), with the frame's DLE
-  NAK and DLE ENQ counts and its ACK timer (``next_deadline`` / ``handle_timeout``).  While that frame still waits
-  in :meth:`~FullDuplexStation.data_to_send` the peer cannot have answered it: a DLE ACK / DLE NAK
+  NAK and DLE ENQ counts and its ACK timer (``next_deadline`` / ``handle_timeout``), and why it
+  gives a frame up (:class:`SendFailure`).  While that frame still waits in
+  :meth:`~FullDuplexStation.data_to_send` the peer cannot have answered it: a DLE ACK / DLE NAK
   arriving then belongs to an older frame.
 
 The base counts what the decoder reports and hands it on (``_on_frame``, ``_on_bad_frame``,

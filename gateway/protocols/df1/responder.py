@@ -52,7 +52,9 @@ the peer takes it as delivered; the application layer's reply timeout covers tha
 
 All behaviour is one table, :data:`~gateway.protocols.df1.responder_table.TRANSITIONS`
 ((state, input) -> (action, next state), a missing pair raises); its events and counters are in
-:mod:`~gateway.protocols.df1.responder_events`.  This module does no I/O: the caller passes ``now``
+:mod:`~gateway.protocols.df1.responder_events`; the output, the last response symbol, the reply
+queue and the ACK timer are :class:`~gateway.protocols.df1.full_duplex.FullDuplexStation`'s, shared
+with the host's data link.  This module does no I/O: the caller passes ``now``
 and moves the bytes.
 """
 
