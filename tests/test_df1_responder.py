@@ -30,12 +30,12 @@ from gateway.protocols.df1.framing import (
     encode_frame,
 )
 from gateway.protocols.df1.framing.decoder import FrameDecoder
+from gateway.protocols.df1.full_duplex import SendFailure, TxState
 from gateway.protocols.df1.responder import Df1Responder
 from gateway.protocols.df1.responder_events import (
     CommandReceived,
     DuplicateReceived,
     ReplyDelivered,
-    ReplyLossReason,
     ReplyLost,
     ResponderEvent,
 )
@@ -44,11 +44,11 @@ from gateway.protocols.df1.responder_table import (
     TRANSITIONS,
     ResponderAction,
     ResponderInput,
-    ResponderState,
     ResponderStep,
 )
+from gateway.protocols.df1.transitions import Transition
 
-S, K, A = ResponderState, ResponderInput, ResponderAction
+S, K, A = TxState, ResponderInput, ResponderAction
 STATION = 1
 
 
@@ -98,7 +98,7 @@ def test_the_table_holds_every_pair_once_and_ignored_pairs_do_nothing() -> None:
     assert set(TRANSITIONS) == set(itertools.product(S, K))
     for pair, reason in IGNORED.items():
         assert reason
-        assert TRANSITIONS[pair][:2] == (A.IGNORE, pair[0])
+        assert TRANSITIONS[pair] == Transition(A.IGNORE, pair[0])
     assert {pair for pair, entry in TRANSITIONS.items() if entry.action is A.IGNORE} == set(IGNORED)
 
 
@@ -107,7 +107,7 @@ def test_the_receiver_acts_the_same_in_every_state() -> None:
     for what in receiver:
         steps = {TRANSITIONS[state, what] for state in S}
         assert len({step.action for step in steps}) == 1, what
-        assert all(TRANSITIONS[state, what][1] is state for state in S)
+        assert all(TRANSITIONS[state, what].next_state is state for state in S)
 
 
 def test_a_table_with_a_pair_missing_fails_at_import(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -131,7 +131,7 @@ def test_a_missing_pair_raises(monkeypatch: pytest.MonkeyPatch) -> None:
         responder.feed(ENQ_SYMBOL, 0.0)
 
 
-def _in_state(state: ResponderState) -> Df1Responder:
+def _in_state(state: TxState) -> Df1Responder:
     """A responder in ``state`` that delivered C1 and gave its reply R1 (pending: none)."""
     responder = Df1Responder(station=STATION, check_dst=True, max_pending=1, nak_limit=1, enq_limit=1)
     responder.feed(frame(C1), 0.0)
@@ -176,7 +176,7 @@ UNREACHABLE = {(S.IDLE, K.NAK_LIMIT), (S.IDLE, K.STALE), (S.IDLE, K.TIMEOUT), (S
 
 
 @pytest.mark.parametrize("pair", list(itertools.product(S, K)), ids=lambda p: f"{p[0].name}-{p[1].name}")
-def test_walk_every_pair(pair: tuple[ResponderState, ResponderInput]) -> None:
+def test_walk_every_pair(pair: tuple[TxState, ResponderInput]) -> None:
     state, what = pair
     responder = _in_state(state)
     before = len(responder.history)
@@ -186,7 +186,7 @@ def test_walk_every_pair(pair: tuple[ResponderState, ResponderInput]) -> None:
         assert responder.state is state and responder.data_to_send() == b"" and drain(responder) == []
     else:
         DRIVERS[what](responder)
-    action, next_state = TRANSITIONS[pair].action, TRANSITIONS[pair].next_state
+    action, next_state, _ = TRANSITIONS[pair]
     assert ResponderStep(state, what, action, next_state) in list(responder.history)[before:]
 
 
@@ -282,7 +282,7 @@ SCRIPTS: dict[str, tuple[Script, dict[str, Any]]] = {
     "duplicate after the reply was lost: the reply gets another chance": ([
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
         ("reply", R1), ("out", frame(R1)),
-        ("in", NAK_SYMBOL), ("out", b""), ("events", [ReplyLost(1, R1, ReplyLossReason.NAK_LIMIT)]),
+        ("in", NAK_SYMBOL), ("out", b""), ("events", [ReplyLost(1, R1, SendFailure.NAK_LIMIT)]),
         ("in", frame(C1)), ("out", ACK_SYMBOL + frame(R1)), ("events", [duplicate(C1, 2)]),
         ("in", ACK_SYMBOL), ("events", [ReplyDelivered(2, R1)]),
     ], {"nak_limit": 0}),
@@ -326,7 +326,7 @@ SCRIPTS: dict[str, tuple[Script, dict[str, Any]]] = {
         ("reply", R1), ("reply", R2), ("out", frame(R1)),
         ("in", NAK_SYMBOL), ("out", frame(R1)),
         ("in", NAK_SYMBOL), ("out", frame(R1)),
-        ("in", NAK_SYMBOL), ("out", frame(R2)), ("events", [ReplyLost(1, R1, ReplyLossReason.NAK_LIMIT)]),
+        ("in", NAK_SYMBOL), ("out", frame(R2)), ("events", [ReplyLost(1, R1, SendFailure.NAK_LIMIT)]),
         ("in", ACK_SYMBOL), ("events", [ReplyDelivered(2, R2)]),
     ], {"nak_limit": 2}),
     "timeout: ENQ, then lost": ([
@@ -335,7 +335,7 @@ SCRIPTS: dict[str, tuple[Script, dict[str, Any]]] = {
         ("at", 0.499), ("out", b""),
         ("at", 0.5), ("out", ENQ_SYMBOL), ("deadline", 1.0),
         ("at", 1.0), ("out", ENQ_SYMBOL), ("deadline", 1.5),
-        ("at", 1.5), ("out", b""), ("deadline", None), ("events", [ReplyLost(1, R1, ReplyLossReason.NO_RESPONSE)]),
+        ("at", 1.5), ("out", b""), ("deadline", None), ("events", [ReplyLost(1, R1, SendFailure.NO_RESPONSE)]),
         ("in", ACK_SYMBOL), ("events", []),  # too late: ignored
     ], {"ack_timeout": 0.5, "enq_limit": 2}),
     "ENQ answered NAK: the frame again; ENQ answered ACK: delivered": ([
@@ -404,7 +404,7 @@ def test_reset_loses_every_reply_and_forgets_the_line() -> None:
     responder.send_reply(R2, 0.0)
     drain(responder)
     responder.reset()
-    assert drain(responder) == [ReplyLost(1, R1, ReplyLossReason.RESET), ReplyLost(2, R2, ReplyLossReason.RESET)]
+    assert drain(responder) == [ReplyLost(1, R1, SendFailure.LINK_RESET), ReplyLost(2, R2, SendFailure.LINK_RESET)]
     assert responder.data_to_send() == b"" and responder.next_deadline() is None
     assert responder.state is S.IDLE and responder.pending_commands == 0
     responder.feed(ENQ_SYMBOL + frame(C2), 0.0)

@@ -25,7 +25,7 @@ from typing import Any
 import pytest
 
 import gateway.protocols.df1 as df1
-from gateway.protocols.df1 import datalink, half_duplex, responder_table, transaction, write_verdict
+from gateway.protocols.df1 import datalink, full_duplex, half_duplex, responder_table, transaction, write_verdict
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.framing import decoder as frame_decoder
 from gateway.protocols.df1.half_duplex_events import LineConfig, StationConfig
@@ -53,8 +53,8 @@ TABLES = [
           write_verdict.VerdictAction, write_verdict.VerdictState.SENT, write_verdict.VerdictAction.IGNORE),
     Table("half_duplex", half_duplex.TRANSITIONS, frozenset(half_duplex.LineState), half_duplex.MasterInput,
           half_duplex.MasterAction, half_duplex.LineState.IDLE, half_duplex.MasterAction.IGNORE),
-    Table("responder", responder_table.TRANSITIONS, frozenset(responder_table.ResponderState),
-          responder_table.ResponderInput, responder_table.ResponderAction, responder_table.ResponderState.IDLE,
+    Table("responder", responder_table.TRANSITIONS, frozenset(full_duplex.TxState),
+          responder_table.ResponderInput, responder_table.ResponderAction, full_duplex.TxState.IDLE,
           responder_table.ResponderAction.IGNORE),
     Table("decoder, full duplex", frame_decoder.FULL_DUPLEX_TRANSITIONS, frozenset(frame_decoder.FullDuplexState),
           frame_decoder.ByteClass, frame_decoder.DecoderAction, frame_decoder.DecoderState.IDLE, None),

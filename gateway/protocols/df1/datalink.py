@@ -53,7 +53,9 @@ Usage (the caller owns the port and the clock)::
     if (deadline := link.next_deadline()) is not None and now >= deadline:
         link.handle_timeout(now)
 
-This module does no I/O.
+The output, the last response symbol, the transmit queue and the ACK timer are
+:class:`~gateway.protocols.df1.full_duplex.FullDuplexStation`'s, shared with the target-mode
+responder.  This module does no I/O.
 """
 
 from __future__ import annotations
@@ -64,23 +66,9 @@ from dataclasses import dataclass
 from typing import Final
 
 from gateway.errors import InvalidRequest
-from gateway.protocols.df1.framing import (
-    ACK_SYMBOL,
-    DEFAULT_MAX_MESSAGE,
-    ENQ_SYMBOL,
-    NAK_SYMBOL,
-    NEED_DATA,
-    AckReceived,
-    BadFrame,
-    Checksum,
-    EnqReceived,
-    Frame,
-    NakReceived,
-    NeedData,
-    encode_frame,
-)
-from gateway.protocols.df1.framing.decoder import FrameDecoder
-from gateway.protocols.df1.transitions import Transition, require_complete
+from gateway.protocols.df1.framing import ACK_SYMBOL, DEFAULT_MAX_MESSAGE, NAK_SYMBOL, BadFrameReason, Checksum
+from gateway.protocols.df1.full_duplex import FullDuplexCounters, FullDuplexStation, SendFailure, TxState
+from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
 
 __all__ = [
     "TRANSITIONS",
@@ -116,13 +104,15 @@ class SendComplete:
     handle: int
 
 
-class SendFailure(enum.Enum):
-    """Why the link gave up on a frame (S4516-DF1 sfunc11 return codes 3 and 4/5)."""
+@dataclass(frozen=True, slots=True)
+class SendFailed:
+    """The frame queued as ``handle`` was not acknowledged; ``reason`` says why."""
 
-    NAK_LIMIT = "DLE NAK received after every retransmission"
-    NO_RESPONSE = "no DLE ACK after every DLE ENQ"
-    LINK_RESET = "the link was reset before the frame was acknowledged"
-    AMBIGUOUS_NAK = "DLE NAK for a frame that must not run twice: the peer may or may not have it"
+    handle: int
+    reason: SendFailure
+
+
+DataLinkEvent = MessageReceived | SendComplete | SendFailed
 
 
 class BadFrameAnswer(enum.Enum):
@@ -140,51 +130,18 @@ class EnqAnswer(enum.Enum):
     NAK = "nak"  #: always DLE NAK, "a request for retransmission" (S4516-DF1 manual §2.1)
 
 
-@dataclass(frozen=True, slots=True)
-class SendFailed:
-    """The frame queued as ``handle`` was not acknowledged; ``reason`` says why."""
-
-    handle: int
-    reason: SendFailure
-
-
-DataLinkEvent = MessageReceived | SendComplete | SendFailed
-
-
 @dataclass(slots=True)
-class DataLinkCounters:
+class DataLinkCounters(FullDuplexCounters):
     """Link statistics, as in the DF1 full-duplex diagnostic counters (notes §7.7)."""
 
-    frames_sent: int = 0  #: every frame written, retransmissions included
-    frames_received: int = 0  #: frames with a valid check, duplicates included
     messages_delivered: int = 0
-    acks_sent: int = 0
-    acks_received: int = 0
-    naks_sent: int = 0
-    naks_received: int = 0
-    enqs_sent: int = 0
-    enqs_received: int = 0
-    retransmissions: int = 0
-    bad_frames: int = 0
-    duplicates: int = 0
     send_failures: int = 0
 
 
 # ---------------------------------------------------------------------------------- transmitter
 
 
-class TxState(enum.Enum):
-    """Transmitter state (manual §2.4)."""
-
-    IDLE = "idle"
-    AWAIT_ACK = "waiting for DLE ACK"
-
-    # Members are singletons compared by identity; hashing them by identity too keeps the
-    # transition table look-up in C (``Enum.__hash__`` is Python code: 2.5x slower look-ups).
-    __hash__ = object.__hash__
-
-
-class TxInput(enum.Enum):
+class TxInput(TableEnum):
     SEND = "a frame is queued"
     ACK = "DLE ACK received"
     NAK = "DLE NAK received, retransmissions left"
@@ -196,10 +153,8 @@ class TxInput(enum.Enum):
     STALE = "DLE ACK / DLE NAK before our frame left data_to_send(): an answer to an older frame"
     RESET = "the line was reset (port reopened)"
 
-    __hash__ = object.__hash__  # see TxState
 
-
-class TxAction(enum.Enum):
+class TxAction(TableEnum):
     TRANSMIT = "send the next queued frame, start the ACK timer"
     COMPLETE = "report SendComplete"
     RETRANSMIT = "send the same frame again, restart the ACK timer"
@@ -210,16 +165,14 @@ class TxAction(enum.Enum):
     RESET = "forget the line; report SendFailed(LINK_RESET) for the frame in flight and every queued one"
     IGNORE = "nothing (stray symbol or nothing to do)"
 
-    __hash__ = object.__hash__  # see TxState
 
-
-def _tx_table() -> dict[tuple[TxState, TxInput], Transition[TxAction, TxState]]:
+def _tx_table() -> Table[TxState, TxInput, TxAction]:
     T, In, A, IDLE, AWAIT = Transition, TxInput, TxAction, TxState.IDLE, TxState.AWAIT_ACK
     return {
         (IDLE, In.SEND): T(A.TRANSMIT, AWAIT),
         # nothing awaits an answer: a stray or late symbol, a confirm of a frame already done
-        **{(IDLE, what): T(A.IGNORE, IDLE) for what in (In.ACK, In.NAK, In.NAK_LIMIT, In.NAK_NOT_PROOF, In.STALE,
-                                                           In.CONFIRM, In.TIMEOUT, In.TIMEOUT_LIMIT)},
+        **stay(A.IGNORE, IDLE, In.ACK, In.NAK, In.NAK_LIMIT, In.NAK_NOT_PROOF, In.STALE, In.CONFIRM, In.TIMEOUT,
+               In.TIMEOUT_LIMIT),
         (IDLE, In.RESET): T(A.RESET, IDLE),
         (AWAIT, In.SEND): T(A.IGNORE, AWAIT),  # queued: it goes when the frame in flight is done
         (AWAIT, In.STALE): T(A.IGNORE, AWAIT),
@@ -242,7 +195,7 @@ require_complete(TRANSITIONS, TxState, TxInput, "full-duplex transmitter")
 # ----------------------------------------------------------------------------------------- link
 
 
-class Df1DataLink:
+class Df1DataLink(FullDuplexStation[DataLinkEvent, DataLinkCounters]):
     """Sans-I/O DF1 full-duplex data-link layer: frames and ACK/NAK/ENQ in, events and bytes out."""
 
     def __init__(
@@ -263,12 +216,10 @@ class Df1DataLink:
             raise ValueError("ack_timeout must be positive")
         if max_enq < 0 or max_nak < 0:
             raise ValueError("max_enq and max_nak must not be negative")
-        self.checksum: Final = checksum
-        self.ack_timeout: Final = ack_timeout
+        super().__init__(DataLinkCounters(), checksum=checksum, ack_timeout=ack_timeout, max_message=max_message)
         self.max_enq: Final = max_enq
         self.max_nak: Final = max_nak
         self.duplicate_detect: Final = duplicate_detect
-        self.max_message: Final = max_message
         self.bad_frame: Final = bad_frame
         self.enq_answer: Final = enq_answer
         #: seconds per character on the line: a frame's ACK comes after its last character
@@ -276,25 +227,10 @@ class Df1DataLink:
         #: the ACK wait adapts to the peer's measured ACK times (see _ack_wait), never below this
         self.min_ack_timeout: Final = min(min_ack_timeout, ack_timeout)
         self._ack_times: deque[float] = deque(maxlen=32)
-        self._sent_at = 0.0
-        self.counters = DataLinkCounters()
-        self._decoder = FrameDecoder(checksum, max_message=max_message)
-        self._events: deque[DataLinkEvent] = deque()
-        self._out = bytearray()
         # receiver
-        self._last_response = NAK_SYMBOL
         self._last_delivered: bytes | None = None
         # transmitter
         self._tx_state = TxState.IDLE
-        self._queue: deque[tuple[int, bytes, bool]] = deque()  # handle, payload, idempotent
-        self._current: tuple[int, bytes, bytes, bool] | None = None  # handle, payload, frame, idempotent
-        self._nak_count = 0
-        self._enq_count = 0
-        self._deadline: float | None = None
-        self._next_handle = 1
-        # True while the current frame still sits in the output buffer: the peer cannot have
-        # answered it yet, so a DLE ACK / DLE NAK arriving then belongs to an older frame.
-        self._frame_unsent = False
         # After confirm(): the next DLE ACK / DLE NAK most likely answers the confirmed frame (its
         # ACK after its reply) or our last DLE ENQ, not the next frame: it is taken as stale.
         self._answer_owed = False
@@ -319,78 +255,13 @@ class Df1DataLink:
             raise InvalidRequest("DF1: cannot send an empty message")
         if len(payload) > self.max_message:
             raise InvalidRequest(f"DF1: message of {len(payload)} bytes exceeds {self.max_message}")
-        handle = self._next_handle
-        self._next_handle += 1
-        self._queue.append((handle, bytes(payload), idempotent))
+        handle = self._enqueue(bytes(payload), idempotent=idempotent)
         self._tx_input(TxInput.SEND, now)
         return handle
 
     def receive_data(self, data: bytes, now: float) -> None:
         """Feed bytes read from the port."""
-        self._decoder.feed(data)
-        while (event := self._decoder.next_event()) is not NEED_DATA:
-            match event:
-                case Frame(message=message):
-                    self._on_frame(message)
-                case BadFrame():
-                    self.counters.bad_frames += 1
-                    if self.bad_frame is BadFrameAnswer.NAK:
-                        self._respond(NAK_SYMBOL)
-                    elif self.bad_frame is BadFrameAnswer.SILENCE:
-                        self._last_response = NAK_SYMBOL
-                case AckReceived():
-                    self.counters.acks_received += 1
-                    stale = self._frame_unsent or self._answer_owed
-                    self._answer_owed = False
-                    if (not stale and self._tx_state is TxState.AWAIT_ACK and self._current is not None
-                            and self._enq_count == 0 and self._nak_count == 0):
-                        self._ack_times.append(now - self._sent_at - len(self._current[2]) * self.char_time)
-                    self._tx_input(TxInput.STALE if stale else TxInput.ACK, now)
-                case NakReceived():
-                    self.counters.naks_received += 1
-                    stale = self._frame_unsent or self._answer_owed
-                    self._answer_owed = False
-                    if stale:
-                        self._tx_input(TxInput.STALE, now)
-                    elif self._current is not None and not self._current[3]:
-                        self._tx_input(TxInput.NAK_NOT_PROOF, now)
-                    elif self._nak_count >= self.max_nak:
-                        self._tx_input(TxInput.NAK_LIMIT, now)
-                    else:
-                        self._tx_input(TxInput.NAK, now)
-                case EnqReceived(aborted_frame=aborted):
-                    self.counters.enqs_received += 1
-                    if aborted:
-                        self.counters.bad_frames += 1
-                        self._last_response = NAK_SYMBOL
-                    if self.enq_answer is EnqAnswer.NAK:
-                        self._respond(NAK_SYMBOL)
-                    else:
-                        self._respond(self._last_response)
-
-    def next_event(self) -> DataLinkEvent | NeedData:
-        """The next :class:`MessageReceived`, :class:`SendComplete`, :class:`SendFailed` or NEED_DATA."""
-        if self._events:
-            return self._events.popleft()
-        return NEED_DATA
-
-    def data_to_send(self) -> bytes:
-        """Bytes to write to the port (frames and response symbols), in order."""
-        out = bytes(self._out)
-        self._out.clear()
-        self._frame_unsent = False
-        return out
-
-    def next_deadline(self) -> float | None:
-        """When :meth:`handle_timeout` must be called, or None without a running timer."""
-        return self._deadline
-
-    def handle_timeout(self, now: float) -> None:
-        """Call at or after :meth:`next_deadline`; early calls do nothing."""
-        if self._deadline is None or now < self._deadline:
-            return
-        limit = self._enq_count >= self.max_enq
-        self._tx_input(TxInput.TIMEOUT_LIMIT if limit else TxInput.TIMEOUT, now)
+        self._receive(data, now)
 
     def confirm(self, handle: int, now: float) -> None:
         """The application layer has the reply to frame ``handle``: the peer received it.
@@ -399,7 +270,7 @@ class Df1DataLink:
         completing the frame then stops DLE ENQ and, above all, any retransmission of it.
         Does nothing unless ``handle`` is the frame awaiting its ACK.
         """
-        if self._current is not None and self._current[0] == handle and not self._frame_unsent:
+        if self._current is not None and self._current.handle == handle and not self._frame_unsent:
             self._answer_owed = True
             self._tx_input(TxInput.CONFIRM, now)
 
@@ -408,14 +279,6 @@ class Df1DataLink:
         self._tx_input(TxInput.RESET, 0.0)
 
     # ------------------------------------------------------------------------------- receiver
-
-    def _respond(self, symbol: bytes) -> None:
-        self._last_response = symbol
-        self._out += symbol
-        if symbol == ACK_SYMBOL:
-            self.counters.acks_sent += 1
-        else:
-            self.counters.naks_sent += 1
 
     def _is_duplicate(self, message: bytes) -> bool:
         """Same SRC, CMD and TNS as the last delivered message (1770-6.5.16 duplicate detection).
@@ -429,8 +292,7 @@ class Df1DataLink:
             return message == last
         return message[1:3] == last[1:3] and message[4:6] == last[4:6]
 
-    def _on_frame(self, message: bytes) -> None:
-        self.counters.frames_received += 1
+    def _on_frame(self, message: bytes, now: float) -> None:
         if self.duplicate_detect and self._is_duplicate(message):
             self.counters.duplicates += 1
         else:
@@ -439,7 +301,48 @@ class Df1DataLink:
             self._events.append(MessageReceived(message))
         self._respond(ACK_SYMBOL)
 
+    def _on_bad_frame(self, reason: BadFrameReason, now: float) -> None:
+        self.counters.bad_frames += 1
+        if self.bad_frame is BadFrameAnswer.NAK:
+            self._respond(NAK_SYMBOL)
+        elif self.bad_frame is BadFrameAnswer.SILENCE:
+            self._last_response = NAK_SYMBOL
+
+    def _on_enq(self, aborted_frame: bool, now: float) -> None:
+        if aborted_frame:
+            self.counters.bad_frames += 1
+            self._last_response = NAK_SYMBOL
+        if self.enq_answer is EnqAnswer.NAK:
+            self._respond(NAK_SYMBOL)
+        else:
+            self._respond(self._last_response)
+
     # ---------------------------------------------------------------------------- transmitter
+
+    def _on_answer(self, nak: bool, now: float) -> None:
+        # stale: it cannot answer the frame on the line (module docstring)
+        stale = self._frame_unsent or self._answer_owed
+        self._answer_owed = False
+        if stale:
+            self._tx_input(TxInput.STALE, now)
+        elif not nak:
+            if (self._tx_state is TxState.AWAIT_ACK and self._current is not None
+                    and self._enq_count == 0 and self._nak_count == 0):
+                self._ack_times.append(now - self._sent_at - len(self._current.frame) * self.char_time)
+            self._tx_input(TxInput.ACK, now)
+        elif self._current is not None and not self._current.idempotent:
+            self._tx_input(TxInput.NAK_NOT_PROOF, now)
+        elif self._nak_count >= self.max_nak:
+            self._tx_input(TxInput.NAK_LIMIT, now)
+        else:
+            self._tx_input(TxInput.NAK, now)
+
+    def _frame_queued(self, now: float) -> None:
+        self._tx_input(TxInput.SEND, now)
+
+    def _ack_timer_expired(self, now: float) -> None:
+        limit = self._enq_count >= self.max_enq
+        self._tx_input(TxInput.TIMEOUT_LIMIT if limit else TxInput.TIMEOUT, now)
 
     def _tx_input(self, tx_input: TxInput, now: float) -> None:
         action, self._tx_state, _ = TRANSITIONS[self._tx_state, tx_input]
@@ -447,54 +350,33 @@ class Df1DataLink:
             case TxAction.IGNORE:
                 pass
             case TxAction.TRANSMIT:
-                handle, payload, idempotent = self._queue.popleft()
-                self._current = (handle, payload, encode_frame(payload, self.checksum), idempotent)
-                self._nak_count = self._enq_count = 0
-                self._write_current(now)
+                self._transmit(now)
             case TxAction.RETRANSMIT:
-                self._nak_count += 1
-                self.counters.retransmissions += 1
-                self._write_current(now)
+                self._retransmit(now)
             case TxAction.ENQUIRE:
-                self._enq_count += 1
-                self.counters.enqs_sent += 1
-                self._out += ENQ_SYMBOL
-                self._deadline = now + self._ack_wait(len(ENQ_SYMBOL))
+                self._enquire(now)
             case TxAction.COMPLETE:
-                self._finish(SendComplete(self._take_current()), now)
+                self._finish(SendComplete(self._take_current().handle), now)
             case TxAction.FAIL_NAK:
-                self._finish(SendFailed(self._take_current(), SendFailure.NAK_LIMIT), now)
+                self._fail(SendFailure.NAK_LIMIT, now)
             case TxAction.FAIL_NO_RESPONSE:
-                self._finish(SendFailed(self._take_current(), SendFailure.NO_RESPONSE), now)
+                self._fail(SendFailure.NO_RESPONSE, now)
             case TxAction.FAIL_AMBIGUOUS:
-                self._finish(SendFailed(self._take_current(), SendFailure.AMBIGUOUS_NAK), now)
+                self._fail(SendFailure.AMBIGUOUS_NAK, now)
             case TxAction.RESET:
-                self._forget_line()
+                self._reset_line()
 
-    def _forget_line(self) -> None:
-        failed = [self._current[0]] if self._current is not None else []
-        failed += [handle for handle, _, _ in self._queue]
-        self._queue.clear()
-        self._current = None
-        self._deadline = None
-        self._nak_count = self._enq_count = 0
-        self._decoder.reset()
-        self._out.clear()
-        self._frame_unsent = False
+    def _fail(self, reason: SendFailure, now: float) -> None:
+        self.counters.send_failures += 1
+        self._finish(SendFailed(self._take_current().handle, reason), now)
+
+    def _reset_line(self) -> None:
+        lost = self._forget_line()
         self._answer_owed = False
-        self._last_response = NAK_SYMBOL
         self._last_delivered = None
-        for handle in failed:
+        for frame in lost:
             self.counters.send_failures += 1
-            self._events.append(SendFailed(handle, SendFailure.LINK_RESET))
-
-    def _write_current(self, now: float) -> None:
-        assert self._current is not None
-        self._out += self._current[2]
-        self._frame_unsent = True
-        self.counters.frames_sent += 1
-        self._sent_at = now
-        self._deadline = now + self._ack_wait(len(self._current[2]))
+            self._events.append(SendFailed(frame.handle, SendFailure.LINK_RESET))
 
     def _ack_wait(self, length: int) -> float:
         """How long to wait for the answer to ``length`` bytes just sent: their time on the line
@@ -505,17 +387,3 @@ class Df1DataLink:
             return self.ack_timeout
         wait = length * self.char_time + max(self.min_ack_timeout, 2 * max(self._ack_times))
         return min(self.ack_timeout, wait)
-
-    def _take_current(self) -> int:
-        assert self._current is not None
-        handle = self._current[0]
-        self._current = None
-        self._deadline = None
-        return handle
-
-    def _finish(self, event: SendComplete | SendFailed, now: float) -> None:
-        if isinstance(event, SendFailed):
-            self.counters.send_failures += 1
-        self._events.append(event)
-        if self._queue:
-            self._tx_input(TxInput.SEND, now)

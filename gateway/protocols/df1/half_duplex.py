@@ -38,7 +38,6 @@ This module does no I/O.
 
 from __future__ import annotations
 
-import enum
 import itertools
 from collections import deque
 from collections.abc import Callable
@@ -52,10 +51,8 @@ from gateway.protocols.df1.framing import (
     BadFrame,
     EotReceived,
     Frame,
-    MasterMessage,
     NakReceived,
     NeedData,
-    Poll,
     encode_master_message,
     encode_poll,
 )
@@ -77,19 +74,19 @@ from gateway.protocols.df1.half_duplex_schedule import (
     StationRecord,
 )
 from gateway.protocols.df1.half_duplex_transmitter import HalfDuplexTransmitter
-from gateway.protocols.df1.transitions import Transition, require_complete
+from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
 
 __all__ = ["TRANSITIONS", "HalfDuplexMaster", "LineState", "MasterAction", "MasterInput"]
 
 
-class LineState(enum.Enum):
+class LineState(TableEnum):
     IDLE = "idle"  #: nothing on the line; the scheduler picks the next exchange
     TRANSMIT = "transmit"  #: bytes waiting for the line to be quiet and RTS key-up
     WAIT_ACK = "wait-ack"  #: master message sent, waiting for DLE ACK
     WAIT_POLL = "wait-poll"  #: poll sent, waiting for a message or DLE EOT
 
 
-class MasterInput(enum.Enum):
+class MasterInput(TableEnum):
     SCHEDULE = "the line is free: the scheduler may start an exchange"
     SEND_MESSAGE = "the line is ready for the pending master message"
     SEND_POLL = "the line is ready for the pending poll"
@@ -102,7 +99,7 @@ class MasterInput(enum.Enum):
     BAD = "a damaged slave frame"
 
 
-class MasterAction(enum.Enum):
+class MasterAction(TableEnum):
     SCHEDULE = "start the next exchange, if one is due"
     SEND = "put the pending bytes on the line; start the answer timer"
     ACKED = "the master message arrived: wait for its reply (or report it delivered)"
@@ -115,40 +112,34 @@ class MasterAction(enum.Enum):
     IGNORE = "nothing (counted in ``ignored``)"
 
 
-_Table = dict[tuple[LineState, MasterInput], Transition[MasterAction, LineState]]
-
-
-def _master_table() -> _Table:
+def _master_table() -> Table[LineState, MasterInput, MasterAction]:
     T, L, In, A = Transition, LineState, MasterInput, MasterAction
     # an action that sends (again) moves on to TRANSMIT, or at once past it when the line is ready
     sent = frozenset({L.TRANSMIT, L.WAIT_ACK, L.WAIT_POLL})
     sending = (In.SEND_MESSAGE, In.SEND_POLL, In.SEND_SYMBOL)
     answers = (In.ACK, In.NAK, In.EOT, In.MESSAGE, In.BAD)
 
-    def ignore(state: LineState, *inputs: MasterInput) -> _Table:
-        return {(state, what): T(A.IGNORE, state) for what in inputs}
-
     return {
         (L.IDLE, In.SCHEDULE): T(A.SCHEDULE, L.IDLE, sent),
         # nothing asked, nothing held, no timer: a stray symbol or frame, or another master's
-        **ignore(L.IDLE, *sending, In.TIMEOUT, *answers),
+        **stay(A.IGNORE, L.IDLE, *sending, In.TIMEOUT, *answers),
         (L.TRANSMIT, In.SEND_MESSAGE): T(A.SEND, L.WAIT_ACK),
         (L.TRANSMIT, In.SEND_POLL): T(A.SEND, L.WAIT_POLL),
         (L.TRANSMIT, In.SEND_SYMBOL): T(A.SEND, L.IDLE),
         # the line is not free and nothing of ours is out yet: what is heard answers nothing
-        **ignore(L.TRANSMIT, In.SCHEDULE, In.TIMEOUT, *answers),
+        **stay(A.IGNORE, L.TRANSMIT, In.SCHEDULE, In.TIMEOUT, *answers),
         (L.WAIT_ACK, In.ACK): T(A.ACKED, L.IDLE),
         (L.WAIT_ACK, In.NAK): T(A.NAKED, L.IDLE, frozenset({L.TRANSMIT, L.WAIT_ACK})),
         (L.WAIT_ACK, In.TIMEOUT): T(A.ACK_TIMEOUT, L.IDLE, frozenset({L.TRANSMIT, L.WAIT_ACK})),
         # a slave must not send unpolled (nor DLE EOT)
-        **ignore(L.WAIT_ACK, In.SCHEDULE, *sending, In.EOT, In.MESSAGE, In.BAD),
+        **stay(A.IGNORE, L.WAIT_ACK, In.SCHEDULE, *sending, In.EOT, In.MESSAGE, In.BAD),
         (L.WAIT_POLL, In.EOT): T(A.EOT, L.IDLE),
         (L.WAIT_POLL, In.MESSAGE): T(A.MESSAGE, L.TRANSMIT, frozenset({L.IDLE})),  # our DLE ACK
         (L.WAIT_POLL, In.BAD): T(A.BAD_ANSWER, L.IDLE),
         (L.WAIT_POLL, In.NAK): T(A.BAD_ANSWER, L.IDLE),
         (L.WAIT_POLL, In.TIMEOUT): T(A.POLL_TIMEOUT, L.IDLE),
         # a poll is not acknowledged
-        **ignore(L.WAIT_POLL, In.SCHEDULE, *sending, In.ACK),
+        **stay(A.IGNORE, L.WAIT_POLL, In.SCHEDULE, *sending, In.ACK),
     }
 
 
@@ -288,19 +279,22 @@ class HalfDuplexMaster:
             return
         self._decoder.feed(data)
         while (event := self._decoder.next_event()) is not NEED_DATA:
-            if isinstance(event, Frame):
-                self._message = event.message
-                self._step(MasterInput.MESSAGE, now)
-            elif isinstance(event, EotReceived):
-                self._step(MasterInput.EOT, now)
-            elif isinstance(event, AckReceived):
-                self._step(MasterInput.ACK, now)
-            elif isinstance(event, NakReceived):
-                self._step(MasterInput.NAK, now)
-            elif isinstance(event, BadFrame) and not event.master:
-                self._step(MasterInput.BAD, now)
-            elif isinstance(event, Poll | MasterMessage | BadFrame):
-                self.ignored += 1  # another master's frame, or our own echo without echo mode
+            match event:
+                case Frame(message=message):
+                    self._message = message
+                    self._step(MasterInput.MESSAGE, now)
+                case EotReceived():
+                    self._step(MasterInput.EOT, now)
+                case AckReceived():
+                    self._step(MasterInput.ACK, now)
+                case NakReceived():
+                    self._step(MasterInput.NAK, now)
+                case BadFrame(master=False):
+                    self._step(MasterInput.BAD, now)
+                case _:
+                    # a poll or master message (damaged or not): another master's, or our own
+                    # echo without echo mode (a half-duplex decoder reports no DLE ENQ alone)
+                    self.ignored += 1
 
     # --------------------------------------------------------------------------- the table
 
@@ -379,7 +373,7 @@ class HalfDuplexMaster:
         self._failed(station, now)
         if not station.active:
             self._take_request()
-            self._events.append(RequestFailed(request.request_id, request.station, FailReason.NO_ACK, True))
+            self._events.append(request.failed(FailReason.NO_ACK, True))
             return
         self._resend_or_fail(request, now)
 
@@ -397,7 +391,7 @@ class HalfDuplexMaster:
             self._send_message(request, now)  # the identical bytes: same TNS
             return
         self._take_request()
-        self._events.append(RequestFailed(request.request_id, request.station, FailReason.NO_ACK, True))
+        self._events.append(request.failed(FailReason.NO_ACK, True))
 
     def _on_eot(self, now: float) -> None:
         station = self._polled()

@@ -31,24 +31,11 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Final
 
-from gateway.protocols.df1.half_duplex_events import (
-    FailReason,
-    LineConfig,
-    MasterEvent,
-    ReplyReceived,
-    RequestFailed,
-    SlaveInitiated,
-    StationConfig,
-    StationCounters,
-    StationDemoted,
-    StationRestored,
-    StrayReply,
-)
+from gateway.protocols.df1 import half_duplex_events as hd
 from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, reply_matches
 from gateway.protocols.df1.pccc.codes import REPLY_BIT
 
 __all__ = [
-    "HEAD",
     "Exchange",
     "ExchangeScheduler",
     "LineStations",
@@ -57,10 +44,6 @@ __all__ = [
     "SendRequest",
     "StationRecord",
 ]
-
-#: The first six bytes of a message (DST SRC CMD STS TNS): a PCCC header, and what identifies it.
-HEAD: Final = 6
-
 
 @dataclass(slots=True)
 class MasterRequest:
@@ -78,34 +61,38 @@ class MasterRequest:
     urgent: bool = False  #: a write (or its read-back): served before other stations' work
     queued_at: float = 0.0  #: when it was submitted
 
+    def failed(self, reason: hd.FailReason, may_have_executed: bool) -> hd.RequestFailed:
+        """The event that reports this request failed."""
+        return hd.RequestFailed(self.request_id, self.station, reason, may_have_executed)
+
 
 @dataclass(slots=True)
 class StationRecord:
     """What the master knows of one station."""
 
-    config: StationConfig
+    config: hd.StationConfig
     active: bool = True
     failures: int = 0
     queue: deque[MasterRequest] = field(default_factory=deque)
     awaiting: list[MasterRequest] = field(default_factory=list)
     next_poll_at: float = 0.0
     last_head: bytes | None = None
-    counters: StationCounters = field(default_factory=StationCounters)
+    counters: hd.StationCounters = field(default_factory=hd.StationCounters)
 
     @property
     def number(self) -> int:
         return self.config.station
 
-    def answered(self) -> StationRestored | None:
+    def answered(self) -> hd.StationRestored | None:
         """The station answered: the failures in a row end; a demoted station is restored."""
         self.failures = 0
         if self.active:
             return None
         self.active = True
         self.next_poll_at = 0.0
-        return StationRestored(self.number)
+        return hd.StationRestored(self.number)
 
-    def failed(self, now: float) -> list[MasterEvent]:
+    def failed(self, now: float) -> list[hd.MasterEvent]:
         """One more failure in a row; at ``demote_after`` the station is demoted and its requests
         fail.  Returns the events (none while the station stays active)."""
         self.failures += 1
@@ -114,16 +101,16 @@ class StationRecord:
         self.active = False
         self.next_poll_at = now + self.config.slow_poll_interval
         self.counters.demotions += 1
-        events: list[MasterEvent] = [StationDemoted(self.number)]
+        events: list[hd.MasterEvent] = [hd.StationDemoted(self.number)]
         while self.queue:
             request = self.queue.popleft()
-            events.append(RequestFailed(request.request_id, request.station, FailReason.STATION_DEMOTED, False))
-        events += [self.fail_awaiting(request, FailReason.STATION_DEMOTED) for request in list(self.awaiting)]
+            events.append(request.failed(hd.FailReason.STATION_DEMOTED, False))
+        events += [self.fail_awaiting(request, hd.FailReason.STATION_DEMOTED) for request in list(self.awaiting)]
         return events
 
-    def fail_awaiting(self, request: MasterRequest, reason: FailReason) -> RequestFailed:
+    def fail_awaiting(self, request: MasterRequest, reason: hd.FailReason) -> hd.RequestFailed:
         self.awaiting.remove(request)
-        return RequestFailed(request.request_id, request.station, reason, True)
+        return request.failed(reason, True)
 
     def enqueue(self, request: MasterRequest) -> None:
         """The reply to a slave's own command first, then urgent requests (writes), then the rest."""
@@ -136,11 +123,11 @@ class StationRecord:
         else:
             self.queue.append(request)
 
-    def received(self, message: bytes) -> MasterEvent | None:
+    def received(self, message: bytes) -> hd.MasterEvent | None:
         """A good message of this station (already acknowledged): its reply to one of our requests,
         a stray reply, or a command of its own; None for a repeat (it resends when our DLE ACK was
         lost: the first six bytes are the last message's, with no EOT between, KA p. 11-17)."""
-        head = message[:HEAD]
+        head = message[:HEADER_SIZE]
         if head == self.last_head:
             self.counters.duplicates += 1
             return None
@@ -151,9 +138,9 @@ class StationRecord:
             for request in self.awaiting:
                 if reply_matches(request.message, reply):
                     self.awaiting.remove(request)
-                    return ReplyReceived(request.request_id, self.number, message)
-            return StrayReply(self.number, message)
-        return SlaveInitiated(self.number, message)
+                    return hd.ReplyReceived(request.request_id, self.number, message)
+            return hd.StrayReply(self.number, message)
+        return hd.SlaveInitiated(self.number, message)
 
     def polled(self, now: float) -> None:
         self.counters.polls += 1
@@ -164,7 +151,7 @@ class StationRecord:
 class LineStations:
     """The stations of one line by number, in their configured order (the round robin's)."""
 
-    def __init__(self, configs: list[StationConfig]) -> None:
+    def __init__(self, configs: list[hd.StationConfig]) -> None:
         numbers = [s.station for s in configs]
         if len(set(numbers)) != len(numbers):
             raise ValueError(f"station numbers must be unique on a line, got {sorted(numbers)}")
@@ -185,7 +172,7 @@ class LineStations:
         target = self._by_number.get(station)
         if target is None:
             raise ValueError(f"station {station} is not on this line (stations: {self.order})")
-        if len(message) < HEAD:
+        if len(message) < HEADER_SIZE:
             raise ValueError(f"{what} has at least DST SRC CMD STS TNS (6 bytes)")
         return target
 
@@ -222,7 +209,7 @@ class ExchangeScheduler:
     """Which exchange the free line carries next (module docstring); the round robin and the turn
     of the station that has messages are its state."""
 
-    def __init__(self, line: LineConfig, stations: LineStations) -> None:
+    def __init__(self, line: hd.LineConfig, stations: LineStations) -> None:
         self.line: Final = line
         self._stations: Final = stations
         self._order: Final = stations.order

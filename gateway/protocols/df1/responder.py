@@ -52,7 +52,9 @@ the peer takes it as delivered; the application layer's reply timeout covers tha
 
 All behaviour is one table, :data:`~gateway.protocols.df1.responder_table.TRANSITIONS`
 ((state, input) -> (action, next state), a missing pair raises); its events and counters are in
-:mod:`~gateway.protocols.df1.responder_events`.  This module does no I/O: the caller passes ``now``
+:mod:`~gateway.protocols.df1.responder_events`; the output, the last response symbol, the reply
+queue and the ACK timer are :class:`~gateway.protocols.df1.full_duplex.FullDuplexStation`'s, shared
+with the host's data link.  This module does no I/O: the caller passes ``now``
 and moves the bytes.
 """
 
@@ -61,29 +63,12 @@ from __future__ import annotations
 from collections import deque
 from typing import Final
 
-from gateway.protocols.df1.framing import (
-    ACK_SYMBOL,
-    DEFAULT_MAX_MESSAGE,
-    ENQ_SYMBOL,
-    NAK_SYMBOL,
-    NEED_DATA,
-    AckReceived,
-    BadFrame,
-    BadFrameReason,
-    Checksum,
-    DecoderEvent,
-    EnqReceived,
-    Frame,
-    NakReceived,
-    NeedData,
-    encode_frame,
-)
-from gateway.protocols.df1.framing.decoder import FrameDecoder
+from gateway.protocols.df1.framing import ACK_SYMBOL, DEFAULT_MAX_MESSAGE, NAK_SYMBOL, BadFrameReason, Checksum
+from gateway.protocols.df1.full_duplex import FullDuplexStation, SendFailure, TxState
 from gateway.protocols.df1.responder_events import (
     CommandReceived,
     DuplicateReceived,
     ReplyDelivered,
-    ReplyLossReason,
     ReplyLost,
     ResponderCounters,
     ResponderEvent,
@@ -92,7 +77,6 @@ from gateway.protocols.df1.responder_table import (
     TRANSITIONS,
     ResponderAction,
     ResponderInput,
-    ResponderState,
     ResponderStep,
 )
 
@@ -104,13 +88,13 @@ MIN_PACKET: Final = 6
 
 _DLE: Final = 0x10
 
-S, K, A = ResponderState, ResponderInput, ResponderAction
+S, K, A = TxState, ResponderInput, ResponderAction
 
 
 # ------------------------------------------------------------------------------------ responder
 
 
-class Df1Responder:
+class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
     """Sans-I/O DF1 full-duplex responder: commands in, replies out (module docstring).
 
     ``feed(data, now)`` the bytes read, ``next_event()`` until ``NEED_DATA``, answer every
@@ -142,9 +126,8 @@ class Df1Responder:
             raise ValueError("max_pending must be at least 1")
         if max_message < MIN_PACKET:
             raise ValueError(f"max_message must be at least {MIN_PACKET}")
+        super().__init__(ResponderCounters(), checksum=checksum, ack_timeout=ack_timeout, max_message=max_message)
         self.station: Final = station
-        self.checksum: Final = checksum
-        self.ack_timeout: Final = ack_timeout
         self.nak_limit: Final = nak_limit
         self.enq_limit: Final = enq_limit
         self.duplicate_detect: Final = duplicate_detect
@@ -152,33 +135,19 @@ class Df1Responder:
         #: the message sink's size: commands delivered whose reply was not given yet; p. 4-6
         #: suggests peers keep one to three messages outstanding
         self.max_pending: Final = max_pending
-        self.max_message: Final = max_message
-        self.counters = ResponderCounters()
         #: the last transitions taken, newest last
         self.history: deque[ResponderStep] = deque(maxlen=64)
-        self._decoder = FrameDecoder(checksum, max_message=max_message)
-        self._events: deque[ResponderEvent] = deque()
-        self._out = bytearray()
         self._state = S.IDLE
         self._idle_dle = False  # the last byte was a DLE outside a frame that started nothing yet
         # receiver
-        self._last_response = NAK_SYMBOL
         self._last_header: tuple[int, int, int] | None = None  # SRC, CMD, TNS of the last delivered
         self._last_reply: tuple[int, bytes] | None = None  # handle and packet of its reply
         self._pending: list[tuple[int, int, int]] = []  # SRC, CMD, TNS of commands awaiting a reply
-        # transmitter
-        self._queue: deque[tuple[int, bytes]] = deque()  # handle, packet
-        self._current: tuple[int, bytes, bytes] | None = None  # handle, packet, frame
-        self._frame_unsent = False
-        self._nak_count = 0
-        self._enq_count = 0
-        self._deadline: float | None = None
-        self._next_handle = 1
 
     # ------------------------------------------------------------------------------ public API
 
     @property
-    def state(self) -> ResponderState:
+    def state(self) -> TxState:
         return self._state
 
     @property
@@ -197,11 +166,7 @@ class Df1Responder:
         for i in range(len(data)):
             byte = data[i]
             outside = not decoder.in_frame
-            decoder.feed(data[i : i + 1])
-            heard = False
-            while (event := decoder.next_event()) is not NEED_DATA:
-                heard = True
-                self._on_decoded(event, now)
+            heard = self._receive(data[i : i + 1], now)
             if outside and not heard and not decoder.in_frame:
                 # Discarded by the decoder: noise, or the first DLE of DLE DLE (a DLE alone may
                 # still start a symbol with the next byte).
@@ -210,12 +175,6 @@ class Df1Responder:
                 self._idle_dle = byte == _DLE
             else:
                 self._idle_dle = False
-
-    def next_event(self) -> ResponderEvent | NeedData:
-        """The next event, or ``NEED_DATA``."""
-        if self._events:
-            return self._events.popleft()
-        return NEED_DATA
 
     def send_reply(self, packet: bytes, now: float) -> int:
         """Queue a reply packet (DST .. data); returns its handle, which one event will report:
@@ -230,66 +189,20 @@ class Df1Responder:
         self._input(K.REPLY, now)
         return handle
 
-    def data_to_send(self) -> bytes:
-        """Bytes to write to the line (response symbols, reply frames, DLE ENQ), in order."""
-        out = bytes(self._out)
-        self._out.clear()
-        self._frame_unsent = False
-        return out
-
-    def next_deadline(self) -> float | None:
-        """When :meth:`handle_timeout` must be called, or None without a running timer."""
-        return self._deadline
-
-    def handle_timeout(self, now: float) -> None:
-        """Call at or after :meth:`next_deadline`; early calls do nothing."""
-        if self._deadline is None or now < self._deadline:
-            return
-        self._input(K.TIMEOUT_LIMIT if self._enq_count >= self.enq_limit else K.TIMEOUT, now)
-
     def reset(self) -> None:
         """Forget the line (port reopened): every reply queued or on the line is lost."""
-        lost = [self._current[:2]] if self._current is not None else []
-        lost += self._queue
-        self._queue.clear()
-        self._current = None
+        lost = self._forget_line()
         self._state = S.IDLE
-        self._deadline = None
-        self._nak_count = self._enq_count = 0
-        self._frame_unsent = self._idle_dle = False
-        self._decoder.reset()
-        self._out.clear()
-        self._last_response = NAK_SYMBOL
+        self._idle_dle = False
         self._last_header = self._last_reply = None
         self._pending.clear()
-        for handle, packet in lost:
+        for frame in lost:
             self.counters.replies_lost += 1
-            self._events.append(ReplyLost(handle, packet, ReplyLossReason.RESET))
+            self._events.append(ReplyLost(frame.handle, frame.message, SendFailure.LINK_RESET))
 
     # ------------------------------------------------------------------------------ inputs
 
-    def _on_decoded(self, event: DecoderEvent, now: float) -> None:
-        match event:
-            case Frame(message=message):
-                self._on_frame(message, now)
-            case BadFrame(reason=reason):
-                # DLE ETX without DLE STX is a false symbol outside a frame, not a frame (p. 4-8)
-                self._input(K.NOISE if reason is BadFrameReason.MISSING_START else K.BAD_FRAME, now)
-            case EnqReceived(aborted_frame=aborted):
-                self.counters.enqs_received += 1
-                self._input(K.ENQ_IN_FRAME if aborted else K.ENQ, now)
-            case AckReceived():
-                self.counters.acks_received += 1
-                self._input(K.STALE if self._frame_unsent else K.ACK, now)
-            case NakReceived():
-                self.counters.naks_received += 1
-                if self._frame_unsent:
-                    self._input(K.STALE, now)
-                else:
-                    self._input(K.NAK_LIMIT if self._nak_count >= self.nak_limit else K.NAK, now)
-
     def _on_frame(self, message: bytes, now: float) -> None:
-        self.counters.frames_received += 1
         if len(message) < MIN_PACKET:
             self._input(K.BAD_FRAME, now)
         elif self.check_dst and message[0] != self.station:
@@ -300,6 +213,21 @@ class Df1Responder:
             self._input(K.SINK_FULL, now)
         else:
             self._input(K.COMMAND, now, message)
+
+    def _on_bad_frame(self, reason: BadFrameReason, now: float) -> None:
+        # DLE ETX without DLE STX is a false symbol outside a frame, not a frame (p. 4-8)
+        self._input(K.NOISE if reason is BadFrameReason.MISSING_START else K.BAD_FRAME, now)
+
+    def _on_enq(self, aborted_frame: bool, now: float) -> None:
+        self._input(K.ENQ_IN_FRAME if aborted_frame else K.ENQ, now)
+
+    def _on_answer(self, nak: bool, now: float) -> None:
+        if self._frame_unsent:
+            self._input(K.STALE, now)
+        elif not nak:
+            self._input(K.ACK, now)
+        else:
+            self._input(K.NAK_LIMIT if self._nak_count >= self.nak_limit else K.NAK, now)
 
     # ------------------------------------------------------------------------------ the machine
 
@@ -352,49 +280,33 @@ class Df1Responder:
                 self._last_response = NAK_SYMBOL
                 counters.noise += 1
             case A.TRANSMIT:
-                handle, packet = self._queue.popleft()
-                self._current = (handle, packet, encode_frame(packet, self.checksum))
-                self._nak_count = self._enq_count = 0
-                self._write_current(now)
+                self._transmit(now)
             case A.RETRANSMIT:
-                self._nak_count += 1
-                counters.retransmissions += 1
-                self._write_current(now)
+                self._retransmit(now)
             case A.ENQUIRE:
-                self._enq_count += 1
-                counters.enqs_sent += 1
-                self._out += ENQ_SYMBOL
-                self._deadline = now + self.ack_timeout
+                self._enquire(now)
             case A.COMPLETE:
-                handle, packet = self._take_current()
+                frame = self._take_current()
                 counters.replies_delivered += 1
-                self._finish(ReplyDelivered(handle, packet), now)
+                self._finish(ReplyDelivered(frame.handle, frame.message), now)
             case A.LOSE_NAK | A.LOSE_NO_RESPONSE:
-                handle, packet = self._take_current()
+                frame = self._take_current()
                 counters.replies_lost += 1
-                reason = ReplyLossReason.NAK_LIMIT if action is A.LOSE_NAK else ReplyLossReason.NO_RESPONSE
-                self._finish(ReplyLost(handle, packet, reason), now)
+                reason = SendFailure.NAK_LIMIT if action is A.LOSE_NAK else SendFailure.NO_RESPONSE
+                self._finish(ReplyLost(frame.handle, frame.message, reason), now)
+
+    def _frame_queued(self, now: float) -> None:
+        self._input(K.REPLY, now)
+
+    def _ack_timer_expired(self, now: float) -> None:
+        self._input(K.TIMEOUT_LIMIT if self._enq_count >= self.enq_limit else K.TIMEOUT, now)
 
     # ------------------------------------------------------------------------------ helpers
 
-    def _respond(self, symbol: bytes) -> None:
-        self._last_response = symbol
-        self._out += symbol
-        if symbol == ACK_SYMBOL:
-            self.counters.acks_sent += 1
-        else:
-            self.counters.naks_sent += 1
-
-    def _enqueue(self, packet: bytes) -> int:
-        handle = self._next_handle
-        self._next_handle += 1
-        self._queue.append((handle, packet))
-        return handle
-
     def _on_its_way(self, handle: int) -> bool:
         """Reply ``handle`` is queued or on the line."""
-        current = self._current is not None and self._current[0] == handle
-        return current or any(queued == handle for queued, _ in self._queue)
+        current = self._current is not None and self._current.handle == handle
+        return current or any(queued.handle == handle for queued in self._queue)
 
     def _answered(self, reply: bytes) -> tuple[int, int, int] | None:
         """Take the pending command ``reply`` answers (CMD | 0x40, same TNS; its DST = the command's
@@ -407,25 +319,6 @@ class Df1Responder:
         self._pending.remove(header)
         return header
 
-    def _write_current(self, now: float) -> None:
-        assert self._current is not None
-        self._out += self._current[2]
-        self._frame_unsent = True
-        self.counters.frames_sent += 1
-        self._deadline = now + self.ack_timeout
-
-    def _take_current(self) -> tuple[int, bytes]:
-        assert self._current is not None
-        handle, packet, _ = self._current
-        self._current = None
-        self._deadline = None
-        self._frame_unsent = False
-        return handle, packet
-
-    def _finish(self, event: ReplyDelivered | ReplyLost, now: float) -> None:
-        self._events.append(event)
-        if self._queue:
-            self._input(K.REPLY, now)
 
 
 def _tns(packet: bytes) -> int:

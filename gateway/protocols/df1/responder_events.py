@@ -6,14 +6,14 @@ plain data.
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass
+
+from gateway.protocols.df1.full_duplex import FullDuplexCounters, SendFailure
 
 __all__ = [
     "CommandReceived",
     "DuplicateReceived",
     "ReplyDelivered",
-    "ReplyLossReason",
     "ReplyLost",
     "ResponderCounters",
     "ResponderEvent",
@@ -54,43 +54,27 @@ class ReplyDelivered:
     packet: bytes
 
 
-class ReplyLossReason(enum.Enum):
-    NAK_LIMIT = "DLE NAK after every retransmission"
-    NO_RESPONSE = "no DLE ACK after every DLE ENQ"
-    RESET = "the link was reset before the reply was acknowledged"
-
-
 @dataclass(frozen=True, slots=True)
 class ReplyLost:
     """The responder gave up on the reply queued as ``handle``; the peer may or may not have it."""
 
     handle: int
     packet: bytes
-    reason: ReplyLossReason
+    reason: SendFailure
 
 
 ResponderEvent = CommandReceived | DuplicateReceived | ReplyDelivered | ReplyLost
 
 
 @dataclass(slots=True)
-class ResponderCounters:
-    """Link statistics of the responder."""
+class ResponderCounters(FullDuplexCounters):
+    """Link statistics of the responder: ``frames_received`` are commands, duplicates, refused and
+    not for us; ``bad_frames`` (damaged, too short, too long, or cut by DLE ENQ) are NAKed."""
 
-    frames_received: int = 0  #: frames with a valid check: commands, duplicates, refused, not for us
     commands_delivered: int = 0
-    duplicates: int = 0  #: duplicates ACKed and not delivered
     not_for_us: int = 0  #: frames ACKed but not delivered because of their DST (``check_dst``)
     sink_full: int = 0  #: new commands NAKed because ``max_pending`` commands await their reply
-    bad_frames: int = 0  #: damaged, too short, too long, or cut by DLE ENQ: NAKed
     noise: int = 0  #: bytes and symbols outside a frame that start nothing
-    acks_sent: int = 0
-    naks_sent: int = 0
-    enqs_received: int = 0
-    frames_sent: int = 0  #: reply frames written, retransmissions included
-    retransmissions: int = 0  #: reply frames sent again after a DLE NAK
     replies_resent: int = 0  #: stored replies queued again for a duplicate command
-    enqs_sent: int = 0
-    acks_received: int = 0
-    naks_received: int = 0
     replies_delivered: int = 0
     replies_lost: int = 0

@@ -1,5 +1,6 @@
-"""The DF1 full-duplex responder as data (``gateway.protocols.df1.responder``): its states, inputs,
-actions and :data:`TRANSITIONS`, ``(state, input) -> (action, next state)``.
+"""The DF1 full-duplex responder as data (``gateway.protocols.df1.responder``): its inputs, actions
+and :data:`TRANSITIONS`, ``(state, input) -> (action, next state)``; the states are the
+transmitter's, :class:`~gateway.protocols.df1.full_duplex.TxState`.
 
 The receiver's inputs (A-B 1770-6.5.16 p. 4-8) take the same action in every state and keep it:
 receiver and transmitter work at the same time (p. 4-2).  The transmitter's follow the p. 4-6
@@ -9,34 +10,23 @@ table holds every pair exactly once, checked at import.  Plain data, no I/O.
 
 from __future__ import annotations
 
-import enum
 from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Final, NamedTuple
 
-from gateway.protocols.df1.transitions import Transition
+from gateway.protocols.df1.full_duplex import TxState
+from gateway.protocols.df1.transitions import TableEnum, Transition
 
 __all__ = [
     "IGNORED",
     "TRANSITIONS",
     "ResponderAction",
     "ResponderInput",
-    "ResponderState",
     "ResponderStep",
 ]
 
 
-class ResponderState(enum.Enum):
-    """The transmitter's state (the receiver keeps only its last response and last header)."""
-
-    IDLE = "no reply on the line"
-    AWAIT_ACK = "a reply sent, waiting for its DLE ACK"
-
-    # Members are singletons: hashing by identity keeps the table look-up in C.
-    __hash__ = object.__hash__
-
-
-class ResponderInput(enum.Enum):
+class ResponderInput(TableEnum):
     COMMAND = "a good frame with a new command, room in the sink"
     DUPLICATE = "a good frame with the SRC, CMD and TNS of the last command delivered"
     NOT_FOR_US = "a good frame whose DST is not our station (check_dst)"
@@ -53,10 +43,8 @@ class ResponderInput(enum.Enum):
     TIMEOUT = "ACK timer expired, ENQs left"
     TIMEOUT_LIMIT = "ACK timer expired, no ENQ left"
 
-    __hash__ = object.__hash__
 
-
-class ResponderAction(enum.Enum):
+class ResponderAction(TableEnum):
     DELIVER = "DLE ACK; CommandReceived; remember the header"
     ACK_DUPLICATE = "DLE ACK; DuplicateReceived; queue the stored reply again if it is not on its way"
     ACK_ONLY = "DLE ACK; count the frame not for us"
@@ -72,10 +60,8 @@ class ResponderAction(enum.Enum):
     LOSE_NO_RESPONSE = "ReplyLost(NO_RESPONSE); send the next queued reply"
     IGNORE = "nothing"
 
-    __hash__ = object.__hash__
 
-
-S, K, A = ResponderState, ResponderInput, ResponderAction
+S, K, A = TxState, ResponderInput, ResponderAction
 
 #: The receiver's inputs: the same action in every state, and the state stays (p. 4-2).
 _RECEIVER: Final[Mapping[ResponderInput, ResponderAction]] = {
@@ -90,7 +76,7 @@ _RECEIVER: Final[Mapping[ResponderInput, ResponderAction]] = {
 }
 
 #: The transmitter (p. 4-6).
-_TRANSMITTER: Final[Mapping[tuple[ResponderState, ResponderInput], tuple[ResponderAction, ResponderState]]] = {
+_TRANSMITTER: Final[Mapping[tuple[TxState, ResponderInput], tuple[ResponderAction, TxState]]] = {
     (S.IDLE, K.REPLY): (A.TRANSMIT, S.AWAIT_ACK),
     (S.AWAIT_ACK, K.ACK): (A.COMPLETE, S.IDLE),
     (S.AWAIT_ACK, K.NAK): (A.RETRANSMIT, S.AWAIT_ACK),
@@ -100,7 +86,7 @@ _TRANSMITTER: Final[Mapping[tuple[ResponderState, ResponderInput], tuple[Respond
 }
 
 #: Pairs that change nothing, each with its reason.
-IGNORED: Final[Mapping[tuple[ResponderState, ResponderInput], str]] = MappingProxyType({
+IGNORED: Final[Mapping[tuple[TxState, ResponderInput], str]] = MappingProxyType({
     (S.IDLE, K.ACK): "no reply on the line: a late or stray DLE ACK",
     (S.IDLE, K.NAK): "no reply on the line: a late or stray DLE NAK",
     (S.IDLE, K.NAK_LIMIT): "cannot happen: the NAK count belongs to the reply on the line",
@@ -112,7 +98,7 @@ IGNORED: Final[Mapping[tuple[ResponderState, ResponderInput], str]] = MappingPro
 })
 
 
-def _complete_table() -> Mapping[tuple[ResponderState, ResponderInput], Transition[ResponderAction, ResponderState]]:
+def _complete_table() -> Mapping[tuple[TxState, ResponderInput], Transition[ResponderAction, TxState]]:
     """Every (state, input) pair exactly once: the receiver's, the transmitter's, the ignored."""
     table = {(state, what): (action, state) for state in S for what, action in _RECEIVER.items()}
     for pair, step in (*_TRANSMITTER.items(), *((pair, (A.IGNORE, pair[0])) for pair in IGNORED)):
@@ -132,7 +118,7 @@ TRANSITIONS: Final = _complete_table()
 class ResponderStep(NamedTuple):
     """One transition taken (the responder keeps the last ones in ``history``)."""
 
-    state: ResponderState
+    state: TxState
     input: ResponderInput
     action: ResponderAction
-    next_state: ResponderState
+    next_state: TxState

@@ -49,7 +49,6 @@ This module does no I/O.
 
 from __future__ import annotations
 
-import enum
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Final
@@ -67,7 +66,7 @@ from gateway.protocols.df1.pccc import (
     encode_command,
     reply_matches,
 )
-from gateway.protocols.df1.transitions import Transition, require_complete
+from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
 from gateway.protocols.df1.write_verdict import (
     DEFAULT_RETRIES,
     ReadBack,
@@ -149,7 +148,7 @@ class TransactionCounters:
 # ---------------------------------------------------------------------------------------- table
 
 
-class TxnState(enum.Enum):
+class TxnState(TableEnum):
     IDLE = "idle"
     READ_SENDING = "a read's frame on the link, waiting for DLE ACK"
     READ_AWAIT_REPLY = "a read acknowledged, waiting for its reply"
@@ -158,10 +157,8 @@ class TxnState(enum.Enum):
     VERIFY_SENDING = "read-back frame on the link"
     VERIFY_AWAIT_REPLY = "read-back acknowledged, waiting for its reply"
 
-    __hash__ = object.__hash__
 
-
-class TxnInput(enum.Enum):
+class TxnInput(TableEnum):
     START_READ = "start a read"
     START_WRITE = "start a write"
     LINK_ACKED = "the link has the ACK of our frame"
@@ -172,10 +169,8 @@ class TxnInput(enum.Enum):
     READBACK_REPLY = "the reply to the read-back (any STS)"
     ABANDON = "the link is gone (port lost)"
 
-    __hash__ = object.__hash__
 
-
-class TxnAction(enum.Enum):
+class TxnAction(TableEnum):
     SEND = "send the command with a new TNS"
     AWAIT = "start the reply timer"
     RETRY = "send the command again with a new TNS if tries are left, else fail"
@@ -187,57 +182,55 @@ class TxnAction(enum.Enum):
     ABANDON = "settle without a reply: a read fails, a write gets the verdict's step"
     IGNORE = "nothing"
 
-    __hash__ = object.__hash__
 
+_Table = Table[TxnState, TxnInput, TxnAction]
 
-_Table = dict[tuple[TxnState, TxnInput], Transition[TxnAction, TxnState]]
+#: The states in which the command itself is in flight (its reply may complete the frame at the link).
+_COMMAND_IN_FLIGHT: Final = frozenset(
+    {TxnState.READ_SENDING, TxnState.READ_AWAIT_REPLY, TxnState.WRITE_SENDING, TxnState.WRITE_AWAIT_REPLY}
+)
 
 
 def _build_table() -> _Table:
     T, S, K, A = Transition, TxnState, TxnInput, TxnAction
     idle = frozenset({S.IDLE})
     starts = (K.START_READ, K.START_WRITE)
+    links = (K.LINK_ACKED, K.LINK_NAKED, K.LINK_LOST)
 
-    def ignore(state: TxnState, *inputs: TxnInput) -> _Table:
-        return {(state, what): T(A.IGNORE, state) for what in inputs}
+    def exchange(
+        sending: TxnState, awaiting: TxnState, reply: TxnInput, answered: TxnAction, lost: TxnAction, again: TxnState
+    ) -> _Table:
+        """The rows of one frame on the link (``sending``), then acknowledged and waiting for its
+        ``reply`` (``awaiting``): the reply runs ``answered``; a frame the link gave up on, or no
+        reply in time, runs ``lost``, which sends a frame again (``again``) or settles."""
+        return {
+            (sending, K.LINK_ACKED): T(A.AWAIT, awaiting),
+            (sending, reply): T(answered, S.IDLE),
+            (sending, K.LINK_NAKED): T(lost, again, idle),
+            (sending, K.LINK_LOST): T(lost, again, idle),
+            **stay(A.IGNORE, sending, *starts, K.TIMEOUT),  # no reply timer yet
+            (awaiting, reply): T(answered, S.IDLE),
+            (awaiting, K.TIMEOUT): T(lost, again, idle),
+            **stay(A.IGNORE, awaiting, *starts, *links),  # the link is done with the frame
+        }
 
     return {
         (S.IDLE, K.START_READ): T(A.SEND, S.READ_SENDING),
         (S.IDLE, K.START_WRITE): T(A.SEND, S.WRITE_SENDING),
         # no transaction: a late answer of a settled one
-        **ignore(S.IDLE, K.LINK_ACKED, K.LINK_NAKED, K.LINK_LOST, K.TIMEOUT, K.REPLY, K.READBACK_REPLY, K.ABANDON),
+        **stay(A.IGNORE, S.IDLE, *links, K.TIMEOUT, K.REPLY, K.READBACK_REPLY, K.ABANDON),
         # the link is gone: whatever runs is settled
         **{(state, K.ABANDON): T(A.ABANDON, S.IDLE) for state in TxnState if state is not S.IDLE},
         # reads: idempotent, simply sent again
-        (S.READ_SENDING, K.LINK_ACKED): T(A.AWAIT, S.READ_AWAIT_REPLY),
-        (S.READ_SENDING, K.REPLY): T(A.ANSWERED, S.IDLE),
-        (S.READ_SENDING, K.LINK_NAKED): T(A.RETRY, S.READ_SENDING, idle),
-        (S.READ_SENDING, K.LINK_LOST): T(A.RETRY, S.READ_SENDING, idle),
-        **ignore(S.READ_SENDING, *starts, K.TIMEOUT, K.READBACK_REPLY),  # no reply timer yet; no read-back
-        (S.READ_AWAIT_REPLY, K.REPLY): T(A.ANSWERED, S.IDLE),
-        (S.READ_AWAIT_REPLY, K.TIMEOUT): T(A.RETRY, S.READ_SENDING, idle),
-        # the link is done with the frame; no read-back
-        **ignore(S.READ_AWAIT_REPLY, *starts, K.LINK_ACKED, K.LINK_NAKED, K.LINK_LOST, K.READBACK_REPLY),
+        **exchange(S.READ_SENDING, S.READ_AWAIT_REPLY, K.REPLY, A.ANSWERED, A.RETRY, S.READ_SENDING),
         # writes: the verdict decides (write_verdict.py); never sent again
-        (S.WRITE_SENDING, K.LINK_ACKED): T(A.AWAIT, S.WRITE_AWAIT_REPLY),
-        (S.WRITE_SENDING, K.REPLY): T(A.WRITE_REPLY, S.IDLE),
-        (S.WRITE_SENDING, K.LINK_NAKED): T(A.WRITE_LOST, S.VERIFY_SENDING, idle),
-        (S.WRITE_SENDING, K.LINK_LOST): T(A.WRITE_LOST, S.VERIFY_SENDING, idle),
-        **ignore(S.WRITE_SENDING, *starts, K.TIMEOUT, K.READBACK_REPLY),
-        (S.WRITE_AWAIT_REPLY, K.REPLY): T(A.WRITE_REPLY, S.IDLE),
-        (S.WRITE_AWAIT_REPLY, K.TIMEOUT): T(A.WRITE_LOST, S.VERIFY_SENDING, idle),
-        **ignore(S.WRITE_AWAIT_REPLY, *starts, K.LINK_ACKED, K.LINK_NAKED, K.LINK_LOST, K.READBACK_REPLY),
-        # the read-back of a write whose answer was lost
-        (S.VERIFY_SENDING, K.LINK_ACKED): T(A.AWAIT, S.VERIFY_AWAIT_REPLY),
-        (S.VERIFY_SENDING, K.LINK_NAKED): T(A.READBACK_LOST, S.VERIFY_SENDING, idle),
-        (S.VERIFY_SENDING, K.LINK_LOST): T(A.READBACK_LOST, S.VERIFY_SENDING, idle),
-        (S.VERIFY_SENDING, K.READBACK_REPLY): T(A.READBACK_REPLY, S.IDLE),
-        (S.VERIFY_SENDING, K.REPLY): T(A.WRITE_REPLY, S.IDLE),  # a late reply to the write itself
-        **ignore(S.VERIFY_SENDING, *starts, K.TIMEOUT),
-        (S.VERIFY_AWAIT_REPLY, K.TIMEOUT): T(A.READBACK_LOST, S.VERIFY_SENDING, idle),
-        (S.VERIFY_AWAIT_REPLY, K.READBACK_REPLY): T(A.READBACK_REPLY, S.IDLE),
-        (S.VERIFY_AWAIT_REPLY, K.REPLY): T(A.WRITE_REPLY, S.IDLE),
-        **ignore(S.VERIFY_AWAIT_REPLY, *starts, K.LINK_ACKED, K.LINK_NAKED, K.LINK_LOST),
+        **exchange(S.WRITE_SENDING, S.WRITE_AWAIT_REPLY, K.REPLY, A.WRITE_REPLY, A.WRITE_LOST, S.VERIFY_SENDING),
+        # no read-back runs while the command itself is in flight
+        **{(state, K.READBACK_REPLY): T(A.IGNORE, state) for state in _COMMAND_IN_FLIGHT},
+        # the read-back of a write whose answer was lost; a late reply to the write itself settles it
+        **exchange(S.VERIFY_SENDING, S.VERIFY_AWAIT_REPLY, K.READBACK_REPLY,
+                   A.READBACK_REPLY, A.READBACK_LOST, S.VERIFY_SENDING),
+        **{(state, K.REPLY): T(A.WRITE_REPLY, S.IDLE) for state in (S.VERIFY_SENDING, S.VERIFY_AWAIT_REPLY)},
     }
 
 
@@ -245,11 +238,6 @@ def _build_table() -> _Table:
 #: action may choose instead: a retry or a read-back, or the verdict).
 TRANSITIONS: Final = _build_table()
 require_complete(TRANSITIONS, TxnState, TxnInput, "DF1 transactions")
-
-#: The states in which the command itself is in flight (its reply may complete the frame at the link).
-_COMMAND_IN_FLIGHT: Final = frozenset(
-    {TxnState.READ_SENDING, TxnState.READ_AWAIT_REPLY, TxnState.WRITE_SENDING, TxnState.WRITE_AWAIT_REPLY}
-)
 
 
 # ---------------------------------------------------------------------------------------- core

@@ -9,19 +9,32 @@ table when its module is imported; ``tests/test_df1_transition_tables.py`` walks
 An action that must choose between next states (send again, or give up) names the states it may
 choose besides ``next_state`` in ``or_states``; the core checks its choice with :meth:`Transition.allows`.
 
+The states, inputs and actions of a table are :class:`TableEnum` members.
+
 This module does no I/O.
 """
 
 from __future__ import annotations
 
+import enum
 from collections.abc import Iterable, Mapping
 from typing import Any, Generic, NamedTuple, TypeVar
 
-__all__ = ["Transition", "require_complete"]
+__all__ = ["Table", "TableEnum", "Transition", "require_complete", "stay"]
 
 ActionT = TypeVar("ActionT")
 StateT = TypeVar("StateT")
 InputT = TypeVar("InputT")
+
+
+class TableEnum(enum.Enum):
+    """An enum whose members key or fill a transition table (states, inputs, actions).
+
+    Members are singletons compared by identity; hashing them by identity too keeps the table
+    look-up in C (``Enum.__hash__`` is Python code: 2.5x slower look-ups).
+    """
+
+    __hash__ = object.__hash__
 
 
 class Transition(NamedTuple, Generic[ActionT, StateT]):
@@ -39,6 +52,15 @@ class Transition(NamedTuple, Generic[ActionT, StateT]):
 
     def allows(self, state: StateT) -> bool:
         return state == self.next_state or state in self.or_states
+
+
+#: A transition table: (state, input) -> :class:`Transition`; ``Table[State, Input, Action]``.
+Table = dict[tuple[StateT, InputT], Transition[ActionT, StateT]]
+
+
+def stay(action: ActionT, state: StateT, *inputs: InputT) -> Table[StateT, InputT, ActionT]:
+    """The entries for ``inputs`` in ``state`` that run ``action`` (a table's IGNORE) and stay."""
+    return {(state, what): Transition(action, state) for what in inputs}
 
 
 def require_complete(

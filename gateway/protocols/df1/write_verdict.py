@@ -51,7 +51,7 @@ from gateway.protocols.df1.pccc import (
     WordRangeRead,
     WordRangeWrite,
 )
-from gateway.protocols.df1.transitions import Transition, require_complete
+from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
 
 __all__ = [
     "DEFAULT_RETRIES",
@@ -163,15 +163,13 @@ VerdictStep = SendReadBack | Verdict | None
 # ---------------------------------------------------------------------------------------- table
 
 
-class VerdictState(enum.Enum):
+class VerdictState(TableEnum):
     SENT = "the write is on its way; no answer yet"
     VERIFYING = "the write may have run; a read-back is on its way"
     SETTLED = "the verdict is given"
 
-    __hash__ = object.__hash__
 
-
-class WriteInput(enum.Enum):
+class WriteInput(TableEnum):
     REPLY = "the reply to the write (STS 0 or not)"
     NEVER_ARRIVED = "the write provably never reached the controller"
     LOST = "no answer to the write; it may have run"
@@ -179,10 +177,8 @@ class WriteInput(enum.Enum):
     READ_BACK_LOST = "no answer to the read-back"
     ABANDONED = "the link is gone"
 
-    __hash__ = object.__hash__
 
-
-class VerdictAction(enum.Enum):
+class VerdictAction(TableEnum):
     ANSWERED = "DONE if STS 0, else REFUSED"
     FAIL = "FAILED"
     READ_BACK = "send a read-back if the write has one and tries are left, else UNKNOWN"
@@ -190,13 +186,11 @@ class VerdictAction(enum.Enum):
     UNKNOWN = "UNKNOWN"
     IGNORE = "nothing: the input changes nothing"
 
-    __hash__ = object.__hash__
-
 
 S, K, A = VerdictState, WriteInput, VerdictAction
 
 #: (state, input) -> (action, next state); an action that gives a verdict ends in SETTLED.
-TRANSITIONS: Final[dict[tuple[VerdictState, WriteInput], Transition[VerdictAction, VerdictState]]] = {
+TRANSITIONS: Final[Table[VerdictState, WriteInput, VerdictAction]] = {
     (S.SENT, K.REPLY): Transition(A.ANSWERED, S.SETTLED),
     (S.SENT, K.NEVER_ARRIVED): Transition(A.FAIL, S.SETTLED),
     # a read-back, or UNKNOWN at once when the write has none
@@ -211,7 +205,7 @@ TRANSITIONS: Final[dict[tuple[VerdictState, WriteInput], Transition[VerdictActio
     (S.VERIFYING, K.ABANDONED): Transition(A.UNKNOWN, S.SETTLED),
     (S.VERIFYING, K.NEVER_ARRIVED): Transition(A.IGNORE, S.VERIFYING),  # it was known to be on the line
     (S.VERIFYING, K.LOST): Transition(A.IGNORE, S.VERIFYING),  # it was known to be lost
-    **{(S.SETTLED, what): Transition(A.IGNORE, S.SETTLED) for what in WriteInput},  # the verdict is given
+    **stay(A.IGNORE, S.SETTLED, *WriteInput),  # the verdict is given
 }
 require_complete(TRANSITIONS, VerdictState, WriteInput, "write verdict")
 

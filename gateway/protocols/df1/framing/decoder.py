@@ -49,7 +49,7 @@ from gateway.protocols.df1.framing import (
     Symbol,
     master_check,
 )
-from gateway.protocols.df1.transitions import Transition, require_complete
+from gateway.protocols.df1.transitions import Table, Transition, require_complete
 
 __all__ = [
     "FULL_DUPLEX_TRANSITIONS",
@@ -140,7 +140,7 @@ class DecoderAction(enum.IntEnum):
 
 
 S, C, A = DecoderState, ByteClass, DecoderAction
-_Table = dict[tuple[DecoderState, ByteClass], Transition[DecoderAction, DecoderState]]
+_Table = Table[DecoderState, ByteClass, DecoderAction]
 
 def _full_duplex_table() -> _Table:
     T = Transition
@@ -256,7 +256,7 @@ def _verify_fast_paths(table: _Table) -> None:
 
     Checked at import, so an edit of a table cannot silently disagree with the fast paths.
     """
-    expected: dict[tuple[DecoderState, ByteClass], Transition[DecoderAction, DecoderState]] = {
+    expected: _Table = {
         (S.DATA_DLE, C.DLE): Transition(A.APPEND_DLE, S.DATA),
         (S.IDLE, C.DLE): Transition(A.NONE, S.IDLE_DLE),
         (S.DATA, C.DLE): Transition(A.NONE, S.DATA_DLE),

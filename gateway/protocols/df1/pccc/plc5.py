@@ -366,6 +366,20 @@ def _u16(name: str, value: int) -> int:
     return value
 
 
+def _checked_word_range(packet_offset: int, total: int, address: bytes, tail: bytes) -> bytes:
+    """:func:`word_range_params`, PACKET OFFSET and TOTAL TRANS checked to fit 16 bits."""
+    return word_range_params(_u16("packet offset", packet_offset), _u16("total transaction", total), address, tail)
+
+
+def _word_range_head(params: bytes, least: int, what: str) -> tuple[int, int, int]:
+    """PACKET OFFSET, TOTAL TRANS and where the address after them ends, of the word range
+    ``what`` parameters (at least ``least`` bytes)."""
+    if len(params) < least:
+        raise AddressError(f"word range {what} parameters are truncated")
+    offset, total = struct.unpack_from("<HH", params)
+    return offset, total, _address_end(params, 4)
+
+
 @dataclass(frozen=True, slots=True)
 class WordRangeReadParams:
     """FNC 01 parameters for an already encoded address (logical binary or ASCII; KF2 p. 5-57).
@@ -384,15 +398,11 @@ class WordRangeReadParams:
         if self.size < 2 or self.size % 2 or self.size > most:
             raise AddressError(f"word range read size {self.size}: an even number of bytes 2..{most}")
         total = self.size // 2 if self.total_transaction is None else self.total_transaction
-        offset = _u16("packet offset", self.packet_offset)
-        return word_range_params(offset, _u16("total transaction", total), self.address, bytes((self.size,)))
+        return _checked_word_range(self.packet_offset, total, self.address, bytes((self.size,)))
 
     @classmethod
     def decode(cls, params: bytes) -> WordRangeReadParams:
-        if len(params) < 6:
-            raise AddressError("word range read parameters are truncated")
-        offset, total = struct.unpack_from("<HH", params)
-        end = _address_end(params, 4)
+        offset, total, end = _word_range_head(params, 6, "read")
         if end + 1 != len(params):
             raise AddressError("word range read: one SIZE byte must follow the address")
         return cls(params[4:end], params[end], offset, total)
@@ -414,15 +424,11 @@ class WordRangeWriteParams:
         if len(self.address) + len(self.data) > most:
             raise AddressError(f"word range write: address + data may be at most {most} bytes (KF2 p. 5-57)")
         total = len(self.data) // 2 if self.total_transaction is None else self.total_transaction
-        offset = _u16("packet offset", self.packet_offset)
-        return word_range_params(offset, _u16("total transaction", total), self.address, self.data)
+        return _checked_word_range(self.packet_offset, total, self.address, self.data)
 
     @classmethod
     def decode(cls, params: bytes) -> WordRangeWriteParams:
-        if len(params) < 5:
-            raise AddressError("word range write parameters are truncated")
-        offset, total = struct.unpack_from("<HH", params)
-        end = _address_end(params, 4)
+        offset, total, end = _word_range_head(params, 5, "write")
         return cls(params[4:end], params[end:], offset, total)
 
 
