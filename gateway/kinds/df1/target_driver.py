@@ -118,7 +118,7 @@ class TargetRunner(LineDriver):
                           event.tns, event.src)
             elif isinstance(event, ReplyLost):
                 log.info("link %s: reply to TNS %d lost (%s); the PLC's MSG times out", self.name,
-                         int.from_bytes(event.packet[4:6], "little"), event.reason.value)
+                         PcccHeader.decode(event.packet).tns, event.reason.value)
         self._counters_from_core()
         out = responder.data_to_send()
         if out and self.connected:
@@ -133,7 +133,7 @@ class TargetRunner(LineDriver):
             reply = encode_reply(PcccHeader.decode(command.packet), sts=_ILLEGAL_COMMAND)
         elif result.written:
             reply = self._commit(command, result)
-        sts = reply[3]
+        sts = PcccHeader.decode(reply).sts
         if sts:
             self.last_sts = sts
             self.refused += 1

@@ -65,6 +65,8 @@ from typing import Final
 
 from gateway.protocols.df1.framing import ACK_SYMBOL, DEFAULT_MAX_MESSAGE, NAK_SYMBOL, BadFrameReason, Checksum
 from gateway.protocols.df1.full_duplex import FullDuplexStation, SendFailure, TxState
+from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader
+from gateway.protocols.df1.pccc.codes import REPLY_BIT
 from gateway.protocols.df1.responder_events import (
     CommandReceived,
     DuplicateReceived,
@@ -205,7 +207,7 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
     def _on_frame(self, message: bytes, now: float) -> None:
         if len(message) < MIN_PACKET:
             self._input(K.BAD_FRAME, now)
-        elif self.check_dst and message[0] != self.station:
+        elif self.check_dst and PcccHeader.decode(message).dst != self.station:
             self._input(K.NOT_FOR_US, now)
         elif self.duplicate_detect and _header(message) == self._last_header:
             self._input(K.DUPLICATE, now, message)
@@ -251,7 +253,7 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
                 self._pending.append(header)
                 counters.commands_delivered += 1
                 src, cmd, tns = header
-                self._events.append(CommandReceived(message, src, message[0], cmd, tns))
+                self._events.append(CommandReceived(message, src, PcccHeader.decode(message).dst, cmd, tns))
             case A.ACK_DUPLICATE:
                 self._respond(ACK_SYMBOL)
                 counters.duplicates += 1
@@ -311,20 +313,18 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
     def _answered(self, reply: bytes) -> tuple[int, int, int] | None:
         """Take the pending command ``reply`` answers (CMD | 0x40, same TNS; its DST = the command's
         SRC if one such is pending, p. 6-4) off the sink; its header, or None."""
-        cmd, tns = reply[2] & ~0x40, _tns(reply)
+        answer = PcccHeader.decode(reply)
+        cmd, tns = answer.cmd & ~REPLY_BIT, answer.tns
         matches = [header for header in self._pending if header[1] == cmd and header[2] == tns]
         if not matches:
             return None
-        header = next((header for header in matches if header[0] == reply[0]), matches[0])
+        header = next((header for header in matches if header[0] == answer.dst), matches[0])
         self._pending.remove(header)
         return header
 
 
 
-def _tns(packet: bytes) -> int:
-    return packet[4] | packet[5] << 8
-
-
 def _header(packet: bytes) -> tuple[int, int, int]:
-    """SRC, CMD, TNS: what identifies a message packet (p. 6-3)."""
-    return packet[1], packet[2], _tns(packet)
+    """SRC, CMD, TNS: what identifies a message packet (p. 6-3), read by the one PCCC header parser."""
+    header = PcccHeader.decode(packet)
+    return header.src, header.cmd, header.tns
