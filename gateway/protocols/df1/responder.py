@@ -65,7 +65,7 @@ from typing import Final
 
 from gateway.protocols.df1.framing import ACK_SYMBOL, DEFAULT_MAX_MESSAGE, NAK_SYMBOL, BadFrameReason, Checksum
 from gateway.protocols.df1.full_duplex import FullDuplexStation, SendFailure, TxState
-from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader
+from gateway.protocols.df1.pccc.codec import PcccHeader
 from gateway.protocols.df1.pccc.codes import REPLY_BIT
 from gateway.protocols.df1.responder_events import (
     CommandReceived,

@@ -44,10 +44,24 @@ import struct
 from collections import Counter, deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Final
 
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.datalink import Df1DataLink
-from gateway.protocols.df1.framing import NEED_DATA, Checksum
+from gateway.protocols.df1.framing import (
+    ACK_SYMBOL,
+    ENQ_SYMBOL,
+    NAK_SYMBOL,
+    NEED_DATA,
+    AckReceived,
+    Checksum,
+    EnqReceived,
+    Frame,
+    NakReceived,
+    Symbol,
+    encode_frame,
+)
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.pccc import (
     DiagnosticStatus,
     LogicalBinaryAddress,
@@ -73,7 +87,7 @@ from gateway.sim.serve import Output
 
 __all__ = ["DEMO_SCRIPT", "PlcMsgSimulator", "create_plc_msg"]
 
-_DLE, _STX, _ETX, _ACK = 0x10, 0x02, 0x03, 0x06
+_DLE: Final = Symbol.DLE
 
 #: one MSG of the script: (label, request builder taking the cycle number)
 Msg = tuple[str, Callable[[int], Request]]
@@ -132,7 +146,9 @@ class PlcMsgSimulator:
         self.every = every
         self.cycle_time = cycle
         self.checksum = checksum
-        self._crc_bytes = 2 if checksum is Checksum.CRC else 1
+        #: the one DF1 decoder, reading our own bytes and the gateway's (to inject faults per frame)
+        self._out_decoder = FrameDecoder(checksum)
+        self._in_decoder = FrameDecoder(checksum)
         self.link = Df1DataLink(checksum=checksum, ack_timeout=1.0)
         self.core = Df1Transactions(self.link, station=station, source=source, reply_timeout=2.0, retries=2)
         self.faults = {"corrupt": corrupt, "lose_ack": lose_ack, "nak_reply": nak_reply, "duplicate": duplicate}
@@ -215,49 +231,46 @@ class PlcMsgSimulator:
         return False
 
     def _faulty_out(self, data: bytes) -> bytes:
-        """Damage a frame we send (one data byte flipped: the gateway must NAK it), or send it twice."""
-        if len(data) > 6 and data[0] == _DLE and data[1] == _STX and self._hit("duplicate"):
-            return data + data
-        if len(data) > 6 and data[0] == _DLE and data[1] == _STX and self._hit("corrupt"):
-            damaged = bytearray(data)
-            body = [k for k in range(2, len(data) - 2 - self._crc_bytes) if damaged[k] not in (_DLE, _DLE ^ 0x40)]
-            if body:  # flip a byte that neither is nor becomes a DLE: the frame stays a frame, its check fails
-                damaged[self._random.choice(body)] ^= 0x40
-            return bytes(damaged)
-        return data
-
-    def _faulty_in(self, data: bytes) -> bytes:
-        """Lose a DLE ACK, damage a reply frame: each token of the chunk on its own."""
+        """Damage a frame we send (one byte flipped: the gateway must NAK it), or send it twice."""
         out = bytearray()
-        for token in _tokens(data, self._crc_bytes):
-            if token == bytes((_DLE, _ACK)) and self._hit("lose_ack"):
-                continue
-            if token[:2] == bytes((_DLE, _STX)) and len(token) > 6 and self._hit("nak_reply"):
+        for token, is_frame in _tokens(self._out_decoder, data, self.checksum):
+            if is_frame and self._hit("duplicate"):
+                token += token
+            elif is_frame and self._hit("corrupt"):
                 damaged = bytearray(token)
-                damaged[-1] ^= 0x01  # the check byte: the frame is damaged, its length is not
+                end = len(token) - 2 - self.checksum.size  # before DLE ETX and the check
+                body = [k for k in range(2, end) if damaged[k] not in (_DLE, _DLE ^ 0x40)]
+                if body:  # flip a byte that neither is nor becomes a DLE: still a frame, its check fails
+                    damaged[self._random.choice(body)] ^= 0x40
                 token = bytes(damaged)
             out += token
         return bytes(out)
 
+    def _faulty_in(self, data: bytes) -> bytes:
+        """Lose a DLE ACK, damage a reply frame: each symbol and frame of the gateway's bytes on its own."""
+        out = bytearray()
+        for token, is_frame in _tokens(self._in_decoder, data, self.checksum):
+            if token == ACK_SYMBOL and self._hit("lose_ack"):
+                continue
+            if is_frame and self._hit("nak_reply"):  # the check byte: the frame is damaged, its length is not
+                token = token[:-1] + bytes((token[-1] ^ 0x01,))
+            out += token
+        return bytes(out)
 
-def _tokens(data: bytes, check_bytes: int) -> list[bytes]:
-    """``data`` cut into DLE symbols and whole frames (a cut frame stays one token, as it came)."""
-    tokens: list[bytes] = []
-    i = 0
-    while i < len(data):
-        if data[i] == _DLE and i + 1 < len(data) and data[i + 1] == _STX:
-            j = i + 2
-            while j + 1 < len(data) and not (data[j] == _DLE and data[j + 1] == _ETX):
-                j += 2 if data[j] == _DLE else 1
-            end = min(len(data), j + 2 + check_bytes)
-            tokens.append(data[i:end])
-            i = end
-        elif data[i] == _DLE and i + 1 < len(data):
-            tokens.append(data[i : i + 2])
-            i += 2
-        else:
-            tokens.append(data[i : i + 1])
-            i += 1
+
+def _tokens(decoder: FrameDecoder, data: bytes, checksum: Checksum) -> list[tuple[bytes, bool]]:
+    """The symbols and frames of ``data`` as the one DF1 decoder reads them, each as bytes again
+    (whether it is a frame); a frame cut by the chunk comes out with the chunk that completes it.
+    Both sides send canonical frames, so re-encoding gives the bytes that came."""
+    decoder.feed(data)
+    tokens: list[tuple[bytes, bool]] = []
+    while (event := decoder.next_event()) is not NEED_DATA:
+        if isinstance(event, Frame):
+            tokens.append((encode_frame(event.message, checksum), True))
+        elif isinstance(event, AckReceived | NakReceived | EnqReceived):
+            symbol = ACK_SYMBOL if isinstance(event, AckReceived) else NAK_SYMBOL if isinstance(event, NakReceived) \
+                else ENQ_SYMBOL
+            tokens.append((symbol, False))
     return tokens
 
 
