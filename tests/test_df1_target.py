@@ -155,6 +155,10 @@ def test_check_config_refuses_what_a_target_cannot_serve() -> None:
         parse_config(text.replace('type = "B"', 'type = "N"'))
     with pytest.raises(ConfigError, match=r"map: not used by df1 links with role = \"target\""):
         parse_config(text.replace("unit = 5", "unit = 5\n" + ONE_MAP_ENTRY))
+    # an initial value the table cannot hold is a config error, not a failure at start
+    with pytest.raises(ConfigError, match=r"file\[0\].initial: N7: initial 40000: 40000 does not fit an N element"):
+        parse_config(text.replace('elements = 100\n', 'elements = 100\ninitial = 40000\n', 1))
+    assert parse_config(text.replace('elements = 100\n', 'elements = 100\ninitial = -32768\n', 1))
     with pytest.raises(ConfigError, match=r"overlaps the status block"):
         parse_config(text.replace("start = 200", 'start = 995\ntable = "input"'))
     refused = r'persist: not used by df1 links with duplex = "full" \(a key of a link with role = "target"'

@@ -25,11 +25,12 @@ from pydantic import Field, field_validator, model_validator
 
 from gateway.config._common import Loc, Model, Problems, show
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
+from gateway.protocols.df1.pccc.target_table import TableFileKind
 
 __all__ = ["FILE_TYPES", "TargetFile", "target_file_problems"]
 
-#: the file types a target serves: letter -> (words per element, what it is)
-FILE_TYPES = {"N": (1, "16-bit integer"), "B": (1, "16 bits"), "F": (2, "IEEE float"), "L": (2, "32-bit integer")}
+#: the file types a target serves, letter -> what it is (their layout: TableFileKind, the table's own)
+FILE_TYPES = {"N": "16-bit integer", "B": "16 bits", "F": "IEEE float", "L": "32-bit integer"}
 
 #: the most elements of one file (a PLC-5 file holds up to 1000 elements; an SLC 500 file 256)
 MAX_ELEMENTS = 1000
@@ -53,15 +54,19 @@ class TargetFile(Model):
     def _check_type(cls, value: str) -> str:
         letter = value.upper()
         if letter not in FILE_TYPES:
-            kinds = ", ".join(f"{k} ({what})" for k, (_, what) in FILE_TYPES.items())
+            kinds = ", ".join(f"{k} ({what})" for k, what in FILE_TYPES.items())
             raise ValueError(f"{show(value)} is not a file type a target serves: choose {kinds}; timers, counters, "
                              "control and string files are a controller's own structures")
         return letter
 
     @property
+    def kind(self) -> TableFileKind:
+        return TableFileKind.from_letter(self.type)
+
+    @property
     def words(self) -> int:
         """Words per element."""
-        return FILE_TYPES[self.type][0]
+        return self.kind.words
 
     @property
     def is_bits(self) -> bool:
@@ -82,7 +87,7 @@ class TargetFile(Model):
 
     def describe(self) -> str:
         unit = "bits" if self.is_bits else "registers"
-        return (f"{self.name}:0-{self.elements - 1} ({FILE_TYPES[self.type][1]}) -> {self.table} {self.start}-"
+        return (f"{self.name}:0-{self.elements - 1} ({FILE_TYPES[self.type]}) -> {self.table} {self.start}-"
                 f"{self.last} ({self.size} {unit})")
 
     @model_validator(mode="after")
@@ -101,13 +106,12 @@ class TargetFile(Model):
         return self
 
     def _initial_problems(self, value: float | int) -> list[tuple[Loc, str]]:
-        if self.type == "F":
-            return []
-        if isinstance(value, float):
+        if isinstance(value, float) and self.type != "F":
             return [(("initial",), f"{self.name}: an integer file takes an integer initial value (got {value})")]
-        low, high = {"N": (-32768, 65535), "B": (0, 65535), "L": (-(2**31), 2**32 - 1)}[self.type]
-        if not low <= value <= high:
-            return [(("initial",), f"{self.name}: initial {value} is out of range {low}..{high}")]
+        try:
+            self.kind.to_raw(value)  # the table's own rule for what an element holds
+        except ValueError as exc:
+            return [(("initial",), f"{self.name}: initial {value}: {exc}")]
         return []
 
 

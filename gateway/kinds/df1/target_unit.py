@@ -25,7 +25,7 @@ from gateway.kinds.df1.target_config import TargetFile
 from gateway.kinds.df1.target_driver import TargetRunner
 from gateway.kinds.df1.target_store import StoredElement, TargetStore
 from gateway.modbus.mapping import BitPoint, Block, Plan, PointLabel, RegisterPoint, Scan, Table
-from gateway.protocols.df1.pccc.target_table import DataTable, ElementRef, TableFile, TableFileKind
+from gateway.protocols.df1.pccc.target_table import DataTable, ElementRef, TableFile
 from gateway.unit import Unit, UnitOptions, WriteStep
 
 __all__ = ["TargetBit", "TargetElement", "TargetUnit", "load_table", "target_plan", "target_point_labels"]
@@ -59,10 +59,6 @@ class TargetBit:
         return (self.file, self.element)
 
 
-def _element_bytes(entry: TargetFile) -> int:
-    return 2 * entry.words
-
-
 def target_plan(files: Sequence[TargetFile]) -> Plan[TargetElement, TargetBit]:
     """One block per element (its little-endian bytes), and the points of each file's Modbus range."""
     plan: Plan[TargetElement, TargetBit] = Plan()
@@ -70,7 +66,7 @@ def target_plan(files: Sequence[TargetFile]) -> Plan[TargetElement, TargetBit]:
         writable = entry.table in ("holding", "coil")
         for element in range(entry.elements):
             index = len(plan.blocks)
-            plan.blocks.append(Block(ElementRef(entry.file, element), _element_bytes(entry), Scan.FAST,
+            plan.blocks.append(Block(ElementRef(entry.file, element), entry.kind.element_bytes, Scan.FAST,
                                      f"{entry.name}:{element}"))
             if entry.is_bits:
                 bits = plan.coils if entry.table == "coil" else plan.discrete
@@ -113,7 +109,7 @@ def load_table(files: Sequence[TargetFile], store: TargetStore | None, now: floa
     """The data table at start: ``initial`` values, then what ``persist`` holds (with its write times)."""
     table = DataTable()
     for entry in files:
-        table_file = table.add(TableFileKind.from_letter(entry.type), entry.file, entry.elements)
+        table_file = table.add(entry.kind, entry.file, entry.elements)
         if entry.initial is not None:
             for element in range(entry.elements):
                 table_file.set_value(element, entry.initial, now)
