@@ -202,3 +202,20 @@ def test_every_processor_has_its_family_by_name() -> None:
     for name, family in PROCESSORS.items():
         if name.startswith("slc5/"):
             assert family.name == "SLC5_" + name.removeprefix("slc5/"), name
+
+
+def test_options_take_the_links_keys_of_the_same_name_and_the_given_ones_over_them() -> None:
+    from gateway.kinds.contract import line_options, unit_options
+    from gateway.kinds.df1.build import station_config
+
+    link = parse_config(half(extra="poll_timeout = 0.25\nreply_wait = 0.05\ntimeout = 2.5\n"
+                             "down_after_failures = 7\nstale_after = 9.5\n")).link[0]
+    assert isinstance(link, Df1LinkConfig)
+    station = station_config(link)
+    assert (station.station, station.poll_timeout, station.reply_wait, station.reply_timeout) == (1, 0.25, 0.05, 2.5)
+    options = unit_options(link)
+    assert (options["unit_id"], options["name"], options.get("stale_after")) == (1, "s1", 9.5)
+    assert line_options(link) == {"name": "s1", "trace": None, "down_after_failures": 7,
+                                  "down_after_seconds": DEFAULT_DOWN_AFTER.seconds}
+    # a key given explicitly wins over the link's key of the same name
+    assert link.values_for(Df1LinkConfig, station=9)["station"] == 9

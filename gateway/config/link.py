@@ -12,7 +12,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar, Final, Literal, get_args
+from typing import Any, ClassVar, Final, Literal, get_args
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
@@ -68,8 +68,15 @@ class SerialDefaults:
         return SerialSettings(self.baudrate, self.bytesize, self.parity, self.stopbits)
 
     def as_keys(self) -> dict[str, object]:
-        """``{"baudrate": ..., "bytesize": ..., "parity": ..., "timeout": ...}``: the config keys they set."""
-        return {"baudrate": self.baudrate, "bytesize": self.bytesize, "parity": self.parity, "timeout": self.timeout}
+        """``{"baudrate": ..., "bytesize": ..., "parity": ..., "stopbits": ..., "timeout": ...}``: the
+        config keys they set."""
+        return {
+            "baudrate": self.baudrate,
+            "bytesize": self.bytesize,
+            "parity": self.parity,
+            "stopbits": self.stopbits,
+            "timeout": self.timeout,
+        }
 
 
 class WritableRange(Model):
@@ -115,9 +122,9 @@ class WritableRange(Model):
 class LinkBase(Model):
     """``[[link]]``: one serial link to one controller, served as one Modbus unit id.
 
-    A subclass per protocol sets ``protocol`` to a one-value ``Literal``, the defaults of
-    ``baudrate``, ``bytesize``, ``parity`` and ``timeout`` (from its :data:`serial_defaults`), and
-    ``sim_models``, the ``sim://`` models that speak its protocol.
+    A subclass per protocol sets ``protocol`` to a one-value ``Literal``, :data:`serial_defaults`
+    (which become the defaults of ``baudrate``, ``bytesize``, ``parity``, ``stopbits`` and
+    ``timeout``), and ``sim_models``, the ``sim://`` models that speak its protocol.
     """
 
     #: The line settings and reply timeout the protocol's manual gives (the subclass's defaults).
@@ -137,10 +144,11 @@ class LinkBase(Model):
     protocol: str
     port: str
     unit: int = Field(ge=1, le=247)
+    # no defaults here: each kind's are its serial_defaults (__pydantic_init_subclass__)
     baudrate: int
     bytesize: int
     parity: Parity
-    stopbits: int = 1
+    stopbits: int
     timeout: float = Field(gt=0, le=60)
     retries: int = Field(DEFAULT_RETRIES, ge=0, le=10)
     stale_after: float = Field(5.0, gt=0)
@@ -159,6 +167,24 @@ class LinkBase(Model):
     #: a Modbus write is answered within this many seconds, done or not (below SCADA timeouts)
     write_timeout: float = Field(0.9, gt=0, le=600)
     trace: Path | None = None
+
+    @classmethod
+    def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:
+        """A kind's serial keys default to its :data:`serial_defaults` (the manual's settings)."""
+        super().__pydantic_init_subclass__(**kwargs)
+        defaults = cls.__dict__.get("serial_defaults")
+        if defaults is None:
+            return
+        for key, value in defaults.as_keys().items():
+            cls.model_fields[key].default = value
+        cls.model_rebuild(force=True)
+
+    def values_for(self, target: type, **given: object) -> dict[str, Any]:
+        """Keyword arguments for ``target`` (a TypedDict or a dataclass): the values of this link's
+        keys that ``target`` names the same way, then ``given`` (the ones it names otherwise or that
+        are not taken as they are).  An option added to both is passed on without a list to update."""
+        named = {name: getattr(self, name) for name in target.__annotations__ if name in type(self).model_fields}
+        return {**named, **given}
 
     @field_validator("name")
     @classmethod

@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Generic, Protocol, TypeVar
+from typing import Any, Generic, Protocol, TypeVar, cast
 
 from gateway.config.link import LinkBase, SerialDefaults, protocol_of
 from gateway.line_driver import LineDriverOptions, OpenStream
@@ -167,28 +167,10 @@ def _writable(link: LinkBase) -> list[WritableRange]:
 
 def unit_options(link: LinkBase) -> UnitOptions:
     """The :class:`~gateway.unit.Unit` keyword arguments every link has (whatever its kind)."""
-    return UnitOptions(
-        unit_id=link.unit,
-        name=link.name,
-        stale_after=link.stale_after,
-        read_only=link.read_only,
-        writable=_writable(link),
-        fast_interval=link.fast_interval,
-        slow_interval=link.slow_interval,
-        write_burst=link.write_burst,
-        poll_burst=link.poll_burst,
-        write_queue_per_client=link.write_queue_per_client,
-        write_queue_per_link=link.write_queue_per_link,
-        write_timeout=link.write_timeout,
-    )
+    return cast(UnitOptions, link.values_for(UnitOptions, unit_id=link.unit, writable=_writable(link)))
 
 
 def line_options(link: LinkBase) -> LineDriverOptions:
     """The :class:`~gateway.line_driver.LineDriver` keyword arguments every link has (whatever its
     kind), for a driver that is the link's own (one controller per port)."""
-    return LineDriverOptions(
-        name=link.name,
-        trace=link.trace,
-        down_after_failures=link.down_after_failures,
-        down_after_seconds=link.down_after_seconds,
-    )
+    return cast(LineDriverOptions, link.values_for(LineDriverOptions))

@@ -124,16 +124,7 @@ def full_duplex_driver(link: Df1LinkConfig) -> Df1Driver:
 
 def station_config(link: Df1LinkConfig) -> StationConfig:
     """The station keys of one half-duplex link (``timeout`` is the reply timeout after the ACK)."""
-    return StationConfig(
-        link.station,
-        poll_timeout=link.poll_timeout,
-        reply_timeout=link.timeout,
-        reply_wait=link.reply_wait,
-        max_polls=link.max_polls,
-        demote_after=link.demote_after,
-        poll_interval=link.poll_interval,
-        slow_poll_interval=link.slow_poll_interval,
-    )
+    return StationConfig(**link.values_for(StationConfig, reply_timeout=link.timeout))
 
 
 def build_line(line: HalfDuplexLine) -> Df1HalfDuplexLine:

@@ -19,7 +19,7 @@ from typing import Any, ClassVar, Final, Literal, NamedTuple
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from gateway.config._common import Loc, Model, Problems, optional_output_path, show
-from gateway.config.link import LinkBase, Parity, SerialDefaults
+from gateway.config.link import LinkBase, SerialDefaults
 from gateway.config.writer import table_lines
 from gateway.kinds.df1.target_config import TargetFile, target_file_problems
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
@@ -239,11 +239,6 @@ class Df1LinkConfig(LinkBase):
         return 'role = "target"' if self.role == "target" else f"duplex = {show(self.duplex)}"
 
     protocol: Literal["df1"]
-    baudrate: int = DF1_DEFAULTS.baudrate
-    bytesize: int = DF1_DEFAULTS.bytesize
-    parity: Parity = DF1_DEFAULTS.parity
-    stopbits: int = DF1_DEFAULTS.stopbits
-    timeout: float = Field(DF1_DEFAULTS.timeout, gt=0, le=60)
     station: int = Field(1, ge=0, le=254)
     source: int = Field(0, ge=0, le=254)
     checksum: Literal["bcc", "crc"] = "crc"

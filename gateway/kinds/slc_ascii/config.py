@@ -10,9 +10,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import ClassVar, Literal
 
-from pydantic import Field
-
-from gateway.config.link import LinkBase, Parity, SerialDefaults
+from gateway.config.link import LinkBase, SerialDefaults
 
 __all__ = ["SLC_ASCII_DEFAULTS", "SlcAsciiLinkConfig"]
 
@@ -29,11 +27,6 @@ class SlcAsciiLinkConfig(LinkBase):
     foreign_key_notes: ClassVar[Mapping[str, str]] = {"map": "slc-ascii links use the fixed default map"}
 
     protocol: Literal["slc-ascii"]
-    baudrate: int = SLC_ASCII_DEFAULTS.baudrate
-    bytesize: int = SLC_ASCII_DEFAULTS.bytesize
-    parity: Parity = SLC_ASCII_DEFAULTS.parity
-    stopbits: int = SLC_ASCII_DEFAULTS.stopbits
-    timeout: float = Field(SLC_ASCII_DEFAULTS.timeout, gt=0, le=60)
 
     def describe_lines(self) -> list[str]:
         lines = super().describe_lines()

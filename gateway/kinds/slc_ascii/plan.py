@@ -27,18 +27,8 @@ import functools
 from collections.abc import Iterable
 from typing import Any, TypeAlias
 
-from gateway.modbus.mapping import (
-    BitPoint,
-    BitWrite,
-    Block,
-    Codec,
-    Plan,
-    PointLabel,
-    RegisterPoint,
-    Scan,
-    Table,
-    WordWrite,
-)
+from gateway.modbus import mapping
+from gateway.modbus.mapping import Codec, PointLabel, Scan, Table
 from gateway.protocols.slc_ascii import memory_map as mm
 
 __all__ = [
@@ -64,13 +54,13 @@ U8 = Codec("u8", None, 0)
 
 
 #: SLC 100/150 holding register write: write-word command at ``address``
-SlcWordWrite: TypeAlias = WordWrite[int]
+SlcWordWrite: TypeAlias = mapping.WordWrite[int]
 #: SLC 100/150 coil write: read the relay byte fresh, write it back with ``bit`` changed
-SlcBitWrite: TypeAlias = BitWrite[int]
+SlcBitWrite: TypeAlias = mapping.BitWrite[int]
 
 
 #: The plan of an SLC 100/150 link: word writes to holding registers, bit writes to coils.
-SlcAsciiPlan: TypeAlias = Plan[SlcWordWrite, SlcBitWrite]
+SlcAsciiPlan: TypeAlias = mapping.Plan[SlcWordWrite, SlcBitWrite]
 
 
 def plan_byte_blocks(addresses: Iterable[int], scan: Scan, max_count: int = 2) -> list[tuple[int, int, Scan]]:
@@ -105,7 +95,7 @@ def slc_ascii_plan() -> SlcAsciiPlan:
     Built once and shared by every SLC 100/150 link (a plan is never changed once built), so
     that 64 links hold one plan and one image layout (``gateway.image``), not 64.
     """
-    plan: SlcAsciiPlan = Plan()
+    plan: SlcAsciiPlan = mapping.Plan()
     fast: set[int] = set()
     slow: set[int] = set()
     fast.update(range(0x00, 0x40))  # accumulators
@@ -119,23 +109,23 @@ def slc_ascii_plan() -> SlcAsciiPlan:
     for scan, addresses in ((Scan.FAST, fast), (Scan.SLOW, slow)):
         for start, count, _ in plan_byte_blocks(addresses, scan):
             index = len(plan.blocks)
-            plan.blocks.append(Block((start, count), count, scan, f"{count} byte(s) at 0x{start:04X}"))
+            plan.blocks.append(mapping.Block((start, count), count, scan, f"{count} byte(s) at 0x{start:04X}"))
             for k in range(count):
                 where.setdefault(start + k, (index, k))
 
     def word(
         address: int, codec: Codec, write: SlcWordWrite | None = None, max_value: int = 0xFFFF
-    ) -> RegisterPoint[SlcWordWrite]:
+    ) -> mapping.RegisterPoint[SlcWordWrite]:
         block, offset = where[address]
         if offset + 2 > plan.blocks[block].size:
             raise AssertionError(f"word at 0x{address:04X} split across blocks")
-        return RegisterPoint(block, offset, codec, write, max_value)
+        return mapping.RegisterPoint(block, offset, codec, write, max_value)
 
     for n in range(32):
         plan.holding[n] = word(2 * n, U16_BE_MASKED, SlcWordWrite(2 * n), 9999)
         plan.holding[32 + n] = word(0x40 + 2 * n, U16_BE_MASKED, SlcWordWrite(0x40 + 2 * n), 9999)
         block, offset = where[0xBC + n]
-        plan.input[n] = RegisterPoint(block, offset, U8)
+        plan.input[n] = mapping.RegisterPoint(block, offset, U8)
     plan.input[0x84 // 2] = word(0x84, U16_BE)
     for address in range(0x86, 0x96, 2):
         plan.input[address // 2] = word(address, U16_BE)
@@ -144,10 +134,10 @@ def slc_ascii_plan() -> SlcAsciiPlan:
     for user in mm.all_user_bits():
         byte, bit = mm.user_bit_to_byte(user)
         block, offset = where[byte]
-        plan.discrete[user] = BitPoint(block, offset, bit)
+        plan.discrete[user] = mapping.BitPoint(block, offset, bit)
         if 701 <= user <= 868:
             writable = SlcBitWrite(byte, bit) if mm.is_writable_user_bit(user) else None
-            plan.coils[user] = BitPoint(block, offset, bit, writable)
+            plan.coils[user] = mapping.BitPoint(block, offset, bit, writable)
     return plan
 
 
@@ -177,7 +167,7 @@ def point_labels() -> dict[tuple[Table, int], PointLabel]:
     return labels
 
 
-def byte_read(block: Block) -> tuple[int, int]:
+def byte_read(block: mapping.Block) -> tuple[int, int]:
     """(first byte address, count) of an SLC 100/150 block."""
     request = block.request
     if not (isinstance(request, tuple) and len(request) == 2):
@@ -186,7 +176,7 @@ def byte_read(block: Block) -> tuple[int, int]:
     return int(start), int(count)
 
 
-def plan_lines(plan: Plan[Any, Any]) -> list[str]:
+def plan_lines(plan: mapping.Plan[Any, Any]) -> list[str]:
     """The read plan for ``check-config``: the 1-2 byte reads summarised as address ranges per scan class."""
     byte_reads: dict[str, list[tuple[int, int]]] = {}
     for block in plan.blocks:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Unpack
 
-from gateway.kinds.contract import Built, unit_options
+from gateway.kinds.contract import Built, line_options, unit_options
 from gateway.kinds.slc_ascii.config import SlcAsciiLinkConfig
 from gateway.kinds.slc_ascii.driver import ID_RESYNC, SlcAsciiDriver
 from gateway.kinds.slc_ascii.plan import U16_BE_MASKED, SlcBitWrite, SlcWordWrite, byte_read, slc_ascii_plan
@@ -57,15 +57,12 @@ def build_slc_ascii(links: Sequence[SlcAsciiLinkConfig]) -> Built:
     for link in links:
         driver = SlcAsciiDriver(
             link.port,
-            name=link.name,
             settings=link.line_settings,
             timeout=link.timeout,
             retries=link.retries,
-            trace=link.trace,
-            down_after_failures=link.down_after_failures,
-            down_after_seconds=link.down_after_seconds,
             # a served write asks again (;Z, copies) while its Modbus answer is still owed
             write_budget=link.write_timeout,
+            **line_options(link),
         )
         units.append(SlcAsciiUnit(driver=driver, **unit_options(link)))
     return Built(units, [unit.driver for unit in units])
