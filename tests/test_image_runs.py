@@ -59,6 +59,8 @@ def test_a_progression_broken_by_a_step_or_a_missing_byte_starts_a_new_run() -> 
     assert len(_strided_runs([(0, (0, 1)), (1, (2, 3)), (2, (-1, 5))])) == 2  # MSB source disappears
     assert len(_strided_runs([(0, (5,)), (1, (4,))])) == 2  # sources go back: no negative steps
     assert len(_strided_runs([(0, (0, 1)), (1, (2, 4))])) == 2  # the two sources advance unevenly
+    assert len(_strided_runs([(0, (-1, 0)), (1, (0, 1))])) == 2  # an MSB source appears, at byte 0
+    assert len(_strided_runs([(0, (-1, 1)), (1, (1, 2))])) == 2  # an MSB source appears, at byte 1
 
 
 # --- the images against a naive model of the layout ------------------------------------------
