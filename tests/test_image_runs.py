@@ -229,3 +229,19 @@ def test_every_slice_of_the_images_equals_the_points_decoded_one_by_one(data: st
             point = model.point(table, address)
             expected = None if point is None else (model.value(table, address), point.block)
             assert images.peek(table, address) == expected, (table, address)
+
+
+def test_a_read_fails_at_its_first_stale_point_not_at_one_exactly_at_its_deadline() -> None:
+    """A point is fresh up to and at its deadline: a read whose first point is exactly at its
+    deadline and whose second is past its own fails at the second, naming the second's block."""
+    plan: Plan[None, None] = Plan(blocks=[Block(None, 2, Scan.FAST), Block(None, 2, Scan.FAST)])
+    plan.holding[10] = RegisterPoint(0, 0, Codec("u16", 0, 1))
+    plan.holding[11] = RegisterPoint(1, 0, Codec("u16", 0, 1))
+    images = Images(plan, [1.0, 1.0])
+    cache = BlockCache([2, 2], images=images)
+    cache.store(0, b"\x12\x34", 5.0)  # deadline 6.0
+    cache.store(1, b"\x56\x78", 4.5)  # deadline 5.5
+    assert images.registers(Table.HOLDING, 10, 1, 6.0) == b"\x12\x34"
+    with pytest.raises(ImageMiss) as miss:
+        images.registers(Table.HOLDING, 10, 2, 6.0)
+    assert (miss.value.address, miss.value.block) == (11, 1)
