@@ -374,3 +374,116 @@ async def test_a_client_whose_queue_emptied_is_a_newcomer_again_whatever_it_was_
     await asyncio.gather(*futures)
     assert log == ["b2", "a2"]  # both newcomers: in arrival order, not by how long ago they were served
     assert driver.extended - extended == 2  # and each a newcomer's write extends the burst
+
+
+# --------------------------------------------------------------------------------------------
+# Withdrawing a job that has not started (a write still waiting at write_timeout), and drain
+
+
+async def test_a_withdrawn_write_is_cancelled_and_never_runs_and_the_others_do() -> None:
+    q, _, log = queue()
+    gate = asyncio.Event()
+
+    async def held() -> None:
+        await gate.wait()
+        log.append("held")
+
+    running = q.submit("z", frozenset({"z"}), held)
+    await asyncio.sleep(0)  # "z" is on the line: no longer waiting
+    a = [q.submit("a", frozenset({("a", n)}), job(log, f"a{n}")) for n in range(3)]
+    b = q.submit("b", frozenset({"b"}), job(log, "b"))  # b's only job
+    assert q.waiting == 4
+    assert q.withdraw(a[1]) and a[1].cancelled()
+    assert q.withdraw(b) and b.cancelled()  # b's queue is now empty: b is gone from the queue
+    assert q.waiting == 2
+    assert not q.withdraw(a[1])  # not waiting any more
+    assert not q.withdraw(running)  # started: it can no longer be taken back
+    gate.set()
+    async with asyncio.timeout(1):
+        await asyncio.gather(running, a[0], a[2])
+    assert log == ["held", "a0", "a2"] and q.waiting == 0
+    assert not q.withdraw(a[0])  # done
+
+
+async def test_a_withdrawn_write_frees_its_place_in_the_bounds() -> None:
+    q, _, log = queue(per_client=2, per_link=2)
+    gate = asyncio.Event()
+
+    async def held() -> None:
+        await gate.wait()
+
+    running = q.submit("z", frozenset({"z"}), held)
+    await asyncio.sleep(0)
+    first = q.submit("a", frozenset({1}), job(log, "a1"))
+    q.submit("a", frozenset({2}), job(log, "a2"))
+    with pytest.raises(ModbusExceptionReply):
+        q.submit("a", frozenset({3}), job(log, "a3"))  # both bounds reached
+    assert q.withdraw(first)
+    third = q.submit("a", frozenset({3}), job(log, "a3"))  # its place is free again
+    gate.set()
+    async with asyncio.timeout(1):
+        await asyncio.gather(running, third)
+    assert log == ["a2", "a3"]
+
+
+async def test_a_client_whose_last_waiting_write_was_withdrawn_is_a_newcomer_again() -> None:
+    """Served once with more queued, then its last waiting job withdrawn: its next write counts
+    as never served (ahead of a client that arrived after it, and extending the burst)."""
+    q, driver, log = queue()
+    gate = asyncio.Event()
+
+    async def held() -> None:
+        await gate.wait()
+        log.append("held")
+
+    running = q.submit("a", frozenset({("a", 0)}), held)
+    waiting = q.submit("a", frozenset({("a", 1)}), job(log, "a1"))
+    await asyncio.sleep(0)  # a0 on the line, a1 still queued: "a" was just served
+    assert q.withdraw(waiting)
+    futures = [q.submit("a", frozenset({("a", 2)}), job(log, "a2")), q.submit("b", frozenset({"b"}), job(log, "b"))]
+    extended = driver.extended
+    gate.set()
+    async with asyncio.timeout(1):
+        await asyncio.gather(running, *futures)
+    assert log == ["held", "a2", "b"]  # both newcomers, in arrival order
+    assert driver.extended - extended == 2
+
+
+async def test_drain_returns_when_every_job_taken_has_run() -> None:
+    q, _, log = queue()
+    await q.drain()  # nothing taken: at once
+    gate = asyncio.Event()
+
+    async def held() -> None:
+        await gate.wait()
+        log.append("held")
+
+    futures = [q.submit("a", frozenset({1}), held), q.submit("b", frozenset({2}), job(log, "b"))]
+    drained = asyncio.create_task(q.drain())
+    for _ in range(5):
+        await asyncio.sleep(0)
+    assert not drained.done()
+    gate.set()
+    async with asyncio.timeout(1):
+        await drained
+    assert log == ["held", "b"] and all(f.done() for f in futures)
+
+
+async def test_a_cancelled_drain_leaves_the_jobs_running() -> None:
+    q, _, log = queue()
+    gate = asyncio.Event()
+
+    async def held() -> None:
+        await gate.wait()
+        log.append("held")
+
+    future = q.submit("a", frozenset({1}), held)
+    drained = asyncio.create_task(q.drain())
+    await asyncio.sleep(0)
+    drained.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await drained
+    gate.set()
+    async with asyncio.timeout(1):
+        await future
+    assert log == ["held"]
