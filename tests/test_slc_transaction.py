@@ -30,7 +30,7 @@ from gateway.protocols.slc_ascii.framing import (
     encode_retransmit,
     frame_command,
 )
-from gateway.protocols.slc_ascii.transaction import SessionState, SlcSession, SlcVerdict, next_id
+from gateway.protocols.slc_ascii.transaction import SessionCounters, SessionState, SlcSession, SlcVerdict, next_id
 from gateway.sim.variants import pairwise_cover
 from tests.slc_core_harness import FATES, FakeLine
 
@@ -447,3 +447,129 @@ def test_a_refused_barrier_read_falls_back_to_read_frn_after_quiet() -> None:
     assert session.data_to_send() == frame_command(cmds.read_frn(), 0)
     session.receive_data(encode_data_reply("021FFE1547", 0), 0.7)
     assert session.data_to_send() == frame_command(READ, 1)
+
+
+# --- scripts from a fresh session: connecting, counters, budgets, timeouts ----------------------
+
+FRN_REPLY = encode_data_reply("021FFE1547", 0)
+READ_REPLY_BODY = "000200400064"
+
+
+class Script:
+    """One session from its start, driven by the test: the frames it sends, the bytes it gets, a
+    fake clock that moves only when the test says."""
+
+    def __init__(self, **options: float | int) -> None:
+        self.session = SlcSession(timeout=TIMEOUT, **options)  # type: ignore[arg-type]
+        self.now = 0.0
+
+    def start(self, command: cmds.Command, timeout: float | None = None, until: float | None = None) -> bytes:
+        self.session.start(command, self.now, timeout, until=until)
+        return self.session.data_to_send()
+
+    def reply(self, data: bytes, dt: float = 0.01) -> bytes:
+        """``data`` arrives ``dt`` later: what the session sends at once."""
+        self.now += dt
+        self.session.receive_data(data, self.now)
+        return self.session.data_to_send()
+
+    def wait(self) -> bytes:
+        """Nothing arrives until the session's deadline: what it sends then."""
+        deadline = self.session.next_deadline()
+        assert deadline is not None
+        self.now = max(self.now, deadline)
+        self.session.handle_timeout(self.now)
+        return self.session.data_to_send()
+
+    def verdict(self) -> SlcVerdict:
+        return self.session.take_result().verdict
+
+    def handshake_read(self) -> None:
+        """The first read after connecting: read FRN with ID 00 (the line is quiet), then ID 01."""
+        assert self.start(READ) == frame_command(cmds.read_frn(), 0)
+        assert self.reply(FRN_REPLY) == frame_command(READ, 1)
+        self.reply(encode_data_reply(READ_REPLY_BODY, 1))
+        assert self.verdict() is SlcVerdict.DONE
+
+
+def test_the_first_command_after_a_reconnect_resyncs_and_counts_as_a_handshake() -> None:
+    """A new stream (``connected``): the controller's numbering is unknown, so the next command
+    begins with an ID 00 resync, at once (nothing was sent on this stream yet); it is the
+    connection's handshake, not a recovery (the driver reports resyncs less handshakes)."""
+    script = Script()
+    script.handshake_read()
+    assert script.start(READ) == frame_command(READ, 2)  # in step: no resync
+    script.session.connected()  # the stream drops with the read on its way
+    assert script.session.state is SessionState.IDLE and script.session.result is None
+    assert script.session.next_deadline() is None
+    assert script.start(READ) == frame_command(cmds.read_frn(), 0)
+    assert script.reply(FRN_REPLY) == frame_command(READ, 1)
+    counters = script.session.counters
+    assert (counters.id_resyncs, counters.handshakes) == (2, 2)
+
+
+def test_a_reconnect_forgets_a_frame_cut_short_and_unsent_frames() -> None:
+    """Bytes of the old stream never join the new one's: a partial reply is forgotten and
+    frames not yet taken by the caller are dropped."""
+    script = Script()
+    script.handshake_read()
+    script.session.start(READ, script.now)  # the frame is not taken before the stream drops
+    script.session.receive_data(encode_data_reply(READ_REPLY_BODY, 2)[:6], script.now)
+    script.session.connected()
+    assert script.session.data_to_send() == b""
+    assert script.session.next_deadline() is None
+    assert script.start(READ) == frame_command(cmds.read_frn(), 0)
+    # the new stream's FRN reply is not glued to the old partial frame
+    assert script.reply(FRN_REPLY) == frame_command(READ, 1)
+    assert script.session.counters.crc_errors == 0
+
+
+def test_a_transaction_runs_one_at_a_time_and_a_result_is_taken_once() -> None:
+    script = Script()
+    with pytest.raises(RuntimeError):
+        script.session.take_result()
+    script.start(READ)
+    with pytest.raises(RuntimeError):
+        script.session.start(READ, script.now)
+    script.reply(FRN_REPLY)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 1))
+    assert script.verdict() is SlcVerdict.DONE
+    assert script.session.result is None
+    with pytest.raises(RuntimeError):
+        script.session.take_result()
+
+
+def test_counters_count_what_the_line_did() -> None:
+    """The driver reports the core's counters (timeouts, CRC errors, ;Z, resyncs less handshakes,
+    ;T): each counts its event once."""
+    script = Script()
+    script.handshake_read()
+    counters = script.session.counters
+    assert counters == SessionCounters(id_resyncs=1, handshakes=1)
+    assert script.start(READ) == frame_command(READ, 2)
+    assert script.reply(encode_fault(0)) == b""  # ;T: noted for the caller, no answer
+    assert script.session.fault_pending
+    bad = bytearray(encode_data_reply(READ_REPLY_BODY, 2))
+    bad[5] ^= 1
+    assert script.reply(bytes(bad)) == encode_retransmit(2)
+    assert script.reply(encode_ack(1)) == frame_command(READ, 2)  # ;Z met an older reply: resend
+    first = script.reply(encode_id_mismatch(7))  # a read meeting ;I resyncs at once
+    _barrier(first)
+    second, answer = _barrier(script.wait())  # the barrier read is lost: another address
+    assert second != _barrier(first)[0]
+    assert script.reply(answer) == frame_command(READ, 1)
+    assert script.wait() == encode_retransmit(1)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 1))
+    assert script.verdict() is SlcVerdict.DONE
+    assert counters == SessionCounters(timeouts=2, crc_errors=1, retransmits=2, id_resyncs=2, handshakes=1,
+                                       id_mismatches=1, resends=1, faults=1)
+    # a write after a read of two messages resyncs; the controller refuses the barrier read (program mode): quiet, read FRN
+    _barrier(script.start(WRITE))
+    assert script.reply(encode_refused(0)) == b""
+    assert script.session.state is SessionState.QUIET
+    assert script.wait() == frame_command(cmds.read_frn(), 0)
+    assert script.reply(FRN_REPLY) == frame_command(WRITE, 1)
+    script.reply(encode_ack(1))
+    assert script.verdict() is SlcVerdict.DONE
+    assert counters == SessionCounters(timeouts=2, crc_errors=1, retransmits=2, id_resyncs=3, handshakes=1,
+                                       id_mismatches=1, resends=1, faults=1, quiet_waits=1)

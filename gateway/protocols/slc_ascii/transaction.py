@@ -341,7 +341,6 @@ class SlcSession(SlcSender):
 
     def _on_probe_refused(self, now: float, event: ReplyEvent | None) -> SessionState:
         # The controller refuses reads (program mode): resync with read FRN after quiet.
-        self._barrier_refused = True
         return self._enter_quiet(now)
 
     def _on_probe_garbled(self, now: float, event: ReplyEvent | None) -> SessionState:
