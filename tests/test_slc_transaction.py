@@ -573,3 +573,82 @@ def test_counters_count_what_the_line_did() -> None:
     assert script.verdict() is SlcVerdict.DONE
     assert counters == SessionCounters(timeouts=2, crc_errors=1, retransmits=2, id_resyncs=3, handshakes=1,
                                        id_mismatches=1, resends=1, faults=1, quiet_waits=1)
+
+
+def test_a_write_whose_copy_was_accepted_asks_for_its_answer_a_bounded_number_of_times() -> None:
+    """``;I`` with the write's own ID: a copy ran, so no copy goes again; ``;Z`` asks for its
+    answer, ``retries`` times after the first (the controller may keep repeating the ``;I``),
+    then UNKNOWN."""
+    script = Script(retries=3)
+    script.handshake_read()
+    assert script.start(WRITE) == frame_command(WRITE, 2)
+    asked = [script.reply(encode_id_mismatch(2)) for _ in range(5)]
+    assert asked == [encode_retransmit(2)] * 4 + [b""]
+    assert script.verdict() is SlcVerdict.UNKNOWN
+
+
+def test_a_write_with_a_time_budget_asks_again_while_a_wait_fits_and_says_how_long_it_tried() -> None:
+    """``until``: in place of the counts, a write asks again while one more wait fits before
+    it; a read ignores it (reads are bounded by their resyncs)."""
+    script = Script(retries=1)
+    script.handshake_read()
+    began = script.now
+    assert script.start(WRITE, until=began + 1.0) == frame_command(WRITE, 2)
+    asked = []
+    for _ in range(3):
+        frame = script.wait()
+        asked.append((round(script.now - began, 3), frame))
+    assert asked == [(0.3, encode_retransmit(2)), (0.6, encode_retransmit(2)), (0.9, b"")]
+    result = script.session.take_result()
+    assert result.verdict is SlcVerdict.UNKNOWN
+    assert result.reason.endswith("after 2 retransmit requests in 0.9 s"), result.reason
+    # without a budget: ``retries`` requests, and the reason gives no time
+    _, answer = _barrier(script.start(READ))  # after UNKNOWN: a resync
+    assert script.reply(answer) == frame_command(READ, 1)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 1))
+    assert script.verdict() is SlcVerdict.DONE
+    assert script.start(WRITE) == frame_command(WRITE, 2)
+    assert [script.wait() for _ in range(2)] == [encode_retransmit(2), b""]
+    result = script.session.take_result()
+    assert result.verdict is SlcVerdict.UNKNOWN and result.reason.endswith("after 1 retransmit requests"), result
+    # a read with a budget: the budget is not its bound
+    _, answer = _barrier(script.start(READ, until=script.now))
+    assert script.reply(answer) == frame_command(READ, 1)
+    assert script.wait() == encode_retransmit(1)
+
+
+def test_the_reply_timeout_adapts_to_the_controller_and_verdicts_wait_the_full_time() -> None:
+    """After 8 first replies the timeout is 2 x the slowest of them, at least ``min_timeout``;
+    a longer timeout given for a command is kept; a reply fetched by ``;Z`` is no first reply;
+    a write's last ``;Z`` waits the configured time (its answer may be held back on the line)."""
+    script = Script(retries=3, min_timeout=0.05)
+    script.handshake_read()  # two first replies, 10 ms each
+    for n in range(2, 8):  # six more: 8 in all, measured when the eighth transaction starts
+        assert script.start(READ) == frame_command(READ, n)
+        assert script.session.next_deadline() == pytest.approx(script.now + TIMEOUT)
+        script.reply(encode_data_reply(READ_REPLY_BODY, n), dt=0.01)
+        assert script.verdict() is SlcVerdict.DONE
+    script.start(READ)
+    assert script.session.next_deadline() == pytest.approx(script.now + 0.05)  # 2 x 10 ms, raised to 50 ms
+    assert script.wait() == encode_retransmit(8)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 8), dt=0.2)  # after ;Z: not a reply time
+    assert script.verdict() is SlcVerdict.DONE
+    assert script.start(READ, timeout=0.2) == frame_command(READ, 9)
+    assert script.session.next_deadline() == pytest.approx(script.now + 0.05)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 9), dt=0.04)  # a slower first reply: 40 ms
+    assert script.verdict() is SlcVerdict.DONE
+    script.start(READ, timeout=1.0)  # a slow command's longer timeout is its own
+    assert script.session.next_deadline() == pytest.approx(script.now + 1.0)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 10), dt=0.01)
+    assert script.verdict() is SlcVerdict.DONE
+    began = script.now
+    assert script.start(WRITE) == frame_command(WRITE, 11)
+    waits = []
+    while script.session.result is None:
+        deadline = script.session.next_deadline()
+        assert deadline is not None
+        waits.append(round(deadline - script.now, 3))
+        script.wait()
+    assert waits == [0.08, 0.08, 0.08, TIMEOUT]  # 2 x 40 ms; the last ;Z waits the full time
+    assert script.verdict() is SlcVerdict.UNKNOWN
+    assert script.now - began == pytest.approx(3 * 0.08 + TIMEOUT)
