@@ -652,3 +652,51 @@ def test_the_reply_timeout_adapts_to_the_controller_and_verdicts_wait_the_full_t
     assert waits == [0.08, 0.08, 0.08, TIMEOUT]  # 2 x 40 ms; the last ;Z waits the full time
     assert script.verdict() is SlcVerdict.UNKNOWN
     assert script.now - began == pytest.approx(3 * 0.08 + TIMEOUT)
+
+
+def test_with_no_barrier_address_free_a_read_resyncs_untrusted_and_a_refusal_there_is_confirmed_once() -> None:
+    """Every barrier address asked for within the quiet time: a read resyncs at once with read
+    FRN, a numbering no earlier ``;E`` is told apart in.  A ``;E`` to the read there is asked
+    again once under a new numbering; the second ``;E`` is the controller's refusal."""
+    script = Script(late_bound=100.0)  # nothing is quiet within this test
+    script.handshake_read()
+    used: list[int] = []
+    while True:
+        assert script.start(READ) == frame_command(READ, 2)
+        resync = script.reply(encode_id_mismatch(0x55))  # ;I: the read resyncs at once
+        if resync == frame_command(cmds.read_frn(), 0):
+            break  # no barrier address free
+        address, answer = _barrier(resync)
+        used.append(address)
+        assert script.reply(answer) == frame_command(READ, 1)
+        script.reply(encode_data_reply(READ_REPLY_BODY, 1))
+        assert script.verdict() is SlcVerdict.DONE
+    assert len(used) > 200 and len(set(used)) == len(used)  # every readable byte, each once
+    assert script.reply(FRN_REPLY) == frame_command(READ, 1)
+    assert script.reply(encode_refused(1)) == frame_command(cmds.read_frn(), 0)  # to be confirmed
+    assert script.reply(FRN_REPLY) == frame_command(READ, 1)
+    script.reply(encode_refused(1))
+    assert script.verdict() is SlcVerdict.REFUSED
+
+
+def test_a_resync_that_heard_the_controller_goes_on_one_that_heard_nothing_fails_fast() -> None:
+    """A resync whose tries run out: if anything came back (a garbled frame, perhaps the
+    answer), the controller is there and the line is bad: a read resyncs again.  Silence is a
+    dead line: FAILED at once, and the next command resyncs."""
+    script = Script(retries=1)
+    script.handshake_read()
+    assert script.start(READ) == frame_command(READ, 2)
+    # ;I (the read resyncs) and the start of a frame whose rest never comes
+    _barrier(script.reply(encode_id_mismatch(0x55) + encode_data_reply(READ_REPLY_BODY, 0)[:6]))
+    _barrier(script.wait())  # cut short after char_gap: garbled, perhaps the answer: a new try
+    assert script.session.counters.crc_errors == 1
+    _barrier(script.wait())  # the tries run out, the controller was heard: a new resync
+    assert script.session.result is None
+    assert script.session.counters.id_resyncs == 3
+    # silence from here on: the tries of this resync run out, FAILED
+    _barrier(script.wait())  # its second try
+    assert script.wait() == b""
+    result = script.session.take_result()
+    assert result.verdict is SlcVerdict.FAILED
+    assert script.session.counters.id_resyncs == 3
+    _barrier(script.start(READ))
