@@ -700,3 +700,80 @@ def test_a_resync_that_heard_the_controller_goes_on_one_that_heard_nothing_fails
     assert result.verdict is SlcVerdict.FAILED
     assert script.session.counters.id_resyncs == 3
     _barrier(script.start(READ))
+
+
+def _fast_controller() -> Script:
+    """A session whose reply timeout adapted to a controller that answers in 10 ms (50 ms)."""
+    script = Script(retries=3, min_timeout=0.05)
+    script.handshake_read()
+    for n in range(2, 10):
+        script.start(READ)
+        script.reply(encode_data_reply(READ_REPLY_BODY, n), dt=0.01)
+        assert script.verdict() is SlcVerdict.DONE
+    return script
+
+
+def test_a_silent_resync_fails_after_its_tries_and_the_last_try_waits_the_full_time() -> None:
+    """The resync's tries go at the adapted timeout, the last waits the configured one (a reply
+    held back on the line must not make a silent-line verdict); silence then: FAILED, no
+    further resync (a dead line fails fast)."""
+    script = _fast_controller()
+    assert script.start(READ) == frame_command(READ, 10)
+    addresses = [_barrier(script.reply(encode_id_mismatch(0x55)))[0]]
+    waits = []
+    while script.session.result is None:
+        deadline = script.session.next_deadline()
+        assert deadline is not None
+        waits.append(round(deadline - script.now, 3))
+        frame = script.wait()
+        if frame:
+            addresses.append(_barrier(frame)[0])
+    assert waits == [0.05, 0.05, 0.05, TIMEOUT]
+    assert len(set(addresses)) == 4  # each try asks for another address
+    result = script.session.take_result()
+    assert result.verdict is SlcVerdict.FAILED and "after 4 tries" in result.reason, result
+    assert script.session.counters.id_resyncs == 2  # the handshake and this one
+
+
+def test_a_controller_seen_answering_late_lengthens_the_quiet_wait() -> None:
+    """The quiet wait before a read FRN resync is ``late_bound`` after our last message, or 1.5 x
+    the latest an answer was seen coming after its copy, if that is longer."""
+    script = Script()
+    script.handshake_read()
+    assert script.start(READ) == frame_command(READ, 2)
+    assert script.wait() == encode_retransmit(2)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 2), dt=0.2)  # 0.5 s after the copy
+    assert script.verdict() is SlcVerdict.DONE
+    _barrier(script.start(WRITE))  # two messages: a write resyncs
+    sent = script.now
+    assert script.reply(encode_refused(0)) == b""  # program mode: quiet, then read FRN
+    assert script.session.next_deadline() == pytest.approx(sent + 1.5 * 0.5)
+    assert script.wait() == frame_command(cmds.read_frn(), 0)
+
+
+def test_after_a_quiet_time_a_resync_reads_the_frn_at_once() -> None:
+    """A command after the line was quiet for ``late_bound`` needs no barrier: no reply of an
+    earlier message can still come, so the resync reads the FRN at once (a trusted numbering)."""
+    script = Script()
+    script.handshake_read()
+    assert script.start(READ) == frame_command(READ, 2)
+    while script.session.result is None:  # every reply lost: FAILED (a read after its resyncs)
+        script.wait()
+    assert script.verdict() is SlcVerdict.FAILED
+    script.now += script.session.late_bound
+    assert script.start(WRITE) == frame_command(cmds.read_frn(), 0)
+    assert script.reply(FRN_REPLY) == frame_command(WRITE, 1)
+
+
+def test_a_frame_cut_short_just_before_the_reply_timeout_waits_for_the_timeout_first() -> None:
+    """The next deadline is the earlier of the reply timeout and the character gap; a partial
+    frame while no transaction runs sets none."""
+    script = Script()
+    script.handshake_read()
+    script.session.receive_data(encode_data_reply(READ_REPLY_BODY, 1)[:5], script.now)
+    assert script.session.next_deadline() is None
+    script.session.receive_data(b"\r", script.now)  # the garbled rest, still idle
+    assert script.start(READ) == frame_command(READ, 2)
+    sent = script.now
+    script.session.receive_data(encode_data_reply(READ_REPLY_BODY, 2)[:5], sent + TIMEOUT - 0.01)
+    assert script.session.next_deadline() == pytest.approx(sent + TIMEOUT)
