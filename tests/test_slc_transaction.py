@@ -777,3 +777,44 @@ def test_a_frame_cut_short_just_before_the_reply_timeout_waits_for_the_timeout_f
     sent = script.now
     script.session.receive_data(encode_data_reply(READ_REPLY_BODY, 2)[:5], sent + TIMEOUT - 0.01)
     assert script.session.next_deadline() == pytest.approx(sent + TIMEOUT)
+
+
+def test_a_write_whose_z_keeps_meeting_an_older_reply_is_resent_under_its_id_a_bounded_number_of_times() -> None:
+    """``;Z`` answered with an older reply: the controller never got the copy, or that reply is
+    a late one; the copy goes again with the same ID, ``max_resends`` times, then UNKNOWN."""
+    script = Script(max_resends=2)
+    script.handshake_read()
+    copy = frame_command(WRITE, 2)
+    assert script.start(WRITE) == copy
+    frames = []
+    for _ in range(3):
+        frames.append(script.wait())  # the reply is lost: ;Z
+        frames.append(script.reply(encode_ack(1)))  # the ;Z fetches the previous reply
+    assert frames == [encode_retransmit(2), copy] * 2 + [encode_retransmit(2), b""]
+    assert script.verdict() is SlcVerdict.UNKNOWN
+    assert script.session.counters.resends == 2
+
+
+def test_a_write_meeting_only_i_with_other_ids_asks_z_a_bounded_number_of_times_then_unknown() -> None:
+    """``;I`` with another ID proves nothing: one second copy with the write's ID, then ``;Z``
+    (``retries`` times after the first) while every answer is such a ``;I``, then UNKNOWN."""
+    script = Script(retries=3)
+    script.handshake_read()
+    copy = frame_command(WRITE, 2)
+    assert script.start(WRITE) == copy
+    frames = [script.reply(encode_id_mismatch(0)) for _ in range(6)]
+    assert frames == [copy] + [encode_retransmit(2)] * 4 + [b""]
+    assert script.verdict() is SlcVerdict.UNKNOWN
+    assert script.session.counters.resends == 1
+
+
+def test_e_to_a_writes_second_copy_is_no_proof_that_it_did_not_run() -> None:
+    """A controller that checks the command before its ID refuses the second copy with ``;E``
+    (its mode changed) while the first copy ran: UNKNOWN, never REFUSED."""
+    script = Script()
+    script.handshake_read()
+    copy = frame_command(WRITE, 2)
+    assert script.start(WRITE) == copy
+    assert script.reply(encode_id_mismatch(1)) == copy
+    assert script.reply(encode_refused(2)) == b""
+    assert script.verdict() is SlcVerdict.UNKNOWN
