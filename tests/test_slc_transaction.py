@@ -459,8 +459,10 @@ class Script:
     """One session from its start, driven by the test: the frames it sends, the bytes it gets, a
     fake clock that moves only when the test says."""
 
-    def __init__(self, **options: float | int) -> None:
-        self.session = SlcSession(timeout=TIMEOUT, **options)  # type: ignore[arg-type]
+    def __init__(self, *, retries: int = 3, max_resends: int = 8, late_bound: float | None = None,
+                 min_timeout: float = 0.05) -> None:
+        self.session = SlcSession(timeout=TIMEOUT, retries=retries, max_resends=max_resends, late_bound=late_bound,
+                                  min_timeout=min_timeout)
         self.now = 0.0
 
     def start(self, command: cmds.Command, timeout: float | None = None, until: float | None = None) -> bytes:
@@ -563,7 +565,8 @@ def test_counters_count_what_the_line_did() -> None:
     assert script.verdict() is SlcVerdict.DONE
     assert counters == SessionCounters(timeouts=2, crc_errors=1, retransmits=2, id_resyncs=2, handshakes=1,
                                        id_mismatches=1, resends=1, faults=1)
-    # a write after a read of two messages resyncs; the controller refuses the barrier read (program mode): quiet, read FRN
+    # a write after a read of two messages resyncs; the controller refuses the barrier read
+    # (program mode): quiet, then read FRN
     _barrier(script.start(WRITE))
     assert script.reply(encode_refused(0)) == b""
     assert script.session.state is SessionState.QUIET
