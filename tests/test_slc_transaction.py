@@ -736,6 +736,7 @@ def test_a_silent_resync_fails_after_its_tries_and_the_last_try_waits_the_full_t
     result = script.session.take_result()
     assert result.verdict is SlcVerdict.FAILED and "after 4 tries" in result.reason, result
     assert script.session.counters.id_resyncs == 2  # the handshake and this one
+    assert script.session.counters.timeouts == 4  # each try's
 
 
 def test_a_controller_seen_answering_late_lengthens_the_quiet_wait() -> None:
