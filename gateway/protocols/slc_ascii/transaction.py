@@ -228,7 +228,8 @@ class SlcSession(SlcSender):
 
     def _retry_read(self, now: float, why: str) -> SessionState:
         """A read, or a write none of whose copies went out: resync with ID 00 and ask again."""
-        assert not (self._is_write and self._copies), "a write whose copy went out never goes under a new ID"
+        assert not (self._is_write and self._copies), (
+            "a write whose copy went out never goes under a new ID")
         if not self._may_ask_again(now, self._resyncs, self.max_resyncs):
             return self._finish(SlcVerdict.FAILED, reason=f"{why}; gave up after {self._resyncs} resyncs")
         return self._begin_resync(now)
