@@ -30,7 +30,7 @@ from gateway.protocols.slc_ascii.framing import (
     encode_retransmit,
     frame_command,
 )
-from gateway.protocols.slc_ascii.transaction import SessionState, SlcSession, SlcVerdict, next_id
+from gateway.protocols.slc_ascii.transaction import SessionCounters, SessionState, SlcSession, SlcVerdict, next_id
 from gateway.sim.variants import pairwise_cover
 from tests.slc_core_harness import FATES, FakeLine
 
@@ -447,3 +447,378 @@ def test_a_refused_barrier_read_falls_back_to_read_frn_after_quiet() -> None:
     assert session.data_to_send() == frame_command(cmds.read_frn(), 0)
     session.receive_data(encode_data_reply("021FFE1547", 0), 0.7)
     assert session.data_to_send() == frame_command(READ, 1)
+
+
+# --- scripts from a fresh session: connecting, counters, budgets, timeouts ----------------------
+
+FRN_REPLY = encode_data_reply("021FFE1547", 0)
+READ_REPLY_BODY = "000200400064"
+
+
+class Script:
+    """One session from its start, driven by the test: the frames it sends, the bytes it gets, a
+    fake clock that moves only when the test says."""
+
+    def __init__(self, *, retries: int = 3, max_resends: int = 8, late_bound: float | None = None,
+                 min_timeout: float = 0.05) -> None:
+        self.session = SlcSession(timeout=TIMEOUT, retries=retries, max_resends=max_resends, late_bound=late_bound,
+                                  min_timeout=min_timeout)
+        self.now = 0.0
+
+    def start(self, command: cmds.Command, timeout: float | None = None, until: float | None = None) -> bytes:
+        self.session.start(command, self.now, timeout, until=until)
+        return self.session.data_to_send()
+
+    def reply(self, data: bytes, dt: float = 0.01) -> bytes:
+        """``data`` arrives ``dt`` later: what the session sends at once."""
+        self.now += dt
+        self.session.receive_data(data, self.now)
+        return self.session.data_to_send()
+
+    def wait(self) -> bytes:
+        """Nothing arrives until the session's deadline: what it sends then."""
+        deadline = self.session.next_deadline()
+        assert deadline is not None
+        self.now = max(self.now, deadline)
+        self.session.handle_timeout(self.now)
+        return self.session.data_to_send()
+
+    def verdict(self) -> SlcVerdict:
+        return self.session.take_result().verdict
+
+    def handshake_read(self) -> None:
+        """The first read after connecting: read FRN with ID 00 (the line is quiet), then ID 01."""
+        assert self.start(READ) == frame_command(cmds.read_frn(), 0)
+        assert self.reply(FRN_REPLY) == frame_command(READ, 1)
+        self.reply(encode_data_reply(READ_REPLY_BODY, 1))
+        assert self.verdict() is SlcVerdict.DONE
+
+
+def test_the_first_command_after_a_reconnect_resyncs_and_counts_as_a_handshake() -> None:
+    """A new stream (``connected``): the controller's numbering is unknown, so the next command
+    begins with an ID 00 resync, at once (nothing was sent on this stream yet); it is the
+    connection's handshake, not a recovery (the driver reports resyncs less handshakes)."""
+    script = Script()
+    script.handshake_read()
+    assert script.start(READ) == frame_command(READ, 2)  # in step: no resync
+    script.session.connected()  # the stream drops with the read on its way
+    assert script.session.state is SessionState.IDLE and script.session.result is None
+    assert script.session.next_deadline() is None
+    assert script.start(READ) == frame_command(cmds.read_frn(), 0)
+    assert script.reply(FRN_REPLY) == frame_command(READ, 1)
+    counters = script.session.counters
+    assert (counters.id_resyncs, counters.handshakes) == (2, 2)
+
+
+def test_a_reconnect_forgets_a_frame_cut_short_and_unsent_frames() -> None:
+    """Bytes of the old stream never join the new one's: a partial reply is forgotten and
+    frames not yet taken by the caller are dropped."""
+    script = Script()
+    script.handshake_read()
+    script.session.start(READ, script.now)  # the frame is not taken before the stream drops
+    script.session.receive_data(encode_data_reply(READ_REPLY_BODY, 2)[:6], script.now)
+    script.session.connected()
+    assert script.session.data_to_send() == b""
+    assert script.session.next_deadline() is None
+    assert script.start(READ) == frame_command(cmds.read_frn(), 0)
+    # the new stream's FRN reply is not glued to the old partial frame
+    assert script.reply(FRN_REPLY) == frame_command(READ, 1)
+    assert script.session.counters.crc_errors == 0
+
+
+def test_a_transaction_runs_one_at_a_time_and_a_result_is_taken_once() -> None:
+    script = Script()
+    with pytest.raises(RuntimeError):
+        script.session.take_result()
+    script.start(READ)
+    with pytest.raises(RuntimeError):
+        script.session.start(READ, script.now)
+    script.reply(FRN_REPLY)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 1))
+    assert script.verdict() is SlcVerdict.DONE
+    assert script.session.result is None
+    with pytest.raises(RuntimeError):
+        script.session.take_result()
+
+
+def test_counters_count_what_the_line_did() -> None:
+    """The driver reports the core's counters (timeouts, CRC errors, ;Z, resyncs less handshakes,
+    ;T): each counts its event once."""
+    script = Script()
+    script.handshake_read()
+    counters = script.session.counters
+    assert counters == SessionCounters(id_resyncs=1, handshakes=1)
+    assert script.start(READ) == frame_command(READ, 2)
+    assert script.reply(encode_fault(0)) == b""  # ;T: noted for the caller, no answer
+    assert script.session.fault_pending
+    bad = bytearray(encode_data_reply(READ_REPLY_BODY, 2))
+    bad[5] ^= 1
+    assert script.reply(bytes(bad)) == encode_retransmit(2)
+    assert script.reply(encode_ack(1)) == frame_command(READ, 2)  # ;Z met an older reply: resend
+    first = script.reply(encode_id_mismatch(7))  # a read meeting ;I resyncs at once
+    _barrier(first)
+    second, answer = _barrier(script.wait())  # the barrier read is lost: another address
+    assert second != _barrier(first)[0]
+    assert script.reply(answer) == frame_command(READ, 1)
+    assert script.wait() == encode_retransmit(1)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 1))
+    assert script.verdict() is SlcVerdict.DONE
+    assert counters == SessionCounters(timeouts=2, crc_errors=1, retransmits=2, id_resyncs=2, handshakes=1,
+                                       id_mismatches=1, resends=1, faults=1)
+    # a write after a read of two messages resyncs; the controller refuses the barrier read
+    # (program mode): quiet, then read FRN
+    _barrier(script.start(WRITE))
+    assert script.reply(encode_refused(0)) == b""
+    assert script.session.state is SessionState.QUIET
+    assert script.wait() == frame_command(cmds.read_frn(), 0)
+    assert script.reply(FRN_REPLY) == frame_command(WRITE, 1)
+    script.reply(encode_ack(1))
+    assert script.verdict() is SlcVerdict.DONE
+    assert counters == SessionCounters(timeouts=2, crc_errors=1, retransmits=2, id_resyncs=3, handshakes=1,
+                                       id_mismatches=1, resends=1, faults=1, quiet_waits=1)
+
+
+def test_a_write_whose_copy_was_accepted_asks_for_its_answer_a_bounded_number_of_times() -> None:
+    """``;I`` with the write's own ID: a copy ran, so no copy goes again; ``;Z`` asks for its
+    answer, ``retries`` times after the first (the controller may keep repeating the ``;I``),
+    then UNKNOWN."""
+    script = Script(retries=3)
+    script.handshake_read()
+    assert script.start(WRITE) == frame_command(WRITE, 2)
+    asked = [script.reply(encode_id_mismatch(2)) for _ in range(5)]
+    assert asked == [encode_retransmit(2)] * 4 + [b""]
+    assert script.verdict() is SlcVerdict.UNKNOWN
+
+
+def test_a_write_with_a_time_budget_asks_again_while_a_wait_fits_and_says_how_long_it_tried() -> None:
+    """``until``: in place of the counts, a write asks again while one more wait fits before
+    it; a read ignores it (reads are bounded by their resyncs)."""
+    script = Script(retries=1)
+    script.handshake_read()
+    began = script.now
+    assert script.start(WRITE, until=began + 1.0) == frame_command(WRITE, 2)
+    asked = []
+    for _ in range(3):
+        frame = script.wait()
+        asked.append((round(script.now - began, 3), frame))
+    assert asked == [(0.3, encode_retransmit(2)), (0.6, encode_retransmit(2)), (0.9, b"")]
+    result = script.session.take_result()
+    assert result.verdict is SlcVerdict.UNKNOWN
+    assert result.reason.endswith("after 2 retransmit requests in 0.9 s"), result.reason
+    # without a budget: ``retries`` requests, and the reason gives no time
+    _, answer = _barrier(script.start(READ))  # after UNKNOWN: a resync
+    assert script.reply(answer) == frame_command(READ, 1)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 1))
+    assert script.verdict() is SlcVerdict.DONE
+    assert script.start(WRITE) == frame_command(WRITE, 2)
+    assert [script.wait() for _ in range(2)] == [encode_retransmit(2), b""]
+    result = script.session.take_result()
+    assert result.verdict is SlcVerdict.UNKNOWN and result.reason.endswith("after 1 retransmit requests"), result
+    # a read with a budget: the budget is not its bound
+    _, answer = _barrier(script.start(READ, until=script.now))
+    assert script.reply(answer) == frame_command(READ, 1)
+    assert script.wait() == encode_retransmit(1)
+
+
+def test_the_reply_timeout_adapts_to_the_controller_and_verdicts_wait_the_full_time() -> None:
+    """After 8 first replies the timeout is 2 x the slowest of them, at least ``min_timeout``;
+    a longer timeout given for a command is kept; a reply fetched by ``;Z`` is no first reply;
+    a write's last ``;Z`` waits the configured time (its answer may be held back on the line)."""
+    script = Script(retries=3, min_timeout=0.05)
+    script.handshake_read()  # two first replies, 10 ms each
+    for n in range(2, 8):  # six more: 8 in all, measured when the eighth transaction starts
+        assert script.start(READ) == frame_command(READ, n)
+        assert script.session.next_deadline() == pytest.approx(script.now + TIMEOUT)
+        script.reply(encode_data_reply(READ_REPLY_BODY, n), dt=0.01)
+        assert script.verdict() is SlcVerdict.DONE
+    script.start(READ)
+    assert script.session.next_deadline() == pytest.approx(script.now + 0.05)  # 2 x 10 ms, raised to 50 ms
+    assert script.wait() == encode_retransmit(8)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 8), dt=0.2)  # after ;Z: not a reply time
+    assert script.verdict() is SlcVerdict.DONE
+    assert script.start(READ, timeout=0.2) == frame_command(READ, 9)
+    assert script.session.next_deadline() == pytest.approx(script.now + 0.05)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 9), dt=0.04)  # a slower first reply: 40 ms
+    assert script.verdict() is SlcVerdict.DONE
+    script.start(READ, timeout=1.0)  # a slow command's longer timeout is its own
+    assert script.session.next_deadline() == pytest.approx(script.now + 1.0)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 10), dt=0.01)
+    assert script.verdict() is SlcVerdict.DONE
+    began = script.now
+    assert script.start(WRITE) == frame_command(WRITE, 11)
+    waits = []
+    while script.session.result is None:
+        deadline = script.session.next_deadline()
+        assert deadline is not None
+        waits.append(round(deadline - script.now, 3))
+        script.wait()
+    assert waits == [0.08, 0.08, 0.08, TIMEOUT]  # 2 x 40 ms; the last ;Z waits the full time
+    assert script.verdict() is SlcVerdict.UNKNOWN
+    assert script.now - began == pytest.approx(3 * 0.08 + TIMEOUT)
+
+
+def test_with_no_barrier_address_free_a_read_resyncs_untrusted_and_a_refusal_there_is_confirmed_once() -> None:
+    """Every barrier address asked for within the quiet time: a read resyncs at once with read
+    FRN, a numbering no earlier ``;E`` is told apart in.  A ``;E`` to the read there is asked
+    again once under a new numbering; the second ``;E`` is the controller's refusal."""
+    script = Script(late_bound=100.0)  # nothing is quiet within this test
+    script.handshake_read()
+    used: list[int] = []
+    while True:
+        assert script.start(READ) == frame_command(READ, 2)
+        resync = script.reply(encode_id_mismatch(0x55))  # ;I: the read resyncs at once
+        if resync == frame_command(cmds.read_frn(), 0):
+            break  # no barrier address free
+        address, answer = _barrier(resync)
+        used.append(address)
+        assert script.reply(answer) == frame_command(READ, 1)
+        script.reply(encode_data_reply(READ_REPLY_BODY, 1))
+        assert script.verdict() is SlcVerdict.DONE
+    assert len(used) > 200 and len(set(used)) == len(used)  # every readable byte, each once
+    assert script.reply(FRN_REPLY) == frame_command(READ, 1)
+    assert script.reply(encode_refused(1)) == frame_command(cmds.read_frn(), 0)  # to be confirmed
+    assert script.reply(FRN_REPLY) == frame_command(READ, 1)
+    script.reply(encode_refused(1))
+    assert script.verdict() is SlcVerdict.REFUSED
+
+
+def test_a_resync_that_heard_the_controller_goes_on_one_that_heard_nothing_fails_fast() -> None:
+    """A resync whose tries run out: if anything came back (a garbled frame, perhaps the
+    answer), the controller is there and the line is bad: a read resyncs again.  Silence is a
+    dead line: FAILED at once, and the next command resyncs."""
+    script = Script(retries=1)
+    script.handshake_read()
+    assert script.start(READ) == frame_command(READ, 2)
+    # ;I (the read resyncs) and the start of a frame whose rest never comes
+    _barrier(script.reply(encode_id_mismatch(0x55) + encode_data_reply(READ_REPLY_BODY, 0)[:6]))
+    _barrier(script.wait())  # cut short after char_gap: garbled, perhaps the answer: a new try
+    assert script.session.counters.crc_errors == 1
+    _barrier(script.wait())  # the tries run out, the controller was heard: a new resync
+    assert script.session.result is None
+    assert script.session.counters.id_resyncs == 3
+    # silence from here on: the tries of this resync run out, FAILED
+    _barrier(script.wait())  # its second try
+    assert script.wait() == b""
+    result = script.session.take_result()
+    assert result.verdict is SlcVerdict.FAILED
+    assert script.session.counters.id_resyncs == 3
+    _barrier(script.start(READ))
+
+
+def _fast_controller() -> Script:
+    """A session whose reply timeout adapted to a controller that answers in 10 ms (50 ms)."""
+    script = Script(retries=3, min_timeout=0.05)
+    script.handshake_read()
+    for n in range(2, 10):
+        script.start(READ)
+        script.reply(encode_data_reply(READ_REPLY_BODY, n), dt=0.01)
+        assert script.verdict() is SlcVerdict.DONE
+    return script
+
+
+def test_a_silent_resync_fails_after_its_tries_and_the_last_try_waits_the_full_time() -> None:
+    """The resync's tries go at the adapted timeout, the last waits the configured one (a reply
+    held back on the line must not make a silent-line verdict); silence then: FAILED, no
+    further resync (a dead line fails fast)."""
+    script = _fast_controller()
+    assert script.start(READ) == frame_command(READ, 10)
+    addresses = [_barrier(script.reply(encode_id_mismatch(0x55)))[0]]
+    waits = []
+    while script.session.result is None:
+        deadline = script.session.next_deadline()
+        assert deadline is not None
+        waits.append(round(deadline - script.now, 3))
+        frame = script.wait()
+        if frame:
+            addresses.append(_barrier(frame)[0])
+    assert waits == [0.05, 0.05, 0.05, TIMEOUT]
+    assert len(set(addresses)) == 4  # each try asks for another address
+    result = script.session.take_result()
+    assert result.verdict is SlcVerdict.FAILED and "after 4 tries" in result.reason, result
+    assert script.session.counters.id_resyncs == 2  # the handshake and this one
+    assert script.session.counters.timeouts == 4  # each try's
+
+
+def test_a_controller_seen_answering_late_lengthens_the_quiet_wait() -> None:
+    """The quiet wait before a read FRN resync is ``late_bound`` after our last message, or 1.5 x
+    the latest an answer was seen coming after its copy, if that is longer."""
+    script = Script()
+    script.handshake_read()
+    assert script.start(READ) == frame_command(READ, 2)
+    assert script.wait() == encode_retransmit(2)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 2), dt=0.2)  # 0.5 s after the copy
+    assert script.verdict() is SlcVerdict.DONE
+    _barrier(script.start(WRITE))  # two messages: a write resyncs
+    sent = script.now
+    assert script.reply(encode_refused(0)) == b""  # program mode: quiet, then read FRN
+    assert script.session.next_deadline() == pytest.approx(sent + 1.5 * 0.5)
+    assert script.wait() == frame_command(cmds.read_frn(), 0)
+
+
+def test_after_a_quiet_time_a_resync_reads_the_frn_at_once() -> None:
+    """A command after the line was quiet for ``late_bound`` needs no barrier: no reply of an
+    earlier message can still come, so the resync reads the FRN at once (a trusted numbering)."""
+    script = Script()
+    script.handshake_read()
+    assert script.start(READ) == frame_command(READ, 2)
+    while script.session.result is None:  # every reply lost: FAILED (a read after its resyncs)
+        script.wait()
+    assert script.verdict() is SlcVerdict.FAILED
+    script.now += script.session.late_bound
+    assert script.start(WRITE) == frame_command(cmds.read_frn(), 0)
+    assert script.reply(FRN_REPLY) == frame_command(WRITE, 1)
+
+
+def test_a_frame_cut_short_just_before_the_reply_timeout_waits_for_the_timeout_first() -> None:
+    """The next deadline is the earlier of the reply timeout and the character gap; a partial
+    frame while no transaction runs sets none."""
+    script = Script()
+    script.handshake_read()
+    script.session.receive_data(encode_data_reply(READ_REPLY_BODY, 1)[:5], script.now)
+    assert script.session.next_deadline() is None
+    script.session.receive_data(b"\r", script.now)  # the garbled rest, still idle
+    assert script.start(READ) == frame_command(READ, 2)
+    sent = script.now
+    script.session.receive_data(encode_data_reply(READ_REPLY_BODY, 2)[:5], sent + TIMEOUT - 0.01)
+    assert script.session.next_deadline() == pytest.approx(sent + TIMEOUT)
+
+
+def test_a_write_whose_z_keeps_meeting_an_older_reply_is_resent_under_its_id_a_bounded_number_of_times() -> None:
+    """``;Z`` answered with an older reply: the controller never got the copy, or that reply is
+    a late one; the copy goes again with the same ID, ``max_resends`` times, then UNKNOWN."""
+    script = Script(max_resends=2)
+    script.handshake_read()
+    copy = frame_command(WRITE, 2)
+    assert script.start(WRITE) == copy
+    frames = []
+    for _ in range(3):
+        frames.append(script.wait())  # the reply is lost: ;Z
+        frames.append(script.reply(encode_ack(1)))  # the ;Z fetches the previous reply
+    assert frames == [encode_retransmit(2), copy] * 2 + [encode_retransmit(2), b""]
+    assert script.verdict() is SlcVerdict.UNKNOWN
+    assert script.session.counters.resends == 2
+
+
+def test_a_write_meeting_only_i_with_other_ids_asks_z_a_bounded_number_of_times_then_unknown() -> None:
+    """``;I`` with another ID proves nothing: one second copy with the write's ID, then ``;Z``
+    (``retries`` times after the first) while every answer is such a ``;I``, then UNKNOWN."""
+    script = Script(retries=3)
+    script.handshake_read()
+    copy = frame_command(WRITE, 2)
+    assert script.start(WRITE) == copy
+    frames = [script.reply(encode_id_mismatch(0)) for _ in range(6)]
+    assert frames == [copy] + [encode_retransmit(2)] * 4 + [b""]
+    assert script.verdict() is SlcVerdict.UNKNOWN
+    assert script.session.counters.resends == 1
+
+
+def test_e_to_a_writes_second_copy_is_no_proof_that_it_did_not_run() -> None:
+    """A controller that checks the command before its ID refuses the second copy with ``;E``
+    (its mode changed) while the first copy ran: UNKNOWN, never REFUSED."""
+    script = Script()
+    script.handshake_read()
+    copy = frame_command(WRITE, 2)
+    assert script.start(WRITE) == copy
+    assert script.reply(encode_id_mismatch(1)) == copy
+    assert script.reply(encode_refused(2)) == b""
+    assert script.verdict() is SlcVerdict.UNKNOWN

@@ -124,8 +124,6 @@ class SlcSender:
         #: per barrier address, when it was last asked for; the next one to try
         self._barrier_sent: dict[int, float] = {}
         self._barrier_next = 0
-        #: the controller answered a barrier read ;E (program mode): resync with read FRN
-        self._barrier_refused = False
         self._is_write = False
         self._timeout = timeout
         self._msg_id = 0
@@ -144,14 +142,13 @@ class SlcSender:
         self._until: float | None = None
 
     def connected(self) -> None:
-        """A new stream: forget the decoder state; the first command resyncs."""
+        """A new stream: forget the decoder state; the first command resyncs.  Nothing was sent on
+        the stream, so that resync is one after quiet, which begins a trusted, clean numbering."""
         self._last_sent = float("-inf")
         self._decoder = ReplyDecoder()
         self._out.clear()
         self._next = 0
         self._handshake_due = True
-        self._clean = True
-        self._era_trusted = False
         self._deadline = None
         self._gap_deadline = None
         self.state = SessionState.IDLE
@@ -224,7 +221,6 @@ class SlcSender:
     def _after_quiet(self, now: float) -> SessionState:
         self._clean = True
         self._era_trusted = True
-        self._barrier_refused = False  # the controller may take barrier reads again later
         self._probe = _PROBE
         return self._send_probe(now)
 
@@ -252,7 +248,7 @@ class SlcSender:
         self._heard = False
         self._next = 0
         quiet = now >= self._last_sent + self._quiet_time()
-        if not quiet and not self._barrier_refused and self._barrier_free(now):
+        if not quiet and self._barrier_free(now):
             self._era_trusted = True
             return self._send_probe(now)
         if self._is_write or quiet:

@@ -228,7 +228,8 @@ class SlcSession(SlcSender):
 
     def _retry_read(self, now: float, why: str) -> SessionState:
         """A read, or a write none of whose copies went out: resync with ID 00 and ask again."""
-        assert not (self._is_write and self._copies), "a write whose copy went out never goes under a new ID"
+        assert not (self._is_write and self._copies), (
+            "a write whose copy went out never goes under a new ID")
         if not self._may_ask_again(now, self._resyncs, self.max_resyncs):
             return self._finish(SlcVerdict.FAILED, reason=f"{why}; gave up after {self._resyncs} resyncs")
         return self._begin_resync(now)
@@ -268,13 +269,13 @@ class SlcSession(SlcSender):
                              refused_once=self._refused_once, z_sent=self._z_ever, copies=self._copies)
         if step is RefusalStep.CONFIRM:
             self._refused_once = True
-            return self._retry_read(now, ";E to be confirmed")
+            return self._retry_read(now, why=";E to be confirmed")
         if step is RefusalStep.REFUSED:
             return self._finish(SlcVerdict.REFUSED, reason="illegal command or parameters for the current mode")
         if step is RefusalStep.UNKNOWN:
             return self._finish(SlcVerdict.UNKNOWN, reason=";E after ;Z or to a later copy: refused, or an earlier "
                                                            "copy ran")
-        return self._retry_read(now, ";E after ;Z")
+        return self._retry_read(now, why=";E after ;Z")
 
     def _on_other_in_z(self, now: float, event: ReplyEvent | None) -> SessionState:
         # The controller's last reply may be older than our command (it never got it), or this
@@ -282,7 +283,7 @@ class SlcSession(SlcSender):
         if not self._may_ask_again(now, self._resends, self.max_resends):
             if self._is_write:
                 return self._finish(SlcVerdict.UNKNOWN, reason="the controller keeps answering an older message")
-            return self._retry_read(now, "the controller keeps answering an older message")
+            return self._retry_read(now, why="the controller keeps answering an older message")
         self._resends += 1
         self.counters.resends += 1
         return self._send_copy(now)
@@ -290,7 +291,7 @@ class SlcSession(SlcSender):
     def _on_id_ours(self, now: float, event: ReplyEvent | None) -> SessionState:
         # An earlier copy of this very message was accepted.
         if not self._is_write:
-            return self._retry_read(now, ";I: message ID out of step")
+            return self._retry_read(now, why=";I: message ID out of step")
         if not self._may_ask_again(now, self._z_sent, self.retries + 1):
             return self._finish(SlcVerdict.UNKNOWN, reason=";I with our ID, and no answer to ;Z")
         return self._send_z(now)
@@ -299,7 +300,7 @@ class SlcSession(SlcSender):
         assert isinstance(event, IdMismatch)
         last = event.last_valid_id
         if not self._is_write:
-            return self._retry_read(now, f";I{last:02X}: message ID out of step")
+            return self._retry_read(now, why=f";I{last:02X}: message ID out of step")
         # A power-cycled controller's answer to a copy, or a stale or repeated reply: no proof
         # either way, and never a new ID.
         step = judge_id_mismatch(
@@ -317,19 +318,19 @@ class SlcSession(SlcSender):
 
     def _on_garbled(self, now: float, event: ReplyEvent | None) -> SessionState:
         # A complete reply failed its check: ask for it again at once.
-        return self._z_or_give_up(now, "garbled replies")
+        return self._z_or_give_up(now, why="garbled replies")
 
     def _on_timeout(self, now: float, event: ReplyEvent | None) -> SessionState:
         self.counters.timeouts += 1
-        return self._z_or_give_up(now, "no valid answer")
+        return self._z_or_give_up(now, why="no valid answer")
 
     def _on_z_timeout(self, now: float, event: ReplyEvent | None) -> SessionState:
         self.counters.timeouts += 1
         if not self._is_write:
             # Silence after ;Z: power-cycled (no last reply to repeat) or lost again.  A read
             # need not find out which: ask again under a new numbering.
-            return self._retry_read(now, "no answer to ;Z")
-        return self._z_or_give_up(now, "no valid answer")
+            return self._retry_read(now, why="no answer to ;Z")
+        return self._z_or_give_up(now, why="no valid answer")
 
     def _on_probe_answer(self, now: float, event: ReplyEvent | None) -> SessionState:
         # The barrier: the controller expects 01 next, and no earlier reply can follow.
@@ -341,7 +342,6 @@ class SlcSession(SlcSender):
 
     def _on_probe_refused(self, now: float, event: ReplyEvent | None) -> SessionState:
         # The controller refuses reads (program mode): resync with read FRN after quiet.
-        self._barrier_refused = True
         return self._enter_quiet(now)
 
     def _on_probe_garbled(self, now: float, event: ReplyEvent | None) -> SessionState:
