@@ -656,3 +656,69 @@ def test_an_unacknowledged_copy_waits_for_a_write_at_another_station() -> None:
     assert master.data_to_send() == ACK_SYMBOL + encode_poll(1)  # its turn ends with DLE EOT
     feed(master, EOT_SYMBOL, 0.63, "whole")
     assert master.data_to_send() == copy  # the write is done: the same copy, same TNS
+
+
+# ------------------------------------------------------------------------------- configuration
+
+
+@pytest.mark.parametrize(
+    ("key", "lowest"),
+    [("poll_timeout", None), ("reply_timeout", None), ("reply_wait", 0.0), ("poll_interval", None),
+     ("slow_poll_interval", None), ("max_polls", 1), ("demote_after", 1), ("max_outstanding", 1)],
+)
+def test_station_tunables_take_their_lowest_value_and_refuse_below(key: str, lowest: float | None) -> None:
+    """Times must be positive (a wait of 0 where one is needed would spin), ``reply_wait`` may be
+    0; counts at least 1."""
+    if lowest is None:  # a time that must be > 0: any positive value, not 0
+        assert getattr(StationConfig(1, **{key: 0.001}), key) == 0.001
+        for bad in (0, -0.5):
+            with pytest.raises(ValueError, match=f"{key} must be > 0, got {bad}"):
+                StationConfig(1, **{key: bad})
+        return
+    assert getattr(StationConfig(1, **{key: lowest}), key) == lowest
+    with pytest.raises(ValueError, match=key):
+        StationConfig(1, **{key: lowest - 1 if isinstance(lowest, int) else -0.001})
+
+
+def test_station_numbers_are_0_to_254() -> None:
+    assert StationConfig(0).station == 0 and StationConfig(254).station == 254
+    for bad in (-1, 255):
+        with pytest.raises(ValueError, match=f"0..254 .255 is broadcast., got {bad}"):
+            StationConfig(bad)
+
+
+@pytest.mark.parametrize("key", ["char_time", "pre_transmit_delay", "rts_send_delay", "rts_off_delay",
+                                 "write_precedence"])
+def test_line_delays_may_be_0_never_negative(key: str) -> None:
+    assert getattr(LineConfig(Checksum.BCC, **{key: 0.0}), key) == 0.0
+    with pytest.raises(ValueError, match=f"{key} must be >= 0, got -0.001"):
+        LineConfig(Checksum.BCC, **{key: -0.001})
+
+
+def test_line_counts_and_ack_timeout_limits() -> None:
+    assert LineConfig(Checksum.BCC, message_resends=0).message_resends == 0
+    assert LineConfig(Checksum.BCC, max_messages_per_turn=1).max_messages_per_turn == 1
+    assert LineConfig(Checksum.BCC, ack_timeout=0.001).ack_timeout == 0.001
+    for bad in ({"message_resends": -1}, {"max_messages_per_turn": 0}, {"ack_timeout": 0},
+                {"ack_timeout": -1.0}):
+        with pytest.raises(ValueError):
+            LineConfig(Checksum.BCC, **bad)
+
+
+def test_the_cores_defaults_are_the_config_keys_defaults() -> None:
+    """A master built without a config (``gateway.kinds.df1.tool``, the e2e benches) polls as a
+    configured line whose keys are left out.  The reply timeout is not compared: the config's
+    ``timeout`` key is the full-duplex one too, and every caller passes it."""
+    from gateway.kinds.df1.config import Df1LinkConfig
+
+    fields = Df1LinkConfig.model_fields
+    station = StationConfig(1)
+    for key in ("poll_timeout", "reply_wait", "max_polls", "poll_interval", "demote_after", "slow_poll_interval"):
+        assert getattr(station, key) == fields[key].default, key
+    line = LineConfig(Checksum.BCC)
+    assert (line.ack_timeout, line.message_resends) == (fields["ack_timeout"].default,
+                                                        fields["message_retries"].default)
+    assert (line.char_time, line.pre_transmit_delay, line.rts_send_delay, line.rts_off_delay, line.echo) == (
+        0.0, fields["pre_transmit_delay"].default, fields["rts_send_delay"].default,
+        fields["rts_off_delay"].default, fields["echo"].default,
+    )
