@@ -669,15 +669,19 @@ def test_an_unacknowledged_copy_waits_for_a_write_at_another_station() -> None:
 def test_station_tunables_take_their_lowest_value_and_refuse_below(key: str, lowest: float | None) -> None:
     """Times must be positive (a wait of 0 where one is needed would spin), ``reply_wait`` may be
     0; counts at least 1."""
+    def config(value: float) -> StationConfig:
+        change: dict[str, Any] = {key: value}
+        return replace(StationConfig(1), **change)
+
     if lowest is None:  # a time that must be > 0: any positive value, not 0
-        assert getattr(StationConfig(1, **{key: 0.001}), key) == 0.001
+        assert getattr(config(0.001), key) == 0.001
         for bad in (0, -0.5):
             with pytest.raises(ValueError, match=f"{key} must be > 0, got {bad}"):
-                StationConfig(1, **{key: bad})
+                config(bad)
         return
-    assert getattr(StationConfig(1, **{key: lowest}), key) == lowest
+    assert getattr(config(lowest), key) == lowest
     with pytest.raises(ValueError, match=key):
-        StationConfig(1, **{key: lowest - 1 if isinstance(lowest, int) else -0.001})
+        config(lowest - 1 if isinstance(lowest, int) else -0.001)
 
 
 def test_station_numbers_are_0_to_254() -> None:
@@ -690,19 +694,22 @@ def test_station_numbers_are_0_to_254() -> None:
 @pytest.mark.parametrize("key", ["char_time", "pre_transmit_delay", "rts_send_delay", "rts_off_delay",
                                  "write_precedence"])
 def test_line_delays_may_be_0_never_negative(key: str) -> None:
-    assert getattr(LineConfig(Checksum.BCC, **{key: 0.0}), key) == 0.0
+    zero: dict[str, Any] = {key: 0.0}
+    negative: dict[str, Any] = {key: -0.001}
+    assert getattr(replace(LineConfig(Checksum.BCC), **zero), key) == 0.0
     with pytest.raises(ValueError, match=f"{key} must be >= 0, got -0.001"):
-        LineConfig(Checksum.BCC, **{key: -0.001})
+        replace(LineConfig(Checksum.BCC), **negative)
 
 
 def test_line_counts_and_ack_timeout_limits() -> None:
     assert LineConfig(Checksum.BCC, message_resends=0).message_resends == 0
     assert LineConfig(Checksum.BCC, max_messages_per_turn=1).max_messages_per_turn == 1
     assert LineConfig(Checksum.BCC, ack_timeout=0.001).ack_timeout == 0.001
-    for bad in ({"message_resends": -1}, {"max_messages_per_turn": 0}, {"ack_timeout": 0},
-                {"ack_timeout": -1.0}):
+    bad: list[dict[str, Any]] = [{"message_resends": -1}, {"max_messages_per_turn": 0}, {"ack_timeout": 0},
+                                   {"ack_timeout": -1.0}]
+    for kwargs in bad:
         with pytest.raises(ValueError):
-            LineConfig(Checksum.BCC, **bad)
+            replace(LineConfig(Checksum.BCC), **kwargs)
 
 
 def test_the_cores_defaults_are_the_config_keys_defaults() -> None:

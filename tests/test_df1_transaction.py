@@ -451,7 +451,7 @@ def test_an_early_timeout_call_does_nothing() -> None:
     host.start(read(5), is_write=False)
     host.feed(ACK_SYMBOL)
     deadline = host.core.next_deadline()
-    assert deadline == pytest.approx(REPLY_TIMEOUT)
+    assert deadline is not None and deadline == pytest.approx(REPLY_TIMEOUT)
     host.core.handle_timeout(deadline - 0.01)
     assert host.sent() == b"" and host.core.state is TxnState.READ_AWAIT_REPLY
     assert host.core.counters.reply_timeouts == 0
@@ -582,7 +582,8 @@ def test_what_answers_nothing_of_ours_is_ignored() -> None:
     assert host.events == [] and host.core.state is TxnState.READ_AWAIT_REPLY
     assert host.core.counters.late_replies == 0
     host.feed(reply_to(frame, b"\x05\x00"))
-    assert host.events == [TransactionDone(handle, host.events[0].reply)]
+    [done] = host.events
+    assert isinstance(done, TransactionDone) and done.handle == handle and done.reply.data == b"\x05\x00"
     host.feed(reply_to(frame, b"\x06\x00"))  # its duplicate, once settled
     assert len(host.events) == 1 and host.core.counters.late_replies == 0
 
