@@ -729,3 +729,117 @@ def test_the_cores_defaults_are_the_config_keys_defaults() -> None:
         0.0, fields["pre_transmit_delay"].default, fields["rts_send_delay"].default,
         fields["rts_off_delay"].default, fields["echo"].default,
     )
+
+
+# ------------------------------------------------------------------------- the line, exchange by exchange
+
+
+def test_start_with_a_link_reset_sends_dle_nak_before_the_first_poll() -> None:
+    master = HalfDuplexMaster(LineConfig(Checksum.BCC), [StationConfig(1, poll_interval=100.0)])
+    master.start(0.0, link_reset=True)
+    assert master.data_to_send() == NAK_SYMBOL + encode_poll(1)
+    plain = HalfDuplexMaster(LineConfig(Checksum.BCC), [StationConfig(1, poll_interval=100.0)])
+    plain.start(0.0)
+    assert plain.data_to_send() == encode_poll(1)
+
+
+def test_what_answers_nothing_of_ours_is_counted_ignored_and_changes_nothing() -> None:
+    master = make(1, 2, poll_interval=100.0)
+    assert master.data_to_send() == encode_poll(1)
+    master.receive_data(ACK_SYMBOL, 0.01)  # a poll is not acknowledged
+    master.receive_data(encode_poll(2), 0.01)  # another master's poll (or our own echo)
+    assert master.ignored == 2 and master.state is LineState.WAIT_POLL
+    assert master.data_to_send() == b""
+    master.receive_data(EOT_SYMBOL, 0.02)
+    assert master.data_to_send() == encode_poll(2)
+    master.receive_data(EOT_SYMBOL, 0.03)
+    assert master.state is LineState.IDLE and master.ignored == 2
+    master.receive_data(EOT_SYMBOL + ACK_SYMBOL, 0.04)  # nothing is asked: stray symbols
+    assert master.ignored == 4 and master.data_to_send() == b"" and events(master) == []
+    assert (master.counters(1).eots, master.counters(2).eots) == (1, 1)
+
+
+@pytest.mark.parametrize("answer", ["bad frame", "DLE NAK"])
+def test_a_damaged_answer_to_a_poll_is_counted_and_the_station_polled_again(answer: str) -> None:
+    master = make(3, 4, poll_interval=100.0)
+    assert master.data_to_send() == encode_poll(3)
+    frame = bytearray(encode_frame(bytes((GATEWAY, 3, 0x0F, 0x00, 0x01, 0x00)), Checksum.BCC))
+    frame[-1] ^= 0xFF
+    master.receive_data(bytes(frame) if answer == "bad frame" else NAK_SYMBOL, 0.01)
+    assert master.data_to_send() == encode_poll(3)  # the same station, not station 4
+    assert master.counters(3).bad_frames == 1 and master.counters(3).polls == 2
+    assert master.counters(3).timeouts == 0 and master.is_active(3)
+
+
+def test_unacknowledged_copies_demote_the_station_and_fail_its_requests() -> None:
+    """Each copy without its DLE ACK is one failure; at ``demote_after`` the one being sent fails
+    NO_ACK (it may have arrived), queued ones fail as never sent, awaited ones as maybe run."""
+    master = make(1, line={"ack_timeout": 0.2, "message_resends": 5}, poll_interval=100.0, demote_after=3,
+                  reply_timeout=100.0, reply_wait=50.0, max_outstanding=2)
+    assert master.data_to_send() == encode_poll(1)
+    master.receive_data(EOT_SYMBOL, 0.0)
+    awaited = master.submit(1, command(1, 1), 0.0)
+    master.data_to_send()
+    master.receive_data(ACK_SYMBOL, 0.0)  # awaits its reply; its first poll is 50 s away
+    sent = master.submit(1, command(1, 2), 0.0)
+    queued = master.submit(1, command(1, 3), 0.0)
+    copies = [master.data_to_send()]
+    now = 0.0
+    while master.is_active(1):
+        now = master.next_deadline() or now
+        master.handle_timeout(now)
+        copies.append(master.data_to_send())
+    assert copies == [encode_master_message(1, command(1, 2), Checksum.BCC)] * 3 + [b""]
+    assert now == pytest.approx(0.6)
+    assert master.counters(1).timeouts == 3 and master.counters(1).resends == 2
+    assert master.counters(1).demotions == 1
+    assert events(master) == [
+        StationDemoted(1),
+        RequestFailed(queued, 1, FailReason.STATION_DEMOTED, may_have_executed=False),
+        RequestFailed(awaited, 1, FailReason.STATION_DEMOTED, may_have_executed=True),
+        RequestFailed(sent, 1, FailReason.NO_ACK, may_have_executed=True),
+    ]
+
+
+def test_a_tns_is_free_again_once_its_request_is_settled() -> None:
+    master = make(1, 2, poll_interval=100.0)
+    assert master.data_to_send() == encode_poll(1)
+    cmd = command(1, 0x0501)
+    request = master.submit(1, cmd, 0.0)
+    with pytest.raises(ValueError, match="TNS 0105 is already in use"):
+        master.submit(2, command(2, 0x0501), 0.0)  # queued at station 1
+    master.receive_data(EOT_SYMBOL, 0.0)
+    assert master.data_to_send() == encode_master_message(1, cmd, Checksum.BCC)
+    with pytest.raises(ValueError, match="already in use"):
+        master.submit(2, command(2, 0x0501), 0.0)  # on the line
+    master.receive_data(ACK_SYMBOL, 0.0)
+    assert master.data_to_send() == encode_poll(1)
+    with pytest.raises(ValueError, match="already in use"):
+        master.submit(2, command(2, 0x0501), 0.0)  # awaiting its reply
+    master.receive_data(encode_frame(reply_to(cmd, b""), Checksum.BCC), 0.0)
+    assert events(master) == [ReplyReceived(request, 1, reply_to(cmd, b""))]
+    master.submit(2, command(2, 0x0501), 0.0)  # settled: free
+    master.send_reply(2, bytes.fromhex("02 00 4F 00 01 05"), 0.0)  # a reply carries the slave's TNS: not checked
+    with pytest.raises(ValueError, match="6 bytes"):
+        master.send_reply(2, b"\x02\x00\x4f", 0.0)
+    with pytest.raises(ValueError, match="not on this line"):
+        master.send_reply(3, bytes.fromhex("03 00 4F 00 01 05"), 0.0)
+
+
+def test_a_line_needs_a_station() -> None:
+    with pytest.raises(ValueError, match="at least one station"):
+        HalfDuplexMaster(LineConfig(Checksum.BCC), [])
+
+
+def test_a_station_with_messages_keeps_the_line_for_max_messages_per_turn_polls() -> None:
+    master = make(1, 2, line={"max_messages_per_turn": 3}, poll_interval=100.0)
+    heard = []
+    for n in range(4):
+        out = master.data_to_send().removeprefix(ACK_SYMBOL)
+        heard.append(out)
+        if out == encode_poll(1):  # station 1 always has another message
+            master.receive_data(encode_frame(bytes((GATEWAY, 1, 0x0F, 0x00, n, 0x00)), Checksum.BCC), 0.0)
+        else:
+            master.receive_data(EOT_SYMBOL, 0.0)
+    assert heard == [encode_poll(1)] * 3 + [encode_poll(2)]  # then the turn ends, though 1 has more
+    assert master.counters(1).messages_received == 3 and master.data_to_send() == b""
