@@ -604,3 +604,25 @@ def test_counters_count_each_thing_once() -> None:
     )
     assert [type(e) for e in host.events] == [TransactionDone, TransactionDone]
     assert wframe not in readback
+
+
+@CHUNKS
+def test_a_read_back_reply_before_its_ack_settles_the_write_and_completes_the_frame(chunk: int | None) -> None:
+    host = Host(chunk=chunk)
+    host.start(write(3, 0x1234), is_write=True)
+    host.feed(ACK_SYMBOL)
+    readback = host.wait(REPLY_TIMEOUT)
+    assert host.feed(reply_to(readback, b"\x34\x12")) == ACK_SYMBOL  # no DLE ACK of the read-back first
+    [done] = host.events
+    assert isinstance(done, TransactionDone) and done.verified
+    assert host.wait(ACK_TIMEOUT * 4) == b""  # the frame is complete: no DLE ENQ for its ACK
+    assert host.core.link.counters.frames_sent == 2
+
+
+def test_a_late_write_reply_during_the_read_back_is_counted_late() -> None:
+    host = Host()
+    _, frame = host.start(write(3, 0x1234), is_write=True)
+    host.feed(ACK_SYMBOL)
+    host.wait(REPLY_TIMEOUT)
+    host.feed(ACK_SYMBOL + reply_to(frame))
+    assert host.core.counters.late_replies == 1 and isinstance(host.events[-1], TransactionDone)
