@@ -626,3 +626,24 @@ def test_a_late_write_reply_during_the_read_back_is_counted_late() -> None:
     host.wait(REPLY_TIMEOUT)
     host.feed(ACK_SYMBOL + reply_to(frame))
     assert host.core.counters.late_replies == 1 and isinstance(host.events[-1], TransactionDone)
+
+
+def test_a_settled_transactions_tns_are_free_again_so_the_core_never_runs_out() -> None:
+    """Every TNS a transaction used - each try of a read, the write, each read-back - is free once
+    it settles.  With all but four TNS taken (by successors), rounds of retried reads and of writes
+    read back three times run on for ever; a TNS kept would exhaust the four in a few rounds."""
+    host = Host(retries=2)
+    for _ in range(0x10000 - 4):
+        host.core.allocate_tns()
+    for _ in range(6):
+        _, first = host.start(read(1), is_write=False)
+        host.feed(ACK_SYMBOL)
+        host.wait(REPLY_TIMEOUT)  # a second try, a new TNS
+        host.feed(ACK_SYMBOL + reply_to(first, b"\x01\x00"))  # the first try's reply settles it
+        host.start(write(3, 5), is_write=True)
+        host.feed(ACK_SYMBOL)
+        for _ in range(3):  # three read-backs, each with a new TNS, none answered
+            host.wait(REPLY_TIMEOUT)
+            host.feed(ACK_SYMBOL)
+        host.wait(REPLY_TIMEOUT)
+    assert [type(e) for e in host.events] == [TransactionDone, OutcomeUnknown] * 6
