@@ -843,3 +843,56 @@ def test_a_station_with_messages_keeps_the_line_for_max_messages_per_turn_polls(
             master.receive_data(EOT_SYMBOL, 0.0)
     assert heard == [encode_poll(1)] * 3 + [encode_poll(2)]  # then the turn ends, though 1 has more
     assert master.counters(1).messages_received == 3 and master.data_to_send() == b""
+
+
+# ------------------------------------------------------------------------------- which exchange next
+
+
+def test_queued_commands_go_round_robin_over_the_stations() -> None:
+    master = make(1, 2, 3, poll_interval=100.0, reply_wait=50.0, max_outstanding=5)
+    after_start_polls(master)
+    cmds = {(s, n): command(s, 0x10 * s + n) for s in (1, 2, 3) for n in (1, 2)}
+    for (s, _), cmd in cmds.items():
+        master.submit(s, cmd, 0.1)
+    sent = []
+    for _ in range(6):
+        out = master.data_to_send()
+        sent.append(next(key for key, cmd in cmds.items() if out == encode_master_message(key[0], cmd, Checksum.BCC)))
+        feed(master, ACK_SYMBOL, 0.1, "whole")
+    assert sent == [(1, 1), (2, 1), (3, 1), (1, 2), (2, 2), (3, 2)]
+
+
+def test_urgent_requests_queue_behind_replies_and_earlier_writes_ahead_of_reads() -> None:
+    master = make(1, poll_interval=100.0, reply_wait=50.0, max_outstanding=9)
+    assert master.data_to_send() == encode_poll(1)  # the line is busy: everything below queues
+    read_a, write_a, read_b, write_b = command(1, 1), command(1, 2, b"\xaa"), command(1, 3), command(1, 4, b"\xbb")
+    reply = bytes.fromhex("01 00 4F 00 44 00")
+    master.submit(1, read_a, 0.0)
+    master.submit(1, write_a, 0.0, urgent=True)
+    master.submit(1, read_b, 0.0)
+    master.submit(1, write_b, 0.0, urgent=True)
+    master.send_reply(1, reply, 0.0)
+    master.receive_data(EOT_SYMBOL, 0.0)
+    order = []
+    for _ in range(5):
+        order.append(master.data_to_send())
+        master.receive_data(ACK_SYMBOL, 0.0)
+    assert order == [encode_master_message(1, m, Checksum.BCC) for m in (reply, write_a, write_b, read_a, read_b)]
+
+
+def test_a_reply_past_its_deadline_is_polled_at_the_next_free_line_and_its_eot_fails_it() -> None:
+    """A reply wait longer than the reply timeout: once the deadline has passed, the reply's poll
+    is due at the next scheduling (here after station 2's command), not only after the wait; its
+    DLE EOT fails the request.  Left alone, the poll comes after the reply wait."""
+    master = make(1, 2, poll_interval=100.0, reply_wait=2.0, reply_timeout=1.0)
+    after_start_polls(master)
+    request = master.submit(1, command(1, 5), 0.0)
+    master.data_to_send()
+    master.receive_data(ACK_SYMBOL, 0.0)
+    assert master.data_to_send() == b"" and master.next_deadline() == pytest.approx(2.0)
+    master.submit(2, command(2, 6), 1.5)
+    assert master.data_to_send() == encode_master_message(2, command(2, 6), Checksum.BCC)
+    master.receive_data(ACK_SYMBOL, 1.5)
+    assert master.data_to_send() == encode_poll(1)
+    master.receive_data(EOT_SYMBOL, 1.5)
+    assert events(master) == [RequestFailed(request, 1, FailReason.NO_REPLY, may_have_executed=True)]
