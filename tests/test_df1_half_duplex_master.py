@@ -896,3 +896,66 @@ def test_a_reply_past_its_deadline_is_polled_at_the_next_free_line_and_its_eot_f
     assert master.data_to_send() == encode_poll(1)
     master.receive_data(EOT_SYMBOL, 1.5)
     assert events(master) == [RequestFailed(request, 1, FailReason.NO_REPLY, may_have_executed=True)]
+
+
+# ------------------------------------------------------------------------------------ the wire
+
+
+def test_a_byte_heard_while_bytes_wait_to_go_pushes_them_back_by_the_quiet_time() -> None:
+    line = {"pre_transmit_delay": 0.05}
+    master = make(7, line=line, poll_timeout=1.0, poll_interval=100.0)
+    assert master.data_to_send() == encode_poll(7)
+    initiated = bytes((GATEWAY, 7, 0x0F, 0x00, 0x01, 0x00))
+    master.receive_data(encode_frame(initiated, Checksum.BCC), 0.2)
+    assert master.data_to_send() == b"" and master.state is LineState.TRANSMIT  # our ACK waits
+    assert master.next_deadline() == pytest.approx(0.25)
+    master.receive_data(b"\x00", 0.22)  # line noise: the line is busy again
+    master.handle_timeout(0.25)  # (RTS keys up as planned)
+    assert master.data_to_send() == b""
+    assert master.next_deadline() == pytest.approx(0.27)
+    master.handle_timeout(0.27)
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(7)
+
+
+def test_rts_keys_up_after_the_quiet_time_and_drops_after_the_last_byte() -> None:
+    line = {"char_time": 0.001, "pre_transmit_delay": 0.05, "rts_send_delay": 0.02, "rts_off_delay": 0.03}
+    master = make(7, line=line, poll_timeout=1.0, poll_interval=100.0)
+    master.handle_timeout(0.02)
+    assert master.data_to_send() == encode_poll(7) and master.rts
+    assert master.next_deadline() == pytest.approx(0.054)  # 4 bytes, then the RTS off delay
+    master.handle_timeout(0.054)
+    assert not master.rts
+    master.receive_data(EOT_SYMBOL, 0.5)  # the line is quiet again at 0.55
+    assert master.next_deadline() == pytest.approx(100.0)  # the background poll
+    cmd = command(7, 1)
+    master.submit(7, cmd, 0.51)
+    assert master.data_to_send() == b"" and not master.rts
+    assert master.next_deadline() == pytest.approx(0.55)  # RTS on after the quiet time
+    master.handle_timeout(0.55)
+    assert master.rts and master.data_to_send() == b""
+    first_byte = master.next_deadline()
+    assert first_byte == pytest.approx(0.57)  # the first byte after the RTS send delay
+    master.handle_timeout(first_byte)
+    frame = encode_master_message(7, cmd, Checksum.BCC)
+    assert master.data_to_send() == frame and master.rts
+    assert first_byte is not None
+    end = first_byte + len(frame) * 0.001
+    rts_off = master.next_deadline()
+    assert rts_off is not None and rts_off == pytest.approx(end + 0.03)
+    master.handle_timeout(rts_off)
+    assert not master.rts
+    assert master.next_deadline() == pytest.approx(end + 0.5)  # the ACK timer runs from the last byte
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_echo_of_our_own_bytes_is_stripped_across_chunks_and_a_collision_keeps_what_follows(mode: str) -> None:
+    master = make(8, 9, line={"echo": True}, poll_interval=100.0)
+    poll = master.data_to_send()
+    assert poll == encode_poll(8)
+    feed(master, poll[:2], 0.0, mode)  # the echo arrives in two pieces
+    feed(master, poll[2:] + EOT_SYMBOL, 0.0, mode)
+    assert master.counters(8).eots == 1 and master.collisions == 0
+    assert master.data_to_send() == encode_poll(9)
+    feed(master, b"\x10\x05\x07" + EOT_SYMBOL, 0.0, mode)  # our poll of 9 came back as a poll of 7: collision
+    assert master.collisions == 1
+    assert master.counters(9).eots == 1  # what followed the garbled echo is still heard
