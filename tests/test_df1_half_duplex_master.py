@@ -959,3 +959,20 @@ def test_echo_of_our_own_bytes_is_stripped_across_chunks_and_a_collision_keeps_w
     feed(master, b"\x10\x05\x07" + EOT_SYMBOL, 0.0, mode)  # our poll of 9 came back as a poll of 7: collision
     assert master.collisions == 1
     assert master.counters(9).eots == 1  # what followed the garbled echo is still heard
+
+
+@pytest.mark.parametrize(("demote_after", "polls_of_1"), [(10, 3), (2, 2)])
+def test_an_answerless_poll_is_repeated_within_the_turn_until_the_turn_ends_or_the_station_is_demoted(
+    demote_after: int, polls_of_1: int
+) -> None:
+    master = make(1, 2, line={"max_messages_per_turn": 3}, poll_timeout=0.2, demote_after=demote_after,
+                  poll_interval=100.0)
+    heard = [master.data_to_send()]
+    now = 0.0
+    while heard[-1] == encode_poll(1):
+        now += 0.2
+        master.handle_timeout(now)
+        heard.append(master.data_to_send())
+    assert heard == [encode_poll(1)] * polls_of_1 + [encode_poll(2)]
+    assert master.counters(1).timeouts == polls_of_1
+    assert master.is_active(1) is (polls_of_1 < demote_after)
