@@ -21,6 +21,7 @@ from gateway.protocols.df1.half_duplex_events import (
     FailReason,
     LineConfig,
     MasterEvent,
+    RequestFailed,
     SlaveInitiated,
     StationConfig,
     StationDemoted,
@@ -117,7 +118,10 @@ class Line:
                 pass
             elif out.startswith(b"\x10\x01"):  # DLE SOH STN DLE STX packet DLE ETX BCC
                 station = out[2]
-                command = decode_command(out[5 : out.index(b"\x10\x03")].replace(b"\x10\x10", b"\x10"))
+                packet = out[5 : out.index(b"\x10\x03")].replace(b"\x10\x10", b"\x10")
+                if PcccHeader.decode(packet).is_reply:  # our reply to a station's own message: not acknowledged
+                    continue
+                command = decode_command(packet)
                 self.heard.append((station, command))
                 what = self.answer(command)
                 if isinstance(what, bytes):
@@ -331,3 +335,41 @@ def test_negative_retries_are_refused() -> None:
     with pytest.raises(ValueError, match="negative"):
         HalfDuplexTransactions(retries=-1)
     assert HalfDuplexTransactions(retries=0).retries == 0
+
+
+def test_a_write_whose_reply_does_not_decode_may_have_run_and_is_read_back() -> None:
+    """The reply came (garbled in its PCCC content): the write reached the controller, so it is
+    never reported as never sent."""
+    def answer(command: PcccCommand) -> bytes:
+        if command.request == WRITE:
+            return PcccHeader(0, 1, command.header.cmd | 0x40, 0xF0, command.header.tns).encode()
+        return ok(command, b"\x34\x12")
+
+    line = Line(answer)
+    line.start(WRITE, write=True)
+    line.run()
+    assert [c.request for _, c in line.heard] == [WRITE, READ_BACK]
+    [done] = line.verdicts()
+    assert isinstance(done, TransactionDone) and done.verified
+
+
+def test_every_transaction_a_demotion_fails_is_reported_with_it_at_once() -> None:
+    """A dead station: the one demotion fails a read awaiting its reply and a queued one; both
+    verdicts come out of the same call as StationDemoted, none is held back for a later one."""
+    line = Line(lambda c: "ack", station_kw={"demote_after": 2, "reply_wait": 50.0, "max_outstanding": 1},
+                retries=0)
+    awaiting = line.start(READ, write=False)
+    queued = line.start(ProtectedTypedLogicalRead(N, 7, 6, 0, 2), write=False)
+    line.run(until=lambda: len(line.heard) == 1)
+    line.dead.add(1)  # the station dies: its polls go unanswered
+    line.run(until=lambda: any(isinstance(e, StationDemoted) for e in line.events))
+    assert line.events[0] == StationDemoted(1)
+    failed = {(v.handle, type(v)) for v in line.verdicts()}
+    assert failed == {(awaiting, TransactionFailed), (queued, TransactionFailed)}
+
+
+def test_the_fate_of_a_reply_to_a_slaves_message_goes_to_the_driver() -> None:
+    line = Line(lambda c: None)
+    request = line.master.send_reply(1, bytes.fromhex("01 00 4F 00 44 00"), 0.0)
+    line.run(until=lambda: bool(line.events))
+    assert line.events == [RequestFailed(request, 1, FailReason.NO_ACK, may_have_executed=True)]

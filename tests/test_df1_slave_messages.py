@@ -296,6 +296,9 @@ def test_words_are_little_endian_and_each_gets_its_time() -> None:
     assert [table.received_at(i) for i in range(4)] == [5.0, 6.5, None, None]
     assert table.age(0, 7.0) == 2.0 and table.age(1, 7.0) == 0.5 and table.age(2, 7.0) is None
     assert (table.writes, table.refused) == (2, 0)
+    for tns in (3, 4):
+        assert store(msg_word_range_write(2, tns, 3, [1, 2]), table) is SlaveMessageVerdict.BAD_ADDRESS
+    assert (table.writes, table.refused) == (2, 2)  # each write counted once, stored or refused
 
 
 @pytest.mark.parametrize(

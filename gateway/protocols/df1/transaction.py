@@ -351,7 +351,7 @@ class Df1Transactions:
                 self._txn.why = f"no reply within {format_seconds(self._wait)} s of the DLE ACK"
             self._input(TxnInput.TIMEOUT, now)
 
-    def abandon(self, reason: str, now: float = 0.0) -> None:
+    def abandon(self, reason: str, now: float) -> None:
         """The link is gone (port lost): settle the running transaction without a reply."""
         if self._txn is not None:
             self._txn.why = reason
@@ -461,9 +461,7 @@ class Df1Transactions:
 
     def _follow(self, txn: _Txn, step: VerdictStep, now: float) -> None:
         """Carry out the verdict's step: a read-back to send, or the verdict as an event."""
-        match step:
-            case None:
-                pass
+        match step:  # None: the input changed nothing
             case SendReadBack(request=request):
                 self._state = TxnState.VERIFY_SENDING
                 self._send_read_back(txn, request, now)
