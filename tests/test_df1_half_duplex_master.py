@@ -376,7 +376,7 @@ def test_configuration_and_submit_errors() -> None:
     master = make(1, 2)
     with pytest.raises(ValueError, match="not on this line"):
         master.submit(3, command(3, 1), 0.0)
-    with pytest.raises(ValueError, match="6 bytes"):
+    with pytest.raises(ValueError, match=r"a command packet has at least DST SRC CMD STS TNS \(6 bytes\)"):
         master.submit(1, b"\x01", 0.0)
     master.submit(1, command(1, 5), 0.0)
     with pytest.raises(ValueError, match="TNS 0500"):
@@ -792,7 +792,7 @@ def test_unacknowledged_copies_demote_the_station_and_fail_its_requests() -> Non
     assert copies == [encode_master_message(1, command(1, 2), Checksum.BCC)] * 3 + [b""]
     assert now == pytest.approx(0.6)
     assert master.counters(1).timeouts == 3 and master.counters(1).resends == 2
-    assert master.counters(1).demotions == 1
+    assert master.counters(1).demotions == 1 and master.counters(1).messages_sent == 4  # awaited + 3 copies
     assert events(master) == [
         StationDemoted(1),
         RequestFailed(queued, 1, FailReason.STATION_DEMOTED, may_have_executed=False),
@@ -820,7 +820,7 @@ def test_a_tns_is_free_again_once_its_request_is_settled() -> None:
     assert events(master) == [ReplyReceived(request, 1, reply_to(cmd, b""))]
     master.submit(2, command(2, 0x0501), 0.0)  # settled: free
     master.send_reply(2, bytes.fromhex("02 00 4F 00 01 05"), 0.0)  # a reply carries the slave's TNS: not checked
-    with pytest.raises(ValueError, match="6 bytes"):
+    with pytest.raises(ValueError, match=r"a reply packet has at least DST SRC CMD STS TNS \(6 bytes\)"):
         master.send_reply(2, b"\x02\x00\x4f", 0.0)
     with pytest.raises(ValueError, match="not on this line"):
         master.send_reply(3, bytes.fromhex("03 00 4F 00 01 05"), 0.0)
@@ -976,3 +976,84 @@ def test_an_answerless_poll_is_repeated_within_the_turn_until_the_turn_ends_or_t
     assert heard == [encode_poll(1)] * polls_of_1 + [encode_poll(2)]
     assert master.counters(1).timeouts == polls_of_1
     assert master.is_active(1) is (polls_of_1 < demote_after)
+
+
+def test_a_station_demoted_again_after_its_restoration_counts_two_demotions() -> None:
+    master = make(2, poll_timeout=0.2, demote_after=2, poll_interval=1.0, slow_poll_interval=5.0)
+    now = 0.0
+    for _ in range(2):
+        while master.is_active(2):
+            assert master.data_to_send() == encode_poll(2)
+            now = master.next_deadline() or now
+            master.handle_timeout(now)
+        now = master.next_deadline() or now  # the slow poll
+        master.handle_timeout(now)
+        assert master.data_to_send() == encode_poll(2)
+        master.receive_data(EOT_SYMBOL, now)  # restored
+    assert events(master) == [StationDemoted(2), StationRestored(2)] * 2
+    assert master.counters(2).demotions == 2
+
+
+def test_every_resent_message_is_counted_a_duplicate() -> None:
+    master = make(4, poll_interval=100.0)
+    master.data_to_send()
+    initiated = bytes((GATEWAY, 4, 0x0F, 0x00, 0x09, 0x00, 0x01))
+    for _ in range(3):  # the first, then two resends (our ACK lost twice)
+        master.receive_data(encode_frame(initiated, Checksum.BCC), 0.0)
+        assert master.data_to_send() == ACK_SYMBOL + encode_poll(4)
+    assert events(master) == [SlaveInitiated(4, initiated)]
+    assert (master.counters(4).messages_received, master.counters(4).duplicates) == (1, 2)
+
+
+def test_a_master_not_started_has_no_deadline() -> None:
+    master = HalfDuplexMaster(LineConfig(Checksum.BCC), [StationConfig(1)])
+    assert master.next_deadline() is None and master.data_to_send() == b""
+    master.start(0.0)
+    assert master.data_to_send() == encode_poll(1) and master.next_deadline() == pytest.approx(0.5)
+
+
+def test_the_grace_for_an_answer_in_progress_is_one_more_answer_timeout() -> None:
+    master = make(1, poll_timeout=0.1, poll_interval=100.0)
+    assert master.data_to_send() == encode_poll(1)
+    frame = encode_frame(bytes((GATEWAY, 1, 0x0F, 0x00, 0x05, 0x00, 0x42)), Checksum.BCC)
+    master.receive_data(frame[:5], 0.09)
+    master.handle_timeout(0.1)
+    assert master.next_deadline() == pytest.approx(0.2)
+    master.handle_timeout(0.19)
+    assert master.counters(1).timeouts == 0
+    master.handle_timeout(0.2)
+    assert master.counters(1).timeouts == 1
+
+
+def test_a_write_goes_first_whenever_it_comes_while_other_work_is_fresh() -> None:
+    """``write_precedence`` counts from when the other work was queued, not from the line's start."""
+    master = make(1, 2, poll_interval=100.0)
+    after_start_polls(master)
+    read2, write1 = command(2, 0x50), command(1, 0x51, b"\xaa\x01")
+    busy = command(1, 0x52)
+    master.submit(1, busy, 50.0)  # the line is busy with station 1
+    assert master.data_to_send() == encode_master_message(1, busy, Checksum.BCC)
+    master.submit(2, read2, 50.0)
+    master.submit(1, write1, 50.1, urgent=True)
+    master.receive_data(ACK_SYMBOL, 50.2)
+    assert master.data_to_send() == encode_poll(1)  # the write's station: the reply poll first
+    master.receive_data(encode_frame(reply_to(busy, b""), Checksum.BCC), 50.2)
+    assert master.data_to_send() == ACK_SYMBOL + encode_master_message(1, write1, Checksum.BCC)
+
+
+def test_a_copy_without_its_ack_goes_again_at_once_when_the_waiting_write_is_at_its_own_station() -> None:
+    """Only a write at another station makes an unacknowledged copy wait; at its own station the
+    copy goes first (before that station's due reply poll), so the slave sees it next."""
+    master = make(2, line={"ack_timeout": 0.5}, poll_interval=100.0, reply_wait=0.4, max_outstanding=2,
+                  demote_after=10)
+    after_start_polls(master)
+    read_a, read_b, write = command(2, 0x60), command(2, 0x61), command(2, 0x62, b"\xaa\x01")
+    master.submit(2, read_a, 0.0)
+    master.data_to_send()
+    master.receive_data(ACK_SYMBOL, 0.0)  # read A awaits its reply; its poll is due at 0.4
+    master.submit(2, read_b, 0.0)
+    copy = master.data_to_send()
+    assert copy == encode_master_message(2, read_b, Checksum.BCC)
+    master.submit(2, write, 0.1, urgent=True)
+    master.handle_timeout(0.5)  # no ACK of read B
+    assert master.data_to_send() == copy
