@@ -1057,3 +1057,32 @@ def test_a_copy_without_its_ack_goes_again_at_once_when_the_waiting_write_is_at_
     master.submit(2, write, 0.1, urgent=True)
     master.handle_timeout(0.5)  # no ACK of read B
     assert master.data_to_send() == copy
+
+
+def test_any_answer_restarts_the_count_of_failures_in_a_row() -> None:
+    master = make(2, poll_timeout=0.2, demote_after=3, poll_interval=100.0)
+    for answered in (False, False, True, False, False):
+        assert master.data_to_send() == encode_poll(2)
+        now = master.next_deadline()
+        assert now is not None
+        if answered:
+            master.receive_data(EOT_SYMBOL, now - 0.1)
+            now = master.next_deadline()  # the next background poll
+            assert now is not None
+        master.handle_timeout(now)
+    assert master.is_active(2) and master.counters(2).timeouts == 4
+    assert master.data_to_send() == encode_poll(2)
+    master.handle_timeout(master.next_deadline() or 0.0)  # the third in a row
+    assert not master.is_active(2) and events(master) == [StationDemoted(2)]
+
+
+def test_a_restored_station_is_polled_again_at_once_for_its_messages() -> None:
+    master = make(2, poll_timeout=0.1, demote_after=1, poll_interval=100.0, slow_poll_interval=0.3)
+    assert master.data_to_send() == encode_poll(2)
+    master.handle_timeout(0.1)
+    assert not master.is_active(2) and master.next_deadline() == pytest.approx(0.4)
+    master.handle_timeout(0.4)
+    assert master.data_to_send() == encode_poll(2)
+    master.receive_data(EOT_SYMBOL, 0.45)
+    assert master.is_active(2)
+    assert master.data_to_send() == encode_poll(2)  # not only after its poll interval
