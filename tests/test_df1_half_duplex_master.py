@@ -1086,3 +1086,32 @@ def test_a_restored_station_is_polled_again_at_once_for_its_messages() -> None:
     master.receive_data(EOT_SYMBOL, 0.45)
     assert master.is_active(2)
     assert master.data_to_send() == encode_poll(2)  # not only after its poll interval
+
+
+def test_each_turn_of_a_station_gets_its_own_max_messages_per_turn() -> None:
+    master = make(1, line={"max_messages_per_turn": 2}, poll_interval=10.0)
+    message = encode_frame(bytes((GATEWAY, 1, 0x0F, 0x00, 0x01, 0x00)), Checksum.BCC)
+    assert master.data_to_send() == encode_poll(1)
+    master.receive_data(message, 0.0)
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(1)  # the turn's second poll
+    master.receive_data(EOT_SYMBOL, 0.0)
+    master.handle_timeout(10.0)  # the next background poll: a new turn
+    assert master.data_to_send() == encode_poll(1)
+    master.receive_data(encode_frame(bytes((GATEWAY, 1, 0x0F, 0x00, 0x02, 0x00)), Checksum.BCC), 10.0)
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(1)
+
+
+@pytest.mark.parametrize(("waited", "first"), [(0.5, "read"), (0.49, "write")])
+def test_work_that_has_waited_write_precedence_goes_before_the_next_write(waited: float, first: str) -> None:
+    """A queued read that has waited exactly ``write_precedence`` goes before the write."""
+    master = make(1, 2, line={"write_precedence": 0.5}, poll_interval=100.0, reply_wait=0.0)
+    after_start_polls(master)
+    read2, write1 = command(2, 0x70), command(1, 0x71, b"\xaa\x01")
+    busy = command(1, 0x72)
+    master.submit(1, busy, 1.0)
+    master.data_to_send()
+    master.submit(2, read2, 1.0)
+    master.submit(1, write1, 1.0, urgent=True)
+    master.receive_data(ACK_SYMBOL, 1.0 + waited)  # else station 1's reply poll, then its write
+    assert master.data_to_send() == (encode_master_message(2, read2, Checksum.BCC) if first == "read"
+                                     else encode_poll(1))
