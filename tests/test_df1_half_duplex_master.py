@@ -1115,3 +1115,23 @@ def test_work_that_has_waited_write_precedence_goes_before_the_next_write(waited
     master.receive_data(ACK_SYMBOL, 1.0 + waited)  # else station 1's reply poll, then its write
     assert master.data_to_send() == (encode_master_message(2, read2, Checksum.BCC) if first == "read"
                                      else encode_poll(1))
+
+
+@pytest.mark.parametrize(("waited", "first"), [(0.6, "read"), (0.1, "write's station")])
+def test_a_demoted_station_is_passed_over_when_writes_and_waiting_work_are_weighed(waited: float, first: str) -> None:
+    """Station 1 is demoted and first in the round robin: it is skipped, not the end of the search,
+    both when looking for waiting work (station 2's read) and for a write (station 3's)."""
+    master = make(1, 2, 3, line={"write_precedence": 0.5}, poll_timeout=0.1, demote_after=1, poll_interval=100.0,
+                  slow_poll_interval=100.0)
+    assert master.data_to_send() == encode_poll(1)
+    master.handle_timeout(0.1)  # no answer: demoted
+    assert not master.is_active(1)
+    after_start_polls(master, 0.1)
+    busy, read2, write3 = command(3, 0x80), command(2, 0x81), command(3, 0x82, b"\xaa\x01")
+    master.submit(3, busy, 1.0)
+    assert master.data_to_send() == encode_master_message(3, busy, Checksum.BCC)
+    master.submit(2, read2, 1.0)
+    master.submit(3, write3, 1.0, urgent=True)
+    master.receive_data(ACK_SYMBOL, 1.0 + waited)
+    assert master.data_to_send() == (encode_master_message(2, read2, Checksum.BCC) if first == "read"
+                                     else encode_poll(3))
