@@ -376,7 +376,7 @@ def test_configuration_and_submit_errors() -> None:
     master = make(1, 2)
     with pytest.raises(ValueError, match="not on this line"):
         master.submit(3, command(3, 1), 0.0)
-    with pytest.raises(ValueError, match="6 bytes"):
+    with pytest.raises(ValueError, match=r"a command packet has at least DST SRC CMD STS TNS \(6 bytes\)"):
         master.submit(1, b"\x01", 0.0)
     master.submit(1, command(1, 5), 0.0)
     with pytest.raises(ValueError, match="TNS 0500"):
@@ -656,3 +656,482 @@ def test_an_unacknowledged_copy_waits_for_a_write_at_another_station() -> None:
     assert master.data_to_send() == ACK_SYMBOL + encode_poll(1)  # its turn ends with DLE EOT
     feed(master, EOT_SYMBOL, 0.63, "whole")
     assert master.data_to_send() == copy  # the write is done: the same copy, same TNS
+
+
+# ------------------------------------------------------------------------------- configuration
+
+
+@pytest.mark.parametrize(
+    ("key", "lowest"),
+    [("poll_timeout", None), ("reply_timeout", None), ("reply_wait", 0.0), ("poll_interval", None),
+     ("slow_poll_interval", None), ("max_polls", 1), ("demote_after", 1), ("max_outstanding", 1)],
+)
+def test_station_tunables_take_their_lowest_value_and_refuse_below(key: str, lowest: float | None) -> None:
+    """Times must be positive (a wait of 0 where one is needed would spin), ``reply_wait`` may be
+    0; counts at least 1."""
+    def config(value: float) -> StationConfig:
+        change: dict[str, Any] = {key: value}
+        return replace(StationConfig(1), **change)
+
+    if lowest is None:  # a time that must be > 0: any positive value, not 0
+        assert getattr(config(0.001), key) == 0.001
+        for bad in (0, -0.5):
+            with pytest.raises(ValueError, match=f"{key} must be > 0, got {bad}"):
+                config(bad)
+        return
+    assert getattr(config(lowest), key) == lowest
+    with pytest.raises(ValueError, match=key):
+        config(lowest - 1 if isinstance(lowest, int) else -0.001)
+
+
+def test_station_numbers_are_0_to_254() -> None:
+    assert StationConfig(0).station == 0 and StationConfig(254).station == 254
+    for bad in (-1, 255):
+        with pytest.raises(ValueError, match=f"0..254 .255 is broadcast., got {bad}"):
+            StationConfig(bad)
+
+
+@pytest.mark.parametrize("key", ["char_time", "pre_transmit_delay", "rts_send_delay", "rts_off_delay",
+                                 "write_precedence"])
+def test_line_delays_may_be_0_never_negative(key: str) -> None:
+    zero: dict[str, Any] = {key: 0.0}
+    negative: dict[str, Any] = {key: -0.001}
+    assert getattr(replace(LineConfig(Checksum.BCC), **zero), key) == 0.0
+    with pytest.raises(ValueError, match=f"{key} must be >= 0, got -0.001"):
+        replace(LineConfig(Checksum.BCC), **negative)
+
+
+def test_line_counts_and_ack_timeout_limits() -> None:
+    assert LineConfig(Checksum.BCC, message_resends=0).message_resends == 0
+    assert LineConfig(Checksum.BCC, max_messages_per_turn=1).max_messages_per_turn == 1
+    assert LineConfig(Checksum.BCC, ack_timeout=0.001).ack_timeout == 0.001
+    bad: list[dict[str, Any]] = [{"message_resends": -1}, {"max_messages_per_turn": 0}, {"ack_timeout": 0},
+                                   {"ack_timeout": -1.0}]
+    for kwargs in bad:
+        with pytest.raises(ValueError):
+            replace(LineConfig(Checksum.BCC), **kwargs)
+
+
+def test_the_cores_defaults_are_the_config_keys_defaults() -> None:
+    """A master built without a config (``gateway.kinds.df1.tool``, the e2e benches) polls as a
+    configured line whose keys are left out.  The reply timeout is not compared: the config's
+    ``timeout`` key is the full-duplex one too, and every caller passes it."""
+    from gateway.kinds.df1.config import Df1LinkConfig
+
+    fields = Df1LinkConfig.model_fields
+    station = StationConfig(1)
+    for key in ("poll_timeout", "reply_wait", "max_polls", "poll_interval", "demote_after", "slow_poll_interval"):
+        assert getattr(station, key) == fields[key].default, key
+    line = LineConfig(Checksum.BCC)
+    assert (line.ack_timeout, line.message_resends) == (fields["ack_timeout"].default,
+                                                        fields["message_retries"].default)
+    assert (line.char_time, line.pre_transmit_delay, line.rts_send_delay, line.rts_off_delay, line.echo) == (
+        0.0, fields["pre_transmit_delay"].default, fields["rts_send_delay"].default,
+        fields["rts_off_delay"].default, fields["echo"].default,
+    )
+
+
+# ------------------------------------------------------------------------- the line, exchange by exchange
+
+
+def test_start_with_a_link_reset_sends_dle_nak_before_the_first_poll() -> None:
+    master = HalfDuplexMaster(LineConfig(Checksum.BCC), [StationConfig(1, poll_interval=100.0)])
+    master.start(0.0, link_reset=True)
+    assert master.data_to_send() == NAK_SYMBOL + encode_poll(1)
+    plain = HalfDuplexMaster(LineConfig(Checksum.BCC), [StationConfig(1, poll_interval=100.0)])
+    plain.start(0.0)
+    assert plain.data_to_send() == encode_poll(1)
+
+
+def test_what_answers_nothing_of_ours_is_counted_ignored_and_changes_nothing() -> None:
+    master = make(1, 2, poll_interval=100.0)
+    assert master.data_to_send() == encode_poll(1)
+    master.receive_data(ACK_SYMBOL, 0.01)  # a poll is not acknowledged
+    master.receive_data(encode_poll(2), 0.01)  # another master's poll (or our own echo)
+    assert master.ignored == 2 and master.state is LineState.WAIT_POLL
+    assert master.data_to_send() == b""
+    master.receive_data(EOT_SYMBOL, 0.02)
+    assert master.data_to_send() == encode_poll(2)
+    master.receive_data(EOT_SYMBOL, 0.03)
+    assert master.next_deadline() == pytest.approx(100.0) and master.ignored == 2  # idle till the next poll
+    master.receive_data(EOT_SYMBOL + ACK_SYMBOL, 0.04)  # nothing is asked: stray symbols
+    assert master.ignored == 4 and master.data_to_send() == b"" and events(master) == []
+    assert (master.counters(1).eots, master.counters(2).eots) == (1, 1)
+
+
+@pytest.mark.parametrize("answer", ["bad frame", "DLE NAK"])
+def test_a_damaged_answer_to_a_poll_is_counted_and_the_station_polled_again(answer: str) -> None:
+    master = make(3, 4, poll_interval=100.0)
+    assert master.data_to_send() == encode_poll(3)
+    frame = bytearray(encode_frame(bytes((GATEWAY, 3, 0x0F, 0x00, 0x01, 0x00)), Checksum.BCC))
+    frame[-1] ^= 0xFF
+    master.receive_data(bytes(frame) if answer == "bad frame" else NAK_SYMBOL, 0.01)
+    assert master.data_to_send() == encode_poll(3)  # the same station, not station 4
+    assert master.counters(3).bad_frames == 1 and master.counters(3).polls == 2
+    assert master.counters(3).timeouts == 0 and master.is_active(3)
+
+
+def test_unacknowledged_copies_demote_the_station_and_fail_its_requests() -> None:
+    """Each copy without its DLE ACK is one failure; at ``demote_after`` the one being sent fails
+    NO_ACK (it may have arrived), queued ones fail as never sent, awaited ones as maybe run."""
+    master = make(1, line={"ack_timeout": 0.2, "message_resends": 5}, poll_interval=100.0, demote_after=3,
+                  reply_timeout=100.0, reply_wait=50.0, max_outstanding=2)
+    assert master.data_to_send() == encode_poll(1)
+    master.receive_data(EOT_SYMBOL, 0.0)
+    awaited = master.submit(1, command(1, 1), 0.0)
+    master.data_to_send()
+    master.receive_data(ACK_SYMBOL, 0.0)  # awaits its reply; its first poll is 50 s away
+    sent = master.submit(1, command(1, 2), 0.0)
+    queued = master.submit(1, command(1, 3), 0.0)
+    copies = [master.data_to_send()]
+    now = 0.0
+    while master.is_active(1):
+        now = master.next_deadline() or now
+        master.handle_timeout(now)
+        copies.append(master.data_to_send())
+    assert copies == [encode_master_message(1, command(1, 2), Checksum.BCC)] * 3 + [b""]
+    assert now == pytest.approx(0.6)
+    assert master.counters(1).timeouts == 3 and master.counters(1).resends == 2
+    assert master.counters(1).demotions == 1 and master.counters(1).messages_sent == 4  # awaited + 3 copies
+    assert events(master) == [
+        StationDemoted(1),
+        RequestFailed(queued, 1, FailReason.STATION_DEMOTED, may_have_executed=False),
+        RequestFailed(awaited, 1, FailReason.STATION_DEMOTED, may_have_executed=True),
+        RequestFailed(sent, 1, FailReason.NO_ACK, may_have_executed=True),
+    ]
+
+
+def test_a_tns_is_free_again_once_its_request_is_settled() -> None:
+    master = make(1, 2, poll_interval=100.0)
+    assert master.data_to_send() == encode_poll(1)
+    cmd = command(1, 0x0501)
+    request = master.submit(1, cmd, 0.0)
+    with pytest.raises(ValueError, match="TNS 0105 is already in use"):
+        master.submit(2, command(2, 0x0501), 0.0)  # queued at station 1
+    master.receive_data(EOT_SYMBOL, 0.0)
+    assert master.data_to_send() == encode_master_message(1, cmd, Checksum.BCC)
+    with pytest.raises(ValueError, match="already in use"):
+        master.submit(2, command(2, 0x0501), 0.0)  # on the line
+    master.receive_data(ACK_SYMBOL, 0.0)
+    assert master.data_to_send() == encode_poll(1)
+    with pytest.raises(ValueError, match="already in use"):
+        master.submit(2, command(2, 0x0501), 0.0)  # awaiting its reply
+    master.receive_data(encode_frame(reply_to(cmd, b""), Checksum.BCC), 0.0)
+    assert events(master) == [ReplyReceived(request, 1, reply_to(cmd, b""))]
+    master.submit(2, command(2, 0x0501), 0.0)  # settled: free
+    master.send_reply(2, bytes.fromhex("02 00 4F 00 01 05"), 0.0)  # a reply carries the slave's TNS: not checked
+    with pytest.raises(ValueError, match=r"a reply packet has at least DST SRC CMD STS TNS \(6 bytes\)"):
+        master.send_reply(2, b"\x02\x00\x4f", 0.0)
+    with pytest.raises(ValueError, match="not on this line"):
+        master.send_reply(3, bytes.fromhex("03 00 4F 00 01 05"), 0.0)
+
+
+def test_a_line_needs_a_station() -> None:
+    with pytest.raises(ValueError, match="at least one station"):
+        HalfDuplexMaster(LineConfig(Checksum.BCC), [])
+
+
+def test_a_station_with_messages_keeps_the_line_for_max_messages_per_turn_polls() -> None:
+    master = make(1, 2, line={"max_messages_per_turn": 3}, poll_interval=100.0)
+    heard = []
+    for n in range(4):
+        out = master.data_to_send().removeprefix(ACK_SYMBOL)
+        heard.append(out)
+        if out == encode_poll(1):  # station 1 always has another message
+            master.receive_data(encode_frame(bytes((GATEWAY, 1, 0x0F, 0x00, n, 0x00)), Checksum.BCC), 0.0)
+        else:
+            master.receive_data(EOT_SYMBOL, 0.0)
+    assert heard == [encode_poll(1)] * 3 + [encode_poll(2)]  # then the turn ends, though 1 has more
+    assert master.counters(1).messages_received == 3 and master.data_to_send() == b""
+
+
+# ------------------------------------------------------------------------------- which exchange next
+
+
+def test_queued_commands_go_round_robin_over_the_stations() -> None:
+    master = make(1, 2, 3, poll_interval=100.0, reply_wait=50.0, max_outstanding=5)
+    after_start_polls(master)
+    cmds = {(s, n): command(s, 0x10 * s + n) for s in (1, 2, 3) for n in (1, 2)}
+    for (s, _), cmd in cmds.items():
+        master.submit(s, cmd, 0.1)
+    sent = []
+    for _ in range(6):
+        out = master.data_to_send()
+        sent.append(next(key for key, cmd in cmds.items() if out == encode_master_message(key[0], cmd, Checksum.BCC)))
+        feed(master, ACK_SYMBOL, 0.1, "whole")
+    assert sent == [(1, 1), (2, 1), (3, 1), (1, 2), (2, 2), (3, 2)]
+
+
+def test_urgent_requests_queue_behind_replies_and_earlier_writes_ahead_of_reads() -> None:
+    master = make(1, poll_interval=100.0, reply_wait=50.0, max_outstanding=9)
+    assert master.data_to_send() == encode_poll(1)  # the line is busy: everything below queues
+    read_a, write_a, read_b, write_b = command(1, 1), command(1, 2, b"\xaa"), command(1, 3), command(1, 4, b"\xbb")
+    reply = bytes.fromhex("01 00 4F 00 44 00")
+    master.submit(1, read_a, 0.0)
+    master.submit(1, write_a, 0.0, urgent=True)
+    master.submit(1, read_b, 0.0)
+    master.submit(1, write_b, 0.0, urgent=True)
+    master.send_reply(1, reply, 0.0)
+    master.receive_data(EOT_SYMBOL, 0.0)
+    order = []
+    for _ in range(5):
+        order.append(master.data_to_send())
+        master.receive_data(ACK_SYMBOL, 0.0)
+    assert order == [encode_master_message(1, m, Checksum.BCC) for m in (reply, write_a, write_b, read_a, read_b)]
+
+
+def test_a_reply_past_its_deadline_is_polled_at_the_next_free_line_and_its_eot_fails_it() -> None:
+    """A reply wait longer than the reply timeout: once the deadline has passed, the reply's poll
+    is due at the next scheduling (here after station 2's command), not only after the wait; its
+    DLE EOT fails the request.  Left alone, the poll comes after the reply wait."""
+    master = make(1, 2, poll_interval=100.0, reply_wait=2.0, reply_timeout=1.0)
+    after_start_polls(master)
+    request = master.submit(1, command(1, 5), 0.0)
+    master.data_to_send()
+    master.receive_data(ACK_SYMBOL, 0.0)
+    assert master.data_to_send() == b"" and master.next_deadline() == pytest.approx(2.0)
+    master.submit(2, command(2, 6), 1.5)
+    assert master.data_to_send() == encode_master_message(2, command(2, 6), Checksum.BCC)
+    master.receive_data(ACK_SYMBOL, 1.5)
+    assert master.data_to_send() == encode_poll(1)
+    master.receive_data(EOT_SYMBOL, 1.5)
+    assert events(master) == [RequestFailed(request, 1, FailReason.NO_REPLY, may_have_executed=True)]
+
+
+# ------------------------------------------------------------------------------------ the wire
+
+
+def test_a_byte_heard_while_bytes_wait_to_go_pushes_them_back_by_the_quiet_time() -> None:
+    line = {"pre_transmit_delay": 0.05}
+    master = make(7, line=line, poll_timeout=1.0, poll_interval=100.0)
+    assert master.data_to_send() == encode_poll(7)
+    initiated = bytes((GATEWAY, 7, 0x0F, 0x00, 0x01, 0x00))
+    master.receive_data(encode_frame(initiated, Checksum.BCC), 0.2)
+    assert master.data_to_send() == b"" and master.state is LineState.TRANSMIT  # our ACK waits
+    assert master.next_deadline() == pytest.approx(0.25)
+    master.receive_data(b"\x00", 0.22)  # line noise: the line is busy again
+    master.handle_timeout(0.25)  # (RTS keys up as planned)
+    assert master.data_to_send() == b""
+    assert master.next_deadline() == pytest.approx(0.27)
+    master.handle_timeout(0.27)
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(7)
+
+
+def test_rts_keys_up_after_the_quiet_time_and_drops_after_the_last_byte() -> None:
+    line = {"char_time": 0.001, "pre_transmit_delay": 0.05, "rts_send_delay": 0.02, "rts_off_delay": 0.03}
+    master = make(7, line=line, poll_timeout=1.0, poll_interval=100.0)
+    master.handle_timeout(0.02)
+    assert master.data_to_send() == encode_poll(7) and master.rts
+    assert master.next_deadline() == pytest.approx(0.054)  # 4 bytes, then the RTS off delay
+    master.handle_timeout(0.054)
+    assert not master.rts
+    master.receive_data(EOT_SYMBOL, 0.5)  # the line is quiet again at 0.55
+    assert master.next_deadline() == pytest.approx(100.0)  # the background poll
+    cmd = command(7, 1)
+    master.submit(7, cmd, 0.51)
+    assert master.data_to_send() == b"" and not master.rts
+    assert master.next_deadline() == pytest.approx(0.55)  # RTS on after the quiet time
+    master.handle_timeout(0.55)
+    assert master.rts and master.data_to_send() == b""
+    first_byte = master.next_deadline()
+    assert first_byte == pytest.approx(0.57)  # the first byte after the RTS send delay
+    master.handle_timeout(first_byte)
+    frame = encode_master_message(7, cmd, Checksum.BCC)
+    assert master.data_to_send() == frame and master.rts
+    assert first_byte is not None
+    end = first_byte + len(frame) * 0.001
+    rts_off = master.next_deadline()
+    assert rts_off is not None and rts_off == pytest.approx(end + 0.03)
+    master.handle_timeout(rts_off)
+    assert not master.rts
+    assert master.next_deadline() == pytest.approx(end + 0.5)  # the ACK timer runs from the last byte
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_echo_of_our_own_bytes_is_stripped_across_chunks_and_a_collision_keeps_what_follows(mode: str) -> None:
+    master = make(8, 9, line={"echo": True}, poll_interval=100.0)
+    poll = master.data_to_send()
+    assert poll == encode_poll(8)
+    feed(master, poll[:2], 0.0, mode)  # the echo arrives in two pieces
+    feed(master, poll[2:] + EOT_SYMBOL, 0.0, mode)
+    assert master.counters(8).eots == 1 and master.collisions == 0
+    assert master.data_to_send() == encode_poll(9)
+    feed(master, b"\x10\x05\x07" + EOT_SYMBOL, 0.0, mode)  # our poll of 9 came back as a poll of 7: collision
+    assert master.collisions == 1
+    assert master.counters(9).eots == 1  # what followed the garbled echo is still heard
+
+
+@pytest.mark.parametrize(("demote_after", "polls_of_1"), [(10, 3), (2, 2)])
+def test_an_answerless_poll_is_repeated_within_the_turn_until_the_turn_ends_or_the_station_is_demoted(
+    demote_after: int, polls_of_1: int
+) -> None:
+    master = make(1, 2, line={"max_messages_per_turn": 3}, poll_timeout=0.2, demote_after=demote_after,
+                  poll_interval=100.0)
+    heard = [master.data_to_send()]
+    now = 0.0
+    while heard[-1] == encode_poll(1):
+        now += 0.2
+        master.handle_timeout(now)
+        heard.append(master.data_to_send())
+    assert heard == [encode_poll(1)] * polls_of_1 + [encode_poll(2)]
+    assert master.counters(1).timeouts == polls_of_1
+    assert master.is_active(1) is (polls_of_1 < demote_after)
+
+
+def test_a_station_demoted_again_after_its_restoration_counts_two_demotions() -> None:
+    master = make(2, poll_timeout=0.2, demote_after=2, poll_interval=1.0, slow_poll_interval=5.0)
+    now = 0.0
+    for _ in range(2):
+        while master.is_active(2):
+            assert master.data_to_send() == encode_poll(2)
+            now = master.next_deadline() or now
+            master.handle_timeout(now)
+        now = master.next_deadline() or now  # the slow poll
+        master.handle_timeout(now)
+        assert master.data_to_send() == encode_poll(2)
+        master.receive_data(EOT_SYMBOL, now)  # restored
+    assert events(master) == [StationDemoted(2), StationRestored(2)] * 2
+    assert master.counters(2).demotions == 2
+
+
+def test_every_resent_message_is_counted_a_duplicate() -> None:
+    master = make(4, poll_interval=100.0)
+    master.data_to_send()
+    initiated = bytes((GATEWAY, 4, 0x0F, 0x00, 0x09, 0x00, 0x01))
+    for _ in range(3):  # the first, then two resends (our ACK lost twice)
+        master.receive_data(encode_frame(initiated, Checksum.BCC), 0.0)
+        assert master.data_to_send() == ACK_SYMBOL + encode_poll(4)
+    assert events(master) == [SlaveInitiated(4, initiated)]
+    assert (master.counters(4).messages_received, master.counters(4).duplicates) == (1, 2)
+
+
+def test_a_master_not_started_has_no_deadline() -> None:
+    master = HalfDuplexMaster(LineConfig(Checksum.BCC), [StationConfig(1)])
+    assert master.next_deadline() is None and master.data_to_send() == b""
+    master.start(0.0)
+    assert master.data_to_send() == encode_poll(1) and master.next_deadline() == pytest.approx(0.5)
+
+
+def test_the_grace_for_an_answer_in_progress_is_one_more_answer_timeout() -> None:
+    master = make(1, poll_timeout=0.1, poll_interval=100.0)
+    assert master.data_to_send() == encode_poll(1)
+    frame = encode_frame(bytes((GATEWAY, 1, 0x0F, 0x00, 0x05, 0x00, 0x42)), Checksum.BCC)
+    master.receive_data(frame[:5], 0.09)
+    master.handle_timeout(0.1)
+    assert master.next_deadline() == pytest.approx(0.2)
+    master.handle_timeout(0.19)
+    assert master.counters(1).timeouts == 0
+    master.handle_timeout(0.2)
+    assert master.counters(1).timeouts == 1
+
+
+def test_a_write_goes_first_whenever_it_comes_while_other_work_is_fresh() -> None:
+    """``write_precedence`` counts from when the other work was queued, not from the line's start."""
+    master = make(1, 2, poll_interval=100.0)
+    after_start_polls(master)
+    read2, write1 = command(2, 0x50), command(1, 0x51, b"\xaa\x01")
+    busy = command(1, 0x52)
+    master.submit(1, busy, 50.0)  # the line is busy with station 1
+    assert master.data_to_send() == encode_master_message(1, busy, Checksum.BCC)
+    master.submit(2, read2, 50.0)
+    master.submit(1, write1, 50.1, urgent=True)
+    master.receive_data(ACK_SYMBOL, 50.2)
+    assert master.data_to_send() == encode_poll(1)  # the write's station: the reply poll first
+    master.receive_data(encode_frame(reply_to(busy, b""), Checksum.BCC), 50.2)
+    assert master.data_to_send() == ACK_SYMBOL + encode_master_message(1, write1, Checksum.BCC)
+
+
+def test_a_copy_without_its_ack_goes_again_at_once_when_the_waiting_write_is_at_its_own_station() -> None:
+    """Only a write at another station makes an unacknowledged copy wait; at its own station the
+    copy goes first (before that station's due reply poll), so the slave sees it next."""
+    master = make(2, line={"ack_timeout": 0.5}, poll_interval=100.0, reply_wait=0.4, max_outstanding=2,
+                  demote_after=10)
+    after_start_polls(master)
+    read_a, read_b, write = command(2, 0x60), command(2, 0x61), command(2, 0x62, b"\xaa\x01")
+    master.submit(2, read_a, 0.0)
+    master.data_to_send()
+    master.receive_data(ACK_SYMBOL, 0.0)  # read A awaits its reply; its poll is due at 0.4
+    master.submit(2, read_b, 0.0)
+    copy = master.data_to_send()
+    assert copy == encode_master_message(2, read_b, Checksum.BCC)
+    master.submit(2, write, 0.1, urgent=True)
+    master.handle_timeout(0.5)  # no ACK of read B
+    assert master.data_to_send() == copy
+
+
+def test_any_answer_restarts_the_count_of_failures_in_a_row() -> None:
+    master = make(2, poll_timeout=0.2, demote_after=3, poll_interval=100.0)
+    for answered in (False, False, True, False, False):
+        assert master.data_to_send() == encode_poll(2)
+        now = master.next_deadline()
+        assert now is not None
+        if answered:
+            master.receive_data(EOT_SYMBOL, now - 0.1)
+            now = master.next_deadline()  # the next background poll
+            assert now is not None
+        master.handle_timeout(now)
+    assert master.is_active(2) and master.counters(2).timeouts == 4
+    assert master.data_to_send() == encode_poll(2)
+    master.handle_timeout(master.next_deadline() or 0.0)  # the third in a row
+    assert not master.is_active(2) and events(master) == [StationDemoted(2)]
+
+
+def test_a_restored_station_is_polled_again_at_once_for_its_messages() -> None:
+    master = make(2, poll_timeout=0.1, demote_after=1, poll_interval=100.0, slow_poll_interval=0.3)
+    assert master.data_to_send() == encode_poll(2)
+    master.handle_timeout(0.1)
+    assert not master.is_active(2) and master.next_deadline() == pytest.approx(0.4)
+    master.handle_timeout(0.4)
+    assert master.data_to_send() == encode_poll(2)
+    master.receive_data(EOT_SYMBOL, 0.45)
+    assert master.is_active(2)
+    assert master.data_to_send() == encode_poll(2)  # not only after its poll interval
+
+
+def test_each_turn_of_a_station_gets_its_own_max_messages_per_turn() -> None:
+    master = make(1, line={"max_messages_per_turn": 2}, poll_interval=10.0)
+    message = encode_frame(bytes((GATEWAY, 1, 0x0F, 0x00, 0x01, 0x00)), Checksum.BCC)
+    assert master.data_to_send() == encode_poll(1)
+    master.receive_data(message, 0.0)
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(1)  # the turn's second poll
+    master.receive_data(EOT_SYMBOL, 0.0)
+    master.handle_timeout(10.0)  # the next background poll: a new turn
+    assert master.data_to_send() == encode_poll(1)
+    master.receive_data(encode_frame(bytes((GATEWAY, 1, 0x0F, 0x00, 0x02, 0x00)), Checksum.BCC), 10.0)
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(1)
+
+
+@pytest.mark.parametrize(("waited", "first"), [(0.5, "read"), (0.49, "write")])
+def test_work_that_has_waited_write_precedence_goes_before_the_next_write(waited: float, first: str) -> None:
+    """A queued read that has waited exactly ``write_precedence`` goes before the write."""
+    master = make(1, 2, line={"write_precedence": 0.5}, poll_interval=100.0, reply_wait=0.0)
+    after_start_polls(master)
+    read2, write1 = command(2, 0x70), command(1, 0x71, b"\xaa\x01")
+    busy = command(1, 0x72)
+    master.submit(1, busy, 1.0)
+    master.data_to_send()
+    master.submit(2, read2, 1.0)
+    master.submit(1, write1, 1.0, urgent=True)
+    master.receive_data(ACK_SYMBOL, 1.0 + waited)  # else station 1's reply poll, then its write
+    assert master.data_to_send() == (encode_master_message(2, read2, Checksum.BCC) if first == "read"
+                                     else encode_poll(1))
+
+
+@pytest.mark.parametrize(("waited", "first"), [(0.6, "read"), (0.1, "write's station")])
+def test_a_demoted_station_is_passed_over_when_writes_and_waiting_work_are_weighed(waited: float, first: str) -> None:
+    """Station 1 is demoted and first in the round robin: it is skipped, not the end of the search,
+    both when looking for waiting work (station 2's read) and for a write (station 3's)."""
+    master = make(1, 2, 3, line={"write_precedence": 0.5}, poll_timeout=0.1, demote_after=1, poll_interval=100.0,
+                  slow_poll_interval=100.0)
+    assert master.data_to_send() == encode_poll(1)
+    master.handle_timeout(0.1)  # no answer: demoted
+    assert not master.is_active(1)
+    after_start_polls(master, 0.1)
+    busy, read2, write3 = command(3, 0x80), command(2, 0x81), command(3, 0x82, b"\xaa\x01")
+    master.submit(3, busy, 1.0)
+    assert master.data_to_send() == encode_master_message(3, busy, Checksum.BCC)
+    master.submit(2, read2, 1.0)
+    master.submit(3, write3, 1.0, urgent=True)
+    master.receive_data(ACK_SYMBOL, 1.0 + waited)
+    assert master.data_to_send() == (encode_master_message(2, read2, Checksum.BCC) if first == "read"
+                                     else encode_poll(3))

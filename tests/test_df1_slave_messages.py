@@ -36,9 +36,11 @@ from gateway.protocols.df1.half_duplex_events import (
     StationConfig,
 )
 from gateway.protocols.df1.pccc import (
+    DataType,
     LogicalBinaryAddress,
     ProtectedTypedLogicalRead,
     ProtectedTypedLogicalWrite,
+    TypedWrite,
     WordRangeWrite,
     encode_command,
 )
@@ -200,3 +202,138 @@ async def test_driver_stores_report_by_exception_and_answers_each_station() -> N
     # each slave received exactly one master message: the reply to its MSG (its controller ignores it)
     assert [line.slaves[n].counters.messages for n in (1, 2, 3)] == [1, 1, 1]
     assert all(not line.slaves[n].outgoing for n in (1, 2, 3))  # every MSG was acknowledged
+
+
+# ------------------------------------------------------------------------------ which writes are stored
+
+
+def store(packet: bytes, table: RegisterTable, now: float = 0.0) -> SlaveMessageVerdict:
+    verdict, reply = answer_slave_message(packet, own_station=GATEWAY, table=table, now=now)
+    assert reply is not None
+    return verdict
+
+
+def typed_write(address: LogicalBinaryAddress, data_type: int, element_size: int, data: bytes,
+                packet_offset: int = 0) -> bytes:
+    request = TypedWrite(address, data_type, element_size, data, packet_offset=packet_offset,
+                         total=len(data) // element_size + packet_offset)
+    return encode_command(request, dst=GATEWAY, src=2, tns=1)
+
+
+@pytest.mark.parametrize(
+    ("levels", "stored"),
+    [
+        ((0, 7, 3), True),  # section 0 (data table), file 7, element 3
+        ((0, 7, 3, 0), True),  # the same with sub-element 0
+        ((0, 7, 3, 1), False),  # a sub-element: not a word of the table
+        ((1, 7, 3), False),  # another section
+        ((0, 7), False),  # a whole file: no element
+        ((0, 7, 3, 0, 0), False),  # five levels
+    ],
+)
+def test_a_word_range_write_is_stored_only_when_it_addresses_data_table_words(
+    levels: tuple[int, ...], stored: bool
+) -> None:
+    table = RegisterTable(file_number=7, size=10)
+    packet = encode_command(WordRangeWrite(LogicalBinaryAddress.of(*levels), b"\x2a\x00\x2b\x01"),
+                            dst=GATEWAY, src=2, tns=1)
+    assert store(packet, table) is (SlaveMessageVerdict.STORED if stored else SlaveMessageVerdict.UNSUPPORTED)
+    assert table.values()[3:5] == ([0x2A, 0x12B] if stored else [0, 0])
+
+
+def test_a_later_packet_of_a_word_range_write_is_not_stored() -> None:
+    table = RegisterTable(file_number=7, size=10)
+    request = WordRangeWrite(LogicalBinaryAddress.of(0, 7, 3), b"\x2a\x00", packet_offset=1, total=2)
+    assert store(encode_command(request, dst=GATEWAY, src=2, tns=1), table) is SlaveMessageVerdict.UNSUPPORTED
+    assert table.writes == 0 and table.values() == [0] * 10
+
+
+@pytest.mark.parametrize(
+    ("file_type", "sub_element", "data", "stored"),
+    [
+        (0x89, 0, b"\x01\x00\x02\x00", True),  # integer file, whole words
+        (0x85, 0, b"\x01\x00\x02\x00", False),  # a bit file
+        (0x89, 1, b"\x01\x00\x02\x00", False),  # a sub-element
+        (0x89, 0, b"\x01\x00\x02", False),  # half a word
+    ],
+)
+def test_a_typed_logical_write_is_stored_only_for_whole_words_of_an_integer_file(
+    file_type: int, sub_element: int, data: bytes, stored: bool
+) -> None:
+    table = RegisterTable(file_number=7, size=10)
+    packet = encode_command(ProtectedTypedLogicalWrite(file_type, 7, 1, sub_element, data), dst=GATEWAY, src=2, tns=1)
+    assert store(packet, table) is (SlaveMessageVerdict.STORED if stored else SlaveMessageVerdict.UNSUPPORTED)
+    assert table.values()[1:3] == ([1, 2] if stored else [0, 0])
+
+
+@pytest.mark.parametrize(
+    ("levels", "data_type", "size", "offset", "stored"),
+    [
+        ((0, 7, 2), DataType.INTEGER, 2, 0, True),
+        ((0, 7, 2, 0), DataType.INTEGER, 2, 0, True),  # four levels, sub-element 0
+        ((0, 7, 2), DataType.INTEGER, 4, 0, False),  # 4-byte elements
+        ((0, 7, 2), DataType.BCD, 2, 0, False),  # not integers
+        ((1, 7, 2), DataType.INTEGER, 2, 0, False),  # another section
+        ((0, 7), DataType.INTEGER, 2, 0, False),  # no element
+        ((0, 7, 2), DataType.INTEGER, 2, 1, False),  # a later packet
+    ],
+)
+def test_a_typed_write_is_stored_only_for_integers_of_the_data_table(
+    levels: tuple[int, ...], data_type: int, size: int, offset: int, stored: bool
+) -> None:
+    table = RegisterTable(file_number=7, size=10)
+    packet = typed_write(LogicalBinaryAddress.of(*levels), data_type, size, b"\x05\x00\x06\x00", offset)
+    assert store(packet, table) is (SlaveMessageVerdict.STORED if stored else SlaveMessageVerdict.UNSUPPORTED)
+    assert table.values()[2:4] == ([5, 6] if stored else [0, 0])
+
+
+def test_words_are_little_endian_and_each_gets_its_time() -> None:
+    table = RegisterTable(file_number=7, size=4)
+    assert store(msg_word_range_write(2, 1, 0, [0x1234, 0xFFFF]), table, now=5.0) is SlaveMessageVerdict.STORED
+    assert store(msg_word_range_write(2, 2, 1, [7]), table, now=6.5) is SlaveMessageVerdict.STORED
+    assert list(table) == table.values() == [0x1234, 7, 0, 0]
+    assert [table.value(i) for i in range(4)] == [0x1234, 7, 0, 0]
+    assert [table.received_at(i) for i in range(4)] == [5.0, 6.5, None, None]
+    assert table.age(0, 7.0) == 2.0 and table.age(1, 7.0) == 0.5 and table.age(2, 7.0) is None
+    assert (table.writes, table.refused) == (2, 0)
+    for tns in (3, 4):
+        assert store(msg_word_range_write(2, tns, 3, [1, 2]), table) is SlaveMessageVerdict.BAD_ADDRESS
+    assert (table.writes, table.refused) == (2, 2)  # each write counted once, stored or refused
+
+
+@pytest.mark.parametrize(
+    ("element", "count", "covered"),
+    [(10, 1, True), (10, 5, True), (9, 1, False), (14, 1, True), (15, 1, False), (14, 2, False)],
+)
+def test_a_table_with_a_first_element_covers_its_window_only(element: int, count: int, covered: bool) -> None:
+    """N7:10 .. N7:14 (first element 10, 5 words): a write must fall within it entirely."""
+    table = RegisterTable(file_number=7, size=5, first_element=10)
+    verdict = store(msg_word_range_write(2, 1, element, list(range(1, count + 1))), table, now=1.0)
+    assert verdict is (SlaveMessageVerdict.STORED if covered else SlaveMessageVerdict.BAD_ADDRESS)
+    assert (table.writes, table.refused) == ((1, 0) if covered else (0, 1))
+    if covered:
+        assert table.values()[element - 10 : element - 10 + count] == list(range(1, count + 1))
+    else:
+        assert table.values() == [0] * 5
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "ok"),
+    [
+        ({"file_number": 0}, True), ({"file_number": 999}, True), ({"file_number": -1}, False),
+        ({"file_number": 1000}, False), ({"size": 1}, True), ({"size": 10_000}, True), ({"size": 0}, False),
+        ({"size": 10_001}, False), ({"first_element": 0}, True), ({"first_element": -1}, False),
+    ],
+)
+def test_register_table_limits(kwargs: dict[str, int], ok: bool) -> None:
+    if ok:
+        table = RegisterTable(**kwargs)
+        assert len(table.values()) == table.size == kwargs.get("size", 100)
+    else:
+        with pytest.raises(ValueError, match="out of range"):
+            RegisterTable(**kwargs)
+
+
+def test_register_table_defaults_are_n7_0_to_99() -> None:
+    table = RegisterTable()
+    assert (table.file_number, table.size, table.first_element) == (7, 100, 0)

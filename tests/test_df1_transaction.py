@@ -410,3 +410,240 @@ def test_exactly_once_per_variant_on_a_bad_line(variants: dict[str, str]) -> Non
     ops = [("write" if i % 3 else "read", i % 7, 0) for i in range(60)]
     run_against_simulator(variants, fates, list(range(0, 3000, 7)), ops, 5)
 
+
+
+# ------------------------------------------------------------------ the link going away, the clock
+
+
+def test_a_read_cut_short_by_the_link_going_away_fails_with_the_reason() -> None:
+    host = Host()
+    handle, _ = host.start(read(5), is_write=False)
+    host.feed(ACK_SYMBOL)
+    host.core.abandon("port lost", host.now)
+    host.wait(0.0)
+    assert host.events == [TransactionFailed(handle, "port lost")]
+    assert host.core.state is TxnState.IDLE and host.core.next_deadline() is None
+    host.core.abandon("again", host.now)  # nothing runs: nothing to settle
+    host.wait(REPLY_TIMEOUT * 4)
+    assert len(host.events) == 1
+
+
+@pytest.mark.parametrize("when", ["on the link", "awaiting its reply", "being read back"])
+def test_a_write_cut_short_by_the_link_going_away_is_outcome_unknown(when: str) -> None:
+    host = Host()
+    handle, _ = host.start(write(3, 0x1234), is_write=True)
+    if when != "on the link":
+        host.feed(ACK_SYMBOL)
+    if when == "being read back":
+        host.wait(REPLY_TIMEOUT)
+        assert host.core.state is TxnState.VERIFY_SENDING
+    host.now += 0.25
+    host.core.abandon("port lost", host.now)
+    host.wait(0.0)
+    [unknown] = host.events
+    assert isinstance(unknown, OutcomeUnknown) and unknown.handle == handle
+    assert unknown.reason.startswith("port lost; ") and "may or may not" in unknown.reason
+    assert host.core.counters.unknown == 1 and host.core.state is TxnState.IDLE
+
+
+def test_an_early_timeout_call_does_nothing() -> None:
+    host = Host()
+    host.start(read(5), is_write=False)
+    host.feed(ACK_SYMBOL)
+    deadline = host.core.next_deadline()
+    assert deadline is not None and deadline == pytest.approx(REPLY_TIMEOUT)
+    host.core.handle_timeout(deadline - 0.01)
+    assert host.sent() == b"" and host.core.state is TxnState.READ_AWAIT_REPLY
+    assert host.core.counters.reply_timeouts == 0
+    host.core.handle_timeout(deadline)  # at the deadline: the read goes again
+    assert decode_command(message_of(host.sent())).header.tns == 0x1235
+    assert host.core.counters.reply_timeouts == 1
+
+
+def test_the_tns_runs_on_across_transactions_and_a_successors_tns_is_skipped() -> None:
+    link = Df1DataLink(checksum=CRC)
+    core = Df1Transactions(link, station=3, source=9, first_tns=0x1FFFE)  # 16 bits: 0xFFFE
+    core.start(read(1), 0.0, write=False)
+    frame = core.data_to_send()
+    first = decode_command(message_of(frame))
+    assert (first.header.tns, first.header.dst, first.header.src) == (0xFFFE, 3, 9)
+    core.receive_data(ACK_SYMBOL + reply_to(frame), 0.0)
+    assert isinstance(core.next_event(), TransactionDone)
+    assert core.allocate_tns() == 0xFFFF  # for a successor: never used here
+    core.start(read(1), 0.0, write=False)
+    assert decode_command(message_of(core.data_to_send().removeprefix(ACK_SYMBOL))).header.tns == 0
+
+
+# ---------------------------------------------------------------------------- the adaptive reply wait
+
+
+def answered_reads(host: Host, count: int, after: float) -> None:
+    """``count`` reads, each acknowledged at once and answered ``after`` seconds later."""
+    for _ in range(count):
+        _, frame = host.start(read(1), is_write=False)
+        host.feed(ACK_SYMBOL)
+        host.now += after
+        host.feed(reply_to(frame, b"\x00\x00"))
+        assert isinstance(host.events[-1], TransactionDone)
+
+
+def reply_wait_of_next_read(host: Host) -> float:
+    host.start(read(1), is_write=False)
+    host.feed(ACK_SYMBOL)
+    deadline = host.core.next_deadline()
+    assert deadline is not None
+    return deadline - host.now
+
+
+@pytest.mark.parametrize(
+    ("replies", "after", "wait"),
+    [
+        (7, 0.03, REPLY_TIMEOUT),  # fewer than 8 replies measured: the full reply timeout
+        (8, 0.03, 0.1),  # 2 x 0.03 s, raised to the floor (0.1 s)
+        (8, 0.2, 0.4),  # 2 x the slowest reply
+        (8, 0.3, REPLY_TIMEOUT),  # 2 x 0.3 s, capped at the reply timeout
+    ],
+)
+def test_the_reply_wait_adapts_to_the_measured_reply_times(replies: int, after: float, wait: float) -> None:
+    host = Host()
+    answered_reads(host, replies, after)
+    assert reply_wait_of_next_read(host) == pytest.approx(wait)
+
+
+def test_the_reply_wait_floor_is_the_reply_timeout_when_that_is_shorter() -> None:
+    host = Host()
+    host.core = Df1Transactions(Df1DataLink(checksum=CRC), station=1, reply_timeout=0.05, first_tns=1)
+    assert host.core.min_reply_timeout == 0.05
+    answered_reads(host, 8, 0.001)
+    assert reply_wait_of_next_read(host) == pytest.approx(0.05)
+
+
+def test_a_reply_before_the_ack_is_not_a_reply_time() -> None:
+    host = Host()
+    for _ in range(8):
+        _, frame = host.start(read(1), is_write=False)
+        host.now += 0.3
+        host.feed(reply_to(frame, b"\x00\x00") + ACK_SYMBOL)  # the reply overtakes the ACK
+    assert reply_wait_of_next_read(host) == pytest.approx(REPLY_TIMEOUT)
+
+
+def test_a_late_reply_of_an_earlier_try_is_not_a_reply_time() -> None:
+    host = Host()
+    for _ in range(8):
+        _, first = host.start(read(1), is_write=False)
+        host.feed(ACK_SYMBOL)
+        host.wait(REPLY_TIMEOUT)  # the read goes again
+        host.feed(ACK_SYMBOL)
+        host.now += 0.01
+        host.feed(reply_to(first, b"\x00\x00"))  # the first try's reply, late
+        assert isinstance(host.events[-1], TransactionDone)
+    assert host.core.counters.late_replies == 8
+    assert reply_wait_of_next_read(host) == pytest.approx(REPLY_TIMEOUT)
+
+
+def test_a_writes_last_read_back_waits_the_full_reply_timeout() -> None:
+    """The silence of the last read-back decides the write's verdict: it is not cut short by the
+    adaptive wait; the write and the read-backs before it are."""
+    host = Host(retries=2)
+    answered_reads(host, 8, 0.01)
+    host.start(write(3, 7), is_write=True)
+    host.feed(ACK_SYMBOL)
+    waits = []
+    while not host.events[8:]:
+        deadline = host.core.next_deadline()
+        assert deadline is not None
+        waits.append(round(deadline - host.now, 6))
+        host.wait(deadline - host.now)
+        if host.core.state is TxnState.VERIFY_SENDING:
+            host.feed(ACK_SYMBOL)
+    assert waits == [0.1, 0.1, 0.1, REPLY_TIMEOUT]  # the write, read-backs 1 and 2, the last read-back
+    [unknown] = host.events[8:]
+    assert isinstance(unknown, OutcomeUnknown)
+    assert "no reply within 0.5 s of the DLE ACK" in unknown.reason
+    assert host.core.counters.read_backs == 3 and host.core.counters.reply_timeouts == 4
+
+
+# ------------------------------------------------------------------------------ what is not ours
+
+
+def test_what_answers_nothing_of_ours_is_ignored() -> None:
+    host = Host()
+    handle, frame = host.start(read(5), is_write=False)
+    host.feed(ACK_SYMBOL)
+    other = PcccHeader.decode(message_of(frame))
+    stray = [
+        encode_frame(encode_reply(PcccHeader(0, 1, 0x0F, 0, other.tns + 1), sts=0, data=b"\x01\x00"), CRC),
+        encode_frame(encode_reply(PcccHeader(0, 1, 0x06, 0, other.tns), sts=0, data=b"\x01\x00"), CRC),  # CMD
+        encode_frame(message_of(frame), CRC),  # a command, not a reply
+        encode_frame(b"\x00\x01", CRC),  # too short for a PCCC header
+    ]
+    for data in stray:
+        host.feed(data)
+    assert host.events == [] and host.core.state is TxnState.READ_AWAIT_REPLY
+    assert host.core.counters.late_replies == 0
+    host.feed(reply_to(frame, b"\x05\x00"))
+    [done] = host.events
+    assert isinstance(done, TransactionDone) and done.handle == handle and done.reply.data == b"\x05\x00"
+    host.feed(reply_to(frame, b"\x06\x00"))  # its duplicate, once settled
+    assert len(host.events) == 1 and host.core.counters.late_replies == 0
+
+
+def test_counters_count_each_thing_once() -> None:
+    host = Host(retries=1)
+    _, frame = host.start(read(5), is_write=False)
+    host.feed(ACK_SYMBOL)
+    host.wait(REPLY_TIMEOUT)  # a second try
+    host.feed(ACK_SYMBOL + reply_to(frame, b"\x05\x00"))  # the first try's reply
+    _, wframe = host.start(write(3, 1), is_write=True)
+    host.feed(ACK_SYMBOL)
+    readback = host.wait(REPLY_TIMEOUT)
+    host.feed(ACK_SYMBOL + reply_to(readback, b"\x01\x00"))
+    c = host.core.counters
+    assert (c.started, c.attempts, c.reply_timeouts, c.read_backs, c.verified, c.unknown, c.late_replies) == (
+        2, 3, 2, 1, 1, 0, 1
+    )
+    assert [type(e) for e in host.events] == [TransactionDone, TransactionDone]
+    assert wframe not in readback
+
+
+@CHUNKS
+def test_a_read_back_reply_before_its_ack_settles_the_write_and_completes_the_frame(chunk: int | None) -> None:
+    host = Host(chunk=chunk)
+    host.start(write(3, 0x1234), is_write=True)
+    host.feed(ACK_SYMBOL)
+    readback = host.wait(REPLY_TIMEOUT)
+    assert host.feed(reply_to(readback, b"\x34\x12")) == ACK_SYMBOL  # no DLE ACK of the read-back first
+    [done] = host.events
+    assert isinstance(done, TransactionDone) and done.verified
+    assert host.wait(ACK_TIMEOUT * 4) == b""  # the frame is complete: no DLE ENQ for its ACK
+    assert host.core.link.counters.frames_sent == 2
+
+
+def test_a_late_write_reply_during_the_read_back_is_counted_late() -> None:
+    host = Host()
+    _, frame = host.start(write(3, 0x1234), is_write=True)
+    host.feed(ACK_SYMBOL)
+    host.wait(REPLY_TIMEOUT)
+    host.feed(ACK_SYMBOL + reply_to(frame))
+    assert host.core.counters.late_replies == 1 and isinstance(host.events[-1], TransactionDone)
+
+
+def test_a_settled_transactions_tns_are_free_again_so_the_core_never_runs_out() -> None:
+    """Every TNS a transaction used - each try of a read, the write, each read-back - is free once
+    it settles.  With all but four TNS taken (by successors), rounds of retried reads and of writes
+    read back three times run on for ever; a TNS kept would exhaust the four in a few rounds."""
+    host = Host(retries=2)
+    for _ in range(0x10000 - 4):
+        host.core.allocate_tns()
+    for _ in range(6):
+        _, first = host.start(read(1), is_write=False)
+        host.feed(ACK_SYMBOL)
+        host.wait(REPLY_TIMEOUT)  # a second try, a new TNS
+        host.feed(ACK_SYMBOL + reply_to(first, b"\x01\x00"))  # the first try's reply settles it
+        host.start(write(3, 5), is_write=True)
+        host.feed(ACK_SYMBOL)
+        for _ in range(3):  # three read-backs, each with a new TNS, none answered
+            host.wait(REPLY_TIMEOUT)
+            host.feed(ACK_SYMBOL)
+        host.wait(REPLY_TIMEOUT)
+    assert [type(e) for e in host.events] == [TransactionDone, OutcomeUnknown] * 6

@@ -170,7 +170,7 @@ class HalfDuplexMaster:
         self._send_input = MasterInput.SEND_SYMBOL  #: the input that sends the bytes held in TRANSMIT
         self._deadline: float | None = None
         self._wake: float | None = None  #: IDLE: when the scheduler has something due
-        self._current: int | None = None  #: station of the exchange in progress
+        self._current: int | None = None  #: station of the poll in progress
         self._request: MasterRequest | None = None  #: master message in progress
         self._reset_pending = False
         self._message = b""  #: the slave message being handled
@@ -466,7 +466,6 @@ class HalfDuplexMaster:
         request.sends += 1
         self._stations[request.station].counters.messages_sent += 1
         self._request = request
-        self._current = request.station
         self._transmit(request.frame, LineState.WAIT_ACK, now)
 
     def _kick(self, now: float) -> None:

@@ -155,21 +155,25 @@ class HalfDuplexTransactions:
         master = self.master
         assert master is not None
         while (event := master.next_event()) is not NEED_DATA:
-            if not isinstance(event, ReplyReceived | RequestFailed) or event.request_id not in self._by_request:
-                self._events.append(event)  # not a transaction's: the driver's
-                continue
-            txn = self._by_request.pop(event.request_id)
-            self._tns.release(txn.tns)
-            if isinstance(event, RequestFailed):
-                demoted = event.reason is FailReason.STATION_DEMOTED
-                self._lost(txn, event.reason.value, event.may_have_executed, demoted, now)
-                continue
-            try:
-                reply = decode_reply(event.message)
-            except PcccFormatError as exc:
-                self._lost(txn, f"the reply does not decode: {exc}", True, False, now)
-                continue
-            self._answered(txn, reply, now)
+            if (isinstance(event, ReplyReceived | RequestFailed)
+                    and (txn := self._by_request.pop(event.request_id, None)) is not None):
+                self._tns.release(txn.tns)
+                self._outcome(txn, event, now)
+            else:
+                self._events.append(event)  # not a transaction's (a reply to a slave's MSG too): the driver's
+
+    def _outcome(self, txn: _HalfDuplexTxn, event: ReplyReceived | RequestFailed, now: float) -> None:
+        """What the master reports of the request ``txn`` has in flight."""
+        match event:
+            case RequestFailed(reason=reason, may_have_executed=may_have_executed):
+                self._lost(txn, reason.value, may_have_executed, reason is FailReason.STATION_DEMOTED, now)
+            case ReplyReceived(message=message):
+                try:
+                    reply = decode_reply(message)
+                except PcccFormatError as exc:
+                    self._lost(txn, f"the reply does not decode: {exc}", True, False, now)
+                else:
+                    self._answered(txn, reply, now)
 
     def _answered(self, txn: _HalfDuplexTxn, reply: PcccReply, now: float) -> None:
         if txn.verdict is None:
@@ -192,9 +196,7 @@ class HalfDuplexTransactions:
             self._follow(txn, txn.verdict.lost(why, now, may_have_executed=may_have_executed), now)
 
     def _follow(self, txn: _HalfDuplexTxn, step: VerdictStep, now: float) -> None:
-        match step:
-            case None:
-                pass
+        match step:  # None: the input changed nothing
             case SendReadBack(request=request):
                 self.counters(txn.station).read_backs += 1
                 self._submit(txn, request, now, read_back=True)
@@ -210,10 +212,11 @@ class HalfDuplexTransactions:
                 self._settle(txn, OutcomeUnknown(txn.handle, reason))
 
     def _release(self, txn: _HalfDuplexTxn) -> None:
-        if self._by_request.pop(txn.request_id, None) is not None:
-            self._tns.release(txn.tns)
+        """Forget the request ``txn`` has in flight (every running transaction has one)."""
+        del self._by_request[txn.request_id]
+        self._tns.release(txn.tns)
 
     def _settle(self, txn: _HalfDuplexTxn, event: TransactionEvent) -> None:
-        self._txns.pop(txn.handle, None)
+        del self._txns[txn.handle]
         self._events.append(event)
 

@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from gateway.errors import InvalidRequest, format_seconds
-from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed, SendFailure
+from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed
 from gateway.protocols.df1.framing import NEED_DATA, NeedData
 from gateway.protocols.df1.pccc import (
     PcccFormatError,
@@ -162,8 +162,7 @@ class TxnInput(TableEnum):
     START_READ = "start a read"
     START_WRITE = "start a write"
     LINK_ACKED = "the link has the ACK of our frame"
-    LINK_NAKED = "every copy of our frame was NAKed: it never arrived"
-    LINK_LOST = "the link gave up on our frame; the peer may have it"
+    LINK_LOST = "the link gave up on our frame (NAKs, or no ACK): the peer may have it"
     TIMEOUT = "no reply within the reply timeout"
     REPLY = "the reply to our command (any STS)"
     READBACK_REPLY = "the reply to the read-back (any STS)"
@@ -195,7 +194,7 @@ def _build_table() -> _Table:
     T, S, K, A = Transition, TxnState, TxnInput, TxnAction
     idle = frozenset({S.IDLE})
     starts = (K.START_READ, K.START_WRITE)
-    links = (K.LINK_ACKED, K.LINK_NAKED, K.LINK_LOST)
+    links = (K.LINK_ACKED, K.LINK_LOST)
 
     def exchange(
         sending: TxnState, awaiting: TxnState, reply: TxnInput, answered: TxnAction, lost: TxnAction, again: TxnState
@@ -206,7 +205,6 @@ def _build_table() -> _Table:
         return {
             (sending, K.LINK_ACKED): T(A.AWAIT, awaiting),
             (sending, reply): T(answered, S.IDLE),
-            (sending, K.LINK_NAKED): T(lost, again, idle),
             (sending, K.LINK_LOST): T(lost, again, idle),
             **stay(A.IGNORE, sending, *starts, K.TIMEOUT),  # no reply timer yet
             (awaiting, reply): T(answered, S.IDLE),
@@ -353,7 +351,7 @@ class Df1Transactions:
                 self._txn.why = f"no reply within {format_seconds(self._wait)} s of the DLE ACK"
             self._input(TxnInput.TIMEOUT, now)
 
-    def abandon(self, reason: str, now: float = 0.0) -> None:
+    def abandon(self, reason: str, now: float) -> None:
         """The link is gone (port lost): settle the running transaction without a reply."""
         if self._txn is not None:
             self._txn.why = reason
@@ -371,10 +369,10 @@ class Df1Transactions:
                     if txn is not None and handle == txn.frame:
                         self._input(TxnInput.LINK_ACKED, now)
                 case SendFailed(handle=handle, reason=reason):
+                    # every NAK or no ACK at all: no proof the frame never arrived (datalink.py)
                     if txn is not None and handle == txn.frame:
                         txn.why = reason.value
-                        naked = reason is SendFailure.NAK_LIMIT
-                        self._input(TxnInput.LINK_NAKED if naked else TxnInput.LINK_LOST, now)
+                        self._input(TxnInput.LINK_LOST, now)
 
     def _on_message(self, payload: bytes, now: float) -> None:
         try:
@@ -463,9 +461,7 @@ class Df1Transactions:
 
     def _follow(self, txn: _Txn, step: VerdictStep, now: float) -> None:
         """Carry out the verdict's step: a read-back to send, or the verdict as an event."""
-        match step:
-            case None:
-                pass
+        match step:  # None: the input changed nothing
             case SendReadBack(request=request):
                 self._state = TxnState.VERIFY_SENDING
                 self._send_read_back(txn, request, now)

@@ -288,8 +288,7 @@ class WriteVerdict:
                 return self._unknown(now)
             case VerdictAction.UNKNOWN:
                 return self._unknown(now)
-            case VerdictAction.IGNORE:
-                return None
+        return None  # IGNORE: _input never acts on it
 
     def _unknown(self, now: float) -> Verdict:
         if self.read_back is None:
