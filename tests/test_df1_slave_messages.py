@@ -271,6 +271,8 @@ def test_a_typed_logical_write_is_stored_only_for_whole_words_of_an_integer_file
     [
         ((0, 7, 2), DataType.INTEGER, 2, 0, True),
         ((0, 7, 2, 0), DataType.INTEGER, 2, 0, True),  # four levels, sub-element 0
+        ((0, 7, 2, 1), DataType.INTEGER, 2, 0, False),  # a sub-element: not a word of the table
+        ((0, 7, 2, 0, 0), DataType.INTEGER, 2, 0, False),  # five levels
         ((0, 7, 2), DataType.INTEGER, 4, 0, False),  # 4-byte elements
         ((0, 7, 2), DataType.BCD, 2, 0, False),  # not integers
         ((1, 7, 2), DataType.INTEGER, 2, 0, False),  # another section

@@ -24,7 +24,7 @@ No I/O.
 from __future__ import annotations
 
 import enum
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 from gateway.protocols.df1.pccc import (
@@ -129,18 +129,22 @@ def decode_slave_write(packet: bytes) -> SlaveWrite | None:
     except PcccFormatError:
         return None
     if isinstance(request, WordRangeWrite) and request.packet_offset == 0:
-        levels = request.address.levels
-        if len(levels) in (3, 4) and levels[0] == 0 and (len(levels) == 3 or levels[3] == 0):
-            return SlaveWrite(levels[1], levels[2], _words(request.data))
-        return None
+        return _file_element_write(request.address.levels, request.data)
     if isinstance(request, ProtectedTypedLogicalWrite):
         if request.file_type == _INTEGER_FILE and request.sub_element == 0 and len(request.data) % 2 == 0:
             return SlaveWrite(request.file_number, request.element, _words(request.data))
         return None
     if isinstance(request, TypedWrite) and request.data_type == DataType.INTEGER and request.element_size == 2:
-        levels = request.address.levels
-        if request.packet_offset == 0 and len(levels) >= 3 and levels[0] == 0:
-            return SlaveWrite(levels[1], levels[2], _words(request.data))
+        if request.packet_offset == 0:
+            return _file_element_write(request.address.levels, request.data)
+    return None
+
+
+def _file_element_write(levels: Sequence[int], data: bytes) -> SlaveWrite | None:
+    """The write of a PLC-5 logical address ``0, file, element`` (a sub-element level, if any, 0);
+    None for any other address (a word inside an element is not a register of the table)."""
+    if len(levels) in (3, 4) and levels[0] == 0 and (len(levels) == 3 or levels[3] == 0):
+        return SlaveWrite(levels[1], levels[2], _words(data))
     return None
 
 
