@@ -12,8 +12,10 @@ from hypothesis import strategies as st
 
 from gateway.errors import InvalidRequest
 from gateway.protocols.df1.datalink import (
+    BadFrameAnswer,
     DataLinkEvent,
     Df1DataLink,
+    EnqAnswer,
     MessageReceived,
     SendComplete,
     SendFailed,
@@ -214,6 +216,32 @@ def test_enq_answered_with_last_response() -> None:
     assert link.counters.enqs_received == 4
 
 
+@pytest.mark.parametrize(("answer", "at_once", "on_enq"), [
+    (BadFrameAnswer.NAK, NAK_SYMBOL, NAK_SYMBOL),
+    (BadFrameAnswer.SILENCE, b"", NAK_SYMBOL),
+    (BadFrameAnswer.IGNORE, b"", ACK_SYMBOL),
+])
+def test_a_damaged_frame_is_answered_as_the_link_is_configured(
+    answer: BadFrameAnswer, at_once: bytes, on_enq: bytes
+) -> None:
+    link = Df1DataLink(checksum=Checksum.BCC, bad_frame=answer)
+    link.receive_data(encode_frame(packet(1), Checksum.BCC), 0.0)
+    assert link.data_to_send() == ACK_SYMBOL
+    bad = b"\x10\x02\x01\x02\x10\x03\x00"  # bad BCC
+    link.receive_data(bad, 0.0)
+    assert link.data_to_send() == at_once
+    link.receive_data(ENQ_SYMBOL, 0.0)
+    assert link.data_to_send() == on_enq
+    link.receive_data(bad, 0.0)
+    assert link.counters.bad_frames == 2 and link.next_event() == MessageReceived(packet(1))
+
+
+def test_enq_answered_nak_whatever_the_last_response() -> None:
+    link = Df1DataLink(checksum=Checksum.BCC, enq_answer=EnqAnswer.NAK)
+    link.receive_data(encode_frame(packet(1), Checksum.BCC) + ENQ_SYMBOL, 0.0)
+    assert link.data_to_send() == ACK_SYMBOL + NAK_SYMBOL
+
+
 def test_enq_during_a_truncated_frame_is_answered_nak() -> None:
     link = Df1DataLink(checksum=Checksum.BCC)
     link.receive_data(encode_frame(packet(1), Checksum.BCC), 0.0)
@@ -222,6 +250,8 @@ def test_enq_during_a_truncated_frame_is_answered_nak() -> None:
     frame = encode_frame(packet(2), Checksum.BCC)
     link.receive_data(frame[:-3] + ENQ_SYMBOL, 0.0)
     assert link.data_to_send() == NAK_SYMBOL
+    link.receive_data(frame[:-3] + ENQ_SYMBOL, 0.0)
+    assert link.counters.bad_frames == 2  # each truncated frame counts
 
 
 def test_duplicate_frame_acked_not_delivered_twice() -> None:
@@ -406,6 +436,7 @@ def test_zero_retries() -> None:
     link.send(packet(2), 0.0)
     link.handle_timeout(0.1)
     assert link.next_event() == SendFailed(2, SendFailure.NO_RESPONSE)
+    assert link.counters.send_failures == 2
 
 
 def test_reset_fails_everything_pending() -> None:
@@ -418,8 +449,23 @@ def test_reset_fails_everything_pending() -> None:
     assert link.next_event() == SendFailed(2, SendFailure.LINK_RESET)
     assert link.data_to_send() == b""
     assert link.next_deadline() is None
+    assert link.counters.send_failures == 2
     link.receive_data(encode_frame(packet(3), Checksum.BCC), 0.0)
     assert link.next_event() == MessageReceived(packet(3))
+
+
+def test_after_a_reset_the_first_ack_completes_the_next_frame() -> None:
+    """A confirm() before the reset leaves no answer owed: the line was forgotten with it."""
+    link = Df1DataLink(checksum=Checksum.BCC)
+    handle = link.send(packet(1), 0.0)
+    link.data_to_send()
+    link.confirm(handle, 0.0)
+    assert link.next_event() == SendComplete(handle)
+    link.reset()
+    handle = link.send(packet(2), 0.0)
+    link.data_to_send()
+    link.receive_data(ACK_SYMBOL, 0.0)
+    assert link.next_event() == SendComplete(handle)
 
 
 def test_send_validation() -> None:

@@ -109,6 +109,11 @@ def test_decoder_whole_bytewise_and_trailing(checksum: Checksum, chunk: int | No
     assert drain(decoder) == [Frame(VECTOR)]
 
 
+def test_need_data_shows_as_its_name() -> None:
+    """What a driver logs or an assertion prints when a core has nothing to report."""
+    assert repr(FrameDecoder(Checksum.BCC).next_event()) == "NEED_DATA"
+
+
 def test_link_symbols() -> None:
     assert decode(ACK_SYMBOL + NAK_SYMBOL + ENQ_SYMBOL) == [AckReceived(), NakReceived(), EnqReceived()]
     assert decode(ACK_SYMBOL + NAK_SYMBOL + ENQ_SYMBOL, chunk=1) == [
