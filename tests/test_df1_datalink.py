@@ -273,6 +273,25 @@ def test_duplicate_frame_acked_not_delivered_twice() -> None:
     assert link.next_event() == MessageReceived(packet(7))
 
 
+def test_a_header_only_message_is_a_duplicate_by_src_cmd_and_tns() -> None:
+    """A 6-byte packet is a whole PCCC header: DST and STS are no part of the comparison."""
+    link = Df1DataLink(checksum=Checksum.CRC)
+    header = packet(7)[:6]
+    other_dst_sts = b"\x09" + header[1:3] + b"\x55" + header[4:6]
+    link.receive_data(encode_frame(header, Checksum.CRC) + encode_frame(other_dst_sts, Checksum.CRC), 0.0)
+    assert link.next_event() == MessageReceived(header)
+    assert link.next_event() is NEED_DATA
+    link.receive_data(encode_frame(packet(7), Checksum.CRC) + encode_frame(header, Checksum.CRC), 0.0)
+    assert link.next_event() is NEED_DATA  # the longer one, and the header after it: the same message
+
+
+def test_messages_shorter_than_a_header_are_compared_whole() -> None:
+    link = Df1DataLink(checksum=Checksum.CRC)
+    link.receive_data(b"".join(encode_frame(m, Checksum.CRC) for m in (b"\x01\x02", b"\x01\x02", b"\x01\x03")), 0.0)
+    assert [link.next_event(), link.next_event()] == [MessageReceived(b"\x01\x02"), MessageReceived(b"\x01\x03")]
+    assert link.counters.duplicates == 1
+
+
 def test_duplicate_detection_can_be_disabled() -> None:
     pair = make_pair(duplicate_detect=False)
     pair.a_to_b = DuplicateFrames()
