@@ -648,3 +648,51 @@ def test_the_ack_wait_adapts_to_the_peers_measured_ack_times() -> None:
     assert link.data_to_send() == ENQ_SYMBOL
     link.receive_data(ACK_SYMBOL, now + 0.1)  # the ENQ's answer: the frame's ACK
     assert link.next_event() == SendComplete(9)
+
+
+def test_the_ack_wait_is_twice_the_slowest_of_the_last_32_clean_acks() -> None:
+    """Only ACKs of frames sent once, without DLE ENQ, are measured; the slowest of the last 32
+    counts twice, above the floor and below ``ack_timeout``."""
+    char_time = 0.001
+    link = Df1DataLink(checksum=Checksum.BCC, ack_timeout=1.0, char_time=char_time, max_enq=1, max_nak=1)
+    now = 0.0
+    handle = 0
+
+    def exchange(delay: float, *, nak: bool = False, enq: bool = False) -> int:
+        """One frame, answered ``delay`` s after its last character; its frame length."""
+        nonlocal now, handle
+        handle = link.send(packet(handle + 1), now)
+        length = len(link.data_to_send())
+        if nak:
+            link.receive_data(NAK_SYMBOL, now)
+            link.data_to_send()
+        if enq:
+            now = link.next_deadline() or now
+            link.handle_timeout(now)
+            assert link.data_to_send() == ENQ_SYMBOL
+        now += length * char_time + delay
+        link.receive_data(ACK_SYMBOL, now)
+        assert link.next_event() == SendComplete(handle)
+        now += 0.1
+        return length
+
+    def wait() -> float:
+        link.send(packet(handle + 1), now)
+        length = len(link.data_to_send())
+        deadline = link.next_deadline()
+        assert deadline is not None
+        link.reset()
+        link.next_event()
+        return deadline - now - length * char_time
+
+    exchange(0.3)  # the slowest: measured, until 32 newer ones push it out
+    exchange(0.9, nak=True)  # retransmitted, then enquired: not measured
+    exchange(0.9, enq=True)
+    for _ in range(7):
+        exchange(0.04)
+    assert wait() == pytest.approx(0.6)  # 8 measured: 2 x 0.3
+    for _ in range(24):
+        exchange(0.04)
+    assert wait() == pytest.approx(0.6)  # 32 measured: the 0.3 s is the oldest one kept
+    exchange(0.04)
+    assert wait() == pytest.approx(0.08)  # 2 x 0.04, above the 50 ms floor
