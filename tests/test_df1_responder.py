@@ -728,3 +728,22 @@ def test_after_a_reset_a_stray_symbol_is_no_answer_to_a_forgotten_reply() -> Non
     responder.reset()
     responder.feed(ACK_SYMBOL + NAK_SYMBOL, 0.0)
     assert [(step.state, step.input) for step in list(responder.history)[-2:]] == [(S.IDLE, K.ACK), (S.IDLE, K.NAK)]
+
+
+def test_after_a_reply_is_delivered_a_second_ack_is_a_late_symbol() -> None:
+    responder = Df1Responder()
+    responder.feed(frame(C1), 0.0)
+    responder.send_reply(R1, 0.0)
+    responder.data_to_send()
+    responder.feed(ACK_SYMBOL + ACK_SYMBOL, 0.0)
+    assert [(step.state, step.input) for step in list(responder.history)[-2:]] == [(S.AWAIT_ACK, K.ACK), (S.IDLE, K.ACK)]
+
+
+def test_bytes_read_before_a_reset_never_join_those_after_it() -> None:
+    responder = Df1Responder()
+    data = frame(C1)
+    responder.feed(data[:8], 0.0)
+    responder.reset()
+    responder.feed(data[8:], 0.0)  # the rest of the frame, its DLE ETX without DLE STX: noise
+    assert responder.data_to_send() == b"" and drain(responder) == []
+    assert responder.counters.frames_received == 0
