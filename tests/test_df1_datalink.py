@@ -493,6 +493,8 @@ def test_send_validation() -> None:
         link.send(b"", 0.0)
     with pytest.raises(InvalidRequest):
         link.send(bytes(17), 0.0)
+    assert link.send(bytes(16), 0.0) == 1  # as long as max_message: sent
+    assert link.data_to_send() == encode_frame(bytes(16), Checksum.BCC)
     with pytest.raises(ValueError):
         Df1DataLink(ack_timeout=0)
 
