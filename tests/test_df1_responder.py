@@ -736,7 +736,8 @@ def test_after_a_reply_is_delivered_a_second_ack_is_a_late_symbol() -> None:
     responder.send_reply(R1, 0.0)
     responder.data_to_send()
     responder.feed(ACK_SYMBOL + ACK_SYMBOL, 0.0)
-    assert [(step.state, step.input) for step in list(responder.history)[-2:]] == [(S.AWAIT_ACK, K.ACK), (S.IDLE, K.ACK)]
+    steps = [(step.state, step.input) for step in list(responder.history)[-2:]]
+    assert steps == [(S.AWAIT_ACK, K.ACK), (S.IDLE, K.ACK)]
 
 
 def test_bytes_read_before_a_reset_never_join_those_after_it() -> None:
