@@ -12,8 +12,10 @@ from hypothesis import strategies as st
 
 from gateway.errors import InvalidRequest
 from gateway.protocols.df1.datalink import (
+    BadFrameAnswer,
     DataLinkEvent,
     Df1DataLink,
+    EnqAnswer,
     MessageReceived,
     SendComplete,
     SendFailed,
@@ -214,6 +216,32 @@ def test_enq_answered_with_last_response() -> None:
     assert link.counters.enqs_received == 4
 
 
+@pytest.mark.parametrize(("answer", "at_once", "on_enq"), [
+    (BadFrameAnswer.NAK, NAK_SYMBOL, NAK_SYMBOL),
+    (BadFrameAnswer.SILENCE, b"", NAK_SYMBOL),
+    (BadFrameAnswer.IGNORE, b"", ACK_SYMBOL),
+])
+def test_a_damaged_frame_is_answered_as_the_link_is_configured(
+    answer: BadFrameAnswer, at_once: bytes, on_enq: bytes
+) -> None:
+    link = Df1DataLink(checksum=Checksum.BCC, bad_frame=answer)
+    link.receive_data(encode_frame(packet(1), Checksum.BCC), 0.0)
+    assert link.data_to_send() == ACK_SYMBOL
+    bad = b"\x10\x02\x01\x02\x10\x03\x00"  # bad BCC
+    link.receive_data(bad, 0.0)
+    assert link.data_to_send() == at_once
+    link.receive_data(ENQ_SYMBOL, 0.0)
+    assert link.data_to_send() == on_enq
+    link.receive_data(bad, 0.0)
+    assert link.counters.bad_frames == 2 and link.next_event() == MessageReceived(packet(1))
+
+
+def test_enq_answered_nak_whatever_the_last_response() -> None:
+    link = Df1DataLink(checksum=Checksum.BCC, enq_answer=EnqAnswer.NAK)
+    link.receive_data(encode_frame(packet(1), Checksum.BCC) + ENQ_SYMBOL, 0.0)
+    assert link.data_to_send() == ACK_SYMBOL + NAK_SYMBOL
+
+
 def test_enq_during_a_truncated_frame_is_answered_nak() -> None:
     link = Df1DataLink(checksum=Checksum.BCC)
     link.receive_data(encode_frame(packet(1), Checksum.BCC), 0.0)
@@ -222,6 +250,8 @@ def test_enq_during_a_truncated_frame_is_answered_nak() -> None:
     frame = encode_frame(packet(2), Checksum.BCC)
     link.receive_data(frame[:-3] + ENQ_SYMBOL, 0.0)
     assert link.data_to_send() == NAK_SYMBOL
+    link.receive_data(frame[:-3] + ENQ_SYMBOL, 0.0)
+    assert link.counters.bad_frames == 2  # each truncated frame counts
 
 
 def test_duplicate_frame_acked_not_delivered_twice() -> None:
@@ -241,6 +271,25 @@ def test_duplicate_frame_acked_not_delivered_twice() -> None:
     link.receive_data(encode_frame(packet(8), Checksum.CRC) + frame, 0.0)
     assert link.next_event() == MessageReceived(packet(8))
     assert link.next_event() == MessageReceived(packet(7))
+
+
+def test_a_header_only_message_is_a_duplicate_by_src_cmd_and_tns() -> None:
+    """A 6-byte packet is a whole PCCC header: DST and STS are no part of the comparison."""
+    link = Df1DataLink(checksum=Checksum.CRC)
+    header = packet(7)[:6]
+    other_dst_sts = b"\x09" + header[1:3] + b"\x55" + header[4:6]
+    link.receive_data(encode_frame(header, Checksum.CRC) + encode_frame(other_dst_sts, Checksum.CRC), 0.0)
+    assert link.next_event() == MessageReceived(header)
+    assert link.next_event() is NEED_DATA
+    link.receive_data(encode_frame(packet(7), Checksum.CRC) + encode_frame(header, Checksum.CRC), 0.0)
+    assert link.next_event() is NEED_DATA  # the longer one, and the header after it: the same message
+
+
+def test_messages_shorter_than_a_header_are_compared_whole() -> None:
+    link = Df1DataLink(checksum=Checksum.CRC)
+    link.receive_data(b"".join(encode_frame(m, Checksum.CRC) for m in (b"\x01\x02", b"\x01\x02", b"\x01\x03")), 0.0)
+    assert [link.next_event(), link.next_event()] == [MessageReceived(b"\x01\x02"), MessageReceived(b"\x01\x03")]
+    assert link.counters.duplicates == 1
 
 
 def test_duplicate_detection_can_be_disabled() -> None:
@@ -406,6 +455,7 @@ def test_zero_retries() -> None:
     link.send(packet(2), 0.0)
     link.handle_timeout(0.1)
     assert link.next_event() == SendFailed(2, SendFailure.NO_RESPONSE)
+    assert link.counters.send_failures == 2
 
 
 def test_reset_fails_everything_pending() -> None:
@@ -418,8 +468,23 @@ def test_reset_fails_everything_pending() -> None:
     assert link.next_event() == SendFailed(2, SendFailure.LINK_RESET)
     assert link.data_to_send() == b""
     assert link.next_deadline() is None
+    assert link.counters.send_failures == 2
     link.receive_data(encode_frame(packet(3), Checksum.BCC), 0.0)
     assert link.next_event() == MessageReceived(packet(3))
+
+
+def test_after_a_reset_the_first_ack_completes_the_next_frame() -> None:
+    """A confirm() before the reset leaves no answer owed: the line was forgotten with it."""
+    link = Df1DataLink(checksum=Checksum.BCC)
+    handle = link.send(packet(1), 0.0)
+    link.data_to_send()
+    link.confirm(handle, 0.0)
+    assert link.next_event() == SendComplete(handle)
+    link.reset()
+    handle = link.send(packet(2), 0.0)
+    link.data_to_send()
+    link.receive_data(ACK_SYMBOL, 0.0)
+    assert link.next_event() == SendComplete(handle)
 
 
 def test_send_validation() -> None:
@@ -428,6 +493,8 @@ def test_send_validation() -> None:
         link.send(b"", 0.0)
     with pytest.raises(InvalidRequest):
         link.send(bytes(17), 0.0)
+    assert link.send(bytes(16), 0.0) == 1  # as long as max_message: sent
+    assert link.data_to_send() == encode_frame(bytes(16), Checksum.BCC)
     with pytest.raises(ValueError):
         Df1DataLink(ack_timeout=0)
 
@@ -583,3 +650,51 @@ def test_the_ack_wait_adapts_to_the_peers_measured_ack_times() -> None:
     assert link.data_to_send() == ENQ_SYMBOL
     link.receive_data(ACK_SYMBOL, now + 0.1)  # the ENQ's answer: the frame's ACK
     assert link.next_event() == SendComplete(9)
+
+
+def test_the_ack_wait_is_twice_the_slowest_of_the_last_32_clean_acks() -> None:
+    """Only ACKs of frames sent once, without DLE ENQ, are measured; the slowest of the last 32
+    counts twice, above the floor and below ``ack_timeout``."""
+    char_time = 0.001
+    link = Df1DataLink(checksum=Checksum.BCC, ack_timeout=1.0, char_time=char_time, max_enq=1, max_nak=1)
+    now = 0.0
+    handle = 0
+
+    def exchange(delay: float, *, nak: bool = False, enq: bool = False) -> int:
+        """One frame, answered ``delay`` s after its last character; its frame length."""
+        nonlocal now, handle
+        handle = link.send(packet(handle + 1), now)
+        length = len(link.data_to_send())
+        if nak:
+            link.receive_data(NAK_SYMBOL, now)
+            link.data_to_send()
+        if enq:
+            now = link.next_deadline() or now
+            link.handle_timeout(now)
+            assert link.data_to_send() == ENQ_SYMBOL
+        now += length * char_time + delay
+        link.receive_data(ACK_SYMBOL, now)
+        assert link.next_event() == SendComplete(handle)
+        now += 0.1
+        return length
+
+    def wait() -> float:
+        link.send(packet(handle + 1), now)
+        length = len(link.data_to_send())
+        deadline = link.next_deadline()
+        assert deadline is not None
+        link.reset()
+        link.next_event()
+        return deadline - now - length * char_time
+
+    exchange(0.3)  # the slowest: measured, until 32 newer ones push it out
+    exchange(0.9, nak=True)  # retransmitted, then enquired: not measured
+    exchange(0.9, enq=True)
+    for _ in range(7):
+        exchange(0.04)
+    assert wait() == pytest.approx(0.6)  # 8 measured: 2 x 0.3
+    for _ in range(24):
+        exchange(0.04)
+    assert wait() == pytest.approx(0.6)  # 32 measured: the 0.3 s is the oldest one kept
+    exchange(0.04)
+    assert wait() == pytest.approx(0.08)  # 2 x 0.04, above the 50 ms floor

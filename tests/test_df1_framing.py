@@ -109,6 +109,21 @@ def test_decoder_whole_bytewise_and_trailing(checksum: Checksum, chunk: int | No
     assert drain(decoder) == [Frame(VECTOR)]
 
 
+def test_need_data_shows_as_its_name() -> None:
+    """What a driver logs or an assertion prints when a core has nothing to report."""
+    assert repr(FrameDecoder(Checksum.BCC).next_event()) == "NEED_DATA"
+
+
+@pytest.mark.parametrize("buffer", [bytearray, memoryview])
+def test_any_bytes_like_read_decodes_as_bytes(buffer: type[bytearray] | type[memoryview]) -> None:
+    """A read handed over as a bytearray or a memoryview (a buffered protocol's) decodes the same."""
+    decoder = FrameDecoder(Checksum.CRC)
+    frame = encode_frame(b"\x01\x10\x02", Checksum.CRC)
+    for part in (frame[:4], frame[4:] + ACK_SYMBOL):
+        decoder.feed(buffer(part))
+    assert drain(decoder) == [Frame(b"\x01\x10\x02"), AckReceived()]
+
+
 def test_link_symbols() -> None:
     assert decode(ACK_SYMBOL + NAK_SYMBOL + ENQ_SYMBOL) == [AckReceived(), NakReceived(), EnqReceived()]
     assert decode(ACK_SYMBOL + NAK_SYMBOL + ENQ_SYMBOL, chunk=1) == [

@@ -215,6 +215,11 @@ def test_noise_outside_frames_and_trailing_garbage() -> None:
     assert not decoder.in_frame
 
 
+def test_a_decoder_tells_which_framing_it_reads() -> None:
+    assert FrameDecoder(Checksum.BCC, half_duplex=True).half_duplex is True
+    assert FrameDecoder(Checksum.BCC).half_duplex is False
+
+
 def test_encoder_validation() -> None:
     with pytest.raises(ValueError, match=r"0\.\.255"):
         encode_poll(256)

@@ -597,3 +597,154 @@ def test_a_few_damaged_units_lose_nothing(
 
 def test_a_clean_line_delivers_everything() -> None:
     simulate([], 5, Checksum.CRC)
+
+
+# ------------------------------------------------------------------ edges of the public surface
+
+
+def test_the_shortest_packet_is_a_command_and_the_shortest_reply_is_sent() -> None:
+    responder = Df1Responder(max_message=8)
+    header_only = command(1)[:6]
+    responder.feed(frame(header_only), 0.0)
+    assert responder.data_to_send() == ACK_SYMBOL and drain(responder) == [received(header_only)]
+    reply = reply_to(header_only, b"")
+    assert len(reply) == 6
+    responder.send_reply(reply, 0.0)
+    assert responder.data_to_send() == frame(reply)
+    longest = reply_to(command(2), b"\x00\x00")
+    assert len(longest) == responder.max_message
+    responder.send_reply(longest, 0.0)  # accepted: as long as max_message
+    assert responder.queued_replies == 2
+
+
+def test_dle_dle_outside_a_frame_is_a_false_symbol() -> None:
+    responder = Df1Responder()
+    responder.feed(frame(C1), 0.0)
+    assert responder.data_to_send() == ACK_SYMBOL
+    responder.feed(b"\x10" + ENQ_SYMBOL, 0.0)  # DLE DLE ENQ: the first DLE starts nothing: noise
+    assert responder.data_to_send() == NAK_SYMBOL and responder.counters.noise == 1
+    responder.feed(frame(C2), 0.0)
+    responder.feed(b"\x55" + ENQ_SYMBOL, 0.0)  # noise, then a DLE that does start a symbol
+    assert responder.data_to_send() == ACK_SYMBOL + NAK_SYMBOL and responder.counters.noise == 2
+
+
+def test_reset_forgets_a_dle_read_before_it() -> None:
+    responder = Df1Responder()
+    responder.feed(b"\x10", 0.0)
+    responder.reset()
+    responder.feed(frame(C1) + ENQ_SYMBOL, 0.0)
+    assert responder.data_to_send() == ACK_SYMBOL + ACK_SYMBOL and responder.counters.noise == 0
+
+
+def test_a_duplicate_gets_the_reply_of_its_own_command_only() -> None:
+    responder = Df1Responder()
+    responder.feed(frame(C1) + frame(C2), 0.0)
+    responder.send_reply(R1, 0.0)  # answers C1, not C2 (the last command)
+    responder.data_to_send()
+    responder.feed(ACK_SYMBOL, 0.0)
+    drain(responder)
+    responder.feed(frame(C2), 0.0)  # a copy of C2: its reply was not given, nothing to resend
+    assert responder.data_to_send() == ACK_SYMBOL and drain(responder) == [duplicate(C2, None)]
+
+
+def test_the_stored_reply_is_resent_for_every_later_copy() -> None:
+    responder = Df1Responder()
+    responder.feed(frame(C1), 0.0)
+    drain(responder)
+    responder.send_reply(R1, 0.0)
+    for handle in (1, 2, 3):
+        assert responder.data_to_send().endswith(frame(R1))
+        responder.feed(ACK_SYMBOL, 0.0)
+        assert drain(responder) == [ReplyDelivered(handle, R1)]
+        responder.feed(frame(C1), 0.0)
+        assert drain(responder) == [duplicate(C1, handle + 1)]
+    assert responder.counters.replies_resent == 3
+
+
+def test_a_reply_queued_behind_another_is_not_the_stored_one() -> None:
+    responder = Df1Responder(max_pending=3)
+    responder.feed(frame(C1) + frame(C2) + frame(C3), 0.0)
+    responder.send_reply(R3, 0.0)  # the last command's reply: stored, on the line
+    responder.send_reply(R1, 0.0)
+    responder.send_reply(R2, 0.0)
+    responder.data_to_send()
+    responder.feed(ACK_SYMBOL, 0.0)  # R3 delivered; R1 on the line, R2 queued
+    drain(responder)
+    responder.feed(frame(C3), 0.0)  # R3 is neither on the line nor queued: sent again
+    assert drain(responder) == [duplicate(C3, 4)]
+
+
+def test_a_reply_finds_its_command_by_the_commands_src() -> None:
+    """Two pending commands with the same CMD and TNS from two SRCs: the reply's DST picks one."""
+    from_5, from_6 = command(1, src=5), command(1, src=6)
+    responder = Df1Responder()
+    responder.feed(frame(from_5) + frame(from_6), 0.0)
+    drain(responder)
+    responder.send_reply(reply_to(from_6), 0.0)  # answers the last command: its reply is stored
+    responder.data_to_send()
+    responder.feed(ACK_SYMBOL + frame(from_6), 0.0)
+    assert drain(responder) == [ReplyDelivered(1, reply_to(from_6)), duplicate(from_6, 2)]
+    assert responder.pending_commands == 1
+    routed = bytes((0x63,)) + reply_to(from_5)[1:]  # a DST no pending command has as SRC
+    responder.send_reply(routed, 0.0)  # still answers a command of that CMD and TNS
+    assert responder.pending_commands == 0
+
+
+def test_every_counter_counts_each_occurrence() -> None:
+    responder = Df1Responder(station=STATION, check_dst=True, max_pending=1, nak_limit=0, enq_limit=0)
+    other = command(9, dst=STATION + 1)
+    for _ in range(2):
+        responder.feed(frame(other), 0.0)  # not for us
+        responder.feed(damaged(frame(C1)), 0.0)  # bad
+        responder.feed(b"\x55", 0.0)  # noise
+    responder.feed(frame(C1) + frame(C2) + frame(C2), 0.0)  # delivered; the sink is full twice
+    responder.feed(frame(C1) + frame(C1), 0.0)  # duplicates
+    counters = responder.counters
+    assert (counters.not_for_us, counters.bad_frames, counters.noise) == (2, 2, 2)
+    assert (counters.commands_delivered, counters.sink_full, counters.duplicates) == (1, 2, 2)
+    responder.send_reply(R1, 0.0)
+    for answer in (ACK_SYMBOL, ACK_SYMBOL):  # delivered, then a copy of C1 gets it again: delivered
+        responder.data_to_send()
+        responder.feed(answer + frame(C1), 0.0)
+    responder.data_to_send()
+    responder.feed(NAK_SYMBOL + frame(C1), 0.0)  # lost (no retransmission), sent again for the copy
+    responder.data_to_send()
+    responder.handle_timeout(1.0)  # lost (no DLE ENQ)
+    assert (counters.replies_delivered, counters.replies_lost, counters.replies_resent) == (2, 2, 3)
+    assert counters.duplicates == 5
+    responder.feed(frame(C1), 0.0)
+    responder.reset()  # the resent reply on the line is lost
+    assert counters.replies_lost == 3
+
+
+def test_after_a_reset_a_stray_symbol_is_no_answer_to_a_forgotten_reply() -> None:
+    """The reply on the line (still in the output, one DLE NAK already taken) is forgotten by the
+    reset: a DLE ACK / DLE NAK that follows is a late symbol in IDLE, never STALE or NAK_LIMIT."""
+    responder = Df1Responder(nak_limit=1)
+    responder.feed(frame(C1), 0.0)
+    responder.send_reply(R1, 0.0)
+    responder.data_to_send()
+    responder.feed(NAK_SYMBOL, 0.0)  # the frame again, in the output
+    responder.reset()
+    responder.feed(ACK_SYMBOL + NAK_SYMBOL, 0.0)
+    assert [(step.state, step.input) for step in list(responder.history)[-2:]] == [(S.IDLE, K.ACK), (S.IDLE, K.NAK)]
+
+
+def test_after_a_reply_is_delivered_a_second_ack_is_a_late_symbol() -> None:
+    responder = Df1Responder()
+    responder.feed(frame(C1), 0.0)
+    responder.send_reply(R1, 0.0)
+    responder.data_to_send()
+    responder.feed(ACK_SYMBOL + ACK_SYMBOL, 0.0)
+    steps = [(step.state, step.input) for step in list(responder.history)[-2:]]
+    assert steps == [(S.AWAIT_ACK, K.ACK), (S.IDLE, K.ACK)]
+
+
+def test_bytes_read_before_a_reset_never_join_those_after_it() -> None:
+    responder = Df1Responder()
+    data = frame(C1)
+    responder.feed(data[:8], 0.0)
+    responder.reset()
+    responder.feed(data[8:], 0.0)  # the rest of the frame, its DLE ETX without DLE STX: noise
+    assert responder.data_to_send() == b"" and drain(responder) == []
+    assert responder.counters.frames_received == 0

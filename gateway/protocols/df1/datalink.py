@@ -346,9 +346,7 @@ class Df1DataLink(FullDuplexStation[DataLinkEvent, DataLinkCounters]):
 
     def _tx_input(self, tx_input: TxInput, now: float) -> None:
         action, self._tx_state, _ = TRANSITIONS[self._tx_state, tx_input]
-        match action:
-            case TxAction.IGNORE:
-                pass
+        match action:  # TxAction.IGNORE: no case, nothing to do
             case TxAction.TRANSMIT:
                 self._transmit(now)
             case TxAction.RETRANSMIT:

@@ -243,9 +243,7 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
         self.history.append(ResponderStep(self._state, what, action, next_state))
         self._state = next_state
         counters = self.counters
-        match action:
-            case A.IGNORE:
-                pass
+        match action:  # A.IGNORE: no case, nothing to do
             case A.DELIVER:
                 self._respond(ACK_SYMBOL)
                 header = _header(message)

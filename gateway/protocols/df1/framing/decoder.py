@@ -347,8 +347,9 @@ class FrameDecoder:
         self._bad = None
         self._events.clear()
 
-    def feed(self, data: bytes) -> None:
-        """Consume ``data``; complete frames and symbols are queued for :meth:`next_event`."""
+    def feed(self, data: bytes | bytearray | memoryview) -> None:
+        """Consume ``data`` (any bytes-like read); complete frames and symbols are queued for
+        :meth:`next_event`."""
         if type(data) is not bytes:
             data = bytes(data)
         state = self._state
