@@ -748,3 +748,15 @@ def test_bytes_read_before_a_reset_never_join_those_after_it() -> None:
     responder.feed(data[8:], 0.0)  # the rest of the frame, its DLE ETX without DLE STX: noise
     assert responder.data_to_send() == b"" and drain(responder) == []
     assert responder.counters.frames_received == 0
+
+
+def test_a_late_nak_after_a_reply_was_given_up_is_a_nak_to_nothing() -> None:
+    responder = Df1Responder(station=STATION, nak_limit=0)
+    responder.feed(frame(C1), 0.0)
+    responder.send_reply(R1, 0.0)
+    responder.data_to_send()
+    responder.feed(NAK_SYMBOL, 0.0)  # no retransmission left: the reply is lost
+    assert drain(responder)[-1] == ReplyLost(1, R1, SendFailure.NAK_LIMIT)
+    responder.feed(NAK_SYMBOL, 0.1)  # a late copy of that NAK
+    assert (responder.history[-1].state, responder.history[-1].input) == (S.IDLE, K.NAK)
+    assert drain(responder) == [] and responder.data_to_send() == b""

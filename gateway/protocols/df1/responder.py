@@ -229,7 +229,10 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
         elif not nak:
             self._input(K.ACK, now)
         else:
-            self._input(K.NAK_LIMIT if self._nak_count >= self.nak_limit else K.NAK, now)
+            # the NAK count is the reply's on the line; a late DLE NAK after it was given up is
+            # a NAK to nothing (IDLE, NAK)
+            on_line = self._state is S.AWAIT_ACK
+            self._input(K.NAK_LIMIT if on_line and self._nak_count >= self.nak_limit else K.NAK, now)
 
     # ------------------------------------------------------------------------------ the machine
 
