@@ -762,3 +762,41 @@ def test_a_logical_binary_address_has_a_one_byte_mask_and_16_bit_levels_and_name
         LogicalBinaryAddress(0x100, tuple(range(9)))
     with pytest.raises(InvalidRequest, match="PCCC: address level 65536 out of range 0-65535"):
         LogicalBinaryAddress(0x01, (0x10000,))
+
+
+# --- header, reply and TNS bounds, and which byte is an owner node -------------------------------
+
+
+def test_every_header_byte_is_range_checked_and_named() -> None:
+    valid = dict(dst=1, src=0, cmd=0x0F, sts=0, tns=1)
+    for field, name, high in (("dst", "DST", 0xFF), ("src", "SRC", 0xFF), ("cmd", "CMD", 0xFF),
+                              ("sts", "STS", 0xFF), ("tns", "TNS", 0xFFFF)):
+        PcccHeader(**{**valid, field: high})
+        with pytest.raises(InvalidRequest, match=f"^PCCC: {name} {high + 1} out of range 0-{high}$"):
+            PcccHeader(**{**valid, field: high + 1})
+    with pytest.raises(InvalidRequest, match=r"^PCCC: TNS 65536 out of range"):
+        TnsAllocator(start=0x10000)
+
+
+def test_only_ext_sts_1a_and_1b_are_followed_by_an_owner_node() -> None:
+    """Notes §4.36: F0 1A / 1B carry the owner's node; another EXT STS's next byte is data."""
+    assert decode_reply(H("00 01 4F F0 09 00 1A")).owner_node is None  # the owner byte is optional
+    other = decode_reply(H("00 01 4F F0 09 00 06 12"))
+    assert other.owner_node is None and other.data == H("12")
+
+
+def test_a_reply_carries_ext_sts_exactly_with_sts_f0_and_both_are_bytes() -> None:
+    command = PcccHeader(1, 0, 0x0F, 0, 9)
+    with pytest.raises(InvalidRequest):
+        encode_reply(command, sts=0x10, ext_sts=0x06)
+    with pytest.raises(InvalidRequest, match=r"^PCCC: EXT STS 256 out of range 0-255$"):
+        encode_reply(command, sts=0xF0, ext_sts=0x100)
+    with pytest.raises(InvalidRequest, match=r"^PCCC: owner node 256 out of range 0-255$"):
+        encode_reply(command, sts=0xF0, ext_sts=0x1A, owner_node=0x100)
+    assert encode_reply(command, sts=0xF0, ext_sts=0xFF, owner_node=0xFF) == H("00 01 4F F0 09 00 FF FF")
+
+
+def test_a_reply_matches_a_command_given_as_a_bytearray() -> None:
+    packet = encode_command(ReadFileInfo(7), dst=1, src=0, tns=0x0102)
+    reply = decode_reply(encode_reply(decode_command(packet).header))
+    assert reply_matches(bytearray(packet), reply)
