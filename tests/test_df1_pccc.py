@@ -707,7 +707,7 @@ def test_read_modify_write_sends_every_set_and_reads_them_back() -> None:
     assert decode_command(packet).request == two
     one = ReadModifyWriteRequest(((_N7, 0, 0xFFFF),))
     assert decode_command(encode_command(one, dst=1, src=0, tns=3)).request == one
-    with pytest.raises(PcccFormatError):
+    with pytest.raises(PcccFormatError, match="at least one address"):
         decode_command(H("01 00 0F 00 03 00 26"))  # no set at all
     for sets in (((_N7, 0x10000, 0),), ((_N7, 0, 0x10000),)):
         with pytest.raises(InvalidRequest, match=r"PCCC: (AND|OR) mask 65536 out of range 0-65535"):
@@ -800,3 +800,9 @@ def test_a_reply_matches_a_command_given_as_a_bytearray() -> None:
     packet = encode_command(ReadFileInfo(7), dst=1, src=0, tns=0x0102)
     reply = decode_reply(encode_reply(decode_command(packet).header))
     assert reply_matches(bytearray(packet), reply)
+
+
+def test_a_command_with_a_field_out_of_range_says_which_field() -> None:
+    with pytest.raises(PcccFormatError, match="PCCC: byte size 0 out of range 1-255") as raised:
+        decode_command(H("01 00 0F 00 01 00 A2 00 07 89 00 00"))
+    assert raised.value.header == PcccHeader(1, 0, 0x0F, 0, 1)

@@ -316,7 +316,7 @@ class _MaskSets:
 
     def decode(self, reader: Reader, decoded: Decoded) -> None:
         sets: list[tuple[LogicalBinaryAddress, int, int]] = []
-        while not sets or reader.pos < len(reader.data):
+        while reader.pos < len(reader.data):  # no set at all: check() refuses it
             address = LogicalBinaryAddress.read(reader)
             sets.append((address, reader.u16("AND mask"), reader.u16("OR mask")))
         decoded.values[self.attr] = tuple(sets)

@@ -163,7 +163,7 @@ _SlcWrite = ProtectedTypedLogicalWrite | ProtectedTypedLogicalTwoFieldWrite | Pr
 
 def diagnostic_status_reply(name: str = GATEWAY_NAME) -> bytes:
     """The 24 data bytes of the diagnostic status reply (module docstring)."""
-    return bytes((0x00, 0xFE, 0x00, 0x00, 0x00)) + name.encode("ascii")[:11].ljust(11, b" ") + bytes(8)
+    return bytes((0x00, 0xFE, 0x00, 0x00, 0x00)) + name.encode("ascii")[:11].ljust(11) + bytes(8)
 
 
 @dataclass(frozen=True, slots=True)
