@@ -806,3 +806,22 @@ def test_a_command_with_a_field_out_of_range_says_which_field() -> None:
     with pytest.raises(PcccFormatError, match="PCCC: byte size 0 out of range 1-255") as raised:
         decode_command(H("01 00 0F 00 01 00 A2 00 07 89 00 00"))
     assert raised.value.header == PcccHeader(1, 0, 0x0F, 0, 1)
+
+
+def test_a_type_data_nibble_holds_0_to_7_and_larger_values_take_up_to_7_bytes() -> None:
+    """Notes, type/data parameter note: a nibble with bit 3 clear is the value itself (0-7)."""
+    assert encode_type_data(DataType.CONTROL, 7) == H("77")
+    assert encode_type_data(0, 8) == H("09 08")
+    most = (1 << 56) - 1
+    assert encode_type_data(most, most) == H("FF") + H("FF") * 14
+    assert decode_type_data(encode_type_data(most, most)) == (TypeData(most, most), 15)
+    for type_id, size, name in ((1 << 56, 0, "type ID"), (0, 1 << 56, "type size"), (-1, 0, "type ID"),
+                                (0, -1, "type size")):
+        with pytest.raises(InvalidRequest, match=f"^PCCC: {name} {type_id if name == 'type ID' else size} "):
+            TypeData(type_id, size)
+
+
+@pytest.mark.parametrize("encoded", ["", "4A 03", "A2 01"])
+def test_a_cut_type_data_parameter_is_named(encoded: str) -> None:
+    with pytest.raises(PcccFormatError, match=r"too short for type/data parameter$"):
+        decode_type_data(H(encoded))
