@@ -812,6 +812,7 @@ def test_a_type_data_nibble_holds_0_to_7_and_larger_values_take_up_to_7_bytes() 
     """Notes, type/data parameter note: a nibble with bit 3 clear is the value itself (0-7)."""
     assert encode_type_data(DataType.CONTROL, 7) == H("77")
     assert encode_type_data(0, 8) == H("09 08")
+    assert encode_type_data(DataType.INTEGER, 0) == H("40")
     most = (1 << 56) - 1
     assert encode_type_data(most, most) == H("FF") + H("FF") * 14
     assert decode_type_data(encode_type_data(most, most)) == (TypeData(most, most), 15)
