@@ -826,3 +826,12 @@ def test_a_type_data_nibble_holds_0_to_7_and_larger_values_take_up_to_7_bytes() 
 def test_a_cut_type_data_parameter_is_named(encoded: str) -> None:
     with pytest.raises(PcccFormatError, match=r"too short for type/data parameter$"):
         decode_type_data(H(encoded))
+
+
+def test_a_tns_still_outstanding_is_skipped_for_the_next_number_up() -> None:
+    """Unique among outstanding commands and incrementing: with 5 held, the wrap-around gives 6."""
+    allocator = TnsAllocator(start=5)
+    held = allocator.allocate()
+    for _ in range(0xFFFF):
+        allocator.release(allocator.allocate())
+    assert held == 5 and allocator.allocate() == 6
