@@ -751,8 +751,9 @@ def test_a_truncated_command_names_the_field_it_stops_in(body: str, length: int,
 
 
 def test_a_reply_cut_before_its_ext_sts_says_so() -> None:
-    with pytest.raises(PcccFormatError, match=r"too short for EXT STS$"):
+    with pytest.raises(PcccFormatError, match=r"too short for EXT STS$") as raised:
         decode_reply(H("00 01 4F F0 01 00"))
+    assert raised.value.header == PcccHeader(0, 1, 0x4F, 0xF0, 1)  # what a controller would answer STS 10 to
 
 
 def test_a_logical_binary_address_has_a_one_byte_mask_and_16_bit_levels_and_names_them() -> None:
