@@ -629,3 +629,210 @@ def test_a_pccc_error_without_command_or_description_has_empty_ones() -> None:
 
     error = PcccError("refused", sts=0x10)
     assert (error.command, error.description, error.reason, error.code) == ("", "", "", 0x10)
+
+
+# --- what a simulated SLC answers to diagnostic status, and the reply fields read from it ---------
+
+
+def test_a_built_diagnostic_status_is_the_slc_layout_byte_for_byte() -> None:
+    """mode, EE, 00, processor type, series << 5 | FRN - 1, 11 catalog characters padded with spaces."""
+    built = DiagnosticStatusInfo.build(processor_type=0x49, series="b", frn=3, catalog="1747-L532")
+    assert built.raw == H("00 EE 00 49 22") + b"1747-L532  "
+    assert built.series == "B" and built.frn == 3
+    assert DiagnosticStatusInfo.build(processor_type=0x5B).raw == H("00 EE 00 5B 00") + b" " * 11
+    assert DiagnosticStatusInfo.build(processor_type=0x5B, catalog="1747-L5430XY").raw[5:] == b"1747-L5430X"
+
+
+def test_diagnostic_status_fields_past_the_reply_are_none() -> None:
+    four = DiagnosticStatusInfo(H("00 EE 00 49"))
+    assert four.processor_type == 0x49 and four.family is ProcessorFamily.SLC5_03
+    assert four.series is None and four.frn is None and four.catalog is None
+
+
+# --- refusals and malformed commands: what the error carries ------------------------------------
+
+
+def test_a_refusal_is_described_by_the_table_of_the_command_it_answers() -> None:
+    """EXT STS 07 is "Invalid address" for CMD 0E, "File is wrong size" for CMD 0F (Appendix A)."""
+    assert (decode_reply(H("00 01 4E F0 09 00 07")).error() or PcccError("")).description == "Invalid address"
+    assert (decode_reply(H("00 01 4F F0 09 00 07")).error() or PcccError("")).description == "File is wrong size"
+
+
+def test_raising_a_refusal_without_a_command_name_has_no_label() -> None:
+    with pytest.raises(PcccError) as raised:
+        decode_reply(H("00 01 4F 10 01 00")).raise_for_status()
+    assert str(raised.value).startswith("controller refused: STS 0x10")
+
+
+@pytest.mark.parametrize("address", ["94 06 81 07", "94 03 80 07", "94 0A 80 07"])
+def test_read_file_info_takes_only_mask_06_major_type_80(address: str) -> None:
+    """Notes §7.5: 94 06 80 <file>; another mask or major type is not a data table file."""
+    with pytest.raises(PcccFormatError, match="mask 06, major type 80") as raised:
+        decode_command(H("01 00 0F 00 01 00") + H(address))
+    assert raised.value.header == PcccHeader(1, 0, 0x0F, 0, 1)
+
+
+def test_typed_data_elements_are_at_least_one_byte() -> None:
+    assert encode_typed_data(DataType.BYTE_STRING, 1, b"AB") == H("93 09 31") + b"AB"
+    assert TypedWrite(_N7, DataType.BYTE_STRING, 1, b"A").element_size == 1
+    for size in (0, -2):
+        with pytest.raises(InvalidRequest):
+            encode_typed_data(DataType.INTEGER, size, b"\x01\x00")
+        with pytest.raises(InvalidRequest):
+            TypedWrite(_N7, DataType.INTEGER, size, b"\x01\x00")
+
+
+def test_a_malformed_typed_write_says_what_is_wrong_with_its_data() -> None:
+    with pytest.raises(PcccFormatError, match="3 data bytes are not whole 2-byte elements") as raised:
+        decode_command(H("01 00 0F 00 07 00 67 00 00 01 00 0F 00 07 00 00 42 01 00 02"))
+    assert raised.value.header is not None
+    with pytest.raises(PcccFormatError, match="typed write data"):
+        decode_command(H("01 00 0F 00 07 00 67 00 00 01 00 0F 00 07 00 00 42"))  # no data
+
+
+def test_a_word_range_write_takes_239_bytes_of_address_and_data() -> None:
+    """KF2 p. 5-57; the address N7:0 is 0F 00 07 00 00, five bytes."""
+    WordRangeWrite(_N7, bytes(234))
+    with pytest.raises(InvalidRequest, match="PCCC: address \\+ data bytes 241 out of range 1-239"):
+        WordRangeWrite(_N7, bytes(236))
+
+
+def test_read_modify_write_sends_every_set_and_reads_them_back() -> None:
+    """1770-6.5.16 p. 7-20: ADDRESS AND(2) OR(2), repeated to the end of the packet."""
+    from gateway.protocols.df1.pccc import ReadModifyWriteRequest
+
+    two = ReadModifyWriteRequest(((_N7, 0xFFFE, 0x0000), (LogicalBinaryAddress.of(0, 7, 1), 0xFFFF, 0x8000)))
+    packet = encode_command(two, dst=1, src=0, tns=3)
+    assert packet == H("01 00 0F 00 03 00 26 0F 00 07 00 00 FE FF 00 00 07 00 07 01 FF FF 00 80")
+    assert decode_command(packet).request == two
+    one = ReadModifyWriteRequest(((_N7, 0, 0xFFFF),))
+    assert decode_command(encode_command(one, dst=1, src=0, tns=3)).request == one
+    with pytest.raises(PcccFormatError, match="at least one address"):
+        decode_command(H("01 00 0F 00 03 00 26"))  # no set at all
+    for sets in (((_N7, 0x10000, 0),), ((_N7, 0, 0x10000),)):
+        with pytest.raises(InvalidRequest, match=r"PCCC: (AND|OR) mask 65536 out of range 0-65535"):
+            ReadModifyWriteRequest(sets)
+
+
+# --- a truncated packet: the error names the field the packet stops in ---------------------------
+
+_CUT = [
+    # (the whole command after DST SRC CMD STS TNS, how many of those bytes arrive, the field named)
+    ("0F A2 0A 07 89 00 00", 0, "function code"),
+    ("0F A2 0A 07 89 00 00", 1, "byte size"),
+    ("0F A2 0A 07 89 00 00", 2, "file number"),
+    ("0F A2 0A FF 2C 01 89 00 00", 3, "file number"),
+    ("0F A2 0A 07 89 00 00", 3, "file type"),
+    ("0F A2 0A 07 89 00 00", 4, "element"),
+    ("0F A2 0A 07 89 00 00", 5, "sub element"),
+    ("0F AB 02 03 85 00 00 0F 0F AA AA", 6, "bit mask"),
+    ("0F AA 04 07 89 00 00 01 00 02 00", 9, "write data"),
+    ("0F 01 00 00 02 00 0F 00 07 03 00 04", 1, "packet offset"),
+    ("0F 01 00 00 02 00 0F 00 07 03 00 04", 3, "total transaction"),
+    ("0F 01 00 00 02 00 0F 00 07 03 00 04", 5, "address mask"),
+    ("0F 01 00 00 02 00 0F 00 07 03 00 04", 7, "address level"),
+    ("0F 01 00 00 02 00 0F 00 07 FF 03 00 00 04", 10, "address level"),
+    ("0F 01 00 00 02 00 0F 00 07 03 00 04", 10, "byte size"),
+    ("0F 68 00 00 02 00 07 00 07 00 02 00", 10, "element count"),
+    ("0F 26 07 00 07 00 FE FF 00 00", 5, "AND mask"),
+    ("0F 26 07 00 07 00 FE FF 00 00", 7, "OR mask"),
+    ("0F 94 06 80 07", 3, "address level"),
+]
+
+
+@pytest.mark.parametrize(("body", "length", "field"), _CUT)
+def test_a_truncated_command_names_the_field_it_stops_in(body: str, length: int, field: str) -> None:
+    """What a controller (or the DF1 target) can log about a short command: where it ended."""
+    cmd, params = H(body)[0], H(body)[1:]
+    packet = bytes((1, 0, cmd, 0, 9, 0)) + params[:length]
+    with pytest.raises(PcccFormatError, match=f"too short for {field}$") as raised:
+        decode_command(packet)
+    assert raised.value.header == PcccHeader(1, 0, cmd, 0, 9)
+
+
+def test_a_reply_cut_before_its_ext_sts_says_so() -> None:
+    with pytest.raises(PcccFormatError, match=r"too short for EXT STS$") as raised:
+        decode_reply(H("00 01 4F F0 01 00"))
+    assert raised.value.header == PcccHeader(0, 1, 0x4F, 0xF0, 1)  # what a controller would answer STS 10 to
+
+
+def test_a_logical_binary_address_has_a_one_byte_mask_and_16_bit_levels_and_names_them() -> None:
+    LogicalBinaryAddress(0xFF, tuple(range(8)))
+    LogicalBinaryAddress(0x01, (0xFFFF,))
+    with pytest.raises(InvalidRequest, match="PCCC: address mask 256 out of range 1-255"):
+        LogicalBinaryAddress(0x100, tuple(range(9)))
+    with pytest.raises(InvalidRequest, match="PCCC: address level 65536 out of range 0-65535"):
+        LogicalBinaryAddress(0x01, (0x10000,))
+
+
+# --- header, reply and TNS bounds, and which byte is an owner node -------------------------------
+
+
+def test_every_header_byte_is_range_checked_and_named() -> None:
+    valid = dict(dst=1, src=0, cmd=0x0F, sts=0, tns=1)
+    for field, name, high in (("dst", "DST", 0xFF), ("src", "SRC", 0xFF), ("cmd", "CMD", 0xFF),
+                              ("sts", "STS", 0xFF), ("tns", "TNS", 0xFFFF)):
+        PcccHeader(**{**valid, field: high})
+        with pytest.raises(InvalidRequest, match=f"^PCCC: {name} {high + 1} out of range 0-{high}$"):
+            PcccHeader(**{**valid, field: high + 1})
+    with pytest.raises(InvalidRequest, match=r"^PCCC: TNS 65536 out of range"):
+        TnsAllocator(start=0x10000)
+
+
+def test_only_ext_sts_1a_and_1b_are_followed_by_an_owner_node() -> None:
+    """Notes §4.36: F0 1A / 1B carry the owner's node; another EXT STS's next byte is data."""
+    assert decode_reply(H("00 01 4F F0 09 00 1A")).owner_node is None  # the owner byte is optional
+    other = decode_reply(H("00 01 4F F0 09 00 06 12"))
+    assert other.owner_node is None and other.data == H("12")
+
+
+def test_a_reply_carries_ext_sts_exactly_with_sts_f0_and_both_are_bytes() -> None:
+    command = PcccHeader(1, 0, 0x0F, 0, 9)
+    with pytest.raises(InvalidRequest):
+        encode_reply(command, sts=0x10, ext_sts=0x06)
+    with pytest.raises(InvalidRequest, match=r"^PCCC: EXT STS 256 out of range 0-255$"):
+        encode_reply(command, sts=0xF0, ext_sts=0x100)
+    with pytest.raises(InvalidRequest, match=r"^PCCC: owner node 256 out of range 0-255$"):
+        encode_reply(command, sts=0xF0, ext_sts=0x1A, owner_node=0x100)
+    assert encode_reply(command, sts=0xF0, ext_sts=0xFF, owner_node=0xFF) == H("00 01 4F F0 09 00 FF FF")
+
+
+def test_a_reply_matches_a_command_given_as_a_bytearray() -> None:
+    packet = encode_command(ReadFileInfo(7), dst=1, src=0, tns=0x0102)
+    reply = decode_reply(encode_reply(decode_command(packet).header))
+    assert reply_matches(bytearray(packet), reply)
+
+
+def test_a_command_with_a_field_out_of_range_says_which_field() -> None:
+    with pytest.raises(PcccFormatError, match="PCCC: byte size 0 out of range 1-255") as raised:
+        decode_command(H("01 00 0F 00 01 00 A2 00 07 89 00 00"))
+    assert raised.value.header == PcccHeader(1, 0, 0x0F, 0, 1)
+
+
+def test_a_type_data_nibble_holds_0_to_7_and_larger_values_take_up_to_7_bytes() -> None:
+    """Notes, type/data parameter note: a nibble with bit 3 clear is the value itself (0-7)."""
+    assert encode_type_data(DataType.CONTROL, 7) == H("77")
+    assert encode_type_data(0, 8) == H("09 08")
+    assert encode_type_data(DataType.INTEGER, 0) == H("40")
+    most = (1 << 56) - 1
+    assert encode_type_data(most, most) == H("FF") + H("FF") * 14
+    assert decode_type_data(encode_type_data(most, most)) == (TypeData(most, most), 15)
+    for type_id, size, name in ((1 << 56, 0, "type ID"), (0, 1 << 56, "type size"), (-1, 0, "type ID"),
+                                (0, -1, "type size")):
+        with pytest.raises(InvalidRequest, match=f"^PCCC: {name} {type_id if name == 'type ID' else size} "):
+            TypeData(type_id, size)
+
+
+@pytest.mark.parametrize("encoded", ["", "4A 03", "A2 01"])
+def test_a_cut_type_data_parameter_is_named(encoded: str) -> None:
+    with pytest.raises(PcccFormatError, match=r"too short for type/data parameter$"):
+        decode_type_data(H(encoded))
+
+
+def test_a_tns_still_outstanding_is_skipped_for_the_next_number_up() -> None:
+    """Unique among outstanding commands and incrementing: with 5 held, the wrap-around gives 6."""
+    allocator = TnsAllocator(start=5)
+    held = allocator.allocate()
+    for _ in range(0xFFFF):
+        allocator.release(allocator.allocate())
+    assert held == 5 and allocator.allocate() == 6

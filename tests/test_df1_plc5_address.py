@@ -310,3 +310,93 @@ def test_an_octal_field_with_8_or_9_is_refused_naming_the_field(text: str, what:
 def test_a_logical_binary_mask_naming_no_level_1_to_4_is_refused(mask: int) -> None:
     with pytest.raises(AddressError, match="names no level"):
         decode_logical_binary(bytes([mask, 0, 7, 0, 0, 0]))
+
+
+# ------------------------------------------------- the byte-level builders' bounds, field by field
+
+
+def test_word_range_read_size_is_even_from_2_to_244_bytes() -> None:
+    """KF2 p. 5-57 / 1770-6.5.16: a word range read asks for whole words, at most 244 data bytes."""
+    address = encode_logical_binary(parse_plc5_address("N7:0"))
+    assert WordRangeReadParams(address, 2).encode() == bytes.fromhex("00 00 01 00 07 00 07 00 02")
+    assert WordRangeReadParams(address, 244).encode()[-1] == 244
+    for size in (0, 1, 245, 246):
+        with pytest.raises(AddressError, match=f"size {size}"):
+            WordRangeReadParams(address, size).encode()
+
+
+def test_word_range_write_takes_239_bytes_of_address_and_data() -> None:
+    address = encode_logical_binary(parse_plc5_address("N7:0"))  # 4 bytes
+    assert WordRangeWriteParams(address, bytes(234)).encode()[8:] == bytes(234)  # 4 + 234 = 238
+    with pytest.raises(AddressError, match="239"):
+        WordRangeWriteParams(address, bytes(236)).encode()  # 240
+    odd_address = encode_logical_binary(parse_plc5_address("N7:0"), compact=True)  # 3 bytes
+    WordRangeWriteParams(odd_address, bytes(236)).encode()  # 3 + 236 = 239: the limit itself
+
+
+def test_word_range_offset_and_total_are_sent_as_given_over_the_whole_16_bits() -> None:
+    """PACKET OFFSET and TOTAL TRANS are unsigned words, low byte first; a total given is sent as is."""
+    address = encode_logical_binary(parse_plc5_address("N7:0"))
+    read = WordRangeReadParams(address, 4, packet_offset=0xFFFF, total_transaction=0x8001)
+    assert read.encode() == bytes.fromhex("FF FF 01 80") + address + b"\x04"
+    assert WordRangeReadParams.decode(read.encode()) == read
+    write = WordRangeWriteParams(address, b"\x01\x00", packet_offset=0x8000, total_transaction=0xFFFF)
+    assert write.encode() == bytes.fromhex("00 80 FF FF") + address + b"\x01\x00"
+    assert WordRangeWriteParams.decode(write.encode()) == write
+
+
+@pytest.mark.parametrize(("field", "offset", "total"), [
+    ("packet offset", 0x10000, 1), ("total transaction", 0, 0x10000),
+    ("packet offset", -1, 1), ("total transaction", 0, -1),
+])
+def test_word_range_offset_and_total_outside_16_bits_are_refused_and_named(field: str, offset: int, total: int) -> None:
+    address = encode_logical_binary(parse_plc5_address("N7:0"))
+    value = offset if field == "packet offset" else total
+    with pytest.raises(AddressError, match=f"^{field} {value} out of range"):
+        WordRangeReadParams(address, 2, offset, total).encode()
+    with pytest.raises(AddressError, match=f"^{field} {value} out of range"):
+        WordRangeWriteParams(address, b"\x00\x00", offset, total).encode()
+
+
+@pytest.mark.parametrize("length", [0, 3])
+def test_word_range_parameters_cut_before_the_address_are_an_address_error(length: int) -> None:
+    params = WordRangeReadParams(encode_logical_binary(parse_plc5_address("N7:0")), 2).encode()
+    for decode in (WordRangeReadParams.decode, WordRangeWriteParams.decode):
+        with pytest.raises(AddressError, match="truncated"):
+            decode(params[:length])
+
+
+def test_read_modify_write_sets_take_243_bytes() -> None:
+    """p. 7-20: the ADDRESS AND OR sets of one command, at most 243 bytes; sets follow one another."""
+    address = encode_logical_binary(parse_plc5_address("N7:0"))  # 4 bytes: an 8-byte set
+    compact = encode_logical_binary(parse_plc5_address("N7:1"), compact=True)  # 3 bytes: a 7-byte set
+    two = ReadModifyWrite(((address, 0x00FF, 0x0100), (compact, 0xFFFF, 0x0000)))
+    assert two.encode() == address + bytes.fromhex("FF 00 00 01") + compact + bytes.fromhex("FF FF 00 00")
+    assert ReadModifyWrite.decode(two.encode()) == two
+    assert len(ReadModifyWrite(((compact, 0, 0),) * 5 + ((address, 0, 0),) * 26).encode()) == 243
+    with pytest.raises(AddressError, match="243"):
+        ReadModifyWrite(((compact, 0, 0),) * 4 + ((address, 0, 0),) * 27).encode()  # 244
+    with pytest.raises(AddressError, match="at least one"):
+        ReadModifyWrite(()).encode()
+
+
+@pytest.mark.parametrize(("sets", "field"), [(((0x10000, 0),), "AND mask"), (((0, 0x10000),), "OR mask"),
+                                             (((-1, 0),), "AND mask"), (((0, -1),), "OR mask")])
+def test_read_modify_write_masks_outside_16_bits_are_refused_and_named(sets: tuple[tuple[int, int]],
+                                                                      field: str) -> None:
+    address = encode_logical_binary(parse_plc5_address("N7:0"))
+    ReadModifyWrite(((address, 0xFFFF, 0xFFFF),)).encode()
+    with pytest.raises(AddressError, match=f"^{field} "):
+        ReadModifyWrite(tuple((address, m_and, m_or) for m_and, m_or in sets)).encode()
+
+
+def test_a_coil_write_addresses_bits_0_to_15_of_the_word() -> None:
+    address = encode_logical_binary(parse_plc5_address("B3:0"))
+    assert ReadModifyWrite.set_bit(address, 0).sets == ((address, 0xFFFF, 0x0001),)
+    assert ReadModifyWrite.reset_bit(address, 0).sets == ((address, 0xFFFE, 0x0000),)
+    assert ReadModifyWrite.set_bit(address, 15).sets == ((address, 0xFFFF, 0x8000),)
+    for bit in (-1, 16):
+        with pytest.raises(AddressError, match=f"bit {bit} out of range"):
+            ReadModifyWrite.set_bit(address, bit)
+        with pytest.raises(AddressError, match=f"bit {bit} out of range"):
+            ReadModifyWrite.reset_bit(address, bit)

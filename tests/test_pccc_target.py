@@ -537,3 +537,96 @@ def test_floats_keep_their_bits_through_typed_write_and_read(element: int, value
     )
     typed = decode_typed_data(decode_reply(run(target, TypedRead(address, len(values))).reply or b"").data)
     assert (typed.data_type, typed.element_size, typed.data) == (DataType.FLOAT, 4, data)
+
+
+# ------------------------------------------------------------- limits, offsets, what a reply names
+
+
+def test_a_typed_read_reply_never_exceeds_244_bytes() -> None:
+    """KF2 p. 5-57: 244 reply data bytes; 120 words are 99 09 F1 42 + 240 bytes, 121 would be 246."""
+    target = make_target()
+    reply = decode_reply(run(target, TypedRead(LogicalBinaryAddress.for_element(10, 0), 120)).reply or b"")
+    assert len(reply.data) == 244 and reply.data[:4] == H("99 09 F1 42")
+    assert run(target, TypedRead(LogicalBinaryAddress.for_element(10, 0), 121)).sts == 0x10
+
+
+def test_a_typed_write_takes_240_bytes_of_address_type_data_and_data() -> None:
+    """1770-6.5.16 p. 7-30, KF2 p. 5-51: address 07 00 0A FF 00 01 (6) + 99 09 E7 42 (4) + 230 data = 240."""
+    target = make_target()
+    address = LogicalBinaryAddress.of(0, 10, 256)
+    assert run(target, TypedWrite(address, DataType.INTEGER, 2, bytes(230))).sts == 0
+    assert run(target, TypedWrite(address, DataType.INTEGER, 2, bytes(232))).sts == 0x10
+
+
+def test_a_typed_read_with_a_packet_offset_reads_from_the_element_plus_the_offset() -> None:
+    target = make_target()
+    for element in range(6):
+        target.table[7].set_value(element, 10 + element, 0.0)
+    result = run(target, TypedRead(N7(2), 2, packet_offset=1, total=3))
+    assert decode_typed_data(decode_reply(result.reply or b"").data).data == H("0D 00 0E 00")  # N7:3, N7:4
+
+
+def test_the_reply_names_the_request_it_answered_whether_done_or_refused() -> None:
+    target = make_target()
+    read = ProtectedTypedLogicalRead(FileType.INTEGER, 7, 0, 0, 2)
+    assert run(target, read).request == read
+    refused = ProtectedTypedLogicalRead(FileType.INTEGER, 11, 0, 0, 2)
+    assert run(target, refused).request == refused
+    too_big = WordRangeRead(N7(0), 4, packet_offset=1, total=2)
+    assert run(target, too_big).request == too_big
+
+
+def test_a_whole_first_packet_abandons_the_transaction_under_way_and_applies() -> None:
+    target = make_target()
+    run(target, WordRangeWrite(N7(0), H("01 00"), packet_offset=0, total=2))
+    whole = run(target, WordRangeWrite(N7(0), H("07 00 08 00"), packet_offset=0, total=2))
+    assert not whole.pending and [t.key for t in whole.abandoned] == [(2, 0x00, 7, 0, 2)]
+    assert [target.table[7].value(e) for e in (0, 1)] == [7, 8]
+
+
+def test_the_diagnostic_status_name_is_11_characters_padded_with_spaces() -> None:
+    assert diagnostic_status_reply("ABCDEFGHIJKL")[5:16] == b"ABCDEFGHIJK"
+    assert len(diagnostic_status_reply("ABCDEFGHIJKL")) == 24
+    assert diagnostic_status_reply("GW")[5:16] == b"GW" + b" " * 9
+
+
+def test_the_data_table_records_when_each_element_was_written_and_can_forget_it() -> None:
+    table = DataTable()
+    n7 = table.add(TableFileKind.INTEGER, 7, 3)
+    assert table[7] is n7 and (n7.kind, n7.number, n7.count) == (TableFileKind.INTEGER, 7, 3)
+    with pytest.raises(ValueError, match="file number 7 is defined twice"):
+        table.add(TableFileKind.FLOAT, 7, 1)
+    n7.set_value(1, 5, 3.5)
+    assert n7.value(1) == 5 and n7.written_at(1) == 3.5
+    n7.forget(1)
+    assert n7.value(1) is None and n7.written_at(1) is None
+    assert n7.read_bytes(2, 2) == (H("00 00"), (1,))
+    for element in (3, -1):
+        with pytest.raises(IndexError, match=f"N7: element {element} outside 0-2"):
+            n7.forget(element)
+        with pytest.raises(IndexError, match=f"N7: element {element} outside 0-2"):
+            n7.set_value(element, 1, 0.0)
+        with pytest.raises(IndexError, match=f"N7: element {element} outside 0-2"):
+            n7.value(element)
+
+
+def test_a_masked_write_at_an_odd_byte_keeps_the_bits_outside_the_mask() -> None:
+    """write_bytes: mask[i % 2] over data byte i, the old bits kept where the mask is 0."""
+    n7 = TableFile(TableFileKind.INTEGER, 7, 2)
+    n7.write_bytes(0, H("34 12 78 56"), 1.0)
+    assert n7.write_bytes(1, H("FF FF"), 2.0, mask=H("0F F0")) == (0, 1)
+    assert n7.read_bytes(0, 4) == (H("34 1F F8 56"), ())  # byte 1: (12 & F0) | (FF & 0F); byte 2: (78 & 0F) | F0
+
+
+def test_a_byte_range_of_no_bytes_is_outside_every_file() -> None:
+    n7 = TableFile(TableFileKind.INTEGER, 7, 2)
+    with pytest.raises(IndexError):
+        n7.read_bytes(0, 0)
+    with pytest.raises(IndexError):
+        n7.write_bytes(0, b"", 0.0)
+
+
+@pytest.mark.parametrize("spec", ["Nx:2", "N7:x", "N:2", "N7:2:3"])
+def test_a_data_table_spec_error_shows_what_a_spec_looks_like(spec: str) -> None:
+    with pytest.raises(ValueError, match="expected a spec like N7:100"):
+        DataTable.of(spec)

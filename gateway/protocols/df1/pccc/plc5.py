@@ -220,8 +220,9 @@ class WordRangeWrite(Parameters):
     def __post_init__(self) -> None:
         if not self.data or len(self.data) % 2:
             raise InvalidRequest("PCCC: word range write data must be a non-zero even number of bytes")
-        check_range("address + data bytes", len(self.address.encode()) + len(self.data), 1,
-                    PLC5_WORD_RANGE.max_write_bytes)
+        size, most = len(self.address.encode()) + len(self.data), PLC5_WORD_RANGE.max_write_bytes
+        if size > most:
+            raise InvalidRequest(f"PCCC: address + data bytes {size} out of range 1-{most}")
         self.check_params()
         if self.total is None:
             self.fill_default("total", len(self.data) // 2)
@@ -266,8 +267,6 @@ class _TypedBody:
             typed = decode_typed_data(reader.rest())
         except (PcccFormatError, InvalidRequest) as exc:
             raise reader.fail(str(exc)) from exc
-        if not typed.data or not typed.element_size:
-            raise reader.fail("PCCC: typed write without data")
         decoded.values.update(data_type=typed.data_type, element_size=typed.element_size, data=typed.data)
 
     def check(self, request: Any) -> None:
@@ -317,7 +316,7 @@ class _MaskSets:
 
     def decode(self, reader: Reader, decoded: Decoded) -> None:
         sets: list[tuple[LogicalBinaryAddress, int, int]] = []
-        while not sets or reader.pos < len(reader.data):
+        while reader.pos < len(reader.data):  # no set at all: check() refuses it
             address = LogicalBinaryAddress.read(reader)
             sets.append((address, reader.u16("AND mask"), reader.u16("OR mask")))
         decoded.values[self.attr] = tuple(sets)
@@ -371,12 +370,13 @@ def _checked_word_range(packet_offset: int, total: int, address: bytes, tail: by
     return word_range_params(_u16("packet offset", packet_offset), _u16("total transaction", total), address, tail)
 
 
-def _word_range_head(params: bytes, least: int, what: str) -> tuple[int, int, int]:
-    """PACKET OFFSET, TOTAL TRANS and where the address after them ends, of the word range
-    ``what`` parameters (at least ``least`` bytes)."""
-    if len(params) < least:
-        raise AddressError(f"word range {what} parameters are truncated")
-    offset, total = struct.unpack_from("<HH", params)
+def _word_range_head(params: bytes) -> tuple[int, int, int]:
+    """PACKET OFFSET, TOTAL TRANS and where the address after them ends (AddressError when the
+    parameters stop inside them: the address decoders say so for the address)."""
+    try:
+        offset, total = struct.unpack_from("<HH", params)
+    except struct.error:
+        raise AddressError("word range parameters are truncated") from None
     return offset, total, _address_end(params, 4)
 
 
@@ -402,7 +402,7 @@ class WordRangeReadParams:
 
     @classmethod
     def decode(cls, params: bytes) -> WordRangeReadParams:
-        offset, total, end = _word_range_head(params, 6, "read")
+        offset, total, end = _word_range_head(params)
         if end + 1 != len(params):
             raise AddressError("word range read: one SIZE byte must follow the address")
         return cls(params[4:end], params[end], offset, total)
@@ -428,7 +428,7 @@ class WordRangeWriteParams:
 
     @classmethod
     def decode(cls, params: bytes) -> WordRangeWriteParams:
-        offset, total, end = _word_range_head(params, 5, "write")
+        offset, total, end = _word_range_head(params)
         return cls(params[4:end], params[end:], offset, total)
 
 

@@ -366,5 +366,5 @@ class DiagnosticStatusInfo:
     ) -> DiagnosticStatusInfo:
         """Reply data a simulated controller can send."""
         series_revision = (ord(series.upper()) - ord("A")) << 5 | (frn - 1) & 0x1F
-        name = catalog.encode("ascii")[:11].ljust(11, b" ")
+        name = catalog.encode("ascii")[:11].ljust(11)  # bytes.ljust pads with spaces
         return cls(bytes((mode_status, 0xEE, 0x00, processor_type, series_revision & 0xFF)) + name)

@@ -91,7 +91,6 @@ from gateway.protocols.df1.pccc.plc5 import (
     TypedWrite,
     WordRangeRead,
     WordRangeWrite,
-    encode_type_data,
     encode_typed_data,
 )
 from gateway.protocols.df1.pccc.slc import (
@@ -164,7 +163,7 @@ _SlcWrite = ProtectedTypedLogicalWrite | ProtectedTypedLogicalTwoFieldWrite | Pr
 
 def diagnostic_status_reply(name: str = GATEWAY_NAME) -> bytes:
     """The 24 data bytes of the diagnostic status reply (module docstring)."""
-    return bytes((0x00, 0xFE, 0x00, 0x00, 0x00)) + name.encode("ascii")[:11].ljust(11, b" ") + bytes(8)
+    return bytes((0x00, 0xFE, 0x00, 0x00, 0x00)) + name.encode("ascii")[:11].ljust(11) + bytes(8)
 
 
 @dataclass(frozen=True, slots=True)
@@ -190,8 +189,9 @@ class TargetReply:
 
 
 class _Refused(Exception):
+    """A command refused; :meth:`PcccTarget.execute` turns it into the reply (never raised further)."""
+
     def __init__(self, problem: Problem, abandoned: tuple[Transfer, ...] = ()) -> None:
-        super().__init__(problem.value)
         self.problem = problem
         self.abandoned = abandoned
 
@@ -291,7 +291,7 @@ class PcccTarget:
                 table_file, element = self._resolve(request.address)
                 type_id, unit = self._typed(table_file), table_file.kind.element_bytes
                 size = request.count * unit
-                if len(encode_type_data(type_id, size)) + size > _TYPED_READ_BYTES:
+                if len(encode_typed_data(type_id, unit, bytes(size))) > _TYPED_READ_BYTES:  # the reply's data
                     raise _Refused(Problem.FORMAT)
                 if request.packet_offset + request.count > request.total_elements:
                     raise _Refused(Problem.FORMAT)

@@ -101,11 +101,10 @@ class Transfers:
         now: float,
     ) -> TransferOutcome:
         """One write packet of ``data`` at ``offset`` units of a ``total``-unit transaction (checked to fit)."""
-        units = len(data) // unit_bytes
         if offset == 0:
             replaced = self._open.pop(key, None)
             abandoned: tuple[Transfer, ...] = () if replaced is None else (replaced,)
-            if units == total:
+            if len(data) == total * unit_bytes:
                 return TransferOutcome(complete=data, abandoned=abandoned)
             if len(self._open) >= self.limit:
                 oldest = min(self._open.values(), key=lambda t: t.last_at)
