@@ -382,6 +382,23 @@ def test_a_partial_frame_is_need_data() -> None:
     assert decoder.next_event() is NEED_DATA
 
 
+def test_a_partial_frame_given_up_is_reported_garbled_once() -> None:
+    """The inter-character timeout gives up on a frame without CR: it is one Garbled line, its bytes
+    forgotten; with nothing partial there is nothing to report, and the next frame decodes."""
+    decoder = ReplyDecoder()
+    assert decoder.flush_partial() is None
+    decoder.receive_data(b"noise;R03")
+    assert decoder.partial
+    garbled = decoder.flush_partial()
+    assert isinstance(garbled, Garbled)
+    assert garbled.raw == b";R03"
+    assert not decoder.partial
+    assert decoder.flush_partial() is None
+    decoder.receive_data(GOOD)
+    assert decoder.next_event() == Ack(4)
+    assert decoder.next_event() is NEED_DATA
+
+
 def test_reply_decoder_ignores_host_frames_leading_character() -> None:
     # '#' is not a reply leading character: an echoed command is line noise to the host.
     assert decode_replies(b"#010800A3\r" + GOOD) == [Ack(4)]
@@ -576,7 +593,7 @@ def test_line_splitter_matches_the_byte_by_byte_reference(chunks: list[bytes], s
             reference.feed(stream[i : i + size])
         lines = []
         while (line := fast.next_line()) is not None:
-            lines.append(line)
+            lines.append((line.raw, line.reason) if isinstance(line, Garbled) else (line, ""))
         assert lines == reference.pending
         assert fast.buffered == len(reference.buffer)
 
