@@ -15,8 +15,10 @@ from gateway.protocols.slc_ascii.memory_map import (
     MEMORY_MAP,
     READ_RANGES,
     Access,
+    AddressRange,
     Item,
     ItemKind,
+    Region,
     accumulator_address,
     all_user_bits,
     byte_to_user_bit,
@@ -121,6 +123,23 @@ def test_no_access_cells_are_the_double_star_rows() -> None:
 def test_read_only_cells_are_the_star_rows() -> None:
     read_only = {a for r in MEMORY_MAP if r.access is Access.READ_ONLY for a in range(r.start, r.end + 1)}
     assert read_only == {0x82, 0x83, *range(0x96, 0xEC), 0x100}
+
+
+@pytest.mark.parametrize("kind", ["range", "region"])
+def test_ranges_and_regions_lie_in_the_16_bit_address_space(kind: str) -> None:
+    """Both are inclusive ``start``-``end`` spans of four-hex-digit addresses; one address is a span too."""
+
+    def build(start: int, end: int) -> AddressRange | Region:
+        if kind == "range":
+            return AddressRange(start, end, "test")
+        return Region("test", start, end, Access.READ_WRITE)
+
+    assert 0xFFFF in build(0x0000, 0xFFFF)
+    assert 0x0000 in build(0x0000, 0x0000)
+    assert 0x0113 not in build(0x0000, 0x0112)
+    for start, end in [(-1, 0), (0x0000, 0x10000), (0x0085, 0x0084)]:
+        with pytest.raises(ValueError, match=f"0x{start:04X}-0x{end:04X}"):
+            build(start, end)
 
 
 def test_read_ranges_verbatim() -> None:
