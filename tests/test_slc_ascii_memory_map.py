@@ -212,6 +212,9 @@ def test_every_byte_of_a_readable_region_can_be_read() -> None:
 def test_readable(address: int, count: int) -> None:
     assert is_readable(address, count)
     check_readable(address, count)
+    if count == 1:  # one byte unless told otherwise, as command 02 is built
+        assert is_readable(address)
+        check_readable(address)
 
 
 @pytest.mark.parametrize(
