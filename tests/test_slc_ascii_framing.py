@@ -431,6 +431,7 @@ def test_command_frames(frame: bytes, expected: HostEvent, trailer: bytes, feede
         frame_of("#", "0108" "AA" "00"),  # byte count 1, one parameter byte too many
         frame_of("#", "01" "00"),  # no command code
         frame_of("#", "010" "00"),  # odd number of hex digits
+        frame_of("#", "01" "GG" "00"),  # whole bytes, but not hex
         frame_of(";", "Q01"),  # unknown ; command
         frame_of(";", "Z0101"),  # ;Z too long
         b"#010800A4\r",  # bad CRC
