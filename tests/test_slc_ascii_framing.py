@@ -295,6 +295,10 @@ def test_lower_case_hex_is_accepted(feeder: Feeder) -> None:
     text = "021ffe1547" "0a"
     frame = f":{text}{crc(text.encode()):02x}\r".encode()
     assert decode_replies(frame, feeder) == [DataReply("021FFE1547", 0x0A)]
+    # a sender that computes the CRC over the upper-case text and then sends it in lower case
+    over_upper = f":{text}{crc(text.upper().encode()):02X}\r".encode()
+    assert crc(text.upper().encode()) != crc(text.encode())
+    assert decode_replies(over_upper, feeder) == [DataReply("021FFE1547", 0x0A)]
 
 
 def test_two_and_four_digit_counts_parse_to_the_same_data() -> None:
