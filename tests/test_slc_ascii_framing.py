@@ -368,6 +368,18 @@ def test_long_garbage_without_cr_is_dropped_and_the_next_frame_decodes(feeder: F
     assert events[-1] == Ack(4)
 
 
+def test_a_line_of_max_frame_characters_waits_for_its_cr_and_one_more_is_too_long() -> None:
+    decoder = ReplyDecoder()
+    decoder.receive_data(b";" + b"0" * (MAX_FRAME - 1))
+    assert decoder.next_event() is NEED_DATA
+    assert decoder.partial
+    decoder.receive_data(b"0")
+    garbled = decoder.next_event()
+    assert isinstance(garbled, Garbled)
+    assert garbled.raw == b";" + b"0" * (MAX_FRAME - 1)
+    assert not decoder.partial
+
+
 def test_longest_real_frame_fits() -> None:
     block = cmds.download_block(0xA4, bytes(7) + bytes(8), controller=cmds.ControllerType.SLC150)
     frame = frame_command(block, 0x7F)
