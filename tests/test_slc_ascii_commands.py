@@ -115,6 +115,13 @@ def test_names() -> None:
     assert download_block(0x7A, bytes(15), controller=ControllerType.SLC100).name == "download block 0x7A"
 
 
+def test_program_transfers_wait_the_slow_reply_time() -> None:
+    """Upload and download blocks are answered in program mode, as slowly as a mode change."""
+    assert upload_block().timeout_class is TimeoutClass.SLOW
+    assert download_block(0, BLOCK, controller=ControllerType.SLC100).timeout_class is TimeoutClass.SLOW
+    assert set_mode(Mode.PROGRAM).timeout_class is TimeoutClass.SLOW
+
+
 def test_set_mode_accepts_the_int_value() -> None:
     assert set_mode(0x06) == set_mode(Mode.PROGRAM)  # type: ignore[arg-type]
 
