@@ -19,12 +19,14 @@ from gateway.protocols.slc_ascii.commands import (
     TimeoutClass,
     UploadBlock,
     WordReply,
+    answers,
     controller_fault,
     decode_error_bits,
     download_block,
     error_description,
     parse_frn_reply,
     parse_read_reply,
+    parse_reply,
     parse_upload_reply,
     parse_word_reply,
     read_bytes,
@@ -113,6 +115,13 @@ def test_names() -> None:
     assert download_block(0x7A, bytes(15), controller=ControllerType.SLC100).name == "download block 0x7A"
 
 
+def test_program_transfers_wait_the_slow_reply_time() -> None:
+    """Upload and download blocks are answered in program mode, as slowly as a mode change."""
+    assert upload_block().timeout_class is TimeoutClass.SLOW
+    assert download_block(0, BLOCK, controller=ControllerType.SLC100).timeout_class is TimeoutClass.SLOW
+    assert set_mode(Mode.PROGRAM).timeout_class is TimeoutClass.SLOW
+
+
 def test_set_mode_accepts_the_int_value() -> None:
     assert set_mode(0x06) == set_mode(Mode.PROGRAM)  # type: ignore[arg-type]
 
@@ -180,8 +189,11 @@ def test_write_byte_rejects(address: int, value: int, message: str) -> None:
 
 @pytest.mark.parametrize("mode", [0x81, 0x00, 0x8C + 1, True, "RUN", None])
 def test_set_mode_rejects(mode: object) -> None:
-    with pytest.raises(InvalidRequest, match=r"is not allowed: the data byte is limited to RUN \(0x80\)"):
+    with pytest.raises(InvalidRequest, match=r"is not allowed: the data byte is limited to ") as refused:
         set_mode(mode)  # type: ignore[arg-type]
+    # the refusal lists the manual's four data bytes, each with its mode
+    assert str(refused.value).endswith(
+        "RUN (0x80), SAVE_TO_EEPROM (0x8C), CONTINUOUS_TEST (0x82), PROGRAM (0x06)")
 
 
 def test_download_block_ranges() -> None:
@@ -325,6 +337,7 @@ def test_parse_read_reply(address: int, count: int, body_hex: str, data: bytes) 
         (0x0084, 2, "01" "0084" "81", r"reply echoes 1 byte\(s\) at 0x0084"),
         (0x0084, 1, "02" "0084" "8105", r"reply echoes 2 byte\(s\)"),
         (0x0084, 1, "0002" "0084" "8105", r"reply echoes 2 byte\(s\)"),
+        (0x0084, 1, "10" "0084" + "00" * 16, r"reply echoes 16 byte\(s\)"),  # the count is hex: 10H
         (0x0084, 1, "01" "0084", "is not <count><address><data>"),
         (0x0084, 1, "01" "0084" "8100", "is not <count><address><data>"),
         (0x0084, 1, "", "is not <count><address><data>"),
@@ -343,6 +356,9 @@ def test_parse_read_reply_rejects(address: int, count: int, body_hex: str, messa
 def test_parse_read_reply_checks_the_request() -> None:
     with pytest.raises(InvalidRequest, match="no-access"):
         parse_read_reply(0x0080, 1, "01008000")
+    # one byte at 00E3H is readable, two are not (00E4H is not in the "Reading Data" list)
+    with pytest.raises(InvalidRequest, match="would also read 0x00E4"):
+        parse_read_reply(0x00E3, 2, "0200E30102")
 
 
 @given(
@@ -374,6 +390,8 @@ def test_parse_frn_reply() -> None:
         ("011FFE10", r"expected 2 bytes at 0x1FFE, got 1 at 0x1FFE"),
         ("021FFE10", "is not <count><address><data>"),
         ("1005", "is not <count><address><data>"),
+        ("001FFE", r"expected 2 bytes at 0x1FFE, got 0 at 0x1FFE"),  # a count with no data
+        ("00001FFE", r"expected 2 bytes at 0x1FFE, got 0 at 0x1FFE"),
     ],
 )
 def test_parse_frn_reply_rejects(body_hex: str, message: str) -> None:
@@ -425,6 +443,8 @@ def test_parse_word_reply(body_hex: str, expected: WordReply) -> None:
     ("body_hex", "message"),
     [
         ("01" "0385" "03", r"expected a 2-byte word, got 1 byte\(s\)"),
+        ("00" "0385", r"expected a 2-byte word, got 0 byte\(s\)"),
+        ("0000" "0385", r"expected a 2-byte word, got 0 byte\(s\)"),
         ("02" "0385" "03", "is not <count><address><data>"),
         ("", "is not <count><address><data>"),
     ],
@@ -439,6 +459,58 @@ def test_parse_word_reply_rejects(body_hex: str, message: str) -> None:
 def test_word_reply_round_trip(user_address: int, word: int, digits: int) -> None:
     reply = parse_word_reply(f"{2:0{digits}X}{user_address:04X}{word:04X}")
     assert reply == WordReply(user_address, word & 0x7FFF, word >= 0x8000)
+
+
+@pytest.mark.parametrize(
+    ("command", "body_hex", "reply"),
+    [
+        # the manual's one printed data reply, ":021FFE <device type> <FRN #>" ("10 for SLC", "05 for FRN 5")
+        (read_frn(), "021FFE1005", FrnInfo(0x10, 5, ControllerType.SLC100, 0x05)),
+        (read_frn(), "00021FFE1547", FrnInfo(0x15, 47, ControllerType.SLC150, 0x47)),
+        # ":<number of bytes> <address> <data byte(s)>", the count with 2 or 4 digits
+        (read_bytes(0x0084), "01008481", b"\x81"),
+        (read_bytes(0x0084, 2), "000200848105", b"\x81\x05"),
+        (read_bytes(0x0112), "0001011207", b"\x07"),  # an address above 00FFH
+        (read_bytes(0x0102, 2), "0201020304", b"\x03\x04"),
+        # ":<block #> <15 bytes>"
+        (upload_block(), "7A" + "01" * 7 + "00" * 8, UploadBlock(0x7A, b"\x01" * 7 + bytes(8))),
+        # ":02 <user address> <preset word>" / "<accumulator word>", protect bit masked out
+        (read_sequencer_preset(1, 2), "02" "0385" "83E8", WordReply(0x0385, 1000, True)),
+        (read_reset_accumulator(1), "0002" "0901" "270F", WordReply(0x0901, 9999, False)),
+    ],
+)
+def test_parse_reply_parses_each_data_command_s_reply_with_its_own_parser(
+    command: Command, body_hex: str, reply: object
+) -> None:
+    assert parse_reply(command, body_hex) == reply
+    assert answers(command, body_hex)
+
+
+@pytest.mark.parametrize(
+    ("command", "body_hex"),
+    [
+        (read_bytes(0x0112), "01001207"),  # echoes 0012H, not 0112H
+        (read_bytes(0x0084), "7A" + "00" * 15),  # an upload block
+        (read_frn(), "02038503E8"),  # a word reply
+        (upload_block(), "021FFE1005"),  # an FRN reply
+        (read_sequencer_preset(1, 2), "7A" + "00" * 15),
+        (read_reset_accumulator(1), "021FFE1005" "00"),
+        (write_word(0x0040, 1), "02004003E8"),  # a write is answered ;R, never with data
+        (download_block(0, BLOCK, controller=ControllerType.SLC100), "7A" + "00" * 15),
+    ],
+)
+def test_a_data_reply_that_does_not_answer_the_command_is_refused(command: Command, body_hex: str) -> None:
+    with pytest.raises(ProtocolError):
+        parse_reply(command, body_hex)
+    assert not answers(command, body_hex)
+
+
+def test_a_read_whose_count_field_is_not_1_or_2_has_no_answer() -> None:
+    """A hand-built read of 0101H bytes: no reply answers it, not even one byte at its address."""
+    bad = Command(CommandCode.READ, bytes.fromhex("0101" "0084"), "bad read", ReplyKind.DATA, TimeoutClass.NORMAL,
+                  is_write=False)
+    with pytest.raises(InvalidRequest, match="byte count 257 is not allowed"):
+        parse_reply(bad, "01008481")
 
 
 # ---------------------------------------------------------------------------------------------

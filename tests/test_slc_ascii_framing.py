@@ -295,6 +295,10 @@ def test_lower_case_hex_is_accepted(feeder: Feeder) -> None:
     text = "021ffe1547" "0a"
     frame = f":{text}{crc(text.encode()):02x}\r".encode()
     assert decode_replies(frame, feeder) == [DataReply("021FFE1547", 0x0A)]
+    # a sender that computes the CRC over the upper-case text and then sends it in lower case
+    over_upper = f":{text}{crc(text.upper().encode()):02X}\r".encode()
+    assert crc(text.upper().encode()) != crc(text.encode())
+    assert decode_replies(over_upper, feeder) == [DataReply("021FFE1547", 0x0A)]
 
 
 def test_two_and_four_digit_counts_parse_to_the_same_data() -> None:
@@ -364,6 +368,18 @@ def test_long_garbage_without_cr_is_dropped_and_the_next_frame_decodes(feeder: F
     assert events[-1] == Ack(4)
 
 
+def test_a_line_of_max_frame_characters_waits_for_its_cr_and_one_more_is_too_long() -> None:
+    decoder = ReplyDecoder()
+    decoder.receive_data(b";" + b"0" * (MAX_FRAME - 1))
+    assert decoder.next_event() is NEED_DATA
+    assert decoder.partial
+    decoder.receive_data(b"0")
+    garbled = decoder.next_event()
+    assert isinstance(garbled, Garbled)
+    assert garbled.raw == b";" + b"0" * (MAX_FRAME - 1)
+    assert not decoder.partial
+
+
 def test_longest_real_frame_fits() -> None:
     block = cmds.download_block(0xA4, bytes(7) + bytes(8), controller=cmds.ControllerType.SLC150)
     frame = frame_command(block, 0x7F)
@@ -379,6 +395,23 @@ def test_a_partial_frame_is_need_data() -> None:
     assert decoder.next_event() is NEED_DATA
     decoder.receive_data(b"\r")
     assert decoder.next_event() == Ack(3)
+    assert decoder.next_event() is NEED_DATA
+
+
+def test_a_partial_frame_given_up_is_reported_garbled_once() -> None:
+    """The inter-character timeout gives up on a frame without CR: it is one Garbled line, its bytes
+    forgotten; with nothing partial there is nothing to report, and the next frame decodes."""
+    decoder = ReplyDecoder()
+    assert decoder.flush_partial() is None
+    decoder.receive_data(b"noise;R03")
+    assert decoder.partial
+    garbled = decoder.flush_partial()
+    assert isinstance(garbled, Garbled)
+    assert garbled.raw == b";R03"
+    assert not decoder.partial
+    assert decoder.flush_partial() is None
+    decoder.receive_data(GOOD)
+    assert decoder.next_event() == Ack(4)
     assert decoder.next_event() is NEED_DATA
 
 
@@ -414,6 +447,7 @@ def test_command_frames(frame: bytes, expected: HostEvent, trailer: bytes, feede
         frame_of("#", "0108" "AA" "00"),  # byte count 1, one parameter byte too many
         frame_of("#", "01" "00"),  # no command code
         frame_of("#", "010" "00"),  # odd number of hex digits
+        frame_of("#", "01" "GG" "00"),  # whole bytes, but not hex
         frame_of(";", "Q01"),  # unknown ; command
         frame_of(";", "Z0101"),  # ;Z too long
         b"#010800A4\r",  # bad CRC
@@ -576,7 +610,7 @@ def test_line_splitter_matches_the_byte_by_byte_reference(chunks: list[bytes], s
             reference.feed(stream[i : i + size])
         lines = []
         while (line := fast.next_line()) is not None:
-            lines.append(line)
+            lines.append((line.raw, line.reason) if isinstance(line, Garbled) else (line, ""))
         assert lines == reference.pending
         assert fast.buffered == len(reference.buffer)
 

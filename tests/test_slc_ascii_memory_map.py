@@ -15,7 +15,10 @@ from gateway.protocols.slc_ascii.memory_map import (
     MEMORY_MAP,
     READ_RANGES,
     Access,
+    AddressRange,
+    Item,
     ItemKind,
+    Region,
     accumulator_address,
     all_user_bits,
     byte_to_user_bit,
@@ -122,6 +125,23 @@ def test_read_only_cells_are_the_star_rows() -> None:
     assert read_only == {0x82, 0x83, *range(0x96, 0xEC), 0x100}
 
 
+@pytest.mark.parametrize("kind", ["range", "region"])
+def test_ranges_and_regions_lie_in_the_16_bit_address_space(kind: str) -> None:
+    """Both are inclusive ``start``-``end`` spans of four-hex-digit addresses; one address is a span too."""
+
+    def build(start: int, end: int) -> AddressRange | Region:
+        if kind == "range":
+            return AddressRange(start, end, "test")
+        return Region("test", start, end, Access.READ_WRITE)
+
+    assert 0xFFFF in build(0x0000, 0xFFFF)
+    assert 0x0000 in build(0x0000, 0x0000)
+    assert 0x0113 not in build(0x0000, 0x0112)
+    for start, end in [(-1, 0), (0x0000, 0x10000), (0x0085, 0x0084)]:
+        with pytest.raises(ValueError, match=f"0x{start:04X}-0x{end:04X}"):
+            build(start, end)
+
+
 def test_read_ranges_verbatim() -> None:
     assert [(r.start, r.end) for r in READ_RANGES] == [
         (0x0000, 0x003E), (0x0040, 0x007E), (0x0084, 0x0085), (0x0086, 0x0095), (0x0096, 0x009C),
@@ -192,6 +212,9 @@ def test_every_byte_of_a_readable_region_can_be_read() -> None:
 def test_readable(address: int, count: int) -> None:
     assert is_readable(address, count)
     check_readable(address, count)
+    if count == 1:  # one byte unless told otherwise, as command 02 is built
+        assert is_readable(address)
+        check_readable(address)
 
 
 @pytest.mark.parametrize(
@@ -214,6 +237,8 @@ def test_readable(address: int, count: int) -> None:
         (0x0084, 3, r"byte count 3 is not allowed: command 02 reads 1 or 2 bytes"),
         (0x0084, 0, r"byte count 0 is not allowed"),
         (0x0084, True, r"byte count True is not allowed"),
+        (0x0084, 1.0, r"byte count 1.0 is not allowed"),
+        (True, 1, r"address True is not an integer"),
         (-1, 1, r"address -1 is out of range"),
         (0x10000, 1, r"out of range 0x0000-0xFFFF"),
     ],
@@ -222,6 +247,25 @@ def test_unreadable(address: int, count: int, message: str) -> None:
     assert not is_readable(address, count)
     with pytest.raises(InvalidRequest, match=message):
         check_readable(address, count)
+
+
+#: the "Reading Data" list as the refusals of an unreadable address quote it
+MANUAL_READ_LIST = (
+    "0x0000-0x003E (timer/counter/sequencer accumulator), 0x0040-0x007E (timer/counter presets), "
+    "0x0084-0x0085 (error bits), 0x0086-0x0095 (force select table), 0x0096-0x009C (output state table), "
+    "0x009D-0x00A5 (input state table), 0x00A6-0x00BA (internal relay table), "
+    "0x00BB (fine timer bits, auto/man switch), 0x00BC-0x00DB (sequencer step counters), "
+    "0x00DC-0x00DF (timer/counter/sequencer output table), 0x00E0-0x00E3 (timer/counter/sequencer overflow table), "
+    "0x0102-0x0111 (force state table), 0x0112 (access code byte)"
+)
+
+
+@pytest.mark.parametrize("address", [0x0082, 0x0101, 0x0113])
+def test_an_unlisted_address_is_refused_with_the_manuals_read_list(address: int) -> None:
+    """The refusal tells the user every start address command 02 takes, as the manual lists them."""
+    with pytest.raises(InvalidRequest) as refused:
+        check_readable(address)
+    assert str(refused.value).endswith(f"readable: {MANUAL_READ_LIST}")
 
 
 def test_word_writable() -> None:
@@ -361,7 +405,7 @@ def test_timer_addresses() -> None:
         assert is_readable(step_counter_address(n), 1)
 
 
-@pytest.mark.parametrize("number", [900, 933, 0, True])
+@pytest.mark.parametrize("number", [900, 933, 0, True, 901.0, "901"])
 def test_timer_numbers_are_901_to_932(number: int) -> None:
     for function in (accumulator_address, preset_address, step_counter_address):
         with pytest.raises(InvalidRequest, match="is not in 901-932"):
@@ -386,7 +430,7 @@ def test_item_accumulator() -> None:
 
 def test_item_preset_masks_protect_bit() -> None:
     item = parse_item(" 932.pre ")
-    assert (item.text, item.read_address, item.read_count) == ("932.PRE", 0x7E, 2)
+    assert (item.text, item.read_address, item.read_count, item.number) == ("932.PRE", 0x7E, 2, 932)
     assert item.decode(b"\x83\xe8") == 1000
     assert write_item(item, 0).params == b"\x00\x7e\x00\x00"
     with pytest.raises(InvalidRequest, match="less than 2710H"):
@@ -395,8 +439,8 @@ def test_item_preset_masks_protect_bit() -> None:
 
 def test_item_protected() -> None:
     item = parse_item("901.Protected")
-    assert (item.text, item.kind, item.read_address, item.read_count) == (
-        "901.PROTECTED", ItemKind.PROTECTED, 0x40, 1)
+    assert (item.text, item.kind, item.read_address, item.read_count, item.number) == (
+        "901.PROTECTED", ItemKind.PROTECTED, 0x40, 1, 901)
     assert item.decode(b"\x80") is True
     assert item.decode(b"\x7f") is False
     assert not item.writable
@@ -406,7 +450,8 @@ def test_item_protected() -> None:
 
 def test_item_step() -> None:
     item = parse_item("905.STEP")
-    assert (item.text, item.kind, item.read_address, item.read_count) == ("905.STEP", ItemKind.STEP, 0xC0, 1)
+    assert (item.text, item.kind, item.read_address, item.read_count, item.number) == (
+        "905.STEP", ItemKind.STEP, 0xC0, 1, 905)
     assert item.decode(b"\x07") == 7
     with pytest.raises(InvalidRequest, match="read only"):
         write_item(item, 1)
@@ -418,8 +463,8 @@ def test_item_step() -> None:
 )
 def test_item_user_bits(text: str, address: int, bit: int) -> None:
     item = parse_item(text)
-    assert (item.text, item.kind, item.read_address, item.read_count, item.bit) == (
-        text, ItemKind.BIT, address, 1, bit)
+    assert (item.text, item.kind, item.read_address, item.read_count, item.bit, item.number) == (
+        text, ItemKind.BIT, address, 1, bit, int(text))
     assert item.decode(bytes([1 << bit])) is True
     assert item.decode(bytes([0xFF ^ (1 << bit)])) is False
     assert item.read_modify_write
@@ -453,6 +498,7 @@ def test_item_raw_byte() -> None:
         item = parse_item(text)
         assert (item.text, item.kind, item.read_address, item.read_count) == (
             "@0x0084", ItemKind.BYTE, 0x84, 1)
+        assert item.number is None
         assert item.decode(b"\x81") == 0x81
         assert not item.writable
     relay = parse_item("@a6")
@@ -462,6 +508,26 @@ def test_item_raw_byte() -> None:
         write_item(relay, 256)
     with pytest.raises(InvalidRequest, match="not a bit item"):
         write_item_bit(relay, 0, True)
+
+
+@pytest.mark.parametrize(
+    ("fields", "message"),
+    [
+        (("@0x00E3", ItemKind.BYTE, 0x00E3, 2), "would also read 0x00E4"),  # 1 byte there is readable
+        (("@0x0080", ItemKind.BYTE, 0x0080, 1), "no-access"),
+        (("@0x0084", ItemKind.BYTE, 0x0084, 3), "byte count 3 is not allowed"),
+    ],
+)
+def test_an_item_names_only_a_read_command_02_may_make(fields: tuple[str, ItemKind, int, int], message: str) -> None:
+    with pytest.raises(InvalidRequest, match=message):
+        Item(*fields)
+
+
+@pytest.mark.parametrize("bit", [-1, 8])
+def test_a_bit_item_names_a_bit_0_to_7(bit: int) -> None:
+    assert Item("701", ItemKind.BIT, 0x00A6, 1, bit=7).bit == 7
+    with pytest.raises(ValueError, match=f"bad bit {bit}"):
+        Item("701", ItemKind.BIT, 0x00A6, 1, bit=bit)
 
 
 def test_item_decode_checks_length() -> None:
@@ -477,9 +543,9 @@ def test_item_decode_checks_length() -> None:
         ("901.DN", "unknown suffix 'DN'; use NNN.ACC, NNN.PRE, NNN.PROTECTED or NNN.STEP"),
         ("19", "is not a user bit address; valid bit addresses are inputs 1-10"),
         ("0", "is not a user bit address"),
-        ("@0x81", r"no-access \(\*\*\) cell: checksum of last ladder diagram"),
-        ("@82", "not in the manual's list of readable addresses"),
-        ("@0x3F", "LSB of the last word"),
+        ("@0x81", r"item '@0x81': address 0x0081 is in a no-access \(\*\*\) cell: checksum of last ladder diagram"),
+        ("@82", "item '@82': address 0x0082 .* not in the manual's list of readable addresses"),
+        ("@0x3F", "item '@0x3F': address 0x003F is the LSB of the last word"),
         ("@12345", "is not valid; use NNN.ACC"),
         ("@", "is not valid"),
         ("@0xZZ", "is not valid"),
@@ -512,6 +578,23 @@ def test_timer_items_are_readable(number: int, suffix: str) -> None:
     assert item.text == f"{number}.{suffix}"
     assert is_readable(item.read_address, item.read_count)
     assert parse_item(item.text) == item
+
+
+def test_a_raw_byte_item_names_exactly_the_bytes_command_02_reads_alone() -> None:
+    """``@ADDR`` reads one byte: every address the manual lets command 02 read, and no other.
+
+    The byte before a readable one (0x00E3, 0x0111) is an item though a 2-byte read there is not.
+    """
+    items = set()
+    for address in range(0x0120):
+        try:
+            item = parse_item(f"@{address:X}")
+        except InvalidRequest:
+            continue
+        assert (item.read_address, item.read_count) == (address, 1)
+        items.add(address)
+    assert items == {a for a in range(0x0120) if is_readable(a, 1)}
+    assert {0x00E3, 0x0111, 0x0112} <= items
 
 
 @given(st.integers(min_value=0, max_value=0xFFFF))

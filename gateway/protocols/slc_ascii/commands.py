@@ -239,7 +239,12 @@ def upload_block() -> Command:
     The reply carries the block number (see :func:`parse_upload_reply`). Send it once per block,
     in order, until all blocks of the controller type are transferred.
     """
-    return _command(CommandCode.UPLOAD, b"", "upload next program block", TimeoutClass.SLOW)
+    return _command(
+        CommandCode.UPLOAD,
+        b"",
+        "upload next program block",
+        TimeoutClass.SLOW,
+    )
 
 
 def download_block(
@@ -291,7 +296,8 @@ def write_sequencer_preset(rung: int, step: int, value: int) -> Command:
     ("Writing Sequencer Preset")."""
     rung, step = _check_rung(rung), _check_step(step)
     check_int(
-        "preset", value, 1, VALUE_LIMIT - 1, "a sequencer preset is non-zero and less than 2710H (1-9999)")
+        "preset", value, 1, VALUE_LIMIT - 1,
+        "a sequencer preset is non-zero and less than 2710H (1-9999)")
     return _command(
         CommandCode.WRITE_SEQUENCER_PRESET,
         _word(rung) + bytes([step]) + _word(value),
@@ -302,7 +308,9 @@ def write_sequencer_preset(rung: int, step: int, value: int) -> Command:
 def write_reset_accumulator(rung: int, value: int) -> Command:
     """``#0507 <rung> <accumulator>``: value 0-9999, "less than 2710H" ("Writing Reset Accumulator")."""
     rung = _check_rung(rung)
-    check_int("accumulator", value, 0, VALUE_LIMIT - 1, "an accumulator is less than 2710H (0-9999)")
+    check_int(
+        "accumulator", value, 0, VALUE_LIMIT - 1,
+        "an accumulator is less than 2710H (0-9999)")
     return _command(
         CommandCode.WRITE_RESET_ACCUMULATOR,
         _word(rung) + _word(value),

@@ -254,7 +254,7 @@ class _LineSplitter:
         # the bytes that end a run of frame characters: a leading character or CR
         self._special = re.compile(b"[" + re.escape(leads) + b"\r]")
         self._buffer = bytearray()
-        self._pending: deque[tuple[bytes, str]] = deque()  # (line, "") or (raw, garble reason)
+        self._pending: deque[bytes | Garbled] = deque()  # a whole line, or the bytes of a garbled one
 
     def feed(self, data: bytes) -> None:
         # Whole runs of ordinary characters are copied at once; only the leading characters and
@@ -268,12 +268,12 @@ class _LineSplitter:
                 self._append(data[position:at])
             if data[at] == CR:
                 if buffer:
-                    self._pending.append((bytes(buffer), ""))
+                    self._pending.append(bytes(buffer))
                     buffer.clear()
                 # A CR outside a frame is line noise: ignore it.
             else:
                 if buffer:
-                    self._pending.append((bytes(buffer), "frame interrupted by a new leading character"))
+                    self._pending.append(Garbled(bytes(buffer), "frame interrupted by a new leading character"))
                     buffer.clear()
                 buffer.append(data[at])
             position = at + 1
@@ -288,10 +288,10 @@ class _LineSplitter:
             buffer += run
             return
         buffer += run[:room]
-        self._pending.append((bytes(buffer), "line too long"))
+        self._pending.append(Garbled(bytes(buffer), "line too long"))
         buffer.clear()  # the rest of the line is dropped up to the next leading character
 
-    def next_line(self) -> tuple[bytes, str] | None:
+    def next_line(self) -> bytes | Garbled | None:
         if self._pending:
             return self._pending.popleft()
         return None
@@ -307,22 +307,22 @@ class _LineSplitter:
         return line
 
 
-def _split_checked(line: bytes) -> tuple[bytes, int] | str:
-    """``line`` is lead + text + CRC.  Returns (text upper-cased, ID) or a reason it is garbled."""
+def _split_checked(line: bytes) -> tuple[bytes, int] | Garbled:
+    """``line`` is lead + text + CRC.  Returns (text upper-cased, ID), or the line garbled with the reason."""
     text = line[1:]
     if len(text) < 5:  # at least one letter or count digit, 2 ID, 2 CRC
-        return "frame too short"
+        return Garbled(line, "frame too short")
     received_crc, text = text[-2:], text[:-2]
     if not all(c in _HEX_DIGITS for c in received_crc):
-        return "CRC is not hex"
+        return Garbled(line, "CRC is not hex")
     if crc(text.upper()) != int(received_crc, 16) and crc(text) != int(received_crc, 16):
-        return f"CRC mismatch (received {received_crc.decode('ascii', 'replace')}, computed {crc(text):02X})"
+        return Garbled(line, f"CRC mismatch (received {received_crc.decode()}, computed {crc(text):02X})")
     id_text = text[-2:]
     if not all(c in _HEX_DIGITS for c in id_text):
-        return "message ID is not hex"
+        return Garbled(line, "message ID is not hex")
     msg_id = int(id_text, 16)
     if msg_id > MAX_ID:
-        return f"message ID {msg_id:02X} out of range"
+        return Garbled(line, f"message ID {msg_id:02X} out of range")
     return text.upper(), msg_id
 
 
@@ -348,19 +348,20 @@ class _Decoder(Generic[_EventT]):
         """The rest of a partial frame is not coming (the caller's inter-character timeout):
         report it garbled now instead of when the next frame starts."""
         line = self._lines.flush()
-        return Garbled(line, "frame cut short (no CR)") if line else None
+        if not line:
+            return None
+        return Garbled(line, "frame cut short (no CR)")
 
     def next_event(self) -> _EventT | Garbled | NeedData:
         """The next frame's event, a Garbled line, or NEED_DATA."""
-        item = self._lines.next_line()
-        if item is None:
+        line = self._lines.next_line()
+        if line is None:
             return NEED_DATA
-        line, reason = item
-        if reason:
-            return Garbled(line, reason)
+        if isinstance(line, Garbled):
+            return line
         checked = _split_checked(line)
-        if isinstance(checked, str):
-            return Garbled(line, checked)
+        if isinstance(checked, Garbled):
+            return checked
         text, msg_id = checked
         return self._event(line, text, msg_id)
 
@@ -382,7 +383,7 @@ class ReplyDecoder(_Decoder[ReplyEvent]):
             body = text[:-2]
             if not body or len(body) % 2 or not all(c in _HEX_DIGITS for c in body):
                 return Garbled(line, "data reply body is not whole hex bytes")
-            return DataReply(body.decode("ascii"), msg_id)
+            return DataReply(body.decode(), msg_id)
         if len(text) != 3:
             return Garbled(line, "reply has the wrong length")
         letter = text[0]
@@ -409,7 +410,7 @@ class CommandDecoder(_Decoder[HostEvent]):
         fields = text[:-2]
         if len(fields) < 4 or len(fields) % 2 or not all(c in _HEX_DIGITS for c in fields):
             return Garbled(line, "command is not whole hex bytes")
-        raw = bytes.fromhex(fields.decode("ascii"))
+        raw = bytes.fromhex(fields.decode())
         count, code, params = raw[0], raw[1], raw[2:]
         if count != 1 + len(params):
             return Garbled(line, f"byte count {count:02X} does not match {1 + len(params)} bytes")

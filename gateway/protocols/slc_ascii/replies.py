@@ -40,7 +40,7 @@ def _hex_body(body_hex: object, what: str) -> str:
         raise ProtocolError(f"{what}: body must be hex text, not {type(body_hex).__name__}")
     if not _HEX.fullmatch(body_hex) or len(body_hex) % 2:
         raise ProtocolError(f"{what}: body {body_hex!r} is not an even number of hex digits")
-    return body_hex.upper()
+    return body_hex
 
 
 def _split_data_reply(body_hex: object, what: str) -> tuple[int, int, bytes]:
