@@ -48,6 +48,8 @@ ROOT = Path(__file__).resolve().parent.parent
 MUTANTS = ROOT / "mutants"
 EQUIVALENTS_DOC = ROOT / "docs" / "mutation.md"
 FRESH = MUTANTS / "fresh-interpreter.json"  # import-time mutants rechecked: name -> killed
+#: tells the tests they run under mutation (the reference-comparison properties take fewer examples)
+MUTATION_ENV = {"SLC_GATEWAY_MUTATION": "1"}
 
 # mutmut's exit codes of a mutant run (mutmut/stats.py)
 KILLED = {1, 3}
@@ -145,7 +147,8 @@ def run_mutmut(selected: list[str], children: int) -> None:
     command = [str(Path(sys.executable).parent / "mutmut"), "run", "--max-children", str(children), *names]
     print("$", " ".join(command), flush=True)
     # type_check_command runs "mypy": the one of this interpreter's environment
-    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
+               **MUTATION_ENV)
     subprocess.run(command, cwd=ROOT, check=False, env=env)
 
 
@@ -192,8 +195,9 @@ def recheck_import_time_mutants(modules: list[str], children: int) -> None:
 
     def run(job: tuple[str, list[str]]) -> tuple[str, bool]:
         name, tests = job
-        done = subprocess.run([sys.executable, "-m", "pytest", *pytest_args, *tests], cwd=MUTANTS,
-                              env=dict(os.environ, MUTANT_UNDER_TEST=name), capture_output=True, check=False)
+        env = dict(os.environ, MUTANT_UNDER_TEST=name, **MUTATION_ENV)
+        done = subprocess.run([sys.executable, "-m", "pytest", *pytest_args, *tests], cwd=MUTANTS, env=env,
+                              capture_output=True, check=False)
         return name, done.returncode != 0
 
     with concurrent.futures.ThreadPoolExecutor(max_workers=children) as pool:
