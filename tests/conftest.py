@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import signal
+from collections.abc import Iterator
+
 import pytest
 from hypothesis import Phase, settings
 
@@ -24,3 +28,42 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         default=False,
         help="run the long fault soak in tests/soak (10+ minutes) instead of its quick mode",
     )
+
+
+def _mutation_test_cpu_limit(nodeid: str) -> float | None:
+    """The CPU seconds a test may take with a mutant in place, or None outside a mutant's run.
+
+    mutmut bounds a mutant's whole test run at 3 x the clean time of all its tests (+ 1 s), so a
+    mutant that makes the first test loop for ever holds a worker for minutes before it is called a
+    timeout.  Under `make mutation` each test is bounded on its own, at the same 3 x + 1 s of its own
+    clean time, which mutmut measured in this process before forking the mutant's run.  A test whose
+    clean time is unknown (the fresh-interpreter recheck, a test mutmut did not time) is not bounded.
+    """
+    if "__mutmut_" not in os.environ.get("MUTANT_UNDER_TEST", ""):
+        return None
+    try:
+        from mutmut.state import state
+    except ImportError:
+        return None
+    clean = state().duration_by_test.get(nodeid)
+    return None if not clean else 3.0 * clean + 1.0
+
+
+def _timed_out(signum: int, frame: object) -> None:
+    # mutmut reads exit code 36 as "timeout" (killed); pytest is not unwound, this mutant is done
+    os._exit(36)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item: pytest.Item) -> Iterator[None]:
+    limit = _mutation_test_cpu_limit(item.nodeid)
+    if limit is None:
+        yield
+        return
+    previous = signal.signal(signal.SIGPROF, _timed_out)
+    signal.setitimer(signal.ITIMER_PROF, limit)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_PROF, 0)
+        signal.signal(signal.SIGPROF, previous)
