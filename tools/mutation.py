@@ -31,7 +31,6 @@ test added since would not be given the chance to kill an old survivor.
 from __future__ import annotations
 
 import argparse
-import concurrent.futures
 import fnmatch
 import json
 import os
@@ -172,37 +171,78 @@ def import_time_functions(modules: list[str]) -> set[str]:
     return set(done.stdout.split())
 
 
+#: run in ``mutants/``: reads jobs (a mutant's name and its stages of tests) from stdin, one JSON
+#: list, and prints ``name killed`` or ``name survived`` for each.  pytest, hypothesis and the other
+#: libraries are imported once, the mutated tree never: each job is a fork that sets
+#: ``MUTANT_UNDER_TEST`` and then imports the tree afresh, as a new interpreter would, without paying
+#: for the interpreter and the libraries every time.  A stage's tests run (in a fork of their own)
+#: only if the stage before passed: the module's own test files first, then the others that run its
+#: functions.
+FORKING_RECHECK = """
+import collections, json, os, sys
+import hypothesis, pydantic, pytest  # noqa: F401  (the libraries, imported once)
+assert not any(m == "gateway" or m.startswith("gateway.") for m in sys.modules), "tree imported early"
+jobs, children, args = json.load(sys.stdin)
+queue = collections.deque((name, stages) for name, stages in jobs)
+sys.path.insert(0, os.getcwd())
+running = {}
+def reap():
+    pid, status = os.wait()
+    name, later = running.pop(pid)
+    if os.waitstatus_to_exitcode(status) != 0:
+        print(name, "killed", flush=True)
+    elif later:
+        queue.appendleft((name, later))
+    else:
+        print(name, "survived", flush=True)
+while queue or running:
+    if not queue or len(running) >= children:
+        reap()
+        continue
+    name, stages = queue.popleft()
+    pid = os.fork()
+    if pid == 0:
+        os.environ["MUTANT_UNDER_TEST"] = name
+        fd = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(fd, 1); os.dup2(fd, 2)
+        os._exit(int(pytest.main([*args, *stages[0]])))
+    running[pid] = (name, stages[1:])
+"""
+
+
 def recheck_import_time_mutants(modules: list[str], children: int) -> None:
-    """Run each survivor of an import-time function in a fresh interpreter, with its module's tests."""
+    """Run each survivor of an import-time function in a fresh import of the tree, with the tests of
+    its module."""
     functions = import_time_functions(modules)
     stats = json.loads((MUTANTS / "mutmut-stats.json").read_text(encoding="utf-8"))
     tests_of: dict[str, list[str]] = stats["tests_by_mangled_function_name"]
     fresh: dict[str, bool] = json.loads(FRESH.read_text(encoding="utf-8")) if FRESH.exists() else {}
-    jobs: list[tuple[str, list[str]]] = []
+    jobs: list[tuple[str, list[list[str]]]] = []
     for module in modules:
         row = load(module)
         prefix = dotted(module) + "."
-        tests = sorted({t for f, ts in tests_of.items() if f.startswith(prefix) for t in ts},
-                       key=lambda t: (Path(module).stem not in t.split("::")[0], t))
+        files = sorted({t.split("::")[0] for f, ts in tests_of.items() if f.startswith(prefix) for t in ts})
+        stem = Path(module).stem.strip("_")
+        own = [f for f in files if stem in Path(f).stem] or files
+        stages = [own] + ([[f for f in files if f not in own]] if own != files else [])
         for name in row.survived:
-            if name.rpartition("__mutmut_")[0] in functions and tests:
-                jobs.append((name, tests))
+            if name.rpartition("__mutmut_")[0] in functions and files:
+                jobs.append((name, stages))
     if not jobs:
         return
-    print(f"{len(jobs)} surviving mutants of import-time functions: rechecking each in a fresh interpreter",
+    print(f"{len(jobs)} surviving mutants of import-time functions: rechecking each in a fresh import of the tree",
           flush=True)
     pytest_args = ["-x", "-q", "-p", "no:cacheprovider", "--hypothesis-profile=mutation"]
-
-    def run(job: tuple[str, list[str]]) -> tuple[str, bool]:
-        name, tests = job
-        env = dict(os.environ, MUTANT_UNDER_TEST=name, **MUTATION_ENV)
-        done = subprocess.run([sys.executable, "-m", "pytest", *pytest_args, *tests], cwd=MUTANTS, env=env,
-                              capture_output=True, check=False)
-        return name, done.returncode != 0
-
-    with concurrent.futures.ThreadPoolExecutor(max_workers=children) as pool:
-        for name, killed in pool.map(run, jobs):
-            fresh[name] = killed
+    env = dict(os.environ, **MUTATION_ENV)
+    env.pop("MUTANT_UNDER_TEST", None)
+    done = subprocess.run([sys.executable, "-c", FORKING_RECHECK], cwd=MUTANTS, env=env, text=True,
+                          input=json.dumps([jobs, children, pytest_args]), capture_output=True, check=False)
+    if done.returncode:
+        raise SystemExit(f"the fresh-import recheck failed:\n{done.stderr}")
+    for line in done.stdout.split("\n"):
+        name, _, verdict = line.partition(" ")
+        if verdict in ("killed", "survived"):
+            fresh[name] = verdict == "killed"
     FRESH.write_text(json.dumps(fresh, indent=1), encoding="utf-8")
 
 
