@@ -40,6 +40,7 @@ import subprocess
 import sys
 import time
 import tomllib
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -221,12 +222,16 @@ def recheck_import_time_mutants(modules: list[str], children: int) -> None:
     for module in modules:
         row = load(module)
         prefix = dotted(module) + "."
-        files = sorted({t.split("::")[0] for f, ts in tests_of.items() if f.startswith(prefix) for t in ts})
+        counts = Counter(t.split("::")[0] for f, ts in tests_of.items() if f.startswith(prefix) for t in set(ts))
+        files = sorted(counts)
+        if not files:
+            continue
         stem = Path(module).stem.strip("_")
-        own = [f for f in files if stem in Path(f).stem] or files
+        # the module's own test files: named after it, else the one that runs its functions most
+        own = [f for f in files if stem in Path(f).stem] or [max(files, key=counts.__getitem__)]
         stages = [own] + ([[f for f in files if f not in own]] if own != files else [])
         for name in row.survived:
-            if name.rpartition("__mutmut_")[0] in functions and files:
+            if name.rpartition("__mutmut_")[0] in functions:
                 jobs.append((name, stages))
     if not jobs:
         return
