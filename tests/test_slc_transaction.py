@@ -155,6 +155,7 @@ def test_clean_read_whole_byte_by_byte_and_with_trailing_garbage() -> None:
             session.receive_data(b"\x00~" + reply + b"\r\n\x7f", 0.01)
         result = session.take_result()
         assert result.verdict is SlcVerdict.DONE
+        assert result.reason == ""  # the answer says it all; reasons explain the other verdicts
         assert session.data_to_send() == b""
 
 
@@ -233,6 +234,7 @@ def test_a_write_with_no_answer_is_unknown_never_resent() -> None:
     assert session.take_result().verdict is SlcVerdict.UNKNOWN
     assert sent.count(frame_command(WRITE, 5)) == 1
     assert sent[1:] == [encode_retransmit(5)] * 3 + [b""]
+    assert session.counters.timeouts == 4  # the copy's wait and each ;Z's
 
 
 def test_a_refusal_after_z_is_not_taken_for_a_refusal_of_the_write() -> None:
@@ -459,10 +461,10 @@ class Script:
     """One session from its start, driven by the test: the frames it sends, the bytes it gets, a
     fake clock that moves only when the test says."""
 
-    def __init__(self, *, retries: int = 3, max_resends: int = 8, late_bound: float | None = None,
-                 min_timeout: float = 0.05) -> None:
-        self.session = SlcSession(timeout=TIMEOUT, retries=retries, max_resends=max_resends, late_bound=late_bound,
-                                  min_timeout=min_timeout)
+    def __init__(self, *, retries: int = 3, max_resends: int = 8, max_resyncs: int = 8,
+                 late_bound: float | None = None, min_timeout: float = 0.05) -> None:
+        self.session = SlcSession(timeout=TIMEOUT, retries=retries, max_resends=max_resends, max_resyncs=max_resyncs,
+                                  late_bound=late_bound, min_timeout=min_timeout)
         self.now = 0.0
 
     def start(self, command: cmds.Command, timeout: float | None = None, until: float | None = None) -> bytes:
@@ -822,3 +824,254 @@ def test_e_to_a_writes_second_copy_is_no_proof_that_it_did_not_run() -> None:
     assert script.reply(encode_id_mismatch(1)) == copy
     assert script.reply(encode_refused(2)) == b""
     assert script.verdict() is SlcVerdict.UNKNOWN
+
+
+# --- each occurrence counted; bounds and budgets at their edge; what a resync hears -------------
+
+
+def test_every_fault_garbled_frame_and_i_counts_once() -> None:
+    """The counters are the link's metrics: each ``;T``, each frame that fails its check (whole
+    or cut short) and each ``;I`` adds one."""
+    script = Script(retries=8)
+    script.handshake_read()
+    assert script.start(READ) == frame_command(READ, 2)
+    assert script.reply(encode_fault(0)) == b""
+    assert script.reply(encode_fault(0)) == b""
+    bad = bytearray(encode_data_reply(READ_REPLY_BODY, 2))
+    bad[5] ^= 1
+    assert script.reply(bytes(bad)) == encode_retransmit(2)
+    assert script.reply(bytes(bad)) == encode_retransmit(2)
+    for _ in range(2):  # cut short: garbled when the character gap passes
+        assert script.reply(encode_data_reply(READ_REPLY_BODY, 2)[:6]) == b""
+        assert script.wait() == encode_retransmit(2)
+    _, answer = _barrier(script.reply(encode_id_mismatch(0x55)))
+    assert script.reply(answer) == frame_command(READ, 1)
+    _, answer = _barrier(script.reply(encode_id_mismatch(0x55)))
+    assert script.reply(answer) == frame_command(READ, 1)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 1))
+    assert script.verdict() is SlcVerdict.DONE
+    counters = script.session.counters
+    assert (counters.faults, counters.crc_errors, counters.id_mismatches) == (2, 4, 2)
+
+
+def test_every_quiet_wait_counts_once() -> None:
+    """Two writes, each after a read of two messages, each resync refused (program mode): two
+    quiet waits."""
+    script = Script()
+    script.handshake_read()
+    for _ in range(2):
+        assert script.start(READ) == frame_command(READ, 2)
+        assert script.wait() == encode_retransmit(2)
+        script.reply(encode_data_reply(READ_REPLY_BODY, 2))
+        assert script.verdict() is SlcVerdict.DONE
+        _barrier(script.start(WRITE))
+        assert script.reply(encode_refused(0)) == b""
+        assert script.wait() == frame_command(cmds.read_frn(), 0)
+        assert script.reply(FRN_REPLY) == frame_command(WRITE, 1)
+        script.reply(encode_ack(1))
+        assert script.verdict() is SlcVerdict.DONE
+    assert script.session.counters.quiet_waits == 2
+
+
+def test_a_writes_second_copy_after_i_counts_as_a_resend_and_toward_its_bound() -> None:
+    """The second copy a ``;I`` with another ID sends is one of the write's ``max_resends``
+    resends (and counted): with 2, one more copy after it when ``;Z`` meets an older reply,
+    then UNKNOWN."""
+    script = Script(max_resends=2)
+    script.handshake_read()
+    copy = frame_command(WRITE, 2)
+    assert script.start(WRITE) == copy
+    frames = [script.reply(encode_id_mismatch(0))]
+    for _ in range(2):
+        frames.append(script.wait())  # the copy's reply is lost: ;Z
+        frames.append(script.reply(encode_ack(1)))  # the ;Z fetches the previous reply
+    assert frames == [copy, encode_retransmit(2), copy, encode_retransmit(2), b""]
+    assert script.verdict() is SlcVerdict.UNKNOWN
+    assert script.session.counters.resends == 2
+    _, answer = _barrier(script.start(WRITE))  # after UNKNOWN: a resync
+    assert script.reply(answer) == frame_command(WRITE, 1)
+    assert script.reply(encode_id_mismatch(0)) == frame_command(WRITE, 1)
+    script.reply(encode_ack(1))
+    assert script.verdict() is SlcVerdict.DONE
+    assert script.session.counters.resends == 3
+
+
+def test_a_read_that_keeps_meeting_i_fails_after_max_resyncs() -> None:
+    """Each ``;I`` sends a read through another resync, ``max_resyncs`` of them; then FAILED."""
+    script = Script(max_resyncs=3)
+    script.handshake_read()
+    assert script.start(READ) == frame_command(READ, 2)
+    barriers = 0
+    for _ in range(10):
+        frame = script.reply(encode_id_mismatch(0x55))
+        if script.session.result is not None:
+            break
+        _, answer = _barrier(frame)
+        barriers += 1
+        assert script.reply(answer) == frame_command(READ, 1)
+    result = script.session.take_result()
+    assert result.verdict is SlcVerdict.FAILED and result.reason.endswith("gave up after 3 resyncs"), result
+    assert barriers == 3
+    assert script.session.counters.id_resyncs == 4  # the handshake and these
+
+
+def test_a_wait_that_ends_exactly_at_the_budget_still_fits() -> None:
+    """``until``: a write asks again while the next wait ends at or before it."""
+    session = SlcSession(timeout=0.25, retries=1)
+    session.start(WRITE, 0.0, until=1.0)
+    assert session.data_to_send() == frame_command(cmds.read_frn(), 0)  # nothing sent yet: quiet
+    session.receive_data(FRN_REPLY, 0.0)
+    assert session.data_to_send() == frame_command(WRITE, 1)
+    for now in (0.25, 0.5, 0.75):
+        session.handle_timeout(now)
+        assert session.data_to_send() == encode_retransmit(1)
+    assert session.next_deadline() == 1.0
+    session.handle_timeout(1.0)
+    result = session.take_result()
+    assert result.verdict is SlcVerdict.UNKNOWN and result.reason.endswith("after 3 retransmit requests in 1 s"), result
+
+
+def test_under_a_budget_the_last_resync_try_and_the_last_z_wait_the_full_time() -> None:
+    """With a time budget as with the counts, the waits that decide a verdict (a silent
+    resync's last try, a write's last ``;Z``) keep the configured reply time; the others go at
+    the adapted one."""
+    script = _fast_controller()
+    assert script.start(READ) == frame_command(READ, 10)
+    assert script.wait() == encode_retransmit(10)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 10))
+    assert script.verdict() is SlcVerdict.DONE  # two messages: a write resyncs
+    for verdict in (SlcVerdict.FAILED, SlcVerdict.UNKNOWN):
+        began = script.now
+        first = _barrier(script.start(WRITE, until=began + 0.52))
+        if verdict is SlcVerdict.UNKNOWN:  # the barrier's answer comes, the write's never
+            assert script.reply(first[1]) == frame_command(WRITE, 1)
+        waits = []
+        while script.session.result is None:
+            deadline = script.session.next_deadline()
+            assert deadline is not None
+            waits.append(round(deadline - script.now, 3))
+            script.wait()
+        assert waits[-1] == TIMEOUT and set(waits[:-1]) == {0.05} and len(waits) > 5, waits
+        assert script.verdict() is verdict
+
+
+def test_before_any_answer_was_seen_the_quiet_wait_is_late_bound() -> None:
+    """With no answer's lateness measured, the quiet wait before a read FRN resync is
+    ``late_bound`` after the last message."""
+    script = Script()
+    assert script.start(READ) == frame_command(cmds.read_frn(), 0)
+    assert script.reply(FRN_REPLY) == frame_command(READ, 1)  # the FRN answers no copy
+    assert script.wait() == encode_retransmit(1)
+    _barrier(script.wait())  # silence after ;Z: the read resyncs
+    sent = script.now
+    assert script.reply(encode_refused(0)) == b""  # program mode: quiet, then read FRN
+    assert script.session.next_deadline() == pytest.approx(sent + script.session.late_bound)
+
+
+def test_a_command_exactly_late_bound_after_the_last_message_reads_the_frn_at_once() -> None:
+    """At ``late_bound`` after the last message no reply to it can come any more: the line is
+    quiet, so the resync reads the FRN at once, with no barrier and no wait."""
+    script = Script(late_bound=0.5)
+    script.handshake_read()
+    assert script.start(READ) == frame_command(READ, 2)
+    assert script.wait() == encode_retransmit(2)
+    last = script.now
+    script.reply(encode_data_reply(READ_REPLY_BODY, 2))
+    assert script.verdict() is SlcVerdict.DONE  # two messages: a write resyncs
+    script.now = last + 0.5
+    assert script.start(WRITE) == frame_command(cmds.read_frn(), 0)
+    assert script.session.counters.quiet_waits == 0
+
+
+def _resync_with_a_barrier(script: Script) -> int:
+    """A read meets ``;I`` and resyncs with a barrier read: its address."""
+    assert script.start(READ) == frame_command(READ, 2)
+    address, answer = _barrier(script.reply(encode_id_mismatch(0x55), dt=0.0))
+    assert script.reply(answer) == frame_command(READ, 1)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 1))
+    assert script.verdict() is SlcVerdict.DONE
+    return address
+
+
+def test_a_barrier_address_is_free_again_exactly_the_quiet_time_after_it_was_asked_for() -> None:
+    """An address asked for ``late_bound`` ago can have no answer on the way any more: a barrier
+    read may ask for it again (the resync needs no read FRN fallback)."""
+    script = Script(late_bound=64.0)
+    script.handshake_read()
+    script.now = 1.0
+    first = _resync_with_a_barrier(script)
+    used = {first}
+    while len(used) < 239:  # every other barrier address, within the quiet time
+        used.add(_resync_with_a_barrier(script))
+    assert script.now < 64.0
+    script.now = 65.0
+    assert _resync_with_a_barrier(script) == first
+
+
+def test_a_read_whose_second_resync_try_found_no_barrier_free_leaves_a_numbering_a_write_does_not_trust() -> None:
+    """A barrier read lost, and no other address free: the read's resync goes on with read FRN
+    at once.  An earlier reply may follow that answer, so the next write does not go in this
+    numbering: it resyncs (here: waits for quiet, no barrier being free)."""
+    script = Script(late_bound=100.0)
+    script.handshake_read()
+    for _ in range(238):  # every barrier address but one
+        _resync_with_a_barrier(script)
+    assert script.start(READ) == frame_command(READ, 2)
+    _barrier(script.reply(encode_id_mismatch(0x55)))  # the last free address
+    assert script.wait() == frame_command(cmds.read_frn(), 0)  # lost: no address left
+    assert script.reply(FRN_REPLY) == frame_command(READ, 1)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 1))
+    assert script.verdict() is SlcVerdict.DONE
+    assert script.start(WRITE) == b""
+    assert script.session.state is SessionState.QUIET
+
+
+def test_a_reads_answer_held_back_until_its_resync_is_taken_an_older_reply_is_not() -> None:
+    """A read whose ``;Z`` met silence resyncs; its own answer, held back on the line, may still
+    come: a value the controller held, taken at once (the next command resyncs: the ID 00 read
+    is still on its way).  A reply with another ID answers an earlier message: ignored."""
+    session = _started()
+    assert session.data_to_send() == frame_command(READ, 5)
+    session.handle_timeout(TIMEOUT)
+    assert session.data_to_send() == encode_retransmit(5)
+    session.handle_timeout(2 * TIMEOUT)
+    _barrier(session.data_to_send())
+    session.receive_data(encode_data_reply("000200400001", 4), 0.61)  # an older read's
+    assert session.result is None and session.data_to_send() == b""
+    session.receive_data(encode_data_reply("000200400002", 5), 0.62)
+    result = session.take_result()
+    assert result.verdict is SlcVerdict.DONE
+    assert isinstance(result.answer, DataReply) and result.answer.body_hex == "000200400002"
+    session.start(READ, 0.63)
+    _barrier(session.data_to_send())
+
+
+def test_a_reply_with_our_id_that_does_not_answer_the_command_is_not_its_answer() -> None:
+    """A reply with the read's ID but another address's echo (or ``;R``) answers an earlier
+    message with the same ID: the read waits for its own."""
+    session = _started()
+    session.data_to_send()
+    session.receive_data(encode_data_reply("000200420001", 5), 0.01)
+    session.receive_data(encode_ack(5), 0.02)
+    assert session.result is None and session.data_to_send() == b""
+    session.receive_data(encode_data_reply("000200400002", 5), 0.03)
+    result = session.take_result()
+    assert isinstance(result.answer, DataReply) and result.answer.body_hex == "000200400002"
+
+
+def test_a_resync_that_heard_only_stale_replies_goes_on_empty_reads_are_not_heard() -> None:
+    """A whole reply of an earlier message during a resync shows the controller is there: when
+    the tries run out, a read resyncs again.  An empty read (no bytes) is silence: FAILED."""
+    script = Script(retries=1)
+    script.handshake_read()
+    assert script.start(READ) == frame_command(READ, 2)
+    _barrier(script.reply(encode_id_mismatch(0x55)))
+    assert script.reply(encode_ack(1)) == b""  # an earlier message's reply
+    _barrier(script.wait())
+    _barrier(script.wait())  # the tries run out, the controller was heard: a new resync
+    assert script.session.result is None
+    assert script.reply(b"") == b""
+    _barrier(script.wait())
+    assert script.reply(b"") == b""
+    assert script.wait() == b""
+    assert script.verdict() is SlcVerdict.FAILED

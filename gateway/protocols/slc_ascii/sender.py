@@ -109,10 +109,11 @@ class SlcSender:
         self.state = SessionState.IDLE
         self._decoder = ReplyDecoder()
         self._out = bytearray()
-        self._next = 0  # ID of the next command; 0: resync first
+        self._next = 0  # ID of the next transaction's command; 0: resync first (a resync's answer sets 1)
         self._handshake_due = True  # the next resync is the first after connecting
         self._last_sent = float("-inf")
-        #: no reply of a command copy sent earlier can still come (a write begins only then)
+        #: no reply of a command copy sent earlier can still come (a write begins only then);
+        #: decided by a resync's answer and by a transaction's end
         self._clean = True
         self._deadline: float | None = None
         # the transaction
@@ -219,7 +220,6 @@ class SlcSender:
         return SessionState.QUIET
 
     def _after_quiet(self, now: float) -> SessionState:
-        self._clean = True
         self._era_trusted = True
         self._probe = _PROBE
         return self._send_probe(now)
@@ -246,7 +246,6 @@ class SlcSender:
         self._probes = 0
         self._probes_sent.clear()
         self._heard = False
-        self._next = 0
         quiet = now >= self._last_sent + self._quiet_time()
         if not quiet and self._barrier_free(now):
             self._era_trusted = True

@@ -359,7 +359,6 @@ class SlcSession(SlcSender):
                    f"after {self._probes} tries")
             if self._heard:
                 return self._retry_read(now, why)  # the controller is there, the line is bad: go on
-            self._next = 0
             return self._finish(SlcVerdict.FAILED, reason=why)  # silence: fail fast (a dead line)
         return self._send_probe(now)
 
