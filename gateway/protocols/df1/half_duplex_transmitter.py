@@ -79,9 +79,8 @@ class HalfDuplexTransmitter:
         return self.tx_at <= now
 
     def send(self, now: float) -> float:
-        """The held bytes go out now; returns when their last byte has left."""
+        """The bytes held by the last :meth:`prepare` go out now; returns when their last byte has left."""
         data = self._pending
-        self._pending = b""
         self._out += data
         if self.line.echo:
             self._echo += data
