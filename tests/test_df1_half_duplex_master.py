@@ -40,6 +40,7 @@ from gateway.protocols.df1.half_duplex_events import (
     StationRestored,
     StrayReply,
 )
+from gateway.protocols.df1.half_duplex_transmitter import HalfDuplexTransmitter
 from gateway.protocols.df1.pccc import PcccHeader, reply_matches
 from gateway.sim.variants import variant_matrix
 
@@ -1291,3 +1292,14 @@ def test_a_write_waits_while_its_stations_read_holds_the_only_place() -> None:
     assert master.data_to_send() == encode_poll(1)
     master.receive_data(encode_frame(reply_to(read1, b"\x01\x00"), Checksum.BCC), 1.0)
     assert master.data_to_send() == ACK_SYMBOL + encode_master_message(1, write1, Checksum.BCC)
+
+
+def test_the_transmitter_sends_what_it_was_given_once() -> None:
+    """``send`` puts the bytes of the last ``prepare`` on the line, and only once: a second ``send``
+    without a new ``prepare`` sends nothing (a frame is never repeated by the transmitter)."""
+    tx = HalfDuplexTransmitter(LineConfig(Checksum.BCC))
+    assert tx.prepare(b"\x10\x05\x01\xff", 0.0)
+    tx.send(0.0)
+    assert tx.data_to_send() == b"\x10\x05\x01\xff"
+    tx.send(1.0)
+    assert tx.data_to_send() == b""

@@ -79,8 +79,9 @@ class HalfDuplexTransmitter:
         return self.tx_at <= now
 
     def send(self, now: float) -> float:
-        """The bytes held by the last :meth:`prepare` go out now; returns when their last byte has left."""
+        """The bytes held by :meth:`prepare` go out now, once; returns when their last byte has left."""
         data = self._pending
+        self._pending = b""
         self._out += data
         if self.line.echo:
             self._echo += data
