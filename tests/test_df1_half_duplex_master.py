@@ -40,6 +40,7 @@ from gateway.protocols.df1.half_duplex_events import (
     StationRestored,
     StrayReply,
 )
+from gateway.protocols.df1.half_duplex_transmitter import HalfDuplexTransmitter
 from gateway.protocols.df1.pccc import PcccHeader, reply_matches
 from gateway.sim.variants import variant_matrix
 
@@ -680,8 +681,12 @@ def test_station_tunables_take_their_lowest_value_and_refuse_below(key: str, low
                 config(bad)
         return
     assert getattr(config(lowest), key) == lowest
-    with pytest.raises(ValueError, match=key):
-        config(lowest - 1 if isinstance(lowest, int) else -0.001)
+    if isinstance(lowest, int):
+        with pytest.raises(ValueError, match=key):
+            config(lowest - 1)
+        return
+    with pytest.raises(ValueError, match=f"{key} must be >= 0, got -0.001"):  # names the key
+        config(-0.001)
 
 
 def test_station_numbers_are_0_to_254() -> None:
@@ -710,6 +715,9 @@ def test_line_counts_and_ack_timeout_limits() -> None:
     for kwargs in bad:
         with pytest.raises(ValueError):
             replace(LineConfig(Checksum.BCC), **kwargs)
+    for value in (0, -1.0):  # the error names the key
+        with pytest.raises(ValueError, match=f"ack_timeout must be > 0, got {value}"):
+            LineConfig(Checksum.BCC, ack_timeout=value)
 
 
 def test_the_cores_defaults_are_the_config_keys_defaults() -> None:
@@ -1135,3 +1143,163 @@ def test_a_demoted_station_is_passed_over_when_writes_and_waiting_work_are_weigh
     master.receive_data(ACK_SYMBOL, 1.0 + waited)
     assert master.data_to_send() == (encode_master_message(2, read2, Checksum.BCC) if first == "read"
                                      else encode_poll(3))
+
+
+# ------------------------------------------------------------------- edges of the line's timing and counts
+
+
+def test_a_stray_answer_on_an_idle_line_is_only_counted_even_when_a_poll_is_due() -> None:
+    """An answer nothing asked for is ignored: it does not start the exchange that is due; the
+    driver's ``handle_timeout`` at ``next_deadline`` does."""
+    master = make(1, poll_interval=1.0)
+    after_start_polls(master)
+    assert master.next_deadline() == 1.0
+    master.receive_data(EOT_SYMBOL, 1.5)  # the driver is late: the background poll is overdue
+    assert master.ignored == 1 and master.data_to_send() == b"" and master.state is LineState.IDLE
+    master.handle_timeout(1.5)
+    assert master.data_to_send() == encode_poll(1) and master.ignored == 1
+
+
+def test_each_damaged_answer_is_counted() -> None:
+    master = make(3, poll_interval=100.0)
+    frame = bytearray(encode_frame(bytes((GATEWAY, 3, 0x0F, 0x00, 0x01, 0x00)), Checksum.BCC))
+    frame[-1] ^= 0xFF
+    for n in (1, 2):
+        assert master.data_to_send() == encode_poll(3)
+        master.receive_data(bytes(frame), 0.01 * n)
+        assert master.counters(3).bad_frames == n
+
+
+def test_each_collision_is_counted() -> None:
+    """2-wire RS-485: every poll that comes back garbled is one more collision."""
+    master = make(8, line={"echo": True}, poll_interval=100.0)
+    for n, now in ((1, 0.0), (2, 0.5)):
+        assert master.data_to_send() == encode_poll(8)
+        master.receive_data(b"\x10\x05\x99", now)
+        assert master.collisions == n
+        master.handle_timeout(now + 0.5)  # no answer: the station is polled again
+
+
+def test_bytes_heard_while_keying_up_push_the_transmission_past_quiet_time_and_rts_send_delay() -> None:
+    """RTS is up and the poll waits ``rts_send_delay``; a byte heard meanwhile (another master)
+    makes the line busy: the poll goes ``pre_transmit_delay`` after it plus the key-up time."""
+    master = make(1, line={"pre_transmit_delay": 0.5, "rts_send_delay": 0.25}, poll_interval=100.0)
+    assert master.state is LineState.TRANSMIT and master.next_deadline() == 0.25
+    master.receive_data(b"\x00", 0.125)
+    assert master.next_deadline() == 0.125 + 0.5 + 0.25
+    master.handle_timeout(0.75)
+    assert master.data_to_send() == b""
+    master.handle_timeout(0.875)
+    assert master.data_to_send() == encode_poll(1)
+
+
+@pytest.mark.parametrize(("acked", "polled"), [(1.0, 1), (0.75, 2)])
+def test_a_reply_poll_that_has_waited_write_precedence_goes_before_a_writes_reply_poll(
+    acked: float, polled: int
+) -> None:
+    """Station 1's read is due to be polled for its reply from 0.0 while station 2's write goes
+    out; when the write is acknowledged the read has waited ``write_precedence`` (or not yet)."""
+    master = make(1, 2, line={"write_precedence": 1.0, "ack_timeout": 2.0}, poll_interval=100.0)
+    after_start_polls(master)
+    read1, write2 = command(1, 0x90), command(2, 0x91, b"\xaa\x01")
+    master.submit(1, read1, 0.0)
+    assert master.data_to_send() == encode_master_message(1, read1, Checksum.BCC)
+    master.submit(2, write2, 0.0, urgent=True)
+    master.receive_data(ACK_SYMBOL, 0.0)
+    assert master.data_to_send() == encode_master_message(2, write2, Checksum.BCC)
+    master.receive_data(ACK_SYMBOL, acked)
+    assert master.data_to_send() == encode_poll(polled)
+
+
+def test_a_writes_reply_poll_within_a_turn_counts_towards_max_messages_per_turn() -> None:
+    """Station 1 sends a message of its own when polled for its write's reply: the next poll for
+    the reply is the turn's second, so after the reply the turn (2 polls) is over."""
+    master = make(1, 2, line={"max_messages_per_turn": 2}, poll_interval=100.0)
+    after_start_polls(master)
+    write1 = command(1, 0xA0, b"\xaa\x01")
+    master.submit(1, write1, 0.0, urgent=True)
+    assert master.data_to_send() == encode_master_message(1, write1, Checksum.BCC)
+    master.receive_data(ACK_SYMBOL, 0.0)
+    assert master.data_to_send() == encode_poll(1)
+    own = bytes((GATEWAY, 1, 0x0F, 0x00, 0x01, 0x00))
+    master.receive_data(encode_frame(own, Checksum.BCC), 0.0)
+    assert master.data_to_send() == ACK_SYMBOL + encode_poll(1)
+    master.receive_data(encode_frame(reply_to(write1, b""), Checksum.BCC), 0.0)
+    assert master.data_to_send() == ACK_SYMBOL  # the turn is over; nothing else is due
+    assert [type(e) for e in events(master)] == [SlaveInitiated, ReplyReceived]
+
+
+def test_the_line_wakes_for_the_earliest_reply_poll_of_any_station() -> None:
+    master = make(1, 2, poll_interval=100.0, reply_wait=1.0)
+    after_start_polls(master)
+    read1, read2 = command(1, 0xB0), command(2, 0xB1)
+    master.submit(1, read1, 0.0)
+    master.receive_data(ACK_SYMBOL, 0.0)  # station 1's reply poll at 1.0
+    master.submit(2, read2, 0.5)
+    assert master.data_to_send() == encode_master_message(1, read1, Checksum.BCC) + encode_master_message(
+        2, read2, Checksum.BCC
+    )
+    master.receive_data(ACK_SYMBOL, 0.5)  # station 2's at 1.5
+    assert master.next_deadline() == 1.0
+    master.handle_timeout(1.0)
+    assert master.data_to_send() == encode_poll(1)
+
+
+def test_a_demoted_stations_slow_poll_is_due_at_exactly_its_time() -> None:
+    """At the slow poll's time the demoted station, first in the round robin, is polled before
+    another station's queued command."""
+    master = make(1, 2, poll_timeout=0.5, demote_after=1, poll_interval=100.0, slow_poll_interval=2.0)
+    assert master.data_to_send() == encode_poll(1)
+    master.handle_timeout(0.5)  # no answer: demoted, slow poll at 2.5
+    assert not master.is_active(1)
+    after_start_polls(master, 0.5)
+    assert master.next_deadline() == 2.5
+    read2 = command(2, 0xC0)
+    master.submit(2, read2, 2.5)
+    assert master.data_to_send() == encode_poll(1)
+    master.receive_data(EOT_SYMBOL, 2.5)
+    assert master.is_active(1)
+    assert master.data_to_send() == encode_master_message(2, read2, Checksum.BCC)
+
+
+def test_a_request_is_polled_for_at_exactly_its_reply_deadline() -> None:
+    """``reply_timeout`` before ``reply_wait`` is over: the deadline makes the reply's poll due, so
+    at that time it goes before another station's queued command, as any due reply poll does."""
+    master = make(1, 2, poll_interval=100.0, reply_wait=2.0, reply_timeout=1.0, max_outstanding=2)
+    after_start_polls(master)
+    read1, read2, again2 = command(1, 0xD0), command(2, 0xD1), command(2, 0xD2)
+    master.submit(1, read1, 0.0)
+    master.receive_data(ACK_SYMBOL, 0.0)  # station 1: reply deadline 1.0, reply poll 2.0
+    master.submit(2, read2, 0.5)
+    master.receive_data(ACK_SYMBOL, 0.5)  # station 2 was served last: station 1 is first in the round
+    master.data_to_send()
+    master.submit(2, again2, 1.0)
+    assert master.data_to_send() == encode_poll(1)
+
+
+def test_a_write_waits_while_its_stations_read_holds_the_only_place() -> None:
+    """``max_outstanding`` 1: a read awaits its reply (polled for at 1.0); the write submitted
+    meanwhile waits for that reply, and goes right after it."""
+    master = make(1, poll_interval=100.0, reply_wait=1.0)
+    after_start_polls(master)
+    read1, write1 = command(1, 0xE0), command(1, 0xE1, b"\xaa\x01")
+    master.submit(1, read1, 0.0)
+    master.receive_data(ACK_SYMBOL, 0.0)
+    master.data_to_send()
+    master.submit(1, write1, 0.25, urgent=True)
+    assert master.data_to_send() == b"" and master.next_deadline() == 1.0
+    master.handle_timeout(1.0)
+    assert master.data_to_send() == encode_poll(1)
+    master.receive_data(encode_frame(reply_to(read1, b"\x01\x00"), Checksum.BCC), 1.0)
+    assert master.data_to_send() == ACK_SYMBOL + encode_master_message(1, write1, Checksum.BCC)
+
+
+def test_the_transmitter_sends_what_it_was_given_once() -> None:
+    """``send`` puts the bytes of the last ``prepare`` on the line, and only once: a second ``send``
+    without a new ``prepare`` sends nothing (a frame is never repeated by the transmitter)."""
+    tx = HalfDuplexTransmitter(LineConfig(Checksum.BCC))
+    assert tx.prepare(b"\x10\x05\x01\xff", 0.0)
+    tx.send(0.0)
+    assert tx.data_to_send() == b"\x10\x05\x01\xff"
+    tx.send(1.0)
+    assert tx.data_to_send() == b""

@@ -456,7 +456,7 @@ class HalfDuplexMaster:
         if self._tx.prepare(data, now):
             self._apply(self._send_input, now)
 
-    def _send_poll(self, number: int, now: float, *, again: bool = False) -> None:
+    def _send_poll(self, number: int, now: float, *, again: bool) -> None:
         self._stations[number].polled(now)
         self._scheduler.polled(number, again=again)
         self._current = number

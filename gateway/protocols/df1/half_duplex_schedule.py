@@ -300,7 +300,7 @@ class ExchangeScheduler:
         wake: list[float] = []
         for station in self.rotation():
             due = [r.poll_at for r in station.awaiting]
-            wake += due + [r.reply_deadline for r in station.awaiting if r.poll_at < r.reply_deadline]
+            wake += due
             if (due and min(due) <= now) or (not station.active and station.next_poll_at <= now):
                 self.serve(station)
                 return PollStation(station.number)
@@ -312,5 +312,5 @@ class ExchangeScheduler:
                 self.serve(station)
                 return PollStation(station.number)
             wake.append(station.next_poll_at)
-        self.wake = min(wake) if wake else None
+        self.wake = min(wake)  # every station that is not due has added its next poll
         return None

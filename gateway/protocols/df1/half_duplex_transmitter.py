@@ -79,7 +79,7 @@ class HalfDuplexTransmitter:
         return self.tx_at <= now
 
     def send(self, now: float) -> float:
-        """The held bytes go out now; returns when their last byte has left."""
+        """The bytes held by :meth:`prepare` go out now, once; returns when their last byte has left."""
         data = self._pending
         self._pending = b""
         self._out += data
