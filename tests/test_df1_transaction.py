@@ -606,6 +606,38 @@ def test_counters_count_each_thing_once() -> None:
     assert wframe not in readback
 
 
+def test_the_verified_and_unknown_counters_are_totals_over_every_write() -> None:
+    """A write proved by its read-back adds one to ``verified``, a write left unknown one to
+    ``unknown``; both are metrics, so two of each count two."""
+    host = Host()
+    for held in (b"\x01\x00", b"\x01\x00", b"\x02\x00", b"\x02\x00"):
+        host.start(write(3, 1), is_write=True)
+        host.feed(ACK_SYMBOL)
+        readback = host.wait(REPLY_TIMEOUT)
+        host.feed(ACK_SYMBOL + reply_to(readback, held))
+    assert [type(e) for e in host.events] == [TransactionDone, TransactionDone, OutcomeUnknown, OutcomeUnknown]
+    assert (host.core.counters.verified, host.core.counters.unknown) == (2, 2)
+
+
+def test_a_read_the_controller_refuses_is_refused_with_its_status() -> None:
+    host = Host()
+    handle, frame = host.start(read(900), is_write=False)
+    host.feed(ACK_SYMBOL + reply_to(frame, sts=0x10))
+    [refused] = host.events
+    assert isinstance(refused, TransactionRefused) and refused.handle == handle and refused.reply.sts == 0x10
+
+
+def test_every_transaction_has_its_own_handle_and_its_verdict_carries_it() -> None:
+    host = Host()
+    handles = []
+    for element in (1, 2, 3):
+        handle, frame = host.start(read(element), is_write=False)
+        host.feed(ACK_SYMBOL + reply_to(frame, b"\x00\x00"))
+        handles.append(handle)
+    assert len(set(handles)) == 3
+    assert [event.handle for event in host.events] == handles
+
+
 @CHUNKS
 def test_a_read_back_reply_before_its_ack_settles_the_write_and_completes_the_frame(chunk: int | None) -> None:
     host = Host(chunk=chunk)

@@ -22,7 +22,7 @@ from gateway.protocols.df1.pccc import (
     encode_command,
     is_write,
 )
-from gateway.protocols.df1.pccc.codec import Reader
+from gateway.protocols.df1.pccc.codec import Reader, encode_field
 from gateway.protocols.df1.pccc.params import Byte, Decoded, Word
 
 
@@ -81,6 +81,20 @@ def test_a_field_reads_and_writes_its_width_low_byte_first() -> None:
     reader = Reader(H("34"))
     with pytest.raises(PcccFormatError, match="too short for value"):
         Word("value", "value").decode(reader, Decoded())
+
+
+def test_a_reader_starts_at_the_packets_first_byte_unless_given_an_offset() -> None:
+    decoded = Decoded()
+    Word("value", "value").decode(Reader(H("34 12")), decoded)
+    assert decoded.values["value"] == 0x1234
+    assert Reader(H("00 34 12"), 1).u16("value") == 0x1234
+
+
+def test_an_address_fields_three_byte_form_holds_at_most_ffff() -> None:
+    """notes §7.3: ``FF lo hi`` carries 255-0xFFFF; a larger value is refused as out of range."""
+    assert encode_field("element", 0xFFFF) == H("FF FF FF")
+    with pytest.raises(InvalidRequest, match="PCCC: element 65536 out of range 0-65535"):
+        encode_field("element", 0x10000)
 
 
 def test_nothing_may_follow_the_parameters() -> None:

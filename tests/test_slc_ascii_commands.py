@@ -513,6 +513,16 @@ def test_a_read_whose_count_field_is_not_1_or_2_has_no_answer() -> None:
         parse_reply(bad, "01008481")
 
 
+@pytest.mark.parametrize("params", ["0001" "0084" "00", "0001" "00"], ids=["a byte too many", "a byte too few"])
+def test_a_read_whose_parameters_are_not_a_count_and_an_address_has_no_answer(params: str) -> None:
+    """A hand-built read is answered only if its parameters are what ``read_bytes`` builds: a
+    2-byte count and a 2-byte address; a byte more or less is refused whatever the reply."""
+    bad = Command(CommandCode.READ, bytes.fromhex(params), "bad read", ReplyKind.DATA, TimeoutClass.NORMAL,
+                  is_write=False)
+    with pytest.raises(InvalidRequest, match="a read's parameters are 4 bytes"):
+        parse_reply(bad, "01008481")
+
+
 # ---------------------------------------------------------------------------------------------
 # ;T error bits
 

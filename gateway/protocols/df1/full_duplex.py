@@ -117,6 +117,8 @@ class FullDuplexStation(ABC, Generic[EventT, CountersT]):
         # transmitter
         self._queue: deque[QueuedFrame] = deque()
         self._current: QueuedFrame | None = None
+        # the DLE NAK and DLE ENQ counts of the frame on the line, zeroed as each frame goes on
+        # the line (_transmit); with no frame on the line what they decide is ignored
         self._nak_count = 0
         self._enq_count = 0
         self._deadline: float | None = None
@@ -276,7 +278,6 @@ class FullDuplexStation(ABC, Generic[EventT, CountersT]):
         self._queue.clear()
         self._current = None
         self._deadline = None
-        self._nak_count = self._enq_count = 0
         self._frame_unsent = False
         self._decoder.reset()
         self._out.clear()

@@ -11,7 +11,7 @@ import re
 from dataclasses import dataclass
 from typing import NamedTuple
 
-from gateway.errors import ProtocolError
+from gateway.errors import InvalidRequest, ProtocolError
 from gateway.protocols.slc_ascii.command_types import BLOCK_SIZE, Command, CommandCode, ControllerType, ReplyKind
 from gateway.protocols.slc_ascii.memory_map import PROTECT_BIT, WORD_VALUE_MASK, check_readable
 
@@ -161,13 +161,17 @@ def parse_reply(command: Command, body_hex: str) -> Reply:
 
     The single place deciding whether a data reply answers a command: the transaction core takes
     a reply as the answer exactly when this parses it.  Raises :class:`ProtocolError` for a
-    reply that does not answer ``command`` (or a command that expects ``;R``, not data).
+    reply that does not answer ``command`` (or a command that expects ``;R``, not data), and
+    :class:`InvalidRequest` for a hand-built read that :func:`read_bytes` would not build (its
+    parameters not a 2-byte count and a 2-byte address, or a range that is not readable).
     """
     code, params = command.code, command.params
     if command.reply is not ReplyKind.DATA:
         raise ProtocolError(f"{command.name} is answered by ;R, not by data")
     if code == CommandCode.READ:
-        return parse_read_reply(int.from_bytes(params[2:4], "big"), int.from_bytes(params[0:2], "big"), body_hex)
+        if len(params) != 4:
+            raise InvalidRequest(f"{command.name}: a read's parameters are 4 bytes (count, address), not {len(params)}")
+        return parse_read_reply(int.from_bytes(params[2:], "big"), int.from_bytes(params[:2], "big"), body_hex)
     if code == CommandCode.READ_FRN:
         return parse_frn_reply(body_hex)
     if code == CommandCode.UPLOAD:
