@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.framing import ACK_SYMBOL, EOT_SYMBOL, Checksum, NeedData, encode_frame
+from gateway.protocols.df1.framing import ACK_SYMBOL, EOT_SYMBOL, Checksum, NeedData, encode_frame, encode_poll
 from gateway.protocols.df1.half_duplex import HalfDuplexMaster
 from gateway.protocols.df1.half_duplex_events import (
     FailReason,
@@ -329,6 +329,20 @@ def test_master_events_that_are_no_transactions_go_to_the_driver() -> None:
 
 def test_encode_packet_is_the_pccc_command() -> None:
     assert encode_packet(READ, dst=3, src=4, tns=0x1234) == encode_command(READ, dst=3, src=4, tns=0x1234)
+
+
+def test_by_default_commands_go_from_station_0_numbered_from_tns_1() -> None:
+    """The defaults (those of the full-duplex core): the first command's SRC is 0 and its TNS 1."""
+    txns = HalfDuplexTransactions()
+    master = HalfDuplexMaster(LineConfig(Checksum.BCC), [StationConfig(1)])
+    txns.attach(master, 0.0, reason="")
+    master.start(0.0)
+    txns.start(1, READ, 0.0, write=False)
+    assert master.data_to_send() == encode_poll(1)  # the poll that was under way
+    txns.receive_data(EOT_SYMBOL, 0.0)
+    out = master.data_to_send()
+    packet = out[5 : out.index(b"\x10\x03")].replace(b"\x10\x10", b"\x10")
+    assert packet == encode_packet(READ, dst=1, src=0, tns=1)
 
 
 def test_negative_retries_are_refused() -> None:

@@ -245,3 +245,19 @@ def test_a_read_fails_at_its_first_stale_point_not_at_one_exactly_at_its_deadlin
     with pytest.raises(ImageMiss) as miss:
         images.registers(Table.HOLDING, 10, 2, 6.0)
     assert (miss.value.address, miss.value.block) == (11, 1)
+
+
+def test_a_point_whose_block_was_never_stored_peeks_as_the_caches_zero_bytes() -> None:
+    """The images begin as the decoding of the cache's initial data (zero bytes), so the status
+    page's view of a point never read is its codec's value of zeros, registers and bits alike,
+    also beside a point of another block that was stored."""
+    plan: Plan[None, None] = Plan(blocks=[Block(None, 2, Scan.FAST), Block(None, 2, Scan.FAST)])
+    plan.holding[10] = RegisterPoint(0, 0, Codec("u16", 0, 1))
+    plan.holding[11] = RegisterPoint(1, 0, Codec("u16", 0, 1))
+    plan.coils[20] = BitPoint(0, 0, 0)
+    plan.coils[21] = BitPoint(1, 0, 0)
+    images = Images(plan, [1.0, 1.0])
+    cache = BlockCache([2, 2], images=images)
+    cache.store(1, b"\xff\xff", 5.0)
+    assert [images.peek(Table.HOLDING, a) for a in (10, 11)] == [(0, 0), (0xFFFF, 1)]
+    assert [images.peek(Table.COIL, a) for a in (20, 21)] == [(0, 0), (1, 1)]

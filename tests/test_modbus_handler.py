@@ -294,6 +294,24 @@ async def test_a_write_ending_at_register_65535_is_applied_one_past_it_is_0x02(f
     assert [(t, a, len(v)) for t, _, a, v in backend.writes] == [(table, 0xFFFF, 1), (table, 0xFFFD, 3)]
 
 
+@dataclass
+class FlagBackend(SpecBackend):
+    """A backend with a data attribute named ``read_now`` (a flag, no function)."""
+
+    read_now: bool = False
+
+
+async def test_a_backend_whose_read_now_is_no_function_is_read_through_its_coroutines() -> None:
+    """``read_now`` is the fast path only when the backend's attribute of that name can be called;
+    any other value of it (here a flag) leaves reads to the backend's read coroutines."""
+    backend = FlagBackend(read_now_path=False)
+    async with serving(backend) as (reader, writer):
+        for function_code in (1, 3):
+            pdu = struct.pack(">BHH", function_code, 10, 4)
+            writer.write(frame(5, 1, pdu))
+            check_reply((5, 1, pdu), await read_reply(reader), expected_reply(1, pdu, False), {})
+
+
 TIDS = (0, 1, 0xFF, 0x100, 0x1234, 0x8000, 0xFF00, 0xFFFE, 0xFFFF)
 
 

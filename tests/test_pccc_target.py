@@ -277,6 +277,20 @@ def test_an_abandoned_transaction_expires_and_the_oldest_gives_way() -> None:
         Transfers(timeout=0)
 
 
+def test_a_target_may_keep_one_transfer_for_under_a_second() -> None:
+    """The smallest bounds: any positive timeout, a limit of 1 (the next sender's transfer makes
+    the open one give way)."""
+    target = PcccTarget(DataTable.of("N7:10"), transfers=Transfers(timeout=0.5, limit=1))
+    run(target, WordRangeWrite(N7(0), H("01 00"), packet_offset=0, total=2), now=0.0, src=1)
+    crowded = run(target, WordRangeWrite(N7(0), H("0A 00"), packet_offset=0, total=2), now=0.1, src=2)
+    assert [t.key for t in crowded.abandoned] == [(1, 0x00, 7, 0, 2)]
+    late = run(target, WordRangeWrite(N7(0), H("0B 00"), packet_offset=1, total=2), now=0.7, src=2)
+    assert [t.key for t in late.abandoned] == [(2, 0x00, 7, 0, 2)] and late.ext_sts != 0
+    for timeout, limit in ((-1.0, 1), (0.5, 0)):
+        with pytest.raises(ValueError):
+            Transfers(timeout=timeout, limit=limit)
+
+
 def test_a_multi_packet_write_that_cannot_fit_is_refused_at_its_first_packet() -> None:
     target = make_target()
     result = run(target, WordRangeWrite(N7(8), H("01 00"), packet_offset=0, total=3))
@@ -422,6 +436,17 @@ def test_data_table_specs_are_checked(specs: tuple[str, ...]) -> None:
         DataTable.of(*specs)
     with pytest.raises(ValueError):
         TableFile(TableFileKind.INTEGER, 70000, 1)
+
+
+def test_a_file_is_numbered_0_to_65535_and_holds_1_to_65536_elements() -> None:
+    """The whole range of a PCCC file number and element number (two bytes each)."""
+    assert [TableFile(TableFileKind.INTEGER, n, 1).name for n in (0, 0xFFFF)] == ["N0", "N65535"]
+    full = TableFile(TableFileKind.INTEGER, 7, 0x10000)
+    full.set_value(0xFFFF, 5, 1.0)
+    assert full.value(0xFFFF) == 5
+    for number, count in ((-1, 1), (0x10000, 1), (7, 0), (7, 0x10001)):
+        with pytest.raises(ValueError):
+            TableFile(TableFileKind.INTEGER, number, count)
 
 
 # --------------------------------------------------------------- round trips (one wire rule)
