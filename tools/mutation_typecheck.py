@@ -3,10 +3,11 @@ errors that only mutmut's copies of a method cause.
 
 mutmut puts each mutant of a method in a method of its own (``xǁClassǁ__init____mutmut_12``) beside
 the original.  mypy then reports, in every copy of an ``__init__`` but the first it reads, that an
-attribute annotated there is "already defined" and that a ``Final`` one may not be declared or
-assigned outside ``__init__``.  Those errors say nothing of the mutant, yet mutmut would count each such mutant as
-caught by the type check, untested.  They are dropped here (mypy's JSON lines pass through
-otherwise unchanged), so those mutants run their tests like any other.
+attribute annotated there is "already defined" and that a ``Final`` one may not be declared,
+redeclared or assigned outside ``__init__``.  Those errors say nothing of the mutant, yet mutmut
+would count each such mutant as caught by the type check, untested.  They are dropped here
+(mypy's JSON lines pass through otherwise unchanged), so those mutants run their tests like any
+other.
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ import sys
 COPY_ERRORS = re.compile(
     r'^(Attribute "[^"]+" already defined on line \d+'
     r'|Cannot assign to final attribute "[^"]+"'
-    r"|Can only declare a final attribute in class body or __init__)$"
+    r"|Can only declare a final attribute in class body or __init__"
+    r"|Cannot redefine an existing name as final)$"
 )
 
 
