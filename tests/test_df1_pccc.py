@@ -464,8 +464,14 @@ def test_tns_allocator() -> None:
     assert a == 5 and allocator.allocate() != 5  # the outstanding TNS is skipped on wrap-around
 
 
+def test_tns_0_is_a_transaction_number_like_any_other() -> None:
+    """A core's ``first_tns`` is taken modulo 0x10000 (0x10000 gives 0): numbering may start at 0."""
+    allocator = TnsAllocator(start=0)
+    assert (allocator.allocate(), allocator.allocate()) == (0, 1)
+
+
 def test_tns_allocator_exhausted() -> None:
-    allocator = TnsAllocator()
+    allocator = TnsAllocator(start=1)
     for _ in range(0x10000):
         allocator.allocate()
     with pytest.raises(InvalidRequest):

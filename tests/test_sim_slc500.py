@@ -74,7 +74,7 @@ class Bench:
         self.sim = Slc500Simulator.from_options(options, ladder=ladder)
         self.host = Df1DataLink(checksum=self.sim.options.checksum, ack_timeout=ack_timeout)
         self.now = 0.0
-        self.tns = TnsAllocator()
+        self.tns = TnsAllocator(start=1)
         self.replies: dict[int, list[PcccReply]] = {}
         self.wire: list[bytes] = []  # every output of the simulator
 
@@ -814,7 +814,7 @@ async def test_through_sim_stream() -> None:
     sim = Slc500Simulator.from_options({"delay": "0.01", "noise": "2", "duplicate": "2"}, ladder=True)
     stream = SimStream(sim)
     host = Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.5)
-    tns = TnsAllocator()
+    tns = TnsAllocator(start=1)
     try:
 
         async def transact(request: Request) -> PcccReply:

@@ -288,7 +288,7 @@ def reply_matches(command: PcccHeader | bytes, reply: PcccReply | PcccHeader) ->
 class TnsAllocator:
     """Transaction numbers: unique among outstanding commands, incrementing, wrapping at 0xFFFF."""
 
-    def __init__(self, start: int = 1) -> None:
+    def __init__(self, start: int) -> None:
         check_range("TNS", start, 0, 0xFFFF)
         self._next = start
         self._outstanding: set[int] = set()
