@@ -1075,3 +1075,82 @@ def test_a_resync_that_heard_only_stale_replies_goes_on_empty_reads_are_not_hear
     assert script.reply(b"") == b""
     assert script.wait() == b""
     assert script.verdict() is SlcVerdict.FAILED
+
+
+# --- the defaults and the windows of the adaptive times ---------------------------------------
+
+
+def _default_script() -> Script:
+    """A session built with the documented defaults (no timeouts given)."""
+    script = Script()
+    script.session = SlcSession()
+    return script
+
+
+def test_the_defaults_wait_0_3_s_for_a_reply_adapt_no_lower_than_50_ms_and_wait_1_5_x_for_quiet() -> None:
+    """"Normally the SLC will respond within 0.3 seconds": a session built with the defaults
+    waits that long for a reply; a controller answering in 1/64 s brings the reply timeout down
+    to 50 ms, no lower; the quiet wait before a read FRN resync is 1.5 x 0.3 s."""
+    script = _default_script()
+    assert script.start(READ) == frame_command(cmds.read_frn(), 0)
+    assert script.session.next_deadline() == pytest.approx(script.now + 0.3)
+    assert script.reply(FRN_REPLY, dt=1 / 64) == frame_command(READ, 1)
+    assert script.session.next_deadline() == pytest.approx(script.now + 0.3)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 1), dt=1 / 64)
+    assert script.verdict() is SlcVerdict.DONE
+    for n in range(2, 8):
+        script.start(READ)
+        script.reply(encode_data_reply(READ_REPLY_BODY, n), dt=1 / 64)
+        assert script.verdict() is SlcVerdict.DONE
+    script.start(READ)  # 8 reply times of 1/64 s: 2 x 1/64 s, raised to 50 ms
+    assert script.session.next_deadline() == pytest.approx(script.now + 0.05)
+    assert script.wait() == encode_retransmit(8)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 8), dt=1 / 64)  # two messages: a write resyncs
+    assert script.verdict() is SlcVerdict.DONE
+    _barrier(script.start(WRITE))
+    sent = script.now
+    assert script.reply(encode_refused(0)) == b""  # program mode: quiet, then read FRN
+    assert script.session.next_deadline() == pytest.approx(sent + 1.5 * 0.3)
+
+
+@pytest.mark.parametrize("fast", [30, 31])
+def test_the_reply_timeout_follows_the_slowest_of_the_last_32_reply_times(fast: int) -> None:
+    """A slow first reply (1/8 s: a 1/4 s timeout) counts while it is one of the last 32 reply
+    times; once 32 newer fast ones (1/64 s) came, the timeout is 50 ms."""
+    script = _default_script()
+    assert script.start(READ) == frame_command(cmds.read_frn(), 0)
+    assert script.reply(FRN_REPLY, dt=1 / 8) == frame_command(READ, 1)  # the slow one
+    script.reply(encode_data_reply(READ_REPLY_BODY, 1), dt=1 / 64)
+    assert script.verdict() is SlcVerdict.DONE
+    for n in range(2, 2 + fast):
+        assert script.start(READ) == frame_command(READ, n)
+        script.reply(encode_data_reply(READ_REPLY_BODY, n), dt=1 / 64)
+        assert script.verdict() is SlcVerdict.DONE
+    script.start(READ)  # 1 + fast reply times of 1/64 s after the slow one
+    assert script.session.next_deadline() == script.now + (1 / 4 if 1 + fast < 32 else 0.05)
+
+
+@pytest.mark.parametrize("fast", [30, 31])
+def test_the_quiet_wait_follows_the_latest_of_the_last_32_answers(fast: int) -> None:
+    """An answer seen 0.55 s after its copy makes the quiet wait 1.5 x 0.55 s while it is one of
+    the last 32 answers' lateness; once 32 newer answers came (all early), it is the 1.5 x 0.3 s
+    of the defaults again."""
+    script = _default_script()
+    script.handshake_read()
+    assert script.start(READ) == frame_command(READ, 2)
+    assert script.wait() == encode_retransmit(2)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 2), dt=0.25)  # 0.55 s after the copy
+    assert script.verdict() is SlcVerdict.DONE
+    for n in range(3, 3 + fast):
+        assert script.start(READ) == frame_command(READ, n)
+        script.reply(encode_data_reply(READ_REPLY_BODY, n), dt=1 / 64)
+        assert script.verdict() is SlcVerdict.DONE
+    assert script.start(READ) == frame_command(READ, 3 + fast)
+    assert script.wait() == encode_retransmit(3 + fast)
+    script.reply(encode_data_reply(READ_REPLY_BODY, 3 + fast), dt=1 / 64)  # two messages: a write resyncs
+    assert script.verdict() is SlcVerdict.DONE
+    _barrier(script.start(WRITE))  # 1 + fast answers after the late one
+    sent = script.now
+    assert script.reply(encode_refused(0)) == b""
+    quiet = 1.5 * (0.55 if 1 + fast < 32 else 0.3)
+    assert script.session.next_deadline() == pytest.approx(sent + quiet)
