@@ -1303,3 +1303,20 @@ def test_the_transmitter_sends_what_it_was_given_once() -> None:
     assert tx.data_to_send() == b"\x10\x05\x01\xff"
     tx.send(1.0)
     assert tx.data_to_send() == b""
+
+
+def test_the_transmitter_sends_nothing_before_it_is_given_bytes() -> None:
+    """``send`` without any ``prepare`` puts nothing on the line."""
+    tx = HalfDuplexTransmitter(LineConfig(Checksum.BCC))
+    tx.send(0.0)
+    assert tx.data_to_send() == b""
+
+
+def test_rts_is_off_until_there_is_something_to_send() -> None:
+    """A new transmitter, and a master not started yet, do not key the modem; RTS goes up for
+    the first bytes prepared."""
+    line = replace(LineConfig(Checksum.BCC), rts_send_delay=0.02)
+    tx = HalfDuplexTransmitter(line)
+    assert not tx.rts
+    assert not HalfDuplexMaster(line, [StationConfig(1)]).rts
+    assert not tx.prepare(encode_poll(1), 0.0) and tx.rts

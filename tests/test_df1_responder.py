@@ -760,3 +760,67 @@ def test_a_late_nak_after_a_reply_was_given_up_is_a_nak_to_nothing() -> None:
     responder.feed(NAK_SYMBOL, 0.1)  # a late copy of that NAK
     assert (responder.history[-1].state, responder.history[-1].input) == (S.IDLE, K.NAK)
     assert drain(responder) == [] and responder.data_to_send() == b""
+
+
+# ------------------------------------------------------------------------- documented defaults
+
+
+def test_by_default_the_sink_holds_four_commands() -> None:
+    """The target driver passes no ``max_pending``: the fifth command without a reply is NAKed."""
+    responder = Df1Responder()
+    responder.feed(b"".join(frame(command(tns)) for tns in range(1, 6)), 0.0)
+    assert responder.data_to_send() == ACK_SYMBOL * 4 + NAK_SYMBOL
+    assert responder.pending_commands == 4 and responder.counters.sink_full == 1
+
+
+def test_by_default_a_reply_is_given_up_after_three_retransmissions() -> None:
+    """RM NAK retries 3: the fourth DLE NAK loses the reply (the target driver passes no ``nak_limit``)."""
+    responder = Df1Responder()
+    responder.feed(frame(C1), 0.0)
+    responder.send_reply(R1, 0.0)
+    drain(responder)
+    assert responder.data_to_send() == ACK_SYMBOL + frame(R1)
+    for _ in range(3):
+        responder.feed(NAK_SYMBOL, 0.0)
+        assert responder.data_to_send() == frame(R1) and drain(responder) == []
+    responder.feed(NAK_SYMBOL, 0.0)
+    assert drain(responder) == [ReplyLost(1, R1, SendFailure.NAK_LIMIT)] and responder.data_to_send() == b""
+
+
+def test_by_default_a_reply_is_given_up_after_three_enqs() -> None:
+    """RM ENQ retries 3: the fourth ACK timeout loses the reply (the target driver passes no ``enq_limit``)."""
+    responder = Df1Responder()
+    responder.feed(frame(C1), 0.0)
+    responder.send_reply(R1, 0.0)
+    drain(responder)
+    responder.data_to_send()
+    for _ in range(3):
+        deadline = responder.next_deadline()
+        assert deadline is not None
+        responder.handle_timeout(deadline)
+        assert responder.data_to_send() == ENQ_SYMBOL and drain(responder) == []
+    deadline = responder.next_deadline()
+    assert deadline is not None
+    responder.handle_timeout(deadline)
+    assert drain(responder) == [ReplyLost(1, R1, SendFailure.NO_RESPONSE)] and responder.data_to_send() == b""
+
+
+def test_by_default_the_station_is_0() -> None:
+    responder = Df1Responder(check_dst=True)
+    responder.feed(frame(command(1, dst=0)) + frame(command(2, dst=1)), 0.0)
+    assert drain(responder) == [received(command(1, dst=0))] and responder.counters.not_for_us == 1
+
+
+def test_the_limits_of_the_options_are_accepted() -> None:
+    assert Df1Responder(station=254).station == 254
+    responder = Df1Responder(max_message=responder_module.MIN_PACKET)
+    responder.feed(frame(command(1)[:responder_module.MIN_PACKET]), 0.0)
+    assert drain(responder) == [received(command(1)[:responder_module.MIN_PACKET])]
+
+
+def test_the_history_keeps_the_last_64_steps() -> None:
+    """The diagnostic record of the transitions taken is bounded and holds the newest ones."""
+    responder = Df1Responder()
+    responder.feed(b"\x55" * 70, 0.0)
+    responder.feed(ENQ_SYMBOL, 0.0)
+    assert len(responder.history) == 64 and responder.history[-1].input is K.ENQ
