@@ -477,6 +477,16 @@ class Script:
         self.session.receive_data(data, self.now)
         return self.session.data_to_send()
 
+    def waits_until_verdict(self) -> list[float]:
+        """Let each wait pass until the transaction ends; how long each was (to the millisecond)."""
+        waits = []
+        while self.session.result is None:
+            deadline = self.session.next_deadline()
+            assert deadline is not None
+            waits.append(round(deadline - self.now, 3))
+            self.wait()
+        return waits
+
     def wait(self) -> bytes:
         """Nothing arrives until the session's deadline: what it sends then."""
         deadline = self.session.next_deadline()
@@ -648,12 +658,7 @@ def test_the_reply_timeout_adapts_to_the_controller_and_verdicts_wait_the_full_t
     assert script.verdict() is SlcVerdict.DONE
     began = script.now
     assert script.start(WRITE) == frame_command(WRITE, 11)
-    waits = []
-    while script.session.result is None:
-        deadline = script.session.next_deadline()
-        assert deadline is not None
-        waits.append(round(deadline - script.now, 3))
-        script.wait()
+    waits = script.waits_until_verdict()
     assert waits == [0.08, 0.08, 0.08, TIMEOUT]  # 2 x 40 ms; the last ;Z waits the full time
     assert script.verdict() is SlcVerdict.UNKNOWN
     assert script.now - began == pytest.approx(3 * 0.08 + TIMEOUT)
@@ -945,12 +950,7 @@ def test_under_a_budget_the_last_resync_try_and_the_last_z_wait_the_full_time() 
         first = _barrier(script.start(WRITE, until=began + 0.52))
         if verdict is SlcVerdict.UNKNOWN:  # the barrier's answer comes, the write's never
             assert script.reply(first[1]) == frame_command(WRITE, 1)
-        waits = []
-        while script.session.result is None:
-            deadline = script.session.next_deadline()
-            assert deadline is not None
-            waits.append(round(deadline - script.now, 3))
-            script.wait()
+        waits = script.waits_until_verdict()
         assert waits[-1] == TIMEOUT and set(waits[:-1]) == {0.05} and len(waits) > 5, waits
         assert script.verdict() is verdict
 
