@@ -499,6 +499,61 @@ def test_send_validation() -> None:
         Df1DataLink(ack_timeout=0)
 
 
+def test_the_limits_reject_a_negative_count_of_either_kind() -> None:
+    with pytest.raises(ValueError):
+        Df1DataLink(max_enq=-1)
+    with pytest.raises(ValueError):
+        Df1DataLink(max_nak=-1)
+
+
+def test_by_default_a_frame_is_sent_again_on_3_naks_and_enquired_3_times() -> None:
+    """The DF1 manuals' default retry counts (3 DLE NAKs, 3 DLE ENQs), which the simulated
+    controllers' links run with."""
+    link = Df1DataLink(ack_timeout=0.1)
+    frame = encode_frame(packet(1), Checksum.BCC)
+    link.send(packet(1), 0.0)
+    assert link.data_to_send() == frame
+    for _ in range(3):
+        link.receive_data(NAK_SYMBOL, 0.0)
+        assert link.data_to_send() == frame
+    link.receive_data(NAK_SYMBOL, 0.0)
+    assert link.next_event() == SendFailed(1, SendFailure.NAK_LIMIT)
+    link.send(packet(2), 0.0)
+    link.data_to_send()
+    now = 0.0
+    for _ in range(3):
+        now += 0.1
+        link.handle_timeout(now)
+        assert link.data_to_send() == ENQ_SYMBOL
+    link.handle_timeout(now + 0.1)
+    assert link.next_event() == SendFailed(2, SendFailure.NO_RESPONSE)
+
+
+def test_by_default_the_ack_wait_does_not_allow_for_character_times() -> None:
+    """``char_time`` 0 by default: the measured ACK times are the whole wait after writing."""
+    link = Df1DataLink(ack_timeout=1.0)
+    now = 0.0
+    for n in range(8):
+        link.send(packet(n + 1), now)
+        link.data_to_send()
+        link.receive_data(ACK_SYMBOL, now + 0.01)
+        assert link.next_event() == SendComplete(n + 1)
+        now += 0.1
+    link.send(packet(9), now)
+    link.data_to_send()
+    assert link.next_deadline() == pytest.approx(now + 0.05)  # 2 x 10 ms, raised to the floor
+
+
+def test_a_frame_longer_than_max_message_is_nakked_not_delivered() -> None:
+    link = Df1DataLink(checksum=Checksum.BCC, max_message=16)
+    link.receive_data(encode_frame(bytes(range(1, 18)), Checksum.BCC), 0.0)
+    assert link.data_to_send() == NAK_SYMBOL
+    assert link.next_event() is NEED_DATA
+    link.receive_data(encode_frame(bytes(range(1, 17)), Checksum.BCC), 0.0)
+    assert link.data_to_send() == ACK_SYMBOL
+    assert link.next_event() == MessageReceived(bytes(range(1, 17)))
+
+
 # ---------------------------------------------------------------------------------- soak
 
 

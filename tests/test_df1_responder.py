@@ -190,6 +190,14 @@ def test_walk_every_pair(pair: tuple[TxState, ResponderInput]) -> None:
     assert ResponderStep(state, what, action, next_state) in list(responder.history)[before:]
 
 
+@pytest.mark.parametrize(("symbol", "what"), [(ACK_SYMBOL, K.ACK), (NAK_SYMBOL, K.NAK)])
+def test_a_stray_answer_before_any_reply_is_a_stray_one_not_stale(symbol: bytes, what: ResponderInput) -> None:
+    """No frame of ours has ever waited in the output: nothing the peer sends can be stale."""
+    responder = Df1Responder(station=STATION)
+    responder.feed(symbol, 0.0)
+    assert list(responder.history) == [ResponderStep(S.IDLE, what, A.IGNORE, S.IDLE)]
+
+
 # ---------------------------------------------------------------------------------- byte scripts
 
 #: ("in", bytes) feed; ("out", bytes) data_to_send() must be; ("reply", packet) send_reply;

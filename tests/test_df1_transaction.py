@@ -278,6 +278,23 @@ def test_one_transaction_at_a_time_and_bad_settings() -> None:
         Df1Transactions(Df1DataLink(), station=1, retries=-1)
 
 
+def test_with_no_retries_a_read_is_sent_once() -> None:
+    host = Host(retries=0)
+    host.start(read(1), is_write=False)
+    host.feed(ACK_SYMBOL)
+    assert host.wait(REPLY_TIMEOUT) == b""
+    [event] = host.events
+    assert isinstance(event, TransactionFailed) and event.reason.endswith("(after 1 tries)")
+    assert host.core.counters.attempts == 1
+
+
+def test_by_default_the_first_command_has_tns_1() -> None:
+    core = Df1Transactions(Df1DataLink(checksum=CRC), station=1)
+    core.start(read(1), 0.0, write=False)
+    header = PcccHeader.decode(message_of(core.data_to_send()))
+    assert header.tns == 1
+
+
 # -------------------------------------------------------------- property: against the simulator
 
 VARIANTS = list(variant_matrix(Slc500Simulator.VARIANTS))
@@ -507,6 +524,15 @@ def reply_wait_of_next_read(host: Host) -> float:
 def test_the_reply_wait_adapts_to_the_measured_reply_times(replies: int, after: float, wait: float) -> None:
     host = Host()
     answered_reads(host, replies, after)
+    assert reply_wait_of_next_read(host) == pytest.approx(wait)
+
+
+@pytest.mark.parametrize(("fast", "wait"), [(31, 0.4), (32, 0.1)])
+def test_the_reply_wait_counts_the_slowest_of_the_last_32_replies(fast: int, wait: float) -> None:
+    """A slow reply (0.2 s) sets the wait (2 x 0.2 s) until 32 newer replies push it out."""
+    host = Host()
+    answered_reads(host, 1, 0.2)
+    answered_reads(host, fast, 0.03)
     assert reply_wait_of_next_read(host) == pytest.approx(wait)
 
 
