@@ -477,6 +477,13 @@ class Script:
         self.session.receive_data(data, self.now)
         return self.session.data_to_send()
 
+    def read_answered_after_retransmit(self, msg_id: int, *, dt: float) -> None:
+        """A read as message ``msg_id`` whose reply is lost; the ``;Z`` brings it ``dt`` later."""
+        assert self.start(READ) == frame_command(READ, msg_id)
+        assert self.wait() == encode_retransmit(msg_id)
+        self.reply(encode_data_reply(READ_REPLY_BODY, msg_id), dt=dt)
+        assert self.verdict() is SlcVerdict.DONE
+
     def waits_until_verdict(self) -> list[float]:
         """Let each wait pass until the transaction ends; how long each was (to the millisecond)."""
         waits = []
@@ -751,10 +758,7 @@ def test_a_controller_seen_answering_late_lengthens_the_quiet_wait() -> None:
     the latest an answer was seen coming after its copy, if that is longer."""
     script = Script()
     script.handshake_read()
-    assert script.start(READ) == frame_command(READ, 2)
-    assert script.wait() == encode_retransmit(2)
-    script.reply(encode_data_reply(READ_REPLY_BODY, 2), dt=0.2)  # 0.5 s after the copy
-    assert script.verdict() is SlcVerdict.DONE
+    script.read_answered_after_retransmit(2, dt=0.2)  # 0.5 s after the copy
     _barrier(script.start(WRITE))  # two messages: a write resyncs
     sent = script.now
     assert script.reply(encode_refused(0)) == b""  # program mode: quiet, then read FRN
@@ -1137,18 +1141,12 @@ def test_the_quiet_wait_follows_the_latest_of_the_last_32_answers(fast: int) -> 
     of the defaults again."""
     script = _default_script()
     script.handshake_read()
-    assert script.start(READ) == frame_command(READ, 2)
-    assert script.wait() == encode_retransmit(2)
-    script.reply(encode_data_reply(READ_REPLY_BODY, 2), dt=0.25)  # 0.55 s after the copy
-    assert script.verdict() is SlcVerdict.DONE
+    script.read_answered_after_retransmit(2, dt=0.25)  # 0.55 s after the copy
     for n in range(3, 3 + fast):
         assert script.start(READ) == frame_command(READ, n)
         script.reply(encode_data_reply(READ_REPLY_BODY, n), dt=1 / 64)
         assert script.verdict() is SlcVerdict.DONE
-    assert script.start(READ) == frame_command(READ, 3 + fast)
-    assert script.wait() == encode_retransmit(3 + fast)
-    script.reply(encode_data_reply(READ_REPLY_BODY, 3 + fast), dt=1 / 64)  # two messages: a write resyncs
-    assert script.verdict() is SlcVerdict.DONE
+    script.read_answered_after_retransmit(3 + fast, dt=1 / 64)  # two messages: a write resyncs
     _barrier(script.start(WRITE))  # 1 + fast answers after the late one
     sent = script.now
     assert script.reply(encode_refused(0)) == b""
