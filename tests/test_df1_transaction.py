@@ -273,9 +273,9 @@ def test_one_transaction_at_a_time_and_bad_settings() -> None:
     with pytest.raises(Exception, match="already running"):
         host.core.start(read(2), 0.0, write=False)
     with pytest.raises(ValueError):
-        Df1Transactions(Df1DataLink(), station=1, reply_timeout=0)
+        Df1Transactions(Df1DataLink(), station=1, source=0, reply_timeout=0)
     with pytest.raises(ValueError):
-        Df1Transactions(Df1DataLink(), station=1, retries=-1)
+        Df1Transactions(Df1DataLink(), station=1, source=0, reply_timeout=1.0, retries=-1)
 
 
 def test_with_no_retries_a_read_is_sent_once() -> None:
@@ -289,7 +289,7 @@ def test_with_no_retries_a_read_is_sent_once() -> None:
 
 
 def test_by_default_the_first_command_has_tns_1() -> None:
-    core = Df1Transactions(Df1DataLink(checksum=CRC), station=1)
+    core = Df1Transactions(Df1DataLink(checksum=CRC), station=1, source=0, reply_timeout=1.0)
     core.start(read(1), 0.0, write=False)
     header = PcccHeader.decode(message_of(core.data_to_send()))
     assert header.tns == 1
@@ -336,7 +336,7 @@ def run_against_simulator(
         variants=variants,
     )
     link = Df1DataLink(checksum=CRC, ack_timeout=0.05, max_enq=2, max_nak=2)
-    core = Df1Transactions(link, station=1, reply_timeout=0.1, retries=2, first_tns=7)
+    core = Df1Transactions(link, station=1, source=0, reply_timeout=0.1, retries=2, first_tns=7)
     wire = Wire(iter(fates), iter(damage_at))
     now = 0.0
     history: dict[int, set[int]] = {k: {sim.word("N7", k)} for k in range(8)}  # values each word has held
@@ -479,7 +479,7 @@ def test_an_early_timeout_call_does_nothing() -> None:
 
 def test_the_tns_runs_on_across_transactions_and_a_successors_tns_is_skipped() -> None:
     link = Df1DataLink(checksum=CRC)
-    core = Df1Transactions(link, station=3, source=9, first_tns=0x1FFFE)  # 16 bits: 0xFFFE
+    core = Df1Transactions(link, station=3, source=9, reply_timeout=1.0, first_tns=0x1FFFE)  # 16 bits: 0xFFFE
     core.start(read(1), 0.0, write=False)
     frame = core.data_to_send()
     first = decode_command(message_of(frame))
@@ -538,7 +538,7 @@ def test_the_reply_wait_counts_the_slowest_of_the_last_32_replies(fast: int, wai
 
 def test_the_reply_wait_floor_is_the_reply_timeout_when_that_is_shorter() -> None:
     host = Host()
-    host.core = Df1Transactions(Df1DataLink(checksum=CRC), station=1, reply_timeout=0.05, first_tns=1)
+    host.core = Df1Transactions(Df1DataLink(checksum=CRC), station=1, source=0, reply_timeout=0.05, first_tns=1)
     assert host.core.min_reply_timeout == 0.05
     answered_reads(host, 8, 0.001)
     assert reply_wait_of_next_read(host) == pytest.approx(0.05)

@@ -128,7 +128,7 @@ def _send_on_link() -> None:
 
 
 def _start_read() -> None:
-    core = transaction.Df1Transactions(_link(), station=1)
+    core = transaction.Df1Transactions(_link(), station=1, source=0, reply_timeout=1.0)
     core.start(ProtectedTypedLogicalRead(0x89, 7, 0, 0, 2), 0.0, write=False)
 
 

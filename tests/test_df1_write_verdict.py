@@ -104,7 +104,7 @@ def test_read_backs_follow_the_one_rule() -> None:
 
 def full_duplex(behaviour: Behaviour) -> tuple[TransactionEvent, int]:
     """Df1Transactions with its defaults, CRC, against ``behaviour``; the clock moves to each deadline."""
-    core = Df1Transactions(Df1DataLink(checksum=Checksum.CRC), station=1, first_tns=0x100)
+    core = Df1Transactions(Df1DataLink(checksum=Checksum.CRC), station=1, source=0, reply_timeout=1.0, first_tns=0x100)
     now = 0.0
     core.start(WRITE, now, write=True)
     for _ in range(1000):

@@ -127,8 +127,8 @@ class Plc:
     def __init__(self, listener: socket.socket) -> None:
         listener.settimeout(30)
         self.sock, _ = listener.accept()
-        self.core = Df1Transactions(Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.5), station=1, reply_timeout=1.0,
-                                    retries=0)
+        self.core = Df1Transactions(Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.5), station=1, source=0,
+                                    reply_timeout=1.0, retries=0)
 
     def send_write(self, element: int, value: int) -> int:
         request = ProtectedTypedLogicalWrite(FileType.INTEGER, 7, element, 0, struct.pack("<h", value))

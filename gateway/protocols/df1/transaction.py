@@ -271,8 +271,8 @@ class Df1Transactions:
         link: Df1DataLink,
         *,
         station: int,
-        source: int = 0,
-        reply_timeout: float = 1.0,
+        source: int,
+        reply_timeout: float,
         retries: int = DEFAULT_RETRIES,
         first_tns: int = 1,
     ) -> None:
