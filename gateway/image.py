@@ -29,9 +29,9 @@ import weakref
 from array import array
 from bisect import bisect_right
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
+from gateway.frozen import frozen
 from gateway.modbus.mapping import BitPoint, Plan, RegisterPoint, Table
 
 __all__ = ["BIT_TABLES", "REGISTER_TABLES", "ImageMiss", "Images"]
@@ -73,7 +73,7 @@ class _Segment:
         self.blocks = blocks
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class _Copy:
     """Registers at image bytes ``hi`` (MSB) and ``hi + 1`` (LSB), every ``step`` bytes, ``n`` of them.
 
@@ -104,7 +104,7 @@ class _Copy:
         image[lo : lo + span : step] = data[self.src_lo : self.src_lo + src_span : src_step]
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class _BitRun:
     """``n`` bits of a block from bit ``shift`` (of the block as a little-endian int) to segment bit ``at``."""
 
@@ -115,7 +115,7 @@ class _BitRun:
     keep: int  # ~(mask << at)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class _Stamp:
     """Points ``first``, ``first + step`` ... (``n`` of them) of a segment's deadlines."""
 

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from dataclasses import dataclass
+
+from gateway.frozen import frozen
 
 __all__ = ["ByteStream", "SerialSettings"]
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SerialSettings:
     """Line settings.  Used for local and RFC 2217 ports, and by simulators to pace bytes."""
 

@@ -22,10 +22,10 @@ import io
 import json
 import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any, Final
 
 from gateway.config.link import LinkBase
+from gateway.frozen import frozen
 from gateway.kinds import link_kind, unit_options
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Half, PointLabel, RegisterPoint, Table
 from gateway.unit import in_writable
@@ -55,7 +55,7 @@ def reference(table: Table, address: int) -> str:
     return f"{_PREFIX[table]}{address + 1:05d}"
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Tag:
     """One value of one unit: ``width`` registers (or one bit) from ``address`` of ``table``."""
 

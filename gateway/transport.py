@@ -29,12 +29,12 @@ import logging
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 from urllib.parse import urlsplit
 
 from gateway.errors import LinkDown
+from gateway.frozen import frozen
 from gateway.logutil import redact_url
 from gateway.streams import ByteStream, SerialSettings
 
@@ -287,7 +287,7 @@ class SoftwareParityStream(ByteStream):
 _SOFTWARE_PARITY_LOGGED: set[str] = set()
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ModemLines:
     """RTS / DTR setters of an open serial port (``remote``: an rfc2217 port, changes go over TCP)."""
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Final, Literal, get_args
 
@@ -18,6 +17,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from gateway.config._common import Loc, Model, Problems, array, check_port_url, optional_output_path, show
 from gateway.config.writer import table_lines
+from gateway.frozen import frozen
 from gateway.link_health import DEFAULT_DOWN_AFTER
 from gateway.streams import SerialSettings
 
@@ -52,7 +52,7 @@ _SERIAL_CHOICES: Final = {
 _WRITABLE_RE = re.compile(r"\s*([a-z]+)\s*:\s*([0-9]{1,6})\s*(?:-\s*([0-9]{1,6})\s*)?")
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SerialDefaults:
     """A protocol's line settings and reply timeout: the defaults of its ``[[link]]`` keys."""
 

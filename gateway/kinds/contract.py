@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar, cast
 
 from gateway.config.link import LinkBase, SerialDefaults, protocol_of
+from gateway.frozen import frozen
 from gateway.line_driver import LineDriverOptions, OpenStream
 from gateway.modbus.mapping import Plan, PointLabel, Table
 from gateway.sim.models import SimModel
@@ -51,7 +52,7 @@ class LinkRunner(Protocol):
     async def close(self) -> None: ...
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Built:
     """What a kind's factory made of its links: one unit per link, and the runners of their lines."""
 
@@ -66,7 +67,7 @@ PointLabels = Mapping[tuple[Table, int], PointLabel]
 ToolRunner = Callable[[str, argparse.Namespace, OpenStream], Awaitable[int]]
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ToolHints:
     """What the CLI says after no valid answer came: which protocol the bytes look like, what to check."""
 

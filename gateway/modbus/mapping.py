@@ -19,6 +19,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
+from gateway.frozen import frozen
+
 __all__ = [
     "STATUS_BASE",
     "STATUS_REGISTERS",
@@ -63,7 +65,7 @@ class Half(enum.Enum):
     LOW = "low"
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Codec:
     """How a register's 16 bits come out of a block's bytes.
 
@@ -84,7 +86,7 @@ class Codec:
         return f"Codec({self.name})"
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Block:
     """One read transaction.  ``request`` is protocol specific (an address and count, a PCCC read)."""
 
@@ -94,7 +96,7 @@ class Block:
     label: str = ""
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class RegisterPoint(Generic[R]):
     block: int
     offset: int
@@ -104,7 +106,7 @@ class RegisterPoint(Generic[R]):
     word_order_low_first: bool = False
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class BitPoint(Generic[B]):
     block: int
     offset: int
@@ -129,7 +131,7 @@ class BitWrite(Generic[A]):
     bit: int
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class PointLabel:
     """What a point is in the controller, for tag lists: ``address`` in the controller's own notation
     (``N7:10``, ``901.PRE``), ``type`` (``int16``, ``uint16``, ``float32``, ``bool`` ...) and a description.

@@ -10,9 +10,10 @@ through :mod:`gateway.sim`), so it knows no kind: it is filled from above.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import field
 from typing import TypeVar
 
+from gateway.frozen import frozen
 from gateway.sim.serve import SimDevice
 from gateway.streams import SerialSettings
 
@@ -24,7 +25,7 @@ T = TypeVar("T")
 SimFactory = Callable[[Mapping[str, str], bool, Mapping[str, str]], SimDevice]
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SimModel:
     """One ``sim://NAME`` simulator model."""
 

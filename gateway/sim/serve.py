@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from gateway.errors import GatewayError, LinkDown
+from gateway.frozen import frozen
 from gateway.streams import ByteStream, SerialSettings
 
 __all__ = ["LineModel", "Output", "SimDevice", "SimOutput", "SimStream", "close_tcp", "serve_pty", "serve_tcp"]
@@ -35,7 +36,7 @@ class SimOutput(Protocol):
     def data(self) -> bytes: ...
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Output:
     """A simulated device's :class:`SimOutput`: bytes to put on the line after ``delay`` seconds."""
 

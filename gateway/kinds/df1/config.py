@@ -12,7 +12,6 @@ This module is the one place that holds the protocol's serial defaults.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Final, Literal, NamedTuple
 
@@ -21,6 +20,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 from gateway.config._common import Loc, Model, Problems, optional_output_path, show
 from gateway.config.link import LinkBase, SerialDefaults
 from gateway.config.writer import table_lines
+from gateway.frozen import frozen
 from gateway.kinds.df1.target_config import TargetFile, target_file_problems
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
 from gateway.protocols.df1.address import parse_address
@@ -440,7 +440,7 @@ LINE_KEYS: tuple[str, ...] = (
 )
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class HalfDuplexLine:
     """The links (stations) of one half-duplex line, in file order, with their indexes in ``[[link]]``."""
 

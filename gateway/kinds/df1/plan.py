@@ -18,9 +18,10 @@ from __future__ import annotations
 import functools
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import TypeAlias
 
+from gateway.frozen import frozen
 from gateway.modbus.mapping import (
     BitPoint,
     BitWrite,
@@ -71,7 +72,7 @@ _IO = (FileType.INPUT, FileType.OUTPUT)
 _STRUCTURES = (FileType.TIMER, FileType.COUNTER, FileType.CONTROL)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Df1Read:
     """A protected typed logical read of ``size`` bytes."""
 
@@ -82,7 +83,7 @@ class Df1Read:
     size: int
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class MapItem:
     """One ``[[link.map]]`` entry, as the planner needs it."""
 
@@ -174,7 +175,7 @@ def optimal_blocks(
 # --- expansion -----------------------------------------------------------------------------
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class _SlcCell:
     table: Table
     modbus: int

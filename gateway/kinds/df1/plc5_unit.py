@@ -29,11 +29,12 @@ import functools
 import struct
 from collections import defaultdict
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from functools import partial
 from typing import Final, TypeAlias, Unpack
 
 from gateway.errors import InvalidRequest, ModbusExceptionReply
+from gateway.frozen import frozen
 from gateway.kinds.df1.plan import (
     F32_HIGH,
     F32_LOW,
@@ -75,7 +76,7 @@ PLC5_MAX_WRITE_BYTES: Final = PLC5_WORD_RANGE.max_write_bytes
 _STRUCTURES = frozenset("TCR")
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Plc5Read:
     """A block: ``words`` words from ``address`` (a word of a data file)."""
 
@@ -114,7 +115,7 @@ def _word_address(key: _Key, position: int) -> Plc5Address:
     return Plc5Address(file_type, file_number, element)  # a float's first word is its element
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class _Plc5Cell:
     table: Table
     modbus: int

@@ -20,8 +20,8 @@ around it: each part is answered by its own source.  Writes to the window are re
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
 
+from gateway.frozen import frozen
 from gateway.modbus.mapping import Table
 from gateway.protocols.df1.slave_messages import RegisterTable
 
@@ -31,7 +31,7 @@ __all__ = ["AGE_NEVER", "ReceiveWindow"]
 AGE_NEVER = 0xFFFF
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ReceiveWindow:
     """``table``'s words from ``start`` on, then their ages, in Modbus ``modbus_table``."""
 

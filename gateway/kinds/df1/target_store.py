@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import sqlite3
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
+
+from gateway.frozen import frozen
 
 __all__ = ["StoredElement", "TargetStore"]
 
@@ -36,7 +37,7 @@ CREATE TABLE IF NOT EXISTS element (
 """
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class StoredElement:
     file: int
     element: int

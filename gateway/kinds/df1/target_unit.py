@@ -16,10 +16,10 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Hashable, Iterable, Sequence
-from dataclasses import dataclass
 from typing import Unpack
 
 from gateway.errors import GatewayError, ModbusExceptionReply
+from gateway.frozen import frozen
 from gateway.kinds.df1.plan import F32_HIGH, F32_LOW, U16_LE
 from gateway.kinds.df1.target_config import TargetFile
 from gateway.kinds.df1.target_driver import TargetRunner
@@ -34,7 +34,7 @@ log = logging.getLogger("gateway.df1.target")
 audit = logging.getLogger("gateway.audit")
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class TargetElement:
     """The write target of a register: one element of one file (both registers of an F or L)."""
 
@@ -46,7 +46,7 @@ class TargetElement:
         return (self.file, self.element)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class TargetBit:
     """The write target of a coil: bit ``bit`` of element ``element`` of B file ``file``."""
 

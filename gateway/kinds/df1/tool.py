@@ -23,10 +23,11 @@ import contextlib
 import re
 import struct
 from collections.abc import AsyncIterator, Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any, Protocol
 
 from gateway.errors import InvalidRequest, LinkTimeout
+from gateway.frozen import frozen
 from gateway.kinds.contract import ToolHints
 from gateway.kinds.df1.config import DF1_DEFAULTS
 from gateway.kinds.df1.driver import Df1Driver
@@ -164,14 +165,14 @@ def encode_plc5_write(address: Plc5Address, text: str) -> PcccRequestLike:
     return plc5_write(address, (value & 0xFFFF).to_bytes(2, "little"))
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class _Read:
     text: str
     request: PcccRequestLike
     decode: Callable[[bytes], Any]
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class _Write:
     text: str
     value: str

@@ -24,10 +24,11 @@ from __future__ import annotations
 
 import enum
 import re
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Final
 
 from gateway.errors import InvalidRequest
+from gateway.frozen import frozen
 
 __all__ = [
     "AddressError",
@@ -138,7 +139,7 @@ _ADDRESS_RE: Final = re.compile(
 )
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SlcAddress:
     """A parsed SLC 500 logical address; see the module docstring for the field meanings."""
 

@@ -66,6 +66,7 @@ from dataclasses import dataclass
 from typing import Final
 
 from gateway.errors import InvalidRequest
+from gateway.frozen import frozen
 from gateway.protocols.df1.framing import ACK_SYMBOL, DEFAULT_MAX_MESSAGE, NAK_SYMBOL, BadFrameReason, Checksum
 from gateway.protocols.df1.full_duplex import FullDuplexCounters, FullDuplexStation, SendFailure, TxState
 from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
@@ -90,21 +91,21 @@ __all__ = [
 # --------------------------------------------------------------------------------------- events
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class MessageReceived:
     """A new application message (PCCC packet, DST .. data) arrived and was ACKed."""
 
     payload: bytes
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SendComplete:
     """The frame queued as ``handle`` was acknowledged with DLE ACK."""
 
     handle: int
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SendFailed:
     """The frame queued as ``handle`` was not acknowledged; ``reason`` says why."""
 

@@ -30,6 +30,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Final, Generic, TypeVar
 
+from gateway.frozen import frozen
 from gateway.protocols.df1.framing import (
     ACK_SYMBOL,
     ENQ_SYMBOL,
@@ -86,7 +87,7 @@ class FullDuplexCounters:
     duplicates: int = 0  #: frames ACKed but not delivered: they repeat the last one delivered
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class QueuedFrame:
     """A message for the transmitter: the handle its event reports, the message and its frame."""
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+from gateway.frozen import frozen
 from gateway.protocols.df1.framing import Checksum
 
 __all__ = [
@@ -44,7 +45,7 @@ def _positive(name: str, value: float, *, allow_zero: bool = True) -> None:
 DEMOTE_AFTER = 5
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class StationConfig:
     """Tunables of one slave station (seconds)."""
 
@@ -70,7 +71,7 @@ class StationConfig:
             raise ValueError("max_polls, demote_after and max_outstanding must be at least 1")
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class LineConfig:
     """Tunables of the line (seconds)."""
 
@@ -104,14 +105,14 @@ class FailReason(enum.Enum):
     LINK_RESET = "the link was reset"
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ReplyReceived:
     request_id: int
     station: int
     message: bytes
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class RequestFailed:
     """``may_have_executed``: the slave may have received (and executed) the command."""
 
@@ -121,7 +122,7 @@ class RequestFailed:
     may_have_executed: bool
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SlaveInitiated:
     """A command the slave sent on its own (an MSG instruction), already acknowledged."""
 
@@ -129,7 +130,7 @@ class SlaveInitiated:
     message: bytes
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class MessageDelivered:
     """A master message sent with :meth:`HalfDuplexMaster.send_reply` was acknowledged (DLE ACK)."""
 
@@ -137,7 +138,7 @@ class MessageDelivered:
     station: int
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class StrayReply:
     """A reply matching no request of the polled station (late after a failure): discarded."""
 
@@ -145,12 +146,12 @@ class StrayReply:
     message: bytes
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class StationDemoted:
     station: int
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class StationRestored:
     station: int
 

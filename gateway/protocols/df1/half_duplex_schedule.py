@@ -31,6 +31,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Final
 
+from gateway.frozen import frozen
 from gateway.protocols.df1 import half_duplex_events as hd
 from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, reply_matches
 from gateway.protocols.df1.pccc.codes import REPLY_BIT
@@ -187,7 +188,7 @@ class LineStations:
         return in_flight is not None and in_flight.expects_reply and in_flight.message[4:6] == tns
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class PollStation:
     """Poll ``station``; ``again``: one more poll of the station whose turn it is."""
 
@@ -195,7 +196,7 @@ class PollStation:
     again: bool = False
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SendRequest:
     """Send ``request`` (already taken off its station's queue)."""
 

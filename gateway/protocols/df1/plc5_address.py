@@ -26,9 +26,9 @@ This module does no I/O.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
 from typing import Final
 
+from gateway.frozen import frozen
 from gateway.protocols.df1.address import AddressError
 
 __all__ = [
@@ -87,7 +87,7 @@ _PATTERN: Final = re.compile(
 )
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Plc5Address:
     """A parsed PLC-5 data table address (file type letter, file, element, sub-element, bit)."""
 

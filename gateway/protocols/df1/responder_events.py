@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from gateway.frozen import frozen
 from gateway.protocols.df1.full_duplex import FullDuplexCounters, SendFailure
 
 __all__ = [
@@ -20,7 +21,7 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class CommandReceived:
     """A new command (PCCC packet, DST .. data), ACKed; answer it with :meth:`Df1Responder.send_reply`."""
 
@@ -31,7 +32,7 @@ class CommandReceived:
     tns: int
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class DuplicateReceived:
     """The peer sent the last command again (its DLE ACK was lost); ACKed, not delivered.
 
@@ -46,7 +47,7 @@ class DuplicateReceived:
     reply_handle: int | None
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ReplyDelivered:
     """The peer ACKed the reply queued as ``handle``."""
 
@@ -54,7 +55,7 @@ class ReplyDelivered:
     packet: bytes
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ReplyLost:
     """The responder gave up on the reply queued as ``handle``; the peer may or may not have it."""
 

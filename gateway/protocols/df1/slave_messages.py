@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import enum
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
 
+from gateway.frozen import frozen
 from gateway.protocols.df1.pccc import (
     PcccFormatError,
     PcccHeader,
@@ -56,7 +56,7 @@ class SlaveMessageVerdict(enum.Enum):
     NO_ANSWER = "not a command: no reply"
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SlaveWrite:
     """A decoded write of a slave: ``words`` from element ``element`` of integer file ``file_number``."""
 

@@ -54,6 +54,7 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from gateway.errors import InvalidRequest, format_seconds
+from gateway.frozen import frozen
 from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed
 from gateway.protocols.df1.framing import NEED_DATA, NeedData
 from gateway.protocols.df1.pccc import (
@@ -98,7 +99,7 @@ __all__ = [
 # --------------------------------------------------------------------------------------- events
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class TransactionDone:
     """STS 0 (``reply``); ``verified`` when a read-back, not the reply, proved a write applied."""
 
@@ -107,7 +108,7 @@ class TransactionDone:
     verified: bool = False
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class TransactionRefused:
     """The controller refused the command (STS != 0); nothing was written."""
 
@@ -115,7 +116,7 @@ class TransactionRefused:
     reply: PcccReply
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class OutcomeUnknown:
     """A write that may or may not have been applied; ``reason`` says what was seen."""
 
@@ -123,7 +124,7 @@ class OutcomeUnknown:
     reason: str
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class TransactionFailed:
     """No valid answer; for a write, it provably never ran."""
 

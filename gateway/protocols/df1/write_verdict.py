@@ -38,10 +38,10 @@ from __future__ import annotations
 
 import enum
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Final
 
 from gateway.errors import format_seconds
+from gateway.frozen import frozen
 from gateway.protocols.df1.pccc import (
     PcccReply,
     ProtectedTypedLogicalMaskedWrite,
@@ -81,7 +81,7 @@ def read_back_tries(retries: int) -> int:
 # ------------------------------------------------------------------------------------ read-back
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ReadBack:
     """How to verify a write: the read to send and whether its data shows the write applied."""
 
@@ -137,7 +137,7 @@ class VerdictKind(enum.Enum):
     UNKNOWN = "unknown"
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Verdict:
     """The outcome of a write; ``reply`` is the write's reply, or the read-back's when ``verified``."""
 
@@ -148,7 +148,7 @@ class Verdict:
     seconds: float = 0.0  #: from the start to the verdict, on the caller's clock
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SendReadBack:
     """Send this read-back now (``attempt`` counts from 1)."""
 

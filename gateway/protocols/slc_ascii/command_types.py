@@ -6,10 +6,10 @@ replies in :mod:`replies` ("Specific Commands").
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from enum import Enum, IntEnum
 
 from gateway.errors import InvalidRequest
+from gateway.frozen import frozen
 
 __all__ = [
     "BLOCK_SIZE",
@@ -117,7 +117,7 @@ class TimeoutClass(Enum):
     """Mode changes and program upload/download."""
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Command:
     """One validated command: ``#<1 + len(params)> <code> <params>`` ("Format of Transmission").
 

@@ -7,16 +7,16 @@ the two bytes into the error numbers the programmer displays.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
 from types import MappingProxyType
 
 from gateway.errors import ControllerFault
+from gateway.frozen import frozen
 from gateway.protocols.slc_ascii.command_types import check_int
 
 __all__ = ["ERROR_BITS", "ERROR_DESCRIPTIONS", "ErrorBit", "controller_fault", "decode_error_bits", "error_description"]
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ErrorBit:
     """One bit of the error word ("Format of Transmission", format of the error word)."""
 

@@ -24,9 +24,9 @@ from __future__ import annotations
 
 import re
 from collections import deque
-from dataclasses import dataclass
 from typing import Final, Generic, TypeVar
 
+from gateway.frozen import frozen
 from gateway.protocols.need_data import NEED_DATA, NeedData
 from gateway.protocols.slc_ascii.commands import Command
 
@@ -161,7 +161,7 @@ def encode_id_mismatch(last_valid_id: int) -> bytes:
 # --- events ---------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class DataReply:
     """``:`` data reply.  ``body_hex`` is the upper-case hex text between ``:`` and the ID."""
 
@@ -169,7 +169,7 @@ class DataReply:
     msg_id: int
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class _IdOnly:
     """A frame that carries nothing but its message ID; each subclass is one kind of frame."""
 
@@ -194,14 +194,14 @@ class Fault(_IdOnly):
     __slots__ = ()
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class IdMismatch:
     """``;I``: the message had an unexpected ID and was not executed; ``last_valid_id`` as reported."""
 
     last_valid_id: int
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Garbled:
     """A line that is not a valid frame (CRC, format, length).  The caller treats it as a missing reply."""
 
@@ -209,7 +209,7 @@ class Garbled:
     reason: str
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class CommandFrame:
     """Controller side: a ``#`` command as received."""
 

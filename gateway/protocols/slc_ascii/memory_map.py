@@ -19,11 +19,11 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
 from enum import Enum
 from types import MappingProxyType
 
 from gateway.errors import InvalidRequest, ProtocolError
+from gateway.frozen import frozen
 
 __all__ = [
     "BYTE_WRITE_RANGE",
@@ -76,7 +76,7 @@ class Access(Enum):
     """Marked ``**``: "should not be accessed in any way"."""
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class AddressRange:
     """An inclusive range of byte addresses with the manual's name for it."""
 
@@ -97,7 +97,7 @@ class AddressRange:
         return f"0x{self.start:04X}-0x{self.end:04X} ({self.name})"
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Region:
     """One row of "The Memory Map".
 
@@ -462,7 +462,7 @@ _BIT_ITEM = re.compile(r"\d+")
 _BYTE_ITEM = re.compile(r"@(?:0[xX])?([0-9A-Fa-f]{1,4})")
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Item:
     """A readable (and maybe writable) thing named on the command line; see :func:`parse_item`.
 

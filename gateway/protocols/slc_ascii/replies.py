@@ -8,10 +8,10 @@ command.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
 from typing import NamedTuple
 
 from gateway.errors import InvalidRequest, ProtocolError
+from gateway.frozen import frozen
 from gateway.protocols.slc_ascii.command_types import BLOCK_SIZE, Command, CommandCode, ControllerType, ReplyKind
 from gateway.protocols.slc_ascii.memory_map import PROTECT_BIT, WORD_VALUE_MASK, check_readable
 
@@ -73,7 +73,7 @@ def parse_read_reply(cmd_address: int, count: int, body_hex: str) -> bytes:
     return data
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class FrnInfo:
     """Answer to ``#0108`` ("Read Device FRN ID Tag")."""
 

@@ -48,10 +48,10 @@ from __future__ import annotations
 
 import enum
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
 from typing import Final
 
 from gateway.errors import ControllerRefused, GatewayError, InvalidRequest, LinkTimeout, ProtocolError, RemoteError
+from gateway.frozen import frozen
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import BLOCK_SIZE, Command, ControllerType, Mode
 from gateway.protocols.slc_ascii.framing import Ack, DataReply
@@ -78,7 +78,7 @@ _TRANSITIONS: Final = {
 }
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Restart:
     """The transfer starts again from block 0 (for the driver's log)."""
 

@@ -30,8 +30,8 @@ own ID (within a numbering begun with a barrier, no earlier message's reply has 
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
 
+from gateway.frozen import frozen
 from gateway.protocols.slc_ascii.framing import Ack, DataReply
 
 __all__ = ["Answer", "MismatchStep", "RefusalStep", "Result", "SlcVerdict", "judge_id_mismatch", "judge_refusal"]
@@ -46,7 +46,7 @@ class SlcVerdict(enum.Enum):
     FAILED = "failed"  # no answer within the bounds (a read, or a write none of whose copies went out)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Result:
     verdict: SlcVerdict
     answer: Answer | None = None

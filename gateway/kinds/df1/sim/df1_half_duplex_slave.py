@@ -18,6 +18,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Final
 
+from gateway.frozen import frozen
 from gateway.kinds.df1.sim.slc500_line import REPLY_ADDRESSES, address_reply
 from gateway.protocols.df1.framing import (
     ACK_SYMBOL,
@@ -52,7 +53,7 @@ VARIANTS: Final[VariantTable] = {
 }
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SlaveVariant:
     bad_frame_reply: str = "silent"
     reply_retries: int | None = None  #: None: resend until ACKed

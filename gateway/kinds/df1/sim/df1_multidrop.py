@@ -47,6 +47,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import ClassVar, Final, TypeVar
 
+from gateway.frozen import frozen
 from gateway.kinds.df1.sim.df1_half_duplex_slave import VARIANTS as SLAVE_VARIANTS
 from gateway.kinds.df1.sim.df1_half_duplex_slave import HalfDuplexSlave, SlaveVariant
 from gateway.kinds.df1.sim.plc5 import Plc5Simulator
@@ -71,7 +72,7 @@ class SlcStation(Slc500Simulator):
     its full-duplex link is not used."""
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class LineOptions:
     """The line's stations, timing and faults (module docstring); ``1 in N`` faults are off at 0."""
 

@@ -46,6 +46,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Final
 
+from gateway.frozen import frozen
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import (
@@ -120,7 +121,7 @@ DEMO_SCRIPT: tuple[Msg, ...] = (
 )
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class MsgResult:
     cycle: int
     label: str

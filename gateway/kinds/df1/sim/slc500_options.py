@@ -7,6 +7,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Final
 
+from gateway.frozen import frozen
 from gateway.protocols.df1.framing import Checksum
 from gateway.sim.models import read_sim_option
 
@@ -20,7 +21,7 @@ _OPTION_NAMES: Final = (
 )
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Slc500Options:
     """Link settings and fault injection; ``1 in N`` faults are off at 0."""
 

@@ -31,9 +31,9 @@ This module does no I/O.
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
 from typing import Final
 
+from gateway.frozen import frozen
 from gateway.protocols.df1.checks import bcc, crc16
 from gateway.protocols.need_data import NEED_DATA, NeedData
 
@@ -164,7 +164,7 @@ def encode_master_message(station: int, message: bytes, checksum: Checksum) -> b
 # --------------------------------------------------------------------------------------- events
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Frame:
     """A ``DLE STX`` frame with a valid check (on half duplex: a slave's message); ``message`` is
     unstuffed (DST .. last data byte)."""
@@ -176,7 +176,7 @@ class Frame:
             raise ValueError("Frame.message must not be empty")
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class MasterMessage:
     """Half duplex: a master message with a good check; ``message`` is unstuffed."""
 
@@ -189,7 +189,7 @@ class MasterMessage:
             raise ValueError("MasterMessage.message must not be empty")
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Poll:
     """Half duplex: ``DLE ENQ STN BCC`` with a good BCC."""
 
@@ -199,18 +199,18 @@ class Poll:
         _check_station(self.station)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class AckReceived:
     """DLE ACK: the peer received our frame."""
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class NakReceived:
     """DLE NAK: full duplex, the peer received our frame damaged (or could not take it); half
     duplex, from the master, the global link reset (Table 2.C)."""
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class EnqReceived:
     """Full duplex: DLE ENQ, the peer asks for our last response symbol again.
 
@@ -221,7 +221,7 @@ class EnqReceived:
     aborted_frame: bool = False
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class EotReceived:
     """Half duplex: DLE EOT, the polled slave has nothing to send."""
 
@@ -239,7 +239,7 @@ class BadFrameReason(enum.Enum):
     BAD_STATION = "station number not sent as DLE DLE, or header without DLE STX"
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class BadFrame:
     """A damaged frame; ``master`` tells a half-duplex master frame (DLE SOH / DLE ENQ) from a
     ``DLE STX`` one."""

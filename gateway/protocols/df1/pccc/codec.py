@@ -16,10 +16,11 @@ Every packet starts with the same header; numbers are little-endian::
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass, field
+from dataclasses import field
 from typing import Final
 
 from gateway.errors import InvalidRequest, ProtocolError
+from gateway.frozen import frozen
 from gateway.protocols.df1.address import SlcAddress
 from gateway.protocols.df1.pccc.codes import REPLY_BIT
 from gateway.protocols.df1.pccc.status import OWNER_EXT_STS, PcccError, Sts, describe_status
@@ -108,7 +109,7 @@ class Reader:
             raise self.fail(f"PCCC: {len(self.data) - self.pos} unexpected bytes after {what}")
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class LogicalBinaryAddress:
     """PLC-5 logical binary address (notes §6.0): mask byte + one field per level present.
 
@@ -155,7 +156,7 @@ class LogicalBinaryAddress:
 # -------------------------------------------------------------------------------- packets
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class PcccHeader:
     """``DST SRC CMD STS TNS`` common to commands and replies."""
 
@@ -184,7 +185,7 @@ class PcccHeader:
         return cls(*struct.unpack_from("<BBBBH", packet))
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class PcccReply:
     """A decoded reply packet; ``data`` excludes EXT STS and the owner node."""
 

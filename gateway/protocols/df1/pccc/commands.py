@@ -7,10 +7,10 @@ in :mod:`.slc` and :mod:`.plc5`; this module only dispatches on ``(CMD, FNC)``. 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Final, get_args
 
 from gateway.errors import InvalidRequest
+from gateway.frozen import frozen
 from gateway.protocols.df1.pccc import plc5, slc
 from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccFormatError, PcccHeader, Reader
 
@@ -57,7 +57,7 @@ def is_write(request: object) -> bool:
 _REQUEST_TYPES: Final[dict[tuple[int, int], type[Request]]] = {(cls.CMD, cls.FNC): cls for cls in get_args(Request)}
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class PcccCommand:
     """A decoded command packet (controller side)."""
 

@@ -15,13 +15,14 @@ This module does no I/O.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Final
+
+from gateway.frozen import frozen
 
 __all__ = ["PLC5_TYPED_LOGICAL", "PLC5_WORD_RANGE", "SLC_MODULAR", "SLC_SMALL", "SizeLimits"]
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SizeLimits:
     """Data bytes per packet; writes lose 2 bytes per address field in 3-byte form (notes §4.36)."""
 

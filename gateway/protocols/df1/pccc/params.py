@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol, Self
 
+from gateway.frozen import frozen
 from gateway.protocols.df1.pccc.codec import LogicalBinaryAddress, Reader, check_range, encode_field
 
 __all__ = [
@@ -58,7 +59,7 @@ class Wire(Protocol):
     def check(self, request: Any) -> None: ...
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Byte:
     """An attribute sent as one byte; ``what`` names it in errors."""
 
@@ -82,7 +83,7 @@ class Byte:
             check_range(self.what, value, self.low, self.high)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Word(Byte):
     """An attribute sent as two bytes, low byte first."""
 
@@ -90,7 +91,7 @@ class Word(Byte):
     WIDTH: ClassVar[int] = 2
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class AddressField:
     """A file / element / sub-element number: one byte for 0-254, else ``FF lo hi`` (notes §7.3)."""
 
@@ -112,7 +113,7 @@ class AddressField:
         return value >= 0xFF
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class LogicalAddress:
     """A PLC-5 logical binary address (mask byte, then one field per level; notes §6.0)."""
 
@@ -129,7 +130,7 @@ class LogicalAddress:
         """The address checks itself when it is built."""
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SizeOf:
     """The one-byte byte count of the data attribute ``of``, sent ahead of it."""
 
@@ -147,7 +148,7 @@ class SizeOf:
         check_range(self.what, len(getattr(request, self.of)), self.low, 0xFF)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Bytes:
     """Data bytes: as many as a :class:`SizeOf` before it said, else the rest of the packet."""
 

@@ -21,10 +21,10 @@ from __future__ import annotations
 
 import enum
 import struct
-from dataclasses import dataclass
 from typing import Any, ClassVar, Final
 
 from gateway.errors import InvalidRequest
+from gateway.frozen import frozen
 from gateway.protocols.df1.pccc.codec import LogicalBinaryAddress, PcccFormatError, Reader, check_range
 from gateway.protocols.df1.pccc.codes import CmdByte, Function
 from gateway.protocols.df1.pccc.limits import PLC5_WORD_RANGE
@@ -75,7 +75,7 @@ class DataType(enum.IntEnum):
 # -------------------------------------------------------------------- type/data parameter
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class TypeData:
     """Typed read/write type/data parameter (notes "Important type/data parameter note").
 
@@ -123,7 +123,7 @@ def decode_type_data(data: bytes, offset: int = 0) -> tuple[TypeData, int]:
     return TypeData(values[0], values[1]), reader.pos
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class TypedData:
     """Elements of one type as carried by typed read replies and typed write commands."""
 
@@ -178,7 +178,7 @@ PLC5_HEAD: Final[tuple[Wire, ...]] = (
 )
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class WordRangeRead(Parameters):
     """PLC-5 word range read (CMD 0F, FNC 01; S4516-DF1 manual §2.6.1).
 
@@ -204,7 +204,7 @@ class WordRangeRead(Parameters):
         return self.total if self.total is not None else (self.size + 1) // 2
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class WordRangeWrite(Parameters):
     """PLC-5 word range write (CMD 0F, FNC 00; S4516-DF1 manual §2.6.1); even data bytes."""
 
@@ -232,7 +232,7 @@ class WordRangeWrite(Parameters):
         return self.total if self.total is not None else len(self.data) // 2
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class TypedRead(Parameters):
     """Typed read (CMD 0F, FNC 68; notes §7.4): ``count`` elements, logical binary address."""
 
@@ -255,7 +255,7 @@ class TypedRead(Parameters):
         return self.total if self.total is not None else self.count
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class _TypedBody:
     """The type/data parameter(s) and the data of a typed write (notes §7.4, type/data note)."""
 
@@ -273,7 +273,7 @@ class _TypedBody:
         """``TypedWrite.__post_init__`` checks the data against the element size."""
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class TypedWrite(Parameters):
     """Typed write (CMD 0F, FNC 67; notes §7.4): type/data parameter then the data."""
 
@@ -304,7 +304,7 @@ class TypedWrite(Parameters):
         return self.total if self.total is not None else self.count
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class _MaskSets:
     """Repeated ``ADDRESS AND(2) OR(2)`` sets up to the end of the packet (1770-6.5.16 p. 7-20)."""
 
@@ -330,7 +330,7 @@ class _MaskSets:
             check_range("OR mask", or_mask, 0, 0xFFFF)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ReadModifyWriteRequest(Parameters):
     """Read-modify-write (CMD 0F, FNC 26; 1770-6.5.16 p. 7-20, KF2 p. 5-48): ``ADDRESS AND(2) OR(2)`` sets.
 
@@ -380,7 +380,7 @@ def _word_range_head(params: bytes) -> tuple[int, int, int]:
     return offset, total, _address_end(params, 4)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class WordRangeReadParams:
     """FNC 01 parameters for an already encoded address (logical binary or ASCII; KF2 p. 5-57).
 
@@ -408,7 +408,7 @@ class WordRangeReadParams:
         return cls(params[4:end], params[end], offset, total)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class WordRangeWriteParams:
     """FNC 00 parameters for an already encoded address (KF2 p. 5-57), data low byte first."""
 
@@ -432,7 +432,7 @@ class WordRangeWriteParams:
         return cls(params[4:end], params[end:], offset, total)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ReadModifyWrite:
     """FNC 26: repeated ``ADDRESS AND(2) OR(2)`` sets, masks low byte first (1770-6.5.16 p. 7-20).
 

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import enum
 import struct
-from dataclasses import dataclass
 from typing import Any, ClassVar, Final
 
+from gateway.frozen import frozen
 from gateway.protocols.df1.address import FileType, SlcAddress
 from gateway.protocols.df1.pccc.codec import LogicalBinaryAddress, PcccFormatError, Reader, check_range
 from gateway.protocols.df1.pccc.codes import CmdByte, DiagnosticFunction, Function
@@ -122,7 +122,7 @@ _WRITE_SIZE: Final = SizeOf("data", "byte size", 1)
 _WRITE_DATA: Final = Bytes("data", "write data")
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class _TwoFieldAddress(Parameters):
     """The address of the typed logical commands: file type, file number, element."""
 
@@ -131,14 +131,14 @@ class _TwoFieldAddress(Parameters):
     element: int
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class _ThreeFieldAddress(_TwoFieldAddress):
     """The address with a sub-element (the word inside a timer, counter or control structure)."""
 
     sub_element: int
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ProtectedTypedLogicalRead(_ThreeFieldAddress):
     """SLC 500 protected typed logical read with three address fields (CMD 0F, FNC A2; 1770-6.5.16 p. 7-17)."""
 
@@ -149,7 +149,7 @@ class ProtectedTypedLogicalRead(_ThreeFieldAddress):
     size: int  # data bytes to read
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ProtectedTypedLogicalWrite(_ThreeFieldAddress):
     """SLC 500 protected typed logical write with three address fields (CMD 0F, FNC AA; 1770-6.5.16 p. 7-18)."""
 
@@ -160,7 +160,7 @@ class ProtectedTypedLogicalWrite(_ThreeFieldAddress):
     data: bytes
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ProtectedTypedLogicalMaskedWrite(_ThreeFieldAddress):
     """SLC 500 protected typed logical write with mask (CMD 0F, FNC AB; notes §4.36, §7.3).
 
@@ -178,7 +178,7 @@ class ProtectedTypedLogicalMaskedWrite(_ThreeFieldAddress):
     data: bytes
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ProtectedTypedLogicalTwoFieldRead(_TwoFieldAddress):
     """Protected typed logical read with two address fields (CMD 0F, FNC A1): no sub-element.
 
@@ -193,7 +193,7 @@ class ProtectedTypedLogicalTwoFieldRead(_TwoFieldAddress):
     size: int  # data bytes to read
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ProtectedTypedLogicalTwoFieldWrite(_TwoFieldAddress):
     """Protected typed logical write with two address fields (CMD 0F, FNC A9; 1756-PM020F p. 92)."""
 
@@ -204,7 +204,7 @@ class ProtectedTypedLogicalTwoFieldWrite(_TwoFieldAddress):
     data: bytes
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class _DataTableFile:
     """Read file info's address (notes §7.5): mask 06, major type 80 (data table), the file number."""
 
@@ -224,7 +224,7 @@ class _DataTableFile:
         check_range("file number", getattr(request, self.attr), 0, 0xFFFF)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ReadFileInfo(Parameters):
     """SLC 5/03, 5/04 read file info (CMD 0F, FNC 94; notes §7.5): ``94 06 80 <file>``."""
 
@@ -235,7 +235,7 @@ class ReadFileInfo(Parameters):
     file_number: int
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class SetProcessorMode(Parameters):
     """SLC set processor mode (CMD 0F, FNC 80; notes §7.6); keyswitch must be in REM."""
 
@@ -246,7 +246,7 @@ class SetProcessorMode(Parameters):
     mode: int
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class DiagnosticStatus(Parameters):
     """Diagnostic status (CMD 06, FNC 03): identify the host processor."""
 
@@ -255,7 +255,7 @@ class DiagnosticStatus(Parameters):
     PARAMS: ClassVar[tuple[Wire, ...]] = ()
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class Echo(Parameters):
     """Echo, also "diagnostic loop" (CMD 06, FNC 00): the node sends ``data`` back unchanged.
 
@@ -292,7 +292,7 @@ def slc_write_request(address: SlcAddress, data: bytes) -> ProtectedTypedLogical
 # ---------------------------------------------------------------------------- reply data
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class FileInfo:
     """Read file info reply data (notes §7.5): 4-byte size, 2-byte element count, reserved, type."""
 
@@ -318,7 +318,7 @@ class FileInfo:
         return cls(size, count, file_type)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class DiagnosticStatusInfo:
     """Diagnostic status reply data (layout of 1770-6.5.16 for SLC processors).
 

@@ -83,6 +83,7 @@ from dataclasses import dataclass
 from typing import Final
 
 from gateway.errors import GatewayError
+from gateway.frozen import frozen
 from gateway.protocols.df1.pccc.codec import LogicalBinaryAddress, PcccFormatError, PcccHeader, encode_reply
 from gateway.protocols.df1.pccc.commands import Request, decode_command
 from gateway.protocols.df1.pccc.limits import PLC5_WORD_RANGE, SLC_MODULAR, SizeLimits
@@ -166,7 +167,7 @@ def diagnostic_status_reply(name: str = GATEWAY_NAME) -> bytes:
     return bytes((0x00, 0xFE, 0x00, 0x00, 0x00)) + name.encode("ascii")[:11].ljust(11) + bytes(8)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class TargetReply:
     """What :meth:`PcccTarget.execute` did with one packet.
 

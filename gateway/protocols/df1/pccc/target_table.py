@@ -38,9 +38,9 @@ from __future__ import annotations
 import enum
 import struct
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 from typing import Final
 
+from gateway.frozen import frozen
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.pccc.plc5 import DataType
 
@@ -92,7 +92,7 @@ class TableFileKind(enum.Enum):
         return value
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class ElementRef:
     """One element of one file, e.g. ``ElementRef(7, 3)`` is N7:3 when file 7 is an N file."""
 

@@ -32,6 +32,7 @@ from collections.abc import Hashable
 from dataclasses import dataclass, field
 from typing import Final
 
+from gateway.frozen import frozen
 from gateway.protocols.df1.pccc.target_table import TableFile
 
 __all__ = ["DEFAULT_TRANSFER_LIMIT", "DEFAULT_TRANSFER_TIMEOUT", "Transfer", "TransferOutcome", "Transfers"]
@@ -59,7 +60,7 @@ class Transfer:
         return len(self.received) // self.unit_bytes
 
 
-@dataclass(frozen=True, slots=True)
+@frozen
 class TransferOutcome:
     """What a write packet did: ``complete`` carries the whole data when it is time to apply it."""
 
