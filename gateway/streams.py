@@ -2,7 +2,7 @@
 
 :mod:`gateway.transport` opens streams from URLs (serial ports, device servers, ``sim://``) and
 :mod:`gateway.sim` provides simulated ones; both build on this module, so neither needs the other
-to define a stream (the ``sim <-> transport`` import circle of issue 11).  No I/O here.
+to define a stream, and the two never import each other.  No I/O here.
 """
 
 from __future__ import annotations

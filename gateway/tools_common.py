@@ -2,7 +2,7 @@
 
 Every link kind's tool (``gateway.kinds.<kind>.tool``) uses these, and :mod:`gateway.tools`
 re-exports them; keeping them here lets ``tools`` hand a command to a kind's tool without the
-tool importing ``tools`` back (the ``tools <-> tools_df1`` import circle of issue 11).
+tool importing ``tools`` back, which would close an import circle.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ URLs:
 * ``sim://slc150``, ``sim://slc100``, ``sim://slc504`` - an in-process simulator
   (see ``gateway.sim``); options may follow as a query: ``sim://slc150?garble=5&drop=7``.
 
-Modem lines for half-duplex DF1 (issue #12; :func:`modem_lines`): a local port gives the driver an
+Modem lines for half-duplex DF1 (:func:`modem_lines`): a local port gives the driver an
 RTS setter and a DTR setter, so the half-duplex core keys a radio or an RS-485 transceiver with RTS
 (``rts_send_delay`` before the first byte, ``rts_off_delay`` after the last; 1747-RM001 p. 13-59).
 ``rs485=True`` instead hands RTS to the kernel's RS-485 mode (pyserial ``rs485_mode``, Linux

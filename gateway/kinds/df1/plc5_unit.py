@@ -1,4 +1,4 @@
-"""A PLC-5 on DF1 served as a Modbus unit with the PLC-5's own commands (issue #12).
+"""A PLC-5 on DF1 served as a Modbus unit with the PLC-5's own commands.
 
 ``processor = "plc5"`` reads and writes with word range commands and PLC-5 addresses, never with the
 SLC typed logical commands (``0F A2`` / ``AA`` / ``AB``), which 1770-6.5.16 lists for the SLC 500 and

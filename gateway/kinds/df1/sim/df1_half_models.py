@@ -1,4 +1,4 @@
-"""Simulator factories of the ``sim://`` catalogue: ``plc5`` and a half-duplex line ``df1line`` (issue #12).
+"""Simulator factories of the ``sim://`` catalogue: ``plc5`` and a half-duplex line ``df1line``.
 
 Listed in :mod:`gateway.sim.models` (``PLC5``, ``DF1LINE``) and in the DF1 link kind's ``simulators``:
 
