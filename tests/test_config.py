@@ -282,6 +282,17 @@ trace = "traces/press.log"
     assert parse_config(described) == config
 
 
+def test_a_half_duplex_station_polls_for_its_reply_before_the_timeout() -> None:
+    """reply_wait (ACK to the first poll for the reply) must be shorter than timeout (ACK to the
+    reply): else the request could only fail."""
+    half = DF1_LINK.replace('"line-2"', '"station-3"\nduplex = "half"').replace("sim://slc504", "sim://df1line")
+    for wait in ("1.0", "2.5"):
+        message = error_of(half.replace("unit = 2", f"unit = 2\ntimeout = 1.0\nreply_wait = {wait}"))
+        assert f"reply_wait {float(wait):g} s is not shorter than timeout 1 s" in message
+        assert "make reply_wait shorter than timeout" in message
+    assert parse_config(half.replace("unit = 2", "unit = 2\ntimeout = 1.0\nreply_wait = 0.9")).link[0].reply_wait == 0.9
+
+
 def test_describe_lists_every_key() -> None:
     """Every key a link uses is written; a key its kind does not use in its mode (refused if given)
     is left out, so the output loads back."""

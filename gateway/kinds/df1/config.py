@@ -331,6 +331,10 @@ class Df1LinkConfig(LinkBase):
             problems.insert(0, (("map",), "a df1 link needs at least one [[link.map]] entry"))
         problems.extend(_overlaps(self.map))
         problems.extend(self._receive_problems())
+        if self.duplex == "half" and self.reply_wait >= self.timeout:
+            problems.append((("reply_wait",), f"reply_wait {self.reply_wait:g} s is not shorter than timeout "
+                             f"{self.timeout:g} s: both count from the ACK of a command, so the reply would "
+                             "first be polled for after its timeout; make reply_wait shorter than timeout"))
         return problems
 
     @property
