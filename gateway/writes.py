@@ -43,7 +43,6 @@ Job = Callable[[], Awaitable[None]]
 @dataclass(eq=False, slots=True)
 class _Entry:
     seq: int
-    client: Hashable
     footprint: frozenset[Hashable]
     job: Job
     future: asyncio.Future[None] = field(repr=False)
@@ -64,8 +63,9 @@ class WriteQueue:
         #: per client with jobs waiting: when it was last served (round robin by least recent)
         self._served: dict[Hashable, int] = {}
         self._serves = 0
-        #: the job picked last is of a client that was not being served (nothing queued before)
-        self._newcomer = False
+        #: the job picked last is of a client that was not being served (nothing queued before);
+        #: set by _pick with the job it returns
+        self._newcomer: bool
         self._waiting = 0
         self._seq = 0
         self._worker: asyncio.Task[None] | None = None
@@ -87,7 +87,7 @@ class WriteQueue:
                      else f"this connection has {self.per_client} writes waiting for link {self.name}")
             raise ModbusExceptionReply(ModbusExceptionReply.SERVER_DEVICE_BUSY, f"busy: {which}; retry later")
         loop = asyncio.get_running_loop()
-        entry = _Entry(self._seq, client, footprint, job, loop.create_future())
+        entry = _Entry(self._seq, footprint, job, loop.create_future())
         self._seq += 1
         if queue is None:
             queue = self._queues[client] = deque()
