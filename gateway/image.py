@@ -198,10 +198,9 @@ class _Layout:
                         bit_runs[block].extend(self._bit_runs(segment, first, addresses, plan.bits(table)))
                     for k, step, n, _, _ in _strided_runs([(a - first, (a - first,)) for a in addresses]):
                         stamps[block].append(_Stamp(segment, k, step, n))
-        empty: tuple[()] = ()
-        self.copies = [tuple(c) if c else empty for c in copies]
-        self.bit_runs = [tuple(r) if r else empty for r in bit_runs]
-        self.stamps = [tuple(s) if s else empty for s in stamps]
+        self.copies = [tuple(c) for c in copies]
+        self.bit_runs = [tuple(r) for r in bit_runs]
+        self.stamps = [tuple(s) for s in stamps]
 
     @staticmethod
     def _copies(segment: int, first: int, addresses: list[int], points: dict[int, RegisterPoint[Any]]) -> list[_Copy]:

@@ -261,3 +261,18 @@ def test_a_point_whose_block_was_never_stored_peeks_as_the_caches_zero_bytes() -
     cache.store(1, b"\xff\xff", 5.0)
     assert [images.peek(Table.HOLDING, a) for a in (10, 11)] == [(0, 0), (0xFFFF, 1)]
     assert [images.peek(Table.COIL, a) for a in (20, 21)] == [(0, 0), (1, 1)]
+
+
+def test_the_layout_is_computed_once_per_plan_and_shared_by_its_images() -> None:
+    """Decode once: every ``Images`` of one plan (one per unit that serves it) uses the same
+    layout, computed for the first; an equal plan that is another object gets its own."""
+    def plan() -> Plan[None, None]:
+        made: Plan[None, None] = Plan(blocks=[Block(None, 4, Scan.FAST)])
+        made.holding[0] = RegisterPoint(0, 0, Codec("u16", 0, 1))
+        made.coils[5] = BitPoint(0, 2, 3)
+        return made
+
+    first, other = plan(), plan()
+    a, b, c = Images(first, [1.0]), Images(first, [2.0]), Images(other, [1.0])
+    assert a._copies is b._copies and a._bit_runs is b._bit_runs and a._stamps is b._stamps
+    assert a._copies is not c._copies and a._copies == c._copies
