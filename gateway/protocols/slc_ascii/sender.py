@@ -47,6 +47,8 @@ MAX_RESENDS: Final = 8
 MAX_RESYNCS: Final = 8
 
 _PROBE: Final = cmds.read_frn()
+#: when nothing was ever sent: every quiet time has passed since
+_LONG_AGO: Final = float("-inf")
 #: Bytes a barrier read may ask for (every readable byte of the "Reading Data" list).
 _BARRIER_ADDRESSES: Final = tuple(a for a in range(0x113) if is_readable(a, 1))
 
@@ -111,7 +113,7 @@ class SlcSender:
         self._out = bytearray()
         self._next = 0  # ID of the next transaction's command; 0: resync first (a resync's answer sets 1)
         self._handshake_due = True  # the next resync is the first after connecting
-        self._last_sent = float("-inf")
+        self._last_sent = _LONG_AGO
         #: no reply of a command copy sent earlier can still come (a write begins only then);
         #: decided by a resync's answer and by a transaction's end
         self._clean = True
@@ -125,27 +127,29 @@ class SlcSender:
         #: per barrier address, when it was last asked for; the next one to try
         self._barrier_sent: dict[int, float] = {}
         self._barrier_next = 0
-        self._is_write = False
         self._timeout = timeout
-        self._msg_id = 0
-        self._copies = 0
-        self._z_sent = 0
-        self._z_ever = False
-        self._resends = 0
-        self._resyncs = 0
-        self._probes = 0
-        self._messages = 0
-        self._heard = False
-        self._refused_once = False
-        self._copy_sent = 0.0
-        self._began = 0.0
         self._full_timeout = timeout
         self._until: float | None = None
+        # Set before anything reads them: by start (a transaction), _send_first_copy and _send_copy
+        # (a copy of the command), _begin_resync (a resync).
+        self._is_write: bool
+        self._began: float
+        self._resends: int
+        self._resyncs: int
+        self._probes: int
+        self._messages: int
+        self._copies: int
+        self._z_ever: bool
+        self._refused_once: bool
+        self._msg_id: int
+        self._z_sent: int
+        self._copy_sent: float
+        self._heard: bool
 
     def connected(self) -> None:
         """A new stream: forget the decoder state; the first command resyncs.  Nothing was sent on
         the stream, so that resync is one after quiet, which begins a trusted, clean numbering."""
-        self._last_sent = float("-inf")
+        self._last_sent = _LONG_AGO
         self._decoder = ReplyDecoder()
         self._out.clear()
         self._next = 0
@@ -259,7 +263,7 @@ class SlcSender:
     def _barrier_free(self, now: float) -> bool:
         """Choose the next barrier read; False if its address was asked for too recently."""
         address = _BARRIER_ADDRESSES[self._barrier_next % len(_BARRIER_ADDRESSES)]
-        if now - self._barrier_sent.get(address, float("-inf")) < self._quiet_time():
+        if now - self._barrier_sent.get(address, _LONG_AGO) < self._quiet_time():
             return False
         self._barrier_next += 1
         self._barrier_sent[address] = now
