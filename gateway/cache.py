@@ -55,8 +55,7 @@ class BlockCache:
             del order[block]
             order[block] = None
         self.stamps[block] = now
-        if now > self.newest:
-            self.newest = now
+        self.newest = max(self.newest, now)
         images = self.images
         if images is not None:
             images.decode(block, target)
