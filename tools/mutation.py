@@ -13,8 +13,9 @@ The score of a module is the share of its mutants killed (a timeout counts as ki
 those tested; ``no tests`` (no selected test runs the function) counts as surviving.  The
 second score leaves out the mutants ``docs/mutation.md`` lists as equivalent.  Exit status 1
 when a module's first score is below ``--min`` (95 %: the listed equivalent mutants count as
-surviving), when it has mutants not run, or a surviving mutant the document does not list.  Listed mutants that did not survive (killed
-since, or renumbered by a change to their function) are printed, to be taken off the list.
+surviving), when it has mutants not run, or a surviving mutant the document does not list.
+Listed mutants that did not survive (killed since, or renumbered by a change to their function)
+are printed, to be taken off the list.
 
 mutmut runs every mutant in a process forked after the modules were imported, so a function that
 runs only at import (a table built once: ``_crc_table``, ``_build_user_bits``) is never run
