@@ -84,9 +84,14 @@ class Module:
     def mutants(self) -> int:
         return self.tested + self.skipped + self.not_run
 
+    @property
+    def alive(self) -> list[str]:
+        """The mutants the tests ran and did not kill."""
+        return self.survived + self.no_tests + self.other
+
     def score(self, equivalent: frozenset[str] | set[str] = frozenset()) -> float | None:
-        alive = [m for m in self.survived + self.no_tests + self.other if m not in equivalent]
-        total = self.tested - (len(self.survived + self.no_tests + self.other) - len(alive))
+        listed = sum(m in equivalent for m in self.alive)
+        total = self.tested - listed
         return None if total == 0 else 100.0 * (self.killed + self.timeout + self.import_killed) / total
 
 
@@ -265,7 +270,7 @@ def report(modules: list[str], minimum: float) -> bool:
         if not row.mutants:
             continue  # nothing to mutate (an __init__, a module of constants)
         raw, net = row.score(), row.score(equivalent)
-        unlisted = [n for n in (*row.survived, *row.no_tests, *row.other) if n not in equivalent]
+        unlisted = [n for n in row.alive if n not in equivalent]
         if (raw is not None and raw < minimum) or row.not_run or unlisted:
             ok = False
         print(f"{row.path:<{width}}  {row.mutants:7d}  {row.killed:6d}  {row.timeout:7d}  {row.import_killed:6d}  "
@@ -277,7 +282,7 @@ def report(modules: list[str], minimum: float) -> bool:
             for name in names:
                 mark = "  (equivalent: docs/mutation.md)" if name in equivalent else ""
                 print(f"{kind}: {name}{mark}")
-    seen = {n for row in rows for n in (*row.survived, *row.no_tests, *row.other)}
+    seen = {n for row in rows for n in row.alive}
     prefixes = tuple(dotted(row.path) + "." for row in rows if not row.not_run)
     stale = sorted(n for n in equivalent if n.startswith(prefixes) and n not in seen)
     for name in stale:
