@@ -477,6 +477,12 @@ class Script:
         self.session.receive_data(data, self.now)
         return self.session.data_to_send()
 
+    def read_answered(self, msg_id: int, *, dt: float) -> None:
+        """A read as message ``msg_id``, its data reply ``dt`` later."""
+        assert self.start(READ) == frame_command(READ, msg_id)
+        self.reply(encode_data_reply(READ_REPLY_BODY, msg_id), dt=dt)
+        assert self.verdict() is SlcVerdict.DONE
+
     def read_answered_after_retransmit(self, msg_id: int, *, dt: float) -> None:
         """A read as message ``msg_id`` whose reply is lost; the ``;Z`` brings it ``dt`` later."""
         assert self.start(READ) == frame_command(READ, msg_id)
@@ -724,9 +730,7 @@ def _fast_controller() -> Script:
     script = Script(retries=3, min_timeout=0.05)
     script.handshake_read()
     for n in range(2, 10):
-        script.start(READ)
-        script.reply(encode_data_reply(READ_REPLY_BODY, n), dt=0.01)
-        assert script.verdict() is SlcVerdict.DONE
+        script.read_answered(n, dt=0.01)
     return script
 
 
@@ -1103,9 +1107,7 @@ def test_the_defaults_wait_0_3_s_for_a_reply_adapt_no_lower_than_50_ms_and_wait_
     script.reply(encode_data_reply(READ_REPLY_BODY, 1), dt=1 / 64)
     assert script.verdict() is SlcVerdict.DONE
     for n in range(2, 8):
-        script.start(READ)
-        script.reply(encode_data_reply(READ_REPLY_BODY, n), dt=1 / 64)
-        assert script.verdict() is SlcVerdict.DONE
+        script.read_answered(n, dt=1 / 64)
     script.start(READ)  # 8 reply times of 1/64 s: 2 x 1/64 s, raised to 50 ms
     assert script.session.next_deadline() == pytest.approx(script.now + 0.05)
     assert script.wait() == encode_retransmit(8)
@@ -1127,9 +1129,7 @@ def test_the_reply_timeout_follows_the_slowest_of_the_last_32_reply_times(fast: 
     script.reply(encode_data_reply(READ_REPLY_BODY, 1), dt=1 / 64)
     assert script.verdict() is SlcVerdict.DONE
     for n in range(2, 2 + fast):
-        assert script.start(READ) == frame_command(READ, n)
-        script.reply(encode_data_reply(READ_REPLY_BODY, n), dt=1 / 64)
-        assert script.verdict() is SlcVerdict.DONE
+        script.read_answered(n, dt=1 / 64)
     script.start(READ)  # 1 + fast reply times of 1/64 s after the slow one
     assert script.session.next_deadline() == script.now + (1 / 4 if 1 + fast < 32 else 0.05)
 
@@ -1143,9 +1143,7 @@ def test_the_quiet_wait_follows_the_latest_of_the_last_32_answers(fast: int) -> 
     script.handshake_read()
     script.read_answered_after_retransmit(2, dt=0.25)  # 0.55 s after the copy
     for n in range(3, 3 + fast):
-        assert script.start(READ) == frame_command(READ, n)
-        script.reply(encode_data_reply(READ_REPLY_BODY, n), dt=1 / 64)
-        assert script.verdict() is SlcVerdict.DONE
+        script.read_answered(n, dt=1 / 64)
     script.read_answered_after_retransmit(3 + fast, dt=1 / 64)  # two messages: a write resyncs
     _barrier(script.start(WRITE))  # 1 + fast answers after the late one
     sent = script.now
