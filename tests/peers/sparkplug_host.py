@@ -1528,6 +1528,8 @@ async def _run_cli(broker: tuple[str, int], primary_host_id: str | None, seconds
             pass
         violations = list(h.violations)
     print(f"{len(h.messages)} messages, {len(violations)} violations", flush=True)
+    for line in h.notes:
+        print(f"NOTE {line}", flush=True)
     for line in violations:
         print(f"VIOLATION {line}", flush=True)
     return 1 if violations else 0
@@ -1541,12 +1543,15 @@ def main(argv: list[str] | None = None) -> int:
                     help="act as this primary host: STATE Will at CONNECT, STATE online after subscribing")
     ap.add_argument("--seconds", type=float, default=None, help="run this long (default: until Ctrl-C)")
     args = ap.parse_args(argv)
+    import aiomqtt
+
     try:
         return asyncio.run(_run_cli(args.broker, args.primary_host_id, args.seconds))
     except KeyboardInterrupt:
         return 130
-    except OSError as exc:
-        print(f"cannot reach the MQTT server {args.broker[0]}:{args.broker[1]}: {exc}", file=sys.stderr)
+    except (OSError, aiomqtt.MqttError) as exc:
+        print(f"cannot reach the MQTT server {args.broker[0]}:{args.broker[1]}: {exc}; is it running and is "
+              "--broker right?", file=sys.stderr)
         return 2
 
 
