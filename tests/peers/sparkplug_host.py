@@ -911,6 +911,9 @@ class Checker:
         except DecodeError as exc:
             msg.error = str(exc)
             self._violate(msg, f"payload does not decode as a Sparkplug B Payload (6.4.1): {exc}")
+            known = self.nodes.get((group or "", node or ""))
+            if known is not None:
+                known.last_seq = None  # its seq is unknown: the next message starts the count again
             return msg
         assert group is not None and node is not None
         st = self.nodes.setdefault((group, node), _Node())

@@ -501,9 +501,12 @@ def test_data_rules() -> None:
 
 def test_undecodable_payload_and_bad_state_are_reported() -> None:
     c = Checker()
+    _feed(c, "spBv1.0/G/NBIRTH/E", _nbirth())
     c.feed("spBv1.0/G/NDATA/E", b"\x0a\xff\x01")
     assert len(c.violations) == 1 and "does not decode" in c.violations[0]
-    assert c.messages[0].error is not None
+    assert c.messages[1].error is not None
+    _feed(c, "spBv1.0/G/NDATA/E", Payload(timestamp=1, seq=2, metrics=[]))  # the lost seq 1 is not a gap
+    assert len(c.violations) == 1
     c.feed("spBv1.0/STATE/h", b"ONLINE", qos=1, retain=True)  # the 2.2 form is not 3.0's JSON
     c.feed("spBv1.0/STATE/h", b'{"online": "yes", "timestamp": 5}', qos=1, retain=True)
     c.feed("spBv1.0/STATE/h", b'{"online": true, "timestamp": 5}', qos=0, retain=False)
