@@ -469,6 +469,8 @@ def test_mqtt_flags_of_births_are_checked() -> None:
     _feed(c, "spBv1.0/G/NBIRTH/E", _nbirth(), qos=1, retain=True)
     assert len(c.violations) == 2
     assert "QoS 1" in c.violations[0] and "retained" in c.violations[1]
+    _feed(c, "spBv1.0/G/NDEATH/E", Payload(metrics=[m("bdSeq", "Int64", 0)]), qos=1, retain=True)
+    assert len(c.violations) == 3 and "retained NDEATH" in c.violations[2]
 
 
 def test_data_rules() -> None:
