@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import importlib
+import importlib.util
 import json
 import os
 import signal
@@ -62,10 +63,15 @@ def _free_port() -> int:
 @pytest.fixture
 def broker(tmp_path: Path) -> Iterator[int]:
     """A mosquitto on 127.0.0.1:<free port>; yields the port."""
+    missing = []
     if not os.access(MOSQUITTO, os.X_OK):
-        reason = f"{MOSQUITTO} is not installed (Debian package mosquitto)"
+        missing.append(f"{MOSQUITTO} is not installed (Debian package mosquitto)")
+    if importlib.util.find_spec("aiomqtt") is None:
+        missing.append("the Python package aiomqtt is not installed (pip install aiomqtt==2.5.1)")
+    if missing:
+        reason = "; ".join(missing)
         if os.environ.get("SLC_GATEWAY_REQUIRE_MOSQUITTO") == "1":
-            pytest.fail(f"{reason} and SLC_GATEWAY_REQUIRE_MOSQUITTO=1")
+            pytest.fail(f"{reason}, and SLC_GATEWAY_REQUIRE_MOSQUITTO=1")
         pytest.skip(f"{reason}; set SLC_GATEWAY_REQUIRE_MOSQUITTO=1 to fail instead")
     port = _free_port()
     conf = tmp_path / "mosquitto.conf"
