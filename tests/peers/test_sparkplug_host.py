@@ -642,6 +642,10 @@ async def test_well_behaved_edge_node_has_no_violation(broker: int) -> None:
             death = await h.wait_for(is_type("NDEATH", "gw"), WAIT)
             assert death.metric("bdSeq") is not None
             assert not h.node_online("G1", "gw") and not h.device_online("G1", "gw", "plc")
+        # wait_for also answers from the messages already received, and times out with a clear error
+        assert await h.wait_for(is_type("NDEATH", "gw"), 0.1) is death
+        with pytest.raises(TimeoutError, match=r"no matching Sparkplug message within 0\.2 s"):
+            await h.wait_for(lambda msg: False, 0.2)
         assert h.violations == [], h.violations
         kinds = [msg.message_type for msg in h.messages if msg.message_type != "STATE"]
         assert kinds.count("NBIRTH") == 2 and kinds.count("NDEATH") == 1 and kinds.count("DCMD") == 2
