@@ -54,7 +54,7 @@ class LineQuality:
     timeouts: int
     #: our frames the peer refused as damaged (a DLE NAK)
     naks: int | None = None
-    #: frames sent again because the first did not arrive whole
+    #: frames sent again because the first did not arrive whole (by either side, as the protocol counts them)
     retransmits: int | None = None
     #: message numbering resynchronised with the controller
     resyncs: int | None = None

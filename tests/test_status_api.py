@@ -311,3 +311,25 @@ initial = 0
         assert row["polled"] is False and row["stale_after"] is None
         view = await api(gateway, "/api/units/4/holding?start=0&count=2")
         assert view["polled"] is False and view["stale_after"] is None
+
+
+async def test_line_quality_of_stations_on_a_half_duplex_line() -> None:
+    """Station 3 never answers its polls: its own timeouts, not the line's other stations'."""
+    from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
+    from gateway.protocols.df1.framing import Checksum
+    from tests.test_metrics_half_duplex import station
+
+    sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1, 2, 3), dead=frozenset({3})))
+    server = await serve_tcp(sim, HOST, 0)
+    port = f"socket://{HOST}:{server.sockets[0].getsockname()[1]}"
+    text = LINKS.split("[[link]]")[0] + station("s1", 1, port, 1) + station("s3", 3, port, 3)
+    try:
+        async with Gateway(parse_config(text)) as gateway:
+            dead = await until(gateway, "s3", lambda row: row["line"]["timeouts"] >= 2, 10)
+            alive = await until(gateway, "s1", lambda row: row["state"] == "up", 10)
+    finally:
+        await close_tcp(server)
+    # a half-duplex master counts no DLE NAK of the slave's, and DF1 has no message-number resync
+    assert (dead["line"]["naks"], dead["line"]["resyncs"]) == (None, None)
+    assert isinstance(dead["line"]["retransmits"], int) and isinstance(dead["line"]["check_errors"], int)
+    assert alive["line"]["timeouts"] < dead["line"]["timeouts"]
