@@ -179,11 +179,7 @@ class StatusPage:
             state = "down"
         elif age < unit.stale_after:
             state = "up"
-            if self._last_state.get(unit.name) == "stale":
-                self._fresh_since[unit.name] = now
-            fresh = self._fresh_since.get(unit.name)
-            if fresh is not None and (since is None or fresh > since):
-                since = fresh
+            since = self._up_since(unit.name, since, now)
         else:
             state = "stale"
             if math.isfinite(age):
@@ -191,6 +187,13 @@ class StatusPage:
                 since = crossed if since is None else max(since, crossed)
         self._last_state[unit.name] = state
         return state, since
+
+    def _up_since(self, name: str, link_up: float | None, now: float) -> float | None:
+        """Up since the link came up, or since the page first saw the data fresh after stale if later."""
+        if self._last_state.get(name) == "stale":
+            self._fresh_since[name] = now
+        fresh = self._fresh_since.get(name)
+        return fresh if fresh is not None and (link_up is None or fresh > link_up) else link_up
 
     def status(self, now: float, wall: float) -> dict[str, object]:
         """The document of ``/api/status`` at loop time ``now`` (Unix time ``wall``)."""
