@@ -35,6 +35,8 @@ from gateway.transport import SerialSettings
 
 #: the retries-metric name of a message-ID resync (also the status block's kind counter)
 ID_RESYNC: Final = "id_resync"
+#: the retry kind of a reply asked for again (;Z)
+RETRANSMIT: Final = "retransmit"
 
 __all__ = ["ID_RESYNC", "MAX_TRANSFER_RESTARTS", "SLC_ASCII_SETTINGS", "SlcAsciiDriver"]
 
@@ -166,7 +168,7 @@ class SlcAsciiDriver(LineDriver):
         core, mine = self.session.counters, self.counters
         mine.timeouts, mine.crc_errors = core.timeouts, core.crc_errors
         # ID resyncs that recovered the numbering, not the first one after connecting
-        mine.retries_by_kind["retransmit"] = core.retransmits
+        mine.retries_by_kind[RETRANSMIT] = core.retransmits
         mine.retries_by_kind[ID_RESYNC] = core.id_resyncs - core.handshakes
         mine.faults = core.faults
 
@@ -174,7 +176,7 @@ class SlcAsciiDriver(LineDriver):
         """Checksum errors, timeouts, retransmissions (;Z) and ID resyncs; the protocol has no NAK."""
         counters = self.counters
         return LineQuality(check_errors=counters.crc_errors, timeouts=counters.timeouts,
-                           retransmits=counters.retries_by_kind.get("retransmit", 0),
+                           retransmits=counters.retries_by_kind.get(RETRANSMIT, 0),
                            resyncs=counters.retries_by_kind.get(ID_RESYNC, 0))
 
     async def _run_command(self, command: Command) -> Answer:
