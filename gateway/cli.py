@@ -88,7 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=("csv", "kepware", "json"), default="csv",
                    help="csv (name,unit,table,address,reference,type,access,description), kepware (its tag CSV "
                         "import), json; default csv")
-    p.add_argument("-o", "--output", type=Path, metavar="FILE", help="write to FILE instead of standard output")
+    p.add_argument("-o", "--output", type=Path, metavar="FILE", help="write to FILE instead of standard output; "
+                   "kepware with several units: a directory, one file unit-N.csv per unit (a Kepware device)")
     p.add_argument("--unit", type=int, metavar="N", help="only the links of Modbus unit N (a Kepware device)")
 
     p = sub.add_parser("simulate", help="serve a simulated controller over TCP or a pseudo-terminal")
@@ -231,13 +232,44 @@ def _export_tags(path: Path, format_name: str, output: Path | None, unit: int | 
     if unit is not None and all(link.unit != unit for link in config.link):
         units = ", ".join(str(link.unit) for link in config.link)
         raise GatewayError(f"--unit {unit}: no link of {path} is unit {unit} (its units: {units})")
-    text = render(config_tags(config.link, unit), format_name)
+    tags = config_tags(config.link, unit)
+    if format_name == "kepware":
+        return _export_kepware(path, tags, output)
+    _write_tags(render(tags, format_name), format_name, output)
+    return 0
+
+
+def _write_tags(text: str, format_name: str, output: Path | None) -> None:
     if output is None:
         sys.stdout.write(text)
     else:
         output.write_text(text, encoding="utf-8", newline="")
         print(f"slc-gateway export-tags: {text.count(chr(10)) - (format_name != 'json')} tags written to "
               f"{output}", file=sys.stderr)
+
+
+def _export_kepware(path: Path, tags: Sequence[Any], output: Path | None) -> int:
+    """One Kepware device per unit: a file (or standard output) for one unit; for several, ``-o DIR``
+    gets ``unit-<N>.csv`` each.  Every device's word-order setting is said, and a unit whose 32-bit
+    values mix word orders is warned about (``gateway.tags.KepwareDevice``)."""
+    from gateway.tags import kepware_devices, render
+
+    devices = kepware_devices(tags)
+    if len(devices) > 1 and (output is None or output.is_file()):
+        units = ", ".join(str(device.unit) for device in devices)
+        where = "standard output" if output is None else f"the file {output}"
+        raise GatewayError(f"--format kepware: {path} has units {units}, and a Kepware device is one unit: "
+                           f"choose one with --unit N, or give -o DIR for one file per unit (not {where})")
+    if len(devices) > 1:
+        assert output is not None
+        output.mkdir(parents=True, exist_ok=True)
+    for device in devices:
+        target = output / f"unit-{device.unit}.csv" if len(devices) > 1 and output is not None else output
+        _write_tags(render(device.tags, "kepware"), "kepware", target)
+        print(f"slc-gateway export-tags: unit {device.unit} ({', '.join(device.links)}): a Kepware Modbus device "
+              f"with ID {device.unit} and {device.setting} (32-bit values {device.word_order})", file=sys.stderr)
+        if device.misread:
+            print(f"slc-gateway export-tags: warning: {device.warning()}", file=sys.stderr)
     return 0
 
 

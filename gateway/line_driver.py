@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, Protocol, TypedDict, TypeVar
 
 from gateway.errors import GatewayError, LinkDown, LinkError, LinkTimeout, format_seconds
-from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LineCounters, LinkHealth
+from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LineCounters, LineQuality, LinkHealth
 from gateway.transport import ByteStream, SerialSettings, describe_url, open_stream
 
 __all__ = [
@@ -183,6 +183,11 @@ class UnitDriver(Protocol):
     def write_session(self) -> AbstractAsyncContextManager[None]: ...
 
     def extend_burst(self) -> None: ...
+
+    async def first_attempt(self) -> None:
+        """Until the first attempt to open the port is over (opened or failed)."""
+
+    def line_quality(self) -> LineQuality: ...
 
 
 class LineDriverOptions(TypedDict, total=False):
@@ -343,6 +348,11 @@ class LineDriver(LinkHealth):
         self.follow_deadline(None)
         self.abort(exc)
         self._line.fail_waiting(exc)
+
+    async def first_attempt(self) -> None:
+        """Until :meth:`run` made its first attempt to open the port (opened or failed): before it the
+        link is neither up nor down, and a request would fail with a "not connected" that is no error."""
+        await self._first_attempt_done.wait()
 
     async def start(self, wait: float | None = None) -> None:
         """Run in the background and wait for the first connection attempt (for the CLI).

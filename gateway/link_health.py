@@ -15,7 +15,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final, NamedTuple, Self
 
-__all__ = ["DEFAULT_DOWN_AFTER", "DownAfter", "LineCounters", "LinkHealth"]
+from gateway.frozen import frozen
+
+__all__ = ["DEFAULT_DOWN_AFTER", "DownAfter", "LineCounters", "LineQuality", "LinkHealth"]
 
 log = logging.getLogger("gateway.link")
 
@@ -39,6 +41,23 @@ class LineCounters:
     @property
     def retries(self) -> int:
         return sum(self.retries_by_kind.values())
+
+
+@frozen
+class LineQuality:
+    """How the line is, by the numbers of its protocol (:meth:`LinkHealth.line_quality`), counted
+    since the link was created; None: the protocol has no such thing, or its driver does not count it."""
+
+    #: frames or replies received with a bad check (BCC, CRC, checksum)
+    check_errors: int
+    #: answers that did not come in time, as the protocol counts them (each try, or each request)
+    timeouts: int
+    #: our frames the peer refused as damaged (a DLE NAK)
+    naks: int | None = None
+    #: frames sent again because the first did not arrive whole (by either side, as the protocol counts them)
+    retransmits: int | None = None
+    #: message numbering resynchronised with the controller
+    resyncs: int | None = None
 
 
 class DownAfter(NamedTuple):
@@ -96,6 +115,12 @@ class LinkHealth(ABC):
     @abstractmethod
     def where(self) -> str:
         """Where the controller is, for the "up" log line (the port, a station on a line)."""
+
+    def line_quality(self) -> LineQuality:
+        """The line's check errors, timeouts, NAKs, retransmissions and resyncs (:class:`LineQuality`).
+
+        This one knows only the counters every link has; a kind's driver gives the rest."""
+        return LineQuality(check_errors=self.counters.crc_errors, timeouts=self.counters.timeouts)
 
     def add_listener(self, callback: Callable[[Self], None]) -> None:
         """``callback(link)`` runs whenever the link goes up or down (``available`` changes)."""

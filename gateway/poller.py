@@ -86,6 +86,7 @@ class Poller:
         down_wait: float = 0.2,
         stagger: float | None = None,
         responding: Callable[[], bool] | None = None,
+        ready: Callable[[], Awaitable[None]] | None = None,
     ) -> None:
         self.name = name
         self.blocks = list(blocks)
@@ -99,6 +100,9 @@ class Poller:
         #: seconds before the first poll (module docstring)
         self.stagger = default_stagger(name, fast_interval) if stagger is None else max(0.0, stagger)
         self._responding = responding
+        #: awaited before the first poll: the driver's first attempt to open its port (a poll before it
+        #: would fail with "not connected", an error of nobody's)
+        self._ready = ready
         self.scans = 0
         self.block_errors = 0
         #: blocks the controller refuses to read (a file too short, program mode ...): the
@@ -206,6 +210,8 @@ class Poller:
         loop = asyncio.get_running_loop()
         if self.stagger > 0:
             await asyncio.sleep(self.stagger)
+        if self._ready is not None:
+            await self._ready()
         next_slow = loop.time()
         whole_slow = True  # at start and after a loss: the whole slow class first
         pending_slow: list[int] = []  # the rest of a periodic slow scan, spread over fast rounds

@@ -5,8 +5,11 @@ Read-only: nothing here writes to a controller; writes stay on Modbus, where the
 * ``GET /`` (and ``/status.css``, ``/status.js``): the page, plain files of this package
   (``gateway/web/``), no build step and nothing fetched from elsewhere; it asks the API every second.
 * ``GET /api/status``: the gateway and one row per unit (a link, or a station of a half-duplex
-  line): name, kind, port (credentials redacted), unit id, up / stale / down and since when, data
-  age (the oldest fast-class value), transactions, errors, retries, the last error and its time.
+  line): name, kind, port (credentials redacted), unit id, whether it is polled, up / stale / down
+  and since when (the time in that state: :meth:`StatusPage.state`), data age (the oldest
+  fast-class value), transactions, errors, retries, the line's quality (``line``: check errors,
+  NAKs, timeouts, retransmissions, resyncs; null where the protocol has no such thing:
+  :class:`gateway.link_health.LineQuality`), the last error and its time.
 * ``GET /api/units/{unit}/{table}?start=&count=``: ``count`` (1..:data:`MAX_COUNT`) values of
   ``table`` (holding, input, coil, discrete) from ``start``, each with its age and state.  The
   state is the Modbus answer a read of that one address gets now (the unit's own rule, the one
@@ -42,7 +45,7 @@ if TYPE_CHECKING:
     from gateway.modbus.server import ModbusTcpServer
     from gateway.unit import Unit
 
-__all__ = ["MAX_COUNT", "StatusPage", "StatusView", "data_age", "public_error"]
+__all__ = ["LINE_QUALITY", "MAX_COUNT", "StatusPage", "StatusView", "data_age", "line_quality", "public_error"]
 
 #: The most values one register view request returns (a Modbus read of registers holds 125).
 MAX_COUNT: Final = 125
@@ -69,6 +72,9 @@ _PAGE_HEADERS: Final = [
     ("Referrer-Policy", "no-referrer"),
 ]
 
+#: the line-quality numbers of a row (``gateway.link_health.LineQuality``), in the page's column order
+LINE_QUALITY: Final = ("check_errors", "naks", "timeouts", "retransmits", "resyncs")
+
 Response = tuple[int, str, bytes, list[tuple[str, str]]]
 
 
@@ -85,6 +91,12 @@ class StatusView(Protocol):
 def data_age(unit: Unit[Any, Any], now: float) -> float:
     """Seconds since the oldest fast-class block was read; +Inf if one never was."""
     return unit.data_age(now)
+
+
+def line_quality(unit: Unit[Any, Any]) -> dict[str, int | None]:
+    """The unit's line quality by :data:`LINE_QUALITY` (None: not a thing of its protocol)."""
+    quality = unit.driver.line_quality()
+    return {key: getattr(quality, key) for key in LINE_QUALITY}
 
 
 def public_error(text: str) -> str:
@@ -116,6 +128,10 @@ class StatusPage:
         self._files = {path: resources.files("gateway").joinpath("web", name).read_bytes()
                        for path, (name, _) in _FILES.items()}
         self._tags: dict[str, dict[tuple[Table, int], Tag]] = {}
+        #: per unit: the state it was in at the last answer, and since when it has been fresh again
+        #: after being stale (loop time), as seen by this page (:meth:`state`)
+        self._last_state: dict[str, str] = {}
+        self._fresh_since: dict[str, float] = {}
 
     def handles(self, path: str) -> bool:
         return path in _FILES or path == "/api/status" or _UNIT_PATH.fullmatch(path) is not None
@@ -148,6 +164,37 @@ class StatusPage:
         kind = link_kind(link.protocol)
         return kind.name, kind.controllers
 
+    def state(self, unit: Unit[Any, Any], now: float) -> tuple[str, float | None]:
+        """``(state, since)`` of a unit at loop time ``now``: down (the link), stale (up, but the oldest
+        fast-class value is ``stale_after`` old) or up, and the loop time it has been so since.
+
+        Down and up: since the link's last change, or for up after stale since this page first saw
+        the data fresh again (the read times cannot tell when that was).  Stale: since the oldest
+        value passed ``stale_after``, or since the link came up if that was later.  None: never.
+        """
+        driver = unit.driver
+        age = data_age(unit, now)
+        since = driver.state_since
+        if not driver.available:
+            state = "down"
+        elif age < unit.stale_after:
+            state = "up"
+            since = self._up_since(unit.name, since, now)
+        else:
+            state = "stale"
+            if math.isfinite(age):
+                crossed = now - (age - unit.stale_after)
+                since = crossed if since is None else max(since, crossed)
+        self._last_state[unit.name] = state
+        return state, since
+
+    def _up_since(self, name: str, link_up: float | None, now: float) -> float | None:
+        """Up since the link came up, or since the page first saw the data fresh after stale if later."""
+        if self._last_state.get(name) == "stale":
+            self._fresh_since[name] = now
+        fresh = self._fresh_since.get(name)
+        return fresh if fresh is not None and (link_up is None or fresh > link_up) else link_up
+
     def status(self, now: float, wall: float) -> dict[str, object]:
         """The document of ``/api/status`` at loop time ``now`` (Unix time ``wall``)."""
 
@@ -160,9 +207,7 @@ class StatusPage:
             driver = unit.driver
             counters = driver.counters
             age = data_age(unit, now)
-            up = driver.available
-            fresh = age < unit.stale_after
-            state = "down" if not up else "up" if fresh else "stale"
+            state, since = self.state(unit, now)
             up_count += state == "up"
             kind, controllers = self._kind(unit.name)
             error = unit.last_error
@@ -172,13 +217,15 @@ class StatusPage:
                 "controllers": controllers,
                 "port": describe_url(driver.url),
                 "unit": unit.unit_id,
+                "polled": unit.poller is not None,
                 "state": state,
-                "since": at(driver.state_since),
+                "since": at(since),
                 "data_age": _finite(age),
                 "stale_after": _finite(unit.stale_after),  # null: never stale
                 "transactions": counters.transactions,
                 "errors": counters.errors,
                 "retries": counters.retries,
+                "line": line_quality(unit),
                 "last_error": public_error(str(error)) if error is not None else public_error(driver.last_error),
                 "last_error_at": at(unit.last_error_at) if error is not None else None,
             })
@@ -237,8 +284,8 @@ class StatusPage:
                     entry["word_order"] = tag.word_order
             values.append(entry)
         return {"unit": unit.unit_id, "link": unit.name, "table": table.value, "start": start, "count": count,
-                "registers": registers, "stale_after": _finite(unit.stale_after), "time": round(wall, 3),
-                "values": values}
+                "registers": registers, "polled": unit.poller is not None, "stale_after": _finite(unit.stale_after),
+                "time": round(wall, 3), "values": values}
 
 
 def _query_int(query: str, key: str, default: int, low: int, high: int) -> int:

@@ -10,7 +10,8 @@ Access follows the unit's own rules: a point with a write target, outside ``read
 ``writable`` (:func:`gateway.unit.in_writable`) is read-write; everything else is read-only.
 
 Formats (:data:`FORMATS`): ``csv`` (header :data:`CSV_HEADER`), ``json`` (a list of objects) and
-``kepware``, the Kepware tag CSV layout (:func:`kepware_rows`).
+``kepware``, the Kepware tag CSV layout (:func:`kepware_rows`): one file is one Kepware device, so
+one unit (:func:`kepware_devices`), with the word order its 32-bit values need.
 
 Generic: knows plans, points and the kind registry, no protocol.
 """
@@ -25,12 +26,14 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, Final
 
 from gateway.config.link import LinkBase
+from gateway.errors import GatewayError
 from gateway.frozen import frozen
 from gateway.kinds import link_kind, unit_options
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Half, PointLabel, RegisterPoint, Table
 from gateway.unit import in_writable
 
-__all__ = ["CSV_HEADER", "FORMATS", "Tag", "config_tags", "link_tags", "reference", "render"]
+__all__ = ["CSV_HEADER", "FORMATS", "KepwareDevice", "Tag", "config_tags", "kepware_devices", "link_tags", "reference",
+           "render"]
 
 CSV_HEADER: Final = ("name", "unit", "table", "address", "reference", "type", "access", "description")
 
@@ -178,10 +181,12 @@ def _json(tags: Sequence[Tag]) -> str:
 # it for CSV import / export ("CSV Import/Export", http://www.kepware.com/Products/feature-csvimportexport.htm):
 # Tag Name, Address, Data Type, Respect Data Type (1, 0), Client Access (RO, RW, WO), Scan Rate (ms),
 # Scaling, Raw Low, Raw High, Scaled Low, Scaled High, Scaled Data Type, Clamp Low, Clamp High,
-# Eng Units, Description; a blank column takes the server's default.  Addresses and data types are
-# the Modbus Ethernet driver's ("Modbus Ethernet Driver", PTC/Kepware 2016, "Modbus Addressing",
-# "Data Types Description"): six-digit 000001 coils, 100001 discrete inputs, 300001 input registers,
-# 400001 holding registers; Boolean, Word, Short, DWord, Float.
+# Eng Units, Description; a blank column takes the server's default.  The file is imported under one
+# device or tag group (the same page: "The CSV functions are only available when a Device or Tag
+# Group is selected"), and the device holds the Modbus unit id: one file per unit.  Addresses and
+# data types are the Modbus Ethernet driver's ("Modbus Ethernet Driver", PTC/Kepware 2016, "Modbus
+# Addressing", "Data Types Description"): six-digit 000001 coils, 100001 discrete inputs, 300001
+# input registers, 400001 holding registers; Boolean, Word, Short, DWord, Float.
 KEPWARE_HEADER: Final = (
     "Tag Name", "Address", "Data Type", "Respect Data Type", "Client Access", "Scan Rate", "Scaling",
     "Raw Low", "Raw High", "Scaled Low", "Scaled High", "Scaled Data Type", "Clamp Low", "Clamp High",
@@ -190,6 +195,12 @@ KEPWARE_HEADER: Final = (
 _KEPWARE_TYPES: Final = {"bool": "Boolean", "uint16": "Word", "int16": "Short", "uint32": "DWord",
                          "int32": "Long", "float32": "Float"}
 _KEPWARE_NAME: Final = re.compile(r"[^A-Za-z0-9_]")
+#: The Modbus driver reads every 32-bit value of a device in one word order, the device's "First
+#: word low" setting (Data Encoding), on by default: the low word at the lower address.  There is
+#: no per-tag word order in the tag CSV.
+KEPWARE_DEFAULT_ORDER: Final = "low-first"
+#: the tags named one by one in a word-order warning (the rest are counted)
+_NAMED: Final = 12
 
 
 def _kepware_name(text: str) -> str:
@@ -197,26 +208,97 @@ def _kepware_name(text: str) -> str:
     return _KEPWARE_NAME.sub("_", text).strip("_") or "tag"
 
 
-def kepware_rows(tags: Sequence[Tag]) -> list[tuple[str, ...]]:
-    """The Kepware rows of ``tags``: ``<link>.<address>`` names (the link is the tag group), unique.
+def first_word_low(word_order: str) -> str:
+    """The Kepware device setting for a word order: ``'First word low' on`` / ``off``."""
+    return f"'First word low' {'on' if word_order == 'low-first' else 'off'}"
 
-    A Kepware device has one unit id, so a file for one device holds one unit's tags
-    (``export-tags --unit``); the word order of a 32-bit value is the device's setting and is in
-    the description.
+
+def _status(tag: Tag) -> bool:
+    return tag.table is Table.INPUT and tag.address >= STATUS_BASE
+
+
+@frozen
+class KepwareDevice:
+    """One Kepware device: one Modbus unit, its tags and the word order its 32-bit values need.
+
+    ``word_order`` is the order of most of the unit's own 32-bit values (the status block's counters
+    decide only when it has none; a tie takes Kepware's default); ``misread`` are the 32-bit tags in
+    the other order, which this device reads wrong.
+    """
+
+    unit: int
+    links: tuple[str, ...]
+    word_order: str
+    tags: tuple[Tag, ...]
+    misread: tuple[Tag, ...]
+
+    @property
+    def setting(self) -> str:
+        return first_word_low(self.word_order)
+
+    def warning(self) -> str:
+        """The word-order warning for ``misread`` ("" when every 32-bit value is in the device's order)."""
+        if not self.misread:
+            return ""
+        names = ", ".join(kepware_name(tag) for tag in self.misread[:_NAMED])
+        more = f" and {len(self.misread) - _NAMED} more" if len(self.misread) > _NAMED else ""
+        other = "low-first" if self.word_order == "high-first" else "high-first"
+        return (f"unit {self.unit}: 32-bit values in both word orders, but a Kepware device reads all of them in "
+                f"one: this one is {self.word_order} ({self.setting}), so these {len(self.misread)} {other} "
+                f"values read wrong: {names}{more}; give the map's 32-bit values one word order (the status "
+                f"block's counters are high-first), or read these as two Words each")
+
+
+def kepware_devices(tags: Sequence[Tag]) -> list[KepwareDevice]:
+    """``tags`` as Kepware devices, one per unit, in the order the units first appear."""
+    by_unit: dict[int, list[Tag]] = {}
+    for tag in tags:
+        by_unit.setdefault(tag.unit, []).append(tag)
+    devices = []
+    for unit, unit_tags in by_unit.items():
+        wide = [tag for tag in unit_tags if tag.word_order]
+        own = [tag for tag in wide if not _status(tag)] or wide
+        high = sum(tag.word_order == "high-first" for tag in own)
+        low = len(own) - high
+        order = KEPWARE_DEFAULT_ORDER if high == low else "high-first" if high > low else "low-first"
+        links = tuple(dict.fromkeys(tag.link for tag in unit_tags))
+        devices.append(KepwareDevice(unit, links, order, tuple(unit_tags),
+                                     tuple(tag for tag in wide if tag.word_order != order)))
+    return devices
+
+
+def kepware_name(tag: Tag) -> str:
+    """``<link>.<address>``: the link is the tag group (the name before any de-duplication)."""
+    return f"{_kepware_name(tag.link)}.{_kepware_name(tag.name[len(tag.link) + 1 :])}"
+
+
+def kepware_rows(tags: Sequence[Tag]) -> list[tuple[str, ...]]:
+    """The Kepware rows of ``tags`` (one unit: one device, :func:`kepware_devices`): names unique.
+
+    The description of a 32-bit value says its word order and whether the device reads it so.
     """
     rows: list[tuple[str, ...]] = []
     seen: set[str] = set()
-    for tag in tags:
-        base = f"{_kepware_name(tag.link)}.{_kepware_name(tag.name[len(tag.link) + 1 :])}"
-        name = base if base not in seen else f"{base}_{tag.table.value}"
-        seen.add(name)
-        description = tag.description + (f" ({tag.word_order} words)" if tag.word_order else "")
-        rows.append((name, tag.reference, _KEPWARE_TYPES.get(tag.type, "Word"), "1",
-                     "RW" if tag.writable else "RO", "", "", "", "", "", "", "", "", "", "", description))
+    for device in kepware_devices(tags):
+        for tag in device.tags:
+            base = kepware_name(tag)
+            name = base if base not in seen else f"{base}_{tag.table.value}"
+            seen.add(name)
+            description = tag.description
+            if tag.word_order == device.word_order:
+                description += f" ({tag.word_order} words: {device.setting})"
+            elif tag.word_order:
+                description += f" ({tag.word_order} words: reads wrong with {device.setting})"
+            rows.append((name, tag.reference, _KEPWARE_TYPES.get(tag.type, "Word"), "1",
+                         "RW" if tag.writable else "RO", "", "", "", "", "", "", "", "", "", "", description))
     return rows
 
 
 def _kepware(tags: Sequence[Tag]) -> str:
+    units = sorted({tag.unit for tag in tags})
+    if len(units) > 1:
+        raise GatewayError(f"a Kepware file is one device, one unit: these tags are of units "
+                         f"{', '.join(map(str, units))} (export-tags --unit N, or -o DIR for one file per unit)")
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\r\n")
     writer.writerow(KEPWARE_HEADER)

@@ -174,6 +174,7 @@ class Unit(ABC, Generic[R, B]):
             fast_interval=fast_interval,
             slow_interval=slow_interval,
             responding=lambda: driver.available,
+            ready=driver.first_attempt,
             stagger=stagger,  # None: a share of fast_interval from the name (gateway.poller.default_stagger)
         ) if polled else None
         self.write_requests = 0

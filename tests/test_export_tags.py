@@ -301,3 +301,77 @@ async def _wait_fresh(client: AsyncModbusTcpClient, unit: int) -> None:
             return
         await asyncio.sleep(0.1)
     raise AssertionError(f"unit {unit}: no fresh data after 30 s")
+
+
+# --- Kepware: one device per unit ---------------------------------------------------------------
+#
+# Kepware's CSV import ("CSV Import/Export", kepware.com/Products/feature-csvimportexport.htm) takes
+# a heading record with the columns below and one record per tag, imported under the one device
+# selected; its Modbus Ethernet driver addresses are six digits (000001 coils, 100001 discrete
+# inputs, 300001 input registers, 400001 holding registers), its data types Boolean, Word, Short,
+# DWord, Long, Float, Respect Data Type 1 / 0, Client Access RO / RW / WO.  A device reads every
+# 32-bit value in one word order, its "First word low" setting (on by default).
+KEPWARE_COLUMNS = ("Tag Name", "Address", "Data Type", "Respect Data Type", "Client Access", "Scan Rate",
+                   "Scaling", "Raw Low", "Raw High", "Scaled Low", "Scaled High", "Scaled Data Type", "Clamp Low",
+                   "Clamp High", "Eng Units", "Description")
+
+
+def kepware_file(path: Path) -> list[dict[str, str]]:
+    """The records of a Kepware tag CSV, checked against the documented columns and values."""
+    text = path.read_bytes().decode("utf-8")
+    rows = list(csv.reader(io.StringIO(text)))
+    assert tuple(rows[0]) == KEPWARE_COLUMNS
+    records = [dict(zip(KEPWARE_COLUMNS, row, strict=True)) for row in rows[1:]]
+    for record in records:
+        assert record["Address"][0] in "0134" and len(record["Address"]) == 6 and record["Address"].isdigit()
+        assert record["Data Type"] in ("Boolean", "Word", "Short", "DWord", "Long", "Float")
+        assert record["Respect Data Type"] in ("0", "1") and record["Client Access"] in ("RO", "RW", "WO")
+        assert (record["Data Type"] == "Boolean") == (record["Address"][0] in "01")
+    names = [record["Tag Name"] for record in records]
+    assert len(set(names)) == len(names)
+    return records
+
+
+def test_kepware_without_unit_refuses_one_mixed_file(tmp_path: Path) -> None:
+    line = fails("export-tags", str(DEMO), "--format", "kepware")
+    assert "units 1, 2, 3, 4" in line and "--unit N" in line and "-o DIR" in line
+    file = tmp_path / "all.csv"
+    file.write_text("")
+    assert "not the file" in fails("export-tags", str(DEMO), "--format", "kepware", "-o", str(file))
+
+
+def test_kepware_one_file_per_unit_with_its_word_order(tmp_path: Path) -> None:
+    out = tmp_path / "kepware"
+    result = cli("export-tags", str(DEMO), "--format", "kepware", "-o", str(out))
+    assert result.returncode == 0, result.stderr
+    assert sorted(path.name for path in out.iterdir()) == ["unit-1.csv", "unit-2.csv", "unit-3.csv", "unit-4.csv"]
+    links = {1: "slc150_sim", 2: "slc100_sim", 3: "slc504_sim", 4: "plc_msg_sim"}
+    for unit, link in links.items():
+        records = kepware_file(out / f"unit-{unit}.csv")
+        addresses = [record["Address"] for record in records]
+        assert len(set(addresses)) == len(addresses), f"unit {unit}: an address twice in one device"
+        assert {record["Tag Name"].split(".")[0] for record in records} == {link}
+        # the demo's floats and the status block are high-first: the device's setting says so
+        assert f"unit {unit} ({link.replace('_', '-')}): a Kepware Modbus device with ID {unit} and " \
+               "'First word low' off" in result.stderr
+        wide = [record for record in records if record["Data Type"] in ("Float", "DWord")]
+        assert wide and all("'First word low' off" in record["Description"] for record in wide)
+    assert "warning" not in result.stderr
+
+
+def test_kepware_warns_of_a_unit_whose_32_bit_values_mix_word_orders(config_file: Path, tmp_path: Path) -> None:
+    out = tmp_path / "kepware"
+    result = cli("export-tags", str(config_file), "--format", "kepware", "-o", str(out))
+    assert result.returncode == 0, result.stderr
+    warnings = [line for line in result.stderr.splitlines() if "warning" in line]
+    # unit 3: three high-first floats (F8:0-2) and the status block against two low-first ones
+    (unit3,) = [line for line in warnings if "unit 3:" in line]
+    assert "'First word low' off" in unit3 and "press_3.F8_3, press_3.F8_4" in unit3 and "F8_0" not in unit3
+    # unit 5: its one float is low-first (the device's order), so the status block's counters read wrong
+    (unit5,) = [line for line in warnings if "unit 5:" in line]
+    assert "'First word low' on" in unit5
+    assert "line_5.status_transactions" in unit5 and "line_5.F8_0" not in unit5
+    assert not any("unit 1:" in line for line in warnings)  # no 32-bit value but the status block
+    records = {record["Tag Name"]: record for record in kepware_file(out / "unit-3.csv")}
+    assert "reads wrong" in records["press_3.F8_3"]["Description"]
+    assert "reads wrong" not in records["press_3.F8_0"]["Description"]

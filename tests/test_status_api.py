@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 import pytest
@@ -197,3 +197,139 @@ async def test_the_allow_list_closes_the_page_too() -> None:
                 answer = b""
         assert answer == b""
         writer.close()
+
+
+# --- the page tells the truth ----------------------------------------------------------------
+
+
+async def until(gateway: Gateway, name: str, check: Callable[[dict[str, Any]], bool],
+                within: float) -> dict[str, Any]:
+    """The row of link ``name`` (with the document's ``time``) once ``check`` holds of it."""
+    async with asyncio.timeout(within):
+        while True:
+            document = await api(gateway, "/api/status")
+            (row,) = [row for row in document["links"] if row["name"] == name]
+            row = {**row, "time": document["time"]}
+            if check(row):
+                return row
+            await asyncio.sleep(0.05)
+
+
+async def test_a_link_on_a_real_port_has_no_start_up_error(plant: tuple[Gateway, asyncio.Server]) -> None:
+    """socket:// (as a pty or a serial port) opens after the gateway starts: a poll before that is no error."""
+    gateway, _ = plant
+    row = await until_row(gateway, "served", "up")
+    assert row["errors"] == 0
+    assert (row["last_error"], row["last_error_at"]) == ("", None)
+
+
+async def test_for_n_s_is_the_time_in_the_current_state() -> None:
+    """A link polled every 2 s whose data is stale after 0.5 s: stale from 0.5 s after each round to the next."""
+    server = await serve_tcp(create_simulator("slc150", {"ladder": "0"}), HOST, 0)
+    port = server.sockets[0].getsockname()[1]
+    config = parse_config(LINKS.split("[[link]]")[0] + SERVED.format(port=port).replace(
+        "stale_after = 0.5", "stale_after = 0.5\nfast_interval = 2.0\nslow_interval = 60.0"))
+    try:
+        async with Gateway(config) as gateway:
+            up = await until_row(gateway, "served", "up")
+            came_up = up["since"]
+            # a stale period after the second round or later
+            row = await until(gateway, "served", lambda row: row["state"] == "stale" and row["time"] - came_up > 3, 20)
+            # stale since the oldest value passed stale_after: within this round, not when the link came up
+            assert row["since"] - came_up > 1.5, (came_up, row)
+            assert 0 <= row["time"] - row["since"] <= 2.0 - 0.5 + 1.0, row
+            fresh = await until(gateway, "served", lambda row: row["state"] == "up", 5)
+            assert fresh["since"] > row["since"], (row, fresh)  # up again since the data is fresh again
+    finally:
+        await close_tcp(server)
+
+
+QUALITY = """
+[[link]]
+name = "noisy-slc"
+protocol = "slc-ascii"
+port = "sim://slc150?ladder=0&garble=4&seed=3"
+unit = 5
+
+[[link]]
+name = "noisy-df1"
+protocol = "df1"
+port = "sim://slc504?garble=4&seed=3"
+unit = 6
+
+[[link.map]]
+table = "holding"
+start = 0
+address = "N7:0"
+count = 10
+"""
+
+
+async def test_line_quality_is_on_the_status_api() -> None:
+    """Garbled replies are check errors (BCC / CRC) that the errors and retries columns do not show."""
+    config = parse_config(LINKS.split("[[link]]")[0] + QUALITY)
+    async with Gateway(config) as gateway:
+        async with asyncio.timeout(15):
+            while True:
+                rows = {row["name"]: row for row in (await api(gateway, "/api/status"))["links"]}
+                if all(row["line"]["check_errors"] >= 5 for row in rows.values()):
+                    break
+                await asyncio.sleep(0.1)
+        slc, df1 = rows["noisy-slc"]["line"], rows["noisy-df1"]["line"]
+        assert list(slc) == ["check_errors", "naks", "timeouts", "retransmits", "resyncs"]
+        # SLC 100/150 ASCII: no NAK in the protocol; a garbled reply is asked for again (;Z)
+        assert slc["naks"] is None and slc["retransmits"] > 0 and slc["resyncs"] is not None
+        # DF1: a garbled reply is NAKed and sent again by the controller; no message-number resync
+        assert df1["naks"] is not None and df1["retransmits"] is not None and df1["resyncs"] is None
+        assert all(isinstance(value, int) for value in (slc["timeouts"], df1["timeouts"]))
+        metrics = (await get(gateway.metrics.port, "/metrics")).body.decode() if gateway.metrics else ""
+        for name, line in (("noisy-slc", slc), ("noisy-df1", df1)):
+            scraped = [text for text in metrics.splitlines() if text.startswith("slc_gateway_crc_errors_total{")
+                       and f'link="{name}"' in text]
+            assert scraped and float(scraped[0].split()[-1]) >= line["check_errors"]
+
+
+async def test_a_unit_that_is_not_polled_says_so() -> None:
+    config = parse_config(LINKS.split("[[link]]")[0] + """
+[[link]]
+name = "target"
+protocol = "df1"
+role = "target"
+port = "sim://plc-msg"
+unit = 4
+
+[[link.file]]
+file = 7
+type = "N"
+elements = 10
+table = "holding"
+start = 0
+initial = 0
+""")
+    async with Gateway(config) as gateway:
+        (row,) = (await api(gateway, "/api/status"))["links"]
+        assert row["polled"] is False and row["stale_after"] is None
+        view = await api(gateway, "/api/units/4/holding?start=0&count=2")
+        assert view["polled"] is False and view["stale_after"] is None
+
+
+async def test_line_quality_of_stations_on_a_half_duplex_line() -> None:
+    """Station 3 never answers its polls: its own timeouts, not the line's other stations'."""
+    from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
+    from gateway.protocols.df1.framing import Checksum
+    from tests.test_metrics_half_duplex import station
+
+    sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1, 2, 3), dead=frozenset({3})))
+    server = await serve_tcp(sim, HOST, 0)
+    port = f"socket://{HOST}:{server.sockets[0].getsockname()[1]}"
+    text = LINKS.split("[[link]]")[0] + station("s1", 1, port, 1) + station("s3", 3, port, 3)
+    try:
+        async with Gateway(parse_config(text)) as gateway:
+            dead = await until(gateway, "s3", lambda row: row["line"]["timeouts"] >= 2, 10)
+            alive = await until(gateway, "s1", lambda row: row["state"] == "up", 10)
+    finally:
+        await close_tcp(server)
+    # a half-duplex master counts no DLE NAK of the slave's, and DF1 has no message-number resync
+    assert (dead["line"]["naks"], dead["line"]["resyncs"]) == (None, None)
+    assert isinstance(dead["line"]["retransmits"], int) and isinstance(dead["line"]["check_errors"], int)
+    assert alive["line"]["timeouts"] < dead["line"]["timeouts"]

@@ -78,7 +78,7 @@ function renderLinks(status) {
     age.title = link.stale_after === null ? "never stale" : "oldest fast-class value; stale after " + link.stale_after + " s";
     cell(row, "Transactions", "num", number(link.transactions));
     cell(row, "Errors", "num", number(link.errors));
-    cell(row, "Retries", "num", number(link.retries));
+    renderQuality(row, link.line);
     const error = cell(row, "Last error", "error" + (link.state === "up" ? " old" : ""), link.last_error || "–");
     if (link.last_error_at !== null) {
       error.textContent = clock(link.last_error_at) + "  " + (link.last_error || "");
@@ -86,6 +86,21 @@ function renderLinks(status) {
     body.appendChild(row);
   }
   $("links").replaceChild(body, $("links").tBodies[0]);
+}
+
+// The line's quality (/api/status "line"), in the order of the table's head; "–": the protocol
+// has no such thing.
+const QUALITY = [
+  ["check_errors", "Check errors"], ["naks", "NAKs"], ["timeouts", "Timeouts"],
+  ["retransmits", "Retransmits"], ["resyncs", "Resyncs"],
+];
+
+function renderQuality(row, line) {
+  for (const [key, label] of QUALITY) {
+    const value = line[key];
+    const td = cell(row, label, "num quality " + key, value === null ? "–" : number(value));
+    if (value) td.classList.add("counted");
+  }
 }
 
 function renderSummary(status) {
@@ -179,9 +194,18 @@ function renderRegisters(data) {
   const note = $("view-note");
   note.className = "note" + (stale ? " bad" : "");
   note.textContent = "unit " + data.unit + " (" + data.link + "), " + data.table + " " + data.start + "–" +
-    (data.start + data.count - 1) + ": ages are since each value was read; values older than stale_after (" +
-    (data.stale_after === null ? "never" : data.stale_after) + " s) beyond their scan period are stale: Modbus answers them 0x0B" +
-    (stale ? " — " + stale + " not fresh now" : "");
+    (data.start + data.count - 1) + ": " + staleRule(data) + (stale ? " — " + stale + " not fresh now" : "");
+}
+
+function staleRule(data) {
+  // when a value of the view is stale (the rule Modbus answers 0x0B by), for a polled unit or not
+  if (!data.polled) {
+    return "not polled: values are what the peer last sent, ages since it sent them; " + (data.stale_after === null
+      ? "they never go stale" : "they go stale when the peer is silent for stale_after (" + data.stale_after +
+        " s): Modbus answers them 0x0B");
+  }
+  return "ages are since each value was read; values older than stale_after (" + data.stale_after +
+    " s) beyond their scan period are stale: Modbus answers them 0x0B";
 }
 
 async function refreshRegisters() {

@@ -1,9 +1,12 @@
 """The status page in a real headless Chromium (Debian's ``chromium`` + ``chromium-driver``, through selenium).
 
-The demo gateway runs as a subprocess (``slc-gateway run``) with one more link: an SLC 150 served
-over TCP by ``slc-gateway simulate`` in its own process, which the test kills.  The page must list
-every link, show ages that move, turn the killed link down within ``stale_after`` plus one poll
-period (plus the page's own one-second refresh), and show for unit 1 the values a Modbus read gets.
+The demo gateway runs as a subprocess (``slc-gateway run``) with two more links on real ports: an SLC
+150 served over TCP by ``slc-gateway simulate`` in its own process, which the test kills, and one on
+a pseudo-terminal.  The page must list every link, with no error on a link that is up and never
+failed (a port opens after the gateway starts) and the line's quality columns, show ages that move,
+turn the killed link down within ``stale_after`` plus one poll period (plus the page's own
+one-second refresh) and count its time down from then, show for unit 1 the values a Modbus read
+gets, and say of the target unit (not polled) when its values go stale.
 Screenshots (wide and phone-sized) are saved in the test's temporary directory; their paths are printed.
 
 Without chromium, chromedriver or selenium the test is skipped naming what is missing, unless
@@ -39,6 +42,7 @@ CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic
 STALE_AFTER = 2.0
 FAST_INTERVAL = 0.5
 PAGE_PERIOD = 1.0  # the page asks the API once a second (status.js PERIOD_MS)
+NONE = "\u2013"  # an en dash: what the page shows for "none" (no error, not a thing of the protocol)
 T = TypeVar("T")
 
 
@@ -90,12 +94,16 @@ def plant(tmp_path: Path) -> Iterator[dict[str, Any]]:
     found = re.search(r":(\d+) \(socket://", line)
     assert found is not None, line
     sim_port = int(found[1])
+    on_pty, line = start_simulator("slc150", "--pty")
+    pty = line.split(" on ")[-1]
+    assert pty.startswith("/"), line
     modbus_port, http_port = free_port(), free_port()
     demo = (ROOT / "config" / "demo.toml").read_text(encoding="utf-8")
     demo = demo.replace('listen = "127.0.0.1:5020"', f'listen = "{HOST}:{modbus_port}"')
     demo = demo.replace('listen = "127.0.0.1:9108"', f'listen = "{HOST}:{http_port}"')
     demo += (f'\n[[link]]\nname = "press-remote"\nprotocol = "slc-ascii"\nport = "socket://{HOST}:{sim_port}"\n'
-             f'unit = 7\nstale_after = {STALE_AFTER}\nfast_interval = {FAST_INTERVAL}\n')
+             f'unit = 7\nstale_after = {STALE_AFTER}\nfast_interval = {FAST_INTERVAL}\n'
+             f'\n[[link]]\nname = "press-pty"\nprotocol = "slc-ascii"\nport = "{pty}"\nunit = 8\n')
     config = tmp_path / "plant.toml"
     config.write_text(demo, encoding="utf-8")
     log = (tmp_path / "gateway.log").open("w")
@@ -115,6 +123,7 @@ def plant(tmp_path: Path) -> Iterator[dict[str, Any]]:
         yield {"names": names, "modbus": modbus_port, "http": http_port, "simulator": simulator, "tmp": tmp_path}
     finally:
         stop(simulator)
+        stop(on_pty)
         gateway.terminate()
         try:
             gateway.wait(timeout=10)
@@ -153,6 +162,13 @@ def rows(browser: Any) -> dict[str, dict[str, str]]:
             for key, state, cells in browser.execute_script(_ROWS_JS, "#links")}
 
 
+def columns(browser: Any) -> dict[str, dict[str, str]]:
+    """Per link, the text of each cell under its column's heading (the first, State, under "State")."""
+    heads = browser.execute_script(
+        "return Array.from(document.querySelectorAll('#links thead th')).map((th) => th.textContent.trim());")
+    return {key: dict(zip(heads, cells, strict=True)) for key, _, cells in browser.execute_script(_ROWS_JS, "#links")}
+
+
 def register_rows(browser: Any) -> list[tuple[int, str, str, str]]:
     """(address, value, age, state) of the register view."""
     table = browser.execute_script(_ROWS_JS, "#registers")
@@ -187,6 +203,17 @@ def test_status_page_in_chromium(plant: dict[str, Any], browser: Any) -> None:
     assert list(listed) == plant["names"]
     assert all(row["state"] == "up" for row in listed.values()), listed
 
+    # The links on real ports (TCP, a pty) opened after the gateway started: up, no error, none shown.
+    # Every link shows its line's quality; an SLC 100/150 has no NAK, a DF1 link no resync.
+    table = columns(browser)
+    for name in ("press-remote", "press-pty"):
+        assert (table[name]["Errors"], table[name]["Last error"]) == ("0", NONE), table[name]
+    for name, unit in (("press-pty", 8), ("slc504-sim", 3)):
+        line = {key: table[name][key] for key in ("Check errors", "NAKs", "Timeouts", "Retransmits", "Resyncs")}
+        print(f"unit {unit} line quality on the page: {line}")
+        assert line["Check errors"].isdigit() and line["Timeouts"].isdigit() and line["Retransmits"].isdigit()
+        assert (line["NAKs"] == NONE) == (name == "press-pty") and (line["Resyncs"] == NONE) == (name != "press-pty")
+
     # The register view of unit 1 shows what a Modbus read of the same range answers (presets of
     # 901-916: constant while nobody writes them).
     show(browser, 1, "holding", 32, 16)
@@ -216,11 +243,19 @@ def test_status_page_in_chromium(plant: dict[str, Any], browser: Any) -> None:
     wait_for("the stopped link shown down", lambda: rows(browser)["press-remote"]["state"] == "down", bound)
     print(f"press-remote shown down {time.monotonic() - stopped:.2f} s after its simulator stopped "
           f"(bound: stale_after {STALE_AFTER} + poll period {FAST_INTERVAL} + page refresh {PAGE_PERIOD})")
+    # "for N s" counts from when it went down, not from when it came up (the plant has run for longer)
+    down_for = columns(browser)["press-remote"]["State"].split("for ")[-1]
+    assert down_for.endswith(" s") and float(down_for[:-2]) <= bound + PAGE_PERIOD, down_for
     assert all(row["state"] == "up" for name, row in rows(browser).items() if name != "press-remote")
     show(browser, 7, "holding", 32, 8)
     wait_for("the stopped link's values marked stale",
              lambda: {state for _, _, _, state in register_rows(browser)} == {"STALE"}, STALE_AFTER + PAGE_PERIOD + 1)
     screenshot(browser, plant["tmp"], "status-page-down.png")
+
+    # The target unit is not polled: its note says when its values go stale (here: never).
+    show(browser, 4, "holding", 0, 4)
+    note = browser.find_element("id", "view-note").text
+    assert "not polled" in note and "never go stale" in note and "never s" not in note, note
     browser.set_window_size(390, 844)  # a phone
     time.sleep(PAGE_PERIOD)
     screenshot(browser, plant["tmp"], "status-page-phone.png")

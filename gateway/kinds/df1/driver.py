@@ -24,7 +24,7 @@ from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import GatewayError, LinkTimeout, ProtocolError, WriteOutcomeUnknown
 from gateway.kinds.df1.config import DF1_DEFAULTS
 from gateway.line_driver import LineDriver, LineDriverOptions, Priority
-from gateway.link_health import LineCounters
+from gateway.link_health import LineCounters, LineQuality
 from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.pccc import (
@@ -88,6 +88,7 @@ class Df1Driver(LineDriver):
         self._first_tns = random.randrange(1, 0x10000) if first_tns is None else first_tns
         self._core = self._new_core(self._first_tns)
         self._link_base = (0, 0, 0)  # enq, nak, bad frames of links before this one
+        self._retransmissions_before = 0  # frames sent again after a DLE NAK, on links before this one
         self._waiting: dict[int, asyncio.Future[TransactionEvent]] = {}
 
     def _new_core(self, first_tns: int) -> Df1Transactions:
@@ -119,6 +120,7 @@ class Df1Driver(LineDriver):
         old = self._core.link.counters
         enq, nak, bad = self._link_base
         self._link_base = (enq + old.enqs_sent, nak + old.naks_received, bad + old.bad_frames)
+        self._retransmissions_before += old.retransmissions
         # a reconnect goes on from the last TNS (a new core: the line state is gone)
         self._core = self._new_core(self._core.allocate_tns() if self._core.counters.started else self._first_tns)
         for waiter in self._waiting.values():
@@ -153,6 +155,13 @@ class Df1Driver(LineDriver):
     def on_deadline(self, now: float) -> None:
         self._core.handle_timeout(now)
         self._pump()
+
+    def line_quality(self) -> LineQuality:
+        """Bad frames received (BCC / CRC), timeouts, DLE NAKs received and the frames sent again after them."""
+        counters = self.counters
+        return LineQuality(check_errors=counters.crc_errors, timeouts=counters.timeouts,
+                           naks=counters.retries_by_kind.get("nak", 0),
+                           retransmits=self._retransmissions_before + self._core.link.counters.retransmissions)
 
     # --- transactions -----------------------------------------------------------------------
 

@@ -51,7 +51,7 @@ from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import GatewayError, LinkDown
 from gateway.kinds.df1.driver import DF1_SETTINGS, transaction_result
 from gateway.line_driver import LineDriver, LineDriverOptions, run_to_the_end
-from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LinkHealth
+from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LineQuality, LinkHealth
 from gateway.protocols.df1 import half_duplex_events as master_events
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.half_duplex import HalfDuplexMaster
@@ -139,6 +139,13 @@ class Df1Station(LinkHealth):
         total.read_backs += txns.read_backs
         return total
 
+    def line_quality(self) -> LineQuality:
+        """This station's bad frames, timeouts and master messages sent again (for a missing DLE ACK, or
+        a read with a new TNS); a half-duplex master does not count the slave's DLE NAKs."""
+        totals = self.totals
+        return LineQuality(check_errors=totals.bad_frames, timeouts=totals.timeouts,
+                           retransmits=totals.resends + totals.read_retries)
+
     def data_age(self, now: float | None = None) -> float | None:
         """Seconds since this station last answered a command of ours; None before its first reply."""
         if self.last_reply_at is None:
@@ -174,6 +181,9 @@ class Df1Station(LinkHealth):
 
     async def start(self, wait: float | None = None) -> None:
         await self.line.start_shared(wait)
+
+    async def first_attempt(self) -> None:
+        await self.line.first_attempt()
 
     async def close(self) -> None:
         if not self._closed:

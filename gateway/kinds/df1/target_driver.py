@@ -24,6 +24,7 @@ from typing import Unpack
 
 from gateway.errors import GatewayError
 from gateway.line_driver import LineDriver, LineDriverOptions
+from gateway.link_health import LineQuality
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.pccc import PcccHeader, encode_reply
 from gateway.protocols.df1.pccc.target import PcccTarget, TargetReply
@@ -163,3 +164,9 @@ class TargetRunner(LineDriver):
     def on_deadline(self, now: float) -> None:
         self.responder.handle_timeout(now)
         self._pump(now)
+
+    def line_quality(self) -> LineQuality:
+        """Bad frames received (NAKed), DLE NAKs the PLC sent for our replies, and the replies sent again."""
+        return LineQuality(check_errors=self.counters.crc_errors, timeouts=self.counters.timeouts,
+                           naks=self.responder.counters.naks_received,
+                           retransmits=self.responder.counters.retransmissions)

@@ -25,6 +25,7 @@ from gateway.errors import (
 )
 from gateway.kinds.slc_ascii.config import SLC_ASCII_DEFAULTS
 from gateway.line_driver import LineDriver, LineDriverOptions, Priority
+from gateway.link_health import LineQuality
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command, ControllerType, FrnInfo, Mode, TimeoutClass
 from gateway.protocols.slc_ascii.framing import Ack, DataReply
@@ -34,6 +35,8 @@ from gateway.transport import SerialSettings
 
 #: the retries-metric name of a message-ID resync (also the status block's kind counter)
 ID_RESYNC: Final = "id_resync"
+#: the retry kind of a reply asked for again (;Z)
+RETRANSMIT: Final = "retransmit"
 
 __all__ = ["ID_RESYNC", "MAX_TRANSFER_RESTARTS", "SLC_ASCII_SETTINGS", "SlcAsciiDriver"]
 
@@ -165,9 +168,16 @@ class SlcAsciiDriver(LineDriver):
         core, mine = self.session.counters, self.counters
         mine.timeouts, mine.crc_errors = core.timeouts, core.crc_errors
         # ID resyncs that recovered the numbering, not the first one after connecting
-        mine.retries_by_kind["retransmit"] = core.retransmits
+        mine.retries_by_kind[RETRANSMIT] = core.retransmits
         mine.retries_by_kind[ID_RESYNC] = core.id_resyncs - core.handshakes
         mine.faults = core.faults
+
+    def line_quality(self) -> LineQuality:
+        """Checksum errors, timeouts, retransmissions (;Z) and ID resyncs; the protocol has no NAK."""
+        counters = self.counters
+        return LineQuality(check_errors=counters.crc_errors, timeouts=counters.timeouts,
+                           retransmits=counters.retries_by_kind.get(RETRANSMIT, 0),
+                           resyncs=counters.retries_by_kind.get(ID_RESYNC, 0))
 
     async def _run_command(self, command: Command) -> Answer:
         try:
