@@ -38,7 +38,7 @@ interop: $(VENV)/.installed
 	SLC_GATEWAY=$(VENV)/bin/slc-gateway $(INTEROP) $(if $(STRICT),--strict)
 
 # Mutation testing of the protocol cores, writes.py, image.py, cache.py and modbus/handler.py
-# (tools/mutation.py, docs/mutation.md): about 30 minutes on 2 cores; not part of `make test`.
+# (tools/mutation.py, docs/develop/mutation.md): about 30 minutes on 2 cores; not part of `make test`.
 # MUTATION_ARGS: module paths or globs, --keep, --report (see tools/mutation.py).
 mutation: $(VENV)/.installed
 	@$(PY) -c 'import mutmut' 2>/dev/null || $(PY) -m pip install -q -e '.[test,mutation]'

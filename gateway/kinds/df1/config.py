@@ -186,7 +186,7 @@ class Df1LinkConfig(LinkBase):
     unused_keys: ClassVar[Mapping[str | None, Mapping[str, str]]] = {
         "half": {
             **dict.fromkeys(
-                ("write_burst", "poll_burst"), "the line master schedules writes; see docs/df1-half-duplex-line.md"
+                ("write_burst", "poll_burst"), "the line master schedules writes; see docs/guide/df1-half-duplex.md"
             ),
             **_TARGET_ONLY,
         },
@@ -247,7 +247,7 @@ class Df1LinkConfig(LinkBase):
     max_write_bytes: int = Field(0, ge=0, le=240)
     map: tuple[MapEntry, ...] = Field((), strict=False)
 
-    # --- half duplex (docs/df1-half-duplex-line.md) ---------------------------------------------
+    # --- half duplex (docs/develop/df1-half-duplex-line.md) ---------------------------------------------
     #: "full": point to point; "half": a station on a multi-drop line / radio channel, polled by
     #: the gateway.  Links with the same ``port`` and ``duplex = "half"`` share one line master.
     duplex: Literal["full", "half"] = "full"
