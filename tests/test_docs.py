@@ -4,14 +4,18 @@ status page can be reached)."""
 
 from __future__ import annotations
 
+import importlib.util
 import re
 import subprocess
 from pathlib import Path
+from types import ModuleType
+
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED_DOCS = ROOT.parent / "shared" / "docs"
 
-#: ``docs/....md`` as code, tests, tools and documents name it; ``shared/docs/...`` names the
+#: a docs page as code, tests, tools and documents name it; ``shared/docs/...`` names the
 #: project's manuals beside the repository.
 _DOC_PATH = re.compile(r"(?<![\w/.-])((?:shared/)?docs/[\w./-]+\.md)")
 
@@ -39,3 +43,65 @@ def test_every_docs_path_named_in_the_repository_exists() -> None:
             elif not (ROOT / named).exists():
                 missing.append(f"{path.relative_to(ROOT)}: {named}")
     assert missing == []
+
+
+# --------------------------------------------------------------------------------------------
+# The generated reference pages (tools/gen_reference.py)
+
+
+def _generator() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("gen_reference", ROOT / "tools" / "gen_reference.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_generated_reference_pages_are_current() -> None:
+    """docs/reference/config.md and cli.md are what the models and the parser give: after a key, a
+    default, a limit, a description or an option changed, run ``python tools/gen_reference.py``."""
+    generator = _generator()
+    for path, render in generator.PAGES.items():
+        assert path.read_text(encoding="utf-8") == render(), (
+            f"{path.relative_to(ROOT)} is stale: run python tools/gen_reference.py"
+        )
+
+
+def test_a_changed_description_makes_the_config_page_stale(monkeypatch: pytest.MonkeyPatch) -> None:
+    from gateway.config.schema import ModbusConfig
+
+    generator = _generator()
+    committed = generator.CONFIG_PAGE.read_text(encoding="utf-8")
+    field = ModbusConfig.model_fields["idle_timeout"]
+    monkeypatch.setattr(field, "description", "Close a silent connection after this many minutes.")
+    page = generator.config_reference()
+    assert page != committed
+    assert "| `idle_timeout` | number (≥ 0) | `300.0` | Close a silent connection after this many minutes. |" in page
+    assert generator.main(["--check"]) == 1
+
+
+def test_the_check_passes_on_the_committed_pages(capsys: pytest.CaptureFixture[str]) -> None:
+    assert _generator().main(["--check"]) == 0, capsys.readouterr().err
+
+
+def test_every_config_key_has_a_description() -> None:
+    """A key's description is the docstring under its field: a new key without one is not documented."""
+    assert _generator().undocumented() == []
+
+
+def test_the_config_page_lists_every_key_of_every_kind() -> None:
+    generator = _generator()
+    page = generator.CONFIG_PAGE.read_text(encoding="utf-8")
+    missing = [
+        f"{where}.{key}"
+        for where, model in generator._models()
+        for key, field in model.model_fields.items()
+        if f"| `{key}` |" not in page and f".{key}]" not in page and f"`[{key}]`" not in page
+        and f"`[[{key}]]`" not in page
+    ]
+    assert missing == []
+    for table in ("`[modbus]`", "`[modbus.tls]`", "`[metrics]`", "`[logging]`", "`[[link.map]]`", "`[[link.file]]`"):
+        assert f"## {table}" in page
+    # a kind's own defaults, as its manual gives them (SLC 100/150: 9600 7E1, 0.3 s; DF1: 19200 8N1, 1 s)
+    assert "| `baudrate` | integer | `9600` (slc-ascii), `19200` (df1) |" in page
+    assert "`0.3` (slc-ascii), `1.0` (df1)" in page
