@@ -5,8 +5,11 @@ status page can be reached)."""
 from __future__ import annotations
 
 import importlib.util
+import json
 import re
+import shlex
 import subprocess
+import tomllib
 from pathlib import Path
 from types import ModuleType
 
@@ -15,9 +18,9 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 SHARED_DOCS = ROOT.parent / "shared" / "docs"
 
-#: a docs page as code, tests, tools and documents name it; ``shared/docs/...`` names the
-#: project's manuals beside the repository.
-_DOC_PATH = re.compile(r"(?<![\w/.-])((?:shared/)?docs/[\w./-]+\.md)")
+#: a docs page or a test file as code, tests, tools and documents name it; ``shared/docs/...``
+#: names the project's manuals beside the repository.
+_DOC_PATH = re.compile(r"(?<![\w/.-])((?:shared/)?docs/[\w./-]+\.md|tests/[\w/]+\.py)")
 
 
 def _tracked_text_files() -> list[Path]:
@@ -26,9 +29,9 @@ def _tracked_text_files() -> list[Path]:
     return [ROOT / name for name in listed.splitlines() if Path(name).suffix in suffixes and (ROOT / name).is_file()]
 
 
-def test_every_docs_path_named_in_the_repository_exists() -> None:
-    """A note moved or renamed leaves no reference to its old place behind (code comments, error
-    messages, tests, tools, other pages)."""
+def test_every_docs_and_test_path_named_in_the_repository_exists() -> None:
+    """A note or a test moved or renamed leaves no reference to its old place behind (code comments,
+    error messages, the Dockerfile, tests, tools, other pages)."""
     missing: list[str] = []
     for path in _tracked_text_files():
         try:
@@ -105,3 +108,86 @@ def test_the_config_page_lists_every_key_of_every_kind() -> None:
     # a kind's own defaults, as its manual gives them (SLC 100/150: 9600 7E1, 0.3 s; DF1: 19200 8N1, 1 s)
     assert "| `baudrate` | integer | `9600` (slc-ascii), `19200` (df1) |" in page
     assert "`0.3` (slc-ascii), `1.0` (df1)" in page
+
+
+# --------------------------------------------------------------------------------------------
+# The README
+
+
+def test_the_readme_keeps_the_two_commands_and_stays_short() -> None:
+    """CI runs ``make test``; a fresh clone's reader runs ``make run``: the README's two commands.
+    The rest of the documentation is the site; the README stays a page a person reads."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert "make run     # " in readme and "make test    # " in readme
+    assert len(readme.encode("utf-8")) <= 15 * 1024
+    assert "make test" in (ROOT / ".ci" / "run").read_text(encoding="utf-8")
+
+
+#: ``docker run`` options that take a value (the examples use these)
+_DOCKER_VALUE_OPTIONS = {"--name", "--device", "-p", "--publish", "-v", "--volume", "--group-add", "-e", "--env"}
+
+
+def _docker_run(text: str) -> list[str]:
+    """The first ``docker run`` command of a Markdown text, its continuation lines joined, split."""
+    block = text[text.index("docker run"):]
+    lines: list[str] = []
+    for line in block.splitlines():
+        lines.append(line.rstrip().removesuffix("\\"))
+        if not line.rstrip().endswith("\\"):
+            break
+    return shlex.split(" ".join(lines))
+
+
+def _reachable_status_page(published: list[str], arguments: list[str]) -> None:
+    """The status page the image serves with ``arguments`` listens on an address of the container
+    that a published port reaches (not its loopback), on a port that is published."""
+    from gateway.cli import build_parser
+
+    parsed = build_parser().parse_args(arguments)
+    assert parsed.command == "run"
+    assert str(parsed.config) == "/etc/slc-gateway/gateway.toml"
+    shipped = tomllib.loads((ROOT / "config" / "gateway.toml").read_text(encoding="utf-8"))
+    listen = parsed.metrics_listen or shipped["metrics"]["listen"]
+    host, _, port = listen.rpartition(":")
+    assert host.strip("[]") in ("0.0.0.0", "::"), f"the status page listens on {listen}, the container's own"
+    container_ports = {mapping.rsplit(":", 1)[-1] for mapping in published}
+    assert port in container_ports, f"the status page's port {port} is not published ({published})"
+
+
+def _run_example(text: str) -> tuple[list[str], list[str]]:
+    """(published ports, the image's arguments) of a ``docker run`` example."""
+    words = _docker_run(text)
+    assert words[:2] == ["docker", "run"]
+    published: list[str] = []
+    index = 2
+    while words[index].startswith("-"):
+        if words[index] in _DOCKER_VALUE_OPTIONS:
+            if words[index] in ("-p", "--publish"):
+                published.append(words[index + 1])
+            index += 2
+        else:
+            index += 1
+    assert words[index] == "slc-gateway"  # the image
+    return published, words[index + 1 :] or _image_command()
+
+
+def _image_command() -> list[str]:
+    """The Dockerfile's CMD: the image's arguments when ``docker run`` gives none."""
+    command = re.search(r"^CMD (\[.*\])$", (ROOT / "Dockerfile").read_text(encoding="utf-8"), re.MULTILINE)
+    assert command is not None
+    return list(json.loads(command[1]))
+
+
+def test_the_container_examples_publish_a_status_page_that_can_be_reached() -> None:
+    """An example whose status page listens on 127.0.0.1 inside the container serves nobody."""
+    for page in (ROOT / "README.md", ROOT / "docs" / "guide" / "deployment.md", ROOT / "Dockerfile"):
+        published, arguments = _run_example(page.read_text(encoding="utf-8").replace("#   ", "").replace("#", ""))
+        _reachable_status_page(published, arguments)
+
+
+def test_the_compose_file_publishes_a_status_page_that_can_be_reached() -> None:
+    text = (ROOT / "docker-compose.yml").read_text(encoding="utf-8")
+    command = re.search(r"^\s+command: (\[.*\])$", text, re.MULTILINE)
+    assert command is not None
+    ports = re.findall(r'^\s+- "([\d.:]+)"', text, re.MULTILINE)
+    _reachable_status_page(ports, json.loads(command[1]))

@@ -307,7 +307,52 @@ def cli_reference() -> str:
     return "\n".join(lines).rstrip("\n") + "\n"
 
 
-PAGES: dict[Path, Callable[[], str]] = {CONFIG_PAGE: config_reference, CLI_PAGE: cli_reference}
+# --------------------------------------------------------------------------------------------
+# Metrics
+
+
+def metrics_reference() -> str:
+    from gateway.metrics import _GatewayCollector
+
+    lines = [
+        _GENERATED.format(command=REGENERATE),
+        "# Metrics",
+        "",
+        "With `[metrics] listen` set, `GET /metrics` on that listener answers in the Prometheus text format. "
+        "Counters are totals since the gateway started (reconnects included); Prometheus shows a counter "
+        "`NAME` as `NAME_total`.",
+        "",
+        "| metric | type | labels | what |",
+        "|---|---|---|---|",
+    ]
+    families = [*_GatewayCollector._link_families((), 0.0), *_GatewayCollector._server_families(())]
+    for family in families:
+        name = family.name + ("_total" if family.type == "counter" else "")
+        labels = ", ".join(f"`{label}`" for label in getattr(family, "_labelnames", ()))
+        lines.append(f"| `{name}` | {family.type} | {labels} | {_cell(family.documentation)} |")
+    lines += [
+        "",
+        "`slc_gateway_retries_total` splits the retries by a `kind` label that each link kind names: "
+        "`retransmit` (`;Z`) and `id_resync` on SLC 100/150 links, `enq` and `nak` on DF1 links.",
+        "",
+        "## Numbers a link's driver reports",
+        "",
+        "Besides these, a driver with `metrics() -> dict[str, float]` gets a `slc_gateway_link_<key>` family per key, "
+        "with the labels `link` and `unit`: a counter, a gauge for `active`, and `<key>_seconds` (a gauge) for a key "
+        "ending in `age`. The DF1 half-duplex stations report theirs "
+        "([station metrics](../guide/df1-half-duplex.md#station-metrics)), and so does a DF1 target "
+        "([target mode](../guide/target-mode.md#what-modbus-sees)).",
+        "",
+        "A test checks that every metric the Grafana dashboard (`deploy/grafana/slc-gateway.json`) queries is "
+        "exported by a running gateway ([monitoring](../guide/monitoring.md)).",
+    ]
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+METRICS_PAGE = ROOT / "docs" / "reference" / "metrics.md"
+PAGES: dict[Path, Callable[[], str]] = {
+    CONFIG_PAGE: config_reference, CLI_PAGE: cli_reference, METRICS_PAGE: metrics_reference,
+}
 
 
 def main(argv: list[str] | None = None) -> int:
