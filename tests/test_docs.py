@@ -191,3 +191,15 @@ def test_the_compose_file_publishes_a_status_page_that_can_be_reached() -> None:
     assert command is not None
     ports = re.findall(r'^\s+- "([\d.:]+)"', text, re.MULTILINE)
     _reachable_status_page(ports, json.loads(command[1]))
+
+
+def test_the_status_block_page_lists_every_register() -> None:
+    from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
+
+    page = (ROOT / "docs" / "reference" / "status-block.md").read_text(encoding="utf-8")
+    address = STATUS_BASE
+    for _name, width in STATUS_REGISTERS:
+        cell = f"| {address} |" if width == 1 else f"| {address}\u2013{address + width - 1} |"
+        assert cell in page
+        address += width
+    assert f"input registers {STATUS_BASE}-{address - 1}" in page

@@ -323,7 +323,7 @@ class Df1LinkConfig(LinkBase):
     receive_start: int = Field(0, ge=0, le=65535)
     """Station key: the Modbus address of word 0 of the receive range."""
 
-    # --- target mode (README "DF1 target mode"; gateway.kinds.df1.target_config) ---------------
+    # --- target mode (docs/guide/target-mode.md; gateway.kinds.df1.target_config) -------------
     role: Literal["master", "target"] = "master"
     """"master": the gateway polls the controller; "target": the gateway is the station a PLC's MSG instructions read
     and write (station is then the gateway's own node), answering from [[link.file]]."""
