@@ -9,6 +9,7 @@ import json
 import re
 import shlex
 import subprocess
+import sys
 import tomllib
 from pathlib import Path
 from types import ModuleType
@@ -48,16 +49,29 @@ def test_every_docs_and_test_path_named_in_the_repository_exists() -> None:
     assert missing == []
 
 
+def _tool(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(f"tools_{name}", ROOT / "tools" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_mutation_tool_finds_its_list_of_equivalent_mutants() -> None:
+    """tools/mutation.py reads the equivalent mutants from the developers' note (a missing file
+    would silently count none)."""
+    mutation = _tool("mutation")
+    assert mutation.EQUIVALENTS_DOC.exists()
+    assert len(mutation.equivalent_mutants()) > 0
+
+
 # --------------------------------------------------------------------------------------------
 # The generated reference pages (tools/gen_reference.py)
 
 
 def _generator() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("gen_reference", ROOT / "tools" / "gen_reference.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return _tool("gen_reference")
 
 
 def test_the_generated_reference_pages_are_current() -> None:
