@@ -2,17 +2,20 @@
 # slc-gateway: Modbus TCP gateway for Allen-Bradley SLC controllers.
 #
 #   docker build -t slc-gateway .
-#   docker run -d --name slc-gateway --device /dev/ttyUSB0 -p 5020:5020 \
-#       -v "$PWD/config/gateway.toml:/etc/slc-gateway/gateway.toml:ro" slc-gateway
+#   docker run -d --name slc-gateway --device /dev/ttyUSB0 -p 5020:5020 -p 127.0.0.1:9108:9108 \
+#       -v "$PWD/config/gateway.toml:/etc/slc-gateway/gateway.toml:ro" \
+#       slc-gateway run /etc/slc-gateway/gateway.toml --metrics-listen 0.0.0.0:9108
 #
 # The image runs `slc-gateway run /etc/slc-gateway/gateway.toml` (config/gateway.toml is built in
-# as an example; mount your own over it).  `docker run slc-gateway check-config /etc/...` checks a
+# as an example; mount your own over it).  That file keeps the status page and /metrics on
+# 127.0.0.1, which inside a container only the container reaches: --metrics-listen 0.0.0.0:9108
+# (or [metrics] listen in your own file) lets a published port reach them.  `docker run slc-gateway check-config /etc/...` checks a
 # file, `docker run slc-gateway --help` lists the other commands.  See docker-compose.yml.
 #
 # BASE is any image with Python 3.11 and its venv module (python3 -m venv) and useradd: the
 # official python:3.11-slim by default, or a Debian bookworm root filesystem with python3,
 # python3-venv and passwd where no registry can be reached (.ci/base-image builds one; CI builds
-# this file with `buildah bud --format docker --build-arg BASE=...`, see tests/e2e/test_image.py).
+# this file with `buildah bud --format docker --build-arg BASE=...`, see tests/e2e/test_container_image.py).
 ARG BASE=python:3.11-slim
 
 # ---- build: the wheel, from the same files a source checkout has, and a wheelhouse --------------
@@ -20,7 +23,7 @@ FROM ${BASE} AS build
 ENV PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /src
-COPY pyproject.toml README.md ./
+COPY pyproject.toml README.md LICENSE ./
 COPY config ./config
 COPY gateway ./gateway
 # The project's wheel, then the wheels of its pinned dependencies beside it (the only step that

@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 CONFIG ?=
 
-.PHONY: run test lint mbpoll interop mutation
+.PHONY: run test lint docs mbpoll interop mutation
 
 $(VENV)/.installed: pyproject.toml
 	python3 -m venv $(VENV)
@@ -29,6 +29,14 @@ lint: $(VENV)/.installed
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy --strict gateway
 
+# The documentation site (mkdocs.yml, docs/) into site/, with every warning an error (a broken link, a page
+# missing from the nav's files); the generated reference pages first checked against the code
+# (python tools/gen_reference.py writes them again).
+docs: $(VENV)/.installed
+	@$(PY) -c 'import material' 2>/dev/null || $(PY) -m pip install -q -e '.[test,docs]'
+	$(PY) tools/gen_reference.py --check
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
+
 # Controllers written independently from the same manuals (../shared/interop), against the
 # installed gateway: `make interop` (correctness), `make interop STRICT=1` (also availability and
 # latency targets).
@@ -38,7 +46,7 @@ interop: $(VENV)/.installed
 	SLC_GATEWAY=$(VENV)/bin/slc-gateway $(INTEROP) $(if $(STRICT),--strict)
 
 # Mutation testing of the protocol cores, writes.py, image.py, cache.py and modbus/handler.py
-# (tools/mutation.py, docs/mutation.md): about 30 minutes on 2 cores; not part of `make test`.
+# (tools/mutation.py, docs/develop/mutation.md): about 30 minutes on 2 cores; not part of `make test`.
 # MUTATION_ARGS: module paths or globs, --keep, --report (see tools/mutation.py).
 mutation: $(VENV)/.installed
 	@$(PY) -c 'import mutmut' 2>/dev/null || $(PY) -m pip install -q -e '.[test,mutation]'

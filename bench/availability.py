@@ -15,7 +15,7 @@ Fault mixes (1 in N replies garbled / dropped, a power cycle every N commands):
 * ``harsh``: garble 4, drop 6, power cycle every 25.
 
 Variants: the simulator's default reading, then each other reading of
-``SlcAsciiSimulator.VARIANTS`` alone (``docs/controller-variants.md``), then all of them at once.
+``SlcAsciiSimulator.VARIANTS`` alone (``docs/develop/controller-variants.md``), then all of them at once.
 Goodput is the driver's completed transactions per second, relative to the clean line of the
 same variant.  A second part measures recovery: a device server in front of the controller
 goes away for ``--outage`` seconds (10 by default); the time from its return to the first

@@ -110,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--turnaround", type=float, default=0.0, metavar="S", help="controller turnaround delay")
     p.add_argument("--variant", action="append", default=[], metavar="NAME=VALUE",
                    help="a reading of the manual where it leaves behaviour open (repeatable; "
-                        "docs/controller-variants.md lists them)")
+                        "docs/develop/controller-variants.md lists them)")
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="any option of the model's sim:// URL (repeatable), e.g. stations=1,2,3,4 (the gateway.sim "
                         "module doc and each model's doc in docs/ list them)")

@@ -162,7 +162,7 @@ class _GatewayCollector:
         }
         retries = _counter(
             "retries",
-            "Protocol retries by kind (each link kind gives its kinds of retry their names; see the README).",
+            "Protocol retries by kind (each link kind gives its kinds of retry their names).",
             (*link, "kind"),
         )
         byte_count = _counter("bytes", "Bytes on the link by direction.", (*link, "direction"))

@@ -216,10 +216,10 @@ def test_simulate_stops_on_sigterm_with_a_client_connected() -> None:
 PTY_LINE = ("--bytesize", "8", "--parity", "N")
 
 
-def test_over_a_pty_as_the_readme_says(pty_slc150: str, tmp_path: Path) -> None:
-    """The README's example: ``simulate slc150 --pty``, then the CLI on the path it printed, with
-    the protocol's own 7E1.  Ports that refuse 7E1 (this machine's ptys do) fall back to 8N1 with
-    the parity bit computed in software, by themselves."""
+def test_over_a_pty_as_the_guide_says(pty_slc150: str, tmp_path: Path) -> None:
+    """The guide's example (docs/guide/command-line.md): ``simulate slc150 --pty``, then the CLI on
+    the path it printed, with the protocol's own 7E1.  Ports that refuse 7E1 (this machine's ptys
+    do) fall back to 8N1 with the parity bit computed in software, by themselves."""
     assert ok_json("probe", pty_slc150) == {"controller": "SLC150", "device_type": 0x15, "frn": 47}
     ok("write", pty_slc150, "910.PRE=4321", "720=1")
     assert ok_json("read", pty_slc150, "910.PRE", "720", "901.PRE") == {"910.PRE": 4321, "720": True, "901.PRE": 100}

@@ -79,15 +79,15 @@ def test_every_line_key_is_a_config_key(key: str) -> None:
     assert key in Df1LinkConfig.model_fields
 
 
-def test_readme_half_duplex_example_passes() -> None:
-    """The README's half-duplex example is a valid config (``check-config`` loads it) and forms one
+def test_guide_half_duplex_example_passes() -> None:
+    """The guide's half-duplex example is a valid config (``check-config`` loads it) and forms one
     line of two stations without conflicts."""
     from pathlib import Path
 
     from gateway.config import parse_config
 
-    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
-    section = readme[readme.index("### DF1 half duplex: multi-drop lines and radio"):]
+    page = Path(__file__).resolve().parent.parent / "docs" / "guide" / "df1-half-duplex.md"
+    section = page.read_text(encoding="utf-8")
     example = section[section.index("```toml\n") + 8 : section.index("\n```", section.index("```toml\n"))]
     config = parse_config(example)
     assert line_problems(config.links) == []

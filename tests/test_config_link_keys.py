@@ -56,7 +56,7 @@ def test_write_burst_on_a_half_duplex_link_is_refused_naming_the_kind_and_mode()
     text = half(extra="write_burst = 4\n")
     assert error_of(text) == (
         '<string>:8: link "s1" (link[0]).write_burst: not used by df1 links with duplex = "half" (the line master '
-        "schedules writes; see docs/df1-half-duplex-line.md)"
+        "schedules writes; see docs/guide/df1-half-duplex.md)"
     )
     assert 'link "s1" (link[0]).poll_burst: not used by df1 links with duplex = "half"' in error_of(
         half(extra="poll_burst = 1\n")

@@ -1,7 +1,7 @@
 """DF1 half-duplex framing: printed vectors, check coverage, STN doubling, the streaming decoder.
 
 Page numbers are those of A-B 1770-6.5.16 (DF1) and the 1770-KF2 user manual (KF2); the reading is
-in docs/df1-half-duplex-notes.md.
+in docs/develop/df1-half-duplex-notes.md.
 """
 
 from __future__ import annotations

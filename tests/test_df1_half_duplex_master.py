@@ -1,7 +1,7 @@
 """DF1 half-duplex master core: byte scripts with a fake clock, then fault scripts against slaves.
 
 The reading of the manuals (1770-6.5.16 ch. 3/5, 1775-KA ch. 11, 1770-KF2 ch. 4) is in
-docs/df1-half-duplex-notes.md; section numbers below refer to it.
+docs/develop/df1-half-duplex-notes.md; section numbers below refer to it.
 """
 
 from __future__ import annotations

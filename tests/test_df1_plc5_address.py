@@ -1,7 +1,7 @@
 """PLC-5 addresses, word range read/write and read-modify-write packets.
 
 Vectors are the ones printed in A-B 1770-6.5.16 (DF1) chapter 13 and the 1770-KF2 manual (KF2);
-see docs/df1-half-duplex-notes.md section 6.
+see docs/develop/df1-half-duplex-notes.md section 6.
 """
 
 from __future__ import annotations

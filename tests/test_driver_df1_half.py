@@ -241,7 +241,7 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
 
 
 async def test_every_slave_reading_values_right_and_writes_once(choices: dict[str, str]) -> None:
-    """Each reading of docs/df1-half-duplex-notes.md §5 (bad_frame_reply, reply_retries,
+    """Each reading of docs/develop/df1-half-duplex-notes.md §5 (bad_frame_reply, reply_retries,
     duplicate_detect, when_busy), a busy and a slow station, lost and corrupted frames and lost slave
     ACKs: reads are right or fail, and no write runs twice (a write whose reply is lost is settled by
     a read-back or reported as possibly applied)."""

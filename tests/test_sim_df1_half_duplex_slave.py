@@ -1,4 +1,5 @@
-"""The multi-drop DF1 half-duplex slave model and its variant switches (docs/df1-half-duplex-notes.md §4, §5)."""
+"""The multi-drop DF1 half-duplex slave model and its variant switches
+(docs/develop/df1-half-duplex-notes.md §4, §5)."""
 
 from __future__ import annotations
 
@@ -118,7 +119,7 @@ def test_variant_table_rejects_unknown_readings() -> None:
 @pytest.mark.parametrize("reading", ["swapped", "unswapped", "own_station"])
 def test_reply_addresses_variant(reading: str) -> None:
     """``reply_addresses``: DST / SRC of the reply as 1770-6.5.16 p. 6-4 has them, or as some
-    devices fill them (docs/controller-variants.md)."""
+    devices fill them (docs/develop/controller-variants.md)."""
     from gateway.kinds.df1.sim.slc500_line import address_reply
 
     command = bytes((3, 0, 0x0F, 0, 0x34, 0x12, 0xA2))

@@ -1,6 +1,6 @@
 """The SLC 100/150 simulator's rules, driven sans-I/O through ``receive(data, now)``.
 
-Every rule is the manual's (docs/slc100-150-ascii-protocol.md): message IDs and ``;I``, ``;Z``,
+Every rule is the manual's (shared/docs/slc100-150-ascii-protocol.md): message IDs and ``;I``, ``;Z``,
 mode rules, protect bits, value limits, program upload and download, power-up state.
 """
 

@@ -1,6 +1,6 @@
 """SLC 100/150 ASCII framing: CRC vectors from the manual, frame encoding, the streaming decoders.
 
-Source: docs/slc100-150-ascii-protocol.md, "Format of Transmission".  The CRC is cross-checked
+Source: shared/docs/slc100-150-ascii-protocol.md, "Format of Transmission".  The CRC is cross-checked
 against a literal transcription of the manual's BASIC program, written here independently of the
 implementation's byte table.
 """
@@ -170,7 +170,7 @@ def test_crc_agrees_with_the_basic_program_on_any_ascii(text: str) -> None:
 
 
 def test_crc_is_not_the_naive_msb_first_polynomial() -> None:
-    # docs/ARCHITECTURE.md: the BASIC table is normative; the printed polynomial done MSB-first differs.
+    # docs/develop/ARCHITECTURE.md: the BASIC table is normative; the printed polynomial done MSB-first differs.
     assert msb_first_polynomial_crc(b"010800") != 0xA3
     assert msb_first_polynomial_crc(b"R03") != 0x8D
 

@@ -1,4 +1,4 @@
-"""Tests of gateway.protocols.slc_ascii.memory_map against docs/slc100-150-ascii-protocol.md."""
+"""Tests of gateway.protocols.slc_ascii.memory_map against shared/docs/slc100-150-ascii-protocol.md."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 #!/bin/bash
-# The hand-made one-line bugs of docs/mutation.md ("The one-line bugs put in by hand"), put back one
+# The hand-made one-line bugs of docs/develop/mutation.md ("The one-line bugs put in by hand"), put back one
 # at a time in a copy of the tree: each must make the tests of its own module fail (exit 1).
 set -u
 SRC=$(cd "$(dirname "$0")/.." && pwd)

@@ -2,7 +2,7 @@
 
 Runs mutmut (``[tool.mutmut]`` in pyproject.toml: the modules, the fast unit tests) and prints,
 per module, how many mutants the tests killed, and every surviving mutant, marked when
-``docs/mutation.md`` lists it as equivalent::
+``docs/develop/mutation.md`` lists it as equivalent::
 
     .venv/bin/python tools/mutation.py                    # all modules, from scratch
     .venv/bin/python tools/mutation.py gateway/writes.py  # one module (or several; a glob works)
@@ -11,7 +11,7 @@ per module, how many mutants the tests killed, and every surviving mutant, marke
 
 The score of a module is the share of its mutants killed (a timeout counts as killed) among
 those tested; ``no tests`` (no selected test runs the function) counts as surviving.  The
-second score leaves out the mutants ``docs/mutation.md`` lists as equivalent.  Exit status 1
+second score leaves out the mutants ``docs/develop/mutation.md`` lists as equivalent.  Exit status 1
 when a module's first score is below ``--min`` (95 %: the listed equivalent mutants count as
 surviving), when it has mutants not run, or a surviving mutant the document does not list.
 Listed mutants that did not survive (killed since, or renumbered by a change to their function)
@@ -49,7 +49,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 MUTANTS = ROOT / "mutants"
-EQUIVALENTS_DOC = ROOT / "docs" / "mutation.md"
+EQUIVALENTS_DOC = ROOT / "docs" / "develop" / "mutation.md"
 FRESH = MUTANTS / "fresh-interpreter.json"  # import-time mutants rechecked: name -> killed
 #: tells the tests they run under mutation (the reference-comparison properties take fewer examples)
 MUTATION_ENV = {"SLC_GATEWAY_MUTATION": "1"}
@@ -112,7 +112,7 @@ def dotted(module: str) -> str:
 
 
 def equivalent_mutants() -> set[str]:
-    """The mutant names ``docs/mutation.md`` lists (in backquotes) as equivalent."""
+    """The mutant names ``docs/develop/mutation.md`` lists (in backquotes) as equivalent."""
     if not EQUIVALENTS_DOC.exists():
         return set()
     return set(re.findall(r"`(gateway\.[\w.ǁ]+__mutmut_\d+)`", EQUIVALENTS_DOC.read_text(encoding="utf-8")))
@@ -280,7 +280,7 @@ def report(modules: list[str], minimum: float) -> bool:
     for row in rows:
         for kind, names in (("survived", row.survived), ("no tests", row.no_tests), ("not killed", row.other)):
             for name in names:
-                mark = "  (equivalent: docs/mutation.md)" if name in equivalent else ""
+                mark = "  (equivalent: docs/develop/mutation.md)" if name in equivalent else ""
                 print(f"{kind}: {name}{mark}")
     seen = {n for row in rows for n in row.alive}
     prefixes = tuple(dotted(row.path) + "." for row in rows if not row.not_run)

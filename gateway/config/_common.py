@@ -44,7 +44,9 @@ _SIM_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]{0,39}")
 class Model(BaseModel):
     """Frozen, unknown keys forbidden, strict types (TOML is typed: ``unit = "1"`` is an error)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid", strict=True, allow_inf_nan=False)
+    model_config = ConfigDict(
+        frozen=True, extra="forbid", strict=True, allow_inf_nan=False, use_attribute_docstrings=True
+    )
 
 
 class Problems(ValueError):

@@ -141,32 +141,64 @@ class LinkBase(Model):
     unused_keys: ClassVar[Mapping[str | None, Mapping[str, str]]] = {}
 
     name: str
+    """Unique name of the link (1 to 40 characters from A-Z a-z 0-9 _ . -), used in logs, metrics and the status
+    page."""
     protocol: str
+    """The link's kind: which protocol the gateway speaks on the port (each kind's keys are listed below)."""
     port: str
+    """The serial port: a device (/dev/ttyUSB0, /dev/serial/by-id/..., COM3), a serial device server
+    (socket://host:port, rfc2217://host:port) or a built-in simulator (sim://MODEL?options)."""
     unit: int = Field(ge=1, le=247)
+    """The Modbus unit id (1-247) that serves this controller; unique. An unknown unit id answers exception 0x0A."""
     # no defaults here: each kind's are its serial_defaults (__pydantic_init_subclass__)
     baudrate: int
+    """Line speed; the default is the protocol's (below)."""
     bytesize: int
+    """Data bits, 7 or 8. A port that refuses 7 data bits with even parity (a pty, some USB adapters) is opened at
+    8N1 with the parity bit computed by the gateway: the same bits on the wire."""
     parity: Parity
+    """"N", "E" or "O"."""
     stopbits: int
+    """1 or 2."""
     timeout: float = Field(gt=0, le=60)
+    """Seconds the controller may take to answer; the characters' time on the line at baudrate is added."""
     retries: int = Field(DEFAULT_RETRIES, ge=0, le=10)
+    """Retries before a request fails (each kind's guide page says what a retry is on its wire); on a line shared by
+    several links, the same on every link of the line."""
     stale_after: float = Field(5.0, gt=0)
+    """Seconds beyond a value's scan period after which Modbus reads of it answer exception 0x0B (gateway target
+    device failed to respond) rather than an old value."""
     down_after_failures: int = Field(DEFAULT_DOWN_AFTER.failures, ge=1, le=1000)
+    """The link is reported down (log, status register 1000, metrics) after this many failed transactions in a row,
+    not on one failure; each station of a half-duplex line by its own."""
     down_after_seconds: float = Field(DEFAULT_DOWN_AFTER.seconds, gt=0)
+    """... or after this many seconds without a valid reply, whichever comes first."""
     read_only: bool = False
+    """Every Modbus write answers exception 0x02."""
     writable: tuple[WritableRange, ...] = ()
+    """Limits writes to these ranges, e.g. ["holding:0-31", "coil:701-720"] (others answer 0x02); adjacent ranges
+    merge. Empty: every writable point."""
     fast_interval: float = Field(0.0, ge=0)
+    """Scan period of the fast class, seconds (0: continuous)."""
     slow_interval: float = Field(10.0, ge=0)
-    #: write transactions in a row before waiting polls get the line, for poll_burst transactions
+    """Scan period of the slow class, seconds."""
     write_burst: int = Field(1, ge=1, le=100)
+    """Under write load: write transactions in a row before waiting polls get the line (for poll_burst transactions),
+    so the data stays fresh under any write load."""
     poll_burst: int = Field(2, ge=1, le=100)
-    #: writes that may wait for the line, per client connection and in all (beyond: 0x06)
+    """Poll transactions that get the line after write_burst writes."""
     write_queue_per_client: int = Field(8, ge=1, le=1000)
+    """Writes of one client connection that may wait for the line; beyond, a write answers exception 0x06 (busy) and
+    nothing of it is written."""
     write_queue_per_link: int = Field(32, ge=1, le=10000)
-    #: a Modbus write is answered within this many seconds, done or not (below SCADA timeouts)
+    """Writes of all clients that may wait for this link's line; beyond, exception 0x06."""
     write_timeout: float = Field(0.9, gt=0, le=600)
+    """Every Modbus write is answered within this many seconds, done or not (below the 1-3 s a SCADA client waits): a
+    write still waiting for the line is withdrawn (0x0B, nothing written), one already on the line answers 0x0B
+    (outcome unknown) and goes on to its verdict, logged on gateway.audit."""
     trace: Path | None = None
+    """A file that records every byte on the link with timestamps and direction (created 0600, rotated per
+    [logging]); unset: off."""
 
     @classmethod
     def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:

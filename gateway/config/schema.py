@@ -38,13 +38,27 @@ class TlsConfig(Model):
     """``[modbus.tls]``: Modbus/TCP Security (Modbus over TLS)."""
 
     listen: str = "0.0.0.0:802"
+    """host:port of the Modbus/TCP Security (TLS) listener (802 is the standard port)."""
     cert: Path
+    """The server's PEM certificate (a path relative to the config file). Loaded by check-config, so a bad file fails
+    there."""
     key: Path
+    """The PEM private key of cert."""
     client_ca: Path | None = None
+    """PEM CA certificate(s) that client certificates must chain to; set, it requires a client certificate on every
+    TLS connection. Unset: TLS encrypts but does not authenticate clients."""
     handshake_timeout: float = Field(5.0, gt=0, le=60)
+    """Seconds a TLS handshake may take."""
     max_handshakes: int = Field(16, ge=1, le=10000)
+    """TLS handshakes in progress at once, beside max_connections; when full, the oldest of the client address
+    holding the most is aborted."""
     roles: dict[str, Rights] = Field(default_factory=dict)
+    """[modbus.tls.roles]: the Modbus role in a client certificate (X.509 extension 1.3.6.1.4.1.50316.802.1, a
+    UTF8String) -> "read" or "read-write", e.g. operator = "read-write". Without it every certified client may
+    write; with it, a "read" role gets exception 0x01 on every write function (5, 6, 15, 16, 22, 23). Needs
+    client_ca."""
     default_rights: Rights = "read"
+    """The rights of a certificate whose role is not in roles, or that has none (only with roles)."""
 
     _check_listen = field_validator("listen", mode="before")(listen_validator)
 
@@ -97,13 +111,23 @@ class ModbusConfig(Model):
     """``[modbus]``: the Modbus TCP server."""
 
     listen: str = "0.0.0.0:5020"
+    """host:port of the plain Modbus TCP server; "" turns it off (TLS only: configure [modbus.tls]). Plain Modbus TCP
+    has no authentication: a client that reaches it and passes allow may read and write."""
     max_connections: int = Field(64, ge=1, le=10000)
+    """Client connections at once (TLS included). When full, a connection stalled mid-frame or that has not sent a
+    request yet is closed to make room; otherwise new ones are refused."""
     max_connections_per_address: int = Field(0, ge=0, le=10000)
+    """Connections (TLS handshakes included) from one IP address; 0: half of max_connections."""
     idle_timeout: float = Field(300.0, ge=0)
+    """Close a connection that sent nothing for this many seconds (0: never)."""
     frame_timeout: float = Field(5.0, gt=0, le=3600)
+    """A Modbus frame must be complete this many seconds after its first byte (slow senders cannot hold a slot)."""
     allow: tuple[IPv4Network | IPv6Network, ...] = ()
+    """Client networks (CIDR, e.g. ["10.20.0.0/16"]) allowed to connect; empty: anyone."""
     loopback_reads: bool = True
+    """Loopback clients outside allow may read, never write (the container health check works whatever allow says)."""
     tls: TlsConfig | None = None
+    """[modbus.tls]: Modbus/TCP Security (Modbus over TLS); not configured: no TLS listener."""
 
     _check_listen = field_validator("listen", mode="before")(optional_listen_validator)
 
@@ -150,8 +174,13 @@ class MetricsConfig(Model):
     """``[metrics]``: HTTP ``/metrics`` (Prometheus) and ``/healthz``."""
 
     listen: str = "127.0.0.1:9108"
+    """host:port of the HTTP server of /metrics (Prometheus), /healthz and the status page. Without a [metrics] table
+    none of them is served. Keep it on loopback unless allow restricts it (check-config warns otherwise); in a
+    container, listen on 0.0.0.0 and publish the port."""
     allow: tuple[IPv4Network | IPv6Network, ...] = ()
+    """Client networks (CIDR) allowed to connect; empty: anyone."""
     max_connections: int = Field(32, ge=1, le=1000)
+    """Concurrent HTTP connections; refusals are logged."""
 
     _check_listen = field_validator("listen", mode="before")(listen_validator)
 
@@ -170,9 +199,14 @@ class LoggingConfig(Model):
     """``[logging]``."""
 
     level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    """DEBUG, INFO, WARNING or ERROR (any case). Every Modbus write is logged at INFO on the gateway.audit logger."""
     repeat_interval: float = Field(60.0, gt=0, le=86400)
+    """Repeated warnings (refused connections, bad frames, failed TLS handshakes): the first of each cause at once,
+    then a count with the addresses every this many seconds."""
     trace_max_bytes: int = Field(10_000_000, ge=4096)
+    """Trace files (created 0600) rotate at this size."""
     trace_backups: int = Field(3, ge=0, le=100)
+    """Old trace files kept when one rotates."""
 
     @field_validator("level", mode="before")
     @classmethod
@@ -184,9 +218,13 @@ class GatewayConfig(Model):
     """The whole configuration file."""
 
     modbus: ModbusConfig = ModbusConfig()
+    """[modbus]: the Modbus TCP server."""
     metrics: MetricsConfig | None = None
+    """[metrics]: HTTP /metrics, /healthz and the status page; off when the table is absent."""
     logging: LoggingConfig = LoggingConfig()
+    """[logging]."""
     link: tuple[TaggedLink, ...] = Field(strict=False)
+    """[[link]]: one serial link to one controller, served as one Modbus unit id. At least one."""
 
     @field_validator("link")
     @classmethod

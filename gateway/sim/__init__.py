@@ -16,11 +16,11 @@ half-duplex multi-drop line ``df1line``; a link kind may add its own).  Options:
 ``turnaround=S``       controller turnaround before each reply, seconds (with or without pacing)
 ``instance=NAME``      a separate controller for each name (default: one per URL)
 ``variant=NAME=VALUE``  a reading of the manual where it leaves behaviour open (repeat the key,
-                       or separate several with commas); see ``docs/controller-variants.md``
+                       or separate several with commas); see ``docs/develop/controller-variants.md``
 =====================  ==========================================================================
 
 A *self-paced* model (``df1line``: ``sim://df1line?stations=1,2,3&dead=3&corrupt=6&ignore=10``, its
-options in ``docs/df1-half-duplex-line.md``) judges collisions on its own clock: it takes
+options in ``docs/develop/df1-half-duplex-line.md``) judges collisions on its own clock: it takes
 ``char_time=S`` instead of ``paced=1`` (an error for it), and ``turnaround=S`` is its own option.
 
 The same URL always reaches the same simulated controller (or line) within a process, so a reconnecting

@@ -3,7 +3,7 @@
 A simulator model declares its variants as a table ``name -> allowed values``; the first value
 of each is the simulator's default reading.  They are chosen with ``--variant name=value`` on
 ``slc-gateway simulate`` and with ``variant=name=value`` in ``sim://`` URLs (repeat the key, or
-separate several with commas).  ``docs/controller-variants.md`` lists every variant with the
+separate several with commas).  ``docs/develop/controller-variants.md`` lists every variant with the
 manual's words, its readings and what the driver does under each.
 """
 

@@ -41,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[2]
 HOST = "127.0.0.1"
 DEMO_PORT = 5020
 #: What the Dockerfile's build stage copies (checked below against the Dockerfile itself).
-BUILD_INPUTS = ("pyproject.toml", "README.md", "config", "gateway")
+BUILD_INPUTS = ("pyproject.toml", "README.md", "LICENSE", "config", "gateway")
 
 #: pip output that means the package index could not be reached (not that the project is broken)
 _NETWORK_ERRORS = re.compile(
@@ -408,7 +408,8 @@ def test_dockerfile() -> None:
     # The health check's address is the shipped config's Modbus port.
     assert re.search(r'^listen = "0\.0\.0\.0:5020"$', (ROOT / "config" / "gateway.toml").read_text(), re.MULTILINE)
     dockerignore = (ROOT / ".dockerignore").read_text().split()
-    assert {f"!{name}" for name in ("pyproject.toml", "README.md", "config/", "gateway/")} <= set(dockerignore)
+    shipped = ("pyproject.toml", "README.md", "LICENSE", "config/", "gateway/")
+    assert {f"!{name}" for name in shipped} <= set(dockerignore)
 
 
 def test_shipped_config_is_valid(capsys: pytest.CaptureFixture[str]) -> None:

@@ -79,12 +79,22 @@ class MapEntry(Model):
     """``[[link.map]]``: ``count`` values from SLC ``address`` on, at ``table`` addresses from ``start``."""
 
     table: Table
+    """The Modbus table: "holding", "input", "coil" or "discrete"."""
     start: int = Field(ge=0, le=65535)
+    """The first Modbus address (0-based protocol address)."""
     address: str
+    """The first controller address, in the link's processor's addressing (SLC 500: N7:0, T4:0.ACC, B3:0/0, F8:0;
+    PLC-5: N7:300, B3/5, octal I:010). Structured members step through consecutive elements, bits of word files
+    through consecutive bits."""
     count: int = Field(ge=1, le=2000)
+    """Values mapped (a float32 takes two registers each)."""
     type: ValueType = "int16"
+    """int16 or uint16 (one register per word; the same 16 bits), float32 (F files, two registers) or bool (coil and
+    discrete tables; their default)."""
     word_order: Literal["high-first", "low-first"] = "high-first"
+    """float32: which register holds the high word."""
     scan: Literal["fast", "slow"] = "fast"
+    """The scan class: "fast" (fast_interval) or "slow" (slow_interval)."""
 
     @model_validator(mode="before")
     @classmethod
@@ -186,7 +196,7 @@ class Df1LinkConfig(LinkBase):
     unused_keys: ClassVar[Mapping[str | None, Mapping[str, str]]] = {
         "half": {
             **dict.fromkeys(
-                ("write_burst", "poll_burst"), "the line master schedules writes; see docs/df1-half-duplex-line.md"
+                ("write_burst", "poll_burst"), "the line master schedules writes; see docs/guide/df1-half-duplex.md"
             ),
             **_TARGET_ONLY,
         },
@@ -240,66 +250,90 @@ class Df1LinkConfig(LinkBase):
 
     protocol: Literal["df1"]
     station: int = Field(1, ge=0, le=254)
+    """Master: the controller's DF1 node (destination). Target: the gateway's own node."""
     source: int = Field(0, ge=0, le=254)
+    """The gateway's own DF1 node (source) as a master; a half-duplex station's MSG writes address it."""
     checksum: Literal["bcc", "crc"] = "crc"
+    """"crc" (CRC-16) or "bcc": as the controller's channel 0 is set."""
     processor: Processor = "slc5/04"
+    """slc500, slc5/01 ... slc5/05 or plc5: the size limits of a command and, for plc5, PLC-5 addresses and commands
+    (word range read / write, read-modify-write)."""
     max_read_bytes: int = Field(0, ge=0, le=240)
+    """Override the processor's PCCC read size limit (0: the family's: SLC 500, 5/01, 5/02: 82 data bytes; 5/03,
+    5/04, 5/05: 236; PLC-5: 230)."""
     max_write_bytes: int = Field(0, ge=0, le=240)
+    """Override the processor's PCCC write size limit (0: the family's: SLC 500, 5/01, 5/02: 82; 5/03, 5/04, 5/05:
+    228; PLC-5: 222)."""
     map: tuple[MapEntry, ...] = Field((), strict=False)
+    """[[link.map]]: the controller addresses a master link polls and where Modbus sees them (required for a master)."""
 
-    # --- half duplex (docs/df1-half-duplex-line.md) ---------------------------------------------
-    #: "full": point to point; "half": a station on a multi-drop line / radio channel, polled by
-    #: the gateway.  Links with the same ``port`` and ``duplex = "half"`` share one line master.
+    # --- half duplex (docs/develop/df1-half-duplex-line.md) ---------------------------------------------
     duplex: Literal["full", "half"] = "full"
+    """"full": point to point; "half": a station on a multi-drop line or radio channel, polled by the gateway. Links
+    with the same port and duplex = "half" are the stations of one line and share one line master."""
     # Line keys: every link of one line must give the same values (gateway.kinds.df1.config).
-    #: quiet time after the last byte heard before the master transmits (2-wire turnaround, radio)
     pre_transmit_delay: float = Field(0.0, ge=0, le=10)
-    #: RTS on -> first byte (modem key-up) and last byte -> RTS off (1747-RM001 p. 13-59)
+    """Line key: quiet time after the last byte heard before the master transmits (2-wire turnaround, the remote
+    radio's turnaround)."""
     rts_send_delay: float = Field(0.0, ge=0, le=10)
+    """Line key: RTS on -> first byte (a radio's key-up time, often 20-100 ms; 1747-RM001 p. 13-59)."""
     rts_off_delay: float = Field(0.0, ge=0, le=10)
-    #: "toggle": RTS keyed around each transmission; "rs485": by the kernel; "on" / "off": held
+    """Line key: last byte -> RTS off."""
     rts: Literal["toggle", "rs485", "on", "off"] = "toggle"
+    """Line key: "toggle" (the gateway keys RTS around each transmission), "rs485" (the kernel's RS-485 mode), "on"
+    or "off" (held). A socket:// device server has no modem lines: set it to key RTS itself."""
     dtr: bool = True
-    #: 2-wire RS-485: the master hears its own bytes (they are stripped, a mismatch is a collision)
+    """Line key: DTR on while the port is open."""
     echo: bool = False
-    #: wait for the DLE ACK of a master message; resends of the identical frame without it
+    """Line key: 2-wire RS-485 where the gateway hears its own bytes: they are stripped, and a byte that comes back
+    different is counted as a collision."""
     ack_timeout: float = Field(0.5, gt=0, le=60)
+    """Line key: wait for the DLE ACK of a master message."""
     message_retries: int = Field(3, ge=0, le=10)
-    #: the slaves detect duplicate messages (1747-RM001 "Duplicate Packet Detect"); off: never resend
+    """Line key: identical resends of a message without its DLE ACK."""
     duplicate_detect: bool = True
-    #: DLE NAK (global link reset) when the line starts, as a master does at power-up (Table 2.C)
+    """Line key: the slaves detect duplicate messages (1747-RM001 "Duplicate Packet Detect", on by default in the
+    SLC's channel 0); false: a frame is never resent. On a target: a frame repeated after a lost ACK is
+    acknowledged, never run twice."""
     link_reset: bool = True
+    """Line key: DLE NAK (global link reset) when the line starts, as a master does at power-up (Table 2.C); it
+    empties the slaves' queued messages."""
     # Station keys (this link's station): the reply ``timeout`` above is from the ACK to the reply.
-    #: wait for the answer to a poll (a message or DLE EOT)
     poll_timeout: float = Field(0.5, gt=0, le=60)
-    #: after the ACK of a command, before the first poll for its reply (1747-RM001 p. 13-67)
+    """Station key: wait for the answer to a poll (a message or DLE EOT)."""
     reply_wait: float = Field(0.0, ge=0, le=60)
-    #: DLE EOT answers tolerated while waiting for one reply
+    """Station key: after the ACK of a command, before the first poll for its reply (1747-RM001 p. 13-67, "Reply
+    Message Wait Time")."""
     max_polls: int = Field(20, ge=1, le=1000)
-    #: background poll period for the station's own messages (report by exception)
+    """Station key: DLE EOT answers tolerated while waiting for one reply."""
     poll_interval: float = Field(1.0, gt=0, le=3600)
-    #: answerless polls or unacknowledged messages in a row before the station is demoted
+    """Station key: background poll period for the station's own messages (report by exception)."""
     demote_after: int = Field(DEMOTE_AFTER, ge=1, le=100)
-    #: poll period of a demoted station (it fails at once, 0x0B, until it answers again)
+    """Station key: answerless polls or unacknowledged messages in a row before the station is demoted: its unit
+    answers 0x0B at once and it is polled every slow_poll_interval."""
     slow_poll_interval: float = Field(10.0, gt=0, le=3600)
-    #: words of N``receive_file`` the station may write to the gateway with an MSG (0: none; STS 10)
+    """Station key: poll period of a demoted station."""
     receive_file: int = Field(7, ge=0, le=999)
+    """Station key: the station's MSG writes of N<receive_file>:0 onwards are stored (others get STS 10)."""
     receive_words: int = Field(0, ge=0, le=10000)
-    #: where the unit serves those words (read-only), then one age register per word: Modbus table
-    #: ("input" or "holding") and the address of word 0 (``gateway.kinds.df1.receive``)
+    """Station key: words of N<receive_file> the station may write to the gateway (0: none)."""
     receive_table: Literal["input", "holding"] = "input"
+    """Station key: where the unit serves those words, read-only: "input" or "holding"; word i at receive_start + i,
+    its age (0.1 s, 65535: never written) at receive_start + receive_words + i."""
     receive_start: int = Field(0, ge=0, le=65535)
+    """Station key: the Modbus address of word 0 of the receive range."""
 
-    # --- target mode (README "DF1 target mode"; gateway.kinds.df1.target_config) ---------------
-    #: "master": the gateway polls the controller; "target": the gateway is the station a PLC's
-    #: MSG instructions read and write (``station`` is then the gateway's own node)
+    # --- target mode (docs/guide/target-mode.md; gateway.kinds.df1.target_config) -------------
     role: Literal["master", "target"] = "master"
-    #: the data files of a target, ``[[link.file]]``
+    """"master": the gateway polls the controller; "target": the gateway is the station a PLC's MSG instructions read
+    and write (station is then the gateway's own node), answering from [[link.file]]."""
     file: tuple[TargetFile, ...] = Field((), strict=False)
-    #: a target's table on disk (SQLite): each write committed before it is acknowledged
+    """[[link.file]]: the data files of a target and where Modbus sees them."""
     persist: Path | None = None
-    #: a target answers only frames whose DST is its ``station`` (full duplex ignores DST by default)
+    """Target: a SQLite file; every PLC write is committed before its reply goes out and every Modbus write before
+    its answer, so the table survives a restart (even kill -9)."""
     check_dst: bool = False
+    """Target: answer only frames whose DST is station (full duplex ignores DST by default)."""
 
     @field_validator("persist", mode="before")
     @classmethod

@@ -40,14 +40,22 @@ class TargetFile(Model):
     """One data file of the target's table and where Modbus sees it."""
 
     file: int = Field(ge=0, le=999)
+    """The data file number a PLC's MSG names (7 for N7)."""
     type: str
+    """N (16-bit integer), B (16 bits), F (IEEE float) or L (32-bit integer); timers, counters, control and string
+    files are refused (a controller's own structures)."""
     elements: int = Field(ge=1, le=MAX_ELEMENTS)
+    """Elements of the file (an SLC 500 file holds up to 256, a PLC-5 file up to 1000)."""
     table: Literal["holding", "input", "coil", "discrete"] = "holding"
+    """Where Modbus sees the file: "holding" or "input"; a B file may also go to "coil" or "discrete" (16 per
+    element)."""
     start: int = Field(0, ge=0, le=65535)
-    #: the two registers of an F or L element
+    """The first Modbus address; F and L elements take two registers each."""
     word_order: Literal["high-first", "low-first"] = "high-first"
-    #: the value every element has at start (before anyone wrote it); None: unset (0x0B until written)
+    """F and L: which of an element's two registers holds the high word."""
     initial: float | int | None = None
+    """The value every element has at start, before anyone writes it; unset: reads answer 0x0B until it is written
+    (no invented zero)."""
 
     @field_validator("type")
     @classmethod

@@ -15,7 +15,7 @@ Written from the manual ("SLC Programmable Controller Communications Protocol"):
 * a small ladder keeps some timers, a counter and inputs changing.
 
 Where the manual leaves the controller's behaviour open, ``VARIANTS`` has a switch per reading
-(``--variant name=value``; ``docs/controller-variants.md``); the first value is the default:
+(``--variant name=value``; ``docs/develop/controller-variants.md``); the first value is the default:
 
 * ``power_up_id``: ``;I`` after power-up reports 00 (``zero``) or the last ID valid before the
   power cycle (``retained``) ("{id} is the last valid [ID]");

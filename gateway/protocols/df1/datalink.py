@@ -10,7 +10,7 @@ Receiver::
     DLE ENQ           -> repeat the last response symbol (DLE NAK until a frame has been answered;
                          ``enq_answer``: see :class:`EnqAnswer`)
 
-The manuals leave two receiver rules open (docs/controller-variants.md); a controller-side link
+The manuals leave two receiver rules open (docs/develop/controller-variants.md); a controller-side link
 (the simulator) picks a reading with ``bad_frame`` and ``enq_answer``, the host side keeps the
 defaults (1770-6.5.16 ch. 2: NAK a damaged frame, answer ENQ with the last response).
 

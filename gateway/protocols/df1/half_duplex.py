@@ -2,7 +2,7 @@
 
 Manual: A-B 1770-6.5.16 chapter 3 and p. 5-2; 1775-KA p. 11-9 .. 11-17 and 1770-KF2 p. 4-26 .. 4-33
 (the same chapter); SLC 500 1747-RM001 p. 13-56 .. 13-68 (master parameters).  The reading, and
-every point the manuals leave open, is in ``docs/df1-half-duplex-notes.md``.
+every point the manuals leave open, is in ``docs/develop/df1-half-duplex-notes.md``.
 
 What the core does
 ------------------
@@ -357,7 +357,7 @@ class HalfDuplexMaster:
         station.awaiting.append(request)
 
     def _on_naked(self, now: float) -> None:
-        """DLE NAK from a slave (a reading the manuals leave open, docs/df1-half-duplex-notes.md §5):
+        """DLE NAK from a slave (a reading the manuals leave open, docs/develop/df1-half-duplex-notes.md §5):
         it heard us; resend."""
         request = self._request
         assert request is not None

@@ -5,7 +5,7 @@ module owns what it knows of each station - its queued and awaiting requests, wh
 (demotion), what a message it sends means (:meth:`StationRecord.received`) - and decides, each time
 the line is free, which exchange comes next (:meth:`ExchangeScheduler.next_exchange`).  Manuals:
 1770-6.5.16 chapter 3; 1775-KA p. 11-9; AG-UM008 Figure 1.2; the reading is in
-``docs/df1-half-duplex-notes.md``.
+``docs/develop/df1-half-duplex-notes.md``.
 
 * Between commands every station is polled every ``poll_interval`` for the messages it initiates.
   An answerless poll, or a master message without its DLE ACK (each copy sent), is one failure;

@@ -4,7 +4,7 @@ Manual: A-B 1770-6.5.16 chapter 13 "PLC Addressing" (p. 13-11 logical binary add
 examples N7:30, B3:300, T4:2.ACC, PD12:10.SP, p. 13-13 the level map, p. 13-15 logical ASCII
 addressing) and chapter 7 (p. 7-20 read-modify-write, FNC 26); 1770-KF2 user manual p. 5-57 (word
 range read FNC 01 / write FNC 00 layouts); PLC-5 quick reference 1785 p. 2-6 (the address forms
-users type).  Reading and vectors: ``docs/df1-half-duplex-notes.md`` section 6.  The word range
+users type).  Reading and vectors: ``docs/develop/df1-half-duplex-notes.md`` section 6.  The word range
 read / write and read-modify-write packets that carry these addresses are built in
 :mod:`gateway.protocols.df1.pccc.plc5`, the one home of PLC-5 packet building.
 

@@ -13,7 +13,7 @@ Verdicts (events, one per transaction)::
                         but no answer came, and no read-back proved it applied
     TransactionFailed   a read got no valid answer after every try
 
-The rules, under every reading of the manuals in docs/controller-variants.md:
+The rules, under every reading of the manuals in docs/develop/controller-variants.md:
 
 * A read is idempotent: on a lost frame or a missing reply it is sent again with a new TNS
   (at most ``retries`` more times).  A late reply to any of its TNS is still a valid answer.

@@ -1,6 +1,6 @@
 """The SLC 100/150 memory map, the user address table and the item syntax of the CLI.
 
-Everything here is data from the manual (``docs/slc100-150-ascii-protocol.md``) plus pure lookups:
+Everything here is data from the manual (``shared/docs/slc100-150-ascii-protocol.md``) plus pure lookups:
 
 * "The Memory Map": every described cell with its access class (``*`` read only, ``**`` no access).
 * "Reading Data": the start addresses command 02 accepts (:data:`READ_RANGES`).

@@ -90,7 +90,7 @@ class SlcSender:
         self.max_resends = max_resends
         self.max_resyncs = max_resyncs
         #: a reply arrives at most this long after its message (replies "just after the timeout"; an
-        #: assumption of the design, docs/controller-variants.md)
+        #: assumption of the design, docs/develop/controller-variants.md)
         self.late_bound = late_bound if late_bound is not None else 1.5 * timeout
         #: a frame whose next character does not come within this is cut short (garbled)
         self.char_gap = char_gap

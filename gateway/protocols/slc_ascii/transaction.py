@@ -22,7 +22,7 @@ Facts of the manual the rules rest on:
 * ``;Z`` repeats the most recent reply with its ID and does not use up an ID;
 * ID 00 "is always accepted": a copy of a command sent with ID 00 is not protected.
 
-Readings the manual leaves open (``docs/controller-variants.md``), all handled here: after a
+Readings the manual leaves open (``docs/develop/controller-variants.md``), all handled here: after a
 power cycle ``;I`` carries 00 or the pre-power-up ID, and ``;Z`` is not answered or answered
 ``;E``; replies may come just after the timeout; a ``;Z`` answer may be garbled again; ``;T``
 may come between a command and its reply.

@@ -7,7 +7,7 @@ simulator's, a PLC-5's, or a test's).
 
 Manual: 1775-KA p. 11-11/11-12 and 1770-KF2 p. 4-31/4-32 (slave transceiver actions);
 1770-6.5.16 p. 2-7 Table 2.C (DLE NAK = global link reset, DLE EOT).  Readings: section 4 and 5 of
-``docs/df1-half-duplex-notes.md``.  The slave has no clock: it answers at once, so latency and
+``docs/develop/df1-half-duplex-notes.md``.  The slave has no clock: it answers at once, so latency and
 lost bytes are the line's business (the test harness or the line simulator).
 """
 
@@ -38,7 +38,7 @@ from gateway.sim.variants import VariantTable, resolve_variants
 
 __all__ = ["VARIANTS", "HalfDuplexSlave", "SlaveVariant"]
 
-#: name -> readings (the first is the manual's / the default).  See docs/df1-half-duplex-notes.md §5.
+#: name -> readings (the first is the manual's / the default).  See docs/develop/df1-half-duplex-notes.md §5.
 VARIANTS: Final[VariantTable] = {
     # §5 row 1: a master frame with a bad check: silence (KF2 Fig. 4.18) or DLE NAK.
     "bad_frame_reply": ("silent", "nak"),

@@ -6,7 +6,7 @@ Listed in :mod:`gateway.sim.models` (``PLC5``, ``DF1LINE``) and in the DF1 link 
   (:class:`~gateway.kinds.df1.sim.plc5.Plc5Simulator`; fault options as ``slc504``);
 * ``sim://df1line?stations=1,2,3&dead=3&checksum=crc&corrupt=6&ignore=10&model=plc5&variant=reply_retries=3``
   - a multi-drop half-duplex line (:class:`~gateway.kinds.df1.sim.df1_multidrop.MultidropLine`; options in
-  ``docs/df1-half-duplex-line.md``).  Its variants (:data:`LINE_VARIANTS`) are the slave model's
+  ``docs/develop/df1-half-duplex-line.md``).  Its variants (:data:`LINE_VARIANTS`) are the slave model's
   (``bad_frame_reply``, ``reply_retries``, ``duplicate_detect``, ``when_busy``), for every station,
   and ``typed_logical`` for ``model=plc5`` stations.  The line *paces itself* (:func:`self_paced`):
   it judges collisions on its own clock, so it is served without line settings (``paced=1`` is an

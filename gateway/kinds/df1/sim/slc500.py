@@ -25,7 +25,7 @@ Fault injection (``1 in N`` drawn from a seeded generator; 0 = off):
   write (with N = 1: every write's reply lost after execution, or every write frame lost).
 
 Variants (``variants={"name": "value"}``, ``--variant name=value``; the first value is the
-default; docs/controller-variants.md gives the manuals' words for each):
+default; docs/develop/controller-variants.md gives the manuals' words for each):
 
 * ``duplicate_detect`` ``on`` | ``off``: a frame with the SRC, CMD and TNS of the last one is
   ACKed and dropped, or (off, as the S4516-DF1 manual tells users to set it) executed again;

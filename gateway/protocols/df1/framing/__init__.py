@@ -3,7 +3,7 @@
 Manuals: "S4516-DF1 Program Development Manual" §2.1, §2.3, §2.5 (full duplex, after A-B
 1770-6.5.16 chapter 2); A-B 1770-6.5.16 p. 2-6/2-7 (Tables 2.A, 2.C: symbols), p. 5-2 (half-duplex
 frames), p. 5-5 (BCC), p. 5-6/5-7 (CRC); 1770-KF2 user manual p. 4-24/4-25.  The half-duplex
-reading and its test vectors: ``docs/df1-half-duplex-notes.md``.
+reading and its test vectors: ``docs/develop/df1-half-duplex-notes.md``.
 
 Frames on the wire::
 

@@ -277,7 +277,7 @@ def reply_matches(command: PcccHeader | bytes, reply: PcccReply | PcccHeader) ->
     (its reply's SRC is its own address), and some devices do not interchange them at all.  The
     TNS (ch. 3: "matches a reply with its command") identifies the transaction; on a half-duplex
     line the poll's station number says who answered.  Every reading is in
-    docs/controller-variants.md ("reply_addresses").
+    docs/develop/controller-variants.md ("reply_addresses").
     """
     header = PcccHeader.decode(command) if isinstance(command, bytes | bytearray) else command
     return reply.tns == header.tns and reply.cmd == header.cmd | REPLY_BIT

@@ -4,7 +4,7 @@ Manuals: S4516-DF1 Program Development Manual §2.6.1 (PLC5 word range read / wr
 01 / 00); SLC 500 PCCC command notes §5.0 (data types), §7.4 (typed read FNC 68 / typed write FNC
 67) and "Important type/data parameter note"; A-B 1770-6.5.16 chapter 7 p. 7-20 (read-modify-write,
 FNC 26) and the 1770-KF2 manual p. 5-57 (word range layouts and limits), as read in
-``docs/df1-half-duplex-notes.md`` section 6.
+``docs/develop/df1-half-duplex-notes.md`` section 6.
 
 Word range and typed commands (CMD 0F)::
 
