@@ -3,8 +3,8 @@
 A reload reads the file again (:class:`ConfigSource`, with the command line's overrides applied
 as at start) and compares it with the config the gateway runs, section by section:
 
-* ``[[link]]``, *by line*: the links that use one port are one line (the stations of a half-duplex
-  line share its runner).  A line whose links are all equal, in the same order, keeps running: its
+* ``[[link]]``, *by line*: the links that use one port are one line (``port_key``: the stations of
+  a half-duplex line share its runner).  A line whose links are all equal, in the same order, keeps running: its
   units, their images and write queues, and its port are untouched.  Every other line of the old
   file stops and every other line of the new one starts (:func:`line_changes`).
 * The keys of :data:`LIVE_KEYS`, which a running listener takes for its next connections (the
@@ -28,7 +28,7 @@ from typing import Final
 from pydantic import BaseModel
 
 from gateway.config import GatewayConfig, LinkBase, load_config_file
-from gateway.config._common import show
+from gateway.config._common import port_key, show
 from gateway.frozen import frozen
 
 __all__ = [
@@ -116,11 +116,11 @@ class ConfigStatus:
 
 
 def lines_of(links: Sequence[LinkBase]) -> dict[str, tuple[LinkBase, ...]]:
-    """The links by the port they use (one line each), lines and links in file order."""
+    """The links by the line they use (``port_key`` of their port), lines and links in file order."""
     lines: dict[str, list[LinkBase]] = {}
     for link in links:
-        lines.setdefault(link.port, []).append(link)
-    return {port: tuple(line) for port, line in lines.items()}
+        lines.setdefault(port_key(link.port), []).append(link)
+    return {key: tuple(line) for key, line in lines.items()}
 
 
 @frozen
@@ -147,7 +147,7 @@ class LineChanges:
         parts = [f"{len(names)} {what} ({', '.join(names)})" for what, names in (
             ("added", self.added), ("changed", self.changed), ("removed", self.removed),
             ("restarted with their line", self.restarted)) if names]
-        unchanged = sum(1 for _ in self.kept)
+        unchanged = len(self.kept)
         return "links: " + ", ".join([*parts, f"{unchanged} line{'s' * (unchanged != 1)} unchanged"])
 
 

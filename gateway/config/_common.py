@@ -29,6 +29,7 @@ __all__ = [
     "optional_output_path",
     "parse_listen",
     "parse_networks",
+    "port_key",
     "resolve_path",
     "show",
     "sim_model",
@@ -201,6 +202,16 @@ def check_port_url(text: str, sim_models: tuple[str, ...] = ()) -> None:
 def is_port_path(port: str) -> bool:
     """Whether a link's ``port`` is a path (a serial port or a pty), not a URL or a COM port."""
     return port.startswith("/")
+
+
+def port_key(port: str) -> str:
+    """The same key for ports that name the same line: a local device is case-sensitive, a URL's
+    scheme and host and a COM port's name are not."""
+    if "://" in port:
+        scheme, rest = port.split("://", 1)
+        host, _, tail = rest.partition("/")
+        return f"{scheme.lower()}://{host.lower()}/{tail}"
+    return port.upper() if port.upper().startswith("COM") else port
 
 
 def sim_model(port: str) -> str | None:

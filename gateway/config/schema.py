@@ -30,6 +30,7 @@ from gateway.config._common import (
 )
 from gateway.config.links import LinkConfig, TaggedLink
 from gateway.config.writer import table_lines
+from gateway.streams import MISSING_PORT_HINT
 
 __all__ = ["GatewayConfig", "LoggingConfig", "MetricsConfig", "ModbusConfig", "Rights", "TlsConfig"]
 
@@ -267,7 +268,7 @@ class GatewayConfig(Model):
             if is_port_path(link.port) and not os.path.exists(link.port):
                 found.append(
                     f"link {show(link.name)}: port {link.port} does not exist (yet): run keeps trying to open it "
-                    "until it appears; check the name (ls /dev/serial/by-id/ lists USB adapters)"
+                    f"until it appears; {MISSING_PORT_HINT}"
                 )
         if self.metrics is not None and not self.metrics.allow and not _is_loopback(self.metrics.address[0]):
             found.append(
