@@ -217,6 +217,7 @@ class Gateway:
         self._group: asyncio.TaskGroup | None = None
         self._started = asyncio.Event()
         self._reloader: asyncio.Task[None] | None = None
+        self._stopping: list[LineRun] = []
         self._reload_again = False
 
     def _index_units(self) -> None:
@@ -272,14 +273,16 @@ class Gateway:
         # its answer, or 0x0B when the link closes under it); then close the links.  A driver
         # runs until cancelled: cancel it first, so that closing its port cannot send it into a
         # reconnect backoff that SIGTERM would have to wait out.
+        lines = [*self._stopping, *self.lines.values()]  # a reload's lines still stopping too
         if self._reloader is not None:
             self._reloader.cancel()
         await asyncio.gather(*(server.close() for server in self.servers))
-        for line in self.lines.values():
+        for line in lines:
             for task in line.tasks:
                 task.cancel()
-        for runner in self.runners:
-            await runner.close()
+        for line in lines:
+            for runner in line.runners:
+                await runner.close()
         if self.metrics is not None:
             await self.metrics.close()
 
@@ -340,11 +343,15 @@ class Gateway:
         self.config = config
         self.lines = {port: self.lines[port] if port in changes.kept else started[port] for port in new_lines}
         self._index_units()  # requests for a unit that stops get 0x0A from now on; a new one's, 0x0B till it is up
-        await asyncio.gather(*(line.stop() for line in stopping))
+        self._apply_settings(config, tls)
+        self._stopping = stopping
+        try:
+            await asyncio.gather(*(line.stop() for line in stopping))
+        finally:
+            self._stopping = []
         if self._group is not None:
             for line in started.values():
                 line.start(self._group)
-        self._apply_settings(config, tls)
         needed = restart_needed(old, config)
         status = self.config_status
         status.sha256, status.loaded_at, status.restart_needed = sha256, time.time(), tuple(needed)

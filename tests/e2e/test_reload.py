@@ -240,3 +240,35 @@ async def test_a_new_listen_address_waits_for_a_restart(plant: Plant, caplog: py
     assert f"reload: {needed}: a restart is needed to apply it" in caplog.messages
     assert [str(net) for net in gw.servers[0].allow or ()] == ["127.0.0.0/8"]  # applied at once
     assert gw.servers[0].host == "127.0.0.1"  # still serving where it was
+
+
+def half_duplex_station(url: str, number: int, extra: str = "") -> str:
+    return (f'[[link]]\nname = "s{number}"\nprotocol = "df1"\nport = "{url}"\nduplex = "half"\nchecksum = "bcc"\n'
+            f"station = {number}\nunit = {10 + number}\npoll_timeout = 0.05\nack_timeout = 0.05\ntimeout = 0.5\n"
+            f"poll_interval = 0.05\n{extra}"
+            '[[link.map]]\ntable = "holding"\nstart = 0\naddress = "N7:0"\ncount = 4\n\n')
+
+
+async def test_a_change_to_one_station_restarts_its_half_duplex_line_whole(plant: Plant) -> None:
+    """One master per line: a station changed means a new line with both stations, the old master
+    closed; the links on other ports go on."""
+    gw = plant.gw
+    url = "sim://df1line?" + urlencode({"stations": "1,2", "checksum": "bcc", "ladder": "0",
+                                        "instance": uuid.uuid4().hex})
+    line = FIRST + half_duplex_station(url, 1) + half_duplex_station(url, 2)
+    assert await plant.reload_with(line)
+    a, b, s1, s2 = (plant.unit(name) for name in ("a", "b", "s1", "s2"))
+    master = s1.driver.line
+    assert s2.driver.line is master and master in gw.runners
+    async with connect(gw.port) as client:
+        await ready(client, 11)
+        await ready(client, 12)
+        assert await plant.reload_with(line.replace("station = 2\n", "station = 2\nstale_after = 9.0\n"))
+        new_s1, new_s2 = plant.unit("s1"), plant.unit("s2")
+        assert new_s1 is not s1 and new_s2 is not s2 and new_s2.stale_after == 9.0
+        assert new_s1.driver.line is new_s2.driver.line is not master
+        assert master not in gw.runners and not master.connected  # the old master stopped, its port closed
+        assert sum(runner is new_s1.driver.line for runner in gw.runners) == 1
+        await ready(client, 11)
+        await ready(client, 12)
+    assert plant.unit("a") is a and plant.unit("b") is b
