@@ -334,14 +334,14 @@ class Gateway:
         changes = line_changes(self.config.link, config.link)
         new_lines = lines_of(config.link)
         try:  # everything that can fail, before anything changes
-            started = {port: LineRun.build(new_lines[port]) for port in changes.started}
+            started = {key: LineRun.build(new_lines[key]) for key in changes.started}
             tls = _tls_options(config.modbus.tls) if config.modbus.tls is not None else None
         except (GatewayError, OSError, ssl.SSLError) as exc:
             self._reload_failed(str(exc))
             return False
-        old, stopping = self.config, [self.lines[port] for port in changes.stopped]
+        old, stopping = self.config, [self.lines[key] for key in changes.stopped]
         self.config = config
-        self.lines = {port: self.lines[port] if port in changes.kept else started[port] for port in new_lines}
+        self.lines = {key: self.lines[key] if key in changes.kept else started[key] for key in new_lines}
         self._index_units()  # requests for a unit that stops get 0x0A from now on; a new one's, 0x0B till it is up
         self._apply_settings(config, tls)
         self._stopping = stopping
@@ -349,9 +349,10 @@ class Gateway:
             await asyncio.gather(*(line.stop() for line in stopping))
         finally:
             self._stopping = []
+        self._rebuild([key for key in changes.started if key in changes.stopped])
         if self._group is not None:
-            for line in started.values():
-                line.start(self._group)
+            for key in changes.started:
+                self.lines[key].start(self._group)
         needed = restart_needed(old, config)
         status = self.config_status
         status.sha256, status.loaded_at, status.restart_needed = sha256, time.time(), tuple(needed)
@@ -362,6 +363,17 @@ class Gateway:
         for setting in needed:
             log.warning("reload: %s: a restart is needed to apply it", setting)
         return True
+
+    def _rebuild(self, keys: Sequence[str]) -> None:
+        """Build again the lines that replace a line just stopped on the same port: what the old one
+        stored while it stopped (a target link's ``persist`` file) is what the new one loads."""
+        for key in keys:
+            try:
+                self.lines[key] = LineRun.build(self.lines[key].links)
+            except (GatewayError, OSError) as exc:  # built a moment ago: the file changed under us
+                log.error("reload: line %s: built again after its old links stopped, it failed (%s): it runs as "
+                          "built before they stopped", key, exc)
+        self._index_units()
 
     def _apply_settings(self, config: GatewayConfig, tls: dict[str, Any] | None) -> None:
         """What the running listeners and the log take at once (``gateway.reload.LIVE_KEYS``)."""
