@@ -10,38 +10,17 @@ option to use instead.
 from __future__ import annotations
 
 import os
-import re
 import select
 import socket
 import subprocess
-from collections.abc import Iterator
 from pathlib import Path
 
-import pytest
 from cli_support import CLI, TIMEOUT, cli, fails, ok_json, start_simulator, stop
+from test_cli import free_port, pty_slc150  # noqa: F401 (a fixture)
 
 #: An SLC 150's reply to "read 8 bytes at 00A3" (its device type 15H and FRN 47), the simulator's
 #: answer to the request below (the frame of test_cli.test_simulate_stops_on_sigterm_with_a_client_connected)
 PROBE_REQUEST, PROBE_REPLY_START = b"#010800A3\r", b":021FFE1547"
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-    return port
-
-
-@pytest.fixture
-def pty_slc150() -> Iterator[str]:
-    """Path of a pseudo-terminal with a simulated SLC 150 behind it (``simulate --pty``)."""
-    process, line = start_simulator("slc150", "--pty", "--no-ladder")
-    try:
-        match = re.fullmatch(r"simulated slc150 on (/dev/\S+)", line)
-        assert match, line
-        yield match.group(1)
-    finally:
-        stop(process)
 
 
 def link_config(tmp_path: Path, port: str, head: str = "") -> Path:
@@ -50,7 +29,9 @@ def link_config(tmp_path: Path, port: str, head: str = "") -> Path:
     return config
 
 
-def test_a_port_outside_dev_is_a_serial_port_for_check_config_and_probe(pty_slc150: str, tmp_path: Path) -> None:
+def test_a_port_outside_dev_is_a_serial_port_for_check_config_and_probe(
+    pty_slc150: str, tmp_path: Path  # noqa: F811 (the fixture imported above)
+) -> None:
     """As socat's ``link=/tmp/ttyV0`` makes it: a symlink to a pty, anywhere."""
     link = tmp_path / "ttyV0"
     link.symlink_to(pty_slc150)

@@ -21,15 +21,9 @@ from pathlib import Path
 
 import pytest
 from cli_support import CLI, cli, fails
+from test_cli import free_port
 
 PATH_UNAVAILABLE = 0x0A
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-    return port
 
 
 class ModbusSocket:
