@@ -35,7 +35,8 @@ log = logging.getLogger("gateway")
 def build_units(links: Sequence[LinkBase]) -> tuple[list[Unit[Any, Any]], list[LinkRunner]]:
     """The runtime of the ``[[link]]`` tables: their units (in file order) and the runners of their lines.
 
-    Each kind builds all of its links at once (links that share a line share its runner).
+    Each kind builds all of its links among ``links`` at once (links that share a line share its runner);
+    the Gateway passes the links of one line (``LineRun``).
     """
     by_name: dict[str, Unit[Any, Any]] = {}
     runners: list[LinkRunner] = []
