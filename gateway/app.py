@@ -219,6 +219,7 @@ class Gateway:
         self._started = asyncio.Event()
         self._reloader: asyncio.Task[None] | None = None
         self._stopping: list[LineRun] = []
+        self._reload_lock = asyncio.Lock()
         self._reload_again = False
 
     def _index_units(self) -> None:
@@ -315,12 +316,13 @@ class Gateway:
         if self.source is None:
             log.warning("reload: this gateway was not started from a config file: nothing to read")
             return False
-        try:
-            loaded = self.source.load()
-        except GatewayError as exc:
-            self._reload_failed(str(exc))
-            return False
-        return await self.apply(loaded.config, loaded.sha256)
+        async with self._reload_lock:  # one reload at a time, each from the config the last one left
+            try:
+                loaded = self.source.load()
+            except GatewayError as exc:
+                self._reload_failed(str(exc))
+                return False
+            return await self.apply(loaded.config, loaded.sha256)
 
     def _reload_failed(self, reason: str) -> None:
         status = self.config_status

@@ -272,3 +272,27 @@ async def test_a_change_to_one_station_restarts_its_half_duplex_line_whole(plant
         await ready(client, 11)
         await ready(client, 12)
     assert plant.unit("a") is a and plant.unit("b") is b
+
+
+async def test_signals_during_a_reload_make_one_more_reload_after_it(plant: Plant) -> None:
+    """SIGHUP calls ``request_reload``.  Signals before a reload reads the file are that reload;
+    signals while it runs make one more after it (which reads the file as it is by then), never two
+    reloads at once."""
+    gw = plant.gw
+    b = plant.unit("b")
+    for _ in range(3):
+        gw.request_reload()
+    await until(lambda: gw.config_status.reloads == 1)
+    async with connect(gw.port) as client:
+        write = asyncio.create_task(client.write_register(1, 5555, device_id=B))  # 0.2 s on b's line
+        await until(lambda: b.write_requests == 1)
+        plant.file.write_text(FIRST.replace("write_timeout = 5.0", "write_timeout = 4.0"))
+        gw.request_reload()
+        await until(lambda: plant.unit("b") is not b)  # b's old line is stopping: its write runs first
+        assert not write.done()
+        gw.request_reload()
+        gw.request_reload()
+        assert exception_code(await write) is None
+    await until(lambda: gw.config_status.reloads == 3, 10)
+    await asyncio.sleep(0.3)
+    assert gw.config_status.reloads == 3 and gw.config_status.reload_failures == 0
