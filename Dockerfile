@@ -69,6 +69,7 @@ HEALTHCHECK --interval=30s --timeout=5s --start-period=10s --retries=3 \
     CMD ["python", "-m", "gateway.healthcheck", "127.0.0.1:5020", "1"]
 
 # SIGTERM (docker stop) stops the gateway cleanly: requests in flight finish, links close, exit 0.
+# SIGHUP (docker kill -s HUP) re-reads the config file without a restart (docs/guide/reload.md).
 STOPSIGNAL SIGTERM
 ENTRYPOINT ["slc-gateway"]
 CMD ["run", "/etc/slc-gateway/gateway.toml"]

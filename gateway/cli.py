@@ -1,6 +1,6 @@
 """Command-line interface of slc-gateway.
 
-Commands: run, check-config, export-tags, simulate, probe, read, write, mode, upload, download.
+Commands: run, reload, check-config, export-tags, simulate, probe, read, write, mode, upload, download.
 
 Exit status 0 on success; 1 with a one-line reason on stderr on any failure; 2 for usage errors.
 No protocol logic lives here: the commands call the drivers, the simulators and the app.
@@ -12,18 +12,23 @@ import argparse
 import asyncio
 import contextlib
 import logging
+import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from gateway import __version__
 from gateway.errors import GatewayError
 from gateway.kinds import LinkKind, kind_names, link_kinds
 from gateway.sim import model_names
 from gateway.sim.models import sim_models
+
+if TYPE_CHECKING:
+    from gateway.config import GatewayConfig
 
 __all__ = ["main"]
 
@@ -79,6 +84,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--metrics-listen", metavar="HOST:PORT",
         help="serve /metrics, /healthz and the status page here instead of the config's [metrics] listen",
     )
+    p.add_argument("--pid-file", type=Path, metavar="FILE",
+                   help="write the process id to FILE while running (for slc-gateway reload --pid-file FILE)")
+
+    p = sub.add_parser("reload", help="make a running gateway re-read its config file (sends it SIGHUP)")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--pid-file", type=Path, metavar="FILE", help="the file given to run --pid-file")
+    which.add_argument("--pid", type=int, metavar="PID", help="the gateway's process id")
 
     p = sub.add_parser("check-config", help="validate a config file, print the resolved config and Modbus map")
     p.add_argument("config", type=Path)
@@ -92,10 +104,14 @@ def build_parser() -> argparse.ArgumentParser:
                    "kepware with several units: a directory, one file unit-N.csv per unit (a Kepware device)")
     p.add_argument("--unit", type=int, metavar="N", help="only the links of Modbus unit N (a Kepware device)")
 
-    p = sub.add_parser("simulate", help="serve a simulated controller over TCP or a pseudo-terminal")
+    p = sub.add_parser("simulate", help="serve a simulated controller over TCP, a pseudo-terminal or a serial port")
     p.add_argument("model", choices=model_names())
-    p.add_argument("--listen", default="127.0.0.1:7001", help="host:port (default 127.0.0.1:7001)")
-    p.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal instead; prints its path")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--listen", default="127.0.0.1:7001", help="host:port (default 127.0.0.1:7001)")
+    where.add_argument("--pty", action="store_true", help="serve on a new pseudo-terminal instead; prints its path")
+    where.add_argument("--port", metavar="PATH",
+                       help="serve on this existing tty instead: a serial port (/dev/ttyUSB1) or one end of a "
+                            "pty pair (/dev/pts/N, a socat link such as /tmp/ttyV1)")
     p.add_argument("--garble", type=int, default=0, metavar="N", help="corrupt 1 in N replies")
     p.add_argument("--drop", type=int, default=0, metavar="N", help="drop 1 in N replies")
     p.add_argument("--delay", type=float, default=0.0, metavar="S", help="add S seconds to every reply")
@@ -151,7 +167,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     command: str = args.command
     if command == "run":
         _setup_logging(max(args.verbose, 1))
-    elif command in ("simulate", "check-config", "export-tags"):
+    elif command in ("simulate", "check-config", "export-tags", "reload"):
         _setup_logging(args.verbose)
     else:
         # One-shot tools report a failure once, as the one-line reason below (the link's "down"
@@ -159,7 +175,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         _setup_logging(args.verbose, logging.ERROR)
     try:
         if command == "run":
-            return _run(args.config, args.trace, args.listen, args.metrics_listen)
+            return _run(args.config, args.trace, args.listen, args.metrics_listen, args.pid_file)
+        if command == "reload":
+            return _reload(args.pid_file, args.pid)
         if command == "check-config":
             return _check_config(args.config)
         if command == "export-tags":
@@ -190,25 +208,80 @@ def _checked_listen(option: str, listen: str) -> str:
 
 
 def _run(config_path: Path | None, trace: Path | None = None, listen: str | None = None,
-         metrics_listen: str | None = None) -> int:
-    from gateway.app import run_gateway
-    from gateway.config import MetricsConfig, load_config
+         metrics_listen: str | None = None, pid_file: Path | None = None) -> int:
+    from gateway.app import LISTEN_FLAGS, run_gateway
+    from gateway.reload import ConfigSource
 
-    config = load_config(config_path or DEMO_CONFIG)
     if listen is not None:
-        listen = _checked_listen("--listen", listen)
+        listen = _checked_listen(LISTEN_FLAGS["modbus"], listen)
+    if metrics_listen is not None:
+        metrics_listen = _checked_listen(LISTEN_FLAGS["metrics"], metrics_listen)
+    source = ConfigSource(config_path or DEMO_CONFIG, partial(_overrides, listen, metrics_listen, trace))
+    loaded = source.load()
+    if trace is not None:
+        log.info("recording every byte on every link to %s", trace)
+    if config_path is None:
+        log.info("no config file given: running the demo (%s) against the built-in simulators", DEMO_CONFIG)
+    if pid_file is None:
+        return asyncio.run(run_gateway(loaded, source))
+    try:
+        pid_file.write_text(f"{os.getpid()}\n", encoding="ascii")
+    except OSError as exc:
+        raise GatewayError(f"--pid-file {pid_file}: cannot write it: {exc.strerror or exc}") from None
+    try:
+        return asyncio.run(run_gateway(loaded, source))
+    finally:
+        with contextlib.suppress(OSError):
+            pid_file.unlink()
+
+
+def _overrides(listen: str | None, metrics_listen: str | None, trace: Path | None,
+               config: GatewayConfig) -> GatewayConfig:
+    """What ``run``'s options change in the config file (at start, and at every reload)."""
+    from gateway.config import MetricsConfig
+
+    if listen is not None:
         config = config.model_copy(update={"modbus": config.modbus.model_copy(update={"listen": listen})})
     if metrics_listen is not None:
-        metrics_listen = _checked_listen("--metrics-listen", metrics_listen)
         metrics = config.metrics or MetricsConfig()
         config = config.model_copy(update={"metrics": metrics.model_copy(update={"listen": metrics_listen})})
     if trace is not None:
         links = tuple(link.model_copy(update={"trace": trace}) for link in config.link)
         config = config.model_copy(update={"link": links})
-        log.info("recording every byte on every link to %s", trace)
-    if config_path is None:
-        log.info("no config file given: running the demo (%s) against the built-in simulators", DEMO_CONFIG)
-    return asyncio.run(run_gateway(config))
+    return config
+
+
+def _reload(pid_file: Path | None, pid: int | None) -> int:
+    """``slc-gateway reload``: SIGHUP to the gateway of ``pid_file`` (or ``pid``), once it is one."""
+    if pid_file is not None:
+        try:
+            text = pid_file.read_text(encoding="ascii").strip()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise GatewayError(f"cannot read {pid_file}: {getattr(exc, 'strerror', None) or exc}: is the gateway "
+                               "running with run --pid-file?") from None
+        if not text.isdigit():
+            raise GatewayError(f"{pid_file} holds {text[:20]!r}, not a process id")
+        pid = int(text)
+    assert pid is not None
+    hangup = getattr(signal, "SIGHUP", None)
+    if hangup is None:
+        raise GatewayError("no SIGHUP on this system: restart the gateway to load its config")
+    cmdline = Path(f"/proc/{pid}/cmdline")
+    if cmdline.parent.parent.is_dir():  # Linux: never send SIGHUP (which ends most programs) to another one
+        try:
+            words = cmdline.read_bytes().split(b"\0")
+        except OSError:
+            raise GatewayError(f"no process {pid}: is the gateway running?") from None
+        if not any(b"gateway" in word for word in words[:3]) or b"run" not in words:
+            shown = " ".join(w.decode(errors="replace") for w in words if w)[:80]
+            raise GatewayError(f"process {pid} is not slc-gateway run ({shown}): nothing sent")
+    try:
+        os.kill(pid, hangup)
+    except ProcessLookupError:
+        raise GatewayError(f"no process {pid}: is the gateway running?") from None
+    print(f"slc-gateway reload: asked process {pid} to reload its config file: its log says what changed "
+          "(or why the file did not load: then nothing changed)", file=sys.stderr)
+    return 0
 
 
 def _check_config(path: Path) -> int:
@@ -276,7 +349,7 @@ def _export_kepware(path: Path, tags: Sequence[Any], output: Path | None) -> int
 async def _simulate(args: argparse.Namespace) -> int:
     from gateway.config import parse_listen
     from gateway.sim import create_simulator
-    from gateway.sim.serve import close_tcp, serve_pty, serve_tcp
+    from gateway.sim.serve import close_tcp, serve_pty, serve_tcp, serve_tty
 
     model = sim_models()[args.model]
     options: dict[str, str] = {"seed": str(args.seed)}
@@ -311,8 +384,11 @@ async def _simulate(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError):
             loop.add_signal_handler(sig, stop.set)
-    if args.pty:
-        pty = serve_pty(device, settings=paced, turnaround=args.turnaround)
+    if args.pty or args.port:
+        if args.port:
+            pty = serve_tty(device, args.port, settings, settings=paced, turnaround=args.turnaround)
+        else:
+            pty = serve_pty(device, settings=paced, turnaround=args.turnaround)
         print(f"simulated {args.model} on {pty.path}", flush=True)
         try:
             await stop.wait()

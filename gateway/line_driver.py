@@ -311,7 +311,8 @@ class LineDriver(LinkHealth):
             self._stream = None
             self._connected.clear()
             self._fail_pending(LinkDown(f"link {self.name} is down: {self.last_error or 'closed'}"))
-            if not self._closing:
+            task = asyncio.current_task()
+            if not self._closing and not (task is not None and task.cancelling()):  # stopped, not down
                 self._report(False, self.last_error or "connection lost")
             try:
                 # Not wrapped in suppress(CancelledError): a cancellation of this task must go on.

@@ -40,6 +40,11 @@ Metrics (every name starts with ``slc_gateway_``)::
       modbus_connections_dropped_total        counter  closed by the server: bad framing, idle, TLS failure
       modbus_connections_evicted_total        counter  stalled connections closed to make room (also dropped)
       modbus_tls_handshakes                   gauge    TLS handshakes in progress now
+    the config file (``gateway.reload``)
+      config_info{sha256}           gauge    1, labelled with the first 12 hex digits of the file's SHA-256
+      config_loaded_timestamp_seconds gauge  Unix time the config served was loaded (at start or reload)
+      config_reloads_total{result}  counter  result = ok | failed (a file that did not load changed nothing)
+      config_restart_needed         gauge    settings changed in the file that take a restart to apply
 
 ``/healthz`` answers 200 when every link is up and its fast-class data is younger than its
 ``stale_after``, 503 otherwise, with a JSON body naming each link's state (no paths, no
@@ -78,6 +83,7 @@ from gateway.status import StatusPage, data_age, public_error
 if TYPE_CHECKING:
     from gateway.config.link import LinkBase
     from gateway.modbus.server import ModbusTcpServer
+    from gateway.reload import ConfigStatus
     from gateway.unit import Unit
 
 __all__ = ["GatewayView", "MetricsServer", "health"]
@@ -131,18 +137,22 @@ def _gauge(name: str, documentation: str, labels: Sequence[str]) -> GaugeMetricF
 class _GatewayCollector:
     """Reads the gateway's links and servers at scrape time (runs on the event loop thread)."""
 
-    def __init__(self, gateway: GatewayView) -> None:
+    def __init__(self, gateway: GatewayView, config: ConfigStatus | None = None) -> None:
         self._gateway = gateway
+        self._config = config
 
     def describe(self) -> Iterator[Metric]:
         # The families without samples: lets the registry check names at registration.
         yield from self._link_families((), 0.0)
         yield from self._server_families(())
+        yield from _config_families(None)
 
     def collect(self) -> Iterator[Metric]:
         # Called by generate_latest() on the event loop thread, where the counters live.
         yield from self._link_families(self._gateway.units, asyncio.get_running_loop().time())
         yield from self._server_families(self._gateway.servers)
+        if self._config is not None:
+            yield from _config_families(self._config)
 
     @staticmethod
     def _link_families(units: Sequence[Unit[Any, Any]], now: float) -> list[Metric]:
@@ -238,6 +248,23 @@ class _GatewayCollector:
 
 _METRIC_KEY: Final = re.compile(r"[a-z][a-z0-9_]{0,62}")
 _warned_keys: set[tuple[str, str]] = set()
+
+
+def _config_families(config: ConfigStatus | None) -> list[Metric]:
+    """The config file served and its reloads (``gateway.reload``)."""
+    info = _gauge("config_info", "The config file served: the first 12 hex digits of its SHA-256 (always 1).",
+                  ["sha256"])
+    loaded = _gauge("config_loaded_timestamp_seconds", "Unix time the config served was loaded.", [])
+    reloads = _counter("config_reloads", "Reloads of the config file (SIGHUP), by result.", ["result"])
+    restart = _gauge("config_restart_needed", "Settings changed in the file that take a restart to apply.", [])
+    if config is not None:
+        if config.short_sha256 is not None:
+            info.add_metric([config.short_sha256], 1)
+        loaded.add_metric([], config.loaded_at)
+        reloads.add_metric(["ok"], config.reloads)
+        reloads.add_metric(["failed"], config.reload_failures)
+        restart.add_metric([], len(config.restart_needed))
+    return [info, loaded, reloads, restart]
 
 
 def _driver_family(key: str, link: Sequence[str]) -> Metric:
@@ -353,19 +380,28 @@ class MetricsServer:
         max_connections: int = _MAX_CONNECTIONS,
         log_interval: float = 60.0,
         links: Sequence[LinkBase] = (),
+        config: ConfigStatus | None = None,
     ) -> None:
         self.gateway = gateway
-        self.status = StatusPage(gateway, links)
+        self.status = StatusPage(gateway, links, config)
         self.host, self._requested_port = parse_listen(listen)
         self.request_timeout = request_timeout
-        self.allow = None if allow is None else tuple(allow)
-        self.max_connections = max_connections
         self.refused = 0
         self.repeat_log = RepeatLog(log, log_interval)
+        self.reconfigure(allow=allow, max_connections=max_connections, log_interval=log_interval, links=links)
         self.registry = CollectorRegistry(auto_describe=False)
-        self.registry.register(_GatewayCollector(gateway))
+        self.registry.register(_GatewayCollector(gateway, config))
         self._server: asyncio.Server | None = None
         self._handlers: set[asyncio.Task[None]] = set()
+
+    def reconfigure(self, *, allow: Sequence[IPNetwork] | None, max_connections: int, log_interval: float,
+                    links: Sequence[LinkBase]) -> None:
+        """Settings for the requests from now on (a config reload): the ``allow`` list, the connection
+        cap, and the links the status page describes."""
+        self.allow = None if allow is None else tuple(allow)
+        self.max_connections = max_connections
+        self.repeat_log.interval = log_interval
+        self.status.set_links(links)
 
     @property
     def port(self) -> int:

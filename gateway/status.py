@@ -9,7 +9,9 @@ Read-only: nothing here writes to a controller; writes stay on Modbus, where the
   and since when (the time in that state: :meth:`StatusPage.state`), data age (the oldest
   fast-class value), transactions, errors, retries, the line's quality (``line``: check errors,
   NAKs, timeouts, retransmissions, resyncs; null where the protocol has no such thing:
-  :class:`gateway.link_health.LineQuality`), the last error and its time.
+  :class:`gateway.link_health.LineQuality`), the last error and its time;
+  ``config``: the config file served (the first 12 hex digits of its SHA-256, when it was loaded,
+  reloads done and failed, the last failure, what changed but takes a restart: ``gateway.reload``).
 * ``GET /api/units/{unit}/{table}?start=&count=``: ``count`` (1..:data:`MAX_COUNT`) values of
   ``table`` (holding, input, coil, discrete) from ``start``, each with its age and state.  The
   state is the Modbus answer a read of that one address gets now (the unit's own rule, the one
@@ -43,6 +45,7 @@ from gateway.transport import describe_url
 if TYPE_CHECKING:
     from gateway.config.link import LinkBase
     from gateway.modbus.server import ModbusTcpServer
+    from gateway.reload import ConfigStatus
     from gateway.unit import Unit
 
 __all__ = ["LINE_QUALITY", "MAX_COUNT", "StatusPage", "StatusView", "data_age", "line_quality", "public_error"]
@@ -122,11 +125,16 @@ class StatusPage:
     the register view's tag names (without them the page shows neither).
     """
 
-    def __init__(self, gateway: StatusView, links: Sequence[LinkBase] = ()) -> None:
+    def __init__(self, gateway: StatusView, links: Sequence[LinkBase] = (), config: ConfigStatus | None = None) -> None:
         self.gateway = gateway
-        self._links = {link.name: link for link in links}
+        self.config = config
         self._files = {path: resources.files("gateway").joinpath("web", name).read_bytes()
                        for path, (name, _) in _FILES.items()}
+        self.set_links(links)
+
+    def set_links(self, links: Sequence[LinkBase]) -> None:
+        """The ``[[link]]`` tables of the units (at start, and after a config reload)."""
+        self._links = {link.name: link for link in links}
         self._tags: dict[str, dict[tuple[Table, int], Tag]] = {}
         #: per unit: the state it was in at the last answer, and since when it has been fresh again
         #: after being stale (loop time), as seen by this page (:meth:`state`)
@@ -235,8 +243,11 @@ class StatusPage:
             "requests": sum(server.counters.requests.values()),
             "exceptions": sum(server.counters.exceptions.values()),
         } for server in self.gateway.servers]
-        return {"version": __version__, "time": round(wall, 3), "links": rows, "up": up_count,
-                "servers": servers}
+        document: dict[str, object] = {"version": __version__, "time": round(wall, 3), "links": rows,
+                                       "up": up_count, "servers": servers}
+        if self.config is not None:
+            document["config"] = self.config.document()
+        return document
 
     # --- /api/units/{unit}/{table} --------------------------------------------------------
 

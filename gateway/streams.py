@@ -12,7 +12,11 @@ from collections.abc import Callable
 
 from gateway.frozen import frozen
 
-__all__ = ["ByteStream", "SerialSettings"]
+__all__ = ["MISSING_PORT_HINT", "ByteStream", "SerialSettings"]
+
+
+#: What to do about a serial port path with nothing behind it (``check-config``'s warning, the link's error).
+MISSING_PORT_HINT = "check the name (ls /dev/serial/by-id/ lists USB adapters)"
 
 
 @frozen

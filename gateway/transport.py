@@ -36,7 +36,7 @@ from urllib.parse import urlsplit
 from gateway.errors import LinkDown
 from gateway.frozen import frozen
 from gateway.logutil import redact_url
-from gateway.streams import ByteStream, SerialSettings
+from gateway.streams import MISSING_PORT_HINT, ByteStream, SerialSettings
 
 __all__ = [
     "ByteStream",
@@ -400,8 +400,15 @@ async def _open(url: str, settings: SerialSettings, connect_timeout: float) -> B
             raise LinkDown(f"{url}: {exc.strerror or exc}") from exc
         return stream
     if scheme in ("", "rfc2217", "file") or url.upper().startswith("COM"):
+        _check_path(url)
         return await _open_serial(url, settings, connect_timeout)
     raise LinkDown(f"{url}: unsupported port URL (use /dev/tty..., socket://, rfc2217:// or sim://)")
+
+
+def _check_path(url: str) -> None:
+    """``LinkDown`` for a port path with nothing behind it (a stat, not an open: it cannot block)."""
+    if url.startswith("/") and not os.path.exists(url):
+        raise LinkDown(f"{url}: no such serial port (nothing at this path): {MISSING_PORT_HINT}")
 
 
 async def _open_serial(url: str, settings: SerialSettings, connect_timeout: float) -> ByteStream:

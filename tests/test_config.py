@@ -392,6 +392,8 @@ def test_parse_listen_rejects(text: str, message: str) -> None:
     [
         "/dev/ttyUSB0",
         "/dev/serial/by-id/usb-FTDI_FT232R-if00-port0",
+        "/tmp/ttyV0",  # a socat pty's link: any absolute path
+        "/home/plant/ports/press",
         "COM3",
         "com12",
         "\\\\.\\COM10",
@@ -499,7 +501,15 @@ BAD = [
         ASCII_LINK.replace('"sim://slc150"', '"ttyUSB0"'),
         "(link[0]).port",
         "port",
-        "expected a serial device",
+        '"ttyUSB0" (did you mean "/dev/ttyUSB0"?): expected a serial port by its absolute path (/dev/ttyUSB0, '
+        "/tmp/ttyV0) or COM3, socket://host:port, rfc2217://host:port or sim://slc150 | sim://slc100",
+    ),
+    (
+        "port-relative",
+        ASCII_LINK.replace('"sim://slc150"', '"tmp/ttyV0"'),
+        "(link[0]).port",
+        "port",
+        '"tmp/ttyV0": expected a serial port by its absolute path',
     ),
     (
         "port-sim-model",
@@ -1379,7 +1389,23 @@ def test_shipped_gateway_toml_binds_metrics_to_loopback() -> None:
     config = parse_config((HERE.parent / "config" / "gateway.toml").read_text(), base_dir=HERE.parent / "config")
     assert config.metrics is not None
     assert ipaddress.ip_address(config.metrics.address[0]).is_loopback
-    assert config.warnings() == []
+    # its port is the usual USB adapter's, which this machine need not have
+    ports = [link.port for link in config.link]
+    assert [w for w in config.warnings() if not any(f"port {port} does not exist" in w for port in ports)] == []
+
+
+def test_a_missing_serial_port_is_a_warning(tmp_path: Path) -> None:
+    """A port path that does not exist loads (the link keeps trying to open it), with a warning;
+    an existing path anywhere (a socat pty's link in /tmp) loads without one."""
+    missing = tmp_path / "ttyV0"
+    config = parse_config(ASCII_LINK.replace('"sim://slc150"', f'"{missing}"'))
+    assert config.link[0].port == str(missing)
+    assert config.warnings() == [
+        f'link "press-1": port {missing} does not exist (yet): run keeps trying to open it until it appears; '
+        "check the name (ls /dev/serial/by-id/ lists USB adapters)"
+    ]
+    missing.symlink_to("/dev/null")  # a symlink to a device, as socat's link=/tmp/ttyV0 makes
+    assert parse_config(ASCII_LINK.replace('"sim://slc150"', f'"{missing}"')).warnings() == []
 
 
 def test_describe_redacts_credentials_in_port_urls() -> None:

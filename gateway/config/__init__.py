@@ -36,7 +36,7 @@ from __future__ import annotations
 from gateway.config._common import parse_listen
 from gateway.config.link import LinkBase, SerialDefaults, WritableRange, WritableTable
 from gateway.config.links import LinkConfig, LinkProtocol, link_models, protocol_defaults, protocol_names
-from gateway.config.loader import MAX_CONFIG_BYTES, load_config, parse_config
+from gateway.config.loader import MAX_CONFIG_BYTES, load_config, load_config_file, parse_config
 from gateway.config.schema import GatewayConfig, LoggingConfig, MetricsConfig, ModbusConfig, TlsConfig
 
 __all__ = [
@@ -54,6 +54,7 @@ __all__ = [
     "WritableTable",
     "link_models",
     "load_config",
+    "load_config_file",
     "parse_config",
     "parse_listen",
     "protocol_defaults",

@@ -23,11 +23,13 @@ __all__ = [
     "array",
     "check_port_url",
     "is_host",
+    "is_port_path",
     "listen_validator",
     "optional_listen_validator",
     "optional_output_path",
     "parse_listen",
     "parse_networks",
+    "port_key",
     "resolve_path",
     "show",
     "sim_model",
@@ -39,6 +41,8 @@ _HOST_LABEL_RE = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?")
 _PORT_RE = re.compile(r"[0-9]{1,5}")
 _COM_RE = re.compile(r"(?:\\\\\.\\)?COM[1-9][0-9]{0,2}", re.IGNORECASE)
 _SIM_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]{0,39}")
+#: ``ttyUSB0``: a device's name without its directory (a port given so gets a "did you mean /dev/...")
+_DEVICE_NAME_RE = re.compile(r"tty[A-Za-z0-9_.-]{1,40}")
 
 
 class Model(BaseModel):
@@ -161,9 +165,12 @@ def check_port_url(text: str, sim_models: tuple[str, ...] = ()) -> None:
     is checked by ``gateway.config.links``, which knows every link kind.
     """
     simulators = " or ".join(f"sim://{name}" for name in sim_models) or "sim://model"
-    if text.startswith("/dev/"):
-        if len(text) == len("/dev/") or any(c.isspace() or c == "\0" for c in text):
-            raise ValueError(f"{show(text)} is not a device path")
+    if text.startswith("/"):
+        # Any absolute path: a device under /dev, a socat pty, a symlink in /tmp.  Whether it
+        # exists is not a rule of the file: a missing one is a warning (GatewayConfig.warnings)
+        # and the link keeps trying to open it.
+        if text.endswith("/") or any(c.isspace() or c == "\0" for c in text):
+            raise ValueError(f"{show(text)} is not a path to a serial port")
         return
     if _COM_RE.fullmatch(text):
         return
@@ -187,10 +194,26 @@ def check_port_url(text: str, sim_models: tuple[str, ...] = ()) -> None:
             except ValueError:
                 raise ValueError(f"{show(text)}: the simulator options are not option=value&...") from None
         return
+    hint = f" (did you mean {show('/dev/' + text)}?)" if _DEVICE_NAME_RE.fullmatch(text) else ""
     raise ValueError(
-        f"{show(text)}: expected a serial device (/dev/ttyUSB0, COM3), socket://host:port, "
-        f"rfc2217://host:port or {simulators.replace(' or ', ' | ')}"
+        f"{show(text)}{hint}: expected a serial port by its absolute path (/dev/ttyUSB0, /tmp/ttyV0) or COM3, "
+        f"socket://host:port, rfc2217://host:port or {simulators.replace(' or ', ' | ')}"
     )
+
+
+def is_port_path(port: str) -> bool:
+    """Whether a link's ``port`` is a path (a serial port or a pty), not a URL or a COM port."""
+    return port.startswith("/")
+
+
+def port_key(port: str) -> str:
+    """The same key for ports that name the same line: a local device is case-sensitive, a URL's
+    scheme and host and a COM port's name are not."""
+    if "://" in port:
+        scheme, rest = port.split("://", 1)
+        host, _, tail = rest.partition("/")
+        return f"{scheme.lower()}://{host.lower()}/{tail}"
+    return port.upper() if port.upper().startswith("COM") else port
 
 
 def sim_model(port: str) -> str | None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import re
 import stat
 import tomllib
@@ -11,7 +12,7 @@ from gateway.config.reporting import validate
 from gateway.config.schema import GatewayConfig
 from gateway.errors import ConfigError
 
-__all__ = ["MAX_CONFIG_BYTES", "load_config", "parse_config"]
+__all__ = ["MAX_CONFIG_BYTES", "load_config", "load_config_file", "parse_config"]
 
 MAX_CONFIG_BYTES = 1 << 20
 """A config file larger than this is refused (it is not a config file)."""
@@ -42,6 +43,12 @@ def parse_config(text: str, source: str = "<string>", *, base_dir: str | Path | 
 
 def load_config(path: str | Path) -> GatewayConfig:
     """Read, parse and validate the config file at ``path``. Raises :class:`ConfigError`."""
+    return load_config_file(path)[0]
+
+
+def load_config_file(path: str | Path) -> tuple[GatewayConfig, str]:
+    """:func:`load_config`, and the SHA-256 of the file's bytes as read (hex): which file a running
+    gateway serves, whatever its name and time stamps say."""
     path = Path(path)
     source = str(path)
     try:
@@ -63,4 +70,4 @@ def load_config(path: str | Path) -> GatewayConfig:
             f"{source}:{line}: not UTF-8 text (byte 0x{data[exc.start]:02X} at offset {exc.start}): "
             "is this a binary file?"
         ) from None
-    return parse_config(text, source, base_dir=path.absolute().parent)
+    return parse_config(text, source, base_dir=path.absolute().parent), hashlib.sha256(data).hexdigest()

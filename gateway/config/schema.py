@@ -8,6 +8,7 @@ puts them together into the discriminated union a link is validated as.
 from __future__ import annotations
 
 import ipaddress
+import os
 import ssl
 from ipaddress import IPv4Network, IPv6Network
 from pathlib import Path
@@ -19,6 +20,7 @@ from gateway.config._common import (
     Loc,
     Model,
     Problems,
+    is_port_path,
     listen_validator,
     optional_listen_validator,
     parse_listen,
@@ -28,6 +30,7 @@ from gateway.config._common import (
 )
 from gateway.config.links import LinkConfig, TaggedLink
 from gateway.config.writer import table_lines
+from gateway.streams import MISSING_PORT_HINT
 
 __all__ = ["GatewayConfig", "LoggingConfig", "MetricsConfig", "ModbusConfig", "Rights", "TlsConfig"]
 
@@ -298,6 +301,12 @@ class GatewayConfig(Model):
                     f"(listen = {show(self.modbus.listen)}) serves anyone who can reach it without one: "
                     'set listen = "" for TLS-only operation (or "127.0.0.1:5020" to keep it for local '
                     "health checks only)"
+                )
+        for link in self.link:
+            if is_port_path(link.port) and not os.path.exists(link.port):
+                found.append(
+                    f"link {show(link.name)}: port {link.port} does not exist (yet): run keeps trying to open it "
+                    f"until it appears; {MISSING_PORT_HINT}"
                 )
         if self.metrics is not None and not self.metrics.allow and not _is_loopback(self.metrics.address[0]):
             found.append(

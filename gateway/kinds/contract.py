@@ -4,7 +4,9 @@ A kind is one package under ``gateway/kinds/`` that exports one ``KIND``; the re
 (:mod:`gateway.kinds`) maps protocol names to kinds.  Nothing outside a kind's package names its
 protocol: the app, the config, the CLI and the simulators ask the registry.
 
-The unit factory gets **every** ``[[link]]`` of its kind at once (``build(links)``) and returns
+The unit factory gets the ``[[link]]`` tables of its kind on one line at once (``build(links)``:
+the links whose ports name the same line, ``gateway.config._common.port_key``; the Gateway builds
+each line on its own so that a config reload can restart one line and keep the others) and returns
 the units and the *runners* (:class:`LinkRunner`: what owns a serial line and moves bytes).  A
 full-duplex kind returns one runner per unit (its driver); a kind whose controllers share one
 port (several ``[[link]]`` on one half-duplex line, polled by one master) returns one runner for
@@ -96,7 +98,7 @@ class LinkKind(Generic[C]):
 
     #: ``[[link]]`` of this kind (a LinkBase subclass with ``protocol: Literal["name"]``)
     config_model: type[C]
-    #: every link of this kind at once -> units and runners (see the module doc)
+    #: the links of this kind on one line at once -> units and runners (see the module doc)
     build: Callable[[Sequence[C]], Built]
     #: the read plan of one link (``check-config`` shows it without opening a port)
     plan: Callable[[C], Plan[Any, Any]]

@@ -138,25 +138,24 @@ class ModbusTcpServer(RequestHandler):
             raise ValueError("handshake_timeout must be positive and max_handshakes at least 1")
         super().__init__(backend, name)
         self.host = host
-        self.max_connections = max_connections
-        self.idle_timeout = idle_timeout
-        self.allow = None if allow is None else tuple(allow)
-        self.ssl_context = ssl_context
         self.max_in_flight_per_connection = max_in_flight_per_connection
-        self.frame_timeout = frame_timeout
-        self.handshake_timeout = handshake_timeout
-        self.roles = roles
         #: seconds a client may leave its replies unread (we stopped reading it) before it is dropped
         self.write_stall_timeout = write_stall_timeout
         self.repeat_log = RepeatLog(logger, log_interval)
-        self.admission = Admission(
-            name,
+        self.admission = Admission(name, max_connections=max_connections, repeat_log=self.repeat_log)
+        self.ssl_context = ssl_context
+        self.reconfigure(
             max_connections=max_connections,
-            max_per_address=max_connections_per_address,
-            max_handshakes=max_handshakes if ssl_context is not None else None,
-            allow=self.allow,
+            max_connections_per_address=max_connections_per_address,
+            idle_timeout=idle_timeout,
+            frame_timeout=frame_timeout,
+            allow=allow,
             loopback_reads=loopback_reads,
-            repeat_log=self.repeat_log,
+            log_interval=log_interval,
+            ssl_context=ssl_context,
+            handshake_timeout=handshake_timeout,
+            max_handshakes=max_handshakes,
+            roles=roles,
         )
         self._requested_port = port
         self._server: asyncio.Server | None = None
@@ -167,6 +166,41 @@ class ModbusTcpServer(RequestHandler):
         self._all_connections_closed: asyncio.Future[None] | None = None
         self._turn_budget = _FRAMES_PER_TURN
         self._turn_reset = False
+
+    def reconfigure(
+        self,
+        *,
+        max_connections: int,
+        max_connections_per_address: int | None,
+        idle_timeout: float | None,
+        frame_timeout: float | None,
+        allow: Sequence[IPNetwork] | None,
+        loopback_reads: bool,
+        log_interval: float,
+        ssl_context: ssl.SSLContext | None = None,
+        handshake_timeout: float = 5.0,
+        max_handshakes: int = 16,
+        roles: RolePolicy | None = None,
+    ) -> None:
+        """Settings for the connections accepted from now on (a config reload); the connections
+        open keep theirs, and stay.  A TLS listener takes a new ``ssl_context`` (renewed
+        certificates); a plain one stays plain."""
+        if (ssl_context is None) != (self.ssl_context is None):
+            raise ValueError(f"{self.name}: a listener cannot switch between plain TCP and TLS")
+        self.max_connections = max_connections
+        self.idle_timeout = idle_timeout
+        self.frame_timeout = frame_timeout
+        self.allow = None if allow is None else tuple(allow)
+        self.ssl_context = ssl_context
+        self.handshake_timeout = handshake_timeout
+        self.roles = roles
+        self.repeat_log.interval = log_interval
+        admission = self.admission
+        admission.max_connections = max_connections
+        admission.max_per_address = max_connections_per_address
+        admission.max_handshakes = max_handshakes if ssl_context is not None else None
+        admission.allow = self.allow
+        admission.loopback_reads = loopback_reads
 
     # -- lifecycle ---------------------------------------------------------------------
 

@@ -1,4 +1,4 @@
-"""Run a simulated controller in-process, on a TCP port or on a pseudo-terminal.
+"""Run a simulated controller in-process, on a TCP port, on a pseudo-terminal or on an existing tty.
 
 A simulated device is sans-I/O: ``receive(data, now) -> [Output(delay, data)]``.  This module
 moves its bytes, optionally through a *line model* that paces every character at the line's
@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import termios
 import tty
 import weakref
 from collections.abc import Callable, Sequence
@@ -24,7 +25,8 @@ from gateway.errors import GatewayError, LinkDown
 from gateway.frozen import frozen
 from gateway.streams import ByteStream, SerialSettings
 
-__all__ = ["LineModel", "Output", "SimDevice", "SimOutput", "SimStream", "close_tcp", "serve_pty", "serve_tcp"]
+__all__ = ["LineModel", "Output", "SimDevice", "SimOutput", "SimStream", "close_tcp", "serve_pty", "serve_tcp",
+           "serve_tty"]
 
 log = logging.getLogger(__name__)
 
@@ -304,13 +306,30 @@ async def close_tcp(server: asyncio.Server) -> None:
 
 
 class PtyServer:
-    """``device`` on a pseudo-terminal: a serial client opens ``path`` as if it were a port."""
+    """``device`` on a tty: a new pseudo-terminal (``port`` None: a serial client opens ``path`` as if
+    it were a port), or an existing one, ``port``: a serial port, or one end of a pty pair (socat's)."""
 
-    def __init__(self, device: SimDevice, settings: SerialSettings | None, turnaround: float) -> None:
-        self._master, slave = os.openpty()
-        tty.setraw(slave)
-        self.path = os.ttyname(slave)
-        self._slave = slave  # kept open so the pty survives clients closing and reopening it
+    def __init__(self, device: SimDevice, settings: SerialSettings | None, turnaround: float, *,
+                 port: str | None = None, line: SerialSettings | None = None) -> None:
+        self._slave: int | None = None
+        if port is None:
+            self._master, slave = os.openpty()
+            tty.setraw(slave)
+            self.path = os.ttyname(slave)
+            self._slave = slave  # kept open so the pty survives clients closing and reopening it
+        else:
+            try:
+                self._master = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+            except OSError as exc:
+                raise GatewayError(f"{port}: cannot open: {exc.strerror or exc}") from None
+            self.path = port
+            try:
+                tty.setraw(self._master)
+                if line is not None:
+                    _set_line(self._master, line)
+            except termios.error as exc:
+                os.close(self._master)
+                raise GatewayError(f"{port}: not a tty ({exc.args[-1]})") from None
         os.set_blocking(self._master, False)
         self._wire = _Wire(device, self._send, settings, turnaround)
         self._loop = asyncio.get_running_loop()
@@ -334,8 +353,33 @@ class PtyServer:
         self._loop.remove_reader(self._master)
         self._wire.close()
         os.close(self._master)
-        os.close(self._slave)
+        if self._slave is not None:
+            os.close(self._slave)
+
+
+def _set_line(fd: int, line: SerialSettings) -> None:
+    """Put ``line``'s speed and character format on the raw tty ``fd`` (a pseudo-terminal takes them
+    and ignores them; a serial port sends them)."""
+    attributes = termios.tcgetattr(fd)
+    cflag = attributes[2] & ~(termios.CSIZE | termios.PARENB | termios.PARODD | termios.CSTOPB)
+    cflag |= termios.CS7 if line.bytesize == 7 else termios.CS8
+    if line.parity != "N":
+        cflag |= termios.PARENB | (termios.PARODD if line.parity == "O" else 0)
+    if line.stopbits == 2:
+        cflag |= termios.CSTOPB
+    attributes[2] = cflag | termios.CLOCAL | termios.CREAD
+    speed = getattr(termios, f"B{line.baudrate}", None)
+    if speed is not None:
+        attributes[4] = attributes[5] = speed
+    termios.tcsetattr(fd, termios.TCSANOW, attributes)
 
 
 def serve_pty(device: SimDevice, *, settings: SerialSettings | None = None, turnaround: float = 0.0) -> PtyServer:
+    """``device`` on a new pseudo-terminal (its ``path``)."""
     return PtyServer(device, settings, turnaround)
+
+
+def serve_tty(device: SimDevice, port: str, line: SerialSettings, *, settings: SerialSettings | None = None,
+              turnaround: float = 0.0) -> PtyServer:
+    """``device`` on the existing tty ``port``, set to ``line`` (``GatewayError`` when it cannot be opened)."""
+    return PtyServer(device, settings, turnaround, port=port, line=line)

@@ -422,7 +422,8 @@ def test_shipped_config_is_valid(capsys: pytest.CaptureFixture[str]) -> None:
 def test_compose_file_maps_the_serial_port_and_the_config() -> None:
     text = (ROOT / "docker-compose.yml").read_text()
     assert re.search(r"^\s+- /dev/ttyUSB0:/dev/ttyUSB0$", text, re.MULTILINE)
-    assert re.search(r"^\s+- \./config/gateway\.toml:/etc/slc-gateway/gateway\.toml:ro$", text, re.MULTILINE)
+    # the directory: a reload (docker kill -s HUP) sees a file an editor replaced
+    assert re.search(r"^\s+- \./config:/etc/slc-gateway:ro$", text, re.MULTILINE)
     assert re.search(r'^\s+- "5020:5020"', text, re.MULTILINE)
     # The stricter health policy, shown: the image's check plus --require-link.
     test = re.search(r"^\s+test: (\[.*\])$", text, re.MULTILINE)
@@ -436,6 +437,7 @@ def test_systemd_unit(tmp_path: Path) -> None:
     assert exec_start is not None
     assert exec_start[1].split()[1:] == ["run", "/etc/slc-gateway/gateway.toml"]
     assert re.search(r"^KillSignal=SIGTERM$", unit, re.MULTILINE)
+    assert re.search(r"^ExecReload=/bin/kill -HUP \$MAINPID$", unit, re.MULTILINE)  # systemctl reload
     assert re.search(r"^DynamicUser=yes$", unit, re.MULTILINE)
     assert re.search(r"^SupplementaryGroups=dialout$", unit, re.MULTILINE)
     analyze = shutil.which("systemd-analyze")

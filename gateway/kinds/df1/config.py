@@ -17,7 +17,7 @@ from typing import Any, ClassVar, Final, Literal, NamedTuple
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from gateway.config._common import Loc, Model, Problems, optional_output_path, show
+from gateway.config._common import Loc, Model, Problems, optional_output_path, port_key, show
 from gateway.config.link import LinkBase, SerialDefaults
 from gateway.config.writer import table_lines
 from gateway.frozen import frozen
@@ -497,21 +497,12 @@ class HalfDuplexLine:
         return "+".join(link.name for link in self.links)
 
 
-def _line_key(port: str) -> str:
-    """Ports that name the same line: a local device is case-sensitive, a URL scheme / host is not."""
-    if "://" in port:
-        scheme, rest = port.split("://", 1)
-        host, _, tail = rest.partition("/")
-        return f"{scheme.lower()}://{host.lower()}/{tail}"
-    return port.upper() if port.upper().startswith("COM") else port
-
-
 def group_lines(links: Sequence[object]) -> list[HalfDuplexLine]:
     """The half-duplex lines among ``links`` (any ``[[link]]`` configs; others are skipped), in file order."""
     groups: dict[str, list[tuple[int, Df1LinkConfig]]] = {}
     for index, link in enumerate(links):
         if isinstance(link, Df1LinkConfig) and link.duplex == "half":
-            groups.setdefault(_line_key(link.port), []).append((index, link))
+            groups.setdefault(port_key(link.port), []).append((index, link))
     return [
         HalfDuplexLine(members[0][1].port, tuple(link for _, link in members), tuple(i for i, _ in members))
         for members in groups.values()
@@ -554,10 +545,10 @@ def line_problems(links: Sequence[object]) -> list[tuple[Loc, str]]:
                     f"link {show(link.name)}: station {link.station} is the gateway's own address (source); "
                     "give the station or the source another number",
                 ))
-    half_ports = {_line_key(line.port): line for line in lines}
+    half_ports = {port_key(line.port): line for line in lines}
     for index, candidate in enumerate(links):
         if isinstance(candidate, Df1LinkConfig) and candidate.duplex == "full":
-            shared = half_ports.get(_line_key(candidate.port))
+            shared = half_ports.get(port_key(candidate.port))
             if shared is not None:
                 problems.append((
                     ("link", index, "duplex"),
