@@ -272,14 +272,30 @@ SCRIPTS: dict[str, tuple[Script, dict[str, Any]]] = {
     "too short a packet is NAKed": ([
         ("in", frame(C1[:5])), ("out", NAK_SYMBOL), ("events", []),
     ], {}),
-    "duplicate after the reply was delivered: ACKed, the reply sent again": ([
+    # 1770-6.5.16 p. 4-13 (message transfer with re-transmission): the receiver discards the
+    # duplicate message and the reply is returned once: one reply per TNS.
+    "duplicate after the reply was delivered: ACKed, no second reply (p. 4-13)": ([
+        ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
+        ("reply", R1), ("out", frame(R1)), ("in", ACK_SYMBOL), ("events", [ReplyDelivered(1, R1)]),
+        ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [duplicate(C1, None)]),
+        ("at", 5.0), ("out", b""), ("events", []), ("deadline", None),
+        ("in", frame(C2)), ("out", ACK_SYMBOL), ("events", [received(C2)]),
+        ("reply", R2), ("out", frame(R2)), ("in", ACK_SYMBOL), ("events", [ReplyDelivered(2, R2)]),
+    ], {}),
+    "duplicate after the reply was lost: no second reply either (p. 4-13)": ([
+        ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
+        ("reply", R1), ("out", frame(R1)),
+        ("in", NAK_SYMBOL), ("out", b""), ("events", [ReplyLost(1, R1, SendFailure.NAK_LIMIT)]),
+        ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [duplicate(C1, None)]),
+    ], {"nak_limit": 0}),
+    "resend_reply: a duplicate after the reply was delivered gets the reply again": ([
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
         ("reply", R1), ("out", frame(R1)), ("in", ACK_SYMBOL), ("events", [ReplyDelivered(1, R1)]),
         ("in", frame(C1)), ("out", ACK_SYMBOL + frame(R1)), ("events", [duplicate(C1, 2)]),
         ("in", ACK_SYMBOL), ("events", [ReplyDelivered(2, R1)]),
         ("in", frame(C2)), ("out", ACK_SYMBOL), ("events", [received(C2)]),
         ("reply", R2), ("out", frame(R2)), ("in", ACK_SYMBOL), ("events", [ReplyDelivered(3, R2)]),
-    ], {}),
+    ], {"resend_reply": True}),
     "duplicate before the reply, and while it is on the line: ACK only": ([
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [duplicate(C1, None)]),
@@ -287,13 +303,13 @@ SCRIPTS: dict[str, tuple[Script, dict[str, Any]]] = {
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [duplicate(C1, None)]),
         ("in", ACK_SYMBOL), ("events", [ReplyDelivered(1, R1)]),
     ], {}),
-    "duplicate after the reply was lost: the reply gets another chance": ([
+    "resend_reply: a duplicate after the reply was lost gives the reply another chance": ([
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
         ("reply", R1), ("out", frame(R1)),
         ("in", NAK_SYMBOL), ("out", b""), ("events", [ReplyLost(1, R1, SendFailure.NAK_LIMIT)]),
         ("in", frame(C1)), ("out", ACK_SYMBOL + frame(R1)), ("events", [duplicate(C1, 2)]),
         ("in", ACK_SYMBOL), ("events", [ReplyDelivered(2, R1)]),
-    ], {"nak_limit": 0}),
+    ], {"nak_limit": 0, "resend_reply": True}),
     "duplicate detection off: the copy is delivered again": ([
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
@@ -387,7 +403,7 @@ def test_counters_after_a_busy_script() -> None:
     assert (counters.frames_received, counters.commands_delivered, counters.acks_sent) == (2, 2, 2)
     assert (counters.frames_sent, counters.retransmissions, counters.naks_received) == (4, 2, 3)
     assert (counters.replies_delivered, counters.replies_lost) == (1, 1)
-    script, options = SCRIPTS["duplicate after the reply was delivered: ACKed, the reply sent again"]
+    script, options = SCRIPTS["resend_reply: a duplicate after the reply was delivered gets the reply again"]
     counters = run(script, "whole", **options).counters
     assert (counters.duplicates, counters.replies_resent, counters.commands_delivered) == (1, 1, 2)
     counters = run(SCRIPTS["damaged frame NAKed, ENQ repeats the last response"][0], "whole").counters
@@ -655,8 +671,8 @@ def test_a_duplicate_gets_the_reply_of_its_own_command_only() -> None:
     assert responder.data_to_send() == ACK_SYMBOL and drain(responder) == [duplicate(C2, None)]
 
 
-def test_the_stored_reply_is_resent_for_every_later_copy() -> None:
-    responder = Df1Responder()
+def test_with_resend_reply_the_stored_reply_is_resent_for_every_later_copy() -> None:
+    responder = Df1Responder(resend_reply=True)
     responder.feed(frame(C1), 0.0)
     drain(responder)
     responder.send_reply(R1, 0.0)
@@ -670,7 +686,7 @@ def test_the_stored_reply_is_resent_for_every_later_copy() -> None:
 
 
 def test_a_reply_queued_behind_another_is_not_the_stored_one() -> None:
-    responder = Df1Responder(max_pending=3)
+    responder = Df1Responder(max_pending=3, resend_reply=True)
     responder.feed(frame(C1) + frame(C2) + frame(C3), 0.0)
     responder.send_reply(R3, 0.0)  # the last command's reply: stored, on the line
     responder.send_reply(R1, 0.0)
@@ -685,7 +701,7 @@ def test_a_reply_queued_behind_another_is_not_the_stored_one() -> None:
 def test_a_reply_finds_its_command_by_the_commands_src() -> None:
     """Two pending commands with the same CMD and TNS from two SRCs: the reply's DST picks one."""
     from_5, from_6 = command(1, src=5), command(1, src=6)
-    responder = Df1Responder()
+    responder = Df1Responder(resend_reply=True)
     responder.feed(frame(from_5) + frame(from_6), 0.0)
     drain(responder)
     responder.send_reply(reply_to(from_6), 0.0)  # answers the last command: its reply is stored
@@ -699,7 +715,8 @@ def test_a_reply_finds_its_command_by_the_commands_src() -> None:
 
 
 def test_every_counter_counts_each_occurrence() -> None:
-    responder = Df1Responder(station=STATION, check_dst=True, max_pending=1, nak_limit=0, enq_limit=0)
+    responder = Df1Responder(station=STATION, check_dst=True, max_pending=1, nak_limit=0, enq_limit=0,
+                             resend_reply=True)
     other = command(9, dst=STATION + 1)
     for _ in range(2):
         responder.feed(frame(other), 0.0)  # not for us

@@ -39,8 +39,6 @@ audit = logging.getLogger("gateway.audit")
 
 #: STS of a write the gateway could not commit (1770-6.5.16 p. 8-3, remote STS codes)
 HARDWARE_FAULT = 0x40
-#: STS of a packet the target does not take as a command (a reply sent to us)
-_ILLEGAL_COMMAND = 0x10
 
 
 class TargetRunner(LineDriver):
@@ -129,9 +127,10 @@ class TargetRunner(LineDriver):
         self.on_heard(now)
         result = self.target.execute(command.packet, now)
         reply = result.reply
-        if reply is None:
-            reply = encode_reply(PcccHeader.decode(command.packet), sts=_ILLEGAL_COMMAND)
-        elif result.written:
+        if reply is None:  # not a command (a reply sent to us): no answer, decided by the target
+            self.responder.no_reply(command.packet)
+            return
+        if result.written:
             reply = self._commit(command, result)
         sts = PcccHeader.decode(reply).sts
         if sts:

@@ -8,7 +8,7 @@ defaults from the SLC 500 channel 0 configuration, 1747-RM001G p. 13-52 Table 13
 Receiver (p. 4-8, the RECEIVER program; its last response starts as DLE NAK)::
 
     good frame, new command     -> DLE ACK, CommandReceived, remember SRC CMD TNS ("save last header")
-    good frame, same SRC CMD TNS -> DLE ACK, not delivered, the stored reply sent again (DuplicateReceived)
+    good frame, same SRC CMD TNS -> DLE ACK, not delivered, no second reply (DuplicateReceived; p. 4-13)
     good frame, sink full       -> DLE NAK ("else if message sink is full send DLE NAK")
     damaged / < 6 bytes / long  -> DLE NAK ("too small", "too large", BCC/CRC not valid)
     DLE ENQ inside a frame      -> DLE NAK for the truncated frame (a control symbol other than DLE ETX)
@@ -28,8 +28,11 @@ uniquely identifies every message packet ... If all fields are the same, the mes
 is considered to be a duplicate" (p. 6-3); the receiver compares them with the last message passed
 to the sink (p. 4-8: LAST-HEADER, 4 bytes; p. 4-13: a lost DLE ACK makes the peer send the message
 again, "the receiver discards the duplicate message (if duplicate message detection is enabled)").
-DST and STS are not part of it.  A duplicate is never delivered, so never executed twice; if the
-reply to it was given (:meth:`Df1Responder.send_reply`) and is not on its way, it is queued again.
+DST and STS are not part of it.  A duplicate is never delivered, so never executed twice, and it
+gets no second reply: p. 4-13 shows the copy discarded and one reply returned, so the peer has one
+reply per TNS.  ``resend_reply`` (off by default) is a reading for a peer that sends the command
+again because it lost our reply: the stored reply, when it was given
+(:meth:`Df1Responder.send_reply`) and is not on its way, is queued again (docs/controller-variants.md).
 
 DST (``check_dst``, default False): the full-duplex receiver never looks at DST (the p. 4-8 program
 tests only the check, the length, the header and the sink); RM p. 13-76 names ignoring "packets
@@ -117,6 +120,7 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
         check_dst: bool = False,
         max_pending: int = 4,
         max_message: int = DEFAULT_MAX_MESSAGE,
+        resend_reply: bool = False,
     ) -> None:
         if not 0 <= station <= 254:
             raise ValueError("station must be 0..254")
@@ -134,6 +138,8 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
         self.enq_limit: Final = enq_limit
         self.duplicate_detect: Final = duplicate_detect
         self.check_dst: Final = check_dst
+        #: a duplicate command gets the stored reply again (module docstring; off: p. 4-13)
+        self.resend_reply: Final = resend_reply
         #: the message sink's size: commands delivered whose reply was not given yet; p. 4-6
         #: suggests peers keep one to three messages outstanding
         self.max_pending: Final = max_pending
@@ -190,6 +196,13 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
             self._last_reply = (handle, packet)
         self._input(K.REPLY, now)
         return handle
+
+    def no_reply(self, packet: bytes) -> None:
+        """The delivered ``packet`` gets no reply (the application layer does not take it as a
+        command, e.g. a reply sent to us): it no longer holds a place in the sink."""
+        header = _header(packet)
+        if header in self._pending:
+            self._pending.remove(header)
 
     def reset(self) -> None:
         """Forget the line (port reopened): every reply queued or on the line is lost."""
@@ -259,7 +272,8 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
                 self._respond(ACK_SYMBOL)
                 counters.duplicates += 1
                 handle = None
-                if self._last_reply is not None and not self._on_its_way(self._last_reply[0]):
+                if (self.resend_reply and self._last_reply is not None
+                        and not self._on_its_way(self._last_reply[0])):
                     packet = self._last_reply[1]
                     handle = self._enqueue(packet)
                     self._last_reply = (handle, packet)

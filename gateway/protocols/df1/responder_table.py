@@ -46,7 +46,7 @@ class ResponderInput(TableEnum):
 
 class ResponderAction(TableEnum):
     DELIVER = "DLE ACK; CommandReceived; remember the header"
-    ACK_DUPLICATE = "DLE ACK; DuplicateReceived; queue the stored reply again if it is not on its way"
+    ACK_DUPLICATE = "DLE ACK; DuplicateReceived; with resend_reply, queue the stored reply again if not on its way"
     ACK_ONLY = "DLE ACK; count the frame not for us"
     REFUSE = "DLE NAK: the sink is full"
     REJECT = "DLE NAK: the frame is damaged"
