@@ -28,7 +28,7 @@ from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.pccc import PcccHeader, encode_reply
 from gateway.protocols.df1.pccc.target import PcccTarget, TargetReply
 from gateway.protocols.df1.pccc.target_table import ElementRef
-from gateway.protocols.df1.responder import Df1Responder
+from gateway.protocols.df1.responder import REPLY_ACK_TIMEOUT, Df1Responder
 from gateway.protocols.df1.responder_events import CommandReceived, DuplicateReceived, ReplyLost
 from gateway.streams import SerialSettings
 
@@ -54,7 +54,7 @@ class TargetRunner(LineDriver):
         checksum: Checksum,
         duplicate_detect: bool = True,
         check_dst: bool = False,
-        ack_timeout: float = 1.0,
+        ack_timeout: float = REPLY_ACK_TIMEOUT,
         **line: Unpack[LineDriverOptions],
     ) -> None:
         super().__init__(url, settings=settings, **line)
