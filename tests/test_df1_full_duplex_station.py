@@ -15,7 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived
-from gateway.protocols.df1.framing import ACK_SYMBOL, ENQ_SYMBOL, NAK_SYMBOL, NEED_DATA, Checksum, encode_frame
+from gateway.protocols.df1.framing import ACK_SYMBOL, ENQ_SYMBOL, NAK_SYMBOL, NEED_DATA, Checksum, Noise, encode_frame
+from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.full_duplex_table import (
     RECEIVER,
     BadFrameAnswer,
@@ -146,3 +147,23 @@ def test_the_data_link_and_the_responder_answer_every_byte_sequence_alike(line: 
     for counter in ("frames_received", "bad_frames", "duplicates", "noise", "acks_sent", "naks_sent"):
         assert getattr(link.counters, counter) == getattr(responder.counters, counter), counter
     assert feed(link, ENQ_SYMBOL) == feed(responder, ENQ_SYMBOL)  # the same last response
+
+
+@settings(max_examples=300, deadline=None)
+@given(line=lines())
+def test_reporting_noise_changes_no_other_decoder_event(line: tuple[Checksum, list[bytes]]) -> None:
+    """``report_noise`` adds Noise events and nothing else; a read without a byte outside a frame
+    reports none."""
+    checksum, chunks = line
+    plain, noisy = FrameDecoder(checksum), FrameDecoder(checksum, report_noise=True)
+    seen: list[list[object]] = [[], []]
+    for chunk in chunks:
+        for decoder, events in zip((plain, noisy), seen, strict=True):
+            decoder.feed(chunk)
+            while (event := decoder.next_event()) is not NEED_DATA:
+                events.append(event)
+    assert seen[0] == [event for event in seen[1] if not isinstance(event, Noise)]
+    clean = b"".join(encode_frame(packet(tns), checksum) + ENQ_SYMBOL + ACK_SYMBOL for tns in range(3))
+    noisy.reset()
+    noisy.feed(clean)
+    assert not any(isinstance(event, Noise) for event in iter(noisy.next_event, NEED_DATA))
