@@ -3,8 +3,9 @@
 The core acknowledges a slave's own command (DLE ACK, 1770-6.5.16 ch. 3) and sends the PCCC reply
 back as a master message ahead of the station's commands (``send_reply``); the answer is decided by
 ``gateway.protocols.df1.slave_messages``: writes to the gateway's own station go into the sending
-station's register table (STS 00), writes outside it STS F0 / EXT 06 (p. 8-4), anything else STS 10
-"illegal command or format" (p. 8-3).  Byte scripts with a fake clock, whole and byte by byte, with
+station's register table (STS 00), writes outside it the refusal the PCCC target core gives that
+command (``pccc.target.refusal``: SLC STS 50, PLC-5 STS F0 / EXT 06 or 09, p. 8-4), anything else
+STS 10 "illegal command or format" (p. 8-3).  Byte scripts with a fake clock, whole and byte by byte, with
 trailing garbage; then the driver against the multi-drop simulator.
 """
 
