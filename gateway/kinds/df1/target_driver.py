@@ -25,20 +25,17 @@ from typing import Unpack
 from gateway.errors import GatewayError
 from gateway.line_driver import LineDriver, LineDriverOptions
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
-from gateway.protocols.df1.pccc import PcccHeader, encode_reply
+from gateway.protocols.df1.pccc import PcccHeader, Sts, encode_reply
 from gateway.protocols.df1.pccc.target import PcccTarget, TargetReply
 from gateway.protocols.df1.pccc.target_table import ElementRef
 from gateway.protocols.df1.responder import REPLY_ACK_TIMEOUT, Df1Responder
 from gateway.protocols.df1.responder_events import CommandReceived, DuplicateReceived, ReplyLost
 from gateway.streams import SerialSettings
 
-__all__ = ["HARDWARE_FAULT", "TargetRunner"]
+__all__ = ["TargetRunner"]
 
 log = logging.getLogger("gateway.df1.target")
 audit = logging.getLogger("gateway.audit")
-
-#: STS of a write the gateway could not commit (1770-6.5.16 p. 8-3, remote STS codes)
-HARDWARE_FAULT = 0x40
 
 
 class TargetRunner(LineDriver):
@@ -146,7 +143,7 @@ class TargetRunner(LineDriver):
             self.on_written(result.written)
         except GatewayError as exc:
             log.error("link %s: %s", self.name, exc)
-            return encode_reply(PcccHeader.decode(command.packet), sts=HARDWARE_FAULT)
+            return encode_reply(PcccHeader.decode(command.packet), sts=Sts.HOST_HARDWARE_FAULT)
         # DEBUG: a PLC's MSG may write every scan; a Modbus client's write is logged at INFO
         audit.debug("link %s: node %d wrote %s (TNS %d)", self.name, command.src,
                    ", ".join(f"{self.target.table[r.file].name}:{r.element}" for r in result.written), command.tns)
