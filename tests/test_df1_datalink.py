@@ -81,14 +81,14 @@ class Pair:
 
 
 def make_pair(
-    checksum: Checksum = Checksum.CRC, *, max_nak: int = 3, max_enq: int = 3, duplicate_detect: bool = True
+    checksum: Checksum = Checksum.CRC, *, nak_limit: int = 3, enq_limit: int = 3, duplicate_detect: bool = True
 ) -> Pair:
     def link() -> Df1DataLink:
         return Df1DataLink(
             checksum=checksum,
             ack_timeout=0.2,
-            max_nak=max_nak,
-            max_enq=max_enq,
+            nak_limit=nak_limit,
+            enq_limit=enq_limit,
             duplicate_detect=duplicate_detect,
         )
 
@@ -285,11 +285,14 @@ def test_a_header_only_message_is_a_duplicate_by_src_cmd_and_tns() -> None:
     assert link.next_event() is NEED_DATA  # the longer one, and the header after it: the same message
 
 
-def test_messages_shorter_than_a_header_are_compared_whole() -> None:
+def test_messages_shorter_than_a_header_are_naked() -> None:
+    """1770-6.5.16 p. 4-8: "else if message is too small then send DLE NAK" (a packet has at least
+    DST SRC CMD STS TNS, 6 bytes)."""
     link = Df1DataLink(checksum=Checksum.CRC)
-    link.receive_data(b"".join(encode_frame(m, Checksum.CRC) for m in (b"\x01\x02", b"\x01\x02", b"\x01\x03")), 0.0)
-    assert [link.next_event(), link.next_event()] == [MessageReceived(b"\x01\x02"), MessageReceived(b"\x01\x03")]
-    assert link.counters.duplicates == 1
+    link.receive_data(b"".join(encode_frame(m, Checksum.CRC) for m in (b"\x01\x02", b"\x01\x02\x03\x04\x05")), 0.0)
+    assert link.next_event() is NEED_DATA
+    assert link.data_to_send() == NAK_SYMBOL + NAK_SYMBOL
+    assert link.counters.bad_frames == 2 and link.counters.messages_delivered == 0
 
 
 def test_duplicate_detection_can_be_disabled() -> None:
@@ -376,7 +379,9 @@ def test_lost_frame_before_any_response_is_resent_after_enq() -> None:
     assert pair.a.counters.retransmissions == 1
 
 
-def test_lost_start_of_frame_gets_nak() -> None:
+def test_lost_start_of_frame_makes_the_last_response_nak() -> None:
+    """1770-6.5.16 p. 4-8: DLE ETX without DLE STX is outside a frame: "else LAST-RESPONSE = NAK", no
+    symbol sent; the sender's DLE ENQ gets the DLE NAK and it sends the frame again."""
     pair = make_pair()
     pair.a.send(packet(1), pair.now)
     pair.run()
@@ -384,7 +389,8 @@ def test_lost_start_of_frame_gets_nak() -> None:
     pair.a.send(packet(2), pair.now)
     pair.run()
     assert pair.delivered_to_b() == [packet(1), packet(2)]
-    assert pair.b.counters.bad_frames == 1
+    assert pair.b.counters.bad_frames == 0 and pair.b.counters.noise >= 1
+    assert (pair.a.counters.enqs_sent, pair.a.counters.naks_received, pair.a.counters.retransmissions) == (1, 1, 1)
 
 
 def test_duplicated_frames_delivered_once() -> None:
@@ -400,7 +406,7 @@ def test_duplicated_frames_delivered_once() -> None:
 
 
 def test_nak_limit_reports_failure() -> None:
-    pair = make_pair(max_nak=3)
+    pair = make_pair(nak_limit=3)
     pair.a_to_b = CorruptFrames(100)
     handle = pair.a.send(packet(1), pair.now)
     second = pair.a.send(packet(2), pair.now)
@@ -412,8 +418,8 @@ def test_nak_limit_reports_failure() -> None:
     assert pair.a.counters.send_failures == 1
 
 
-def test_no_response_reports_failure_after_max_enq() -> None:
-    pair = make_pair(max_enq=3)
+def test_no_response_reports_failure_after_enq_limit() -> None:
+    pair = make_pair(enq_limit=3)
     pair.a_to_b = lambda data: b""
     handle = pair.a.send(packet(1), pair.now)
     pair.run()
@@ -447,7 +453,7 @@ def test_ack_after_enq_completes() -> None:
 
 
 def test_zero_retries() -> None:
-    link = Df1DataLink(checksum=Checksum.BCC, max_nak=0, max_enq=0, ack_timeout=0.1)
+    link = Df1DataLink(checksum=Checksum.BCC, nak_limit=0, enq_limit=0, ack_timeout=0.1)
     link.send(packet(1), 0.0)
     link.data_to_send()
     link.receive_data(NAK_SYMBOL, 0.0)
@@ -501,9 +507,9 @@ def test_send_validation() -> None:
 
 def test_the_limits_reject_a_negative_count_of_either_kind() -> None:
     with pytest.raises(ValueError):
-        Df1DataLink(max_enq=-1)
+        Df1DataLink(enq_limit=-1)
     with pytest.raises(ValueError):
-        Df1DataLink(max_nak=-1)
+        Df1DataLink(nak_limit=-1)
 
 
 def test_by_default_a_frame_is_sent_again_on_3_naks_and_enquired_3_times() -> None:
@@ -646,7 +652,7 @@ def test_soak_both_ways_in_order_without_duplicates(seed: int) -> None:
 
 @pytest.mark.parametrize("enquire_first", [False, True])
 def test_a_nak_never_retransmits_a_frame_sent_as_not_idempotent(enquire_first: bool) -> None:
-    link = Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.5, max_nak=3)
+    link = Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.5, nak_limit=3)
     handle = link.send(packet(1), 0.0, idempotent=False)
     frame = link.data_to_send()
     assert frame == encode_frame(packet(1), Checksum.CRC)
@@ -711,7 +717,7 @@ def test_the_ack_wait_is_twice_the_slowest_of_the_last_32_clean_acks() -> None:
     """Only ACKs of frames sent once, without DLE ENQ, are measured; the slowest of the last 32
     counts twice, above the floor and below ``ack_timeout``."""
     char_time = 0.001
-    link = Df1DataLink(checksum=Checksum.BCC, ack_timeout=1.0, char_time=char_time, max_enq=1, max_nak=1)
+    link = Df1DataLink(checksum=Checksum.BCC, ack_timeout=1.0, char_time=char_time, enq_limit=1, nak_limit=1)
     now = 0.0
     handle = 0
 

@@ -1,6 +1,7 @@
 """DF1 full-duplex responder (``gateway.protocols.df1.responder``): the link layer of DF1 target mode.
 
-* the table: complete, and every (state, input) pair walked through a real responder;
+* the station's tables (``full_duplex_table``): every receiver input in both transmitter states,
+  and every transmitter pair the responder can meet, walked through a real responder;
 * byte scripts with a fake clock, each fed whole, byte by byte, and followed by trailing garbage;
 * a property test: the responder against the master-side link (``Df1DataLink``) on a line that drops
   and damages frames and response symbols both ways.
@@ -17,8 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import gateway.protocols.df1.responder as responder_module
-import gateway.protocols.df1.responder_table as table_module
+import gateway.protocols.df1.full_duplex as station_module
 from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed
 from gateway.protocols.df1.framing import (
     ACK_SYMBOL,
@@ -31,6 +31,15 @@ from gateway.protocols.df1.framing import (
 )
 from gateway.protocols.df1.framing.decoder import FrameDecoder
 from gateway.protocols.df1.full_duplex import SendFailure, TxState
+from gateway.protocols.df1.full_duplex_table import (
+    RECEIVER,
+    TRANSITIONS,
+    RxInput,
+    StationStep,
+    TxAction,
+    TxInput,
+)
+from gateway.protocols.df1.pccc.codec import HEADER_SIZE
 from gateway.protocols.df1.responder import Df1Responder
 from gateway.protocols.df1.responder_events import (
     CommandReceived,
@@ -39,16 +48,8 @@ from gateway.protocols.df1.responder_events import (
     ReplyLost,
     ResponderEvent,
 )
-from gateway.protocols.df1.responder_table import (
-    IGNORED,
-    TRANSITIONS,
-    ResponderAction,
-    ResponderInput,
-    ResponderStep,
-)
-from gateway.protocols.df1.transitions import Transition
 
-S, K, A = TxState, ResponderInput, ResponderAction
+S = TxState
 STATION = 1
 
 
@@ -94,41 +95,17 @@ def duplicate(packet: bytes, reply_handle: int | None) -> DuplicateReceived:
 # ---------------------------------------------------------------------------------------- table
 
 
-def test_the_table_holds_every_pair_once_and_ignored_pairs_do_nothing() -> None:
-    assert set(TRANSITIONS) == set(itertools.product(S, K))
-    for pair, reason in IGNORED.items():
-        assert reason
-        assert TRANSITIONS[pair] == Transition(A.IGNORE, pair[0])
-    assert {pair for pair, entry in TRANSITIONS.items() if entry.action is A.IGNORE} == set(IGNORED)
-
-
-def test_the_receiver_acts_the_same_in_every_state() -> None:
-    receiver = (K.COMMAND, K.DUPLICATE, K.NOT_FOR_US, K.SINK_FULL, K.BAD_FRAME, K.ENQ_IN_FRAME, K.ENQ, K.NOISE)
-    for what in receiver:
-        steps = {TRANSITIONS[state, what] for state in S}
-        assert len({step.action for step in steps}) == 1, what
-        assert all(TRANSITIONS[state, what].next_state is state for state in S)
-
-
-def test_a_table_with_a_pair_missing_fails_at_import(monkeypatch: pytest.MonkeyPatch) -> None:
-    receiver = dict(table_module._RECEIVER)
-    del receiver[K.NOISE]
-    monkeypatch.setattr(table_module, "_RECEIVER", receiver)
-    with pytest.raises(RuntimeError, match="no transition"):
-        table_module._complete_table()
-
-
-def test_a_pair_listed_twice_fails_at_import(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(table_module, "IGNORED", {**IGNORED, (S.IDLE, K.REPLY): "twice"})
-    with pytest.raises(RuntimeError, match="listed twice"):
-        table_module._complete_table()
+def test_the_receiver_has_one_action_for_every_input() -> None:
+    assert set(RECEIVER) == set(RxInput)
 
 
 def test_a_missing_pair_raises(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(responder_module, "TRANSITIONS", {k: v for k, v in TRANSITIONS.items() if k != (S.IDLE, K.ENQ)})
+    table = {pair: step for pair, step in TRANSITIONS.items() if pair != (S.IDLE, TxInput.SEND)}
+    monkeypatch.setattr(station_module, "TRANSITIONS", table)
     responder = Df1Responder()
-    with pytest.raises(RuntimeError, match="no transition"):
-        responder.feed(ENQ_SYMBOL, 0.0)
+    responder.feed(frame(C1), 0.0)
+    with pytest.raises(KeyError):
+        responder.send_reply(R1, 0.0)
 
 
 def _in_state(state: TxState) -> Df1Responder:
@@ -152,50 +129,60 @@ def _nak_twice(responder: Df1Responder) -> None:
 
 
 #: How the public API makes each input (some in both states, some only while a reply is on the line).
-DRIVERS = {
-    K.COMMAND: lambda r: r.feed(frame(C2), 0.0),
-    K.DUPLICATE: lambda r: r.feed(frame(C1), 0.0),
-    K.NOT_FOR_US: lambda r: r.feed(frame(command(9, dst=STATION + 1)), 0.0),
-    K.SINK_FULL: lambda r: r.feed(frame(C2) + frame(C3), 0.0),
-    K.BAD_FRAME: lambda r: r.feed(damaged(frame(C2)), 0.0),
-    K.ENQ_IN_FRAME: lambda r: r.feed(frame(C2)[:6] + ENQ_SYMBOL, 0.0),
-    K.ENQ: lambda r: r.feed(ENQ_SYMBOL, 0.0),
-    K.NOISE: lambda r: r.feed(b"\x55", 0.0),
-    K.REPLY: lambda r: r.send_reply(R2, 0.0),
-    K.ACK: lambda r: r.feed(ACK_SYMBOL, 0.0),
-    K.NAK: lambda r: r.feed(NAK_SYMBOL, 0.0),
-    K.NAK_LIMIT: _nak_twice,
-    K.STALE: lambda r: r.feed(NAK_SYMBOL + ACK_SYMBOL, 0.0),
-    K.TIMEOUT: lambda r: r.handle_timeout(1.0),
-    K.TIMEOUT_LIMIT: lambda r: (r.handle_timeout(1.0), r.handle_timeout(2.0)),
+DRIVERS: dict[RxInput | TxInput, Any] = {
+    RxInput.MESSAGE: lambda r: r.feed(frame(C2), 0.0),
+    RxInput.DUPLICATE: lambda r: r.feed(frame(C1), 0.0),
+    RxInput.NOT_FOR_US: lambda r: r.feed(frame(command(9, dst=STATION + 1)), 0.0),
+    RxInput.SINK_FULL: lambda r: r.feed(frame(C2) + frame(C3), 0.0),
+    RxInput.BAD_FRAME: lambda r: r.feed(damaged(frame(C2)), 0.0),
+    RxInput.ENQ_IN_FRAME: lambda r: r.feed(frame(C2)[:6] + ENQ_SYMBOL, 0.0),
+    RxInput.ENQ: lambda r: r.feed(ENQ_SYMBOL, 0.0),
+    RxInput.NOISE: lambda r: r.feed(b"\x55", 0.0),
+    TxInput.SEND: lambda r: r.send_reply(R2, 0.0),
+    TxInput.ACK: lambda r: r.feed(ACK_SYMBOL, 0.0),
+    TxInput.NAK: lambda r: r.feed(NAK_SYMBOL, 0.0),
+    TxInput.NAK_LIMIT: _nak_twice,
+    TxInput.STALE: lambda r: r.feed(NAK_SYMBOL + ACK_SYMBOL, 0.0),
+    TxInput.TIMEOUT: lambda r: r.handle_timeout(1.0),
+    TxInput.TIMEOUT_LIMIT: lambda r: (r.handle_timeout(1.0), r.handle_timeout(2.0)),
+    TxInput.RESET: lambda r: r.reset(),
 }
 
 #: Pairs the public API cannot make: no reply on the line, so no NAK count, no frame in the output
 #: and no timer.  They are ignored in the table, and walked through the machine's input directly.
-UNREACHABLE = {(S.IDLE, K.NAK_LIMIT), (S.IDLE, K.STALE), (S.IDLE, K.TIMEOUT), (S.IDLE, K.TIMEOUT_LIMIT)}
+UNREACHABLE = {(S.IDLE, TxInput.NAK_LIMIT), (S.IDLE, TxInput.STALE), (S.IDLE, TxInput.TIMEOUT),
+               (S.IDLE, TxInput.TIMEOUT_LIMIT)}
+#: The data link's own inputs: the responder never confirms a reply nor sends a frame that must
+#: not run twice.
+DATA_LINK_ONLY = {TxInput.CONFIRM, TxInput.NAK_NOT_PROOF}
+PAIRS = [(state, what) for state in S for what in (*RxInput, *TxInput) if what not in DATA_LINK_ONLY]
 
 
-@pytest.mark.parametrize("pair", list(itertools.product(S, K)), ids=lambda p: f"{p[0].name}-{p[1].name}")
-def test_walk_every_pair(pair: tuple[TxState, ResponderInput]) -> None:
+@pytest.mark.parametrize("pair", PAIRS, ids=lambda p: f"{p[0].name}-{p[1].name}")
+def test_walk_every_pair(pair: tuple[TxState, RxInput | TxInput]) -> None:
     state, what = pair
     responder = _in_state(state)
     before = len(responder.history)
     if pair in UNREACHABLE:
-        assert IGNORED[pair].startswith("cannot happen")
-        responder._input(what, 0.0)
+        assert isinstance(what, TxInput) and TRANSITIONS[pair].action is TxAction.IGNORE
+        responder._tx(what, 0.0)
         assert responder.state is state and responder.data_to_send() == b"" and drain(responder) == []
     else:
         DRIVERS[what](responder)
-    action, next_state, _ = TRANSITIONS[pair]
-    assert ResponderStep(state, what, action, next_state) in list(responder.history)[before:]
+    if isinstance(what, RxInput):
+        step = StationStep(state, what, RECEIVER[what], state)
+    else:
+        action, next_state, _ = TRANSITIONS[state, what]
+        step = StationStep(state, what, action, next_state)
+    assert step in list(responder.history)[before:]
 
 
-@pytest.mark.parametrize(("symbol", "what"), [(ACK_SYMBOL, K.ACK), (NAK_SYMBOL, K.NAK)])
-def test_a_stray_answer_before_any_reply_is_a_stray_one_not_stale(symbol: bytes, what: ResponderInput) -> None:
+@pytest.mark.parametrize(("symbol", "what"), [(ACK_SYMBOL, TxInput.ACK), (NAK_SYMBOL, TxInput.NAK)])
+def test_a_stray_answer_before_any_reply_is_a_stray_one_not_stale(symbol: bytes, what: TxInput) -> None:
     """No frame of ours has ever waited in the output: nothing the peer sends can be stale."""
     responder = Df1Responder(station=STATION)
     responder.feed(symbol, 0.0)
-    assert list(responder.history) == [ResponderStep(S.IDLE, what, A.IGNORE, S.IDLE)]
+    assert list(responder.history) == [StationStep(S.IDLE, what, TxAction.IGNORE, S.IDLE)]
 
 
 # ---------------------------------------------------------------------------------- byte scripts
@@ -272,14 +259,30 @@ SCRIPTS: dict[str, tuple[Script, dict[str, Any]]] = {
     "too short a packet is NAKed": ([
         ("in", frame(C1[:5])), ("out", NAK_SYMBOL), ("events", []),
     ], {}),
-    "duplicate after the reply was delivered: ACKed, the reply sent again": ([
+    # 1770-6.5.16 p. 4-13 (message transfer with re-transmission): the receiver discards the
+    # duplicate message and the reply is returned once: one reply per TNS.
+    "duplicate after the reply was delivered: ACKed, no second reply (p. 4-13)": ([
+        ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
+        ("reply", R1), ("out", frame(R1)), ("in", ACK_SYMBOL), ("events", [ReplyDelivered(1, R1)]),
+        ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [duplicate(C1, None)]),
+        ("at", 5.0), ("out", b""), ("events", []), ("deadline", None),
+        ("in", frame(C2)), ("out", ACK_SYMBOL), ("events", [received(C2)]),
+        ("reply", R2), ("out", frame(R2)), ("in", ACK_SYMBOL), ("events", [ReplyDelivered(2, R2)]),
+    ], {}),
+    "duplicate after the reply was lost: no second reply either (p. 4-13)": ([
+        ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
+        ("reply", R1), ("out", frame(R1)),
+        ("in", NAK_SYMBOL), ("out", b""), ("events", [ReplyLost(1, R1, SendFailure.NAK_LIMIT)]),
+        ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [duplicate(C1, None)]),
+    ], {"nak_limit": 0}),
+    "resend_reply: a duplicate after the reply was delivered gets the reply again": ([
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
         ("reply", R1), ("out", frame(R1)), ("in", ACK_SYMBOL), ("events", [ReplyDelivered(1, R1)]),
         ("in", frame(C1)), ("out", ACK_SYMBOL + frame(R1)), ("events", [duplicate(C1, 2)]),
         ("in", ACK_SYMBOL), ("events", [ReplyDelivered(2, R1)]),
         ("in", frame(C2)), ("out", ACK_SYMBOL), ("events", [received(C2)]),
         ("reply", R2), ("out", frame(R2)), ("in", ACK_SYMBOL), ("events", [ReplyDelivered(3, R2)]),
-    ], {}),
+    ], {"resend_reply": True}),
     "duplicate before the reply, and while it is on the line: ACK only": ([
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [duplicate(C1, None)]),
@@ -287,13 +290,13 @@ SCRIPTS: dict[str, tuple[Script, dict[str, Any]]] = {
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [duplicate(C1, None)]),
         ("in", ACK_SYMBOL), ("events", [ReplyDelivered(1, R1)]),
     ], {}),
-    "duplicate after the reply was lost: the reply gets another chance": ([
+    "resend_reply: a duplicate after the reply was lost gives the reply another chance": ([
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
         ("reply", R1), ("out", frame(R1)),
         ("in", NAK_SYMBOL), ("out", b""), ("events", [ReplyLost(1, R1, SendFailure.NAK_LIMIT)]),
         ("in", frame(C1)), ("out", ACK_SYMBOL + frame(R1)), ("events", [duplicate(C1, 2)]),
         ("in", ACK_SYMBOL), ("events", [ReplyDelivered(2, R1)]),
-    ], {"nak_limit": 0}),
+    ], {"nak_limit": 0, "resend_reply": True}),
     "duplicate detection off: the copy is delivered again": ([
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
         ("in", frame(C1)), ("out", ACK_SYMBOL), ("events", [received(C1)]),
@@ -387,7 +390,7 @@ def test_counters_after_a_busy_script() -> None:
     assert (counters.frames_received, counters.commands_delivered, counters.acks_sent) == (2, 2, 2)
     assert (counters.frames_sent, counters.retransmissions, counters.naks_received) == (4, 2, 3)
     assert (counters.replies_delivered, counters.replies_lost) == (1, 1)
-    script, options = SCRIPTS["duplicate after the reply was delivered: ACKed, the reply sent again"]
+    script, options = SCRIPTS["resend_reply: a duplicate after the reply was delivered gets the reply again"]
     counters = run(script, "whole", **options).counters
     assert (counters.duplicates, counters.replies_resent, counters.commands_delivered) == (1, 1, 2)
     counters = run(SCRIPTS["damaged frame NAKed, ENQ repeats the last response"][0], "whole").counters
@@ -655,8 +658,8 @@ def test_a_duplicate_gets_the_reply_of_its_own_command_only() -> None:
     assert responder.data_to_send() == ACK_SYMBOL and drain(responder) == [duplicate(C2, None)]
 
 
-def test_the_stored_reply_is_resent_for_every_later_copy() -> None:
-    responder = Df1Responder()
+def test_with_resend_reply_the_stored_reply_is_resent_for_every_later_copy() -> None:
+    responder = Df1Responder(resend_reply=True)
     responder.feed(frame(C1), 0.0)
     drain(responder)
     responder.send_reply(R1, 0.0)
@@ -670,7 +673,7 @@ def test_the_stored_reply_is_resent_for_every_later_copy() -> None:
 
 
 def test_a_reply_queued_behind_another_is_not_the_stored_one() -> None:
-    responder = Df1Responder(max_pending=3)
+    responder = Df1Responder(max_pending=3, resend_reply=True)
     responder.feed(frame(C1) + frame(C2) + frame(C3), 0.0)
     responder.send_reply(R3, 0.0)  # the last command's reply: stored, on the line
     responder.send_reply(R1, 0.0)
@@ -685,7 +688,7 @@ def test_a_reply_queued_behind_another_is_not_the_stored_one() -> None:
 def test_a_reply_finds_its_command_by_the_commands_src() -> None:
     """Two pending commands with the same CMD and TNS from two SRCs: the reply's DST picks one."""
     from_5, from_6 = command(1, src=5), command(1, src=6)
-    responder = Df1Responder()
+    responder = Df1Responder(resend_reply=True)
     responder.feed(frame(from_5) + frame(from_6), 0.0)
     drain(responder)
     responder.send_reply(reply_to(from_6), 0.0)  # answers the last command: its reply is stored
@@ -699,7 +702,8 @@ def test_a_reply_finds_its_command_by_the_commands_src() -> None:
 
 
 def test_every_counter_counts_each_occurrence() -> None:
-    responder = Df1Responder(station=STATION, check_dst=True, max_pending=1, nak_limit=0, enq_limit=0)
+    responder = Df1Responder(station=STATION, check_dst=True, max_pending=1, nak_limit=0, enq_limit=0,
+                             resend_reply=True)
     other = command(9, dst=STATION + 1)
     for _ in range(2):
         responder.feed(frame(other), 0.0)  # not for us
@@ -735,7 +739,8 @@ def test_after_a_reset_a_stray_symbol_is_no_answer_to_a_forgotten_reply() -> Non
     responder.feed(NAK_SYMBOL, 0.0)  # the frame again, in the output
     responder.reset()
     responder.feed(ACK_SYMBOL + NAK_SYMBOL, 0.0)
-    assert [(step.state, step.input) for step in list(responder.history)[-2:]] == [(S.IDLE, K.ACK), (S.IDLE, K.NAK)]
+    steps = [(step.state, step.input) for step in list(responder.history)[-2:]]
+    assert steps == [(S.IDLE, TxInput.ACK), (S.IDLE, TxInput.NAK)]
 
 
 def test_after_a_reply_is_delivered_a_second_ack_is_a_late_symbol() -> None:
@@ -745,7 +750,7 @@ def test_after_a_reply_is_delivered_a_second_ack_is_a_late_symbol() -> None:
     responder.data_to_send()
     responder.feed(ACK_SYMBOL + ACK_SYMBOL, 0.0)
     steps = [(step.state, step.input) for step in list(responder.history)[-2:]]
-    assert steps == [(S.AWAIT_ACK, K.ACK), (S.IDLE, K.ACK)]
+    assert steps == [(S.AWAIT_ACK, TxInput.ACK), (S.IDLE, TxInput.ACK)]
 
 
 def test_bytes_read_before_a_reset_never_join_those_after_it() -> None:
@@ -766,7 +771,7 @@ def test_a_late_nak_after_a_reply_was_given_up_is_a_nak_to_nothing() -> None:
     responder.feed(NAK_SYMBOL, 0.0)  # no retransmission left: the reply is lost
     assert drain(responder)[-1] == ReplyLost(1, R1, SendFailure.NAK_LIMIT)
     responder.feed(NAK_SYMBOL, 0.1)  # a late copy of that NAK
-    assert (responder.history[-1].state, responder.history[-1].input) == (S.IDLE, K.NAK)
+    assert (responder.history[-1].state, responder.history[-1].input) == (S.IDLE, TxInput.NAK)
     assert drain(responder) == [] and responder.data_to_send() == b""
 
 
@@ -821,14 +826,15 @@ def test_by_default_the_station_is_0() -> None:
 
 def test_the_limits_of_the_options_are_accepted() -> None:
     assert Df1Responder(station=254).station == 254
-    responder = Df1Responder(max_message=responder_module.MIN_PACKET)
-    responder.feed(frame(command(1)[:responder_module.MIN_PACKET]), 0.0)
-    assert drain(responder) == [received(command(1)[:responder_module.MIN_PACKET])]
+    responder = Df1Responder(max_message=HEADER_SIZE)
+    responder.feed(frame(command(1)[:HEADER_SIZE]), 0.0)
+    assert drain(responder) == [received(command(1)[:HEADER_SIZE])]
 
 
 def test_the_history_keeps_the_last_64_steps() -> None:
     """The diagnostic record of the transitions taken is bounded and holds the newest ones."""
     responder = Df1Responder()
-    responder.feed(b"\x55" * 70, 0.0)
+    for _ in range(70):
+        responder.feed(b"\x55", 0.0)
     responder.feed(ENQ_SYMBOL, 0.0)
-    assert len(responder.history) == 64 and responder.history[-1].input is K.ENQ
+    assert len(responder.history) == 64 and responder.history[-1].input is RxInput.ENQ

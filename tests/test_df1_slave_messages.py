@@ -3,8 +3,9 @@
 The core acknowledges a slave's own command (DLE ACK, 1770-6.5.16 ch. 3) and sends the PCCC reply
 back as a master message ahead of the station's commands (``send_reply``); the answer is decided by
 ``gateway.protocols.df1.slave_messages``: writes to the gateway's own station go into the sending
-station's register table (STS 00), writes outside it STS F0 / EXT 06 (p. 8-4), anything else STS 10
-"illegal command or format" (p. 8-3).  Byte scripts with a fake clock, whole and byte by byte, with
+station's register table (STS 00), writes outside it the refusal the PCCC target core gives that
+command (``pccc.target.refusal``: SLC STS 50, PLC-5 STS F0 / EXT 06 or 09, p. 8-4), anything else
+STS 10 "illegal command or format" (p. 8-3).  Byte scripts with a fake clock, whole and byte by byte, with
 trailing garbage; then the driver against the multi-drop simulator.
 """
 
@@ -44,6 +45,8 @@ from gateway.protocols.df1.pccc import (
     WordRangeWrite,
     encode_command,
 )
+from gateway.protocols.df1.pccc.target import PcccTarget
+from gateway.protocols.df1.pccc.target_table import DataTable
 from gateway.protocols.df1.slave_messages import RegisterTable, SlaveMessageVerdict, answer_slave_message
 from gateway.sim.serve import SimStream
 from gateway.transport import ByteStream
@@ -96,12 +99,25 @@ def test_typed_logical_write_to_us_is_stored() -> None:
          "02 09 4F 10 06 00"),
         # a station without a register table -> STS 10
         (msg_word_range_write(2, 7, 0, [1]), None, SlaveMessageVerdict.UNSUPPORTED, "02 00 4F 10 07 00"),
-        # words outside the table -> STS F0, EXT STS 06 "address doesn't point to something usable" (p. 8-4)
+        # The STS of a write outside the table is the PCCC target's (pccc/target.py), by command family.
+        # PLC-5 word range write, data past the end of the table -> STS F0, EXT STS 09 "data or file
+        # is too large" (1770-6.5.16 p. 8-4; p. 8-9: "read or write past the end of a file")
         (msg_word_range_write(2, 8, 9, [1, 2]), RegisterTable(size=10), SlaveMessageVerdict.BAD_ADDRESS,
+         "02 00 4F F0 08 00 09"),
+        # its first element past the end -> EXT STS 06 "address doesn't point to something usable" (p. 8-4)
+        (msg_word_range_write(2, 8, 10, [1]), RegisterTable(size=10), SlaveMessageVerdict.BAD_ADDRESS,
          "02 00 4F F0 08 00 06"),
         # another file -> the same
         (encode_command(WordRangeWrite(LogicalBinaryAddress.of(0, 9, 0), b"\x01\x00"), dst=GATEWAY, src=2, tns=1),
          RegisterTable(), SlaveMessageVerdict.BAD_ADDRESS, "02 00 4F F0 01 00 06"),
+        # an SLC protected typed logical write (0F AA) outside the table, past its end or to another
+        # file -> STS 50 "address problem", the SLC command's own code (notes §4.36 (d), §7.3)
+        (msg_typed_logical_write(2, 4, 9, [1, 2]), RegisterTable(size=10), SlaveMessageVerdict.BAD_ADDRESS,
+         "02 00 4F 50 04 00"),
+        (msg_typed_logical_write(2, 5, 10, [1]), RegisterTable(size=10), SlaveMessageVerdict.BAD_ADDRESS,
+         "02 00 4F 50 05 00"),
+        (encode_command(ProtectedTypedLogicalWrite(0x89, 9, 0, 0, b"\x01\x00"), dst=GATEWAY, src=2, tns=6),
+         RegisterTable(), SlaveMessageVerdict.BAD_ADDRESS, "02 00 4F 50 06 00"),
         # an unknown command -> STS 10; a reply or a runt -> no answer at all
         (bytes.fromhex("00 02 06 00 03 00 00"), RegisterTable(), SlaveMessageVerdict.UNSUPPORTED, "02 00 46 10 03 00"),
         (bytes.fromhex("00 02 4F 00 03 00"), RegisterTable(), SlaveMessageVerdict.NO_ANSWER, None),
@@ -115,6 +131,24 @@ def test_everything_else_gets_the_manuals_error(
     assert got == (verdict, None if reply is None else bytes.fromhex(reply))
     if table is not None:
         assert table.values() == [0] * table.size  # nothing stored
+
+
+@pytest.mark.parametrize(
+    "packet",
+    [
+        msg_word_range_write(2, 1, 9, [1, 2]),
+        msg_word_range_write(2, 2, 10, [1]),
+        encode_command(WordRangeWrite(LogicalBinaryAddress.of(0, 9, 0), b"\x01\x00"), dst=GATEWAY, src=2, tns=3),
+        msg_typed_logical_write(2, 4, 9, [1, 2]),
+        msg_typed_logical_write(2, 5, 10, [1]),
+        encode_command(ProtectedTypedLogicalWrite(0x89, 9, 0, 0, b"\x01\x00"), dst=GATEWAY, src=2, tns=6),
+    ],
+)
+def test_a_write_outside_the_table_gets_the_full_duplex_targets_answer(packet: bytes) -> None:
+    """The same write outside N7:0-9 gets the same reply from both paths that answer a PLC's message."""
+    _verdict, half_duplex = answer_slave_message(packet, own_station=GATEWAY, table=RegisterTable(size=10), now=0.0)
+    full_duplex = PcccTarget(DataTable.of("N7:10")).execute(packet, 0.0).reply
+    assert half_duplex == full_duplex is not None
 
 
 # ------------------------------------------------------------------------------ the core

@@ -15,7 +15,9 @@ from pymodbus.client import AsyncModbusTcpClient
 from gateway.app import Gateway, describe_map
 from gateway.config import parse_config
 from gateway.errors import ConfigError
+from gateway.kinds.df1.config import Df1LinkConfig
 from gateway.kinds.df1.sim.plc_msg import PlcMsgSimulator
+from gateway.kinds.df1.target_build import build_target
 from gateway.kinds.df1.target_unit import TargetUnit
 from gateway.sim import get_simulator, reset_simulators
 
@@ -186,3 +188,14 @@ async def test_persist_brings_the_table_back_with_its_write_times(tmp_path: Path
         assert not (await modbus.read_holding_registers(0, count=10, device_id=5)).isError()  # the PLC's, kept
         assert (await modbus.read_holding_registers(60, count=1, device_id=5)).isError()  # never written
         modbus.close()
+
+
+def test_a_targets_ack_timeout_is_the_slc_channels_by_default() -> None:
+    """The wait for the PLC's DLE ACK of a reply: an SLC 500 channel 0's "ACK Timeout 50" x 20 ms
+    (1747-RM001G p. 13-52, Table 13.15), not the 0.5 s default of the half-duplex line key."""
+    (link,) = parse_config(config("sim://plc-msg")).links
+    assert isinstance(link, Df1LinkConfig)
+    assert build_target(link).driver.responder.ack_timeout == 1.0
+    (link,) = parse_config(config("sim://plc-msg", "ack_timeout = 0.3")).links
+    assert isinstance(link, Df1LinkConfig)
+    assert build_target(link).driver.responder.ack_timeout == 0.3

@@ -63,7 +63,7 @@ class Host:
     def __init__(self, *, retries: int = 2, chunk: int | None = None) -> None:
         self.now = 0.0
         self.chunk = chunk
-        link = Df1DataLink(checksum=CRC, ack_timeout=ACK_TIMEOUT, max_enq=retries, max_nak=retries)
+        link = Df1DataLink(checksum=CRC, ack_timeout=ACK_TIMEOUT, enq_limit=retries, nak_limit=retries)
         self.core = Df1Transactions(link, station=1, source=0, reply_timeout=REPLY_TIMEOUT, retries=retries,
                                     first_tns=0x1234)
         self.events: list[TransactionEvent] = []
@@ -335,7 +335,7 @@ def run_against_simulator(
         ladder=False,
         variants=variants,
     )
-    link = Df1DataLink(checksum=CRC, ack_timeout=0.05, max_enq=2, max_nak=2)
+    link = Df1DataLink(checksum=CRC, ack_timeout=0.05, enq_limit=2, nak_limit=2)
     core = Df1Transactions(link, station=1, source=0, reply_timeout=0.1, retries=2, first_tns=7)
     wire = Wire(iter(fates), iter(damage_at))
     now = 0.0

@@ -25,7 +25,7 @@ from typing import Any
 import pytest
 
 import gateway.protocols.df1 as df1
-from gateway.protocols.df1 import datalink, full_duplex, half_duplex, responder_table, transaction, write_verdict
+from gateway.protocols.df1 import datalink, full_duplex_table, half_duplex, transaction, write_verdict
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.framing import decoder as frame_decoder
 from gateway.protocols.df1.half_duplex_events import LineConfig, StationConfig
@@ -45,17 +45,15 @@ class Table:
 
 
 TABLES = [
-    Table("datalink", datalink.TRANSITIONS, frozenset(datalink.TxState), datalink.TxInput, datalink.TxAction,
-          datalink.TxState.IDLE, datalink.TxAction.IGNORE),
+    Table("full-duplex transmitter", full_duplex_table.TRANSITIONS, frozenset(full_duplex_table.TxState),
+          full_duplex_table.TxInput, full_duplex_table.TxAction, full_duplex_table.TxState.IDLE,
+          full_duplex_table.TxAction.IGNORE),
     Table("transaction", transaction.TRANSITIONS, frozenset(transaction.TxnState), transaction.TxnInput,
           transaction.TxnAction, transaction.TxnState.IDLE, transaction.TxnAction.IGNORE),
     Table("write_verdict", write_verdict.TRANSITIONS, frozenset(write_verdict.VerdictState), write_verdict.WriteInput,
           write_verdict.VerdictAction, write_verdict.VerdictState.SENT, write_verdict.VerdictAction.IGNORE),
     Table("half_duplex", half_duplex.TRANSITIONS, frozenset(half_duplex.LineState), half_duplex.MasterInput,
           half_duplex.MasterAction, half_duplex.LineState.IDLE, half_duplex.MasterAction.IGNORE),
-    Table("responder", responder_table.TRANSITIONS, frozenset(full_duplex.TxState),
-          responder_table.ResponderInput, responder_table.ResponderAction, full_duplex.TxState.IDLE,
-          responder_table.ResponderAction.IGNORE),
     Table("decoder, full duplex", frame_decoder.FULL_DUPLEX_TRANSITIONS, frozenset(frame_decoder.FullDuplexState),
           frame_decoder.ByteClass, frame_decoder.DecoderAction, frame_decoder.DecoderState.IDLE, None),
     Table("decoder, half duplex", frame_decoder.HALF_DUPLEX_TRANSITIONS, frozenset(frame_decoder.DecoderState),

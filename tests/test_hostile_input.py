@@ -782,7 +782,7 @@ def test_df1_frame_found_in_noise(before: bytes, after: bytes, message: bytes, c
     checksum=st.sampled_from(list(Checksum)),
 )
 def test_df1_link_takes_any_bytes_and_timing(steps: list[tuple[str, Any]], checksum: Checksum) -> None:
-    link = Df1DataLink(checksum=checksum, ack_timeout=0.5, max_enq=2, max_nak=2)
+    link = Df1DataLink(checksum=checksum, ack_timeout=0.5, enq_limit=2, nak_limit=2)
     now = 0.0
     sent: dict[int, bytes] = {}
     settled: set[int] = set()

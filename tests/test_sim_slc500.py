@@ -487,14 +487,15 @@ def test_unsupported_and_malformed_commands_get_sts_10(body: bytes) -> None:
     assert (reply.sts, reply.ext_sts, reply.cmd) == (0x10, None, packet[2] | 0x40)
 
 
-def test_replies_and_runt_packets_are_ignored() -> None:
+def test_replies_are_ignored_and_runt_packets_naked() -> None:
     bench = Bench()
-    bench.send_raw(b"\x01\x00\x4f\x00\x05\x00")  # a reply addressed to us
-    bench.send_raw(b"\x01\x00\x0f")  # shorter than a header
+    bench.send_raw(b"\x01\x00\x4f\x00\x05\x00")  # a reply addressed to us: ACKed, no answer
+    bench.send_raw(b"\x01\x00\x0f")  # shorter than a header: "too small", DLE NAK (1770-6.5.16 p. 4-8)
     bench.run_until(2.0)
     assert bench.replies == {}
-    assert bench.sim.counters.ignored == 2
-    assert bench.sim.link.counters.acks_sent == 2
+    assert bench.sim.counters.ignored == 1
+    assert bench.sim.link.counters.acks_sent == 1  # the host sends the runt again after each NAK:
+    assert bench.sim.link.counters.bad_frames == 1 + bench.host.nak_limit
 
 
 # ---------------------------------------------------------------------------- link behaviour

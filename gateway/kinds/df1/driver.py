@@ -96,8 +96,8 @@ class Df1Driver(LineDriver):
             checksum=self.checksum,
             # the ACK comes after our whole frame has gone out: allow for the longest frame's time
             ack_timeout=self.ack_timeout + _LONGEST_FRAME * self.char_time,
-            max_enq=self.retries,
-            max_nak=self.retries,
+            enq_limit=self.retries,
+            nak_limit=self.retries,
             char_time=self.char_time,
         )
         return Df1Transactions(

@@ -32,7 +32,8 @@ Messages a slave initiates (MSG instructions, report by exception) are acknowled
 :func:`~gateway.protocols.df1.slave_messages.answer_slave_message`: a write to the gateway's own
 station (``source``) lands in the sending station's
 :class:`~gateway.protocols.df1.slave_messages.RegisterTable` (``register_tables``, by station) and is
-answered STS 00; anything else STS 10 (1770-6.5.16 p. 8-3).  The reply goes back as a master message
+answered STS 00; a write outside it the PCCC target's refusal for that command, anything else STS 10
+(1770-6.5.16 p. 8-3).  The reply goes back as a master message
 (``HalfDuplexMaster.send_reply``).  Counted per station: ``slave_messages``, ``slave_writes``,
 ``slave_refused``.
 """
@@ -87,7 +88,7 @@ class StationTotals(StationCounters):
     stray_replies: int = 0
     slave_messages: int = 0  #: messages the station initiated (acknowledged and answered)
     slave_writes: int = 0  #: ... of them writes stored in the station's register table
-    slave_refused: int = 0  #: ... of them answered with an error (STS 10, or F0/06 outside the table)
+    slave_refused: int = 0  #: ... of them answered with an error (STS 10, or the target's refusal outside the table)
     slave_replies_lost: int = 0  #: replies to them the station never acknowledged
 
     def add(self, core: StationCounters) -> StationTotals:

@@ -35,7 +35,7 @@ from gateway.modbus.mapping import (
     Table,
     WordWrite,
 )
-from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
+from gateway.protocols.df1.address import STRUCTURE_FILE_TYPES, FileType, SlcAddress, parse_address
 from gateway.protocols.df1.plc5_address import Plc5Address
 
 __all__ = [
@@ -69,7 +69,6 @@ F32_HIGH = Codec("f32-high", 3, 2, half=Half.HIGH)
 F32_LOW = Codec("f32-low", 1, 0, half=Half.LOW)
 
 _IO = (FileType.INPUT, FileType.OUTPUT)
-_STRUCTURES = (FileType.TIMER, FileType.COUNTER, FileType.CONTROL)
 
 
 @frozen
@@ -122,7 +121,7 @@ def _locate(address: SlcAddress) -> tuple[Key, int]:
 
 def _element_words(key: Key) -> int:
     file_type = key[0]
-    if file_type in _STRUCTURES:
+    if file_type in STRUCTURE_FILE_TYPES:
         return 3
     return 2 if file_type == FileType.FLOAT else 1
 
@@ -193,7 +192,7 @@ def _slc_cells(item: MapItem, words: dict[SlcAddress, SlcAddress]) -> list[_SlcC
     scan = Scan(item.scan)
     cells: list[_SlcCell] = []
     if table in (Table.COIL, Table.DISCRETE):
-        step_elements = base.file_type in _STRUCTURES
+        step_elements = base.file_type in STRUCTURE_FILE_TYPES
         first_bit = base.bit or 0
         for k in range(item.count):
             if step_elements:

@@ -55,7 +55,13 @@ from gateway.protocols.df1.pccc import (
     WordRangeWrite,
 )
 from gateway.protocols.df1.pccc.limits import PLC5_WORD_RANGE
-from gateway.protocols.df1.plc5_address import AddressError, Plc5Address, encode_logical_binary, parse_plc5_address
+from gateway.protocols.df1.plc5_address import (
+    PLC5_STRUCTURES,
+    AddressError,
+    Plc5Address,
+    encode_logical_binary,
+    parse_plc5_address,
+)
 from gateway.unit import UnitOptions, WriteStep
 
 __all__ = [
@@ -73,7 +79,6 @@ __all__ = [
 #: Word range read: reply data bytes, and write: address + data bytes (``pccc/limits.py``).
 PLC5_MAX_READ_BYTES: Final = PLC5_WORD_RANGE.max_read_bytes
 PLC5_MAX_WRITE_BYTES: Final = PLC5_WORD_RANGE.max_write_bytes
-_STRUCTURES = frozenset("TCR")
 
 
 @frozen
@@ -110,7 +115,7 @@ def _word_address(key: _Key, position: int) -> Plc5Address:
     file_type, file_number = key
     size = _words_per_element(file_type)
     element, sub = divmod(position, size)
-    if file_type in _STRUCTURES:
+    if file_type in PLC5_STRUCTURES:
         return Plc5Address(file_type, file_number, element, sub)
     return Plc5Address(file_type, file_number, element)  # a float's first word is its element
 
@@ -134,7 +139,7 @@ def _plc5_cells(item: MapItem) -> list[_Plc5Cell]:
     table, scan = Table(item.table), Scan(item.scan)
     key = (base.file_type, base.file_number)
     first = _position(base)
-    structure = base.file_type in _STRUCTURES
+    structure = base.file_type in PLC5_STRUCTURES
     cells: list[_Plc5Cell] = []
     if table in (Table.COIL, Table.DISCRETE):
         first_bit = base.bit or 0
@@ -301,7 +306,7 @@ class Plc5Unit(PcccUnit[Plc5WordWrite, Plc5BitWrite]):
 
     def _continues(self, first: Plc5WordWrite, last: Plc5WordWrite, address: Plc5Address, size: int) -> bool:
         a = last.address
-        if a.file_type in _STRUCTURES or (a.file_type, a.file_number) != (address.file_type, address.file_number):
+        if a.file_type in PLC5_STRUCTURES or (a.file_type, a.file_number) != (address.file_type, address.file_number):
             return False
         if address.element != a.element + 1:
             return False

@@ -13,6 +13,7 @@ from gateway.kinds.df1.target_unit import TargetUnit, load_table, target_plan, t
 from gateway.modbus.mapping import Plan
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.pccc.target import PcccTarget
+from gateway.protocols.df1.responder import REPLY_ACK_TIMEOUT
 
 __all__ = ["build_target", "target_link_labels", "target_link_plan"]
 
@@ -45,7 +46,8 @@ def build_target(link: Df1LinkConfig) -> TargetUnit:
         checksum=Checksum.CRC if link.checksum == "crc" else Checksum.BCC,
         duplicate_detect=link.duplicate_detect,
         check_dst=link.check_dst,
-        ack_timeout=link.ack_timeout,
+        # the line key's default is the half-duplex master's; a target's is the SLC channel's (responder)
+        ack_timeout=link.ack_timeout if "ack_timeout" in link.model_fields_set else REPLY_ACK_TIMEOUT,
         trace=link.trace,
     )
     options = unit_options(link)

@@ -26,22 +26,17 @@ from gateway.errors import GatewayError
 from gateway.line_driver import LineDriver, LineDriverOptions
 from gateway.link_health import LineQuality
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
-from gateway.protocols.df1.pccc import PcccHeader, encode_reply
+from gateway.protocols.df1.pccc import PcccHeader, Sts, encode_reply
 from gateway.protocols.df1.pccc.target import PcccTarget, TargetReply
 from gateway.protocols.df1.pccc.target_table import ElementRef
-from gateway.protocols.df1.responder import Df1Responder
+from gateway.protocols.df1.responder import REPLY_ACK_TIMEOUT, Df1Responder
 from gateway.protocols.df1.responder_events import CommandReceived, DuplicateReceived, ReplyLost
 from gateway.streams import SerialSettings
 
-__all__ = ["HARDWARE_FAULT", "TargetRunner"]
+__all__ = ["TargetRunner"]
 
 log = logging.getLogger("gateway.df1.target")
 audit = logging.getLogger("gateway.audit")
-
-#: STS of a write the gateway could not commit (1770-6.5.16 p. 8-3, remote STS codes)
-HARDWARE_FAULT = 0x40
-#: STS of a packet the target does not take as a command (a reply sent to us)
-_ILLEGAL_COMMAND = 0x10
 
 
 class TargetRunner(LineDriver):
@@ -57,7 +52,7 @@ class TargetRunner(LineDriver):
         checksum: Checksum,
         duplicate_detect: bool = True,
         check_dst: bool = False,
-        ack_timeout: float = 1.0,
+        ack_timeout: float = REPLY_ACK_TIMEOUT,
         **line: Unpack[LineDriverOptions],
     ) -> None:
         super().__init__(url, settings=settings, **line)
@@ -130,9 +125,10 @@ class TargetRunner(LineDriver):
         self.on_heard(now)
         result = self.target.execute(command.packet, now)
         reply = result.reply
-        if reply is None:
-            reply = encode_reply(PcccHeader.decode(command.packet), sts=_ILLEGAL_COMMAND)
-        elif result.written:
+        if reply is None:  # not a command (a reply sent to us): no answer, decided by the target
+            self.responder.no_reply(command.packet)
+            return
+        if result.written:
             reply = self._commit(command, result)
         sts = PcccHeader.decode(reply).sts
         if sts:
@@ -148,7 +144,7 @@ class TargetRunner(LineDriver):
             self.on_written(result.written)
         except GatewayError as exc:
             log.error("link %s: %s", self.name, exc)
-            return encode_reply(PcccHeader.decode(command.packet), sts=HARDWARE_FAULT)
+            return encode_reply(PcccHeader.decode(command.packet), sts=Sts.HOST_HARDWARE_FAULT)
         # DEBUG: a PLC's MSG may write every scan; a Modbus client's write is logged at INFO
         audit.debug("link %s: node %d wrote %s (TNS %d)", self.name, command.src,
                    ", ".join(f"{self.target.table[r.file].name}:{r.element}" for r in result.written), command.tns)

@@ -47,7 +47,7 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalWrite,
     SetProcessorMode,
 )
-from gateway.protocols.df1.plc5_address import AddressError, Plc5Address, parse_plc5_address
+from gateway.protocols.df1.plc5_address import PLC5_STRUCTURES, AddressError, Plc5Address, parse_plc5_address
 from gateway.protocols.df1.plc5_commands import plc5_bit_write, plc5_read, plc5_write
 from gateway.tools_common import print_result, resolve_retries
 
@@ -111,7 +111,6 @@ def encode_value(address: SlcAddress, text: str) -> tuple[bytes, int | None]:
 
 #: PLC-5 files whose words read as signed 16-bit numbers (integers, and timer / counter / control words)
 _PLC5_SIGNED = frozenset("NTCR")
-_PLC5_STRUCTURES = frozenset("TCR")
 
 
 def _plc5_address(text: str) -> Plc5Address:
@@ -154,7 +153,7 @@ def encode_plc5_write(address: Plc5Address, text: str) -> PcccRequestLike:
             return plc5_write(address, struct.pack("<f", float(text)))
         except ValueError as exc:
             raise InvalidRequest(f"{address}={text}: not a number") from exc
-    if address.file_type in _PLC5_STRUCTURES and address.sub_element is None:
+    if address.file_type in PLC5_STRUCTURES and address.sub_element is None:
         raise InvalidRequest(f"{address}: write a member (.PRE, .ACC ...), not the whole structure")
     try:
         value = int(text, 0)

@@ -31,6 +31,7 @@ from gateway.errors import InvalidRequest
 from gateway.frozen import frozen
 
 __all__ = [
+    "STRUCTURE_FILE_TYPES",
     "AddressError",
     "FileType",
     "SlcAddress",
@@ -98,7 +99,8 @@ _DEFAULT_FILE_TYPE: Final = {
 _USER_TYPES: Final = frozenset(
     {FileType.BIT, FileType.TIMER, FileType.COUNTER, FileType.CONTROL, FileType.INTEGER, FileType.FLOAT}
 )
-_STRUCTURES: Final = frozenset({FileType.TIMER, FileType.COUNTER, FileType.CONTROL})
+#: The structure files: timers, counters, controls (three words per element).
+STRUCTURE_FILE_TYPES: Final = frozenset({FileType.TIMER, FileType.COUNTER, FileType.CONTROL})
 #: Files whose bits may be addressed by absolute bit number 0-4095 (page 4 of the reference).
 _ABSOLUTE_BIT_TYPES: Final = frozenset(
     {FileType.BIT, FileType.CONTROL, FileType.INPUT, FileType.INTEGER, FileType.OUTPUT, FileType.STATUS}
@@ -167,14 +169,14 @@ class SlcAddress:
     @property
     def element_size_words(self) -> int:
         """Words per element: timer/counter/control 3, float 2, others 1."""
-        if self.file_type in _STRUCTURES:
+        if self.file_type in STRUCTURE_FILE_TYPES:
             return 3
         return 2 if self.file_type is FileType.FLOAT else 1
 
     @property
     def is_structure(self) -> bool:
         """True for a whole timer, counter or control structure (``T4:3``)."""
-        return self.file_type in _STRUCTURES and self.sub_element == 0 and self.bit is None
+        return self.file_type in STRUCTURE_FILE_TYPES and self.sub_element == 0 and self.bit is None
 
     @property
     def word_count(self) -> int:
@@ -205,7 +207,7 @@ class SlcAddress:
         if self.file_type is FileType.STATUS:
             return f"S:{self.element}{bit}"
         text = f"{letter}{self.file_number}:{self.element}"
-        if self.file_type in _STRUCTURES:
+        if self.file_type in STRUCTURE_FILE_TYPES:
             if self.sub_element == 0:
                 names = {number: name for name, number in _BITS[self.file_type].items()}
                 if self.bit is not None and self.bit in names:
@@ -247,7 +249,7 @@ def _build(match: re.Match[str]) -> SlcAddress:
             raise AddressError(f"I/O words are numbers ({letter}:slot.word/bit)")
         word = int(member) if member is not None else 0
         return SlcAddress(file_type, file_number, element, word, _numeric_bit(bit_text))
-    if file_type in _STRUCTURES:
+    if file_type in STRUCTURE_FILE_TYPES:
         return _structure(file_type, file_number, element, member, bit_text)
     if member is not None:
         what = (

@@ -74,6 +74,7 @@ from gateway.protocols.df1.half_duplex_schedule import (
     StationRecord,
 )
 from gateway.protocols.df1.half_duplex_transmitter import HalfDuplexTransmitter
+from gateway.protocols.df1.pccc.codec import duplicate_key
 from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
 
 __all__ = ["TRANSITIONS", "HalfDuplexMaster", "LineState", "MasterAction", "MasterInput"]
@@ -209,8 +210,9 @@ class HalfDuplexMaster:
         ``urgent`` (a write, or the read-back of one): queued ahead of the station's other commands
         and served before other stations' work (:meth:`ExchangeScheduler.next_exchange`)."""
         target = self._stations.target(station, message, "a command packet")
-        if self._stations.tns_in_use(tns := message[4:6], self._request):
-            raise ValueError(f"TNS {tns.hex()} is already in use on this line; allocate TNS per line")
+        if self._stations.tns_in_use(tns := duplicate_key(message)[2], self._request):
+            wire = tns.to_bytes(2, "little").hex()  # as the TNS bytes go on the line
+            raise ValueError(f"TNS {wire} is already in use on this line; allocate TNS per line")
         request_id = next(self._ids)
         if not target.active:
             self._events.append(RequestFailed(request_id, station, FailReason.STATION_DEMOTED, False))

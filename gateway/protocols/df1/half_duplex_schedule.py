@@ -33,7 +33,7 @@ from typing import Final
 
 from gateway.frozen import frozen
 from gateway.protocols.df1 import half_duplex_events as hd
-from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, reply_matches
+from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, duplicate_key, reply_matches
 from gateway.protocols.df1.pccc.codes import REPLY_BIT
 
 __all__ = [
@@ -77,7 +77,7 @@ class StationRecord:
     queue: deque[MasterRequest] = field(default_factory=deque)
     awaiting: list[MasterRequest] = field(default_factory=list)
     next_poll_at: float = 0.0
-    last_head: bytes | None = None
+    last_head: tuple[int, int, int] | None = None  #: SRC CMD TNS of the last message (duplicate_key)
     counters: hd.StationCounters = field(default_factory=hd.StationCounters)
 
     @property
@@ -127,9 +127,10 @@ class StationRecord:
     def received(self, message: bytes) -> hd.MasterEvent | None:
         """A good message of this station (already acknowledged): its reply to one of our requests,
         a stray reply, or a command of its own; None for a repeat (it resends when our DLE ACK was
-        lost: the first six bytes are the last message's, with no EOT between, KA p. 11-17)."""
-        head = message[:HEADER_SIZE]
-        if head == self.last_head:
+        lost: its SRC, CMD and TNS are the last message's, with no EOT between, KA p. 11-17; 1770-6.5.16
+        p. 6-3).  A message too short for a PCCC header is never a repeat."""
+        head = duplicate_key(message) if len(message) >= HEADER_SIZE else None
+        if head is not None and head == self.last_head:
             self.counters.duplicates += 1
             return None
         self.last_head = head
@@ -177,15 +178,15 @@ class LineStations:
             raise ValueError(f"{what} has at least DST SRC CMD STS TNS (6 bytes)")
         return target
 
-    def tns_in_use(self, tns: bytes, in_flight: MasterRequest | None) -> bool:
-        """A request queued, awaiting its reply or ``in_flight`` has this TNS (``message[4:6]``)."""
+    def tns_in_use(self, tns: int, in_flight: MasterRequest | None) -> bool:
+        """A request queued, awaiting its reply or ``in_flight`` has this TNS."""
         if any(
-            r.expects_reply and r.message[4:6] == tns
+            r.expects_reply and duplicate_key(r.message)[2] == tns
             for station in self
             for r in itertools.chain(station.queue, station.awaiting)
         ):
             return True
-        return in_flight is not None and in_flight.expects_reply and in_flight.message[4:6] == tns
+        return in_flight is not None and in_flight.expects_reply and duplicate_key(in_flight.message)[2] == tns
 
 
 @frozen

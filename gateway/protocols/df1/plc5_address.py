@@ -32,6 +32,7 @@ from gateway.frozen import frozen
 from gateway.protocols.df1.address import AddressError
 
 __all__ = [
+    "PLC5_STRUCTURES",
     "AddressError",
     "Plc5Address",
     "decode_logical_ascii",
@@ -62,11 +63,15 @@ _FILE_TYPES: Final[dict[str, tuple[int | None, int, bool]]] = {
 }
 
 #: Level 4 sub-elements (p. 13-12/13-13: 0 control, 1 preset / length, 2 accumulated / position).
+#: Their files, timers, counters and controls, are the structure files.
 _SUB_ELEMENTS: Final[dict[str, dict[str, int]]] = {
     "T": {"CTL": 0, "PRE": 1, "ACC": 2},
     "C": {"CTL": 0, "PRE": 1, "ACC": 2},
     "R": {"CTL": 0, "LEN": 1, "POS": 2},
 }
+
+#: File type letters of the structure files (timer, counter, control: three words per element).
+PLC5_STRUCTURES: Final = frozenset(_SUB_ELEMENTS)
 
 #: Status bits in the control word (sub-element 0) of timers, counters and controls.
 _STATUS_BITS: Final[dict[str, dict[str, int]]] = {

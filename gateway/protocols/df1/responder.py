@@ -8,7 +8,7 @@ defaults from the SLC 500 channel 0 configuration, 1747-RM001G p. 13-52 Table 13
 Receiver (p. 4-8, the RECEIVER program; its last response starts as DLE NAK)::
 
     good frame, new command     -> DLE ACK, CommandReceived, remember SRC CMD TNS ("save last header")
-    good frame, same SRC CMD TNS -> DLE ACK, not delivered, the stored reply sent again (DuplicateReceived)
+    good frame, same SRC CMD TNS -> DLE ACK, not delivered, no second reply (DuplicateReceived; p. 4-13)
     good frame, sink full       -> DLE NAK ("else if message sink is full send DLE NAK")
     damaged / < 6 bytes / long  -> DLE NAK ("too small", "too large", BCC/CRC not valid)
     DLE ENQ inside a frame      -> DLE NAK for the truncated frame (a control symbol other than DLE ETX)
@@ -28,8 +28,11 @@ uniquely identifies every message packet ... If all fields are the same, the mes
 is considered to be a duplicate" (p. 6-3); the receiver compares them with the last message passed
 to the sink (p. 4-8: LAST-HEADER, 4 bytes; p. 4-13: a lost DLE ACK makes the peer send the message
 again, "the receiver discards the duplicate message (if duplicate message detection is enabled)").
-DST and STS are not part of it.  A duplicate is never delivered, so never executed twice; if the
-reply to it was given (:meth:`Df1Responder.send_reply`) and is not on its way, it is queued again.
+DST and STS are not part of it.  A duplicate is never delivered, so never executed twice, and it
+gets no second reply: p. 4-13 shows the copy discarded and one reply returned, so the peer has one
+reply per TNS.  ``resend_reply`` (off by default) is a reading for a peer that sends the command
+again because it lost our reply: the stored reply, when it was given
+(:meth:`Df1Responder.send_reply`) and is not on its way, is queued again (docs/controller-variants.md).
 
 DST (``check_dst``, default False): the full-duplex receiver never looks at DST (the p. 4-8 program
 tests only the check, the length, the header and the sink); RM p. 13-76 names ignoring "packets
@@ -50,22 +53,22 @@ older frame and is ignored.  Known limit of the protocol: a frame lost whole lea
 the DLE ENQ that follows is answered with the previous frame's ACK (p. 4-8: the last response), so
 the peer takes it as delivered; the application layer's reply timeout covers that.
 
-All behaviour is one table, :data:`~gateway.protocols.df1.responder_table.TRANSITIONS`
-((state, input) -> (action, next state), a missing pair raises); its events and counters are in
-:mod:`~gateway.protocols.df1.responder_events`; the output, the last response symbol, the reply
-queue and the ACK timer are :class:`~gateway.protocols.df1.full_duplex.FullDuplexStation`'s, shared
-with the host's data link.  This module does no I/O: the caller passes ``now``
-and moves the bytes.
+The receiver and the transmitter are the full-duplex station's
+(:class:`~gateway.protocols.df1.full_duplex.FullDuplexStation`, its tables in
+:mod:`~gateway.protocols.df1.full_duplex_table`), shared with the host's data link; the responder
+adds its role: the message sink of ``max_pending`` commands awaiting their reply, the DST check,
+the stored reply, and its events and counters (:mod:`~gateway.protocols.df1.responder_events`).
+This module does no I/O: the caller passes ``now`` and moves the bytes.
 """
 
 from __future__ import annotations
 
-from collections import deque
 from typing import Final
 
-from gateway.protocols.df1.framing import ACK_SYMBOL, DEFAULT_MAX_MESSAGE, NAK_SYMBOL, BadFrameReason, Checksum
-from gateway.protocols.df1.full_duplex import FullDuplexStation, SendFailure, TxState
-from gateway.protocols.df1.pccc.codec import PcccHeader
+from gateway.protocols.df1.framing import DEFAULT_MAX_MESSAGE, Checksum
+from gateway.protocols.df1.full_duplex import FullDuplexStation, QueuedFrame, SendFailure, TxState
+from gateway.protocols.df1.full_duplex_table import TxInput
+from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, duplicate_key
 from gateway.protocols.df1.pccc.codes import REPLY_BIT
 from gateway.protocols.df1.responder_events import (
     CommandReceived,
@@ -75,25 +78,12 @@ from gateway.protocols.df1.responder_events import (
     ResponderCounters,
     ResponderEvent,
 )
-from gateway.protocols.df1.responder_table import (
-    TRANSITIONS,
-    ResponderAction,
-    ResponderInput,
-    ResponderStep,
-)
 
-__all__ = ["MIN_PACKET", "Df1Responder"]
+__all__ = ["REPLY_ACK_TIMEOUT", "Df1Responder"]
 
-#: "The minimum number of bytes contained in any one message packet is 6" (S4516 §2): DST SRC CMD
-#: STS TNS; a shorter frame is "too small" (p. 4-8) and is NAKed.
-MIN_PACKET: Final = 6
-
-_DLE: Final = 0x10
-
-S, K, A = TxState, ResponderInput, ResponderAction
-
-
-# ------------------------------------------------------------------------------------ responder
+#: The wait for the peer's DLE ACK of a reply before DLE ENQ: the SLC 500 channel 0 default, "ACK
+#: Timeout 50" x 20 ms (1747-RM001G p. 13-52, Table 13.15), the station a PLC's MSG expects.
+REPLY_ACK_TIMEOUT: Final = 1.0
 
 
 class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
@@ -102,7 +92,8 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
     ``feed(data, now)`` the bytes read, ``next_event()`` until ``NEED_DATA``, answer every
     :class:`CommandReceived` with ``send_reply(packet, now)`` (the PCCC target answers every
     command, errors included: "For each command message sent, a reply message is generated",
-    S4516 §2), write ``data_to_send()``, and call ``handle_timeout(now)`` at ``next_deadline()``.
+    S4516 §2; one it does not take as a command is given up with ``no_reply(packet)``), write
+    ``data_to_send()``, and call ``handle_timeout(now)`` at ``next_deadline()``.
     """
 
     def __init__(
@@ -110,47 +101,44 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
         *,
         station: int = 0,
         checksum: Checksum = Checksum.CRC,
-        ack_timeout: float = 1.0,
+        ack_timeout: float = REPLY_ACK_TIMEOUT,
         nak_limit: int = 3,
         enq_limit: int = 3,
         duplicate_detect: bool = True,
         check_dst: bool = False,
         max_pending: int = 4,
         max_message: int = DEFAULT_MAX_MESSAGE,
+        resend_reply: bool = False,
     ) -> None:
         if not 0 <= station <= 254:
             raise ValueError("station must be 0..254")
-        if ack_timeout <= 0:
-            raise ValueError("ack_timeout must be positive")
-        if nak_limit < 0 or enq_limit < 0:
-            raise ValueError("nak_limit and enq_limit must not be negative")
         if max_pending < 1:
             raise ValueError("max_pending must be at least 1")
-        if max_message < MIN_PACKET:
-            raise ValueError(f"max_message must be at least {MIN_PACKET}")
-        super().__init__(ResponderCounters(), checksum=checksum, ack_timeout=ack_timeout, max_message=max_message)
+        super().__init__(
+            ResponderCounters(),
+            checksum=checksum,
+            ack_timeout=ack_timeout,
+            max_message=max_message,
+            nak_limit=nak_limit,
+            enq_limit=enq_limit,
+            duplicate_detect=duplicate_detect,
+            accept_dst=station if check_dst else None,
+        )
         self.station: Final = station
-        self.nak_limit: Final = nak_limit
-        self.enq_limit: Final = enq_limit
-        self.duplicate_detect: Final = duplicate_detect
         self.check_dst: Final = check_dst
+        #: a duplicate command gets the stored reply again (module docstring; off: p. 4-13)
+        self.resend_reply: Final = resend_reply
         #: the message sink's size: commands delivered whose reply was not given yet; p. 4-6
         #: suggests peers keep one to three messages outstanding
         self.max_pending: Final = max_pending
-        #: the last transitions taken, newest last
-        self.history: deque[ResponderStep] = deque(maxlen=64)
-        self._state = S.IDLE
-        self._idle_dle = False  # the last byte was a DLE outside a frame that started nothing yet
-        # receiver
-        self._last_header: tuple[int, int, int] | None = None  # SRC, CMD, TNS of the last delivered
-        self._last_reply: tuple[int, bytes] | None = None  # handle and packet of its reply
+        self._last_reply: tuple[int, bytes] | None = None  # handle and packet of the last command's reply
         self._pending: list[tuple[int, int, int]] = []  # SRC, CMD, TNS of commands awaiting a reply
 
     # ------------------------------------------------------------------------------ public API
 
     @property
     def state(self) -> TxState:
-        return self._state
+        return self._tx_state
 
     @property
     def pending_commands(self) -> int:
@@ -164,145 +152,66 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
 
     def feed(self, data: bytes, now: float) -> None:
         """Consume bytes read from the line."""
-        decoder = self._decoder
-        for i in range(len(data)):
-            byte = data[i]
-            outside = not decoder.in_frame
-            heard = self._receive(data[i : i + 1], now)
-            if outside and not heard and not decoder.in_frame:
-                # Discarded by the decoder: noise, or the first DLE of DLE DLE (a DLE alone may
-                # still start a symbol with the next byte).
-                if byte != _DLE or self._idle_dle:
-                    self._input(K.NOISE, now)
-                self._idle_dle = byte == _DLE
-            else:
-                self._idle_dle = False
+        self._receive(data, now)
 
     def send_reply(self, packet: bytes, now: float) -> int:
         """Queue a reply packet (DST .. data); returns its handle, which one event will report:
         :class:`ReplyDelivered` or :class:`ReplyLost`."""
         packet = bytes(packet)
-        if not MIN_PACKET <= len(packet) <= self.max_message:
-            raise ValueError(f"DF1 reply of {len(packet)} bytes: must be {MIN_PACKET}..{self.max_message}")
+        if not HEADER_SIZE <= len(packet) <= self.max_message:
+            raise ValueError(f"DF1 reply of {len(packet)} bytes: must be {HEADER_SIZE}..{self.max_message}")
         handle = self._enqueue(packet)
         header = self._answered(packet)
         if header is not None and header == self._last_header:
             self._last_reply = (handle, packet)
-        self._input(K.REPLY, now)
+        self._tx(TxInput.SEND, now)
         return handle
+
+    def no_reply(self, packet: bytes) -> None:
+        """The delivered ``packet`` gets no reply (the application layer does not take it as a
+        command, e.g. a reply sent to us): it no longer holds a place in the sink."""
+        header = duplicate_key(packet)
+        if header in self._pending:
+            self._pending.remove(header)
 
     def reset(self) -> None:
         """Forget the line (port reopened): every reply queued or on the line is lost."""
-        lost = self._forget_line()
-        self._state = S.IDLE
-        self._idle_dle = False
-        self._last_header = self._last_reply = None
+        self._tx(TxInput.RESET, 0.0)
+        self._last_reply = None
         self._pending.clear()
-        for frame in lost:
-            self.counters.replies_lost += 1
-            self._events.append(ReplyLost(frame.handle, frame.message, SendFailure.LINK_RESET))
 
-    # ------------------------------------------------------------------------------ inputs
+    # ------------------------------------------------------------------------------ the role
 
-    def _on_frame(self, message: bytes, now: float) -> None:
-        if len(message) < MIN_PACKET:
-            self._input(K.BAD_FRAME, now)
-        elif self.check_dst and PcccHeader.decode(message).dst != self.station:
-            self._input(K.NOT_FOR_US, now)
-        elif self.duplicate_detect and _header(message) == self._last_header:
-            self._input(K.DUPLICATE, now, message)
-        elif len(self._pending) >= self.max_pending:
-            self._input(K.SINK_FULL, now)
-        else:
-            self._input(K.COMMAND, now, message)
+    def _sink_full(self) -> bool:
+        return len(self._pending) >= self.max_pending
 
-    def _on_bad_frame(self, reason: BadFrameReason, now: float) -> None:
-        # DLE ETX without DLE STX is a false symbol outside a frame, not a frame (p. 4-8)
-        self._input(K.NOISE if reason is BadFrameReason.MISSING_START else K.BAD_FRAME, now)
+    def _deliver(self, message: bytes, now: float) -> None:
+        header = duplicate_key(message)
+        self._last_reply = None
+        self._pending.append(header)
+        self.counters.commands_delivered += 1
+        src, cmd, tns = header
+        self._events.append(CommandReceived(message, src, message[0], cmd, tns))
 
-    def _on_enq(self, aborted_frame: bool, now: float) -> None:
-        self._input(K.ENQ_IN_FRAME if aborted_frame else K.ENQ, now)
+    def _duplicate(self, message: bytes, now: float) -> None:
+        handle = None
+        if self.resend_reply and self._last_reply is not None and not self._on_its_way(self._last_reply[0]):
+            packet = self._last_reply[1]
+            handle = self._enqueue(packet)
+            self._last_reply = (handle, packet)
+            self.counters.replies_resent += 1
+        src, cmd, tns = duplicate_key(message)
+        self._events.append(DuplicateReceived(message, src, cmd, tns, handle))
+        if handle is not None:
+            self._tx(TxInput.SEND, now)
 
-    def _on_answer(self, nak: bool, now: float) -> None:
-        if self._frame_unsent:
-            self._input(K.STALE, now)
-        elif not nak:
-            self._input(K.ACK, now)
-        else:
-            # the NAK count is the reply's on the line; a late DLE NAK after it was given up is
-            # a NAK to nothing (IDLE, NAK)
-            on_line = self._state is S.AWAIT_ACK
-            self._input(K.NAK_LIMIT if on_line and self._nak_count >= self.nak_limit else K.NAK, now)
+    def _sent(self, frame: QueuedFrame, now: float) -> None:
+        self.counters.replies_delivered += 1
+        self._events.append(ReplyDelivered(frame.handle, frame.message))
 
-    # ------------------------------------------------------------------------------ the machine
-
-    def _input(self, what: ResponderInput, now: float, message: bytes = b"") -> None:
-        key = (self._state, what)
-        try:
-            entry = TRANSITIONS[key]
-        except KeyError:
-            raise RuntimeError(f"DF1 responder: no transition for {key}") from None
-        action, next_state = entry.action, entry.next_state
-        self.history.append(ResponderStep(self._state, what, action, next_state))
-        self._state = next_state
-        counters = self.counters
-        match action:  # A.IGNORE: no case, nothing to do
-            case A.DELIVER:
-                self._respond(ACK_SYMBOL)
-                header = _header(message)
-                self._last_header, self._last_reply = header, None
-                self._pending.append(header)
-                counters.commands_delivered += 1
-                src, cmd, tns = header
-                self._events.append(CommandReceived(message, src, PcccHeader.decode(message).dst, cmd, tns))
-            case A.ACK_DUPLICATE:
-                self._respond(ACK_SYMBOL)
-                counters.duplicates += 1
-                handle = None
-                if self._last_reply is not None and not self._on_its_way(self._last_reply[0]):
-                    packet = self._last_reply[1]
-                    handle = self._enqueue(packet)
-                    self._last_reply = (handle, packet)
-                    counters.replies_resent += 1
-                src, cmd, tns = _header(message)
-                self._events.append(DuplicateReceived(message, src, cmd, tns, handle))
-                if handle is not None:
-                    self._input(K.REPLY, now)
-            case A.ACK_ONLY:
-                self._respond(ACK_SYMBOL)
-                counters.not_for_us += 1
-            case A.REFUSE:
-                self._respond(NAK_SYMBOL)
-                counters.sink_full += 1
-            case A.REJECT:
-                self._respond(NAK_SYMBOL)
-                counters.bad_frames += 1
-            case A.ANSWER_ENQ:
-                self._respond(self._last_response)
-            case A.LAST_NAK:
-                self._last_response = NAK_SYMBOL
-                counters.noise += 1
-            case A.TRANSMIT:
-                self._transmit(now)
-            case A.RETRANSMIT:
-                self._retransmit(now)
-            case A.ENQUIRE:
-                self._enquire(now)
-            case A.COMPLETE:
-                frame = self._take_current()
-                counters.replies_delivered += 1
-                self._finish(ReplyDelivered(frame.handle, frame.message), now)
-            case A.LOSE_NAK | A.LOSE_NO_RESPONSE:
-                frame = self._take_current()
-                counters.replies_lost += 1
-                reason = SendFailure.NAK_LIMIT if action is A.LOSE_NAK else SendFailure.NO_RESPONSE
-                self._finish(ReplyLost(frame.handle, frame.message, reason), now)
-
-    def _frame_queued(self, now: float) -> None:
-        self._input(K.REPLY, now)
-
-    def _ack_timer_expired(self, now: float) -> None:
-        self._input(K.TIMEOUT_LIMIT if self._enq_count >= self.enq_limit else K.TIMEOUT, now)
+    def _failed(self, frame: QueuedFrame, reason: SendFailure) -> None:
+        self.counters.replies_lost += 1
+        self._events.append(ReplyLost(frame.handle, frame.message, reason))
 
     # ------------------------------------------------------------------------------ helpers
 
@@ -322,10 +231,3 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
         header = next((header for header in matches if header[0] == answer.dst), matches[0])
         self._pending.remove(header)
         return header
-
-
-
-def _header(packet: bytes) -> tuple[int, int, int]:
-    """SRC, CMD, TNS: what identifies a message packet (p. 6-3), read by the one PCCC header parser."""
-    header = PcccHeader.decode(packet)
-    return header.src, header.cmd, header.tns

@@ -36,8 +36,9 @@ class CommandReceived:
 class DuplicateReceived:
     """The peer sent the last command again (its DLE ACK was lost); ACKed, not delivered.
 
-    ``reply_handle`` is the handle of the stored reply queued again, or None (no reply given yet,
-    or it is still on its way).
+    ``reply_handle`` is the handle of the stored reply queued again (only with the responder's
+    ``resend_reply``), or None (the default, 1770-6.5.16 p. 4-13: one reply per command; or no reply
+    given yet, or it is still on its way).
     """
 
     packet: bytes
@@ -70,12 +71,10 @@ ResponderEvent = CommandReceived | DuplicateReceived | ReplyDelivered | ReplyLos
 @dataclass(slots=True)
 class ResponderCounters(FullDuplexCounters):
     """Link statistics of the responder: ``frames_received`` are commands, duplicates, refused and
-    not for us; ``bad_frames`` (damaged, too short, too long, or cut by DLE ENQ) are NAKed."""
+    not for us; ``bad_frames`` (damaged, too short, too long, or cut by DLE ENQ) are NAKed;
+    ``sink_full`` counts new commands NAKed because ``max_pending`` commands await their reply."""
 
     commands_delivered: int = 0
-    not_for_us: int = 0  #: frames ACKed but not delivered because of their DST (``check_dst``)
-    sink_full: int = 0  #: new commands NAKed because ``max_pending`` commands await their reply
-    noise: int = 0  #: bytes and symbols outside a frame that start nothing
-    replies_resent: int = 0  #: stored replies queued again for a duplicate command
+    replies_resent: int = 0  #: stored replies queued again for a duplicate command (``resend_reply``)
     replies_delivered: int = 0
     replies_lost: int = 0

@@ -11,11 +11,18 @@ module decides that reply (sans-I/O):
   range write ``0F 00`` (KF2 p. 5-57), SLC protected typed logical write ``0F AA`` of an integer file,
   or typed write ``0F 67`` of integers - is stored into the sending station's
   :class:`RegisterTable` (each word with the time it arrived) and answered STS 00;
-* a write to words the table does not have: STS F0, EXT STS 06 "address doesn't point to something
-  usable" (1770-6.5.16 p. 8-4, EXT STS codes for CMD 0F);
-* anything else (a read, another command, a message for another station - the gateway does not
-  route between slaves -, a station without a table): STS 10 "illegal command or format"
-  (1770-6.5.16 p. 8-3, remote STS codes), the manual's answer to a command a node does not have;
+* everything else is refused with the STS the PCCC target core decides for that command's family
+  (:func:`~gateway.protocols.df1.pccc.target.refusal`, the one table of both target paths):
+
+  - a write to words the table does not have: the file is not the table's, the first element is
+    outside it, or the data runs past its end - an SLC typed logical write STS 50 "address
+    problem" (notes §4.36 (d)), a PLC-5 word range / typed write STS F0 with EXT STS 06 "address
+    doesn't point to something usable" or 09 "data or file is too large" for data past the end
+    (1770-6.5.16 p. 8-4, p. 8-9);
+  - anything else (a read, another command, a message for another station - the gateway does not
+    route between slaves -, a station without a table): STS 10 "illegal command or format"
+    (1770-6.5.16 p. 8-3), the manual's answer to a command a node does not have;
+
 * a packet too short to have a PCCC header, or a reply: no answer (there is nothing to reply to).
 
 No I/O.
@@ -31,20 +38,17 @@ from gateway.protocols.df1.pccc import (
     PcccFormatError,
     PcccHeader,
     ProtectedTypedLogicalWrite,
-    Sts,
     TypedWrite,
     WordRangeWrite,
     decode_command,
     encode_reply,
 )
+from gateway.protocols.df1.pccc.commands import Request
 from gateway.protocols.df1.pccc.plc5 import DataType
+from gateway.protocols.df1.pccc.target import Problem, refusal
 
-__all__ = ["ILLEGAL_COMMAND", "RegisterTable", "SlaveMessageVerdict", "SlaveWrite", "answer_slave_message"]
+__all__ = ["RegisterTable", "SlaveMessageVerdict", "SlaveWrite", "answer_slave_message"]
 
-#: 1770-6.5.16 p. 8-3: remote STS 10 hex, "illegal command or format".
-ILLEGAL_COMMAND = 0x10
-#: p. 8-4, EXT STS for CMD 0F: 06 "address doesn't point to something usable".
-_NOT_USABLE = 0x06
 #: SLC file type of an integer file (N), as in a protected typed logical write (notes §4.36).
 _INTEGER_FILE = 0x89
 
@@ -85,8 +89,18 @@ class RegisterTable:
         self.refused = 0  #: writes refused (outside the table)
 
     def covers(self, write: SlaveWrite) -> bool:
+        return self.problem(write) is None
+
+    def problem(self, write: SlaveWrite) -> Problem | None:
+        """Why the table cannot take ``write`` (the target core's problems), None if it covers it all."""
         start = write.element - self.first_element
-        return write.file_number == self.file_number and start >= 0 and start + len(write.words) <= self.size
+        if write.file_number != self.file_number:
+            return Problem.NO_FILE
+        if not 0 <= start < self.size:
+            return Problem.NOT_USABLE
+        if start + len(write.words) > self.size:
+            return Problem.PAST_END
+        return None
 
     def store(self, write: SlaveWrite, now: float) -> bool:
         """Store ``write`` if the table covers it all (else nothing, and False)."""
@@ -125,9 +139,12 @@ def _words(data: bytes) -> tuple[int, ...]:
 def decode_slave_write(packet: bytes) -> SlaveWrite | None:
     """The write a slave's command packet carries, None when it is not one we store."""
     try:
-        request = decode_command(packet).request
+        return _slave_write(decode_command(packet).request)
     except PcccFormatError:
         return None
+
+
+def _slave_write(request: Request) -> SlaveWrite | None:
     if isinstance(request, WordRangeWrite) and request.packet_offset == 0:
         return _file_element_write(request.address.levels, request.data)
     if isinstance(request, ProtectedTypedLogicalWrite):
@@ -158,9 +175,17 @@ def answer_slave_message(
         return SlaveMessageVerdict.NO_ANSWER, None
     if header.is_reply:
         return SlaveMessageVerdict.NO_ANSWER, None
-    write = decode_slave_write(packet) if header.dst == own_station else None
+    try:
+        request: Request | None = decode_command(packet).request
+    except PcccFormatError:
+        request = None
+    write = _slave_write(request) if request is not None and header.dst == own_station else None
     if write is None or table is None:
-        return SlaveMessageVerdict.UNSUPPORTED, encode_reply(header, sts=ILLEGAL_COMMAND)
+        sts, ext_sts = refusal(request, Problem.FORMAT)
+        return SlaveMessageVerdict.UNSUPPORTED, encode_reply(header, sts=sts, ext_sts=ext_sts)
     if not table.store(write, now):
-        return SlaveMessageVerdict.BAD_ADDRESS, encode_reply(header, sts=Sts.EXTENDED, ext_sts=_NOT_USABLE)
+        problem = table.problem(write)
+        assert problem is not None  # store() refuses only what the table does not cover
+        sts, ext_sts = refusal(request, problem)
+        return SlaveMessageVerdict.BAD_ADDRESS, encode_reply(header, sts=sts, ext_sts=ext_sts)
     return SlaveMessageVerdict.STORED, encode_reply(header)

@@ -34,6 +34,7 @@ from gateway.protocols.df1.framing import (
     encode_frame,
 )
 from gateway.protocols.df1.framing.decoder import FrameDecoder
+from gateway.protocols.df1.pccc.codec import HEADER_SIZE, duplicate_key
 from gateway.sim.variants import VariantTable, resolve_variants
 
 __all__ = ["VARIANTS", "HalfDuplexSlave", "SlaveVariant"]
@@ -108,7 +109,7 @@ class HalfDuplexSlave:
     counters: SlaveCounters = field(default_factory=SlaveCounters)
     _decoder: FrameDecoder = field(init=False)
     _out: bytearray = field(default_factory=bytearray)
-    _last_head: bytes | None = None
+    _last_head: tuple[int, int, int] | None = None
     _sent: bool = False  #: outgoing[0] was sent in answer to the last poll
 
     def __post_init__(self) -> None:
@@ -175,8 +176,9 @@ class HalfDuplexSlave:
 
     def _on_message(self, message: bytes) -> None:
         self.counters.messages += 1
-        key = message[1:3] + message[4:6]  # KA p. 11-12 compares SRC, CMD and both TNS bytes
-        if self.variant.duplicate_detect and key == self._last_head:
+        # KA p. 11-12 compares SRC, CMD and both TNS bytes; a runt is never a repeat
+        key = duplicate_key(message) if len(message) >= HEADER_SIZE else None
+        if self.variant.duplicate_detect and key is not None and key == self._last_head:
             self.counters.duplicates += 1
             self._out += ACK_SYMBOL
             return

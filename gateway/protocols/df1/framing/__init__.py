@@ -55,6 +55,7 @@ __all__ = [
     "MasterMessage",
     "NakReceived",
     "NeedData",
+    "Noise",
     "Poll",
     "Symbol",
     "encode_frame",
@@ -226,6 +227,13 @@ class EotReceived:
     """Half duplex: DLE EOT, the polled slave has nothing to send."""
 
 
+@frozen
+class Noise:
+    """Full duplex, reported only by a decoder made with ``report_noise``: bytes outside a frame
+    that start nothing (a byte other than DLE, a DLE followed by no symbol), which the decoder
+    discards.  1770-6.5.16 p. 4-8: "else LAST-RESPONSE = NAK"."""
+
+
 class BadFrameReason(enum.Enum):
     """Why a frame was rejected.  A full-duplex receiver answers each with DLE NAK; a half-duplex
     receiver never NAKs: it stays silent."""
@@ -248,4 +256,4 @@ class BadFrame:
     master: bool = False
 
 
-DecoderEvent = Frame | MasterMessage | Poll | AckReceived | NakReceived | EnqReceived | EotReceived | BadFrame
+DecoderEvent = Frame | MasterMessage | Poll | AckReceived | NakReceived | EnqReceived | EotReceived | BadFrame | Noise

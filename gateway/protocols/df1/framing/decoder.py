@@ -17,9 +17,10 @@ One engine runs one of two transition tables:
   slaves and a line monitor.  Here a start or response symbol inside a frame reports the frame so
   far as TRUNCATED and is then read as outside one; ``DLE ETX`` outside a frame is ignored.
 
-The decoder never raises on input and never wedges: bytes outside a frame are discarded, and a
-frame longer than ``max_message`` bytes stops being stored and is reported as :class:`BadFrame`
-when its ``DLE ETX`` arrives.
+The decoder never raises on input and never wedges: bytes outside a frame are discarded (with
+``report_noise``, a full-duplex station's, reported as :class:`Noise`, once per run discarded at
+once), and a frame longer than ``max_message`` bytes stops being stored and is reported as
+:class:`BadFrame` when its ``DLE ETX`` arrives.
 
 This module does no I/O.
 """
@@ -45,6 +46,7 @@ from gateway.protocols.df1.framing import (
     MasterMessage,
     NakReceived,
     NeedData,
+    Noise,
     Poll,
     Symbol,
     master_check,
@@ -285,6 +287,7 @@ _IDLE_DLE: Final = int(S.IDLE_DLE)
 _DATA: Final = int(S.DATA)
 _DATA_DLE: Final = int(S.DATA_DLE)
 _CHECK: Final = int(S.CHECK)
+_NONE: Final = int(A.NONE)
 _START: Final = int(A.START)
 _APPEND_DLE: Final = int(A.APPEND_DLE)
 _END: Final = int(A.END)
@@ -317,12 +320,19 @@ class FrameDecoder:
     """
 
     def __init__(
-        self, checksum: Checksum, *, half_duplex: bool = False, max_message: int = DEFAULT_MAX_MESSAGE
+        self,
+        checksum: Checksum,
+        *,
+        half_duplex: bool = False,
+        max_message: int = DEFAULT_MAX_MESSAGE,
+        report_noise: bool = False,
     ) -> None:
         if max_message < 1:
             raise ValueError("max_message must be at least 1")
         self.checksum: Final = checksum
         self.half_duplex: Final = half_duplex
+        #: report the bytes discarded outside a frame as Noise events, in order with the others
+        self.report_noise: Final = report_noise
         self.max_message: Final = max_message
         self._check_size: Final = checksum.size
         self._step: Final = _HALF_DUPLEX_STEP if half_duplex else _FULL_DUPLEX_STEP
@@ -387,6 +397,8 @@ class FrameDecoder:
             elif state == _IDLE:
                 # Noise up to the next DLE is discarded.
                 dle = find(_DLE, pos)
+                if self.report_noise and dle != pos:
+                    self._events.append(Noise())
                 if dle < 0:
                     break
                 pos = dle + 1
@@ -401,9 +413,14 @@ class FrameDecoder:
                     state = _IDLE
             else:
                 byte = data[pos]
+                after_dle = state == _IDLE_DLE
                 action, state = step[state << 8 | byte]
                 pos += 1
-                if action == _START:
+                if action == _NONE:
+                    # DLE <no symbol> outside a frame (DLE DLE: the first DLE) is noise
+                    if after_dle and self.report_noise:
+                        self._events.append(Noise())
+                elif action == _START:
                     message.clear()
                     self._bad = None
                     self._master = False
@@ -433,7 +450,6 @@ class FrameDecoder:
                     self._events.append(EnqReceived(aborted_frame=True))
                 elif action == _MISSING_START:
                     self._events.append(BadFrame(BadFrameReason.MISSING_START))
-                # NONE: nothing to do.
         self._state = state
 
     def next_event(self) -> DecoderEvent | NeedData:

@@ -35,12 +35,24 @@ __all__ = [
     "TnsAllocator",
     "check_range",
     "decode_reply",
+    "duplicate_key",
     "encode_field",
     "encode_reply",
     "reply_matches",
 ]
 
+#: DST SRC CMD STS TNS: "the minimum number of bytes contained in any one message packet is 6"
+#: (S4516 §2); a shorter frame is "too small" for a DF1 receiver (1770-6.5.16 p. 4-8).
 HEADER_SIZE: Final = 6
+
+
+def duplicate_key(packet: bytes) -> tuple[int, int, int]:
+    """SRC, CMD, TNS: "the combination of SRC, CMD, and TNS bytes uniquely identifies every message
+    packet" (1770-6.5.16 p. 6-3); a receiver with duplicate detection drops a packet whose key is
+    the last one's (p. 4-8, p. 4-13; KA p. 11-12 on half duplex).  DST and STS are not part of it."""
+    if len(packet) < HEADER_SIZE:
+        raise PcccFormatError(f"PCCC: packet of {len(packet)} bytes is shorter than the 6-byte header")
+    return packet[1], packet[2], packet[4] | packet[5] << 8
 
 
 class PcccFormatError(ProtocolError):

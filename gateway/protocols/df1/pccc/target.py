@@ -107,7 +107,15 @@ from gateway.protocols.df1.pccc.status import Sts
 from gateway.protocols.df1.pccc.target_table import DataTable, ElementRef, TableFile
 from gateway.protocols.df1.pccc.target_transfer import Transfer, Transfers
 
-__all__ = ["GATEWAY_NAME", "PcccTarget", "Problem", "TargetReply", "UnwrittenReads", "diagnostic_status_reply"]
+__all__ = [
+    "GATEWAY_NAME",
+    "PcccTarget",
+    "Problem",
+    "TargetReply",
+    "UnwrittenReads",
+    "diagnostic_status_reply",
+    "refusal",
+]
 
 #: Bulletin name in the diagnostic status reply (11 ASCII characters).
 GATEWAY_NAME: Final = "DF1-GATEWAY"
@@ -160,6 +168,14 @@ _PLC5_CODES: Final[dict[Problem, tuple[int, int | None]]] = {
 }
 _SlcRead = ProtectedTypedLogicalRead | ProtectedTypedLogicalTwoFieldRead
 _SlcWrite = ProtectedTypedLogicalWrite | ProtectedTypedLogicalTwoFieldWrite | ProtectedTypedLogicalMaskedWrite
+
+
+def refusal(request: Request | None, problem: Problem) -> tuple[int, int | None]:
+    """STS and EXT STS of ``problem`` for ``request``'s command family (module docstring table): the
+    one answer of every path that answers a PLC's message.  A packet that does not decode as a
+    command (``None``) can only be ``FORMAT``: STS 10 in both families (1770-6.5.16 p. 8-3)."""
+    codes = _SLC_CODES if request is None or isinstance(request, _SlcRead | _SlcWrite) else _PLC5_CODES
+    return codes[problem]
 
 
 def diagnostic_status_reply(name: str = GATEWAY_NAME) -> bytes:
@@ -238,12 +254,11 @@ class PcccTarget:
         try:
             request = decode_command(packet).request
         except GatewayError:
-            return self._refuse(header, None, _SLC_CODES, Problem.FORMAT, expired)
-        codes = _SLC_CODES if isinstance(request, _SlcRead | _SlcWrite) else _PLC5_CODES
+            return self._refuse(header, None, Problem.FORMAT, expired)
         try:
             done = self._run(request, header, now)
         except _Refused as refused:
-            return self._refuse(header, request, codes, refused.problem, expired + refused.abandoned)
+            return self._refuse(header, request, refused.problem, expired + refused.abandoned)
         return TargetReply(
             encode_reply(header, data=done.data),
             request,
@@ -257,11 +272,10 @@ class PcccTarget:
     def _refuse(
         header: PcccHeader,
         request: Request | None,
-        codes: dict[Problem, tuple[int, int | None]],
         problem: Problem,
         abandoned: tuple[Transfer, ...],
     ) -> TargetReply:
-        sts, ext_sts = codes[problem]
+        sts, ext_sts = refusal(request, problem)
         reply = encode_reply(header, sts=sts, ext_sts=ext_sts)
         return TargetReply(reply, request, sts, ext_sts, problem, abandoned=abandoned)
 
