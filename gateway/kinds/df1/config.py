@@ -288,7 +288,8 @@ class Df1LinkConfig(LinkBase):
     """Line key: 2-wire RS-485 where the gateway hears its own bytes: they are stripped, and a byte that comes back
     different is counted as a collision."""
     ack_timeout: float = Field(0.5, gt=0, le=60)
-    """Line key: wait for the DLE ACK of a master message."""
+    """Line key: wait for the DLE ACK of a master message. On a target (where the key is optional) the gateway waits
+    for the PLC's DLE ACK of its reply, 1.0 s when the key is not set (1747-RM001 p. 13-52, ACK Timeout 50 x 20 ms)."""
     message_retries: int = Field(3, ge=0, le=10)
     """Line key: identical resends of a message without its DLE ACK."""
     duplicate_detect: bool = True
