@@ -19,7 +19,7 @@ does (:data:`RECEIVER`)::
                                         ("else LAST-RESPONSE = NAK"; p. 4-7 "a false control or
                                         data symbol occurs outside a message")
 
-The manuals leave two receiver rules open (docs/controller-variants.md), so the table is built by
+The manuals leave two receiver rules open (docs/develop/controller-variants.md), so the table is built by
 :func:`receiver_table` from the station's reading: what a damaged frame gets
 (:class:`BadFrameAnswer`) and what a DLE ENQ gets (:class:`EnqAnswer`).  The gateway's two
 stations keep the defaults (the p. 4-8 program); a simulated controller picks a reading.

@@ -32,7 +32,7 @@ DST and STS are not part of it.  A duplicate is never delivered, so never execut
 gets no second reply: p. 4-13 shows the copy discarded and one reply returned, so the peer has one
 reply per TNS.  ``resend_reply`` (off by default) is a reading for a peer that sends the command
 again because it lost our reply: the stored reply, when it was given
-(:meth:`Df1Responder.send_reply`) and is not on its way, is queued again (docs/controller-variants.md).
+(:meth:`Df1Responder.send_reply`) and is not on its way, is queued again (docs/develop/controller-variants.md).
 
 DST (``check_dst``, default False): the full-duplex receiver never looks at DST (the p. 4-8 program
 tests only the check, the length, the header and the sink); RM p. 13-76 names ignoring "packets
