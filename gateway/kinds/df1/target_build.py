@@ -37,6 +37,10 @@ def build_target(link: Df1LinkConfig) -> TargetUnit:
     """The unit of a target link, its table loaded (``initial``, then ``persist``); its runner is ``unit.driver``."""
     store = TargetStore(link.persist) if link.persist is not None else None
     table = load_table(link.file, store, _now())
+    # the key as given; unset, the model's default is the half-duplex master's, and a target's is the SLC channel's
+    ack_timeout = link.ack_timeout
+    if "ack_timeout" not in link.model_fields_set:
+        ack_timeout = REPLY_ACK_TIMEOUT
     runner = TargetRunner(
         link.port,
         name=link.name,
@@ -46,8 +50,7 @@ def build_target(link: Df1LinkConfig) -> TargetUnit:
         checksum=Checksum.CRC if link.checksum == "crc" else Checksum.BCC,
         duplicate_detect=link.duplicate_detect,
         check_dst=link.check_dst,
-        # the line key's default is the half-duplex master's; a target's is the SLC channel's (responder)
-        ack_timeout=link.ack_timeout if "ack_timeout" in link.model_fields_set else REPLY_ACK_TIMEOUT,
+        ack_timeout=ack_timeout,
         trace=link.trace,
     )
     options = unit_options(link)
