@@ -175,6 +175,8 @@ class Poller:
         self._responding = responding
         self.scans = 0
         self.block_errors = 0
+        #: reads that waited for their blocks (``read_wait``)
+        self.read_waits = 0
         #: blocks the controller refuses to read (a file too short, program mode ...): the
         #: refusal and when it came; retried every min(slow_interval, 5 s), not every round
         self.refused: dict[int, tuple[ControllerRefused, float]] = {}
@@ -224,6 +226,7 @@ class Poller:
         or the link was lost."""
         future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         pending = set(blocks)
+        self.read_waits += 1
         if not pending:
             future.set_result(None)
             return future
