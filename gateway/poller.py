@@ -285,7 +285,7 @@ class Poller:
             data = await self._read_block(block)
         except LinkDown as exc:
             self._round_error = exc
-            schedule.untry(index)
+            schedule.untry(index, loop.time())
             return False
         except ControllerRefused as exc:
             self._round_error = exc

@@ -31,6 +31,7 @@ demanded set (:meth:`Schedule.budget`).
 
 from __future__ import annotations
 
+import heapq
 import math
 from collections.abc import Iterable, Sequence
 from typing import Final
@@ -142,8 +143,17 @@ class Schedule:
         self._window_start = NEVER
         self._window_busy = 0.0
         self._line_use = math.nan
-        #: the index order of a tie (never read): the fast class first, then the plan's order
         self._tie = sorted(range(n), key=lambda i: (self.period[i], i))
+        #: per block: its place among ties (blocks never read): the fast class first, then the plan's order
+        self._rank = [0] * n
+        for place, index in enumerate(self._tie):
+            self._rank[index] = place
+        #: heaps of (urgent time, 1 if not demanded, rank, block, version) and (wanted time, rank,
+        #: block, version); an entry whose version is not the block's is stale
+        self._version = [0] * n
+        self._urgent: list[tuple[float, int, int, int, int]] = []
+        self._wanted: list[tuple[float, int, int, int]] = []
+        self._rebuild(NEVER)
 
     # --- inputs -----------------------------------------------------------------------------
 
@@ -157,6 +167,7 @@ class Schedule:
             tried[i] = now - period[i]
             # the blocks nobody reads get urgent one after the other over B, not all at once
             self.since[i] = now - background[i] + background[i] * (k + 1) / len(never)
+        self._rebuild(now)
 
     def demand(self, blocks: Iterable[int], now: float) -> None:
         """A client read ``blocks`` at ``now``: they are demanded for ``demand_hold`` seconds."""
@@ -164,7 +175,10 @@ class Schedule:
         demanded = self.demanded_until
         for block in blocks:
             if demanded[block] < until:
+                newly = demanded[block] <= now
                 demanded[block] = until
+                if newly:
+                    self._push(block, now)  # urgent sooner now
 
     def bump(self, blocks: Iterable[int]) -> None:
         """A client waits for ``blocks``: read them before anything else, first asked first."""
@@ -176,6 +190,7 @@ class Schedule:
         is set from its period as planned now (the image stamps the read with it)."""
         self._before = (block, self.tried[block], self.since[block])
         self.tried[block] = self.since[block] = now
+        self._push(block, now)
         self.bumped.pop(block, None)
         demanded = self.demanded_until[block] > now
         self.max_age[block] = self.stale_after + (self.period[block] if demanded else self.background[block])
@@ -220,35 +235,67 @@ class Schedule:
     def next(self, now: float) -> int | None:
         """The block to read now (module docstring), or None: nothing is due before :meth:`next_due`.
 
-        Ties (blocks never read) go to a demanded block first, then in the order of ``_tie``.
+        Ties (blocks never read) go to a demanded block first, then in the order of ``_rank``.
+        Two heaps, of the urgent times and of the wanted times, with stale entries dropped as they
+        come to the top: O(log n) a pick, not a look at every block.
         """
         if self.bumped:
             return next(iter(self.bumped))
-        tried, period, background, demanded = self.tried, self.period, self.background, self.demanded_until
-        since = self.since
-        urgent = wanted = math.inf
-        urgent_block = wanted_block = -1
-        urgent_demanded = False
-        for i in self._tie:
-            last = tried[i]
-            if demanded[i] > now:
-                deadline = last + period[i]
-                if deadline <= now and (deadline < urgent or (deadline == urgent and not urgent_demanded)):
-                    urgent, urgent_block, urgent_demanded = deadline, i, True
-                continue
-            deadline = since[i] + background[i]
-            if deadline <= now:
-                if deadline < urgent:
-                    urgent, urgent_block, urgent_demanded = deadline, i, False
-                continue
-            deadline = last + period[i]
-            if deadline <= now and deadline < wanted:
-                wanted, wanted_block = deadline, i
-        if urgent_block >= 0:
-            return urgent_block
-        if wanted_block >= 0:
-            return wanted_block
+        top = self._top_urgent(now)
+        if top is not None and top[0] <= now:
+            return top[3]
+        wanted = self._top_wanted()
+        if wanted is not None and wanted[0] <= now:
+            return wanted[2]
         return None
+
+    def _urgent_key(self, block: int, now: float) -> tuple[float, int]:
+        """(the time ``block`` is urgent, 0 if demanded else 1) at ``now``."""
+        if self.demanded_until[block] > now:
+            return self.tried[block] + self.period[block], 0
+        return self.since[block] + self.background[block], 1
+
+    def _push(self, block: int, now: float) -> None:
+        """``block``'s times changed: new heap entries (the old ones are dropped when they surface)."""
+        version = self._version[block] = self._version[block] + 1
+        rank = self._rank[block]
+        urgent, demanded = self._urgent_key(block, now)
+        heapq.heappush(self._urgent, (urgent, demanded, rank, block, version))
+        heapq.heappush(self._wanted, (self.tried[block] + self.period[block], rank, block, version))
+        if len(self._urgent) > 4 * len(self.scans) + 16 or len(self._wanted) > 4 * len(self.scans) + 16:
+            self._rebuild(now)
+
+    def _rebuild(self, now: float) -> None:
+        self._urgent = []
+        self._wanted = []
+        for block in range(len(self.scans)):
+            urgent, demanded = self._urgent_key(block, now)
+            rank, version = self._rank[block], self._version[block]
+            self._urgent.append((urgent, demanded, rank, block, version))
+            self._wanted.append((self.tried[block] + self.period[block], rank, block, version))
+        heapq.heapify(self._urgent)
+        heapq.heapify(self._wanted)
+
+    def _top_urgent(self, now: float) -> tuple[float, int, int, int, int] | None:
+        heap, versions = self._urgent, self._version
+        while heap:
+            entry = heap[0]
+            urgent, demanded, rank, block, version = entry
+            if version != versions[block]:
+                heapq.heappop(heap)
+                continue
+            key = self._urgent_key(block, now)
+            if key != (urgent, demanded):  # its demand ran out: urgent later
+                heapq.heapreplace(heap, (*key, rank, block, version))
+                continue
+            return entry
+        return None
+
+    def _top_wanted(self) -> tuple[float, int, int, int] | None:
+        heap, versions = self._wanted, self._version
+        while heap and heap[0][3] != versions[heap[0][2]]:
+            heapq.heappop(heap)
+        return heap[0] if heap else None
 
     def is_urgent(self, block: int, now: float) -> bool:
         """Whether ``block`` is bumped or urgent at ``now`` (not only wanted)."""
@@ -265,18 +312,21 @@ class Schedule:
     def hold(self, block: int, until: float) -> None:
         """Do not read ``block`` again before ``until`` (a block the controller refuses)."""
         self.tried[block] = self.since[block] = until - self.period[block]
+        self._push(block, until)
 
-    def untry(self, block: int) -> None:
+    def untry(self, block: int, now: float) -> None:
         """The read of ``block`` never reached the controller (the link was lost): its place back."""
         before, tried, since = self._before
         if before == block:
             self.tried[block], self.since[block] = tried, since
+            self._push(block, now)
 
     def next_due(self, now: float) -> float:
         """The loop time the next block falls due (``inf``: no blocks); at most ``now`` if one is due."""
         if self.bumped:
             return now
-        return min((last + p for last, p in zip(self.tried, self.period, strict=True)), default=math.inf)
+        wanted = self._top_wanted()
+        return math.inf if wanted is None else wanted[0]
 
     # --- what is achieved -------------------------------------------------------------------
 

@@ -7,14 +7,17 @@ non-polled value never ages on its own and is stale only once the peer has been 
 ``stale_after``).  Everything else (the image, the status block, writes, access rules) is the same.
 
 Reads are answered from the register and bit images (``gateway.image``), which the cache fills
-when a block is stored; writes go through to the controller and are answered only after it
-confirmed them, then patch the cache (never its read times).
+when a block is stored, and note their request as demand (``gateway.schedule``); writes go through
+to the controller and are answered only after it confirmed them, then patch the cache (never its
+read times).  A stale read on a link that is up may wait ``read_wait`` for its blocks (StaleRead).
 
 A value is stale (exception 0x0B) when its own block was last read longer ago than
-``stale_after`` plus the period of its scan class (``fast_interval`` or ``slow_interval``), or when
-the controller has answered no poll for ``stale_after`` plus the shortest scan period: a
-slow-class value read every 10 s is not stale 5 s after its read while the link is up, and no
-value outlives a silent link by more than ``stale_after`` (plus ``fast_interval``).
+``stale_after`` plus the period planned for the block at that read (its class's, ``fast_interval``
+or ``slow_interval``, when demanded; else ``background_interval`` if longer), or when the
+controller has answered no poll for ``stale_after`` plus the shortest scan period (the silent
+limit, unchanged): a slow-class value read every 10 s is not stale 5 s after its read while the link
+is up, and no value outlives a silent link by more than ``stale_after`` (plus ``fast_interval``).
+Values read before a link loss are stale from its recovery until read again.
 
 Error translation (controller -> Modbus exception; errors by type: ``gateway.errors.MODBUS_CODES``):
 
@@ -181,11 +184,8 @@ class Unit(ABC, Generic[R, B]):
         self._max_age = self.schedule.max_age if self.schedule is not None else [math.inf] * len(plan.blocks)
         #: the four tables decoded when a block is stored (a read is a slice)
         self.images = Images(plan, self._max_age)
-        self.cache = BlockCache(
-            [block.size for block in plan.blocks],
-            images=self.images,
-            fast=[i for i, block in enumerate(plan.blocks) if block.scan is Scan.FAST],
-        )
+        self.cache = BlockCache([block.size for block in plan.blocks], images=self.images,
+                                fast=[i for i, block in enumerate(plan.blocks) if block.scan is Scan.FAST])
         #: the controller is silent after this long without an answer to a poll (the poller reads a
         #: block at least every shortest class period: fast_interval, or slow_interval when the
         #: plan has no fast class); a non-polled peer, after stale_after without a message

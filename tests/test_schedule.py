@@ -13,6 +13,8 @@ from collections.abc import Collection, Sequence
 from itertools import pairwise
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gateway.modbus.mapping import Scan
 from gateway.schedule import Schedule
@@ -92,7 +94,7 @@ def test_a_read_that_never_reached_the_controller_keeps_its_place() -> None:
     for block in range(3):
         read(s, block, float(block))
     s.started(0, 10.0)
-    s.untry(0)  # the link was lost under it
+    s.untry(0, 10.0)  # the link was lost under it
     assert s.next(10.0) == 0
     read(s, 0, 10.0, ok=False)  # a failed read: to the back
     assert s.next(10.0) == 1
@@ -223,3 +225,65 @@ def test_budget_reports_what_is_achieved() -> None:
     assert budget.refresh["demanded"] is not None and budget.refresh["demanded"] < 0.5
     assert budget.refresh["slow"] is not None and budget.refresh["slow"] == pytest.approx(10.0, abs=0.5)
     assert math.isfinite(budget.age_bound["slow"] or math.inf)
+
+
+# --- the order, checked against the rule as the docs state it, on random histories -------------
+
+
+def rule(s: Schedule, now: float) -> int | None:
+    """The next block by the rule of ``docs/guide/freshness.md``, looking at every block."""
+    if s.bumped:
+        return next(iter(s.bumped))
+    tie = sorted(range(len(s.scans)), key=lambda i: (s.period[i], i))  # the fast class first, then plan order
+    urgent: list[tuple[float, int, int, int]] = []
+    wanted: list[tuple[float, int, int]] = []
+    for place, i in enumerate(tie):
+        demanded = s.demanded_until[i] > now
+        due = s.tried[i] + s.period[i]
+        if demanded and due <= now:
+            urgent.append((due, 0, place, i))
+        elif not demanded and s.since[i] + s.background[i] <= now:
+            urgent.append((s.since[i] + s.background[i], 1, place, i))
+        elif not demanded and due <= now:
+            wanted.append((due, place, i))
+    if urgent:
+        return min(urgent)[3]
+    if wanted:
+        return min(wanted)[2]
+    return None
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    scans=st.lists(st.sampled_from([F, S]), min_size=1, max_size=12),
+    steps=st.lists(st.tuples(st.sampled_from(["read", "fail", "demand", "hold", "lost", "bump"]),
+                             st.integers(0, 11), st.floats(0.0, 3.0)), max_size=60),
+    fast=st.sampled_from([0.0, 0.5]),
+    background=st.sampled_from([0.0, 2.0, 30.0]),
+)
+def test_the_order_is_the_rule(scans: list[Scan], steps: list[tuple[str, int, float]], fast: float,
+                               background: float) -> None:
+    s = schedule(scans, fast=fast, slow=1.5, hold=4.0, background=background)
+    now = 0.0
+    s.begin(now)
+    for action, block, dt in steps:
+        now += dt
+        block %= len(scans)
+        if action == "demand":
+            s.demand([block], now)
+        elif action == "hold":
+            s.hold(block, now + dt)
+        elif action == "bump":
+            s.bump([block])
+        else:
+            pick = s.next(now)
+            assert pick == rule(s, now), (action, now)
+            if pick is None:
+                continue
+            s.started(pick, now)
+            if action == "lost":
+                s.untry(pick, now)
+            else:
+                s.done(pick, now, now + 0.01, action == "read")
+        assert s.next(now) == rule(s, now)
+        assert s.next_due(now) == (now if s.bumped else min(t + p for t, p in zip(s.tried, s.period, strict=True)))

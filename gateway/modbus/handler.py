@@ -4,8 +4,11 @@
 included): at once when the request is refused before the backend (bad count, unknown unit or
 function), or when the backend serves reads from memory (``backend.read_now``, see
 :data:`ReadNow`); otherwise as a coroutine whose first step is the backend call, so that creating
-one task per request in arrival order hands the requests to the backend in arrival order.  It
-counts requests, exception replies and backend failures in :class:`ModbusServerCounters`.
+one task per request in arrival order hands the requests to the backend in arrival order.  A
+read the backend answers with :class:`~gateway.errors.StaleRead` (data not read yet or stale, the
+link up) becomes an :class:`InOrder` reply that waits at most its ``read_wait`` for the data,
+then reads from memory again.  It counts requests, exception replies and backend failures in
+:class:`ModbusServerCounters`.
 The server (:mod:`gateway.modbus.server`) is a ``RequestHandler``; its connections
 (:mod:`gateway.modbus.connection`) call :meth:`RequestHandler._request` for every frame.
 
