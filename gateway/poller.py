@@ -380,6 +380,21 @@ class Poller:
         except TimeoutError:
             pass
 
+    async def _wait_share(self, share: LineShare, seconds: float) -> None:
+        """Until the other pollers of the line have no urgent reads, a client waits for a block of
+        this one, or ``seconds`` passed."""
+        if self._wake is None:
+            self._wake = asyncio.Event()
+        self._wake.clear()
+        if self.schedule.bumped:
+            return
+        waits = {asyncio.ensure_future(share.calm(seconds)), asyncio.ensure_future(self._wake.wait())}
+        try:
+            await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for wait in waits:
+                wait.cancel()
+
     async def run(self) -> None:
         self.running = True
         try:
@@ -406,7 +421,7 @@ class Poller:
                 if index is not None and share.others(self) and not schedule.is_urgent(index, now):
                     # Only wanted: the line is the other stations' while they have urgent reads;
                     # wait at most until this one's own work gets urgent.
-                    await share.calm(min(_SHARE_WAIT, schedule.urgent_at(index) - now))
+                    await self._wait_share(share, min(_SHARE_WAIT, schedule.urgent_at(index) - now))
                     continue
             if index is None:
                 await self._sleep_until(schedule.next_due(now))

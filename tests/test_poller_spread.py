@@ -125,11 +125,13 @@ async def test_stations_sharing_a_line_one_stations_background_yields_to_another
         a.schedule.demand([0], asyncio.get_running_loop().time() + 10)  # a client reads A all along
         start = len(b_reads)
         await asyncio.sleep(1.0)
+        after = len(b_reads) - start
+        # a client waiting for one of B's blocks does not wait for A's urgent reads to end
+        await asyncio.wait_for(b.wait_for([2]), 0.1)
     finally:
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
-    after = len(b_reads) - start
     # B reads only when its blocks are urgent (every 0.3 s each): about 4 x 1.0 / 0.3, not the
     # half of the line (about 50 reads) round robin would give it
     assert 4 <= after <= 20, (after, len(a_reads))
