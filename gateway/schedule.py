@@ -119,13 +119,14 @@ class Schedule:
         #: per block: its class period P and its background period B
         self.period = [periods[scan] for scan in self.scans]
         self.background = [max(p, background_interval) for p in self.period]
-        #: per block: loop time of the last read attempt (the order), of the last read (freshness)
-        self.tried = [NEVER] * n
+        #: per block: when it is wanted again (its last read attempt plus P: the order), and the
+        #: loop time of its last read (freshness)
+        self.due = [NEVER] * n
         self.read_at = [NEVER] * n
         #: per block: the time its background period counts from (its last try, or its share of
         #: the first B at start)
         self.since = [NEVER] * n
-        #: the block whose read is on the line, and its tries before (:meth:`untry`)
+        #: the block whose read is on the line, and its times before (:meth:`untry`)
         self._before = (-1, NEVER, NEVER)
         #: per block: seconds between its last two reads (NaN: fewer than two since start or a loss)
         self.interval = [math.nan] * n
@@ -161,10 +162,10 @@ class Schedule:
         """The poller starts at ``now``: a block never read is wanted at once (as if read one class
         period ago; the fast class first) and urgent at once when demanded; the ones nobody reads
         get urgent one after the other over ``B``, in that order."""
-        tried, period, background = self.tried, self.period, self.background
-        never = [i for i in self._tie if tried[i] == NEVER]
+        due, background = self.due, self.background
+        never = [i for i in self._tie if due[i] == NEVER]
         for k, i in enumerate(never):
-            tried[i] = now - period[i]
+            due[i] = now
             # the blocks nobody reads get urgent one after the other over B, not all at once
             self.since[i] = now - background[i] + background[i] * (k + 1) / len(never)
         self._rebuild(now)
@@ -188,8 +189,9 @@ class Schedule:
     def started(self, block: int, now: float) -> None:
         """The read of ``block`` goes on the line: it goes to the back of the order; its stale limit
         is set from its period as planned now (the image stamps the read with it)."""
-        self._before = (block, self.tried[block], self.since[block])
-        self.tried[block] = self.since[block] = now
+        self._before = (block, self.due[block], self.since[block])
+        self.due[block] = now + self.period[block]
+        self.since[block] = now
         self._push(block, now)
         self.bumped.pop(block, None)
         demanded = self.demanded_until[block] > now
@@ -252,7 +254,7 @@ class Schedule:
     def _urgent_key(self, block: int, now: float) -> tuple[float, int]:
         """(the time ``block`` is urgent, 0 if demanded else 1) at ``now``."""
         if self.demanded_until[block] > now:
-            return self.tried[block] + self.period[block], 0
+            return self.due[block], 0
         return self.since[block] + self.background[block], 1
 
     def _push(self, block: int, now: float) -> None:
@@ -261,7 +263,7 @@ class Schedule:
         rank = self._rank[block]
         urgent, demanded = self._urgent_key(block, now)
         heapq.heappush(self._urgent, (urgent, demanded, rank, block, version))
-        heapq.heappush(self._wanted, (self.tried[block] + self.period[block], rank, block, version))
+        heapq.heappush(self._wanted, (self.due[block], rank, block, version))
         if len(self._urgent) > 4 * len(self.scans) + 16 or len(self._wanted) > 4 * len(self.scans) + 16:
             self._rebuild(now)
 
@@ -272,7 +274,7 @@ class Schedule:
             urgent, demanded = self._urgent_key(block, now)
             rank, version = self._rank[block], self._version[block]
             self._urgent.append((urgent, demanded, rank, block, version))
-            self._wanted.append((self.tried[block] + self.period[block], rank, block, version))
+            self._wanted.append((self.due[block], rank, block, version))
         heapq.heapify(self._urgent)
         heapq.heapify(self._wanted)
 
@@ -302,7 +304,7 @@ class Schedule:
         if block in self.bumped:
             return True
         if self.demanded_until[block] > now:
-            return self.tried[block] + self.period[block] <= now
+            return self.due[block] <= now
         return self.since[block] + self.background[block] <= now
 
     def urgent_at(self, block: int) -> float:
@@ -311,14 +313,15 @@ class Schedule:
 
     def hold(self, block: int, until: float) -> None:
         """Do not read ``block`` again before ``until`` (a block the controller refuses)."""
-        self.tried[block] = self.since[block] = until - self.period[block]
+        self.due[block] = until
+        self.since[block] = until - self.period[block]
         self._push(block, until)
 
     def untry(self, block: int, now: float) -> None:
         """The read of ``block`` never reached the controller (the link was lost): its place back."""
-        before, tried, since = self._before
+        before, due, since = self._before
         if before == block:
-            self.tried[block], self.since[block] = tried, since
+            self.due[block], self.since[block] = due, since
             self._push(block, now)
 
     def next_due(self, now: float) -> float:

@@ -239,7 +239,7 @@ def rule(s: Schedule, now: float) -> int | None:
     wanted: list[tuple[float, int, int]] = []
     for place, i in enumerate(tie):
         demanded = s.demanded_until[i] > now
-        due = s.tried[i] + s.period[i]
+        due = s.due[i]
         if demanded and due <= now:
             urgent.append((due, 0, place, i))
         elif not demanded and s.since[i] + s.background[i] <= now:
@@ -286,4 +286,4 @@ def test_the_order_is_the_rule(scans: list[Scan], steps: list[tuple[str, int, fl
             else:
                 s.done(pick, now, now + 0.01, action == "read")
         assert s.next(now) == rule(s, now)
-        assert s.next_due(now) == (now if s.bumped else min(t + p for t, p in zip(s.tried, s.period, strict=True)))
+        assert s.next_due(now) == (now if s.bumped else min(s.due))
