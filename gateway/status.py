@@ -9,7 +9,8 @@ Read-only: nothing here writes to a controller; writes stay on Modbus, where the
   and since when (the time in that state: :meth:`StatusPage.state`), data age (the oldest
   fast-class value), transactions, errors, retries, the line's quality (``line``: check errors,
   NAKs, timeouts, retransmissions, resyncs; null where the protocol has no such thing:
-  :class:`gateway.link_health.LineQuality`), the last error and its time;
+  :class:`gateway.link_health.LineQuality`), the last error and its time, and the line's budget
+  (``schedule``: :func:`schedule_document`).  *Stale* is a data age at or over :func:`stale_limit`.
   ``config``: the config file served (the first 12 hex digits of its SHA-256, when it was loaded,
   reloads done and failed, the last failure, what changed but takes a restart: ``gateway.reload``).
 * ``GET /api/units/{unit}/{table}?start=&count=``: ``count`` (1..:data:`MAX_COUNT`) values of
@@ -48,7 +49,18 @@ if TYPE_CHECKING:
     from gateway.reload import ConfigStatus
     from gateway.unit import Unit
 
-__all__ = ["LINE_QUALITY", "MAX_COUNT", "StatusPage", "StatusView", "data_age", "line_quality", "public_error"]
+__all__ = [
+    "LINE_QUALITY",
+    "MAX_COUNT",
+    "StatusPage",
+    "StatusView",
+    "data_age",
+    "line_quality",
+    "link_fresh",
+    "public_error",
+    "schedule_document",
+    "stale_limit",
+]
 
 #: The most values one register view request returns (a Modbus read of registers holds 125).
 MAX_COUNT: Final = 125
@@ -100,6 +112,49 @@ def line_quality(unit: Unit[Any, Any]) -> dict[str, int | None]:
     """The unit's line quality by :data:`LINE_QUALITY` (None: not a thing of its protocol)."""
     quality = unit.driver.line_quality()
     return {key: getattr(quality, key) for key in LINE_QUALITY}
+
+
+def stale_limit(unit: Unit[Any, Any]) -> float:
+    """The data age above which a link is *stale* (the page's state, ``/healthz``): ``stale_after`` plus
+    the refresh period the schedule achieves for the fast class (the slow class when the plan has no
+    fast class; before one is measured: the class period).  A healthy slow line is not stale; a silent
+    controller is, ``stale_after`` after its refresh period (the README's meaning)."""
+    schedule = unit.schedule
+    if schedule is None:
+        return unit.stale_after
+    blocks = [i for i, scan in enumerate(schedule.scans) if scan.value == "fast"] or range(len(schedule.scans))
+    achieved = schedule.refresh_period(blocks) or 0.0
+    return unit.stale_after + max([achieved, *(schedule.period[i] for i in blocks)])
+
+
+def link_fresh(unit: Unit[Any, Any], now: float) -> bool:
+    """The data of ``unit`` is fresh: its age is under :func:`stale_limit`."""
+    return data_age(unit, now) < stale_limit(unit)
+
+
+def schedule_document(unit: Unit[Any, Any], now: float) -> dict[str, object] | None:
+    """The line's budget as the schedule achieves it (``/api/status``: a link's ``schedule``); None
+    for a unit that is not polled."""
+    schedule, poller = unit.schedule, unit.poller
+    if schedule is None or poller is None:
+        return None
+    budget = schedule.budget(now)
+
+    def seconds(values: Mapping[str, float | None]) -> dict[str, float | None]:
+        return {key: None if value is None else _finite(value) for key, value in values.items() if key != "all"}
+
+    return {
+        "blocks": budget.blocks,
+        "demanded": budget.demanded,
+        "transaction_time": None if budget.transaction_time is None else _finite(budget.transaction_time),
+        "line_use": None if budget.line_use is None else round(budget.line_use, 3),
+        "refresh": seconds(budget.refresh),
+        "age_bound": seconds(budget.age_bound),
+        "stale_limit": _finite(stale_limit(unit)),
+        "late_reads": schedule.late_reads,
+        "read_waits": poller.read_waits,
+        "behind": poller.behind,
+    }
 
 
 def public_error(text: str) -> str:
@@ -174,24 +229,24 @@ class StatusPage:
 
     def state(self, unit: Unit[Any, Any], now: float) -> tuple[str, float | None]:
         """``(state, since)`` of a unit at loop time ``now``: down (the link), stale (up, but the oldest
-        fast-class value is ``stale_after`` old) or up, and the loop time it has been so since.
+        fast-class value is :func:`stale_limit` old) or up, and the loop time it has been so since.
 
         Down and up: since the link's last change, or for up after stale since this page first saw
         the data fresh again (the read times cannot tell when that was).  Stale: since the oldest
-        value passed ``stale_after``, or since the link came up if that was later.  None: never.
+        value passed the stale limit, or since the link came up if that was later.  None: never.
         """
         driver = unit.driver
         age = data_age(unit, now)
         since = driver.state_since
         if not driver.available:
             state = "down"
-        elif age < unit.stale_after:
+        elif age < (limit := stale_limit(unit)):
             state = "up"
             since = self._up_since(unit.name, since, now)
         else:
             state = "stale"
             if math.isfinite(age):
-                crossed = now - (age - unit.stale_after)
+                crossed = now - (age - limit)
                 since = crossed if since is None else max(since, crossed)
         self._last_state[unit.name] = state
         return state, since
@@ -236,6 +291,7 @@ class StatusPage:
                 "line": line_quality(unit),
                 "last_error": public_error(str(error)) if error is not None else public_error(driver.last_error),
                 "last_error_at": at(unit.last_error_at) if error is not None else None,
+                "schedule": schedule_document(unit, now),
             })
         servers = [{
             "name": server.name,

@@ -19,6 +19,7 @@ from gateway.config._common import Loc, Model, Problems, array, check_port_url, 
 from gateway.config.writer import table_lines
 from gateway.frozen import frozen
 from gateway.link_health import DEFAULT_DOWN_AFTER
+from gateway.schedule import DEFAULT_BACKGROUND_INTERVAL, DEFAULT_DEMAND_HOLD, DEFAULT_READ_WAIT, MAX_READ_WAIT
 from gateway.streams import SerialSettings
 
 __all__ = [
@@ -182,6 +183,15 @@ class LinkBase(Model):
     """Scan period of the fast class, seconds (0: continuous)."""
     slow_interval: float = Field(10.0, ge=0)
     """Scan period of the slow class, seconds."""
+    demand_hold: float = Field(DEFAULT_DEMAND_HOLD, gt=0, le=86400)
+    """Seconds a block of the read plan stays demanded after a Modbus client (or the status page's register view) read
+    any of its addresses: demanded blocks are read first (docs/guide/freshness.md)."""
+    background_interval: float = Field(DEFAULT_BACKGROUND_INTERVAL, ge=0, le=86400)
+    """Refresh period of the blocks nobody demands when the line cannot read every block at its class period (0: demand
+    changes nothing, every block at its class period)."""
+    read_wait: float = Field(DEFAULT_READ_WAIT, ge=0, le=MAX_READ_WAIT)
+    """Seconds a Modbus read of data not yet read or stale, on a link that is up, may wait for an immediate read of its
+    blocks before answering 0x0B (0: answer at once). Other connections never wait."""
     write_burst: int = Field(1, ge=1, le=100)
     """Under write load: write transactions in a row before waiting polls get the line (for poll_burst transactions),
     so the data stays fresh under any write load."""
