@@ -17,6 +17,7 @@ from gateway.metrics import MetricsServer
 from gateway.modbus.admission import RolePolicy
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Table
 from gateway.modbus.server import ModbusTcpServer, make_tls_context
+from gateway.sparkplug.driver import SparkplugNode
 from gateway.transport import describe_url, set_trace_limits
 from gateway.unit import Unit
 
@@ -145,6 +146,8 @@ class Gateway:
                 log_interval=config.logging.repeat_interval,
                 links=config.link,
             )
+        #: the Sparkplug B edge node ([sparkplug]), None when not configured
+        self.sparkplug = SparkplugNode(config.sparkplug, config.link, self.units) if config.sparkplug else None
         self._task: asyncio.Task[None] | None = None
         self._links: list[asyncio.Task[None]] = []
         self._started = asyncio.Event()
@@ -169,6 +172,8 @@ class Gateway:
                     group.create_task(unit.run(), name=f"{unit.name}-poller")
                 for server in self.servers:
                     group.create_task(server.serve_forever(), name=f"{server.name}-server")
+                if self.sparkplug is not None:
+                    self._links.append(group.create_task(self.sparkplug.run(), name="sparkplug"))
                 self._started.set()
                 await stop.wait()
                 await self._shutdown()
@@ -182,6 +187,8 @@ class Gateway:
         # runs until cancelled: cancel it first, so that closing its port cannot send it into a
         # reconnect backoff that SIGTERM would have to wait out.
         await asyncio.gather(*(server.close() for server in self.servers))
+        if self.sparkplug is not None:
+            await self.sparkplug.close()  # NDEATH before the links close (their DDEATHs would be noise)
         for task in self._links:
             task.cancel()
         for runner in self.runners:

@@ -27,6 +27,7 @@ from gateway.config._common import (
     show,
 )
 from gateway.config.links import LinkConfig, TaggedLink
+from gateway.config.sparkplug import SparkplugConfig, topic_element_problem
 from gateway.config.writer import table_lines
 
 __all__ = ["GatewayConfig", "LoggingConfig", "MetricsConfig", "ModbusConfig", "Rights", "TlsConfig"]
@@ -186,6 +187,7 @@ class GatewayConfig(Model):
     modbus: ModbusConfig = ModbusConfig()
     metrics: MetricsConfig | None = None
     logging: LoggingConfig = LoggingConfig()
+    sparkplug: SparkplugConfig | None = None
     link: tuple[TaggedLink, ...] = Field(strict=False)
 
     @field_validator("link")
@@ -219,6 +221,9 @@ class GatewayConfig(Model):
                     )
                 )
             units.setdefault(link.unit, index)
+            problem = topic_element_problem(link.name) if self.sparkplug is not None else None
+            if problem is not None:  # the link's name is its Sparkplug device_id
+                problems.append((("link", index, "name"), f"a Sparkplug device id: {problem}"))
         for model in dict.fromkeys(type(link) for link in self.link):
             problems.extend(model.problems_across(self.link))
         listeners: list[tuple[Loc, str]] = []
@@ -284,6 +289,11 @@ class GatewayConfig(Model):
         else:
             lines += table_lines("[metrics]", self.metrics)
         lines += table_lines("[logging]", self.logging)
+        if self.sparkplug is None:
+            lines += ["# [sparkplug] not configured: no Sparkplug B edge node", ""]
+        else:
+            lines += table_lines("[sparkplug]", self.sparkplug.model_copy(
+                update={"password": None if self.sparkplug.password is None else "***"}))
         for link in self.link:
             lines += link.describe_lines()
         return "\n".join(lines).rstrip("\n") + "\n"

@@ -85,6 +85,8 @@ class MapEntry(Model):
     type: ValueType = "int16"
     word_order: Literal["high-first", "low-first"] = "high-first"
     scan: Literal["fast", "slow"] = "fast"
+    #: Sparkplug: a change of a value by no more than this is not published (0: every change)
+    deadband: float = Field(0.0, ge=0)
 
     @model_validator(mode="before")
     @classmethod
@@ -322,6 +324,10 @@ class Df1LinkConfig(LinkBase):
         if problems:
             raise Problems(*problems)
         return entries
+
+    def deadbands(self) -> dict[tuple[str, int], float]:
+        return {(entry.table, address): entry.deadband for entry in self.map if entry.deadband
+                for address in range(entry.start, entry.last + 1)}
 
     def problems(self) -> list[tuple[Loc, str]]:
         problems = super().problems()

@@ -1,0 +1,388 @@
+"""The edge node on MQTT (aiomqtt): a thin loop around :class:`gateway.sparkplug.node.EdgeNode`.
+
+* Connects with the NDEATH as will (MQTT 3.1.1, clean session, §5.4), subscribes, and publishes
+  what the core returns, in order, from one outbox (so ``seq`` goes out in order).  Reconnects
+  with a backoff doubling from ``reconnect_min`` to ``reconnect_max``; each connect is a new
+  ``bdSeq``, written to ``state_file`` before the CONNECT (so a restarted process goes on from it).
+* Values: each unit's cache tells the node of every store and patch (``BlockCache.listeners``);
+  the node reads the metrics of that block as a Modbus read would (``LinkDevice.sample``), with
+  the block's read time as their timestamp, and the core publishes the changed ones.  Every
+  ``check_interval`` it also looks at what ages without a store: links up / down, blocks going
+  stale, and the status block's values.
+* DCMD writes go through :meth:`Unit.write_registers` / :meth:`Unit.write_bits`: the same checks
+  (``read_only``, ``writable``), queue, ``write_timeout`` and at-most-once rule as a Modbus write,
+  one after the other per device in arrival order.  Whatever the outcome, the metric is published
+  again with the value the image holds (confirmed, or the controller's).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import os
+import struct
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, Final
+
+import aiomqtt
+
+from gateway.clients import Client, audit_write, current_client
+from gateway.config.link import LinkBase
+from gateway.config.sparkplug import SparkplugConfig
+from gateway.errors import ModbusExceptionReply
+from gateway.sparkplug.devices import LinkDevice, build_devices
+from gateway.sparkplug.node import EdgeNode, Publish, WriteCommand
+from gateway.sparkplug.payload import SparkplugType
+from gateway.unit import Unit
+
+__all__ = ["SparkplugNode", "load_bd_seq", "save_bd_seq"]
+
+log = logging.getLogger("gateway.sparkplug")
+
+#: the MQTT operations (connect, subscribe, publish) that take longer than this fail the session
+_MQTT_TIMEOUT: Final = 10.0
+
+
+def load_bd_seq(path: Path) -> int | None:
+    """The bdSeq of the last session kept in ``path`` (None: no file, or not one we wrote)."""
+    try:
+        value = json.loads(path.read_text(encoding="utf-8"))["bdSeq"]
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        log.warning("sparkplug: %s is not a bdSeq state file (%s): starting bdSeq at 0", path, exc)
+        return None
+    return value if isinstance(value, int) and 0 <= value <= 255 else None
+
+
+def save_bd_seq(path: Path, bd_seq: int) -> None:
+    """Keep ``bd_seq`` in ``path`` (written to a temporary file, synced, then renamed over it)."""
+    temporary = path.with_name(path.name + ".tmp")
+    with open(temporary, "w", encoding="utf-8") as out:
+        out.write(json.dumps({"bdSeq": bd_seq}) + "\n")
+        out.flush()
+        os.fsync(out.fileno())
+    os.replace(temporary, path)
+
+
+class _HostOffline(Exception):
+    """The primary host went offline: this session ends (§5.5)."""
+
+
+class SparkplugNode:
+    """The gateway as a Sparkplug edge node (``[sparkplug]``); ``run()`` until cancelled."""
+
+    def __init__(self, config: SparkplugConfig, links: Sequence[LinkBase], units: Sequence[Unit[Any, Any]]) -> None:
+        self.config = config
+        self.devices: list[LinkDevice] = build_devices(links, units)
+        self.core = EdgeNode(config.group_id, config.edge_node_id, [d.device for d in self.devices],
+                             primary_host_id=config.primary_host_id, bd_seq=load_bd_seq(config.state_file))
+        #: DCMD writes the controller refused or that failed (also counted in ``core.refused``)
+        self.write_failures = 0
+        #: MQTT sessions established
+        self.sessions = 0
+        self._client: aiomqtt.Client | None = None
+        self._outbox: asyncio.Queue[Publish | None] = asyncio.Queue()
+        self._wake = asyncio.Event()
+        #: per device: blocks stored or patched since the last pass, with their read time (None: a patch)
+        self._dirty: list[dict[int, float | None]] = [{} for _ in self.devices]
+        self._writes: list[asyncio.Queue[WriteCommand]] = [asyncio.Queue() for _ in self.devices]
+        self._who = Client(f"sparkplug DCMD via {config.broker}")
+        self._offset = 0.0  # wall seconds - loop seconds
+        for index, device in enumerate(self.devices):
+            device.unit.cache.listeners.append(self._listener(index))
+
+    @property
+    def session_state(self) -> str:
+        """``disconnected``, ``connected`` (waiting for the primary host) or ``online`` (births published)."""
+        if not self.core.connected_now:
+            return "disconnected"
+        return "online" if self.core.online else "connected"
+
+    def _listener(self, index: int) -> Any:
+        dirty = self._dirty[index]
+        wake = self._wake
+
+        def stored(block: int, now: float | None) -> None:
+            dirty[block] = now
+            wake.set()
+
+        return stored
+
+    # --- time --------------------------------------------------------------------------------
+
+    def _now_ms(self) -> int:
+        return int(time.time() * 1000)
+
+    def _wall_ms(self, loop_time: float) -> int:
+        """A loop time as UTC milliseconds."""
+        return int((loop_time + self._offset) * 1000)
+
+    # --- the session -------------------------------------------------------------------------
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        self._offset = time.time() - loop.time()
+        delay = self.config.reconnect_min
+        down_logged = False
+        async with asyncio.TaskGroup() as group:
+            for index in range(len(self.devices)):
+                group.create_task(self._write_worker(index), name=f"sparkplug-writes-{index}")
+            while True:
+                will = self.core.connecting(self._now_ms())
+                bd_seq = self.core.bd_seq or 0
+                try:
+                    save_bd_seq(self.config.state_file, bd_seq)
+                except OSError as exc:
+                    log.error("sparkplug: cannot keep bdSeq in %s (%s): a restart would reuse bdSeq %d; "
+                              "make its directory writable or set [sparkplug] state_file", self.config.state_file,
+                              exc, bd_seq)
+                try:
+                    await self._session(will)
+                except aiomqtt.MqttError as exc:
+                    if not down_logged:
+                        log.warning("sparkplug: MQTT session with %s lost or refused (%s); retrying every %g s "
+                                    "up to %g s", self.config.broker, exc, self.config.reconnect_min,
+                                    self.config.reconnect_max)
+                        down_logged = True
+                except _HostOffline:
+                    log.info("sparkplug: primary host %s went offline: NDEATH published, reconnecting",
+                             self.config.primary_host_id)
+                    delay = self.config.reconnect_min
+                else:
+                    down_logged = False
+                self.core.disconnected()
+                await asyncio.sleep(delay)
+                delay = min(self.config.reconnect_max, delay * 2)
+                if not down_logged:
+                    delay = self.config.reconnect_min
+
+    async def _session(self, will: Publish) -> None:
+        config = self.config
+        host, port = config.address
+        client = aiomqtt.Client(
+            host, port,
+            identifier=config.client_id or f"slc-gateway-{config.group_id}-{config.edge_node_id}",
+            username=config.username, password=config.password,
+            will=aiomqtt.Will(will.topic, will.payload, will.qos, will.retain),
+            clean_session=True, keepalive=config.keepalive, protocol=aiomqtt.ProtocolVersion.V311,
+            tls_context=config.ssl_context(), timeout=_MQTT_TIMEOUT,
+        )
+        async with client:
+            self._client = client
+            self.sessions += 1
+            try:
+                for topic, qos in self.core.subscriptions():
+                    await client.subscribe(topic, qos)
+                log.info("sparkplug: connected to %s as %s/%s (bdSeq %d)%s", config.broker, config.group_id,
+                         config.edge_node_id, self.core.bd_seq or 0,
+                         f", waiting for primary host {config.primary_host_id}" if config.primary_host_id else "")
+                self._drain_outbox()
+                now = asyncio.get_running_loop().time()
+                self._links(now)  # who is alive before the births
+                self._refresh(now)
+                self._send(self.core.connected(self._now_ms()))
+                async with asyncio.TaskGroup() as group:
+                    group.create_task(self._sender(client))
+                    group.create_task(self._watch())
+                    await self._receive(client)
+                    raise aiomqtt.MqttError("the broker closed the session")
+            except* _HostOffline:
+                await self._flush_outbox(client)
+                raise _HostOffline from None
+            except* aiomqtt.MqttError as group_error:
+                raise group_error.exceptions[0] from None
+            finally:
+                self._client = None
+
+    async def close(self) -> None:
+        """A clean stop: NDEATH first (§5.5), then the MQTT DISCONNECT (when ``run`` is cancelled)."""
+        client = self._client
+        if client is None or not self.config.ndeath_on_stop:
+            return
+        messages = self.core.stopping(self._now_ms())
+        with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+            async with asyncio.timeout(2):
+                for message in messages:
+                    await client.publish(message.topic, message.payload, message.qos, message.retain)
+
+    # --- outgoing ------------------------------------------------------------------------------
+
+    def _send(self, messages: list[Publish]) -> None:
+        for message in messages:
+            self._outbox.put_nowait(message)
+
+    def _drain_outbox(self) -> None:
+        """Messages of a session that ended are not sent in the next one."""
+        while not self._outbox.empty():
+            self._outbox.get_nowait()
+
+    async def _sender(self, client: aiomqtt.Client) -> None:
+        while True:
+            message = await self._outbox.get()
+            if message is None:
+                continue
+            await client.publish(message.topic, message.payload, message.qos, message.retain)
+
+    async def _flush_outbox(self, client: aiomqtt.Client) -> None:
+        with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+            async with asyncio.timeout(2):
+                while not self._outbox.empty():
+                    message = self._outbox.get_nowait()
+                    if message is not None:
+                        await client.publish(message.topic, message.payload, message.qos, message.retain)
+
+    # --- incoming ------------------------------------------------------------------------------
+
+    async def _receive(self, client: aiomqtt.Client) -> None:
+        core = self.core
+        ncmd, dcmd_prefix = core.topic("NCMD"), core.topic("DCMD", "")
+        async for message in client.messages:
+            topic = message.topic.value
+            payload = message.payload if isinstance(message.payload, bytes) else b""
+            if topic == ncmd:
+                self._refresh(asyncio.get_running_loop().time())
+                self._send(core.node_command(payload, self._now_ms()))
+            elif topic.startswith(dcmd_prefix):
+                device = topic[len(dcmd_prefix):]
+                for command in core.device_command(device, payload):
+                    self._writes[command.device].put_nowait(command)
+                if core.refused:
+                    log.debug("sparkplug: DCMD to %s: refused so far %s", device, dict(core.refused))
+            elif core.primary_host_id is not None and topic == core.state_topic:
+                self._refresh(asyncio.get_running_loop().time())
+                messages, disconnect = core.host_state(payload, self._now_ms())
+                self._send(messages)
+                if disconnect:
+                    raise _HostOffline
+
+    # --- values ------------------------------------------------------------------------------
+
+    async def _watch(self) -> None:
+        """Publish what changed: on every store / patch, and every ``check_interval`` for what ages."""
+        loop = asyncio.get_running_loop()
+        interval = self.config.check_interval
+        next_check = loop.time()
+        while True:
+            timeout = max(0.0, next_check - loop.time())
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(timeout):
+                    await self._wake.wait()
+            self._wake.clear()
+            now = loop.time()
+            if now >= next_check:
+                next_check = now + interval
+                self._links(now)
+                self._check(now)
+            for index in range(len(self.devices)):
+                if self._dirty[index]:
+                    self._changed(index, now)
+                    self._send(self.core.flush(self._wall_ms(now), (index,)))
+                    await asyncio.sleep(0)  # one device at a time: Modbus answers go in between
+
+    def _links(self, now: float) -> None:
+        for index, device in enumerate(self.devices):
+            up = device.unit.driver.available
+            if up and not device.device.alive:
+                self._refresh(now, index)  # its DBIRTH carries every value as it is now
+            self._send(self.core.link(index, up, self._wall_ms(now)))
+
+    def _refresh(self, now: float, only: int | None = None) -> None:
+        """Every metric (of device ``only``) as it is now, for the births."""
+        stamp = self._wall_ms(now)
+        for index, device in enumerate(self.devices):
+            if only is not None and index != only:
+                continue
+            stamps = device.unit.cache.stamps
+            for block, metrics in device.by_block.items():
+                device.block_state[block] = device.block_code(block)
+                read = stamps[block]
+                at = stamp if math.isinf(read) else self._wall_ms(read)
+                for metric in metrics:
+                    self.core.observe(index, metric, device.sample(metric, at))
+            for metric, sample in device.status_samples(now, stamp):
+                self.core.observe(index, metric, sample)
+
+    def _check(self, now: float) -> None:
+        """Blocks whose freshness changed without a store, and the status block's values."""
+        stamp = self._wall_ms(now)
+        for index, device in enumerate(self.devices):
+            dirty = self._dirty[index]
+            for block, last in device.block_state.items():
+                code = device.block_code(block)
+                if code != last:
+                    device.block_state[block] = code
+                    dirty.setdefault(block, device.unit.cache.stamps[block])
+            for metric, sample in device.status_samples(now, stamp):
+                self.core.observe(index, metric, sample)
+            if not dirty:
+                self._send(self.core.flush(stamp, (index,)))
+
+    def _changed(self, index: int, now: float) -> None:
+        device = self.devices[index]
+        dirty = self._dirty[index]
+        blocks = list(dirty.items())
+        dirty.clear()
+        for block, read_time in blocks:
+            metrics = device.by_block.get(block)
+            if metrics is None:
+                continue
+            device.block_state[block] = device.block_code(block)
+            stamp = self._wall_ms(now if read_time is None or math.isinf(read_time) else read_time)
+            for metric in metrics:
+                self.core.observe(index, metric, device.sample(metric, stamp))
+
+    # --- writes ------------------------------------------------------------------------------
+
+    async def _write_worker(self, index: int) -> None:
+        current_client.set(self._who)
+        queue = self._writes[index]
+        while True:
+            command = await queue.get()
+            await self._write(command)
+
+    async def _write(self, command: WriteCommand) -> None:
+        device = self.devices[command.device]
+        point = device.points[command.metric]
+        spec = device.device.specs[command.metric]
+        unit = device.unit
+        bits = spec.datatype is SparkplugType.Boolean
+        try:
+            if bits:
+                await unit.write_bits(point.address, [bool(command.value)])
+            else:
+                await unit.write_registers(point.address, _registers(point.type, point.low_first, command.value))
+        except (ModbusExceptionReply, ValueError, struct.error) as exc:
+            self.write_failures += 1
+            self.core.refused["write failed"] += 1
+            log.warning("sparkplug: DCMD %s/%s = %r not applied: %s", device.name, spec.name, command.value, exc)
+            outcome = f"0x{exc.code:02X} {exc}" if isinstance(exc, ModbusExceptionReply) else f"refused: {exc}"
+        else:
+            outcome = "ok"
+        audit_write(unit.unit_id, 15 if bits else 16, point.table.value, point.address,
+                    1 if bits else point.width, f"{outcome} (DCMD {spec.name} = {command.value!r})")
+        # published again whatever the outcome: the confirmed value, or the controller's
+        loop_now = asyncio.get_running_loop().time()
+        self.core.observe(command.device, command.metric, device.sample(command.metric, self._wall_ms(loop_now)))
+        self.core.force(command.device, command.metric)
+        self._send(self.core.flush(self._wall_ms(loop_now), (command.device,)))
+
+
+def _registers(kind: str, low_first: bool, value: object) -> list[int]:
+    """The registers a Modbus write of ``value`` as ``kind`` sends (ValueError: out of range)."""
+    if kind in ("int16", "uint16"):
+        if not isinstance(value, int):
+            raise ValueError(f"{value!r} is not an integer")
+        low, high = (-32768, 32767) if kind == "int16" else (0, 65535)
+        if not low <= value <= high:
+            raise ValueError(f"{value} is outside {kind} ({low}..{high})")
+        return [value & 0xFFFF]
+    fmt = {"int32": ">i", "uint32": ">I", "float32": ">f"}[kind]
+    raw = struct.pack(fmt, value)
+    words = [int.from_bytes(raw[0:2], "big"), int.from_bytes(raw[2:4], "big")]
+    return words[::-1] if low_first else words
