@@ -231,6 +231,14 @@ def test_primary_host_gates_births_and_offline_ends_session() -> None:
     assert node.refused["bad STATE payload"] == 1
 
 
+def test_offline_state_before_the_births_keeps_waiting() -> None:
+    node = make_node(primary="scada")
+    online(node)
+    assert node.host_state(state(False, 50), T0) == ([], False)  # retained offline: no session to end
+    out, disconnect = node.host_state(state(True, 60), T0 + 1)
+    assert verbs(out)[0] == "NBIRTH" and not disconnect
+
+
 def test_state_before_connect_counts_for_the_next_session() -> None:
     node = make_node(primary="scada")
     node.connecting(T0)

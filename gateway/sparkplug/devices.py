@@ -6,8 +6,9 @@ with the Sparkplug datatype of its type (§6.4.16 "Data Types").  Aliases are nu
 order of the links and their tags, after ``bdSeq``; they are unique across the node (§6.4.6).
 
 A metric's value is what a Modbus read of its registers or bit answers now, by the unit's own
-rule: a value, or the exception that read gets.  0x0B (no fresh data) is quality STALE, 0x04 (the
-controller refuses the block) is BAD; the exception's text is the reason.  All points of one
+rule: a value, or the exception that read gets.  0x0B (no fresh data) is quality STALE; any other
+(the controller refuses the block: 0x04, or 0x02 for an address it does not have) is BAD; the
+exception's text is the reason.  All points of one
 block share its read time and its freshness, so a block's state is read from its first metric.
 The status block's values come from :meth:`gateway.unit.Unit.status_values` and are always good.
 
@@ -36,7 +37,6 @@ DATATYPES: Final = {
     "bool": SparkplugType.Boolean, "int16": SparkplugType.Int16, "uint16": SparkplugType.UInt16,
     "int32": SparkplugType.Int32, "uint32": SparkplugType.UInt32, "float32": SparkplugType.Float,
 }
-_QUALITY: Final = {ModbusExceptionReply.SERVER_DEVICE_FAILURE: BAD}
 
 
 @frozen
@@ -117,7 +117,8 @@ class LinkDevice:
             else:
                 data = self.unit.read_register_bytes(point.table, point.address, point.width)
         except ModbusExceptionReply as exc:
-            return Sample(None, timestamp, _QUALITY.get(exc.code, STALE), str(exc))
+            quality = STALE if exc.code == ModbusExceptionReply.GATEWAY_TARGET_FAILED else BAD
+            return Sample(None, timestamp, quality, str(exc))
         return Sample(_decode(point, data), timestamp)
 
     def block_code(self, block: int) -> int:

@@ -87,7 +87,7 @@ class SparkplugNode:
         #: MQTT sessions established
         self.sessions = 0
         self._client: aiomqtt.Client | None = None
-        self._outbox: asyncio.Queue[Publish | None] = asyncio.Queue()
+        self._outbox: asyncio.Queue[Publish] = asyncio.Queue()
         self._wake = asyncio.Event()
         #: per device: blocks stored or patched since the last pass, with their read time (None: a patch)
         self._dirty: list[dict[int, float | None]] = [{} for _ in self.devices]
@@ -201,15 +201,13 @@ class SparkplugNode:
                 self._client = None
 
     async def close(self) -> None:
-        """A clean stop: NDEATH first (§5.5), then the MQTT DISCONNECT (when ``run`` is cancelled)."""
-        client = self._client
-        if client is None or not self.config.ndeath_on_stop:
+        """A clean stop: NDEATH after what is queued (§5.5), then the MQTT DISCONNECT (when ``run`` is cancelled)."""
+        if self._client is None or not self.config.ndeath_on_stop:
             return
-        messages = self.core.stopping(self._now_ms())
-        with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+        self._send(self.core.stopping(self._now_ms()))  # the core publishes nothing after it
+        with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(2):
-                for message in messages:
-                    await client.publish(message.topic, message.payload, message.qos, message.retain)
+                await self._outbox.join()
 
     # --- outgoing ------------------------------------------------------------------------------
 
@@ -221,21 +219,23 @@ class SparkplugNode:
         """Messages of a session that ended are not sent in the next one."""
         while not self._outbox.empty():
             self._outbox.get_nowait()
+            self._outbox.task_done()
 
     async def _sender(self, client: aiomqtt.Client) -> None:
         while True:
             message = await self._outbox.get()
-            if message is None:
-                continue
-            await client.publish(message.topic, message.payload, message.qos, message.retain)
+            try:
+                await client.publish(message.topic, message.payload, message.qos, message.retain)
+            finally:
+                self._outbox.task_done()
 
     async def _flush_outbox(self, client: aiomqtt.Client) -> None:
         with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
             async with asyncio.timeout(2):
                 while not self._outbox.empty():
                     message = self._outbox.get_nowait()
-                    if message is not None:
-                        await client.publish(message.topic, message.payload, message.qos, message.retain)
+                    self._outbox.task_done()
+                    await client.publish(message.topic, message.payload, message.qos, message.retain)
 
     # --- incoming ------------------------------------------------------------------------------
 

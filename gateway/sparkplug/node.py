@@ -290,8 +290,9 @@ class EdgeNode:
         """A STATE message of the primary host: (messages, disconnect).
 
         Online (timestamp not older than the last online one): births, if not online yet.  Offline
-        and not older: NDEATH and disconnect (§5.4 tck-id-message-flow-edge-node-birth-publish-phid-*,
-        §5.5 tck-id-operational-behavior-edge-node-termination-host-offline[-timestamp]).
+        and not older, after the births: NDEATH and disconnect (§5.4 tck-id-message-flow-edge-node-
+        birth-publish-phid-*, §5.5 tck-id-operational-behavior-edge-node-termination-host-offline
+        [-timestamp]); before them, keep waiting.
         """
         self.received["STATE"] += 1
         try:
@@ -312,7 +313,10 @@ class EdgeNode:
                 return self.births(now), False
             return [], False
         self.host_online = False
-        if not self.connected_now:
+        if not self.online:
+            # No births out yet: there is no Sparkplug session to end (§5.16 "A Sparkplug session
+            # begins with an MQTT CONNECT and then the NBIRTH"); stay connected and wait.  A retained
+            # offline STATE would otherwise make every new connection end at once.
             return [], False
         return self.stopping(now), True
 
