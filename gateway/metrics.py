@@ -40,6 +40,13 @@ Metrics (every name starts with ``slc_gateway_``)::
       modbus_connections_dropped_total        counter  closed by the server: bad framing, idle, TLS failure
       modbus_connections_evicted_total        counter  stalled connections closed to make room (also dropped)
       modbus_tls_handshakes                   gauge    TLS handshakes in progress now
+    with [sparkplug] (``gateway.sparkplug.report``)
+      sparkplug_session{state}                gauge    1 for the MQTT session's state: disconnected | connected | online
+      sparkplug_sessions_total                counter  MQTT sessions established (each a new bdSeq)
+      sparkplug_messages_published_total{type}  counter  NBIRTH, DBIRTH, DDATA, DDEATH, NDEATH handed to the broker
+      sparkplug_commands_received_total{type}   counter  NCMD, DCMD, STATE
+      sparkplug_commands_refused_total{reason}  counter  command metrics that changed nothing; failed DCMD writes
+      sparkplug_devices_online                gauge    devices with a DBIRTH and no DDEATH since
 
 ``/healthz`` answers 200 when every link is up and its fast-class data is younger than its
 ``stale_after``, 503 otherwise, with a JSON body naming each link's state (no paths, no
@@ -73,6 +80,7 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 from gateway.config import parse_listen
 from gateway.logutil import RepeatLog
 from gateway.modbus.admission import IPNetwork, format_address, host_allowed, peer_host
+from gateway.sparkplug.report import families as sparkplug_families
 from gateway.status import StatusPage, data_age, public_error
 
 if TYPE_CHECKING:
@@ -143,6 +151,7 @@ class _GatewayCollector:
         # Called by generate_latest() on the event loop thread, where the counters live.
         yield from self._link_families(self._gateway.units, asyncio.get_running_loop().time())
         yield from self._server_families(self._gateway.servers)
+        yield from sparkplug_families(getattr(self._gateway, "sparkplug", None))
 
     @staticmethod
     def _link_families(units: Sequence[Unit[Any, Any]], now: float) -> list[Metric]:

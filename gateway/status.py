@@ -34,6 +34,7 @@ from gateway.errors import ModbusExceptionReply
 from gateway.kinds import link_kind
 from gateway.logutil import redact_url
 from gateway.modbus.mapping import Table
+from gateway.sparkplug.report import status as sparkplug_status
 from gateway.tags import Tag, link_tags
 from gateway.transport import describe_url
 
@@ -189,7 +190,7 @@ class StatusPage:
             "exceptions": sum(server.counters.exceptions.values()),
         } for server in self.gateway.servers]
         return {"version": __version__, "time": round(wall, 3), "links": rows, "up": up_count,
-                "servers": servers}
+                "servers": servers, "sparkplug": sparkplug_status(getattr(self.gateway, "sparkplug", None))}
 
     # --- /api/units/{unit}/{table} --------------------------------------------------------
 

@@ -25,6 +25,7 @@ import math
 import os
 import struct
 import time
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Final
@@ -84,6 +85,8 @@ class SparkplugNode:
                              primary_host_id=config.primary_host_id, bd_seq=load_bd_seq(config.state_file))
         #: DCMD writes the controller refused or that failed (also counted in ``core.refused``)
         self.write_failures = 0
+        #: messages handed to the broker, by message type (NBIRTH, DDATA, ...)
+        self.sent: Counter[str] = Counter()
         #: MQTT sessions established
         self.sessions = 0
         self._client: aiomqtt.Client | None = None
@@ -226,6 +229,7 @@ class SparkplugNode:
             message = await self._outbox.get()
             try:
                 await client.publish(message.topic, message.payload, message.qos, message.retain)
+                self.sent[message.topic.split("/")[2]] += 1
             finally:
                 self._outbox.task_done()
 
@@ -236,6 +240,7 @@ class SparkplugNode:
                     message = self._outbox.get_nowait()
                     self._outbox.task_done()
                     await client.publish(message.topic, message.payload, message.qos, message.retain)
+                    self.sent[message.topic.split("/")[2]] += 1
 
     # --- incoming ------------------------------------------------------------------------------
 

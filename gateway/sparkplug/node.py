@@ -179,8 +179,6 @@ class EdgeNode:
         #: the timestamp of the last online STATE of the primary host (None: none seen)
         self.host_timestamp: int | None = None
         self._seq = 0
-        #: messages published, by message type (NBIRTH, DDATA, ...)
-        self.published: Counter[str] = Counter()
         #: commands received, by verb (NCMD, DCMD, STATE)
         self.received: Counter[str] = Counter()
         #: commands that changed nothing, by reason
@@ -244,16 +242,12 @@ class EdgeNode:
         if not self.connected_now:
             return []
         self.online = False
-        return [self._count("NDEATH", self._ndeath(now))]
+        return [self._ndeath(now)]
 
     def _next_seq(self) -> int:
         seq = self._seq
         self._seq = (seq + 1) % 256
         return seq
-
-    def _count(self, verb: str, publish: Publish) -> Publish:
-        self.published[verb] += 1
-        return publish
 
     def births(self, now: int) -> list[Publish]:
         """NBIRTH (seq 0) and a DBIRTH per live device (§5.4, §5.6, §6.4.19, §6.4.20)."""
@@ -263,8 +257,7 @@ class EdgeNode:
             self._bd_seq_metric(now, BD_SEQ_ALIAS),
             Metric(name=REBIRTH, timestamp=now, datatype=SparkplugType.Boolean, value=False),
         )
-        out = [self._count("NBIRTH", Publish(self.topic("NBIRTH"),
-                                             encode(Payload(now, metrics, self._next_seq()))))]
+        out = [Publish(self.topic("NBIRTH"), encode(Payload(now, metrics, self._next_seq())))]
         for index, device in enumerate(self.devices):
             device.born = False
             if device.alive:
@@ -282,7 +275,7 @@ class EdgeNode:
         device.born = True
         metrics.sort(key=lambda m: m.timestamp or 0)  # chronological (§5.16)
         payload = Payload(now, tuple(metrics), self._next_seq())
-        return self._count("DBIRTH", Publish(self.topic("DBIRTH", device.name), encode(payload)))
+        return Publish(self.topic("DBIRTH", device.name), encode(payload))
 
     # --- the primary host's STATE ------------------------------------------------------------------
 
@@ -406,7 +399,7 @@ class EdgeNode:
         device.born = False
         # DDEATH: timestamp and seq, no metrics (§6.4.26 "DDEATH")
         payload = Payload(now, (), self._next_seq())
-        return [self._count("DDEATH", Publish(self.topic("DDEATH", device.name), encode(payload)))]
+        return [Publish(self.topic("DDEATH", device.name), encode(payload))]
 
     def flush(self, now: int, devices: Sequence[int] | None = None) -> list[Publish]:
         """DDATA of every born device (of ``devices``) with the metrics changed since last published."""
@@ -431,7 +424,7 @@ class EdgeNode:
             if changed:
                 changed.sort(key=lambda m: m.timestamp or 0)  # chronological (§5.16)
                 payload = Payload(now, tuple(changed), self._next_seq())
-                out.append(self._count("DDATA", Publish(self.topic("DDATA", device.name), encode(payload))))
+                out.append(Publish(self.topic("DDATA", device.name), encode(payload)))
         return out
 
 

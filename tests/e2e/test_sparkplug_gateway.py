@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import json
+import urllib.request
 import uuid
 from collections import Counter
 from collections.abc import AsyncIterator, Callable, Iterator
@@ -320,3 +322,34 @@ async def test_primary_host_state_gates_the_births(broker: Broker, tmp_path: Pat
     finally:
         await press.off()
         await oven.off()
+
+
+def fetch(port: int, path: str) -> str:
+    with urllib.request.urlopen(f"http://{HOST}:{port}{path}", timeout=5) as reply:
+        text: str = reply.read().decode()
+        return text
+
+
+async def test_status_api_and_metrics_report_the_session(plant: Plant) -> None:
+    text = config_text(plant.broker.port, plant.state_file,
+                       link_text("press", 1, plant.press) + link_text("oven", 2, plant.oven))
+    text = text.replace("[sparkplug]", '[metrics]\nlisten = "127.0.0.1:0"\n\n[sparkplug]', 1)
+    async with Gateway(parse_config(text)) as gw:
+        await plant.wait(kind("DBIRTH", "oven"))
+        await plant.host.send_dcmd(GROUP, NODE, "press", "N7:50", 9, "Int16")  # read-only: refused
+        assert gw.metrics is not None and gw.sparkplug is not None
+        for _ in range(50):
+            if gw.sparkplug.core.refused:
+                break
+            await asyncio.sleep(0.05)
+        status = json.loads(await asyncio.to_thread(fetch, gw.metrics.port, "/api/status"))["sparkplug"]
+        metrics = await asyncio.to_thread(fetch, gw.metrics.port, "/metrics")
+    assert status["state"] == "online" and status["group_id"] == GROUP and status["edge_node_id"] == NODE
+    assert status["devices_online"] == 2 and status["sessions"] == 1
+    assert status["published_by_type"]["NBIRTH"] == 1 and status["published_by_type"]["DBIRTH"] == 2
+    assert status["commands_by_type"] == {"DCMD": 1} and status["refused_by_reason"] == {"read-only metric": 1}
+    assert 'slc_gateway_sparkplug_session{state="online"} 1.0' in metrics
+    assert 'slc_gateway_sparkplug_messages_published_total{type="NBIRTH"} 1.0' in metrics
+    assert 'slc_gateway_sparkplug_commands_received_total{type="DCMD"} 1.0' in metrics
+    assert 'slc_gateway_sparkplug_commands_refused_total{reason="read-only metric"} 1.0' in metrics
+    assert "slc_gateway_sparkplug_devices_online 2.0" in metrics
