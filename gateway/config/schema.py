@@ -27,7 +27,7 @@ from gateway.config._common import (
     show,
 )
 from gateway.config.links import LinkConfig, TaggedLink
-from gateway.config.sparkplug import SparkplugConfig, topic_element_problem
+from gateway.config.sparkplug import SparkplugConfig
 from gateway.config.writer import table_lines
 
 __all__ = ["GatewayConfig", "LoggingConfig", "MetricsConfig", "ModbusConfig", "Rights", "TlsConfig"]
@@ -221,9 +221,6 @@ class GatewayConfig(Model):
                     )
                 )
             units.setdefault(link.unit, index)
-            problem = topic_element_problem(link.name) if self.sparkplug is not None else None
-            if problem is not None:  # the link's name is its Sparkplug device_id
-                problems.append((("link", index, "name"), f"a Sparkplug device id: {problem}"))
         for model in dict.fromkeys(type(link) for link in self.link):
             problems.extend(model.problems_across(self.link))
         listeners: list[tuple[Loc, str]] = []

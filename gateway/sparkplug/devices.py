@@ -8,9 +8,9 @@ order of the links and their tags, after ``bdSeq``; they are unique across the n
 A metric's value is what a Modbus read of its registers or bit answers now, by the unit's own
 rule: a value, or the exception that read gets.  0x0B (no fresh data) is quality STALE; any other
 (the controller refuses the block: 0x04, or 0x02 for an address it does not have) is BAD; the
-exception's text is the reason.  All points of one
-block share its read time and its freshness, so a block's state is read from its first metric.
-The status block's values come from :meth:`gateway.unit.Unit.status_values` and are always good.
+exception's text is the reason.  The metrics are read a run at a time (consecutive addresses of
+one block: one read, one freshness), and only those whose bytes changed are decoded.  The status
+block's values come from :meth:`gateway.unit.Unit.status_values` and are always good.
 
 Generic: knows tags, plans and units, no protocol.
 """
@@ -95,47 +95,113 @@ class LinkDevice:
                 self.points.append(Point(tag.table, tag.address, tag.type, tag.word_order == "low-first",
                                          _block_of(unit, tag)))
         self.device = Device(link.name, specs)
-        #: per block: the metrics in it (their indexes)
-        self.by_block: dict[int, list[int]] = {}
-        for i, point in enumerate(self.points):
-            if point.block is not None:
-                self.by_block.setdefault(point.block, []).append(i)
+        #: the data points as runs of consecutive addresses of one block and table, each read at once
+        self.runs = _runs(self.points)
+        #: per block: its runs
+        self.by_block: dict[int, list[_Run]] = {}
+        for run in self.runs:
+            self.by_block.setdefault(run.block, []).append(run)
         self.status_metrics = [i for i, point in enumerate(self.points) if point.status_key]
-        #: per block: the code of :meth:`block_code` last seen (None: not yet)
-        self.block_state: dict[int, int | None] = dict.fromkeys(self.by_block)
 
     @property
     def next_alias(self) -> int:
         return self.device.specs[-1].alias + 1 if self.device.specs else 0
 
-    def sample(self, index: int, timestamp: int) -> Sample:
-        """Metric ``index`` as a Modbus read of it answers now (``timestamp``: its read time, UTC ms)."""
-        point = self.points[index]
-        try:
-            if point.table in (Table.COIL, Table.DISCRETE):
-                data = self.unit.read_bit_bytes(point.table, point.address, 1)
-            else:
-                data = self.unit.read_register_bytes(point.table, point.address, point.width)
-        except ModbusExceptionReply as exc:
-            quality = STALE if exc.code == ModbusExceptionReply.GATEWAY_TARGET_FAILED else BAD
-            return Sample(None, timestamp, quality, str(exc))
-        return Sample(_decode(point, data), timestamp)
+    def read(self, run: _Run, timestamp: int, *, everything: bool = False) -> list[tuple[int, Sample]]:
+        """The metrics of ``run`` whose value or state changed since its last read (``everything``: all),
+        as a Modbus read of the run answers now; ``timestamp``: their read time (UTC ms).
 
-    def block_code(self, block: int) -> int:
-        """0 when the values of ``block`` are served now, else the Modbus exception a read of them gets."""
-        point = self.points[self.by_block[block][0]]
+        One read per run: a run is one block, so its values share one freshness and one answer.
+        """
         try:
-            if point.table in (Table.COIL, Table.DISCRETE):
-                self.unit.read_bit_bytes(point.table, point.address, 1)
-            else:
-                self.unit.read_register_bytes(point.table, point.address, point.width)
+            data = self._bytes(run)
         except ModbusExceptionReply as exc:
-            return exc.code
-        return 0
+            reason = str(exc)
+            if run.last is None and run.reason == reason and not everything:
+                return []
+            run.last, run.reason = None, reason
+            return [(metric, _failed(exc, timestamp)) for metric, _ in run.members]
+        previous, run.last, run.reason = run.last, data, ""
+        if previous == data and not everything:
+            return []
+        points = self.points
+        out: list[tuple[int, Sample]] = []
+        if run.bits:
+            bits = int.from_bytes(data, "little")
+            changed = -1 if previous is None or everything else bits ^ int.from_bytes(previous, "little")
+            for metric, at in run.members:
+                if changed >> at & 1:
+                    out.append((metric, Sample(bool(bits >> at & 1), timestamp)))
+            return out
+        for metric, at in run.members:
+            point = points[metric]
+            end = at + 2 * point.width
+            if previous is None or everything or previous[at:end] != data[at:end]:
+                out.append((metric, Sample(_decode(point, data[at:end]), timestamp)))
+        return out
+
+    def _bytes(self, run: _Run) -> bytes:
+        if run.bits:
+            return self.unit.read_bit_bytes(run.table, run.first, run.count)
+        return self.unit.read_register_bytes(run.table, run.first, run.count)
+
+    def sample(self, metric: int, timestamp: int) -> Sample:
+        """Metric ``metric`` as a Modbus read of it answers now (its run's last read is left alone)."""
+        run, at = next((run, at) for run in self.runs for m, at in run.members if m == metric)
+        try:
+            data = self._bytes(run)
+        except ModbusExceptionReply as exc:
+            return _failed(exc, timestamp)
+        if run.bits:
+            return Sample(bool(int.from_bytes(data, "little") >> at & 1), timestamp)
+        point = self.points[metric]
+        return Sample(_decode(point, data[at : at + 2 * point.width]), timestamp)
 
     def status_samples(self, now: float, timestamp: int) -> list[tuple[int, Sample]]:
         values = self.unit.status_values(now)
         return [(i, Sample(values[self.points[i].status_key], timestamp)) for i in self.status_metrics]
+
+
+def _failed(exc: ModbusExceptionReply, timestamp: int) -> Sample:
+    quality = STALE if exc.code == ModbusExceptionReply.GATEWAY_TARGET_FAILED else BAD
+    return Sample(None, timestamp, quality, str(exc))
+
+
+class _Run:
+    """Consecutive addresses ``first``.. (``count``) of ``table`` in block ``block``: the metrics in it
+    (index, where it starts: a byte offset in the read's registers, or a bit number), the last read."""
+
+    __slots__ = ("bits", "block", "count", "first", "last", "members", "reason", "table")
+
+    def __init__(self, table: Table, block: int, first: int) -> None:
+        self.table = table
+        self.block = block
+        self.first = first
+        self.count = 0
+        self.bits = table in (Table.COIL, Table.DISCRETE)
+        self.members: list[tuple[int, int]] = []
+        #: the bytes of the last read (None: not read yet, or it failed with ``reason``)
+        self.last: bytes | None = None
+        self.reason = ""
+
+
+def _runs(points: Sequence[Point]) -> list[_Run]:
+    by_key: dict[tuple[int, Table], list[int]] = {}
+    for i, point in enumerate(points):
+        if point.block is not None:
+            by_key.setdefault((point.block, point.table), []).append(i)
+    runs: list[_Run] = []
+    for (block, table), members in by_key.items():
+        run: _Run | None = None
+        for i in sorted(members, key=lambda m: points[m].address):
+            point = points[i]
+            if run is None or point.address != run.first + run.count:
+                run = _Run(table, block, point.address)
+                runs.append(run)
+            offset = point.address - run.first
+            run.members.append((i, offset if run.bits else 2 * offset))
+            run.count += 1 if run.bits else point.width
+    return runs
 
 
 def _metric_name(tag: Tag) -> str:

@@ -303,29 +303,27 @@ class SparkplugNode:
         for index, device in enumerate(self.devices):
             if only is not None and index != only:
                 continue
-            stamps = device.unit.cache.stamps
-            for block, metrics in device.by_block.items():
-                device.block_state[block] = device.block_code(block)
-                read = stamps[block]
-                at = stamp if math.isinf(read) else self._wall_ms(read)
-                for metric in metrics:
-                    self.core.observe(index, metric, device.sample(metric, at))
+            for run in device.runs:
+                for metric, sample in device.read(run, self._read_time(device, run.block, stamp), everything=True):
+                    self.core.observe(index, metric, sample)
             for metric, sample in device.status_samples(now, stamp):
                 self.core.observe(index, metric, sample)
 
+    def _read_time(self, device: LinkDevice, block: int, default: int) -> int:
+        """The block's last read time as UTC ms (``default`` if it was never read)."""
+        read = device.unit.cache.stamps[block]
+        return default if math.isinf(read) else self._wall_ms(read)
+
     def _check(self, now: float) -> None:
-        """Blocks whose freshness changed without a store, and the status block's values."""
+        """What changes without a store: values going stale (or coming back), the status block."""
         stamp = self._wall_ms(now)
         for index, device in enumerate(self.devices):
-            dirty = self._dirty[index]
-            for block, last in device.block_state.items():
-                code = device.block_code(block)
-                if code != last:
-                    device.block_state[block] = code
-                    dirty.setdefault(block, device.unit.cache.stamps[block])
+            for run in device.runs:
+                for metric, sample in device.read(run, self._read_time(device, run.block, stamp)):
+                    self.core.observe(index, metric, sample)
             for metric, sample in device.status_samples(now, stamp):
                 self.core.observe(index, metric, sample)
-            if not dirty:
+            if not self._dirty[index]:
                 self._send(self.core.flush(stamp, (index,)))
 
     def _changed(self, index: int, now: float) -> None:
@@ -334,13 +332,10 @@ class SparkplugNode:
         blocks = list(dirty.items())
         dirty.clear()
         for block, read_time in blocks:
-            metrics = device.by_block.get(block)
-            if metrics is None:
-                continue
-            device.block_state[block] = device.block_code(block)
             stamp = self._wall_ms(now if read_time is None or math.isinf(read_time) else read_time)
-            for metric in metrics:
-                self.core.observe(index, metric, device.sample(metric, stamp))
+            for run in device.by_block.get(block, ()):
+                for metric, sample in device.read(run, stamp):
+                    self.core.observe(index, metric, sample)
 
     # --- writes ------------------------------------------------------------------------------
 
@@ -362,7 +357,7 @@ class SparkplugNode:
                 await unit.write_bits(point.address, [bool(command.value)])
             else:
                 await unit.write_registers(point.address, _registers(point.type, point.low_first, command.value))
-        except (ModbusExceptionReply, ValueError, struct.error) as exc:
+        except (ModbusExceptionReply, ValueError, OverflowError, struct.error) as exc:
             self.write_failures += 1
             self.core.refused["write failed"] += 1
             log.warning("sparkplug: DCMD %s/%s = %r not applied: %s", device.name, spec.name, command.value, exc)
@@ -373,6 +368,7 @@ class SparkplugNode:
                     1 if bits else point.width, f"{outcome} (DCMD {spec.name} = {command.value!r})")
         # published again whatever the outcome: the confirmed value, or the controller's
         loop_now = asyncio.get_running_loop().time()
+        self._changed(command.device, loop_now)  # the patched block: its other metrics keep their read time
         self.core.observe(command.device, command.metric, device.sample(command.metric, self._wall_ms(loop_now)))
         self.core.force(command.device, command.metric)
         self._send(self.core.flush(self._wall_ms(loop_now), (command.device,)))

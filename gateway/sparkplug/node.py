@@ -133,6 +133,8 @@ class Device:
     born: bool = False
     current: list[Sample | None] = field(init=False)
     published: list[Sample | None] = field(init=False)
+    #: metrics observed since the last flush (only these can have changed)
+    pending: set[int] = field(default_factory=set)
     #: metrics to publish at the next flush even if unchanged (a DCMD's outcome)
     forced: set[int] = field(default_factory=set)
     by_alias: dict[int, int] = field(init=False)
@@ -272,6 +274,7 @@ class EdgeNode:
             metrics.append(_metric(spec, sample, birth=True))
             device.published[i] = sample
         device.forced.clear()
+        device.pending.clear()
         device.born = True
         metrics.sort(key=lambda m: m.timestamp or 0)  # chronological (§5.16)
         payload = Payload(now, tuple(metrics), self._next_seq())
@@ -382,7 +385,9 @@ class EdgeNode:
 
     def observe(self, device: int, metric: int, sample: Sample) -> None:
         """The metric's value now (published at the next :meth:`flush` if it changed)."""
-        self.devices[device].current[metric] = sample
+        target = self.devices[device]
+        target.current[metric] = sample
+        target.pending.add(metric)
 
     def link(self, index: int, up: bool, now: int) -> list[Publish]:
         """The device's link went up (DBIRTH, if the node is online) or down (DDEATH, if born)."""
@@ -411,16 +416,16 @@ class EdgeNode:
             if not device.born:
                 continue
             changed: list[Metric] = []
-            for i, spec in enumerate(device.specs):
-                sample = device.current[i]
+            for i in sorted(device.pending | device.forced):
+                spec, sample, old = device.specs[i], device.current[i], device.published[i]
                 if sample is None:
                     continue
-                old = device.published[i]
                 if i in device.forced or _changed(spec, sample, old):
                     recovered = old is not None and old.value is None and sample.value is not None
                     changed.append(_metric(spec, sample, birth=False, recovered=recovered))
                     device.published[i] = sample
             device.forced.clear()
+            device.pending.clear()
             if changed:
                 changed.sort(key=lambda m: m.timestamp or 0)  # chronological (§5.16)
                 payload = Payload(now, tuple(changed), self._next_seq())
