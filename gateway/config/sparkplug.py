@@ -51,6 +51,8 @@ class SparkplugConfig(Model):
     reconnect_max: float = Field(60.0, gt=0, le=3600)
     state_file: Path = Field(Path(BDSEQ_FILE), validate_default=True)
     check_interval: float = Field(0.5, gt=0, le=60)
+    batch_interval: float = Field(0.05, ge=0, le=10)
+    status_interval: float = Field(5.0, gt=0, le=3600)
     ndeath_on_stop: Literal[True, False] = True
 
     @field_validator("broker")

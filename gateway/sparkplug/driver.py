@@ -5,10 +5,11 @@
   with a backoff doubling from ``reconnect_min`` to ``reconnect_max``; each connect is a new
   ``bdSeq``, written to ``state_file`` before the CONNECT (so a restarted process goes on from it).
 * Values: each unit's cache tells the node of every store and patch (``BlockCache.listeners``);
-  the node reads the metrics of that block as a Modbus read would (``LinkDevice.sample``), with
-  the block's read time as their timestamp, and the core publishes the changed ones.  Every
+  ``batch_interval`` later (the other blocks of the poll cycle) the node reads the metrics of
+  those blocks as a Modbus read would (``LinkDevice.read``), with the block's read time as their
+  timestamp, and the core publishes the changed ones, one DDATA per device.  Every
   ``check_interval`` it also looks at what ages without a store: links up / down, blocks going
-  stale, and the status block's values.
+  stale; every ``status_interval``, the status block's values.
 * DCMD writes go through :meth:`Unit.write_registers` / :meth:`Unit.write_bits`: the same checks
   (``read_only``, ``writable``), queue, ``write_timeout`` and at-most-once rule as a Modbus write,
   one after the other per device in arrival order.  Whatever the outcome, the metric is published
@@ -132,7 +133,7 @@ class SparkplugNode:
         loop = asyncio.get_running_loop()
         self._offset = time.time() - loop.time()
         delay = self.config.reconnect_min
-        down_logged = False
+        down_logged = state_error = False
         async with asyncio.TaskGroup() as group:
             for index in range(len(self.devices)):
                 group.create_task(self._write_worker(index), name=f"sparkplug-writes-{index}")
@@ -141,29 +142,32 @@ class SparkplugNode:
                 bd_seq = self.core.bd_seq or 0
                 try:
                     save_bd_seq(self.config.state_file, bd_seq)
+                    state_error = False
                 except OSError as exc:
-                    log.error("sparkplug: cannot keep bdSeq in %s (%s): a restart would reuse bdSeq %d; "
-                              "make its directory writable or set [sparkplug] state_file", self.config.state_file,
-                              exc, bd_seq)
+                    if not state_error:
+                        state_error = True
+                        log.error("sparkplug: cannot keep bdSeq in %s (%s): a restart would reuse bdSeq %d; "
+                                  "make its directory writable or set [sparkplug] state_file", self.config.state_file,
+                                  exc, bd_seq)
+                sessions = self.sessions
                 try:
                     await self._session(will)
                 except aiomqtt.MqttError as exc:
-                    if not down_logged:
-                        log.warning("sparkplug: MQTT session with %s lost or refused (%s); retrying every %g s "
-                                    "up to %g s", self.config.broker, exc, self.config.reconnect_min,
-                                    self.config.reconnect_max)
+                    if self.sessions > sessions:  # it was up: lost (logged once, then retried quietly)
+                        log.warning("sparkplug: MQTT session with %s lost (%s); reconnecting", self.config.broker, exc)
+                        delay, down_logged = self.config.reconnect_min, False
+                    elif not down_logged:
+                        log.warning("sparkplug: cannot connect to %s (%s); retrying every %g s, backing off to %g s",
+                                    self.config.broker, exc, self.config.reconnect_min, self.config.reconnect_max)
                         down_logged = True
                 except _HostOffline:
                     log.info("sparkplug: primary host %s went offline: NDEATH published, reconnecting",
                              self.config.primary_host_id)
                     delay = self.config.reconnect_min
-                else:
-                    down_logged = False
                 self.core.disconnected()
                 await asyncio.sleep(delay)
-                delay = min(self.config.reconnect_max, delay * 2)
-                if not down_logged:
-                    delay = self.config.reconnect_min
+                if self.sessions == sessions:
+                    delay = min(self.config.reconnect_max, delay * 2)
 
     async def _session(self, will: Publish) -> None:
         config = self.config
@@ -269,21 +273,28 @@ class SparkplugNode:
     # --- values ------------------------------------------------------------------------------
 
     async def _watch(self) -> None:
-        """Publish what changed: on every store / patch, and every ``check_interval`` for what ages."""
+        """Publish what changed: after a store / patch (the stores of ``batch_interval`` together, one
+        DDATA per device), and every ``check_interval`` what ages without a store.  One device at a
+        time, the Modbus server's answers in between."""
         loop = asyncio.get_running_loop()
-        interval = self.config.check_interval
-        next_check = loop.time()
+        interval, batch = self.config.check_interval, self.config.batch_interval
+        next_check = next_status = loop.time()
         while True:
             timeout = max(0.0, next_check - loop.time())
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(timeout):
                     await self._wake.wait()
+                    if batch:
+                        await asyncio.sleep(batch)
             self._wake.clear()
             now = loop.time()
             if now >= next_check:
                 next_check = now + interval
                 self._links(now)
-                self._check(now)
+                status = now >= next_status
+                if status:
+                    next_status = now + self.config.status_interval
+                await self._check(now, status)
             for index in range(len(self.devices)):
                 if self._dirty[index]:
                     self._changed(index, now)
@@ -314,15 +325,18 @@ class SparkplugNode:
         read = device.unit.cache.stamps[block]
         return default if math.isinf(read) else self._wall_ms(read)
 
-    def _check(self, now: float) -> None:
-        """What changes without a store: values going stale (or coming back), the status block."""
+    async def _check(self, now: float, status: bool) -> None:
+        """What changes without a store: values going stale (or coming back); with ``status``, the
+        status block's values."""
         stamp = self._wall_ms(now)
         for index, device in enumerate(self.devices):
+            await asyncio.sleep(0)
             for run in device.runs:
                 for metric, sample in device.read(run, self._read_time(device, run.block, stamp)):
                     self.core.observe(index, metric, sample)
-            for metric, sample in device.status_samples(now, stamp):
-                self.core.observe(index, metric, sample)
+            if status:
+                for metric, sample in device.status_samples(now, stamp):
+                    self.core.observe(index, metric, sample)
             if not self._dirty[index]:
                 self._send(self.core.flush(stamp, (index,)))
 

@@ -95,7 +95,8 @@ def link_text(name: str, unit: int, line: Line, **keys: Any) -> str:
 
 
 def config_text(broker_port: int, state_file: Path, links: str, **sparkplug: Any) -> str:
-    options = {"check_interval": 0.1, "reconnect_min": 0.2, "reconnect_max": 1.0, "keepalive": 5, **sparkplug}
+    options = {"check_interval": 0.1, "status_interval": 0.2, "reconnect_min": 0.2, "reconnect_max": 1.0,
+               "keepalive": 5, **sparkplug}
     text = (f'[modbus]\nlisten = "127.0.0.1:0"\n\n[sparkplug]\nbroker = "mqtt://{HOST}:{broker_port}"\n'
             f'group_id = "{GROUP}"\nedge_node_id = "{NODE}"\nstate_file = "{state_file}"\n')
     text += "".join(f"{k} = {v!r}\n".replace("'", '"') for k, v in options.items())

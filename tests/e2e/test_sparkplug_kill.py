@@ -31,7 +31,7 @@ def config(broker_port: int, directory: Path) -> Path:
     path = directory / "gateway.toml"
     path.write_text(
         f'[modbus]\nlisten = "127.0.0.1:0"\n\n[sparkplug]\nbroker = "mqtt://{HOST}:{broker_port}"\n'
-        f'group_id = "{GROUP}"\nedge_node_id = "{NODE}"\nkeepalive = {KEEPALIVE}\n'
+        f'group_id = "{GROUP}"\nedge_node_id = "{NODE}"\nkeepalive = {KEEPALIVE}\nstatus_interval = 1.0\n'
         f'state_file = "bdseq.json"\n\n'
         '[[link]]\nname = "press"\nprotocol = "df1"\nport = "sim://slc504?ladder=0"\nunit = 1\n'
         '[[link.map]]\ntable = "holding"\nstart = 0\naddress = "N7:0"\ncount = 4\n',
