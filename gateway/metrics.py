@@ -47,6 +47,8 @@ Metrics (every name starts with ``slc_gateway_``)::
       sparkplug_commands_received_total{type}   counter  NCMD, DCMD, STATE
       sparkplug_commands_refused_total{reason}  counter  command metrics that changed nothing; failed DCMD writes
       sparkplug_devices_online                gauge    devices with a DBIRTH and no DDEATH since
+      sparkplug_cpu_seconds_total             counter  CPU of the edge node's steps on the event loop (not MQTT's)
+      sparkplug_longest_step_seconds          gauge    the longest such step: the most a Modbus answer waits behind it
 
 ``/healthz`` answers 200 when every link is up and its fast-class data is younger than its
 ``stale_after``, 503 otherwise, with a JSON body naming each link's state (no paths, no

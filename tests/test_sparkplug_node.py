@@ -35,11 +35,19 @@ def seqs(messages: list[Publish]) -> list[int | None]:
     return [decode(m.payload).seq for m in messages]
 
 
+def with_dbirths(node: EdgeNode, first: list[Publish], now: int = T0) -> list[Publish]:
+    """``first`` (an NBIRTH) and the DBIRTHs of the sequence it starts."""
+    out = list(first)
+    while (dbirth := node.next_birth(now)) is not None:
+        out.append(dbirth)
+    return out
+
+
 def online(node: EdgeNode, now: int = T0) -> list[Publish]:
     for index in range(len(node.devices)):
         node.link(index, True, now)
     node.connecting(now)
-    return node.connected(now)
+    return with_dbirths(node, node.connected(now), now)
 
 
 def test_will_is_ndeath_with_bdseq_qos1_not_retained() -> None:
@@ -150,7 +158,7 @@ def test_no_dbirth_for_a_device_down_at_birth() -> None:
     node = make_node()
     node.link(0, True, T0)
     node.connecting(T0)
-    assert verbs(node.connected(T0)) == ["NBIRTH", "DBIRTH/press"]
+    assert verbs(with_dbirths(node, node.connected(T0))) == ["NBIRTH", "DBIRTH/press"]
 
 
 def rebirth_request(value: bool = True) -> bytes:
@@ -163,6 +171,10 @@ def test_rebirth_republishes_births_same_bdseq() -> None:
     node.observe(0, 0, Sample(8, T0 + 1))
     node.flush(T0 + 1)
     out = node.node_command(rebirth_request(), T0 + 2)
+    assert verbs(out) == ["NBIRTH"]
+    node.observe(0, 0, Sample(9, T0 + 2))
+    assert node.flush(T0 + 2) == []  # no DDATA before the last DBIRTH (§6.4.20)
+    out = with_dbirths(node, out, T0 + 2)
     assert verbs(out) == ["NBIRTH", "DBIRTH/press", "DBIRTH/oven"]
     assert seqs(out) == [0, 1, 2]
     assert decode(out[0].payload).metrics[0].value == 0  # same bdSeq: no new MQTT session (§5.17)
@@ -254,3 +266,14 @@ def test_stopping_publishes_ndeath_only_when_connected() -> None:
     online(node)
     (ndeath,) = node.stopping(T0)
     assert ndeath.topic == "spBv1.0/plant1/NDEATH/gw1"
+
+
+def test_links_changing_during_a_birth_sequence() -> None:
+    node = make_node()
+    node.link(0, True, T0)
+    node.connecting(T0)
+    assert verbs(node.connected(T0)) == ["NBIRTH"]
+    assert node.link(1, True, T0) == []  # joins the sequence under way
+    assert node.link(0, False, T0) == []  # gone before its DBIRTH: none, and no DDEATH for it
+    assert verbs(with_dbirths(node, [])) == ["DBIRTH/oven"]
+    assert node.next_birth(T0) is None

@@ -72,6 +72,25 @@ def save_bd_seq(path: Path, bd_seq: int) -> None:
     os.replace(temporary, path)
 
 
+class _Busy:
+    """The CPU the node's own steps take on the event loop (``time.thread_time``): reading the image,
+    building births and DDATA.  The longest step bounds what it adds to a Modbus answer waiting
+    behind it.  The MQTT client's work (paho building packets, writing the socket) is not in it."""
+
+    __slots__ = ("longest", "seconds", "steps")
+
+    def __init__(self) -> None:
+        self.seconds = 0.0
+        self.longest = 0.0
+        self.steps = 0
+
+    def add(self, started: float) -> None:
+        spent = time.thread_time() - started
+        self.seconds += spent
+        self.steps += 1
+        self.longest = max(self.longest, spent)
+
+
 class _HostOffline(Exception):
     """The primary host went offline: this session ends (§5.5)."""
 
@@ -88,6 +107,8 @@ class SparkplugNode:
         self.write_failures = 0
         #: messages handed to the broker, by message type (NBIRTH, DDATA, ...)
         self.sent: Counter[str] = Counter()
+        #: CPU of the node's own steps on the loop (reading the image, building DDATA)
+        self.busy = _Busy()
         #: MQTT sessions established
         self.sessions = 0
         self._client: aiomqtt.Client | None = None
@@ -190,10 +211,9 @@ class SparkplugNode:
                          config.edge_node_id, self.core.bd_seq or 0,
                          f", waiting for primary host {config.primary_host_id}" if config.primary_host_id else "")
                 self._drain_outbox()
-                now = asyncio.get_running_loop().time()
-                self._links(now)  # who is alive before the births
-                self._refresh(now)
+                await self._links(asyncio.get_running_loop().time())  # who is alive before the births
                 self._send(self.core.connected(self._now_ms()))
+                await self._dbirths()
                 async with asyncio.TaskGroup() as group:
                     group.create_task(self._sender(client))
                     group.create_task(self._watch())
@@ -255,8 +275,8 @@ class SparkplugNode:
             topic = message.topic.value
             payload = message.payload if isinstance(message.payload, bytes) else b""
             if topic == ncmd:
-                self._refresh(asyncio.get_running_loop().time())
                 self._send(core.node_command(payload, self._now_ms()))
+                await self._dbirths()
             elif topic.startswith(dcmd_prefix):
                 device = topic[len(dcmd_prefix):]
                 for command in core.device_command(device, payload):
@@ -264,11 +284,11 @@ class SparkplugNode:
                 if core.refused:
                     log.debug("sparkplug: DCMD to %s: refused so far %s", device, dict(core.refused))
             elif core.primary_host_id is not None and topic == core.state_topic:
-                self._refresh(asyncio.get_running_loop().time())
                 messages, disconnect = core.host_state(payload, self._now_ms())
                 self._send(messages)
                 if disconnect:
                     raise _HostOffline
+                await self._dbirths()
 
     # --- values ------------------------------------------------------------------------------
 
@@ -290,23 +310,44 @@ class SparkplugNode:
             now = loop.time()
             if now >= next_check:
                 next_check = now + interval
-                self._links(now)
+                await self._links(now)
                 status = now >= next_status
                 if status:
                     next_status = now + self.config.status_interval
                 await self._check(now, status)
             for index in range(len(self.devices)):
                 if self._dirty[index]:
+                    started = time.thread_time()
                     self._changed(index, now)
                     self._send(self.core.flush(self._wall_ms(now), (index,)))
+                    self.busy.add(started)
                     await asyncio.sleep(0)  # one device at a time: Modbus answers go in between
 
-    def _links(self, now: float) -> None:
+    async def _links(self, now: float) -> None:
+        """Links gone down (DDEATH) or come back (DBIRTH, with its values as they are now), one device a step."""
         for index, device in enumerate(self.devices):
             up = device.unit.driver.available
-            if up and not device.device.alive:
-                self._refresh(now, index)  # its DBIRTH carries every value as it is now
+            if up == device.device.alive:
+                continue
+            await asyncio.sleep(0)
+            started = time.thread_time()
+            if up and self.core.online and not self.core.unborn:
+                self._refresh(now, index)
             self._send(self.core.link(index, up, self._wall_ms(now)))
+            self.busy.add(started)
+
+    async def _dbirths(self) -> None:
+        """The DBIRTHs of a birth sequence, one device a step, each with its values as they are now."""
+        loop = asyncio.get_running_loop()
+        while self.core.unborn:
+            await asyncio.sleep(0)
+            started = time.thread_time()
+            now = loop.time()
+            self._refresh(now, self.core.unborn[0])
+            message = self.core.next_birth(self._wall_ms(now))
+            if message is not None:
+                self._send([message])
+            self.busy.add(started)
 
     def _refresh(self, now: float, only: int | None = None) -> None:
         """Every metric (of device ``only``) as it is now, for the births."""
@@ -331,6 +372,7 @@ class SparkplugNode:
         stamp = self._wall_ms(now)
         for index, device in enumerate(self.devices):
             await asyncio.sleep(0)
+            started = time.thread_time()
             for run in device.runs:
                 for metric, sample in device.read(run, self._read_time(device, run.block, stamp)):
                     self.core.observe(index, metric, sample)
@@ -339,6 +381,7 @@ class SparkplugNode:
                     self.core.observe(index, metric, sample)
             if not self._dirty[index]:
                 self._send(self.core.flush(stamp, (index,)))
+            self.busy.add(started)
 
     def _changed(self, index: int, now: float) -> None:
         device = self.devices[index]

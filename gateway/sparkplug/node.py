@@ -14,9 +14,11 @@ Session (§5.4 "Edge Node Session Establishment", §5.5 "Edge Node Session Termi
   that host's STATE says online (§5.4 tck-id-message-flow-edge-node-birth-publish-phid-wait).
 * Births: NBIRTH with ``seq`` 0 (§4.2.1.1.2 tck-id-topics-nbirth-seq-num), ``bdSeq`` equal to the
   will's, and ``Node Control/Rebirth`` = false without an alias (§5.17 "Commands"); then a DBIRTH
-  per device whose link is up, each with every metric: name, alias, datatype, timestamp, value or
-  ``is_null`` (§5.16 "Data Publish"; §6.4.20 "DBIRTH").  ``seq`` then goes up by one per message
-  up to 255 and wraps to 0 (§6.4.5 "Payload", tck-id-payloads-sequence-num-incrementing).
+  per device whose link is up (:meth:`EdgeNode.next_birth`, one at a time, so the driver can let
+  the Modbus server answer in between; no DDATA until the last, §6.4.20), each with every metric:
+  name, alias, datatype, timestamp, value or ``is_null`` (§5.16 "Data Publish"; §6.4.20 "DBIRTH").
+  ``seq`` then goes up by one per message up to 255 and wraps to 0 (§6.4.5 "Payload",
+  tck-id-payloads-sequence-num-incrementing).
 * A rebirth request (NCMD ``Node Control/Rebirth`` = true) stops data and publishes every birth
   again with the same ``bdSeq`` (§5.17).
 * A primary host's offline STATE whose timestamp is not older than the last online one: NDEATH,
@@ -181,6 +183,8 @@ class EdgeNode:
         #: the timestamp of the last online STATE of the primary host (None: none seen)
         self.host_timestamp: int | None = None
         self._seq = 0
+        #: the live devices still waiting for their DBIRTH in this birth sequence (no DDATA meanwhile)
+        self.unborn: list[int] = []
         #: commands received, by verb (NCMD, DCMD, STATE)
         self.received: Counter[str] = Counter()
         #: commands that changed nothing, by reason
@@ -235,6 +239,7 @@ class EdgeNode:
         """The MQTT session is gone (the broker publishes the will)."""
         self.connected_now = False
         self.online = False
+        self.unborn = []
         for device in self.devices:
             device.born = False
 
@@ -244,6 +249,7 @@ class EdgeNode:
         if not self.connected_now:
             return []
         self.online = False
+        self.unborn = []
         return [self._ndeath(now)]
 
     def _next_seq(self) -> int:
@@ -252,19 +258,27 @@ class EdgeNode:
         return seq
 
     def births(self, now: int) -> list[Publish]:
-        """NBIRTH (seq 0) and a DBIRTH per live device (§5.4, §5.6, §6.4.19, §6.4.20)."""
+        """The NBIRTH (seq 0); then :meth:`next_birth` gives a DBIRTH per live device, one at a time
+        (§5.4, §5.6, §6.4.19, §6.4.20).  No DDATA until the last (§6.4.20: the DBIRTHs come right
+        after the NBIRTH, before any DDATA)."""
         self.online = True
         self._seq = 0
         metrics = (
             self._bd_seq_metric(now, BD_SEQ_ALIAS),
             Metric(name=REBIRTH, timestamp=now, datatype=SparkplugType.Boolean, value=False),
         )
-        out = [Publish(self.topic("NBIRTH"), encode(Payload(now, metrics, self._next_seq())))]
-        for index, device in enumerate(self.devices):
+        for device in self.devices:
             device.born = False
-            if device.alive:
-                out.append(self._dbirth(index, now))
-        return out
+        self.unborn = [index for index, device in enumerate(self.devices) if device.alive]
+        return [Publish(self.topic("NBIRTH"), encode(Payload(now, metrics, self._next_seq())))]
+
+    def next_birth(self, now: int) -> Publish | None:
+        """The DBIRTH of the next live device of the birth sequence; None when it is complete."""
+        while self.unborn:
+            index = self.unborn.pop(0)
+            if self.devices[index].alive:
+                return self._dbirth(index, now)
+        return None
 
     def _dbirth(self, index: int, now: int) -> Publish:
         device = self.devices[index]
@@ -398,6 +412,9 @@ class EdgeNode:
         if not self.online:
             return []
         if up:
+            if self.unborn:  # a birth sequence is under way: it takes this device too
+                self.unborn.append(index)
+                return []
             return [self._dbirth(index, now)]
         if not device.born:
             return []
@@ -408,7 +425,7 @@ class EdgeNode:
 
     def flush(self, now: int, devices: Sequence[int] | None = None) -> list[Publish]:
         """DDATA of every born device (of ``devices``) with the metrics changed since last published."""
-        if not self.online:
+        if not self.online or self.unborn:
             return []
         out: list[Publish] = []
         for index in range(len(self.devices)) if devices is None else devices:

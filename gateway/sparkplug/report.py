@@ -39,6 +39,8 @@ def status(node: SparkplugNode | None) -> dict[str, object] | None:
         "refused": sum(core.refused.values()),
         "refused_by_reason": dict(sorted(core.refused.items())),
         "write_failures": node.write_failures,
+        "cpu_seconds": round(node.busy.seconds, 6),
+        "longest_step_seconds": round(node.busy.longest, 6),
         "devices_online": sum(1 for device in core.devices if device.born),
         "devices": len(core.devices),
     }
@@ -60,6 +62,10 @@ def families(node: SparkplugNode | None) -> Iterator[Metric]:
                                   "Command metrics that changed nothing (unknown or read-only metric, bad "
                                   "payload or value) and DCMD writes that failed.", labels=["reason"])
     born = GaugeMetricFamily(_PREFIX + "devices_online", "Devices (links) with a DBIRTH and no DDEATH since.")
+    cpu = CounterMetricFamily(_PREFIX + "cpu_seconds", "CPU the edge node's own steps took on the event loop "
+                              "(reading the image, building DDATA; not the MQTT client's own work).")
+    longest = GaugeMetricFamily(_PREFIX + "longest_step_seconds", "The longest of those steps (CPU): the most "
+                                "a Modbus answer can wait behind the edge node.")
     current = node.session_state
     for name in ("disconnected", "connected", "online"):
         state.add_metric([name], 1.0 if name == current else 0.0)
@@ -71,4 +77,6 @@ def families(node: SparkplugNode | None) -> Iterator[Metric]:
     for reason, count in sorted(node.core.refused.items()):
         refused.add_metric([reason], count)
     born.add_metric([], sum(1 for device in node.core.devices if device.born))
-    yield from (state, sessions, published, received, refused, born)
+    cpu.add_metric([], node.busy.seconds)
+    longest.add_metric([], node.busy.longest)
+    yield from (state, sessions, published, received, refused, born, cpu, longest)
