@@ -260,9 +260,12 @@ def test_state_before_connect_counts_for_the_next_session() -> None:
     assert verbs(out)[0] == "NBIRTH"
 
 
-def test_stopping_publishes_ndeath_only_when_connected() -> None:
+def test_stopping_publishes_ndeath_only_after_the_births() -> None:
     node = make_node()
     assert node.stopping(T0) == []
+    waiting = make_node(primary="scada")
+    online(waiting)  # connected, waiting for the primary host: no session yet
+    assert waiting.stopping(T0) == []
     online(node)
     (ndeath,) = node.stopping(T0)
     assert ndeath.topic == "spBv1.0/plant1/NDEATH/gw1"

@@ -245,8 +245,9 @@ class EdgeNode:
 
     def stopping(self, now: int) -> list[Publish]:
         """An intentional disconnect: NDEATH first (§5.5 tck-id-operational-behavior-edge-node-intentional-
-        disconnect-ndeath), with this session's bdSeq."""
-        if not self.connected_now:
+        disconnect-ndeath), with this session's bdSeq.  None before the births: there is no Sparkplug
+        session to end (the reading of :meth:`host_state`), and the clean DISCONNECT withdraws the will."""
+        if not self.connected_now or not self.online:
             return []
         self.online = False
         self.unborn = []
