@@ -11,6 +11,8 @@ import struct
 import uuid
 from typing import Any
 
+import pytest
+
 from gateway.app import build_units
 from gateway.config import parse_config
 from gateway.modbus.mapping import Table
@@ -120,3 +122,17 @@ def test_decode_from_the_serving_bytes() -> None:
     assert _decode(Point(Table.HOLDING, 0, "int32", False, 0), b"\xff\xff\xff\xfe") == -2
     assert _decode(Point(Table.COIL, 0, "bool", False, 0), b"\x01") is True
     assert BAD == 0
+
+
+def test_dcmd_values_as_the_registers_a_modbus_write_sends() -> None:
+    from gateway.sparkplug.driver import _registers
+
+    assert _registers("int16", False, -2) == [0xFFFE]
+    assert _registers("uint16", False, 65535) == [0xFFFF]
+    high, low = struct.unpack(">HH", struct.pack(">f", 2.5))
+    assert _registers("float32", False, 2.5) == [high, low]
+    assert _registers("float32", True, 2.5) == [low, high]
+    assert _registers("int32", False, -2) == [0xFFFF, 0xFFFE]
+    for kind, value in (("int16", 32768), ("int16", -32769), ("uint16", -1), ("uint16", 65536)):
+        with pytest.raises(ValueError, match="is outside"):
+            _registers(kind, False, value)

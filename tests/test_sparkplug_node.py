@@ -205,10 +205,13 @@ def test_dcmd_by_alias_and_name_and_refusals() -> None:
     assert node.received["DCMD"] == 2
 
 
-def test_int16_from_16_bit_twos_complement_too() -> None:
+def test_int16_from_16_bit_twos_complement_too_and_nothing_wider() -> None:
     node = make_node()
     (command,) = node.device_command("press", dcmd(Metric(alias=2, value=0xFFFB, value_type=SparkplugType.UInt32)))
     assert command.value == -5
+    for raw in (0x12345, 0xFFFF0000, 0x7FFFFFFF):  # bits past 16 that are not a sign extension
+        assert node.device_command("press", dcmd(Metric(alias=2, value=raw, value_type=SparkplugType.UInt32))) == []
+    assert node.refused["wrong value type"] == 3
 
 
 def test_forced_metric_published_even_unchanged() -> None:

@@ -212,7 +212,8 @@ def _set_value(target: Any, datatype: int, value: Value) -> None:
 
 
 def typed(datatype: int, value: Value) -> Value:
-    """A received value read as ``datatype``: integers to their width (signed ones signed); else as given.
+    """A received value read as ``datatype``: integers in their own width or sign-extended to the field's
+    (an Int16 -5 as 0xFFFB or 0xFFFFFFFB), anything else out of range; else as given.
 
     Raises :class:`PayloadError` for a value of another kind (a string for an Int16, a float for a
     Boolean): a DCMD must carry "a compatible metric value" (§5.17 "Commands")."""
@@ -221,7 +222,13 @@ def typed(datatype: int, value: Value) -> Value:
         if isinstance(value, bool) or not isinstance(value, int):
             raise PayloadError(f"{SparkplugType(datatype).name} needs an integer value, got {value!r}")
         bits, signed = bits_signed
-        value &= (1 << bits) - 1
+        field = 64 if datatype in _LONG else 32
+        if signed and -(1 << (bits - 1)) <= value < 0:
+            return value
+        if signed and bits < field and (1 << field) - (1 << (bits - 1)) <= value < 1 << field:
+            value -= (1 << field) - (1 << bits)  # sign-extended to the field's width: back to our own
+        if not 0 <= value < 1 << bits:
+            raise PayloadError(f"{value} does not fit {SparkplugType(datatype).name}")
         return value - (1 << bits) if signed and value >> (bits - 1) else value
     if datatype == SparkplugType.Boolean:
         if not isinstance(value, bool):
