@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Sequence
+from dataclasses import field
 from typing import Any, Final
 
 from gateway.config.link import LinkBase
@@ -51,10 +52,11 @@ class Point:
     block: int | None
     #: the key of the status block value (``Unit.status_values``); "" for a data point
     status_key: str = ""
+    #: registers per value: 2 for a 32-bit type, else 1
+    width: int = field(init=False)
 
-    @property
-    def width(self) -> int:
-        return 2 if self.type in ("int32", "uint32", "float32") else 1
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "width", 2 if self.type in ("int32", "uint32", "float32") else 1)
 
 
 def _decode(point: Point, data: bytes) -> Value:
