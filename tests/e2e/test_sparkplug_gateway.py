@@ -145,8 +145,12 @@ class Absent(NamedTuple):
 
 def value(plant: Plant, device: str, metric: str) -> Any:
     """The host's latest (value, is_null, quality) of a metric; all None before its device's birth."""
+    return host_value(plant.host, device, metric)
+
+
+def host_value(host: Any, device: str, metric: str) -> Any:
     try:
-        return plant.host.value(GROUP, NODE, device, metric)
+        return host.value(GROUP, NODE, device, metric)
     except KeyError:
         return Absent()
 
@@ -354,3 +358,25 @@ async def test_status_api_and_metrics_report_the_session(plant: Plant) -> None:
     assert 'slc_gateway_sparkplug_commands_received_total{type="DCMD"} 1.0' in metrics
     assert 'slc_gateway_sparkplug_commands_refused_total{reason="read-only metric"} 1.0' in metrics
     assert "slc_gateway_sparkplug_devices_online 2.0" in metrics
+
+
+async def test_a_refused_write_republishes_the_controllers_value(broker: Broker, tmp_path: Path) -> None:  # noqa: F811
+    # An SLC 150's presets hold 0-9999 (the manual's range, export-tags: "901.PRE ... (0-9999)"):
+    # 12000 is refused before anything is sent (as a Modbus write of it is, 0x03).
+    link = (f'[[link]]\nname = "slc"\nprotocol = "slc-ascii"\nport = "sim://slc150?ladder=0&instance={uuid.uuid4().hex}"'
+            "\nunit = 1\n")
+    async with SparkplugHost(HOST, broker.port) as host:
+        async with Gateway(parse_config(config_text(broker.port, tmp_path / "bdseq.json", link))) as gw:
+            await host.wait_for(kind("DBIRTH", "slc"), 10)
+            await host.wait_for(lambda m: host_value(host, "slc", "901.PRE").value is not None, 10)
+            before = host_value(host, "slc", "901.PRE").value
+            count = len(host.messages)
+            await host.send_dcmd(GROUP, NODE, "slc", "901.PRE", 12000, "UInt16")
+            republished = await host.wait_for(
+                lambda m: m.message_type == "DDATA" and m.metric("901.PRE") is not None, 10, since=count)
+            assert republished.metric("901.PRE").value == before  # the controller's value, published again
+            assert gw.sparkplug is not None and gw.sparkplug.write_failures == 1
+            assert gw.sparkplug.core.refused == {"write failed": 1}
+            await host.send_dcmd(GROUP, NODE, "slc", "902.PRE", 1234, "UInt16")
+            await host.wait_for(lambda m: host_value(host, "slc", "902.PRE").value == 1234, 10)
+        assert host.violations == [], "\n".join(host.violations)
