@@ -11,9 +11,10 @@
   ``check_interval`` it also looks at what ages without a store: links up / down, blocks going
   stale; every ``status_interval``, the status block's values.
 * DCMD writes go through :meth:`Unit.write_registers` / :meth:`Unit.write_bits`: the same checks
-  (``read_only``, ``writable``), queue, ``write_timeout`` and at-most-once rule as a Modbus write,
-  one after the other per device in arrival order.  Whatever the outcome, the metric is published
-  again with the value the image holds (confirmed, or the controller's).
+  (``read_only``, ``writable``), queue (in arrival order, at most ``write_queue_per_client`` waiting:
+  beyond, refused as busy), ``write_timeout`` and at-most-once rule as a Modbus write request.
+  Whatever the outcome, the metric is published again with the value the image holds (confirmed,
+  or the controller's).
 """
 
 from __future__ import annotations
@@ -116,7 +117,8 @@ class SparkplugNode:
         self._wake = asyncio.Event()
         #: per device: blocks stored or patched since the last pass, with their read time (None: a patch)
         self._dirty: list[dict[int, float | None]] = [{} for _ in self.devices]
-        self._writes: list[asyncio.Queue[WriteCommand]] = [asyncio.Queue() for _ in self.devices]
+        #: DCMD writes under way (each a task, as each Modbus write request is)
+        self._writing: set[asyncio.Task[None]] = set()
         self._who = Client(f"sparkplug DCMD via {config.broker}")
         self._offset = 0.0  # wall seconds - loop seconds
         for index, device in enumerate(self.devices):
@@ -155,40 +157,38 @@ class SparkplugNode:
         self._offset = time.time() - loop.time()
         delay = self.config.reconnect_min
         down_logged = state_error = False
-        async with asyncio.TaskGroup() as group:
-            for index in range(len(self.devices)):
-                group.create_task(self._write_worker(index), name=f"sparkplug-writes-{index}")
-            while True:
-                will = self.core.connecting(self._now_ms())
-                bd_seq = self.core.bd_seq or 0
-                try:
-                    save_bd_seq(self.config.state_file, bd_seq)
-                    state_error = False
-                except OSError as exc:
-                    if not state_error:
-                        state_error = True
-                        log.error("sparkplug: cannot keep bdSeq in %s (%s): a restart would reuse bdSeq %d; "
-                                  "make its directory writable or set [sparkplug] state_file", self.config.state_file,
-                                  exc, bd_seq)
-                sessions = self.sessions
-                try:
-                    await self._session(will)
-                except aiomqtt.MqttError as exc:
-                    if self.sessions > sessions:  # it was up: lost (logged once, then retried quietly)
-                        log.warning("sparkplug: MQTT session with %s lost (%s); reconnecting", self.config.broker, exc)
-                        delay, down_logged = self.config.reconnect_min, False
-                    elif not down_logged:
-                        log.warning("sparkplug: cannot connect to %s (%s); retrying every %g s, backing off to %g s",
-                                    self.config.broker, exc, self.config.reconnect_min, self.config.reconnect_max)
-                        down_logged = True
-                except _HostOffline:
-                    log.info("sparkplug: primary host %s went offline: NDEATH published, reconnecting",
-                             self.config.primary_host_id)
-                    delay = self.config.reconnect_min
-                self.core.disconnected()
-                await asyncio.sleep(delay)
-                if self.sessions == sessions:
-                    delay = min(self.config.reconnect_max, delay * 2)
+        current_client.set(self._who)  # the DCMD writes' client, for the write queue and the audit log
+        while True:
+            will = self.core.connecting(self._now_ms())
+            bd_seq = self.core.bd_seq or 0
+            try:
+                save_bd_seq(self.config.state_file, bd_seq)
+                state_error = False
+            except OSError as exc:
+                if not state_error:
+                    state_error = True
+                    log.error("sparkplug: cannot keep bdSeq in %s (%s): a restart would reuse bdSeq %d; "
+                              "make its directory writable or set [sparkplug] state_file", self.config.state_file,
+                              exc, bd_seq)
+            sessions = self.sessions
+            try:
+                await self._session(will)
+            except aiomqtt.MqttError as exc:
+                if self.sessions > sessions:  # it was up: lost (logged once, then retried quietly)
+                    log.warning("sparkplug: MQTT session with %s lost (%s); reconnecting", self.config.broker, exc)
+                    delay, down_logged = self.config.reconnect_min, False
+                elif not down_logged:
+                    log.warning("sparkplug: cannot connect to %s (%s); retrying every %g s, backing off to %g s",
+                                self.config.broker, exc, self.config.reconnect_min, self.config.reconnect_max)
+                    down_logged = True
+            except _HostOffline:
+                log.info("sparkplug: primary host %s went offline: NDEATH published, reconnecting",
+                         self.config.primary_host_id)
+                delay = self.config.reconnect_min
+            self.core.disconnected()
+            await asyncio.sleep(delay)
+            if self.sessions == sessions:
+                delay = min(self.config.reconnect_max, delay * 2)
 
     async def _session(self, will: Publish) -> None:
         config = self.config
@@ -228,7 +228,12 @@ class SparkplugNode:
                 self._client = None
 
     async def close(self) -> None:
-        """A clean stop: NDEATH after what is queued (§5.5), then the MQTT DISCONNECT (when ``run`` is cancelled)."""
+        """A clean stop: DCMD writes in flight finish (as Modbus requests in flight do), then the NDEATH
+        after what is queued (§5.5), then the MQTT DISCONNECT (when ``run`` is cancelled)."""
+        if self._writing:
+            _, late = await asyncio.wait(set(self._writing), timeout=max(d.unit.write_timeout for d in self.devices))
+            for task in late:
+                task.cancel()  # its write, if queued, stays queued: applied at most once (Unit._queue_write)
         if self._client is None or not self.config.ndeath_on_stop:
             return
         self._send(self.core.stopping(self._now_ms()))  # the core publishes nothing after it
@@ -280,7 +285,11 @@ class SparkplugNode:
             elif topic.startswith(dcmd_prefix):
                 device = topic[len(dcmd_prefix):]
                 for command in core.device_command(device, payload):
-                    self._writes[command.device].put_nowait(command)
+                    # one task per write, created in arrival order: each is queued on its link's
+                    # write queue in its first step, so they are queued (and applied) in that order
+                    task = asyncio.create_task(self._write(command))
+                    self._writing.add(task)
+                    task.add_done_callback(self._writing.discard)
                 if core.refused:
                     log.debug("sparkplug: DCMD to %s: refused so far %s", device, dict(core.refused))
             elif core.primary_host_id is not None and topic == core.state_topic:
@@ -395,13 +404,6 @@ class SparkplugNode:
                     self.core.observe(index, metric, sample)
 
     # --- writes ------------------------------------------------------------------------------
-
-    async def _write_worker(self, index: int) -> None:
-        current_client.set(self._who)
-        queue = self._writes[index]
-        while True:
-            command = await queue.get()
-            await self._write(command)
 
     async def _write(self, command: WriteCommand) -> None:
         device = self.devices[command.device]
