@@ -136,3 +136,10 @@ def test_dcmd_values_as_the_registers_a_modbus_write_sends() -> None:
     for kind, value in (("int16", 32768), ("int16", -32769), ("uint16", -1), ("uint16", 65536)):
         with pytest.raises(ValueError, match="is outside"):
             _registers(kind, False, value)
+
+
+async def test_a_null_carries_the_time_it_was_found_stale() -> None:
+    (press, _), _units = devices()
+    holding = next(run for run in press.runs if run.table is Table.HOLDING and run.first == 0)
+    samples = press.read(holding, 1000, failed_at=5000)
+    assert [s.timestamp for _, s in samples] == [5000, 5000]

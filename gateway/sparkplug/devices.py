@@ -109,9 +109,11 @@ class LinkDevice:
     def next_alias(self) -> int:
         return self.device.specs[-1].alias + 1 if self.device.specs else 0
 
-    def read(self, run: _Run, timestamp: int, *, everything: bool = False) -> list[tuple[int, Sample]]:
+    def read(self, run: _Run, timestamp: int, *, failed_at: int | None = None,
+             everything: bool = False) -> list[tuple[int, Sample]]:
         """The metrics of ``run`` whose value or state changed since its last read (``everything``: all),
-        as a Modbus read of the run answers now; ``timestamp``: their read time (UTC ms).
+        as a Modbus read of the run answers now; ``timestamp``: their read time (UTC ms); ``failed_at``:
+        the time of a null (stale or refused: when it was found so; default ``timestamp``).
 
         One read per run: a run is one block, so its values share one freshness and one answer.
         """
@@ -122,7 +124,8 @@ class LinkDevice:
             if run.last is None and run.reason == reason and not everything:
                 return []
             run.last, run.reason = None, reason
-            return [(metric, _failed(exc, timestamp)) for metric, _ in run.members]
+            at = timestamp if failed_at is None else failed_at
+            return [(metric, _failed(exc, at)) for metric, _ in run.members]
         previous, run.last, run.reason = run.last, data, ""
         if previous == data and not everything:
             return []

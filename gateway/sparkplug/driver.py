@@ -365,7 +365,8 @@ class SparkplugNode:
             if only is not None and index != only:
                 continue
             for run in device.runs:
-                for metric, sample in device.read(run, self._read_time(device, run.block, stamp), everything=True):
+                for metric, sample in device.read(run, self._read_time(device, run.block, stamp), failed_at=stamp,
+                                                  everything=True):
                     self.core.observe(index, metric, sample)
             for metric, sample in device.status_samples(now, stamp):
                 self.core.observe(index, metric, sample)
@@ -383,7 +384,7 @@ class SparkplugNode:
             await asyncio.sleep(0)
             started = time.thread_time()
             for run in device.runs:
-                for metric, sample in device.read(run, self._read_time(device, run.block, stamp)):
+                for metric, sample in device.read(run, self._read_time(device, run.block, stamp), failed_at=stamp):
                     self.core.observe(index, metric, sample)
             if status:
                 for metric, sample in device.status_samples(now, stamp):
@@ -397,10 +398,11 @@ class SparkplugNode:
         dirty = self._dirty[index]
         blocks = list(dirty.items())
         dirty.clear()
+        found = self._wall_ms(now)
         for block, read_time in blocks:
-            stamp = self._wall_ms(now if read_time is None or math.isinf(read_time) else read_time)
+            stamp = found if read_time is None or math.isinf(read_time) else self._wall_ms(read_time)
             for run in device.by_block.get(block, ()):
-                for metric, sample in device.read(run, stamp):
+                for metric, sample in device.read(run, stamp, failed_at=found):
                     self.core.observe(index, metric, sample)
 
     # --- writes ------------------------------------------------------------------------------
