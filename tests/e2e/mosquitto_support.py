@@ -20,6 +20,8 @@ from pathlib import Path
 import pytest
 
 HOST = "127.0.0.1"
+#: started as root, mosquitto would drop to its own user, who cannot read the test's private directory
+RUN_AS = "user root\n" if os.geteuid() == 0 else ""
 HERE = Path(__file__).resolve().parent
 #: the independent host application (tests/peers), imported as a module of that directory
 PEERS = HERE.parent / "peers"
@@ -53,7 +55,7 @@ class Broker:
         self.config = directory / "mosquitto.conf"
         self.log = directory / "mosquitto.log"
         self.config.write_text(
-            f"listener {self.port} {HOST}\nallow_anonymous true\npersistence false\n"
+            f"{RUN_AS}listener {self.port} {HOST}\nallow_anonymous true\npersistence false\n"
             f"log_dest file {self.log}\nlog_type error\nlog_type warning\nlog_type notice\n",
             encoding="utf-8",
         )
