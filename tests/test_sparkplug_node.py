@@ -283,3 +283,19 @@ def test_links_changing_during_a_birth_sequence() -> None:
     assert node.link(0, False, T0) == []  # gone before its DBIRTH: none, and no DDEATH for it
     assert verbs(with_dbirths(node, [])) == ["DBIRTH/oven"]
     assert node.next_birth(T0) is None
+
+
+def test_the_core_is_sans_io() -> None:
+    """node.py and payload.py: no asyncio, sockets, MQTT, threads or clock (the caller passes the time)."""
+    import ast
+    from pathlib import Path
+
+    forbidden = {"asyncio", "socket", "ssl", "selectors", "threading", "time", "datetime", "aiomqtt", "paho"}
+    root = Path(__file__).resolve().parent.parent / "gateway" / "sparkplug"
+    for name in ("node.py", "payload.py"):
+        tree = ast.parse((root / name).read_text(encoding="utf-8"))
+        imported = {alias.name.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.Import)
+                    for alias in node.names}
+        imported |= {node.module.split(".")[0] for node in ast.walk(tree)
+                     if isinstance(node, ast.ImportFrom) and node.module}
+        assert not imported & forbidden, (name, imported & forbidden)
