@@ -55,7 +55,9 @@ Readings chosen where the specification is open or contradicts itself:
      violation (older Tahu versions did that).
   8. Data from a node or device the host has not seen born is a violation; the host must be started
      before the edge node, or pass rebirth_unknown=True to request a rebirth (5.17) instead.
-  9. The host connects with MQTT 5 (Clean Start, session expiry 0, 5.3) and subscribes with
+  9. DATA that arrives after a rebirth request but before the new NBIRTH is not checked: it may have
+     been in flight (5.17 "immediately stop sending DATA" cannot be timed from the host).
+ 10. The host connects with MQTT 5 (Clean Start, session expiry 0, 5.3) and subscribes with
      "retain as published", so a retained NBIRTH/DATA is seen as retained and reported (4.2.1.1.2),
      and with QoS 1, so a birth or data message published with QoS 1 is seen and reported.
 
@@ -911,6 +913,9 @@ class Checker:
         except DecodeError as exc:
             msg.error = str(exc)
             self._violate(msg, f"payload does not decode as a Sparkplug B Payload (6.4.1): {exc}")
+            known = self.nodes.get((group or "", node or ""))
+            if known is not None:
+                known.last_seq = None  # its seq is unknown: the next message starts the count again
             return msg
         assert group is not None and node is not None
         st = self.nodes.setdefault((group, node), _Node())
@@ -931,6 +936,8 @@ class Checker:
                 self._violate(msg, f"published with QoS {msg.qos}; {msg.message_type} MUST use QoS 0 (4.2)")
             if msg.retain:
                 self._violate(msg, f"retained; {msg.message_type} MUST be published with retain false (4.2)")
+        elif msg.message_type == "NDEATH" and msg.retain:
+            self._violate(msg, "retained NDEATH; the Will Retained flag MUST be false (6.4.25, 5.4)")
 
     def _timestamps(self, msg: Message, metrics_too: bool) -> None:
         p = msg.payload
@@ -1313,8 +1320,10 @@ class SparkplugHost:
     to spBv1.0/# and checks every message; `h.violations` lists what broke the specification.
 
     With primary_host_id the CONNECT carries the STATE death certificate as its Will (4.2.3.2, 5.13);
-    publish_state(True) announces the host online (or pass publish_online=True).  Leaving the context
-    publishes STATE offline before the DISCONNECT when it was online (5.14)."""
+    publish_state(True) announces the host online, or publish_online=True does it right after the
+    subscription as 5.13 wants; it is left to the caller so that a test can hold it back and see an
+    edge node wait for it (5.4).  Leaving the context publishes STATE offline before the DISCONNECT
+    when it was online (5.14)."""
 
     def __init__(self, host: str, port: int, *, primary_host_id: str | None = None,
                  publish_online: bool = False, rebirth_unknown: bool = False,
@@ -1369,7 +1378,8 @@ class SparkplugHost:
                     if predicate(msg):
                         return msg
                 if self._reader_error is not None:
-                    raise RuntimeError(f"the host lost its MQTT connection: {self._reader_error}")
+                    raise RuntimeError(f"the host stopped reading (lost MQTT connection or on_message "
+                                       f"failed): {self._reader_error!r}")
                 remaining = deadline - loop.time()
                 if remaining <= 0:
                     recent = "; ".join(str(m) for m in self.messages[-5:]) or "none"
@@ -1528,6 +1538,8 @@ async def _run_cli(broker: tuple[str, int], primary_host_id: str | None, seconds
             pass
         violations = list(h.violations)
     print(f"{len(h.messages)} messages, {len(violations)} violations", flush=True)
+    for line in h.notes:
+        print(f"NOTE {line}", flush=True)
     for line in violations:
         print(f"VIOLATION {line}", flush=True)
     return 1 if violations else 0
@@ -1541,12 +1553,15 @@ def main(argv: list[str] | None = None) -> int:
                     help="act as this primary host: STATE Will at CONNECT, STATE online after subscribing")
     ap.add_argument("--seconds", type=float, default=None, help="run this long (default: until Ctrl-C)")
     args = ap.parse_args(argv)
+    import aiomqtt
+
     try:
         return asyncio.run(_run_cli(args.broker, args.primary_host_id, args.seconds))
     except KeyboardInterrupt:
         return 130
-    except OSError as exc:
-        print(f"cannot reach the MQTT server {args.broker[0]}:{args.broker[1]}: {exc}", file=sys.stderr)
+    except (OSError, aiomqtt.MqttError) as exc:
+        print(f"cannot reach the MQTT server {args.broker[0]}:{args.broker[1]}: {exc}; is it running and is "
+              "--broker right?", file=sys.stderr)
         return 2
 
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib
+import importlib.util
 import json
 import os
 import signal
@@ -61,10 +63,15 @@ def _free_port() -> int:
 @pytest.fixture
 def broker(tmp_path: Path) -> Iterator[int]:
     """A mosquitto on 127.0.0.1:<free port>; yields the port."""
+    missing = []
     if not os.access(MOSQUITTO, os.X_OK):
-        reason = f"{MOSQUITTO} is not installed (Debian package mosquitto)"
+        missing.append(f"{MOSQUITTO} is not installed (Debian package mosquitto)")
+    if importlib.util.find_spec("aiomqtt") is None:
+        missing.append("the Python package aiomqtt is not installed (pip install aiomqtt==2.5.1)")
+    if missing:
+        reason = "; ".join(missing)
         if os.environ.get("SLC_GATEWAY_REQUIRE_MOSQUITTO") == "1":
-            pytest.fail(f"{reason} and SLC_GATEWAY_REQUIRE_MOSQUITTO=1")
+            pytest.fail(f"{reason}, and SLC_GATEWAY_REQUIRE_MOSQUITTO=1")
         pytest.skip(f"{reason}; set SLC_GATEWAY_REQUIRE_MOSQUITTO=1 to fail instead")
     port = _free_port()
     conf = tmp_path / "mosquitto.conf"
@@ -321,6 +328,78 @@ def test_payload_bytes_by_hand() -> None:
     assert b"\x65\x00\x00\xc0\x3f" in encode_payload(p2)  # float 1.5 little-endian after tag 12<<3|5
 
 
+def _google_payload_class() -> Any:
+    """Payload/Metric/PropertySet/PropertyValue of sparkplug_b.proto (6.4.1) as descriptors for Google's
+    protobuf runtime: a second, independent codec to compare the hand-written one with."""
+    pb = pytest.importorskip("google.protobuf", reason="the 'protobuf' package is not installed; the "
+                             "cross-check against Google's protobuf runtime is optional (pip install protobuf)")
+    del pb
+    descriptor_pb2 = importlib.import_module("google.protobuf.descriptor_pb2")
+    descriptor_pool = importlib.import_module("google.protobuf.descriptor_pool")
+    message_factory = importlib.import_module("google.protobuf.message_factory")
+
+    f = descriptor_pb2.FieldDescriptorProto
+    fdp = descriptor_pb2.FileDescriptorProto(name="sparkplug_b_check.proto", package="sp", syntax="proto2")
+
+    def message(name: str, fields: list[tuple[str, int, int, str | None, bool]], oneof: bool = False) -> None:
+        msg = fdp.message_type.add(name=name)
+        if oneof:
+            msg.oneof_decl.add(name="value")
+        for fname, number, ftype, type_name, in_oneof in fields:
+            fd = msg.field.add(name=fname, number=number, type=ftype,
+                               label=f.LABEL_REPEATED if fname in ("metrics", "keys", "values") else f.LABEL_OPTIONAL)
+            if type_name:
+                fd.type_name = type_name
+            if in_oneof:
+                fd.oneof_index = 0
+
+    values = [("int_value", f.TYPE_UINT32), ("long_value", f.TYPE_UINT64), ("float_value", f.TYPE_FLOAT),
+              ("double_value", f.TYPE_DOUBLE), ("boolean_value", f.TYPE_BOOL), ("string_value", f.TYPE_STRING)]
+    message("PropertyValue", [("type", 1, f.TYPE_UINT32, None, False), ("is_null", 2, f.TYPE_BOOL, None, False),
+                              *[(n, 3 + i, t, None, True) for i, (n, t) in enumerate(values)],
+                              ("propertyset_value", 9, f.TYPE_MESSAGE, ".sp.PropertySet", True)], oneof=True)
+    message("PropertySet", [("keys", 1, f.TYPE_STRING, None, False),
+                            ("values", 2, f.TYPE_MESSAGE, ".sp.PropertyValue", False)])
+    message("Metric", [("name", 1, f.TYPE_STRING, None, False), ("alias", 2, f.TYPE_UINT64, None, False),
+                       ("timestamp", 3, f.TYPE_UINT64, None, False), ("datatype", 4, f.TYPE_UINT32, None, False),
+                       ("is_historical", 5, f.TYPE_BOOL, None, False), ("is_transient", 6, f.TYPE_BOOL, None, False),
+                       ("is_null", 7, f.TYPE_BOOL, None, False),
+                       ("properties", 9, f.TYPE_MESSAGE, ".sp.PropertySet", False),
+                       *[(n, 10 + i, t, None, True) for i, (n, t) in enumerate(values)],
+                       ("bytes_value", 16, f.TYPE_BYTES, None, True)], oneof=True)
+    message("Payload", [("timestamp", 1, f.TYPE_UINT64, None, False),
+                        ("metrics", 2, f.TYPE_MESSAGE, ".sp.Metric", False), ("seq", 3, f.TYPE_UINT64, None, False),
+                        ("uuid", 4, f.TYPE_STRING, None, False), ("body", 5, f.TYPE_BYTES, None, False)])
+    pool = descriptor_pool.DescriptorPool()
+    pool.Add(fdp)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName("sp.Payload"))
+
+
+def test_codec_agrees_with_googles_protobuf_runtime() -> None:
+    google_payload = _google_payload_class()
+    ours = Payload(timestamp=1_700_000_000_123, seq=255, uuid="u", metrics=[
+        make_metric("i16", "Int16", -2, alias=1, timestamp=5), make_metric("u32", "UInt32", 2**32 - 1, alias=2**40),
+        make_metric("i64", "Int64", -1), make_metric("f", "Float", -1.25), make_metric("d", "Double", 1e300),
+        make_metric("b", "Boolean", True), make_metric("s", "String", "żółw"), make_metric("by", "Bytes", b"\0\1"),
+        make_metric("n", "Int32", None, is_null=True, quality=500)])
+    data = encode_payload(ours)
+    g = google_payload.FromString(data)
+    assert g.SerializeToString() == data  # same bytes: field order and encodings agree
+    assert (g.timestamp, g.seq, g.uuid) == (1_700_000_000_123, 255, "u")
+    got = [(x.name, x.WhichOneof("value"), getattr(x, x.WhichOneof("value")) if x.WhichOneof("value") else None)
+           for x in g.metrics]
+    assert got == [("i16", "int_value", 0xFFFFFFFE), ("u32", "int_value", 2**32 - 1), ("i64", "long_value", 2**64 - 1),
+                   ("f", "float_value", -1.25), ("d", "double_value", 1e300), ("b", "boolean_value", True),
+                   ("s", "string_value", "żółw"), ("by", "bytes_value", b"\0\1"), ("n", None, None)]
+    assert g.metrics[1].alias == 2**40 and g.metrics[8].is_null
+    assert list(g.metrics[8].properties.keys) == ["Quality"] and g.metrics[8].properties.values[0].int_value == 500
+    # and what Google's runtime writes, ours reads (a negative int32 cast as a protobuf library would)
+    g2 = google_payload(timestamp=7, seq=0)
+    g2.metrics.add(name="x", datatype=2, int_value=(-300) & 0xFFFFFFFF, timestamp=8)
+    back = decode_payload(g2.SerializeToString())
+    assert (back.timestamp, back.seq, back.metrics[0].value) == (7, 0, -300)
+
+
 @pytest.mark.parametrize("data", [b"\x12\x05\x0a", b"\x0b", b"\x08", b"\x12\x02\x0a\x05"])
 def test_truncated_or_invalid_wire_data_is_refused(data: bytes) -> None:
     with pytest.raises(DecodeError):
@@ -396,6 +475,8 @@ def test_mqtt_flags_of_births_are_checked() -> None:
     _feed(c, "spBv1.0/G/NBIRTH/E", _nbirth(), qos=1, retain=True)
     assert len(c.violations) == 2
     assert "QoS 1" in c.violations[0] and "retained" in c.violations[1]
+    _feed(c, "spBv1.0/G/NDEATH/E", Payload(metrics=[m("bdSeq", "Int64", 0)]), qos=1, retain=True)
+    assert len(c.violations) == 3 and "retained NDEATH" in c.violations[2]
 
 
 def test_data_rules() -> None:
@@ -428,9 +509,12 @@ def test_data_rules() -> None:
 
 def test_undecodable_payload_and_bad_state_are_reported() -> None:
     c = Checker()
+    _feed(c, "spBv1.0/G/NBIRTH/E", _nbirth())
     c.feed("spBv1.0/G/NDATA/E", b"\x0a\xff\x01")
     assert len(c.violations) == 1 and "does not decode" in c.violations[0]
-    assert c.messages[0].error is not None
+    assert c.messages[1].error is not None
+    _feed(c, "spBv1.0/G/NDATA/E", Payload(timestamp=1, seq=2, metrics=[]))  # the lost seq 1 is not a gap
+    assert len(c.violations) == 1
     c.feed("spBv1.0/STATE/h", b"ONLINE", qos=1, retain=True)  # the 2.2 form is not 3.0's JSON
     c.feed("spBv1.0/STATE/h", b'{"online": "yes", "timestamp": 5}', qos=1, retain=True)
     c.feed("spBv1.0/STATE/h", b'{"online": true, "timestamp": 5}', qos=0, retain=False)
@@ -451,6 +535,42 @@ def test_ndeath_rules() -> None:
     _feed(c, "spBv1.0/G/NDEATH/E", Payload(metrics=[m("bdSeq", "Int64", 9)]))
     assert len(c.violations) == 2 and "bdSeq 9 matches neither" in c.violations[1]
     assert c.node_online("G", "E")
+
+
+def test_sessions_end_with_deaths_and_births_start_them_again() -> None:
+    c = Checker()
+    dd = Payload(timestamp=1, metrics=[m(None, "Int16", 5, alias=1)])
+    _feed(c, "spBv1.0/G/NBIRTH/E", _nbirth(2))
+    _feed(c, "spBv1.0/G/DBIRTH/E/a", Payload(timestamp=1, seq=1, metrics=[m("x", "Int16", 1, alias=1)]))
+    _feed(c, "spBv1.0/G/DDEATH/E/a", Payload(timestamp=1, seq=2))
+    dd.seq = 3
+    _feed(c, "spBv1.0/G/DDATA/E/a", dd)  # after its DDEATH
+    assert len(c.violations) == 1 and "DDATA before a DBIRTH of device 'a'" in c.violations[0]
+    _feed(c, "spBv1.0/G/DBIRTH/E/a", Payload(timestamp=1, seq=4, metrics=[m("x", "Int16", 1, alias=1)]))
+    dd.seq = 5
+    _feed(c, "spBv1.0/G/DDATA/E/a", dd)
+    assert len(c.violations) == 1
+    # a rebirth: the new NBIRTH (same bdSeq, seq 0) starts a birth sequence, devices must be born again
+    c.nodes[("G", "E")].rebirth_requested = True
+    _feed(c, "spBv1.0/G/NBIRTH/E", _nbirth(2))
+    dd.seq = 1
+    _feed(c, "spBv1.0/G/DDATA/E/a", dd)
+    assert len(c.violations) == 2 and "DDATA before a DBIRTH" in c.violations[1]
+    # a rebirth answered with another bdSeq breaks 5.17
+    c.nodes[("G", "E")].rebirth_requested = True
+    _feed(c, "spBv1.0/G/NBIRTH/E", _nbirth(3))
+    assert len(c.violations) == 3 and "changed bdSeq 2 -> 3" in c.violations[2]
+    # without a rebirth request a new bdSeq is a new session whose Will may still come (5.4)
+    _feed(c, "spBv1.0/G/NBIRTH/E", _nbirth(4))
+    _feed(c, "spBv1.0/G/NDEATH/E", Payload(metrics=[m("bdSeq", "Int64", 3)]))
+    assert len(c.violations) == 3 and c.node_online("G", "E")
+    _feed(c, "spBv1.0/G/NDEATH/E", Payload(metrics=[m("bdSeq", "Int64", 4)]))
+    assert not c.node_online("G", "E")
+    _feed(c, "spBv1.0/G/NDATA/E", Payload(timestamp=1, seq=1, metrics=[m("bdSeq", "Int64", 4)]))
+    _feed(c, "spBv1.0/G/DBIRTH/E/a", Payload(timestamp=1, seq=2, metrics=[m("x", "Int16", 1, alias=1)]))
+    assert len(c.violations) == 5
+    assert "NDATA while the edge node is not born (after its NDEATH" in c.violations[3]
+    assert "DBIRTH while the edge node is not born" in c.violations[4]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -522,6 +642,10 @@ async def test_well_behaved_edge_node_has_no_violation(broker: int) -> None:
             death = await h.wait_for(is_type("NDEATH", "gw"), WAIT)
             assert death.metric("bdSeq") is not None
             assert not h.node_online("G1", "gw") and not h.device_online("G1", "gw", "plc")
+        # wait_for also answers from the messages already received, and times out with a clear error
+        assert await h.wait_for(is_type("NDEATH", "gw"), 0.1) is death
+        with pytest.raises(TimeoutError, match=r"no matching Sparkplug message within 0\.2 s"):
+            await h.wait_for(lambda msg: False, 0.2)
         assert h.violations == [], h.violations
         kinds = [msg.message_type for msg in h.messages if msg.message_type != "STATE"]
         assert kinds.count("NBIRTH") == 2 and kinds.count("NDEATH") == 1 and kinds.count("DCMD") == 2
