@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import json
+import time
 import urllib.request
 import uuid
 from collections import Counter
@@ -380,3 +381,29 @@ async def test_a_refused_write_republishes_the_controllers_value(broker: Broker,
             await host.send_dcmd(GROUP, NODE, "slc", "902.PRE", 1234, "UInt16")
             await host.wait_for(lambda m: host_value(host, "slc", "902.PRE").value == 1234, 10)
         assert host.violations == [], "\n".join(host.violations)
+
+
+async def test_deadband_and_read_time_stamps(plant: Plant, broker: Broker) -> None:  # noqa: F811
+    links = (link_text("press", 1, plant.press).replace('address = "F8:0"\ncount = 2\ntype = "float32"\n',
+                                                        'address = "F8:0"\ncount = 2\ntype = "float32"\n'
+                                                        "deadband = 0.5\n")
+             + link_text("oven", 2, plant.oven))
+    assert "deadband = 0.5" in links
+    sim = plant.press.sim
+    sim.set_float("F8", 0, 1.0)
+    async with Gateway(parse_config(config_text(broker.port, plant.state_file, links))):
+        await plant.wait(lambda m: value(plant, "press", "F8:0").value == 1.0, 10)
+        count = len(plant.host.messages)
+        sim.set_float("F8", 0, 1.25)  # within the deadband of the last published 1.0: not published
+        changed_at = time.time() * 1000
+        sim.set_word("N7", 2, 77)  # published: no deadband on N7
+        ddata = await plant.wait(lambda m: m.message_type == "DDATA" and m.metric("N7:2") is not None, 10,
+                                 since=count)
+        # the metric's timestamp is its read time: before the message was made, after the change
+        stamp = ddata.metric("N7:2").timestamp
+        assert stamp is not None and ddata.payload.timestamp is not None
+        assert changed_at - 50 <= stamp <= ddata.payload.timestamp  # 50 ms: the loop clock against the wall
+        await asyncio.sleep(1.0)
+        assert value(plant, "press", "F8:0").value == 1.0
+        sim.set_float("F8", 0, 1.75)  # 0.75 from the last published: published
+        await plant.wait(lambda m: value(plant, "press", "F8:0").value == 1.75, 10)
