@@ -245,6 +245,7 @@ class SimFarm:
         trace: str = "",
         spin: float = 0.0003,
         jitter: float = 0.0,
+        ladder: bool = False,
     ) -> None:
         command = [
             PYTHON,
@@ -258,6 +259,8 @@ class SimFarm:
         ]
         if paced:
             command.append("--paced")
+        if ladder:
+            command.append("--ladder")
         if baudrate:
             command += ["--baudrate", str(baudrate)]
         if trace:

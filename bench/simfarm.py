@@ -16,7 +16,8 @@ The event loop is ``select()``-based by default (``--selector select``): ``epoll
 timeouts up to whole milliseconds, so every paced burst would arrive ~0.5 ms late; and it
 spins the last ``--spin`` seconds (default 0.3 ms) before a timer, since a sleeping wake-up
 is another ~0.2 ms late on a virtual machine.  ``stats`` reports the remaining lateness.
-Each simulator is a separate controller (``create_simulator``), its ladder frozen.
+Each simulator is a separate controller (``create_simulator``), its ladder frozen (``--ladder``: running,
+so timers, counters and N7:0 change every 0.1 s).
 ``--jitter S`` adds a random 0..S seconds to each turnaround (real controllers answer at the end
 of a ladder scan, so their turnaround varies; identical deterministic simulators do not).
 """
@@ -172,7 +173,7 @@ async def main(args: argparse.Namespace) -> None:
     servers = []
     ports = []
     for index in range(args.count):
-        options = {"ladder": "0"}
+        options = {"ladder": "1" if args.ladder else "0"}
         if df1:
             options.update(checksum="crc", station="1")
         device = create_simulator(args.model, options)
@@ -239,6 +240,7 @@ if __name__ == "__main__":
     parser.add_argument("--model", default="slc150", choices=("slc150", "slc100", "slc504"))
     parser.add_argument("--count", type=int, default=1)
     parser.add_argument("--paced", action="store_true")
+    parser.add_argument("--ladder", action="store_true", help="run each simulator's ladder (values change)")
     parser.add_argument("--turnaround", type=float, default=0.0)
     parser.add_argument("--jitter", type=float, default=0.0, help="add a random 0..S to each turnaround")
     parser.add_argument("--baudrate", type=int, default=0)

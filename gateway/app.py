@@ -23,6 +23,7 @@ from gateway.modbus.admission import RolePolicy
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Table
 from gateway.modbus.server import ModbusTcpServer, make_tls_context
 from gateway.reload import ConfigSource, ConfigStatus, LoadedConfig, line_changes, lines_of, restart_needed
+from gateway.sparkplug.driver import SparkplugNode
 from gateway.transport import describe_url, set_trace_limits
 from gateway.unit import Unit
 
@@ -216,6 +217,9 @@ class Gateway:
                 config=self.config_status,
             )
         self._group: asyncio.TaskGroup | None = None
+        #: the Sparkplug B edge node ([sparkplug]), None when not configured
+        self.sparkplug = SparkplugNode(config.sparkplug, config.link, self.units) if config.sparkplug else None
+        self._sparkplug_task: asyncio.Task[None] | None = None
         self._started = asyncio.Event()
         self._reloader: asyncio.Task[None] | None = None
         self._stopping: list[LineRun] = []
@@ -261,6 +265,7 @@ class Gateway:
                     line.start(group)
                 for server in self.servers:
                     group.create_task(server.serve_forever(), name=f"{server.name}-server")
+                self._start_sparkplug()
                 self._started.set()
                 await stop.wait()
                 await self._shutdown()
@@ -279,6 +284,7 @@ class Gateway:
         if self._reloader is not None:
             self._reloader.cancel()
         await asyncio.gather(*(server.close() for server in self.servers))
+        await self._stop_sparkplug()  # NDEATH before the links close (their DDEATHs would be noise)
         for line in lines:
             for task in line.tasks:
                 task.cancel()
@@ -287,6 +293,35 @@ class Gateway:
                 await runner.close()
         if self.metrics is not None:
             await self.metrics.close()
+
+    # --- the Sparkplug edge node ---------------------------------------------------------------
+
+    def _start_sparkplug(self) -> None:
+        if self.sparkplug is not None and self._group is not None:
+            self._sparkplug_task = self._group.create_task(self.sparkplug.run(), name="sparkplug")
+
+    async def _stop_sparkplug(self) -> None:
+        """A clean stop of the edge node's session: its DCMD writes in flight finish, then the NDEATH."""
+        if self.sparkplug is None:
+            return
+        await self.sparkplug.close()
+        self.sparkplug.detach()
+        if self._sparkplug_task is not None:
+            self._sparkplug_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._sparkplug_task
+            self._sparkplug_task = None
+
+    async def _renew_sparkplug(self) -> None:
+        """After a reload changed the links: the node's devices and metrics are the units', so its
+        session ends (NDEATH) and a new one (the next bdSeq) births the devices as they are now
+        (Sparkplug 3.0 §5.4, §5.7: a birth certificate is the whole set of metrics; a set that changes
+        is a new session's birth).  ``[sparkplug]`` itself takes a restart (``gateway.reload``)."""
+        if self.sparkplug is None:
+            return
+        await self._stop_sparkplug()
+        self.sparkplug = SparkplugNode(self.sparkplug.config, self.config.link, self.units)
+        self._start_sparkplug()
 
     # --- reload ---------------------------------------------------------------------------------
 
@@ -356,6 +391,8 @@ class Gateway:
         if self._group is not None:
             for key in changes.started:
                 self.lines[key].start(self._group)
+        if changes.started or changes.stopped:
+            await self._renew_sparkplug()
         needed = restart_needed(old, config)
         status = self.config_status
         status.sha256, status.loaded_at, status.restart_needed = sha256, time.time(), tuple(needed)

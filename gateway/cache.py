@@ -9,13 +9,17 @@ the Modbus tables' images and its points' deadlines are set; a patch re-decodes 
 the images and leaves the deadlines alone.  The raw bytes stay for what needs them (writes that
 patch one byte of a block, traces).
 
+Listeners (``listeners``: ``f(block, now)``) hear of every store (``now``: its read time) and
+every patch (``now`` None), after the images are updated: the Sparkplug edge node publishes
+from them.
+
 The oldest read time of the ``fast`` blocks (the status block's data age) is kept as blocks are
 stored: the fast blocks are held in the order of their last store, so the oldest is the first.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -29,7 +33,7 @@ NEVER = float("-inf")
 class BlockCache:
     """Bytes and read times of the blocks of a read plan, by block index."""
 
-    __slots__ = ("_fast_order", "_fast_sorted", "data", "images", "newest", "stamps")
+    __slots__ = ("_fast_order", "_fast_sorted", "data", "images", "listeners", "newest", "stamps")
 
     def __init__(self, sizes: Sequence[int], *, images: Images | None = None, fast: Sequence[int] = ()) -> None:
         self.data = [bytearray(size) for size in sizes]
@@ -42,6 +46,8 @@ class BlockCache:
         self._fast_order: dict[int, None] = dict.fromkeys(fast)
         #: False after a store that went back in time (then the order is rebuilt when asked)
         self._fast_sorted = True
+        #: called after each store (block, read time) and patch (block, None)
+        self.listeners: list[Callable[[int, float | None], None]] = []
 
     def store(self, block: int, data: bytes, now: float) -> None:
         target = self.data[block]
@@ -60,6 +66,8 @@ class BlockCache:
         if images is not None:
             images.decode(block, target)
             images.stamp(block, now)
+        for listener in self.listeners:
+            listener(block, now)
 
     def patch(self, block: int, offset: int, data: bytes) -> None:
         """Apply a write the controller confirmed (the block's read time is kept)."""
@@ -67,6 +75,8 @@ class BlockCache:
         target[offset : offset + len(data)] = data
         if self.images is not None:
             self.images.decode(block, target)
+        for listener in self.listeners:
+            listener(block, None)
 
     def expire_before(self, when: float) -> None:
         """Serve no value read before ``when`` (a link loss): each stays stale until its block is read

@@ -56,6 +56,15 @@ Metrics (every name starts with ``slc_gateway_``)::
       config_loaded_timestamp_seconds gauge  Unix time the config served was loaded (at start or reload)
       config_reloads_total{result}  counter  result = ok | failed (a file that did not load changed nothing)
       config_restart_needed         gauge    settings changed in the file that take a restart to apply
+    with [sparkplug] (``gateway.sparkplug.report``)
+      sparkplug_session{state}                gauge    1 for the MQTT session's state: disconnected | connected | online
+      sparkplug_sessions_total                counter  MQTT sessions established (each a new bdSeq)
+      sparkplug_messages_published_total{type}  counter  NBIRTH, DBIRTH, DDATA, DDEATH, NDEATH handed to the broker
+      sparkplug_commands_received_total{type}   counter  NCMD, DCMD, STATE
+      sparkplug_commands_refused_total{reason}  counter  command metrics that changed nothing; failed DCMD writes
+      sparkplug_devices_online                gauge    devices with a DBIRTH and no DDEATH since
+      sparkplug_cpu_seconds_total             counter  CPU of the edge node's steps on the event loop (not MQTT's)
+      sparkplug_longest_step_seconds          gauge    the longest such step: the most a Modbus answer waits behind it
 
 ``/healthz`` answers 200 when every link is up and its fast-class data is younger than its stale
 limit (``stale_after`` plus the fast class's achieved refresh period, ``stale_limit_seconds``), 503
@@ -90,6 +99,7 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 from gateway.config import parse_listen
 from gateway.logutil import RepeatLog
 from gateway.modbus.admission import IPNetwork, format_address, host_allowed, peer_host
+from gateway.sparkplug.report import families as sparkplug_families
 from gateway.status import StatusPage, data_age, link_fresh, public_error, stale_limit
 
 if TYPE_CHECKING:
@@ -165,6 +175,7 @@ class _GatewayCollector:
         yield from self._server_families(self._gateway.servers)
         if self._config is not None:
             yield from _config_families(self._config)
+        yield from sparkplug_families(getattr(self._gateway, "sparkplug", None))
 
     @staticmethod
     def _link_families(units: Sequence[Unit[Any, Any]], now: float) -> list[Metric]:

@@ -40,6 +40,7 @@ from gateway.errors import ModbusExceptionReply
 from gateway.kinds import link_kind
 from gateway.logutil import redact_url
 from gateway.modbus.mapping import Table
+from gateway.sparkplug.report import status as sparkplug_status
 from gateway.tags import Tag, link_tags
 from gateway.transport import describe_url
 
@@ -300,7 +301,8 @@ class StatusPage:
             "exceptions": sum(server.counters.exceptions.values()),
         } for server in self.gateway.servers]
         document: dict[str, object] = {"version": __version__, "time": round(wall, 3), "links": rows,
-                                       "up": up_count, "servers": servers}
+                                       "up": up_count, "servers": servers,
+                                       "sparkplug": sparkplug_status(getattr(self.gateway, "sparkplug", None))}
         if self.config is not None:
             document["config"] = self.config.document()
         return document

@@ -26,6 +26,7 @@ SCRIPTS = [
     "target_persist.py",
     "slc_write_verdicts.py",
     "schedule_cost.py",
+    "sparkplug_publishing.py",  # needs mosquitto (Debian package): CI installs it
 ]
 
 

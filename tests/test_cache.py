@@ -57,3 +57,13 @@ def test_oldest_fast_age_follows_the_least_recently_read_fast_block() -> None:
     cache.store(3, b"\x00", 5.0)
     assert cache.oldest_fast_age(10.0) == 6.5  # block 2
     assert cache.newest == 5.0
+
+
+def test_listeners_hear_every_store_and_patch_after_the_bytes_changed() -> None:
+    cache = BlockCache([2, 2])
+    heard: list[tuple[int, float | None, bytes]] = []
+    cache.listeners.append(lambda block, now: heard.append((block, now, bytes(cache.data[block]))))
+    cache.store(1, b"\x01\x02", 5.0)
+    cache.patch(1, 0, b"\x09")
+    cache.store(0, b"\x03\x04", 6.0)
+    assert heard == [(1, 5.0, b"\x01\x02"), (1, None, b"\x09\x02"), (0, 6.0, b"\x03\x04")]

@@ -342,6 +342,11 @@ class LinkBase(Model):
             return False
         return not self.writable or any((table, address) in r for r in self.writable)
 
+    def deadbands(self) -> dict[tuple[str, int], float]:
+        """The Sparkplug deadband of each Modbus address that has one (``table``, ``address``): a change
+        no larger is not published (``gateway.sparkplug``).  None here; a kind with map entries gives them."""
+        return {}
+
     def describe_lines(self) -> list[str]:
         """This link as ``[[link]]`` TOML (the resolved-config writer's part for it), without the
         keys its kind does not use in its mode (refused if given)."""

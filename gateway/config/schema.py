@@ -29,6 +29,7 @@ from gateway.config._common import (
     show,
 )
 from gateway.config.links import LinkConfig, TaggedLink
+from gateway.config.sparkplug import SparkplugConfig
 from gateway.config.writer import table_lines
 from gateway.streams import MISSING_PORT_HINT
 
@@ -226,6 +227,8 @@ class GatewayConfig(Model):
     """[metrics]: HTTP /metrics, /healthz and the status page; off when the table is absent."""
     logging: LoggingConfig = LoggingConfig()
     """[logging]."""
+    sparkplug: SparkplugConfig | None = None
+    """[sparkplug]: publish every link as a device of a Sparkplug B edge node over MQTT (off when absent)."""
     link: tuple[TaggedLink, ...] = Field(strict=False)
     """[[link]]: one serial link to one controller, served as one Modbus unit id. At least one."""
 
@@ -331,6 +334,11 @@ class GatewayConfig(Model):
         else:
             lines += table_lines("[metrics]", self.metrics)
         lines += table_lines("[logging]", self.logging)
+        if self.sparkplug is None:
+            lines += ["# [sparkplug] not configured: no Sparkplug B edge node", ""]
+        else:
+            lines += table_lines("[sparkplug]", self.sparkplug.model_copy(
+                update={"password": None if self.sparkplug.password is None else "***"}))
         for link in self.link:
             lines += link.describe_lines()
         return "\n".join(lines).rstrip("\n") + "\n"

@@ -140,6 +140,13 @@ function renderSummary(status) {
     summary.appendChild(el("span", "", server.name + ": " + server.connections + " clients, " +
       number(server.requests) + " requests, " + number(server.exceptions) + " exceptions"));
   }
+  const spb = status.sparkplug;
+  if (spb) {
+    summary.appendChild(el("span", spb.state === "online" ? "" : "bad", "Sparkplug " + spb.state +
+      " (bdSeq " + spb.bd_seq + "): " + spb.devices_online + "/" + spb.devices + " devices, " +
+      number(spb.published) + " published, " + number(spb.commands) + " commands, " + number(spb.refused) +
+      " refused"));
+  }
   summary.appendChild(el("span", "", "updated " + clock(status.time)));
   $("version").textContent = "· slc-gateway " + status.version;
 }

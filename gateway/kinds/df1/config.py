@@ -95,6 +95,8 @@ class MapEntry(Model):
     """float32: which register holds the high word."""
     scan: Literal["fast", "slow"] = "fast"
     """The scan class: "fast" (fast_interval) or "slow" (slow_interval)."""
+    deadband: float = Field(0.0, ge=0)
+    """Sparkplug: a change of the value by no more than this is not published (0: every change)."""
 
     @model_validator(mode="before")
     @classmethod
@@ -358,6 +360,10 @@ class Df1LinkConfig(LinkBase):
         if problems:
             raise Problems(*problems)
         return entries
+
+    def deadbands(self) -> dict[tuple[str, int], float]:
+        return {(entry.table, address): entry.deadband for entry in self.map if entry.deadband
+                for address in range(entry.start, entry.last + 1)}
 
     def problems(self) -> list[tuple[Loc, str]]:
         problems = super().problems()

@@ -1,0 +1,301 @@
+"""The Sparkplug edge node's session core (gateway.sparkplug.node), sans-I/O, with a fake clock.
+
+Expected values are the Sparkplug 3.0 specification's (section in each test), not the code's.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from gateway.sparkplug.node import Device, EdgeNode, MetricSpec, Publish, Sample
+from gateway.sparkplug.payload import Metric, Payload, SparkplugType, decode, encode
+
+GROUP, NODE = "plant1", "gw1"
+T0 = 1_700_000_000_000  # a fake UTC clock, ms
+
+
+def make_node(primary: str | None = None, bd_seq: int | None = None) -> EdgeNode:
+    press = Device("press", [
+        MetricSpec("N7:0", 2, SparkplugType.Int16, writable=True),
+        MetricSpec("F8:0", 3, SparkplugType.Float, writable=True, deadband=0.5),
+        MetricSpec("status.link_up", 4, SparkplugType.UInt16),
+    ])
+    oven = Device("oven", [MetricSpec("B3:0/0", 5, SparkplugType.Boolean, writable=True)])
+    return EdgeNode(GROUP, NODE, [press, oven], primary_host_id=primary, bd_seq=bd_seq)
+
+
+def verbs(messages: list[Publish]) -> list[str]:
+    return [m.topic.split("/")[2] + ("/" + m.topic.split("/")[4] if m.topic.count("/") == 4 else "")
+            for m in messages]
+
+
+def seqs(messages: list[Publish]) -> list[int | None]:
+    return [decode(m.payload).seq for m in messages]
+
+
+def with_dbirths(node: EdgeNode, first: list[Publish], now: int = T0) -> list[Publish]:
+    """``first`` (an NBIRTH) and the DBIRTHs of the sequence it starts."""
+    out = list(first)
+    while (dbirth := node.next_birth(now)) is not None:
+        out.append(dbirth)
+    return out
+
+
+def online(node: EdgeNode, now: int = T0) -> list[Publish]:
+    for index in range(len(node.devices)):
+        node.link(index, True, now)
+    node.connecting(now)
+    return with_dbirths(node, node.connected(now), now)
+
+
+def test_will_is_ndeath_with_bdseq_qos1_not_retained() -> None:
+    # §5.4: will topic spBv1.0/group/NDEATH/node, QoS 1, retain false, bdSeq Int64; §6.4.25: no seq
+    node = make_node()
+    will = node.connecting(T0)
+    assert (will.topic, will.qos, will.retain) == ("spBv1.0/plant1/NDEATH/gw1", 1, False)
+    payload = decode(will.payload)
+    assert payload.seq is None
+    assert [(m.name, m.datatype, m.value) for m in payload.metrics] == [("bdSeq", 4, 0)]
+
+
+def test_bdseq_increments_per_connect_and_wraps() -> None:
+    # tck-id-topics-nbirth-bdseq-increment: starts at 0, +1 per CONNECT; after 255 comes 0 (§6.4.25)
+    node = make_node(bd_seq=254)
+    values = [decode(node.connecting(T0).payload).metrics[0].value for _ in range(3)]
+    assert values == [255, 0, 1]
+    assert decode(make_node().connecting(T0).payload).metrics[0].value == 0
+
+
+def test_births_nbirth_seq0_bdseq_rebirth_then_dbirths() -> None:
+    node = make_node(bd_seq=6)
+    node.observe(0, 0, Sample(-5, T0 - 10))
+    out = online(node)
+    assert verbs(out) == ["NBIRTH", "DBIRTH/press", "DBIRTH/oven"]
+    assert seqs(out) == [0, 1, 2]  # §4.2.1.1.2 NBIRTH seq 0; +1 per message (§6.4.20)
+    assert all(m.qos == 0 and not m.retain for m in out)  # §6.4.19, §6.4.20
+    nbirth = {m.name: m for m in decode(out[0].payload).metrics}
+    assert nbirth["bdSeq"].value == 7  # the will's (§6.4.19)
+    rebirth = nbirth["Node Control/Rebirth"]
+    assert (rebirth.datatype, rebirth.value, rebirth.alias) == (11, False, None)  # §5.17: Boolean, false, no alias
+    press = decode(out[1].payload).metrics
+    n7 = next(m for m in press if m.name == "N7:0")
+    assert (n7.alias, n7.datatype, n7.value, n7.timestamp) == (2, 2, 0xFFFFFFFB, T0 - 10)
+    # a metric never observed: null, with quality STALE (§6.4.9.1: 500)
+    f8 = next(m for m in press if m.name == "F8:0")
+    assert f8.is_null and f8.value is None and f8.properties is not None and f8.properties["Quality"] == (3, 500)
+    # births list metrics in chronological order (§5.16)
+    stamps = [m.timestamp or 0 for m in press]
+    assert stamps == sorted(stamps)
+
+
+def test_seq_wraps_after_255() -> None:
+    node = make_node()
+    online(node)  # seq 0, 1, 2 used
+    got = []
+    for k in range(300):
+        node.observe(0, 0, Sample(k, T0 + k))
+        got.extend(seqs(node.flush(T0 + k)))
+    assert got[:3] == [3, 4, 5]
+    assert got[252:256] == [255, 0, 1, 2]  # §6.4.5: after 255 comes 0
+
+
+def test_ddata_only_changes_by_alias_with_read_time() -> None:
+    node = make_node()
+    node.observe(0, 0, Sample(1, T0))
+    online(node)
+    assert node.flush(T0 + 1) == []  # nothing changed
+    node.observe(0, 0, Sample(1, T0 + 5))  # same value, newer read: not published (§5.16 RBE)
+    node.observe(0, 2, Sample(1, T0 + 5))
+    node.observe(1, 0, Sample(True, T0 + 7))
+    out = node.flush(T0 + 9)
+    assert verbs(out) == ["DDATA/press", "DDATA/oven"]
+    press = decode(out[0].payload).metrics
+    assert [(m.name, m.alias, m.datatype, m.value, m.timestamp) for m in press] == [(None, 4, None, 1, T0 + 5)]
+    assert decode(out[0].payload).timestamp == T0 + 9
+
+
+def test_deadband() -> None:
+    node = make_node()
+    node.observe(0, 1, Sample(10.0, T0))
+    online(node)
+    node.observe(0, 1, Sample(10.4, T0 + 1))
+    assert node.flush(T0 + 1) == []  # within 0.5 of the last published
+    node.observe(0, 1, Sample(10.6, T0 + 2))
+    (ddata,) = node.flush(T0 + 2)
+    assert decode(ddata.payload).metrics[0].value == pytest.approx(10.6)
+
+
+def test_stale_is_null_with_quality_then_good_again() -> None:
+    node = make_node()
+    node.observe(0, 0, Sample(3, T0))
+    online(node)
+    node.observe(0, 0, Sample(None, T0 + 1, 500, "no fresh data"))
+    (ddata,) = node.flush(T0 + 1)
+    (metric,) = decode(ddata.payload).metrics
+    assert metric.is_null and metric.value is None
+    assert metric.properties == {"Quality": (3, 500), "Quality Reason": (12, "no fresh data")}
+    node.observe(0, 0, Sample(3, T0 + 2))
+    (ddata,) = node.flush(T0 + 2)
+    (metric,) = decode(ddata.payload).metrics
+    assert (metric.value, metric.is_null, metric.properties) == (3, False, {"Quality": (3, 192)})
+
+
+def test_link_down_ddeath_and_back_dbirth() -> None:
+    node = make_node()
+    online(node)
+    out = node.link(1, False, T0 + 1)
+    assert verbs(out) == ["DDEATH/oven"] and seqs(out) == [3]
+    node.observe(1, 0, Sample(True, T0 + 2))
+    assert node.flush(T0 + 2) == []  # a dead device publishes nothing
+    out = node.link(1, True, T0 + 3)
+    assert verbs(out) == ["DBIRTH/oven"] and seqs(out) == [4]
+    assert decode(out[0].payload).metrics[0].value is True
+
+
+def test_no_dbirth_for_a_device_down_at_birth() -> None:
+    node = make_node()
+    node.link(0, True, T0)
+    node.connecting(T0)
+    assert verbs(with_dbirths(node, node.connected(T0))) == ["NBIRTH", "DBIRTH/press"]
+
+
+def rebirth_request(value: bool = True) -> bytes:
+    return encode(Payload(T0, (Metric(name="Node Control/Rebirth", datatype=11, value=value),)))
+
+
+def test_rebirth_republishes_births_same_bdseq() -> None:
+    node = make_node()
+    online(node)
+    node.observe(0, 0, Sample(8, T0 + 1))
+    node.flush(T0 + 1)
+    out = node.node_command(rebirth_request(), T0 + 2)
+    assert verbs(out) == ["NBIRTH"]
+    node.observe(0, 0, Sample(9, T0 + 2))
+    assert node.flush(T0 + 2) == []  # no DDATA before the last DBIRTH (§6.4.20)
+    out = with_dbirths(node, out, T0 + 2)
+    assert verbs(out) == ["NBIRTH", "DBIRTH/press", "DBIRTH/oven"]
+    assert seqs(out) == [0, 1, 2]
+    assert decode(out[0].payload).metrics[0].value == 0  # same bdSeq: no new MQTT session (§5.17)
+    assert node.node_command(rebirth_request(False), T0 + 3) == []
+    assert node.node_command(b"\xff\xff garbage", T0 + 3) == []
+    assert node.refused["bad payload"] == 1
+
+
+def dcmd(*metrics: Metric) -> bytes:
+    return encode(Payload(T0, metrics))
+
+
+def test_dcmd_by_alias_and_name_and_refusals() -> None:
+    node = make_node()
+    online(node)
+    commands = node.device_command("press", dcmd(
+        Metric(alias=2, value=-3, value_type=SparkplugType.Int16),  # by alias, two's complement in 32 bits
+        Metric(name="F8:0", datatype=SparkplugType.Float, value=1.5),
+        Metric(alias=4, value=0, value_type=SparkplugType.UInt16),  # status: read-only
+        Metric(name="N7:99", datatype=SparkplugType.Int16, value=1),  # unknown
+        Metric(alias=2, value="x", value_type=SparkplugType.String),  # wrong kind
+        Metric(alias=2, is_null=True),
+    ))
+    assert [(c.device, c.metric, c.value) for c in commands] == [(0, 0, -3), (0, 1, 1.5)]
+    assert node.refused == {"read-only metric": 1, "unknown metric": 1, "wrong value type": 1, "no value": 1}
+    assert node.device_command("nope", dcmd(Metric(alias=5, value=True, value_type=SparkplugType.Boolean))) == []
+    assert node.refused["unknown device"] == 1
+    assert node.received["DCMD"] == 2
+
+
+def test_int16_from_16_bit_twos_complement_too_and_nothing_wider() -> None:
+    node = make_node()
+    (command,) = node.device_command("press", dcmd(Metric(alias=2, value=0xFFFB, value_type=SparkplugType.UInt32)))
+    assert command.value == -5
+    for raw in (0x12345, 0xFFFF0000, 0x7FFFFFFF):  # bits past 16 that are not a sign extension
+        assert node.device_command("press", dcmd(Metric(alias=2, value=raw, value_type=SparkplugType.UInt32))) == []
+    assert node.refused["wrong value type"] == 3
+
+
+def test_forced_metric_published_even_unchanged() -> None:
+    node = make_node()
+    node.observe(0, 0, Sample(4, T0))
+    online(node)
+    node.force(0, 0)
+    (ddata,) = node.flush(T0 + 1)
+    assert decode(ddata.payload).metrics[0].value == 4
+    assert node.flush(T0 + 2) == []
+
+
+def state(online_: bool, timestamp: int) -> bytes:
+    return json.dumps({"online": online_, "timestamp": timestamp}).encode()
+
+
+def test_primary_host_gates_births_and_offline_ends_session() -> None:
+    node = make_node(primary="scada")
+    assert ("spBv1.0/STATE/scada", 1) in node.subscriptions()
+    assert node.subscriptions()[:2] == [("spBv1.0/plant1/NCMD/gw1", 1), ("spBv1.0/plant1/DCMD/gw1/+", 1)]
+    assert online(node) == []  # §5.4 phid-wait: nothing before the host is online
+    assert node.node_command(rebirth_request(), T0) == []
+    out, disconnect = node.host_state(state(True, 100), T0 + 1)
+    assert verbs(out)[0] == "NBIRTH" and not disconnect
+    # an older offline (a stale will of an earlier host session) is ignored (§5.5 ...-host-offline-timestamp)
+    assert node.host_state(state(False, 99), T0 + 2) == ([], False)
+    # offline, not older: NDEATH with this session's bdSeq, then disconnect (§5.5)
+    out, disconnect = node.host_state(state(False, 100), T0 + 3)
+    assert verbs(out) == ["NDEATH"] and disconnect
+    assert decode(out[0].payload).metrics[0].value == 0 and decode(out[0].payload).seq is None
+    assert node.host_state(b"{nope", T0 + 4) == ([], False)
+    assert node.refused["bad STATE payload"] == 1
+
+
+def test_offline_state_before_the_births_keeps_waiting() -> None:
+    node = make_node(primary="scada")
+    online(node)
+    assert node.host_state(state(False, 50), T0) == ([], False)  # retained offline: no session to end
+    out, disconnect = node.host_state(state(True, 60), T0 + 1)
+    assert verbs(out)[0] == "NBIRTH" and not disconnect
+
+
+def test_state_before_connect_counts_for_the_next_session() -> None:
+    node = make_node(primary="scada")
+    node.connecting(T0)
+    node.host_state(state(True, 5), T0)  # retained STATE arrives with the subscription
+    assert verbs(node.connected(T0))[:1] == []  # connected() resets: waits for the STATE again
+    out, _ = node.host_state(state(True, 5), T0)  # same timestamp: still valid (>=)
+    assert verbs(out)[0] == "NBIRTH"
+
+
+def test_stopping_publishes_ndeath_only_after_the_births() -> None:
+    node = make_node()
+    assert node.stopping(T0) == []
+    waiting = make_node(primary="scada")
+    online(waiting)  # connected, waiting for the primary host: no session yet
+    assert waiting.stopping(T0) == []
+    online(node)
+    (ndeath,) = node.stopping(T0)
+    assert ndeath.topic == "spBv1.0/plant1/NDEATH/gw1"
+
+
+def test_links_changing_during_a_birth_sequence() -> None:
+    node = make_node()
+    node.link(0, True, T0)
+    node.connecting(T0)
+    assert verbs(node.connected(T0)) == ["NBIRTH"]
+    assert node.link(1, True, T0) == []  # joins the sequence under way
+    assert node.link(0, False, T0) == []  # gone before its DBIRTH: none, and no DDEATH for it
+    assert verbs(with_dbirths(node, [])) == ["DBIRTH/oven"]
+    assert node.next_birth(T0) is None
+
+
+def test_the_core_is_sans_io() -> None:
+    """node.py and payload.py: no asyncio, sockets, MQTT, threads or clock (the caller passes the time)."""
+    import ast
+    from pathlib import Path
+
+    forbidden = {"asyncio", "socket", "ssl", "selectors", "threading", "time", "datetime", "aiomqtt", "paho"}
+    root = Path(__file__).resolve().parent.parent / "gateway" / "sparkplug"
+    for name in ("node.py", "payload.py"):
+        tree = ast.parse((root / name).read_text(encoding="utf-8"))
+        imported = {alias.name.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.Import)
+                    for alias in node.names}
+        imported |= {node.module.split(".")[0] for node in ast.walk(tree)
+                     if isinstance(node, ast.ImportFrom) and node.module}
+        assert not imported & forbidden, (name, imported & forbidden)
