@@ -58,7 +58,8 @@ class SparkplugConfig(Model):
     client_id: str | None = None
     """MQTT client identifier (unset: slc-gateway-<group_id>-<edge_node_id>)."""
     keepalive: int = Field(30, ge=5, le=65535)
-    """MQTT keepalive, seconds: the broker publishes the NDEATH within 1.5 x keepalive of the gateway's disappearance."""
+    """MQTT keepalive, seconds: the broker publishes the NDEATH within 1.5 x keepalive of the gateway's
+    disappearance."""
     reconnect_min: float = Field(1.0, gt=0, le=3600)
     """Seconds before the first reconnect to the broker; the wait doubles up to reconnect_max."""
     reconnect_max: float = Field(60.0, gt=0, le=3600)

@@ -162,7 +162,7 @@ async def test_births_data_rebirth_and_ndeath_pass_the_host(plant: Plant) -> Non
         assert nbirth.qos == 0 and not nbirth.retain
         await plant.wait(kind("DBIRTH", "press"))
         await plant.wait(kind("DBIRTH", "oven"))
-        # the DF1 initial table (docs/controller-variants.md): N7:n = n; past the end of N10: BAD (0)
+        # the DF1 initial table (docs/develop/controller-variants.md): N7:n = n; past the end of N10: BAD (0)
         await plant.wait(lambda m: value(plant, "press", "N7:3").value == 3, 5)
         assert value(plant, "press", "N7:3") == (3, False, None)
         await plant.wait(lambda m: value(plant, "press", "N10:100").quality == 0, 5)
