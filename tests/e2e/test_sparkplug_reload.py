@@ -18,7 +18,7 @@ from gateway.app import Gateway
 from gateway.config import parse_config
 
 
-async def test_a_link_added_by_reload_is_born_in_a_new_session(plant: Plant, tmp_path: Path) -> None:
+async def test_a_link_added_by_reload_is_born_in_a_new_session(plant: Plant, tmp_path: Path) -> None:  # noqa: F811
     async with Gateway(plant.config()) as gw:
         nbirth = await plant.wait(kind("NBIRTH"))
         await plant.wait(kind("DBIRTH", "oven"))
