@@ -6,18 +6,17 @@ A unit is *polled* (the default: its poller reads the plan's blocks from the con
 non-polled value never ages on its own and is stale only once the peer has been silent for
 ``stale_after``).  Everything else (the image, the status block, writes, access rules) is the same.
 
-Reads are answered from the register and bit images (``gateway.image``), which the cache fills
-when a block is stored, and note their request as demand (``gateway.schedule``); writes go through
-to the controller and are answered only after it confirmed them, then patch the cache (never its
-read times).  A stale read on a link that is up may wait ``read_wait`` for its blocks (StaleRead).
+Reads are answered from the images (``gateway.image``), which the cache fills when a block is
+stored, and note their request as demand (``gateway.schedule``); writes go through to the controller
+and are answered only after it confirmed them, then patch the cache (never its read times).  A stale
+read on a link that is up may wait ``read_wait`` for its blocks (StaleRead).
 
-A value is stale (exception 0x0B) when its own block was last read longer ago than
-``stale_after`` plus the period planned for the block at that read (its class's, ``fast_interval``
-or ``slow_interval``, when demanded; else ``background_interval`` if longer), or when the
-controller has answered no poll for ``stale_after`` plus the shortest scan period (the silent
-limit, unchanged): a slow-class value read every 10 s is not stale 5 s after its read while the link
-is up, and no value outlives a silent link by more than ``stale_after`` (plus ``fast_interval``).
-Values read before a link loss are stale from its recovery until read again.
+A value is stale (exception 0x0B) when its block was last read longer ago than ``stale_after`` plus
+the period planned for the block at that read (its class's when demanded, else ``background_interval``
+if longer), or when the controller has answered no poll for ``stale_after`` plus the shortest scan
+period (the silent limit): a slow-class value read every 10 s is not stale 5 s after its read while
+the link is up, and no value outlives a silent link by more than ``stale_after`` (plus
+``fast_interval``).  Values read before a link loss are stale from its recovery until read again.
 
 Error translation (controller -> Modbus exception; errors by type: ``gateway.errors.MODBUS_CODES``):
 
@@ -267,18 +266,19 @@ class Unit(ABC, Generic[R, B]):
 
     # --- reads ------------------------------------------------------------------------------
 
-    def read_register_bytes(self, table: Table, address: int, count: int) -> bytes:
-        """Registers ``address``.. (``count``) as the big-endian bytes of a FC3/FC4 reply.
-
-        Served from the image (a slice); the first unmapped or stale register, in address
-        order, decides the exception.  The request is noted as demand (one dict store).
-        """
-        now = self._loop_time()
-        if table is Table.INPUT and address >= STATUS_BASE:
-            return _pack_registers(self._status(address, count, now))
+    def _note_read(self, table: Table, address: int, count: int, now: float) -> None:
+        """Note a read as demand (one dict store); a silent controller's mapped data answers stale."""
         self.demand.keys[(table, address, count)] = now
         if now - self.cache.newest > self._silent_after and self.images.mapped(table, address, count):
             raise self._stale()
+
+    def read_register_bytes(self, table: Table, address: int, count: int) -> bytes:
+        """Registers ``address``.. (``count``) as the big-endian bytes of a FC3/FC4 reply: a slice of the
+        image; the first unmapped or stale register, in address order, decides the exception."""
+        now = self._loop_time()
+        if table is Table.INPUT and address >= STATUS_BASE:
+            return _pack_registers(self._status(address, count, now))
+        self._note_read(table, address, count, now)
         try:
             return self.images.registers(table, address, count, now)
         except ImageMiss as miss:
@@ -287,9 +287,7 @@ class Unit(ABC, Generic[R, B]):
     def read_bit_bytes(self, table: Table, address: int, count: int) -> bytes:
         """Bits ``address``.. (``count``) packed LSB first, as the payload of a FC1/FC2 reply."""
         now = self._loop_time()
-        self.demand.keys[(table, address, count)] = now
-        if now - self.cache.newest > self._silent_after and self.images.mapped(table, address, count):
-            raise self._stale()
+        self._note_read(table, address, count, now)
         try:
             return self.images.bits(table, address, count, now)
         except ImageMiss as miss:

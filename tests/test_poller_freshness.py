@@ -55,6 +55,7 @@ def make_unit(stale_after: float = 5.0, background_interval: float = 30.0) -> tu
     assert unit.poller is not None
     unit.poller._read_block = controller
     unit.poller._responding = lambda: True
+    unit.poller._ready = None  # the driver never opens its port: nothing to wait for
     unit.poller._down_wait = 0.005
     return unit, controller
 
