@@ -4,67 +4,12 @@ The values are read from the live gateway objects at scrape time: a custom colle
 :class:`~prometheus_client.CollectorRegistry` turns the links' and Modbus servers' counters into
 metric families when Prometheus asks, so nothing runs in the background and nothing is copied.
 
-Metrics (every name starts with ``slc_gateway_``)::
-
-    per link, labels link="<name>", unit="<Modbus unit id>"
-      link_up                       gauge    1 = port open and the controller answered the last transaction
-      link_connected                gauge    1 = the port / socket / simulator stream is open
-      data_age_seconds              gauge    age of the oldest fast-class value (+Inf before the first read)
-      stale_after_seconds           gauge    the link's ``stale_after``: older data is not served
-      transactions_total            counter  transactions the controller answered
-      errors_total                  counter  failed transactions
-      timeouts_total                counter
-      crc_errors_total              counter
-      retries_total{kind}           counter  kind = retransmit (SLC ;Z) | id_resync (SLC ;I) | enq | nak (DF1)
-      refusals_total                counter  requests the controller refused (;E, PCCC STS)
-      faults_total                  counter  controller faults reported
-      reconnects_total              counter
-      bytes_total{direction}        counter  direction = tx | rx, on the line
-      write_requests_total          counter  Modbus writes passed through to the controller
-      write_failures_total          counter  ... of which failed (answered with an exception)
-      partial_writes_total          counter  ... of which the controller refused part-way (some registers written)
-      write_busy_total              counter  writes answered 0x06 because the link's write queue was full
-      write_duration_seconds        histogram  Modbus write requests, arrival to answer (success or exception)
-    per polled link, same labels: the line's budget (docs/guide/freshness.md)
-      stale_limit_seconds           gauge    data age above which the link is stale (/healthz)
-      refresh_period_seconds{set}   gauge    achieved refresh period, set = fast | slow | demanded (no sample
-                                             before one is measured)
-      age_bound_seconds{set}        gauge    the bound on a block's age the order guarantees, per set
-      transaction_seconds           gauge    mean time of a read transaction
-      line_use_ratio                gauge    share of the last 10 s the line spent on reads
-      plan_blocks                   gauge    blocks of the read plan
-      demanded_blocks               gauge    blocks a client read within demand_hold
-      late_reads_total              counter  reads that came after their block's stale limit
-      read_waits_total              counter  Modbus reads that waited for their data (read_wait)
-    per link whose driver reports its own numbers (``driver.metrics() -> dict[str, float]``), same labels
-      link_<key>_total              counter  every key, e.g. link_polls_total, link_eots_total
-      link_<key>                    gauge    keys of state, not counts: ``active`` and ``*_active``
-      link_<key>_seconds            gauge    keys ending in ``age`` (``data_age``); a negative age (no
-                                             answer yet) is +Inf, as in data_age_seconds
-    per Modbus server, label server="modbus" | "modbus-tls"
-      modbus_requests_total{function_code}    counter  requests by function code (decimal, unknown ones too)
-      modbus_exceptions_total{exception_code} counter  exception replies by exception code (decimal)
-      modbus_backend_errors_total             counter  backend failures (each also counted as exception 4)
-      modbus_connections                      gauge    connections open now
-      modbus_connections_accepted_total       counter
-      modbus_connections_refused_total        counter  outside ``allow``, over a connection cap
-      modbus_connections_dropped_total        counter  closed by the server: bad framing, idle, TLS failure
-      modbus_connections_evicted_total        counter  stalled connections closed to make room (also dropped)
-      modbus_tls_handshakes                   gauge    TLS handshakes in progress now
-    the config file (``gateway.reload``)
-      config_info{sha256}           gauge    1, labelled with the first 12 hex digits of the file's SHA-256
-      config_loaded_timestamp_seconds gauge  Unix time the config served was loaded (at start or reload)
-      config_reloads_total{result}  counter  result = ok | failed (a file that did not load changed nothing)
-      config_restart_needed         gauge    settings changed in the file that take a restart to apply
-    with [sparkplug] (``gateway.sparkplug.report``)
-      sparkplug_session{state}                gauge    1 for the MQTT session's state: disconnected | connected | online
-      sparkplug_sessions_total                counter  MQTT sessions established (each a new bdSeq)
-      sparkplug_messages_published_total{type}  counter  NBIRTH, DBIRTH, DDATA, DDEATH, NDEATH handed to the broker
-      sparkplug_commands_received_total{type}   counter  NCMD, DCMD, STATE
-      sparkplug_commands_refused_total{reason}  counter  command metrics that changed nothing; failed DCMD writes
-      sparkplug_devices_online                gauge    devices with a DBIRTH and no DDEATH since
-      sparkplug_cpu_seconds_total             counter  CPU of the edge node's steps on the event loop (not MQTT's)
-      sparkplug_longest_step_seconds          gauge    the longest such step: the most a Modbus answer waits behind it
+The metric families, their labels and help texts are listed in ``docs/reference/metrics.md``, which
+``tools/gen_reference.py`` generates from this collector (a test fails when it is stale): per link
+(labels ``link``, ``unit``), the line's budget of each polled link (``docs/guide/freshness.md``), the
+numbers a driver reports itself (``driver.metrics()``: ``link_<key>_total``, ``link_<key>``,
+``link_<key>_seconds``), per Modbus server (label ``server``), the config file and its reloads
+(``gateway.reload``), and with ``[sparkplug]`` the edge node's session (``gateway.sparkplug.report``).
 
 ``/healthz`` answers 200 when every link is up and its fast-class data is younger than its stale
 limit (``stale_after`` plus the fast class's achieved refresh period, ``stale_limit_seconds``), 503

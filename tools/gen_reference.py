@@ -312,7 +312,7 @@ def cli_reference() -> str:
 
 
 def metrics_reference() -> str:
-    from gateway.metrics import _GatewayCollector
+    from gateway.metrics import _config_families, _GatewayCollector
 
     lines = [
         _GENERATED.format(command=REGENERATE),
@@ -325,7 +325,8 @@ def metrics_reference() -> str:
         "| metric | type | labels | what |",
         "|---|---|---|---|",
     ]
-    families = [*_GatewayCollector._link_families((), 0.0), *_GatewayCollector._server_families(())]
+    families = [*_GatewayCollector._link_families((), 0.0), *_GatewayCollector._server_families(()),
+                *_config_families(None)]
     for family in families:
         name = family.name + ("_total" if family.type == "counter" else "")
         labels = ", ".join(f"`{label}`" for label in getattr(family, "_labelnames", ()))
@@ -342,6 +343,9 @@ def metrics_reference() -> str:
         "ending in `age`. The DF1 half-duplex stations report theirs "
         "([station metrics](../guide/df1-half-duplex.md#station-metrics)), and so does a DF1 target "
         "([target mode](../guide/target-mode.md#what-modbus-sees)).",
+        "",
+        "With `[sparkplug]`, the edge node's session has its own families (`slc_gateway_sparkplug_*`): "
+        "[Sparkplug status and metrics](../guide/sparkplug.md#status-and-metrics).",
         "",
         "A test checks that every metric the Grafana dashboard (`deploy/grafana/slc-gateway.json`) queries is "
         "exported by a running gateway ([monitoring](../guide/monitoring.md)).",
