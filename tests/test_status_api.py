@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
@@ -230,21 +231,28 @@ async def test_a_link_on_a_real_port_has_no_start_up_error(plant: tuple[Gateway,
 
 
 async def test_for_n_s_is_the_time_in_the_current_state() -> None:
-    """A link polled every 2 s whose data is stale after 0.5 s: stale from 0.5 s after each round to the next."""
-    server = await serve_tcp(create_simulator("slc150", {"ladder": "0"}), HOST, 0)
+    """A controller that falls silent while its link stays up (no down verdict for 1000 failures or
+    600 s): stale from the moment its oldest value passes the stale limit, not since the link came
+    up; up again from when its data is fresh again."""
+    simulator = create_simulator("slc150", {"ladder": "0"})
+    server = await serve_tcp(simulator, HOST, 0)
     port = server.sockets[0].getsockname()[1]
     config = parse_config(LINKS.split("[[link]]")[0] + SERVED.format(port=port).replace(
-        "stale_after = 0.5", "stale_after = 0.5\nfast_interval = 2.0\nslow_interval = 60.0"))
+        "stale_after = 0.5", "stale_after = 0.5\ndown_after_failures = 1000\ndown_after_seconds = 600"))
     try:
         async with Gateway(config) as gateway:
             up = await until_row(gateway, "served", "up")
             came_up = up["since"]
-            # a stale period after the second round or later
-            row = await until(gateway, "served", lambda row: row["state"] == "stale" and row["time"] - came_up > 3, 20)
-            # stale since the oldest value passed stale_after: within this round, not when the link came up
-            assert row["since"] - came_up > 1.5, (came_up, row)
-            assert 0 <= row["time"] - row["since"] <= 2.0 - 0.5 + 1.0, row
-            fresh = await until(gateway, "served", lambda row: row["state"] == "up", 5)
+            await asyncio.sleep(1.5)
+            answering = simulator.faults
+            simulator.faults = dataclasses.replace(answering, drop=1)  # every reply lost: silent
+            silent_from = (await api(gateway, "/api/status"))["time"]
+            row = await until(gateway, "served", lambda row: row["state"] == "stale", 20)
+            # stale since the oldest value passed its limit: after the silence began, not when the link came up
+            assert row["since"] - came_up > 1.0, (came_up, row)
+            assert row["since"] >= silent_from - 0.1, (silent_from, row)
+            simulator.faults = answering
+            fresh = await until(gateway, "served", lambda row: row["state"] == "up", 10)
             assert fresh["since"] > row["since"], (row, fresh)  # up again since the data is fresh again
     finally:
         await close_tcp(server)
