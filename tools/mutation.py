@@ -321,10 +321,10 @@ def changed_modules(modules: list[str]) -> list[str]:
     return [m for m in modules if last.get(m) != now[m] or not (MUTANTS / (m + ".meta")).exists()]
 
 
-def record_sources(modules: list[str]) -> None:
-    """After a run: ``modules``' results are of their present source."""
+def record_sources(now: dict[str, str]) -> None:
+    """After a run: the results of the modules in ``now`` (:func:`source_hashes` taken before the run)
+    are of those sources."""
     last: dict[str, str] = json.loads(SOURCES.read_text(encoding="utf-8")) if SOURCES.exists() else {}
-    now = source_hashes(modules)
     if last.get(CONFIG_KEY) != now[CONFIG_KEY]:
         last = {}  # the other modules' results were made with other tests or settings
     SOURCES.write_text(json.dumps(last | now, indent=1, sort_keys=True), encoding="utf-8")
@@ -362,11 +362,12 @@ def main() -> int:
                 (MUTANTS / (module + ".meta")).unlink(missing_ok=True)
                 (MUTANTS / module).unlink(missing_ok=True)
         start = time.monotonic()
+        sources = source_hashes(to_run)  # before the run: an edit made while it runs is not in its results
         run_mutmut(to_run, args.children)
         if whole:
             FRESH.unlink(missing_ok=True)
         recheck_import_time_mutants(to_run, args.children)
-        record_sources(to_run)
+        record_sources(sources)
         print(f"mutmut ran {(time.monotonic() - start) / 60:.1f} min")
     return 0 if report(selected, args.min) else 1
 
