@@ -13,7 +13,7 @@ import ipaddress
 
 import pytest
 
-from gateway.modbus.admission import Admission, IPNetwork, host_allowed, peer_host
+from gateway.modbus.admission import Admission, IPNetwork, format_address, host_allowed, peer_host
 
 
 class FakeSlot:
@@ -98,6 +98,80 @@ def test_peer_host_and_host_allowed() -> None:
     assert peer_host(("fe80::1%eth0", 1, 0, 2)) == "fe80::1"
     assert peer_host(("10.20.0.1", 1)) == "10.20.0.1"
     assert peer_host(None) is None and peer_host(("x", 1)) is None
+    assert peer_host((7, 1)) is None and peer_host(()) is None
     assert host_allowed("10.20.0.1", ALLOW) and host_allowed("fd00:20::1", ALLOW)
     assert not host_allowed("10.20.1.1", ALLOW) and not host_allowed(None, ALLOW)
     assert not host_allowed("127.0.0.1", ALLOW)
+
+
+def test_loopback_reads_is_off_unless_asked_for() -> None:
+    gate = Admission("test", max_connections=10, allow=ALLOW)
+    assert gate.read_only(("127.0.0.1", 1)) is False
+    assert gate.admit(FakeSlot(), ("127.0.0.1", 1)) is False
+
+
+def test_format_address_brackets_ipv6_only() -> None:
+    assert format_address(("fd00:20::7", 502, 0, 0)) == "[fd00:20::7]:502"
+    assert format_address(("10.20.0.1", 502)) == "10.20.0.1:502"
+    assert format_address("/run/socket") == "/run/socket"
+
+
+def test_a_refusal_is_logged_with_the_peer_and_its_cause(caplog: pytest.LogCaptureFixture) -> None:
+    gate = Admission("plain", max_connections=1, max_per_address=1, allow=ALLOW)
+    assert gate.admit(FakeSlot(), ("10.20.1.1", 40005)) is False
+    assert gate.admit(FakeSlot(), ("10.20.0.1", 40006)) is True
+    assert gate.admit(FakeSlot(), ("10.20.0.1", 40007)) is False  # per address
+    assert gate.admit(FakeSlot(), ("10.20.0.2", 40008)) is False  # no slot free, none idle
+    text = caplog.text
+    assert "plain: refused connection from 10.20.1.1:40005: peer not in the allowed networks" in text
+    assert "refused connection from 10.20.0.1:40007: over max_connections_per_address (1)" in text
+    assert "refused connection from 10.20.0.2:40008: already 1 connections, none idle" in text
+    assert gate.refused == 3
+
+
+def test_connections_per_address_are_counted_out_on_release() -> None:
+    gate = Admission("test", max_connections=10, max_per_address=2)
+    peer = ("10.20.0.1", 1)
+    first, second = FakeSlot(), FakeSlot()
+    assert gate.admit(first, peer) and gate.admit(second, peer)
+    assert gate.admit(FakeSlot(), peer) is False
+    gate.release(first)
+    gate.release(first)  # idempotent
+    assert gate.admit(FakeSlot(), peer) is True
+    assert gate.admit(FakeSlot(), peer) is False
+    assert gate.admit(FakeSlot(), ("10.20.0.2", 1)) is True  # another host is not held by this one's count
+
+
+def test_a_tls_connection_is_counted_from_its_handshake_to_its_release() -> None:
+    gate = Admission("tls", max_connections=1, max_per_address=1, max_handshakes=4)
+    peer = ("10.20.0.1", 1)
+    slot = FakeSlot()
+    assert gate.admit(slot, peer, handshake_started=0.0) is True
+    assert (gate.handshaking, gate.established) == (1, 0)
+    assert gate.admit(FakeSlot(), peer, handshake_started=0.1) is False  # its handshake counts
+    assert gate.handshake_done(slot, peer) is True
+    assert (gate.handshaking, gate.established) == (0, 1)
+    gate.release(slot)
+    assert gate.established == 0
+    again = FakeSlot()
+    assert gate.admit(again, peer, handshake_started=1.0) is True  # the address was counted out
+
+
+def test_a_handshake_done_with_no_room_is_refused_and_counted_out() -> None:
+    gate = Admission("tls", max_connections=1, max_per_address=1, max_handshakes=4)
+    assert gate.admit(FakeSlot(), ("10.20.0.9", 1)) is True  # the one slot, in use (never stalled)
+    peer = ("10.20.0.1", 2)
+    slot = FakeSlot()
+    assert gate.admit(slot, peer, handshake_started=0.0) is True
+    assert gate.handshake_done(slot, peer) is False
+    assert (gate.handshaking, gate.established) == (0, 1)
+    assert gate.admit(FakeSlot(), peer, handshake_started=1.0) is True  # not still counted
+
+
+def test_a_handshake_done_of_a_slot_not_handshaking_is_counted_by_its_peer() -> None:
+    gate = Admission("tls", max_connections=2, max_per_address=1, max_handshakes=4)
+    slot = FakeSlot()
+    assert gate.handshake_done(slot, ("10.20.0.1", 1)) is True
+    assert gate.established == 1
+    gate.release(slot)
+    assert gate.established == 0
