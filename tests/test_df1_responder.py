@@ -658,6 +658,27 @@ def test_a_duplicate_gets_the_reply_of_its_own_command_only() -> None:
     assert responder.data_to_send() == ACK_SYMBOL and drain(responder) == [duplicate(C2, None)]
 
 
+@pytest.mark.parametrize("resend_reply", [False, True])
+def test_a_duplicate_after_the_previous_reply_was_given_is_not_answered_with_it(resend_reply: bool) -> None:
+    """C1 answered and delivered, then C2 arrives and its copy comes before C2's reply is given:
+    the copy is ACKed and nothing is sent (R1 answers C1, never C2; p. 6-3 ties a reply to its
+    command's SRC, CMD and TNS), whether or not a copy after the reply gets the reply again."""
+    responder = Df1Responder(resend_reply=resend_reply)
+    responder.feed(frame(C1), 0.0)
+    assert drain(responder) == [received(C1)]
+    responder.send_reply(R1, 0.0)
+    assert responder.data_to_send() == ACK_SYMBOL + frame(R1)
+    responder.feed(ACK_SYMBOL, 0.0)
+    assert drain(responder) == [ReplyDelivered(1, R1)]
+    responder.feed(frame(C2), 0.0)
+    assert drain(responder) == [received(C2)]
+    responder.feed(frame(C2), 0.0)  # the PLC lost our ACK and sends C2 again
+    assert responder.data_to_send() == ACK_SYMBOL + ACK_SYMBOL
+    assert drain(responder) == [duplicate(C2, None)] and responder.counters.replies_resent == 0
+    responder.send_reply(R2, 0.0)  # C2's own reply, once it is given
+    assert responder.data_to_send() == frame(R2)
+
+
 def test_with_resend_reply_the_stored_reply_is_resent_for_every_later_copy() -> None:
     responder = Df1Responder(resend_reply=True)
     responder.feed(frame(C1), 0.0)

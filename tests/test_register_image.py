@@ -469,6 +469,49 @@ def test_freshness_boundary_equals_the_old_decoder(scan: Scan) -> None:
         assert replies == ({0x80} if now > 10.0 + max_age else {0})
 
 
+def _code_at(unit: ClockedUnit, now: float, address: int) -> int | None:
+    """The exception code a read of one holding register gets at ``now`` (None: served)."""
+    unit.now = now
+    try:
+        unit.read_registers(Table.HOLDING, address, 1)
+    except ModbusExceptionReply as exc:
+        return exc.code
+    return None
+
+
+def test_the_silent_link_limit_and_the_slow_values_age_are_the_documented_ones() -> None:
+    """The limits as README ("Reads, staleness and writes") and ``gateway/unit.py``'s module doc
+    state them, with the values here: ``stale_after`` 5 s, ``fast_interval`` 1 s,
+    ``slow_interval`` 10 s.
+
+    * "A slow-class value read every 10 s with ``stale_after = 5`` is served for up to 15 s after
+      its last read, while the link answers": served at 15 s, 0x0B at 15.125 s.
+    * "no value outlives a silent link by more than ``stale_after`` (plus ``fast_interval``)",
+      i.e. stale once the controller has answered no poll for ``stale_after`` plus the shortest
+      scan period: 5 + min(1, 10) = 6 s.  The slow value too: served at 6 s, 0x0B at 6.125 s.
+    """
+    plan = Plan(blocks=[Block(None, 2, Scan.SLOW), Block(None, 2, Scan.FAST)])
+    plan.holding[0] = RegisterPoint(0, 0, Codec.U16_BE)
+    plan.holding[1] = RegisterPoint(1, 0, Codec.U16_BE)
+    unit = ClockedUnit(unit_id=1, name="limits", driver=SlcAsciiDriver("sim://slc150?ladder=0"), plan=plan,
+                       stale_after=5.0, fast_interval=1.0, slow_interval=10.0)
+    unit.cache.store(0, b"\x00\x01", 100.0)
+    unit.cache.store(1, b"\x00\x02", 100.0)
+    # the link answers: the fast block is read every second, the slow one not again
+    for now in range(101, 116):
+        unit.cache.store(1, b"\x00\x02", float(now))
+        assert _code_at(unit, float(now), 0) is None
+    unit.cache.store(1, b"\x00\x02", 115.125)
+    assert _code_at(unit, 115.125, 0) == TARGET_FAILED
+
+    # the same two blocks read at 200, then the link is silent
+    unit.cache.store(0, b"\x00\x01", 200.0)
+    unit.cache.store(1, b"\x00\x02", 200.0)
+    assert _code_at(unit, 206.0, 0) is None
+    assert _code_at(unit, 206.125, 0) == TARGET_FAILED  # a slow value 6.125 s old: 9 s inside its own limit
+    assert _code_at(unit, 206.125, 1) == TARGET_FAILED
+
+
 async def test_pipelined_reads_answered_in_order_with_their_own_ids() -> None:
     """200 reads in one segment (more than a turn of the loop takes): every reply, in order, own id."""
     plan = slc_ascii_plan()

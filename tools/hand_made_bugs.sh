@@ -1,21 +1,45 @@
 #!/bin/bash
 # The hand-made one-line bugs of docs/develop/mutation.md ("The one-line bugs put in by hand"), put back one
 # at a time in a copy of the tree: each must make the tests of its own module fail (exit 1).
+# run NAME TESTS FILE OLD NEW [FILE OLD NEW ...]: every replacement is made (the first occurrence).
+# ONLY=REGEX runs only the bugs whose name matches (e.g. ONLY='^[1-6] ').
 set -u
 SRC=$(cd "$(dirname "$0")/.." && pwd)
-SLC_TESTS="tests/test_slc_transaction.py tests/test_sans_io.py tests/test_driver_slc_ascii.py tests/test_slc_transaction_safety.py tests/test_slc_transaction_state_machine.py"
+SLC_TESTS="tests/test_slc_transaction.py tests/test_sans_io.py tests/test_driver_slc_ascii.py tests/test_slc_transaction_safety.py tests/test_slc_transaction_state_machine.py tests/test_slc_read_own_transaction.py"
 H_TESTS="tests/test_modbus_handler.py tests/test_modbus_server.py tests/test_hostile_network.py tests/test_server_slow_reader.py tests/test_register_image.py"
-run() { # name file python-replace-old python-replace-new tests
+TARGET_TESTS="tests/test_df1_target.py tests/test_df1_target_persist_faults.py tests/test_df1_target_floats.py"
+ADMISSION_TESTS="tests/test_modbus_admission.py tests/test_modbus_server.py tests/test_hostile_network.py"
+RESPONDER_TESTS="tests/test_df1_responder.py"
+UNIT_TESTS="tests/test_register_image.py tests/test_kind_not_polled.py tests/test_write_timeout.py"
+SLC_PLAN_TESTS="tests/test_slc_ascii_plan.py tests/test_slc_ascii_memory_map.py tests/test_driver_slc_ascii.py"
+run() {
+  name=$1; tests=$2; shift 2
+  if [ -n "${ONLY:-}" ] && ! [[ "$name" =~ $ONLY ]]; then return; fi
   d=$(mktemp -d); cp -r $SRC/gateway $SRC/tests $SRC/pyproject.toml $d/
-  python3 - "$d/$2" "$3" "$4" <<'PY'
+  while [ $# -ge 3 ]; do
+    python3 - "$d/$1" "$2" "$3" <<'PY'
 import sys; p,old,new=sys.argv[1:]; s=open(p).read(); assert s.count(old)>=1,(p,old); open(p,'w').write(s.replace(old,new,1))
 PY
-  (cd $d && PYTHONPATH=$d timeout 900 $SRC/.venv/bin/python -m pytest -q -x -p no:cacheprovider $5 > $d/out.txt 2>&1); rc=$?
-  echo "$1: exit $rc $(tail -1 $d/out.txt)"; rm -rf $d
+    shift 3
+  done
+  (cd $d && PYTHONPATH=$d timeout 900 $SRC/.venv/bin/python -m pytest -q -x -p no:cacheprovider $tests > $d/out.txt 2>&1); rc=$?
+  echo "$name: exit $rc $(tail -1 $d/out.txt)"; rm -rf $d
 }
-run "handler >= 0x10000" gateway/modbus/handler.py "if address + count > 0x10000:" "if address + count >= 0x10000:" "$H_TESTS"
-run "handler tid & 0xFF" gateway/modbus/handler.py "return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo" "return _MBAP.pack(tid & 0xFF, 0, 1 + len(echo), unit) + echo" "$H_TESTS"
-run "no resync before write in untrusted era" gateway/protocols/slc_ascii/transaction.py "if self._next == 0 or (self._is_write and not (self._era_trusted and self._clean)):" "if self._next == 0:" "$SLC_TESTS"
-run "S4 messages==1 dropped" gateway/protocols/slc_ascii/transaction.py "and self._messages == 1 and self._era_trusted:" "and self._era_trusted:" "$SLC_TESTS"
-run "_next = 0 after unknown/failed removed" gateway/protocols/slc_ascii/transaction.py "            self._next = 0  # we no longer know" "            pass  # we no longer know" "$SLC_TESTS"
-run "S6 z_ever -> z_sent" gateway/protocols/slc_ascii/transaction.py "z_sent=self._z_ever," "z_sent=bool(self._z_sent)," "$SLC_TESTS"
+run "handler >= 0x10000" "$H_TESTS" gateway/modbus/handler.py "if address + count > 0x10000:" "if address + count >= 0x10000:"
+run "handler tid & 0xFF" "$H_TESTS" gateway/modbus/handler.py "return _MBAP.pack(tid, 0, 1 + len(echo), unit) + echo" "return _MBAP.pack(tid & 0xFF, 0, 1 + len(echo), unit) + echo"
+run "no resync before write in untrusted era" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "if self._next == 0 or (self._is_write and not (self._era_trusted and self._clean)):" "if self._next == 0:"
+run "S4 messages==1 dropped" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "and self._messages == 1 and self._era_trusted:" "and self._era_trusted:"
+run "_next = 0 after unknown/failed removed" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "            self._next = 0  # we no longer know" "            pass  # we no longer know"
+run "S6 z_ever -> z_sent" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "z_sent=self._z_ever," "z_sent=bool(self._z_sent),"
+# issue 33's bugs: each fails the tests of its own module, not only an end-to-end or soak test
+run "1 target: STS 0 though the save failed" "$TARGET_TESTS" gateway/kinds/df1/target_driver.py "reply = self._commit(command, result)" "self._commit(command, result)"
+run "2 target: a failed write not taken back" "$TARGET_TESTS" gateway/kinds/df1/target_unit.py "table_file.write_bytes(ref.element * size, bytes(self.cache.data[index]), stamp)" "pass"
+run "3 admission: loopback or not allowed" "$ADMISSION_TESTS" gateway/modbus/admission.py "is_loopback and not host_allowed(" "is_loopback or not host_allowed("
+run "4 responder: _last_reply kept on a new command" "$RESPONDER_TESTS" gateway/protocols/df1/responder.py "self._last_header, self._last_reply = header, None" "self._last_header = header"
+run "5 SLC: a late reply taken in resync" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "if (not self._is_write and self._copies and isinstance(event, DataReply)" "if (not self._is_write and isinstance(event, DataReply)"
+run "5 SLC: the same, _msg_id given an initial value" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "if (not self._is_write and self._copies and isinstance(event, DataReply)" "if (not self._is_write and isinstance(event, DataReply)" gateway/protocols/slc_ascii/sender.py "        self._msg_id: int
+" "        self._msg_id: int = 0
+"
+run "6 unit: silent-link limit min -> max" "$UNIT_TESTS" gateway/unit.py "self._silent_after = min(self._max_age, default=stale_after)" "self._silent_after = max(self._max_age, default=stale_after)"
+run "6 SLC plan: presets not masked" "$SLC_PLAN_TESTS" gateway/kinds/slc_ascii/plan.py "plan.holding[32 + n] = word(0x40 + 2 * n, U16_BE_MASKED," "plan.holding[32 + n] = word(0x40 + 2 * n, U16_BE,"
+run "6 target: float word order" "$TARGET_TESTS" gateway/kinds/df1/target_unit.py 'low_first = entry.word_order == "low-first"' 'low_first = entry.word_order != "low-first"'

@@ -8,6 +8,7 @@ per module, how many mutants the tests killed, and every surviving mutant, marke
     .venv/bin/python tools/mutation.py gateway/writes.py  # one module (or several; a glob works)
     .venv/bin/python tools/mutation.py --report           # the table of the last run, no run
     .venv/bin/python tools/mutation.py --keep ...         # keep mutmut's results of unchanged code
+    .venv/bin/python tools/mutation.py --changed          # only the modules changed since their last run
 
 The score of a module is the share of its mutants killed (a timeout counts as killed) among
 those tested; ``no tests`` (no selected test runs the function) counts as surviving.  The
@@ -29,12 +30,19 @@ there counts as killed (the ``import`` column).
 mutmut works on a copy of the tree in ``mutants/`` (git-ignored).  Without ``--keep`` that copy
 is removed first: mutmut keeps a mutant's result until the code of its function changes, so a
 test added since would not be given the chance to kill an old survivor.
+
+The whole run no longer fits in an hour on 2 cores since the kinds' drivers and units joined (their
+tests wait on simulated lines).  ``--changed`` runs only the modules whose source differs from the
+one their last results were made with (``mutants/sources.json``, a SHA-256 per module, written
+after each run), or that have no results; all of them when ``[tool.mutmut]`` changed (other tests,
+other modules).  The other modules' results are kept as they are, and the table covers them all.
 """
 
 from __future__ import annotations
 
 import argparse
 import fnmatch
+import hashlib
 import json
 import os
 import re
@@ -51,6 +59,9 @@ ROOT = Path(__file__).resolve().parent.parent
 MUTANTS = ROOT / "mutants"
 EQUIVALENTS_DOC = ROOT / "docs" / "develop" / "mutation.md"
 FRESH = MUTANTS / "fresh-interpreter.json"  # import-time mutants rechecked: name -> killed
+SOURCES = MUTANTS / "sources.json"  # module -> SHA-256 of the source its results were made with
+#: the key of SOURCES for the [tool.mutmut] table the results were made with
+CONFIG_KEY = "[tool.mutmut]"
 #: tells the tests they run under mutation (the reference-comparison properties take fewer examples)
 MUTATION_ENV = {"SLC_GATEWAY_MUTATION": "1"}
 
@@ -292,6 +303,33 @@ def report(modules: list[str], minimum: float) -> bool:
     return ok
 
 
+def source_hashes(modules: list[str]) -> dict[str, str]:
+    """SHA-256 of each module's source, and of the ``[tool.mutmut]`` table (``CONFIG_KEY``)."""
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["mutmut"]
+    hashes = {m: hashlib.sha256((ROOT / m).read_bytes()).hexdigest() for m in modules}
+    hashes[CONFIG_KEY] = hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
+    return hashes
+
+
+def changed_modules(modules: list[str]) -> list[str]:
+    """The modules whose source is not the one of their last results, or without results (all of
+    them when ``[tool.mutmut]`` changed since)."""
+    last: dict[str, str] = json.loads(SOURCES.read_text(encoding="utf-8")) if SOURCES.exists() else {}
+    now = source_hashes(modules)
+    if last.get(CONFIG_KEY) != now[CONFIG_KEY]:
+        return modules
+    return [m for m in modules if last.get(m) != now[m] or not (MUTANTS / (m + ".meta")).exists()]
+
+
+def record_sources(now: dict[str, str]) -> None:
+    """After a run: the results of the modules in ``now`` (:func:`source_hashes` taken before the run)
+    are of those sources."""
+    last: dict[str, str] = json.loads(SOURCES.read_text(encoding="utf-8")) if SOURCES.exists() else {}
+    if last.get(CONFIG_KEY) != now[CONFIG_KEY]:
+        last = {}  # the other modules' results were made with other tests or settings
+    SOURCES.write_text(json.dumps(last | now, indent=1, sort_keys=True), encoding="utf-8")
+
+
 def _pct(value: float | None) -> str:
     return "    -" if value is None else f"{value:5.1f}"
 
@@ -301,6 +339,8 @@ def main() -> int:
     parser.add_argument("modules", nargs="*", help="module paths or globs (default: all in [tool.mutmut])")
     parser.add_argument("--report", action="store_true", help="print the last run's results, run nothing")
     parser.add_argument("--keep", action="store_true", help="keep mutmut's results of unchanged functions")
+    parser.add_argument("--changed", action="store_true",
+                        help="run only the modules changed since their last run (module doc); report all")
     parser.add_argument("--children", type=int, default=os.cpu_count() or 2, help="parallel mutants (CPU count)")
     parser.add_argument("--min", type=float, default=95.0, help="lowest acceptable score per module (95)")
     args = parser.parse_args()
@@ -308,18 +348,26 @@ def main() -> int:
     selected = [m for m in every if not args.modules or any(fnmatch.fnmatch(m, p) for p in args.modules)]
     if not selected:
         parser.error(f"no configured module matches {args.modules}")
-    if not args.report:
-        if not args.keep and not args.modules and MUTANTS.exists():
+    to_run = changed_modules(selected) if args.changed else selected
+    if args.changed:
+        print(f"changed since their last run: {len(to_run)} of {len(selected)} modules", flush=True)
+        for module in to_run:
+            print(f"  {module}", flush=True)
+    whole = not args.modules and not args.changed
+    if not args.report and to_run:
+        if not args.keep and whole and MUTANTS.exists():
             shutil.rmtree(MUTANTS)
         elif not args.keep:
-            for module in selected:  # forget these modules' results, keep the others'
+            for module in to_run:  # forget these modules' results, keep the others'
                 (MUTANTS / (module + ".meta")).unlink(missing_ok=True)
                 (MUTANTS / module).unlink(missing_ok=True)
         start = time.monotonic()
-        run_mutmut(selected, args.children)
-        if not args.modules:
+        sources = source_hashes(to_run)  # before the run: an edit made while it runs is not in its results
+        run_mutmut(to_run, args.children)
+        if whole:
             FRESH.unlink(missing_ok=True)
-        recheck_import_time_mutants(selected, args.children)
+        recheck_import_time_mutants(to_run, args.children)
+        record_sources(sources)
         print(f"mutmut ran {(time.monotonic() - start) / 60:.1f} min")
     return 0 if report(selected, args.min) else 1
 

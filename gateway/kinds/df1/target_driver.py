@@ -11,8 +11,8 @@ For each new command, in this order, without an ``await`` in between:
 
 So no reply acknowledges a write that is not on disk, and no Modbus reader sees part of a write.
 When the commit fails, the reply is STS 40 hex ("host could not complete function due to hardware
-fault", 1770-6.5.16 p. 8-3) instead of success, and the error is logged: the PLC's MSG errors out
-and its ladder sends it again.
+fault", 1770-6.5.16 p. 8-3) instead of success, what the command wrote is taken back out of the
+table, and the error is logged: the PLC's MSG errors out and its ladder sends it again.
 """
 
 from __future__ import annotations

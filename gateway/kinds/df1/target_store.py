@@ -78,10 +78,13 @@ class TargetStore:
         try:
             db.executemany("INSERT OR REPLACE INTO element (file, element, value, written_at) VALUES (?, ?, ?, ?)",
                            rows)
+            db.execute("COMMIT")
         except BaseException:
-            db.execute("ROLLBACK")
+            # After some errors (SQLITE_FULL, SQLITE_IOERR) SQLite has rolled back already; a COMMIT
+            # that failed may leave the transaction open, and the next save must not commit its rows.
+            if db.in_transaction:
+                db.execute("ROLLBACK")
             raise
-        db.execute("COMMIT")
         self.commits += 1
 
     def close(self) -> None:

@@ -8,7 +8,9 @@ nobody wrote since start (and not loaded from ``persist`` or set by ``initial``)
 
 **Atomic for readers.**  Everything here runs on the event loop thread, and a write (a PLC's MSG,
 a Modbus FC16 or FC15) is applied to the table, committed to ``persist``, and stored in the image
-without an ``await`` in between: no reader, on either side, sees part of it.
+without an ``await`` in between: no reader, on either side, sees part of it.  A write whose commit
+fails is taken back out of the table (the image, refreshed only after a commit, holds what was
+there), so the table holds what ``persist`` holds.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import time
 from collections.abc import Hashable, Iterable, Sequence
 from typing import Unpack
 
+from gateway.cache import NEVER
 from gateway.errors import GatewayError, ModbusExceptionReply
 from gateway.frozen import frozen
 from gateway.kinds.df1.plan import F32_HIGH, F32_LOW, U16_LE
@@ -158,7 +161,12 @@ class TargetUnit(Unit[TargetElement, TargetBit]):
         self.refresh_all()
 
     def _plc_wrote(self, refs: Sequence[ElementRef]) -> None:
-        self.persist(refs)
+        """The PLC's command wrote ``refs`` into the table: commit them, or take them back (GatewayError)."""
+        try:
+            self.persist(refs)
+        except GatewayError:
+            self._take_back(refs)
+            raise
         self.refresh(refs)
 
     # --- the image, from the table -----------------------------------------------------------
@@ -174,6 +182,19 @@ class TargetUnit(Unit[TargetElement, TargetBit]):
             size = table_file.kind.element_bytes
             data, _ = table_file.read_bytes(ref.element * size, size)
             self.cache.store(index, data, stamp)
+
+    def _take_back(self, refs: Iterable[ElementRef]) -> None:
+        """Put the table's elements ``refs`` back as the image holds them: their last committed values
+        (the image is refreshed only after a commit), never-written where the image has none."""
+        for ref in refs:
+            table_file = self.table[ref.file]
+            index = self._blocks[ref]
+            stamp = self.cache.stamps[index]
+            size = table_file.kind.element_bytes
+            if stamp == NEVER:
+                table_file.forget(ref.element)
+            else:
+                table_file.write_bytes(ref.element * size, bytes(self.cache.data[index]), stamp)
 
     def refresh_all(self) -> None:
         self.refresh(ElementRef(f.number, e) for f in self.table for e in range(f.count))
@@ -261,8 +282,6 @@ class TargetUnit(Unit[TargetElement, TargetBit]):
     def _commit(self, staged: list[tuple[TableFile, int, bytes]], now: float) -> None:
         """Write the staged elements to the table, persist them, put them in the image; on a failed
         commit the table is put back and the Modbus client gets 0x04 (nothing acknowledged)."""
-        before = [(f, offset, f.read_bytes(offset, len(data))[0], f.written_at(offset // f.kind.element_bytes))
-                  for f, offset, data in staged]
         refs = []
         for table_file, offset, data in staged:
             table_file.write_bytes(offset, data, now)
@@ -270,11 +289,7 @@ class TargetUnit(Unit[TargetElement, TargetBit]):
         try:
             self.persist(refs)
         except GatewayError as exc:
-            for table_file, offset, data, stamp in before:
-                if stamp is None:
-                    table_file.forget(offset // table_file.kind.element_bytes)
-                else:
-                    table_file.write_bytes(offset, data, stamp)
+            self._take_back(refs)
             log.error("%s", exc)
             raise ModbusExceptionReply(ModbusExceptionReply.SERVER_DEVICE_FAILURE, str(exc)) from exc
         self.refresh(refs)
