@@ -17,9 +17,10 @@ run() {
   if [ -n "${ONLY:-}" ] && ! [[ "$name" =~ $ONLY ]]; then return; fi
   d=$(mktemp -d); cp -r $SRC/gateway $SRC/tests $SRC/pyproject.toml $d/
   while [ $# -ge 3 ]; do
-    python3 - "$d/$1" "$2" "$3" <<'PY'
+    if ! python3 - "$d/$1" "$2" "$3" <<'PY'
 import sys; p,old,new=sys.argv[1:]; s=open(p).read(); assert s.count(old)>=1,(p,old); open(p,'w').write(s.replace(old,new,1))
 PY
+    then echo "$name: NOT APPLIED: the line is no longer in $1 (update this script)"; rm -rf $d; return; fi
     shift 3
   done
   (cd $d && PYTHONPATH=$d timeout 900 $SRC/.venv/bin/python -m pytest -q -x -p no:cacheprovider $tests > $d/out.txt 2>&1); rc=$?
@@ -35,11 +36,12 @@ run "S6 z_ever -> z_sent" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.p
 run "1 target: STS 0 though the save failed" "$TARGET_TESTS" gateway/kinds/df1/target_driver.py "reply = self._commit(command, result)" "self._commit(command, result)"
 run "2 target: a failed write not taken back" "$TARGET_TESTS" gateway/kinds/df1/target_unit.py "table_file.write_bytes(ref.element * size, bytes(self.cache.data[index]), stamp)" "pass"
 run "3 admission: loopback or not allowed" "$ADMISSION_TESTS" gateway/modbus/admission.py "is_loopback and not host_allowed(" "is_loopback or not host_allowed("
-run "4 responder: _last_reply kept on a new command" "$RESPONDER_TESTS" gateway/protocols/df1/responder.py "self._last_header, self._last_reply = header, None" "self._last_header = header"
+run "4 responder: _last_reply kept on a new command" "$RESPONDER_TESTS" gateway/protocols/df1/responder.py "        self._last_reply = None
+        self._pending.append(header)" "        self._pending.append(header)"
 run "5 SLC: a late reply taken in resync" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "if (not self._is_write and self._copies and isinstance(event, DataReply)" "if (not self._is_write and isinstance(event, DataReply)"
 run "5 SLC: the same, _msg_id given an initial value" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "if (not self._is_write and self._copies and isinstance(event, DataReply)" "if (not self._is_write and isinstance(event, DataReply)" gateway/protocols/slc_ascii/sender.py "        self._msg_id: int
 " "        self._msg_id: int = 0
 "
-run "6 unit: silent-link limit min -> max" "$UNIT_TESTS" gateway/unit.py "self._silent_after = min(self._max_age, default=stale_after)" "self._silent_after = max(self._max_age, default=stale_after)"
+run "6 unit: silent-link limit min -> max" "$UNIT_TESTS" gateway/unit.py "stale_after + min(self.schedule.period, default=0.0)" "stale_after + max(self.schedule.period, default=0.0)"
 run "6 SLC plan: presets not masked" "$SLC_PLAN_TESTS" gateway/kinds/slc_ascii/plan.py "plan.holding[32 + n] = word(0x40 + 2 * n, U16_BE_MASKED," "plan.holding[32 + n] = word(0x40 + 2 * n, U16_BE,"
 run "6 target: float word order" "$TARGET_TESTS" gateway/kinds/df1/target_unit.py 'low_first = entry.word_order == "low-first"' 'low_first = entry.word_order != "low-first"'
