@@ -25,6 +25,7 @@ SCRIPTS = [
     "availability.py",
     "target_persist.py",
     "slc_write_verdicts.py",
+    "freshness.py",
 ]
 
 
