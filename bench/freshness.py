@@ -20,14 +20,16 @@ Cases (the targets of issue "Spend the line on what SCADA reads"):
   (9600 baud, answers at once): the first data within 2.5 s (median of the runs);
 * ``load50``: 50 connections reading holding 0-31 or 32-63 from the moment the port opens
   (answers at once): no 0x0B after the first 3 s;
-* ``df1``: an SLC 5/04 on DF1 full duplex at 19200 baud and a half-duplex line of 3 stations at
-  19200, scans of 20-60 ms, a map of 100 + 10 + 20 registers and 64 coils per controller; per unit
-  a client reads holding 0-31 every 1 s and 32-63 every 2 s;
+* ``df1``: an SLC 5/04 on DF1 full duplex at 19200 baud, a half-duplex line of 3 stations at 19200,
+  and one of 8 stations of which clients read 3 (the whole plan does not fit the line when the
+  scans are long, what clients read does); scans of 20-60 ms, a map of 100 + 10 + 20 registers and
+  64 coils per controller; per unit read a client reads holding 0-31 every 1 s and 32-63 every 2 s;
 * ``peers``: the same workloads against the interop peers (SLC 150 at 9600 with answers held
   uniform(0, 50 / 100 ms); the DF1 peer paced at 19200 by the proxy, answers held 20-60 ms; the
   half-duplex peer at 19200, every answer held 20-60 ms: a slow turnaround rather than a scan);
 * ``sweep``: reads with data against the controller's longest scan (0 = answers at once), per kind
-  (SLC 150, SLC 5/04 full duplex, a 3-station half-duplex line), plotted to ``--png``.
+  (SLC 150, SLC 5/04 full duplex, the 3- and 8-station half-duplex lines), plotted to ``--png``
+  (``--compare`` earlier runs' ``--json`` files: their curves dashed).
 
     python bench/freshness.py                      # every case, ~15 min
     python bench/freshness.py --only slc,startup   # some cases
@@ -181,28 +183,39 @@ def instance() -> str:
     return f"instance={uuid.uuid4().hex}"
 
 
-def slc_links(scan: ScanTime | None, port: str = "") -> tuple[str, list[int]]:
+#: a gateway's links: (config text, its units, the units the clients read)
+Links = tuple[str, list[int], list[int]]
+
+
+def slc_links(scan: ScanTime | None, port: str = "") -> Links:
     query = "&".join(["paced=1", "seed=1", instance()] + ([f"scan={scan.text()}"] if scan else []))
-    return slc_link("slc", port or f"sim://slc150?{query}", 1), [1]
+    return slc_link("slc", port or f"sim://slc150?{query}", 1), [1], [1]
 
 
-def df1_full_links(scan: ScanTime | None, port: str = "") -> tuple[str, list[int]]:
+def df1_full_links(scan: ScanTime | None, port: str = "") -> Links:
     query = "&".join(["paced=1", "seed=1", instance()] + ([f"scan={scan.text()}"] if scan else []))
-    return df1_link("df1", port or f"sim://slc504?{query}", 1, baudrate=19200), [1]
+    return df1_link("df1", port or f"sim://slc504?{query}", 1, baudrate=19200), [1], [1]
 
 
-def df1_half_links(scan: ScanTime | None, port: str = "") -> tuple[str, list[int]]:
-    query = "&".join(["stations=1,2,3", f"char_time={DF1_CHAR:.9f}", "seed=1", instance()]
+def df1_half_links(scan: ScanTime | None, port: str = "", stations: int = 3, read: int = 3) -> Links:
+    numbers = list(range(1, stations + 1))
+    query = "&".join([f"stations={','.join(map(str, numbers))}", f"char_time={DF1_CHAR:.9f}", "seed=1", instance()]
                      + ([f"scan={scan.text()}"] if scan else []))
     port = port or f"sim://df1line?{query}"
-    links = [df1_link(f"station-{n}", port, n, DF1_MAP, duplex="half", station=n, baudrate=19200) for n in (1, 2, 3)]
-    return "\n".join(links), [1, 2, 3]
+    links = [df1_link(f"station-{n}", port, n, DF1_MAP, duplex="half", station=n, baudrate=19200) for n in numbers]
+    return "\n".join(links), numbers, numbers[:read]
 
 
-KINDS: dict[str, Callable[[ScanTime | None, str], tuple[str, list[int]]]] = {
+def df1_line8_links(scan: ScanTime | None, port: str = "") -> Links:
+    """8 stations on the line, clients reading 3 of them: the whole plan does not fit a slow line."""
+    return df1_half_links(scan, port, stations=8, read=3)
+
+
+KINDS: dict[str, Callable[[ScanTime | None, str], Links]] = {
     "SLC 150, 9600": slc_links,
     "SLC 5/04 DF1 full duplex, 19200": df1_full_links,
     "3 stations, DF1 half duplex, 19200": df1_half_links,
+    "8 stations (3 read), DF1 half duplex, 19200": df1_line8_links,
 }
 
 
@@ -228,11 +241,11 @@ def demanded(gw: Gateway, readers: Sequence[Reader]) -> tuple[int, int]:
     return sum(len(plan.blocks) for plan in plans.values()), len(blocks)
 
 
-async def steady(links: tuple[str, list[int]], screen: Sequence[tuple[int, int, int, float]], seconds: float,
+async def steady(links: Links, screen: Sequence[tuple[int, int, int, float]], seconds: float,
                  warmup: float) -> Figures:
-    """Readers of ``screen`` on every unit; the share with data after ``warmup``."""
-    text, units = links
-    readers = [Reader(unit, fc, address, count, period) for unit in units for fc, address, count, period in screen]
+    """Readers of ``screen`` on every unit read; the share with data after ``warmup``."""
+    text, units, read = links
+    readers = [Reader(unit, fc, address, count, period) for unit in read for fc, address, count, period in screen]
     async with Gateway(config(text)) as gw:
         loop = asyncio.get_running_loop()
         opened, stop = loop.time(), asyncio.Event()
@@ -249,7 +262,7 @@ async def steady(links: tuple[str, list[int]], screen: Sequence[tuple[int, int, 
     return Figures(good, total, rate, plan_blocks, demanded_blocks)
 
 
-async def startup(links: tuple[str, list[int]], limit: float = 15.0) -> float:
+async def startup(links: Links, limit: float = 15.0) -> float:
     """Seconds from the port opening to the first read of holding 0-31 answered with data."""
     async with Gateway(config(links[0])) as gw:
         loop = asyncio.get_running_loop()
@@ -266,7 +279,7 @@ async def startup(links: tuple[str, list[int]], limit: float = 15.0) -> float:
     return float("inf")
 
 
-async def load50(links: tuple[str, list[int]], seconds: float, connections: int = 50) -> tuple[int, int, int, int]:
+async def load50(links: Links, seconds: float, connections: int = 50) -> tuple[int, int, int, int]:
     """(0x0B, reads) in the first 3 s and after, of ``connections`` clients reading from the port's opening."""
     readers = [Reader(1, 3, 32 * (n % 2), 32, 0.1) for n in range(connections)]
     async with Gateway(config(links[0], connections)) as gw:
@@ -355,7 +368,7 @@ def peer(script: str, *args: str) -> Iterator[int]:
 
 
 async def through_peer(script: str, args: Sequence[str], lo: float, hi: float, char_time: float,
-                       links: Callable[[ScanTime | None, str], tuple[str, list[int]]], seconds: float,
+                       links: Callable[[ScanTime | None, str], Links], seconds: float,
                        warmup: float) -> Figures:
     with peer(script, *args) as upstream:
         proxy = AnswerDelayProxy(upstream, lo, hi, char_time=char_time)
@@ -430,11 +443,11 @@ async def main_async(args: argparse.Namespace) -> tuple[dict[str, object], dict[
         figures["slc_acc8_250ms"] = fig.share
         print(rows[-1], flush=True)
     if "df1" in only:
-        for name in list(KINDS)[1:]:
+        for name in [k for k in list(KINDS)[1:] if not args.kinds or any(p in k for p in args.kinds.split(","))]:
             fig = await steady(KINDS[name](REALISTIC_SCAN, ""), SCREEN, seconds, warmup)
-            rows.append(row(f"{name}: per unit holding 0-31 / 1 s, 32-63 / 2 s", f"scan {REALISTIC_SCAN.text()} s",
-                            fig, "fresh whenever it fits"))
-            figures["df1_half" if "half" in name else "df1_full"] = fig.share
+            rows.append(row(f"{name}: per unit read holding 0-31 / 1 s, 32-63 / 2 s",
+                            f"scan {REALISTIC_SCAN.text()} s", fig, "fresh whenever it fits"))
+            figures["df1_line8" if "8 stations" in name else "df1_half" if "half" in name else "df1_full"] = fig.share
             print(rows[-1], flush=True)
     if "peers" in only and PEERS.exists():
         peer_cases = [
@@ -451,7 +464,7 @@ async def main_async(args: argparse.Namespace) -> tuple[dict[str, object], dict[
             fig = await through_peer(script, peer_args, lo, hi, char_time, links, seconds, warmup)
             rows.append(row(f"{name}: holding 0-31 / 1 s, 32-63 / 2 s", f"held uniform {lo:g}-{hi:g} s", fig,
                             ">= 99 %" if "SLC 150" in name else "fresh whenever it fits"))
-            figures[f"peer_{script.split('_')[0]}_{int(hi * 1000)}ms"] = fig.share
+            figures[f"peer_{script.removesuffix('.py')}_{int(hi * 1000)}ms"] = fig.share
             print(rows[-1], flush=True)
     elif "peers" in only:
         print(f"interop peers not found at {PEERS}: measuring the simulators only")
@@ -469,7 +482,8 @@ async def main_async(args: argparse.Namespace) -> tuple[dict[str, object], dict[
         figures["load50_0x0B_after_3s"] = late_bad
     if "sweep" in only:
         sweep = (SWEEP[0], SWEEP[-1]) if args.quick else SWEEP
-        kinds = list(KINDS)[:1] if args.quick else list(KINDS)
+        kinds = list(KINDS)[:1] if args.quick else [k for k in KINDS if not args.kinds or any(
+            part in k for part in args.kinds.split(","))]
         sweep_rows = []
         for name in kinds:
             for longest in sweep:
@@ -491,9 +505,12 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="start-up runs (median; default 3)")
     parser.add_argument("--only", default="", help="comma-separated cases: slc, slc-acc8, startup, load50, df1, "
                                                     "peers, sweep")
+    parser.add_argument("--kinds", default="", help="the sweep's and the df1 case's kinds whose name contains one "
+                                                     "of these (comma-separated; default every kind)")
     parser.add_argument("--png", default=str(ROOT / "bench" / "freshness.png"), help="the sweep's plot")
     parser.add_argument("--json", default="", help="write the figures and the sweep's points to this file")
-    parser.add_argument("--compare", default="", help="a --json file of an earlier run: its sweep drawn dashed")
+    parser.add_argument("--compare", default="",
+                        help="--json files of earlier runs (comma-separated): their sweeps drawn dashed")
     parser.add_argument("--label", default="", help="the legend's label of this run's curves (e.g. 'after')")
     parser.add_argument("--compare-label", default="before", help="the legend's label of --compare's curves")
     parser.add_argument("--title", default="Reads with data vs controller answer time (default config, no faults)")
@@ -507,8 +524,10 @@ def main() -> None:
     if args.png and points and not args.quick:
         before = None
         if args.compare:
-            sweep = json.loads(Path(args.compare).read_text())["sweep"]
-            before = {kind: [(x, y) for x, y in values] for kind, values in sweep.items()}
+            before = {}
+            for name in args.compare.split(","):
+                sweep = json.loads(Path(name).read_text())["sweep"]
+                before.update({kind: [(x, y) for x, y in values] for kind, values in sweep.items()})
         plot(points, Path(args.png), args.title, before, (args.compare_label, args.label))
     result(**figures)
 

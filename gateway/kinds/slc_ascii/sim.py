@@ -65,7 +65,7 @@ from gateway.protocols.slc_ascii.framing import (
     RetransmitRequest,
 )
 from gateway.protocols.slc_ascii.memory_map import is_readable
-from gateway.sim.scan import SCAN_OPTION, ScanTime, parse_scan, scan_clock
+from gateway.sim.scan import ANSWER_BOUND, SCAN_OPTION, ScanTime, parse_scan, scan_clock
 from gateway.sim.serve import Output
 from gateway.sim.variants import resolve_variants
 
@@ -91,7 +91,7 @@ class FaultPlan:
     seed: int = 1
     late_delay: float = 0.36  # late_replies=some: a late reply comes this long after its command
     late_every: int = 50  # late_replies=some: 1 reply in N is late
-    reply_time: float = 0.3  # reply_time=spread / slow_changes: the longest normal reply time
+    reply_time: float = ANSWER_BOUND  # reply_time=spread / slow_changes: the longest normal reply time
     slow_delay: float = 0.6  # reply_time=slow_changes: a mode change or write takes this long
     scan: ScanTime | None = None  # the controller's scan: every reply at the end of the scan in progress
 
