@@ -135,6 +135,17 @@ def test_slc150_with_a_scan_answers_at_the_end_of_the_scan() -> None:
     assert on_grid(answers, FIXED, answers[0])
 
 
+def test_slc150_scan_and_a_slow_reading_keep_the_manuals_bound() -> None:
+    # reply_time=spread: every reply anywhere within the reply time (0.3 s); the scan does not add to it
+    sim = SlcAsciiSimulator(faults=FaultPlan(scan=ScanTime(FIXED, FIXED), seed=4), ladder=False,
+                            variants={"reply_time": "spread"})
+    arrivals = [1.0 * n for n in range(200)]  # one at a time: no reply holds back the next
+    answers = slc_answers(sim, arrivals)
+    delays = [a - t for t, a in zip(arrivals, answers, strict=True)]
+    assert all(0 < d <= MANUAL_BOUND for d in delays)
+    assert max(delays) > 0.25  # the reading's slow replies are kept
+
+
 def test_slc150_without_a_scan_answers_at_once() -> None:
     sim = SlcAsciiSimulator(ladder=False)
     arrivals = [0.137 * n for n in range(5)]

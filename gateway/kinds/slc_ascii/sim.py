@@ -43,7 +43,8 @@ Where the manual leaves the controller's behaviour open, ``VARIANTS`` has a swit
 
 The ``scan`` option (``scan=0.05`` or ``scan=0.02-0.06`` seconds; :mod:`gateway.sim.scan`) gives the
 controller a program scan: every reply then comes at the end of the scan in progress when its command
-arrived, on top of the ``reply_time`` reading.  Without it replies come at once.
+arrived, or later when the ``reply_time`` reading says so (the reading's time and the scan are not
+added: both count from the command).  Without it replies come at once.
 
 This class does no I/O: ``receive(data, now)`` returns the replies to send, each with a delay.
 ``gateway.sim.serve`` runs it in-process, over TCP or on a pty.
@@ -379,7 +380,7 @@ class SlcAsciiSimulator:
         if garbled:
             self.counters.garbled_out += 1
             reply = self._garble(reply)
-        delay = plan.delay + self._turnaround(slow) + self._scan_delay(now)
+        delay = plan.delay + max(self._turnaround(slow), self._scan_delay(now))
         if self.variants["late_replies"] == "some" and self._rng.randrange(max(1, plan.late_every)) == 0:
             self.counters.late += 1
             delay = max(delay, plan.late_delay)
