@@ -68,6 +68,16 @@ class BlockCache:
         if self.images is not None:
             self.images.decode(block, target)
 
+    def expire_before(self, when: float) -> None:
+        """Serve no value read before ``when`` (a link loss): each stays stale until its block is read
+        again.  The bytes and read times stay (the status page shows the last value, and its age)."""
+        images = self.images
+        if images is None:
+            return
+        for block, stamp in enumerate(self.stamps):
+            if stamp < when:
+                images.expire(block)
+
     def age(self, block: int, now: float) -> float:
         return now - self.stamps[block]
 

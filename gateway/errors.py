@@ -21,6 +21,7 @@ broke a rule or failed, after (or while) something was sent.
     |   +-- ControllerRefused      the controller answered with a refusal (;E, PCCC STS)
     |   +-- ControllerFault        the controller reported a fault (;T)
     +-- ModbusExceptionReply       the Modbus answer, already chosen (carries its own code)
+        +-- StaleRead              0x0B for data not read yet or stale; the reader may wait for it
 
 Each layer translates the errors of the layer below with ``raise ... from``.
 
@@ -50,6 +51,7 @@ refusal naming a bad address answers 0x02: ``gateway.kinds.df1.unit.pccc_excepti
 
 from __future__ import annotations
 
+from collections.abc import Awaitable, Callable
 from typing import Final
 
 __all__ = [
@@ -66,6 +68,7 @@ __all__ = [
     "ModbusExceptionReply",
     "ProtocolError",
     "RemoteError",
+    "StaleRead",
     "WriteOutcomeUnknown",
     "format_seconds",
     "modbus_code",
@@ -150,6 +153,21 @@ class ModbusExceptionReply(GatewayError):
     def __init__(self, code: int, message: str = ""):
         super().__init__(message or f"Modbus exception 0x{code:02X}")
         self.code = code
+
+
+class StaleRead(ModbusExceptionReply):
+    """0x0B for data not read yet or stale, on a link that is up: the reader may wait for it.
+
+    ``wait()`` asks for an immediate read of the data's blocks and returns an awaitable that is
+    done when they were read (or failed, or the link was lost); a reader that may wait at most
+    ``read_wait`` seconds for it and reads again after.  One that does not wait (the status page)
+    answers the 0x0B at once; nothing is asked of the line until ``wait()`` is called.
+    """
+
+    def __init__(self, message: str, wait: Callable[[], Awaitable[None]], read_wait: float) -> None:
+        super().__init__(ModbusExceptionReply.GATEWAY_TARGET_FAILED, message)
+        self.wait = wait
+        self.read_wait = read_wait
 
 
 #: Error type -> Modbus exception code (the table of the module docstring).  Looked up along the

@@ -288,6 +288,33 @@ class Images:
             else:
                 deadlines[s.first : s.first + s.step * (s.n - 1) + 1 : s.step] = [deadline] * s.n
 
+    def expire(self, block: int) -> None:
+        """The points of ``block`` are stale until it is stored again."""
+        segments = self.segments
+        for s in self._stamps[block]:
+            deadlines = segments[s.segment].deadlines
+            deadlines[s.first : s.first + s.step * (s.n - 1) + 1 : s.step] = [NEVER] * s.n
+
+    def blocks_in(self, table: Table, address: int, count: int) -> tuple[int, ...]:
+        """The blocks holding the mapped addresses of ``address``.. (``count``), in address order,
+        each once (what a read of them makes demanded)."""
+        segment = self._find(table, address)
+        if segment is None:
+            return ()
+        i = address - segment.first
+        j = min(address + count - 1, segment.last) - segment.first + 1
+        return tuple(dict.fromkeys(segment.blocks[i:j]))
+
+    def stale_blocks(self, table: Table, address: int, count: int, now: float) -> tuple[int, ...]:
+        """The blocks of ``address``.. (``count``) whose points are stale at ``now``, each once."""
+        segment = self._find(table, address)
+        if segment is None:
+            return ()
+        i = address - segment.first
+        j = min(address + count - 1, segment.last) - segment.first + 1
+        deadlines, blocks = segment.deadlines, segment.blocks
+        return tuple(dict.fromkeys(blocks[k] for k in range(i, j) if deadlines[k] < now))
+
     # --- reads --------------------------------------------------------------------------
 
     def _find(self, table: Table, address: int) -> _Segment | None:

@@ -25,6 +25,17 @@ Metrics (every name starts with ``slc_gateway_``)::
       partial_writes_total          counter  ... of which the controller refused part-way (some registers written)
       write_busy_total              counter  writes answered 0x06 because the link's write queue was full
       write_duration_seconds        histogram  Modbus write requests, arrival to answer (success or exception)
+    per polled link, same labels: the line's budget (docs/guide/freshness.md)
+      stale_limit_seconds           gauge    data age above which the link is stale (/healthz)
+      refresh_period_seconds{set}   gauge    achieved refresh period, set = fast | slow | demanded (no sample
+                                             before one is measured)
+      age_bound_seconds{set}        gauge    the bound on a block's age the order guarantees, per set
+      transaction_seconds           gauge    mean time of a read transaction
+      line_use_ratio                gauge    share of the last 10 s the line spent on reads
+      plan_blocks                   gauge    blocks of the read plan
+      demanded_blocks               gauge    blocks a client read within demand_hold
+      late_reads_total              counter  reads that came after their block's stale limit
+      read_waits_total              counter  Modbus reads that waited for their data (read_wait)
     per link whose driver reports its own numbers (``driver.metrics() -> dict[str, float]``), same labels
       link_<key>_total              counter  every key, e.g. link_polls_total, link_eots_total
       link_<key>                    gauge    keys of state, not counts: ``active`` and ``*_active``
@@ -41,8 +52,9 @@ Metrics (every name starts with ``slc_gateway_``)::
       modbus_connections_evicted_total        counter  stalled connections closed to make room (also dropped)
       modbus_tls_handshakes                   gauge    TLS handshakes in progress now
 
-``/healthz`` answers 200 when every link is up and its fast-class data is younger than its
-``stale_after``, 503 otherwise, with a JSON body naming each link's state (no paths, no
+``/healthz`` answers 200 when every link is up and its fast-class data is younger than its stale
+limit (``stale_after`` plus the fast class's achieved refresh period, ``stale_limit_seconds``), 503
+otherwise, with a JSON body naming each link's state (no paths, no
 configuration beyond the link names and unit ids).
 
 The same listener serves the status page (``/``) and its JSON API (``/api/...``), read-only:
@@ -73,7 +85,7 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 from gateway.config import parse_listen
 from gateway.logutil import RepeatLog
 from gateway.modbus.admission import IPNetwork, format_address, host_allowed, peer_host
-from gateway.status import StatusPage, data_age, public_error
+from gateway.status import StatusPage, data_age, link_fresh, public_error, stale_limit
 
 if TYPE_CHECKING:
     from gateway.config.link import LinkBase
@@ -173,6 +185,7 @@ class _GatewayCollector:
         latency = HistogramMetricFamily(PREFIX + "write_duration_seconds",
                                         "Modbus write requests from arrival to answer (success or exception).",
                                         labels=link)
+        budget = _BudgetFamilies(link)
         for unit in units:
             labels = (unit.name, str(unit.unit_id))
             driver = unit.driver
@@ -193,8 +206,9 @@ class _GatewayCollector:
             busy.add_metric(labels, unit.writes.busy_refusals)
             histogram = unit.write_latency
             latency.add_metric(labels, histogram.cumulative(), histogram.total)
+            budget.add(unit, labels, now)
         static: list[Metric] = [link_up, connected, age, stale, *plain.values(), retries, byte_count, writes,
-                                write_failures, partial, busy, latency]
+                                write_failures, partial, busy, latency, *budget.families()]
         return static + _driver_families(units, {family.name for family in static})
 
     @staticmethod
@@ -234,6 +248,47 @@ class _GatewayCollector:
             evicted.add_metric((name,), server.admission.evicted)
             handshakes.add_metric((name,), server.admission.handshaking)
         return [requests, exceptions, backend_errors, connections, accepted, refused, dropped, evicted, handshakes]
+
+
+class _BudgetFamilies:
+    """The line's budget of each polled link (module docstring; ``gateway.status.schedule_document``)."""
+
+    def __init__(self, link: Sequence[str]) -> None:
+        by_set = (*link, "set")
+        self.limit = _gauge("stale_limit_seconds", "Data age above which the link is stale (healthz).", link)
+        self.refresh = _gauge("refresh_period_seconds", "Achieved refresh period of a set of blocks.", by_set)
+        self.bound = _gauge("age_bound_seconds", "The bound on a block's age the read order guarantees.", by_set)
+        self.transaction = _gauge("transaction_seconds", "Mean time of a read transaction.", link)
+        self.use = _gauge("line_use_ratio", "Share of the last 10 s the line spent on reads.", link)
+        self.blocks = _gauge("plan_blocks", "Blocks of the read plan.", link)
+        self.demanded = _gauge("demanded_blocks", "Blocks a client read within demand_hold.", link)
+        self.late = _counter("late_reads", "Reads that came after their block's stale limit.", link)
+        self.waits = _counter("read_waits", "Modbus reads that waited for their data (read_wait).", link)
+
+    def add(self, unit: Unit[Any, Any], labels: tuple[str, str], now: float) -> None:
+        schedule, poller = unit.schedule, unit.poller
+        if schedule is None or poller is None:
+            return
+        budget = schedule.budget(now)
+        self.limit.add_metric(labels, stale_limit(unit))
+        for name, value in budget.refresh.items():
+            if value is not None and name != "all":
+                self.refresh.add_metric((*labels, name), value)
+        for name, value in budget.age_bound.items():
+            if value is not None:
+                self.bound.add_metric((*labels, name), value)
+        if budget.transaction_time is not None:
+            self.transaction.add_metric(labels, budget.transaction_time)
+        if budget.line_use is not None:
+            self.use.add_metric(labels, budget.line_use)
+        self.blocks.add_metric(labels, budget.blocks)
+        self.demanded.add_metric(labels, budget.demanded)
+        self.late.add_metric(labels, schedule.late_reads)
+        self.waits.add_metric(labels, poller.read_waits)
+
+    def families(self) -> list[Metric]:
+        return [self.limit, self.refresh, self.bound, self.transaction, self.use, self.blocks, self.demanded,
+                self.late, self.waits]
 
 
 _METRIC_KEY: Final = re.compile(r"[a-z][a-z0-9_]{0,62}")
@@ -313,7 +368,7 @@ def health(gateway: GatewayView, now: float) -> tuple[bool, dict[str, object]]:
     for unit in gateway.units:
         age = data_age(unit, now)
         up = unit.driver.available
-        fresh = age < unit.stale_after
+        fresh = link_fresh(unit, now)
         healthy = healthy and up and fresh
         links[unit.name] = {
             "unit": unit.unit_id,

@@ -6,7 +6,9 @@ Read-only: nothing here writes to a controller; writes stay on Modbus, where the
   (``gateway/web/``), no build step and nothing fetched from elsewhere; it asks the API every second.
 * ``GET /api/status``: the gateway and one row per unit (a link, or a station of a half-duplex
   line): name, kind, port (credentials redacted), unit id, up / stale / down and since when, data
-  age (the oldest fast-class value), transactions, errors, retries, the last error and its time.
+  age (the oldest fast-class value), transactions, errors, retries, the last error and its time,
+  and the line's budget (``schedule``: :func:`schedule_document`).  *Stale* is a data age at or
+  over :func:`stale_limit`.
 * ``GET /api/units/{unit}/{table}?start=&count=``: ``count`` (1..:data:`MAX_COUNT`) values of
   ``table`` (holding, input, coil, discrete) from ``start``, each with its age and state.  The
   state is the Modbus answer a read of that one address gets now (the unit's own rule, the one
@@ -42,7 +44,16 @@ if TYPE_CHECKING:
     from gateway.modbus.server import ModbusTcpServer
     from gateway.unit import Unit
 
-__all__ = ["MAX_COUNT", "StatusPage", "StatusView", "data_age", "public_error"]
+__all__ = [
+    "MAX_COUNT",
+    "StatusPage",
+    "StatusView",
+    "data_age",
+    "link_fresh",
+    "public_error",
+    "schedule_document",
+    "stale_limit",
+]
 
 #: The most values one register view request returns (a Modbus read of registers holds 125).
 MAX_COUNT: Final = 125
@@ -85,6 +96,49 @@ class StatusView(Protocol):
 def data_age(unit: Unit[Any, Any], now: float) -> float:
     """Seconds since the oldest fast-class block was read; +Inf if one never was."""
     return unit.data_age(now)
+
+
+def stale_limit(unit: Unit[Any, Any]) -> float:
+    """The data age above which a link is *stale* (the page's state, ``/healthz``): ``stale_after`` plus
+    the refresh period the schedule achieves for the fast class (the slow class when the plan has no
+    fast class; before one is measured: the class period).  A healthy slow line is not stale; a silent
+    controller is, ``stale_after`` after its refresh period (the README's meaning)."""
+    schedule = unit.schedule
+    if schedule is None:
+        return unit.stale_after
+    blocks = [i for i, scan in enumerate(schedule.scans) if scan.value == "fast"] or range(len(schedule.scans))
+    achieved = schedule.refresh_period(blocks) or 0.0
+    return unit.stale_after + max([achieved, *(schedule.period[i] for i in blocks)])
+
+
+def link_fresh(unit: Unit[Any, Any], now: float) -> bool:
+    """The data of ``unit`` is fresh: its age is under :func:`stale_limit`."""
+    return data_age(unit, now) < stale_limit(unit)
+
+
+def schedule_document(unit: Unit[Any, Any], now: float) -> dict[str, object] | None:
+    """The line's budget as the schedule achieves it (``/api/status``: a link's ``schedule``); None
+    for a unit that is not polled."""
+    schedule, poller = unit.schedule, unit.poller
+    if schedule is None or poller is None:
+        return None
+    budget = schedule.budget(now)
+
+    def seconds(values: Mapping[str, float | None]) -> dict[str, float | None]:
+        return {key: None if value is None else _finite(value) for key, value in values.items() if key != "all"}
+
+    return {
+        "blocks": budget.blocks,
+        "demanded": budget.demanded,
+        "transaction_time": None if budget.transaction_time is None else _finite(budget.transaction_time),
+        "line_use": None if budget.line_use is None else round(budget.line_use, 3),
+        "refresh": seconds(budget.refresh),
+        "age_bound": seconds(budget.age_bound),
+        "stale_limit": _finite(stale_limit(unit)),
+        "late_reads": schedule.late_reads,
+        "read_waits": poller.read_waits,
+        "behind": poller.behind,
+    }
 
 
 def public_error(text: str) -> str:
@@ -161,8 +215,7 @@ class StatusPage:
             counters = driver.counters
             age = data_age(unit, now)
             up = driver.available
-            fresh = age < unit.stale_after
-            state = "down" if not up else "up" if fresh else "stale"
+            state = "down" if not up else "up" if link_fresh(unit, now) else "stale"
             up_count += state == "up"
             kind, controllers = self._kind(unit.name)
             error = unit.last_error
@@ -181,6 +234,7 @@ class StatusPage:
                 "retries": counters.retries,
                 "last_error": public_error(str(error)) if error is not None else public_error(driver.last_error),
                 "last_error_at": at(unit.last_error_at) if error is not None else None,
+                "schedule": schedule_document(unit, now),
             })
         servers = [{
             "name": server.name,

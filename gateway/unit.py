@@ -7,14 +7,17 @@ non-polled value never ages on its own and is stale only once the peer has been 
 ``stale_after``).  Everything else (the image, the status block, writes, access rules) is the same.
 
 Reads are answered from the register and bit images (``gateway.image``), which the cache fills
-when a block is stored; writes go through to the controller and are answered only after it
-confirmed them, then patch the cache (never its read times).
+when a block is stored, and note their request as demand (``gateway.schedule``); writes go through
+to the controller and are answered only after it confirmed them, then patch the cache (never its
+read times).  A stale read on a link that is up may wait ``read_wait`` for its blocks (StaleRead).
 
 A value is stale (exception 0x0B) when its own block was last read longer ago than
-``stale_after`` plus the period of its scan class (``fast_interval`` or ``slow_interval``), or when
-the controller has answered no poll for ``stale_after`` plus the shortest scan period: a
-slow-class value read every 10 s is not stale 5 s after its read while the link is up, and no
-value outlives a silent link by more than ``stale_after`` (plus ``fast_interval``).
+``stale_after`` plus the period planned for the block at that read (its class's, ``fast_interval``
+or ``slow_interval``, when demanded; else ``background_interval`` if longer), or when the
+controller has answered no poll for ``stale_after`` plus the shortest scan period (the silent
+limit, unchanged): a slow-class value read every 10 s is not stale 5 s after its read while the link
+is up, and no value outlives a silent link by more than ``stale_after`` (plus ``fast_interval``).
+Values read before a link loss are stale from its recovery until read again.
 
 Error translation (controller -> Modbus exception; errors by type: ``gateway.errors.MODBUS_CODES``):
 
@@ -37,9 +40,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import struct
 from abc import ABC, abstractmethod
-from bisect import bisect_left
 from collections.abc import Awaitable, Callable, Hashable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
@@ -47,8 +50,9 @@ from typing import Any, Generic, NotRequired, TypedDict, TypeVar
 
 from gateway.cache import BlockCache
 from gateway.clients import current_client
-from gateway.errors import ControllerRefused, GatewayError, ModbusExceptionReply, modbus_exception
+from gateway.errors import ControllerRefused, GatewayError, ModbusExceptionReply, StaleRead, modbus_exception
 from gateway.image import ImageMiss, Images
+from gateway.latency import LATENCY_BUCKETS, LatencyHistogram
 from gateway.line_driver import UnitDriver
 from gateway.modbus.mapping import (
     STATUS_BASE,
@@ -61,7 +65,14 @@ from gateway.modbus.mapping import (
     Scan,
     Table,
 )
-from gateway.poller import Poller
+from gateway.poller import LineShare, Poller
+from gateway.schedule import (
+    DEFAULT_BACKGROUND_INTERVAL,
+    DEFAULT_DEMAND_HOLD,
+    DEFAULT_READ_WAIT,
+    DemandLog,
+    Schedule,
+)
 from gateway.writes import WriteQueue
 
 __all__ = ["LATENCY_BUCKETS", "LatencyHistogram", "Unit", "UnitOptions", "WritableRange", "WriteStep", "in_writable"]
@@ -94,6 +105,11 @@ class UnitOptions(TypedDict):
     writable: NotRequired[Sequence[WritableRange]]
     fast_interval: NotRequired[float]
     slow_interval: NotRequired[float]
+    demand_hold: NotRequired[float]
+    background_interval: NotRequired[float]
+    read_wait: NotRequired[float]
+    #: the pollers of units that share one line (not a config key: the kind's build gives it)
+    line_share: NotRequired[LineShare | None]
     write_burst: NotRequired[int]
     poll_burst: NotRequired[int]
     write_queue_per_client: NotRequired[int]
@@ -135,6 +151,10 @@ class Unit(ABC, Generic[R, B]):
         writable: Sequence[WritableRange] = (),
         fast_interval: float = 0.0,
         slow_interval: float = 10.0,
+        demand_hold: float = DEFAULT_DEMAND_HOLD,
+        background_interval: float = DEFAULT_BACKGROUND_INTERVAL,
+        read_wait: float = DEFAULT_READ_WAIT,
+        line_share: LineShare | None = None,
         write_burst: int = 1,
         poll_burst: int = 2,
         write_queue_per_client: int = 8,
@@ -150,32 +170,33 @@ class Unit(ABC, Generic[R, B]):
         self.stale_after = stale_after
         self.read_only = read_only
         self.writable = tuple(writable)
-        # a value that is not polled does not age on its own (see the module doc)
-        period = {Scan.FAST: fast_interval, Scan.SLOW: slow_interval} if polled else dict.fromkeys(Scan, float("inf"))
-        #: per block: the largest age at which its bytes are still served
-        self._max_age = [stale_after + period[block.scan] for block in plan.blocks]
+        #: seconds a read of data not read yet or stale may wait for its block (0: answer at once)
+        self.read_wait = read_wait
+        #: the requests clients read from the image (folded into demand by the poller)
+        self.demand = DemandLog()
+        #: the read order and the stale limits of a polled unit (None: not polled)
+        self.schedule = Schedule(
+            [block.scan for block in plan.blocks], fast_interval=fast_interval, slow_interval=slow_interval,
+            stale_after=stale_after, demand_hold=demand_hold, background_interval=background_interval,
+        ) if polled else None
+        #: per block: the largest age at which its bytes are still served; polled: the schedule sets
+        #: each as the block is read (see the module doc); a value that is not polled does not age
+        self._max_age = self.schedule.max_age if self.schedule is not None else [math.inf] * len(plan.blocks)
         #: the four tables decoded when a block is stored (a read is a slice)
         self.images = Images(plan, self._max_age)
-        self.cache = BlockCache(
-            [block.size for block in plan.blocks],
-            images=self.images,
-            fast=[i for i, block in enumerate(plan.blocks) if block.scan is Scan.FAST],
-        )
-        #: the controller is silent after this long without an answer to a poll (the poller asks
-        #: every fast_interval, or only every slow_interval when the plan has no fast class); a
-        #: non-polled peer, after stale_after without a message
-        self._silent_after = min(self._max_age, default=stale_after) if polled else stale_after
+        self.cache = BlockCache([block.size for block in plan.blocks], images=self.images,
+                                fast=[i for i, block in enumerate(plan.blocks) if block.scan is Scan.FAST])
+        #: the controller is silent after this long without an answer to a poll (the poller reads a
+        #: block at least every shortest class period: fast_interval, or slow_interval when the
+        #: plan has no fast class); a non-polled peer, after stale_after without a message
+        self._silent_after = stale_after + min(self.schedule.period, default=0.0) if self.schedule else stale_after
         #: None: not polled (the kind's runner fills the image)
         self.poller = Poller(
-            name,
-            plan.blocks,
-            self.cache,
-            self.read_block,
-            fast_interval=fast_interval,
-            slow_interval=slow_interval,
+            name, plan.blocks, self.cache, self.read_block, fast_interval=fast_interval, slow_interval=slow_interval,
             responding=lambda: driver.available,
             stagger=stagger,  # None: a share of fast_interval from the name (gateway.poller.default_stagger)
-        ) if polled else None
+            schedule=self.schedule, demand=self.demand, share=line_share,
+        ) if self.schedule is not None else None
         self.write_requests = 0
         self.write_failures = 0
         #: seconds from a write request's arrival to its answer, success or exception
@@ -249,27 +270,29 @@ class Unit(ABC, Generic[R, B]):
         """Registers ``address``.. (``count``) as the big-endian bytes of a FC3/FC4 reply.
 
         Served from the image (a slice); the first unmapped or stale register, in address
-        order, decides the exception.
+        order, decides the exception.  The request is noted as demand (one dict store).
         """
         now = self._loop_time()
         if table is Table.INPUT and address >= STATUS_BASE:
             return _pack_registers(self._status(address, count, now))
+        self.demand.keys[(table, address, count)] = now
         if now - self.cache.newest > self._silent_after and self.images.mapped(table, address, count):
             raise self._stale()
         try:
             return self.images.registers(table, address, count, now)
         except ImageMiss as miss:
-            raise self._miss(table, miss, f"{table.value} register") from None
+            raise self._miss(table, miss, f"{table.value} register", address, count, now) from None
 
     def read_bit_bytes(self, table: Table, address: int, count: int) -> bytes:
         """Bits ``address``.. (``count``) packed LSB first, as the payload of a FC1/FC2 reply."""
         now = self._loop_time()
+        self.demand.keys[(table, address, count)] = now
         if now - self.cache.newest > self._silent_after and self.images.mapped(table, address, count):
             raise self._stale()
         try:
             return self.images.bits(table, address, count, now)
         except ImageMiss as miss:
-            raise self._miss(table, miss, table.value) from None
+            raise self._miss(table, miss, table.value, address, count, now) from None
 
     def read_registers(self, table: Table, address: int, count: int) -> list[int]:
         return list(struct.unpack(f">{count}H", self.read_register_bytes(table, address, count)))
@@ -281,10 +304,18 @@ class Unit(ABC, Generic[R, B]):
     def _loop_time(self) -> float:
         return asyncio.get_running_loop().time()
 
-    def _miss(self, table: Table, miss: ImageMiss, what: str) -> ModbusExceptionReply:
+    def _miss(self, table: Table, miss: ImageMiss, what: str, address: int, count: int,
+              now: float) -> ModbusExceptionReply:
         if miss.block is None:
             return ModbusExceptionReply(ILLEGAL_ADDRESS, f"{what} {miss.address} is not mapped")
-        return self._stale(miss.block)
+        stale = self._stale(miss.block)
+        poller = self.poller
+        if (stale.code != TARGET_FAILED or poller is None or not poller.running or self.read_wait <= 0
+                or not self.driver.available):
+            return stale
+        # The link is up: the reader may wait for an immediate read of the stale blocks.
+        blocks = self.images.stale_blocks(table, address, count, now)
+        return StaleRead(str(stale), partial(poller.wait_for, blocks), self.read_wait)
 
     def _silent(self, now: float) -> bool:
         """The controller answered no poll for ``stale_after`` seconds past its scan period."""
@@ -519,33 +550,6 @@ class Unit(ABC, Generic[R, B]):
         else:
             self.cache.patch(point.block, msb, bytes((value >> 8 & 0xFF,)))
             self.cache.patch(point.block, lsb, bytes((value & 0xFF,)))
-
-
-#: upper bounds (seconds) of the write latency buckets: a write is one or a few serial round trips
-LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
-
-
-@dataclass(slots=True)
-class LatencyHistogram:
-    """Counts of durations per bucket (:data:`LATENCY_BUCKETS`, then +Inf), their sum and number."""
-
-    counts: list[int] = field(default_factory=lambda: [0] * (len(LATENCY_BUCKETS) + 1))
-    total: float = 0.0
-    count: int = 0
-
-    def observe(self, seconds: float) -> None:
-        self.counts[bisect_left(LATENCY_BUCKETS, seconds)] += 1
-        self.total += seconds
-        self.count += 1
-
-    def cumulative(self) -> list[tuple[str, int]]:
-        """``(upper bound, count at or below it)`` per bucket, the last ``+Inf`` (Prometheus ``le``)."""
-        out: list[tuple[str, int]] = []
-        running = 0
-        for bound, count in zip((*map(str, LATENCY_BUCKETS), "+Inf"), self.counts, strict=True):
-            running += count
-            out.append((bound, running))
-        return out
 
 
 @dataclass(slots=True)

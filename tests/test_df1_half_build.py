@@ -104,3 +104,20 @@ async def test_two_lines_from_config_over_tcp() -> None:
     driver = units["s2"].driver
     assert isinstance(driver, Df1Station)
     assert driver.line.register_tables[2].values() == [0, 42, 0, 0]
+
+
+def test_the_stations_of_one_line_share_their_pollers_line_and_other_links_do_not() -> None:
+    """One station's background must wait for another's demanded blocks (``gateway.poller.LineShare``):
+    the pollers of one half-duplex line share one, a full-duplex link has its own line."""
+    links = [
+        link("a1", 1, "socket://127.0.0.1:1", 1),
+        link("a2", 2, "socket://127.0.0.1:1", 2),
+        link("b1", 3, "socket://127.0.0.1:2", 1),
+        Df1LinkConfig.model_validate({"name": "f", "protocol": "df1", "port": "socket://127.0.0.1:3", "unit": 4,
+                                      "map": [{"table": "holding", "start": 0, "address": "N7:0", "count": 4}]}),
+    ]
+    units = build_df1(links).units
+    shares = [unit.poller._share if unit.poller is not None else None for unit in units]
+    assert shares[0] is not None and shares[0] is shares[1]
+    assert shares[2] is not None and shares[2] is not shares[0]
+    assert shares[3] is None

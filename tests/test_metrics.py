@@ -360,3 +360,34 @@ async def test_close_ends_open_connections_and_stops_listening(gateway: Gateway)
         await asyncio.open_connection(HOST, port)
     with pytest.raises(RuntimeError):
         _ = server.port
+
+
+async def test_metrics_show_the_lines_budget(gateway: Gateway) -> None:
+    """The schedule's figures (docs/guide/freshness.md): what a client reads is demanded, the line's
+    use and refresh periods once measured, and the stale limit /healthz uses."""
+    port = gateway.metrics.port
+    await until_health(port, lambda r: r.status == 200)
+    client = AsyncModbusTcpClient(HOST, port=gateway.port, timeout=2, retries=0)
+    await client.connect()
+    try:
+        assert not (await client.read_holding_registers(0, count=4, device_id=1)).isError()
+    finally:
+        client.close()
+    link = {"link": "press-1", "unit": "1"}
+
+    def measured(found: dict[str, list[Sample]]) -> bool:
+        return any(s.labels.get("set") == "demanded" for s in found.get("slc_gateway_refresh_period_seconds", []))
+
+    found = samples((await get(port, "/metrics")).body.decode())
+    async with asyncio.timeout(10):
+        while not measured(found):  # the demanded blocks are read twice before a period is known
+            await asyncio.sleep(0.05)
+            found = samples((await get(port, "/metrics")).body.decode())
+    assert value(found, "slc_gateway_plan_blocks", **link) == 120  # the SLC 150 plan
+    assert value(found, "slc_gateway_demanded_blocks", **link) == 4  # holding 0-3: four two-byte reads
+    assert value(found, "slc_gateway_stale_limit_seconds", **link) >= 5  # stale_after plus a period
+    assert value(found, "slc_gateway_refresh_period_seconds", set="demanded", **link) > 0
+    assert value(found, "slc_gateway_transaction_seconds", **link) > 0
+    assert value(found, "slc_gateway_age_bound_seconds", set="slow", **link) >= 10  # slow_interval at least
+    for name in ("late_reads", "read_waits"):
+        assert value(found, f"slc_gateway_{name}_total", **link) >= 0

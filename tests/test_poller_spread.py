@@ -1,36 +1,138 @@
-"""The poller reads the slow class whole at start, then spreads its periodic scans over fast rounds."""
+"""The poller reads in the schedule's order: the fast class first at start, slow blocks between fast
+reads as each falls due (never the whole slow class at once), demanded blocks first, and a block a
+waiting read asks for before anything else (``docs/guide/freshness.md``)."""
 
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Awaitable, Callable
 
 from gateway.cache import BlockCache
+from gateway.errors import LinkDown
 from gateway.modbus.mapping import Block, Scan
-from gateway.poller import Poller
+from gateway.poller import LineShare, Poller
 
 
-async def test_periodic_slow_scans_are_spread_over_the_fast_rounds() -> None:
-    blocks = [Block(("f", n), 1, Scan.FAST, f"f{n}") for n in range(2)]
-    blocks += [Block(("s", n), 1, Scan.SLOW, f"s{n}") for n in range(4)]
+def plan(fast: int, slow: int, prefix: str = "") -> list[Block]:
+    blocks = [Block((prefix, "f", n), 1, Scan.FAST, f"{prefix}f{n}") for n in range(fast)]
+    return blocks + [Block((prefix, "s", n), 1, Scan.SLOW, f"{prefix}s{n}") for n in range(slow)]
+
+
+async def until(condition: Callable[[], bool], seconds: float = 5.0) -> None:
+    for _ in range(int(seconds / 0.002)):
+        if condition():
+            return
+        await asyncio.sleep(0.002)
+    raise AssertionError(f"condition not met within {seconds} s")
+
+
+async def run_for(poller: Poller, seconds: float) -> None:
+    task = asyncio.create_task(poller.run())
+    await asyncio.sleep(seconds)
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+
+
+async def test_fast_class_first_at_start_and_slow_blocks_between_fast_reads() -> None:
     reads: list[str] = []
 
     async def read(block: Block) -> bytes:
         reads.append(block.label)
+        await asyncio.sleep(0.005)
         return b"\0"
 
-    poller = Poller("p", blocks, BlockCache([1] * len(blocks)), read, fast_interval=0.05, slow_interval=0.2)
-    task = asyncio.create_task(poller.run())
-    await asyncio.sleep(0.6)
-    task.cancel()
-    await asyncio.gather(task, return_exceptions=True)
-    assert reads[:6] == ["s0", "s1", "s2", "s3", "f0", "f1"]  # the whole slow class first
-    rounds: list[list[str]] = []
+    # 4 slow blocks due every 0.2 s, two fast blocks read continuously; nobody demands anything
+    poller = Poller("p", plan(2, 4), BlockCache([1] * 6), read, fast_interval=0.0, slow_interval=0.2, stagger=0)
+    await run_for(poller, 0.8)
+    assert reads[:2] == ["f0", "f1"]  # never the whole slow class before any fast block
+    assert set(reads[2:6]) == {"s0", "s1", "s2", "s3"}  # then each slow block once
+    # every slow block is read again every 0.2 s (its period; the line has room) ...
+    for n in range(4):
+        times = [i for i, label in enumerate(reads) if label == f"s{n}"]
+        assert len(times) >= 3, reads
+    # ... between fast reads: never the 4 slow blocks back to back after start
+    runs, run = [], 0
     for label in reads[6:]:
-        if label == "f0" or not rounds:
-            rounds.append([])
-        rounds[-1].append(label)
-    slow_per_round = [sum(label.startswith("s") for label in r) for r in rounds]
-    # spread over half the slow interval: ceil(4 blocks x 0.05 s / 0.1 s) = 2 slow blocks before
-    # a fast round, never 4 at once
-    assert max(slow_per_round) == 2, rounds
-    assert sum(slow_per_round) >= 4, rounds  # a periodic slow scan did complete
+        run = run + 1 if label.startswith("s") else 0
+        runs.append(run)
+    assert max(runs) < 4, reads
+
+
+async def test_a_block_a_read_waits_for_goes_first() -> None:
+    reads: list[str] = []
+
+    async def read(block: Block) -> bytes:
+        reads.append(block.label)
+        await asyncio.sleep(0.005)
+        return b"\0"
+
+    poller = Poller("p", plan(8, 0), BlockCache([1] * 8), read, stagger=0)
+    task = asyncio.create_task(poller.run())
+    try:
+        await until(lambda: len(reads) >= 3)
+        waited = poller.wait_for([6])
+        asked = len(reads)
+        await asyncio.wait_for(waited, 1.0)
+        assert reads.index("f6", asked) <= asked + 1  # at most the read on the line before it
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+
+async def test_a_wait_ends_when_the_link_is_lost() -> None:
+    lost = asyncio.Event()
+
+    async def read(block: Block) -> bytes:
+        await asyncio.sleep(0.005)
+        if lost.is_set():
+            raise LinkDown("gone")
+        return b"\0"
+
+    poller = Poller("p", plan(2, 0), BlockCache([1] * 2), read, stagger=0, down_wait=0.01)
+    task = asyncio.create_task(poller.run())
+    try:
+        await until(lambda: poller.available)
+        lost.set()
+        waited = poller.wait_for([1])
+        await asyncio.wait_for(waited, 1.0)  # done, not hanging until a read that cannot come
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+
+async def test_stations_sharing_a_line_one_stations_background_yields_to_anothers_urgent_reads() -> None:
+    """Two pollers on one line: A has a demanded fast block, B nobody reads.  B's wanted reads wait
+    while A's urgent read is on the line; B's blocks still come within their background period."""
+    on_line: list[str] = []
+    share = LineShare()
+
+    def reader(log: list[str]) -> Callable[[Block], Awaitable[bytes]]:
+        async def read(block: Block) -> bytes:
+            log.append(block.label)
+            on_line.append(block.label)
+            await asyncio.sleep(0.01)
+            return b"\0"
+        return read
+
+    a_reads: list[str] = []
+    b_reads: list[str] = []
+    a = Poller("a", plan(1, 0, "a"), BlockCache([1]), reader(a_reads), stagger=0, share=share)
+    b = Poller("b", plan(4, 0, "b"), BlockCache([1] * 4), reader(b_reads), stagger=0, share=share)
+    b.schedule.background = [0.3] * 4  # nobody reads B: each of its blocks at least every 0.3 s
+    tasks = [asyncio.create_task(p.run()) for p in (a, b)]
+    try:
+        await asyncio.sleep(0.05)
+        a.schedule.demand([0], asyncio.get_running_loop().time() + 10)  # a client reads A all along
+        start = len(b_reads)
+        await asyncio.sleep(1.0)
+        after = len(b_reads) - start
+        # a client waiting for one of B's blocks does not wait for A's urgent reads to end
+        await asyncio.wait_for(b.wait_for([2]), 0.1)
+    finally:
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+    # B reads only when its blocks are urgent (every 0.3 s each): about 4 x 1.0 / 0.3, not the
+    # half of the line (about 50 reads) round robin would give it
+    assert 4 <= after <= 20, (after, len(a_reads))
+    assert len(a_reads) > 3 * after

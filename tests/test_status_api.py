@@ -88,6 +88,12 @@ async def test_status_rows(plant: tuple[Gateway, asyncio.Server]) -> None:
     assert remote["port"] == "rfc2217://***@127.0.0.1:1"
     assert remote["data_age"] is None
     assert "s3cret" not in str(remote) and "plant:" not in str(remote)
+    plan = row["schedule"]  # the line's budget (docs/guide/freshness.md)
+    assert set(plan) == {"blocks", "demanded", "transaction_time", "line_use", "refresh", "age_bound", "stale_limit",
+                         "late_reads", "read_waits", "behind"}
+    assert plan["blocks"] == 120 and plan["stale_limit"] >= row["stale_after"]
+    assert set(plan["refresh"]) == set(plan["age_bound"]) == {"fast", "slow", "demanded"}
+    assert plan["behind"] is None
     document = await api(gateway, "/api/status")
     assert [row["name"] for row in document["links"]] == ["press-1", "remote", "served"]
     assert document["servers"][0]["name"] == "modbus"

@@ -19,6 +19,7 @@ from gateway.config._common import Loc, Model, Problems, array, check_port_url, 
 from gateway.config.writer import table_lines
 from gateway.frozen import frozen
 from gateway.link_health import DEFAULT_DOWN_AFTER
+from gateway.schedule import DEFAULT_BACKGROUND_INTERVAL, DEFAULT_DEMAND_HOLD, DEFAULT_READ_WAIT, MAX_READ_WAIT
 from gateway.streams import SerialSettings
 
 __all__ = [
@@ -158,6 +159,12 @@ class LinkBase(Model):
     writable: tuple[WritableRange, ...] = ()
     fast_interval: float = Field(0.0, ge=0)
     slow_interval: float = Field(10.0, ge=0)
+    #: the scheduler's demand rule (docs/guide/freshness.md): seconds a block stays demanded after a
+    #: client read it; the refresh period of blocks nobody reads; how long a read of data not yet
+    #: read or stale may wait for an immediate read of its block (0: answer at once)
+    demand_hold: float = Field(DEFAULT_DEMAND_HOLD, gt=0, le=86400)
+    background_interval: float = Field(DEFAULT_BACKGROUND_INTERVAL, ge=0, le=86400)
+    read_wait: float = Field(DEFAULT_READ_WAIT, ge=0, le=MAX_READ_WAIT)
     #: write transactions in a row before waiting polls get the line, for poll_burst transactions
     write_burst: int = Field(1, ge=1, le=100)
     poll_burst: int = Field(2, ge=1, le=100)

@@ -8,7 +8,10 @@ transaction id, as soon as it is ready (SCADA masters pipeline).
 
 Per connection, requests are handled in arrival order. Reads of a backend that serves
 them from memory (``backend.read_now``, see :data:`~gateway.modbus.handler.ReadNow`) are
-answered at once, inside ``data_received``, without a task.  The server takes at most
+answered at once, inside ``data_received``, without a task.  A read whose data is not read yet
+or stale may wait for it (``read_wait``, :class:`~gateway.modbus.handler.InOrder`): it becomes a
+task, and the requests of the same connection after it wait until it is answered, so that the
+replies of a connection keep the order of its requests; other connections do not wait.  The server takes at most
 ``_FRAMES_PER_TURN`` requests per turn of the event loop, over all its connections
 (``host._spend``); the rest wait for the next turn (``call_soon``), so between two turns the loop
 always gets back to the serial links polled in it.  A connection with more than ``_MAX_BACKLOG``
@@ -58,7 +61,7 @@ from gateway.clients import Client, current_client
 from gateway.logutil import RepeatLog
 from gateway.modbus import mbap
 from gateway.modbus.admission import Admission, RolePolicy, format_address, peer_host
-from gateway.modbus.handler import ModbusServerCounters, Reply
+from gateway.modbus.handler import InOrder, ModbusServerCounters, Reply
 from gateway.modbus.mbap import ILLEGAL_FUNCTION, MAX_LENGTH, MIN_LENGTH, WRITE_FUNCTION_CODES
 
 __all__ = ["Connection", "ConnectionHost"]
@@ -130,6 +133,7 @@ class Connection(asyncio.Protocol):
         "_context",
         "_eof",
         "_frame_handle",
+        "_held",
         "_idle_handle",
         "_in_flight",
         "_last_received",
@@ -164,6 +168,7 @@ class Connection(asyncio.Protocol):
         self._offset = 0
         self._in_flight = 0
         self._backlog = False  # a _next_turn is scheduled (the server's turn budget was spent)
+        self._held = False  # a read waits for its data: the requests after it wait (InOrder)
         self._open = False  # admitted, and not closed by us
         self._ready = False  # requests may be processed (after the TLS handshake)
         self._released = False  # forgotten by the server
@@ -485,7 +490,7 @@ class Connection(asyncio.Protocol):
         position = self._offset
         server = self._server
         transport = self._transport
-        while size - position >= 7 and self._in_flight < self._limit:
+        while size - position >= 7 and self._in_flight < self._limit and not self._held:
             if self._write_paused or self._stopped or transport is None:
                 break
             if not server._spend(self._loop):
@@ -506,11 +511,17 @@ class Connection(asyncio.Protocol):
             if isinstance(reply, bytes):
                 if not self._send(reply):
                     break
-            else:
-                self._in_flight += 1
-                task = self._loop.create_task(self._serve(reply), context=self._context)
-                server._tasks.add(task)
-                task.add_done_callback(server._tasks.discard)
+                continue
+            in_order = isinstance(reply, InOrder)
+            self._in_flight += 1
+            body = reply.body if isinstance(reply, InOrder) else reply
+            task = self._loop.create_task(self._serve(body, in_order), context=self._context)
+            server._tasks.add(task)
+            task.add_done_callback(server._tasks.discard)
+            if in_order:
+                # A read waiting for its data: the requests after it wait for its reply.
+                self._held = True
+                break
         if position == size:
             self._buffer = b""
             self._offset = 0
@@ -530,14 +541,17 @@ class Connection(asyncio.Protocol):
         elif self._eof and not self._in_flight and self._transport is not None:
             self._transport.close()
 
-    async def _serve(self, reply: Coroutine[Any, Any, bytes]) -> None:
-        """Await one backend call and write its reply at once (no done-callback round trip)."""
+    async def _serve(self, reply: Coroutine[Any, Any, bytes], in_order: bool = False) -> None:
+        """Await one backend call and write its reply at once (no done-callback round trip);
+        ``in_order``: the requests after it were held until now."""
         try:
             frame = await reply
         finally:
             self._in_flight -= 1
+            if in_order:
+                self._held = False
         if self._ready and self._send(frame):
-            if self._buffer or self._read_paused or self._eof:
+            if self._buffer or self._read_paused or self._eof or in_order:
                 self._process()
 
     def _update_reading(self) -> None:
@@ -548,7 +562,7 @@ class Connection(asyncio.Protocol):
             self._in_flight >= self._limit
             or self._write_paused
             or self._stopped
-            or (self._backlog and len(self._buffer) - self._offset > _MAX_BACKLOG)
+            or ((self._backlog or self._held) and len(self._buffer) - self._offset > _MAX_BACKLOG)
         )
         if pause != self._read_paused:
             self._read_paused = pause

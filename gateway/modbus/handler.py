@@ -4,8 +4,11 @@
 included): at once when the request is refused before the backend (bad count, unknown unit or
 function), or when the backend serves reads from memory (``backend.read_now``, see
 :data:`ReadNow`); otherwise as a coroutine whose first step is the backend call, so that creating
-one task per request in arrival order hands the requests to the backend in arrival order.  It
-counts requests, exception replies and backend failures in :class:`ModbusServerCounters`.
+one task per request in arrival order hands the requests to the backend in arrival order.  A
+read the backend answers with :class:`~gateway.errors.StaleRead` (data not read yet or stale, the
+link up) becomes an :class:`InOrder` reply that waits at most its ``read_wait`` for the data,
+then reads from memory again.  It counts requests, exception replies and backend failures in
+:class:`ModbusServerCounters`.
 The server (:mod:`gateway.modbus.server`) is a ``RequestHandler``; its connections
 (:mod:`gateway.modbus.connection`) call :meth:`RequestHandler._request` for every frame.
 
@@ -50,6 +53,7 @@ Write replies are echoes of the request bytes, as the specification defines them
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
@@ -59,7 +63,7 @@ from pymodbus.pdu import DecodePDU
 from pymodbus.pdu.bit_message import ReadCoilsResponse, ReadDiscreteInputsResponse
 
 from gateway.clients import audit_write
-from gateway.errors import ModbusExceptionReply
+from gateway.errors import ModbusExceptionReply, StaleRead
 from gateway.modbus import mbap
 from gateway.modbus.mbap import (
     BIT_READS,
@@ -81,7 +85,7 @@ from gateway.modbus.mbap import (
     FunctionCode,
 )
 
-__all__ = ["ModbusBackend", "ModbusServerCounters", "ReadNow", "Reply", "RequestHandler"]
+__all__ = ["InOrder", "ModbusBackend", "ModbusServerCounters", "ReadNow", "Reply", "RequestHandler"]
 
 logger = logging.getLogger("gateway.modbus.server")  # one logger for the whole server
 
@@ -120,8 +124,17 @@ reply's data bytes (registers big-endian; bits packed LSB first, as the specific
 FC1/FC2 replies), without the byte count, or raises :class:`ModbusExceptionReply`.
 """
 
-Reply: TypeAlias = bytes | Coroutine[Any, Any, bytes]
-"""A request's reply frame now, or a coroutine (one task's body) that produces it."""
+@dataclass(slots=True)
+class InOrder:
+    """A reply that waits (a read waiting for its data, ``read_wait``): the connection takes no
+    further request until it is sent, so its replies keep the order of the requests."""
+
+    body: Coroutine[Any, Any, bytes]
+
+
+Reply: TypeAlias = bytes | Coroutine[Any, Any, bytes] | InOrder
+"""A request's reply frame now, a coroutine (one task's body) that produces it, or one to wait for
+in order (:class:`InOrder`)."""
 
 
 @dataclass
@@ -271,11 +284,19 @@ class RequestHandler:
 
         return self._exception(tid, unit, function_code, ILLEGAL_FUNCTION)
 
-    def _read_at_once(self, tid: int, unit: int, function_code: int, address: int, count: int, size: int) -> bytes:
-        """A read served from memory (``backend.read_now``): the whole reply frame, no task."""
+    def _read_at_once(
+        self, tid: int, unit: int, function_code: int, address: int, count: int, size: int, *, may_wait: bool = True
+    ) -> bytes | InOrder:
+        """A read served from memory (``backend.read_now``): the whole reply frame, no task; or, for
+        data not read yet or stale that the backend lets wait (:class:`~gateway.errors.StaleRead`),
+        a reply that waits at most its ``read_wait`` for the data, then reads again."""
         assert self._read_now is not None
         try:
             data = self._read_now(unit, function_code, address, count)
+        except StaleRead as stale:
+            if may_wait and stale.read_wait > 0:
+                return InOrder(self._read_after_wait(tid, unit, function_code, address, count, size, stale))
+            return self._exception_reply(tid, unit, function_code, stale)
         except ModbusExceptionReply as reply:
             return self._exception_reply(tid, unit, function_code, reply)
         except Exception as error:
@@ -284,6 +305,19 @@ class RequestHandler:
             wrong = ValueError(f"backend returned {len(data)} data bytes for {count} values ({size} expected)")
             return self._backend_failed(tid, unit, function_code, wrong)
         return _READ_HEAD.pack(tid, 0, 3 + size, unit, function_code, size) + data
+
+    async def _read_after_wait(
+        self, tid: int, unit: int, function_code: int, address: int, count: int, size: int, stale: StaleRead
+    ) -> bytes:
+        """Wait at most ``stale.read_wait`` for the stale data's blocks, then answer from memory."""
+        try:
+            async with asyncio.timeout(stale.read_wait):
+                await stale.wait()
+        except TimeoutError:
+            pass
+        frame = self._read_at_once(tid, unit, function_code, address, count, size, may_wait=False)
+        assert isinstance(frame, bytes)
+        return frame
 
     # -- the backend calls (each is the body of one task) ------------------------------
 

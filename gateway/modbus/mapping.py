@@ -50,6 +50,11 @@ class Table(enum.Enum):
     COIL = "coil"
     DISCRETE = "discrete"
 
+    # Members are singletons compared by identity: hashed by identity too, in C.  Enum's own
+    # __hash__ (a Python call hashing the name) cost 0.25 us per read on the read path, where a
+    # table keys the image's segments and the demand of each request (gateway.schedule.DemandLog).
+    __hash__ = object.__hash__
+
 
 class Scan(enum.Enum):
     """Fast: read continuously.  Slow: read every ``slow_interval`` seconds (10 s by default)."""

@@ -71,11 +71,15 @@ function renderLinks(status) {
     name.appendChild(el("div", "sub", [link.kind, link.controllers].filter(Boolean).join(" · ")));
     cell(row, "Unit", "num unit", link.unit);
     cell(row, "Port", "port", link.port);
+    const plan = link.schedule;
+    const limit = plan ? plan.stale_limit : link.stale_after;
     const age = cell(row, "Data age", "num age", seconds(link.data_age));
-    if (link.data_age === null || (link.stale_after !== null && link.data_age >= link.stale_after)) {
+    if (link.data_age === null || (limit !== null && link.data_age >= limit)) {
       age.classList.add("age-stale");
     }
-    age.title = link.stale_after === null ? "never stale" : "oldest fast-class value; stale after " + link.stale_after + " s";
+    age.title = limit === null ? "never stale" : "oldest fast-class value; stale at " + limit + " s " +
+      "(stale_after " + link.stale_after + " s plus the fast class's refresh period)";
+    renderRefresh(cell(row, "Refresh", "refresh", ""), plan);
     cell(row, "Transactions", "num", number(link.transactions));
     cell(row, "Errors", "num", number(link.errors));
     cell(row, "Retries", "num", number(link.retries));
@@ -86,6 +90,23 @@ function renderLinks(status) {
     body.appendChild(row);
   }
   $("links").replaceChild(body, $("links").tBodies[0]);
+}
+
+// The line's budget of a link: what the schedule achieves (docs/guide/freshness.md).
+function renderRefresh(where, plan) {
+  if (!plan) {
+    where.textContent = "–";
+    return;
+  }
+  const period = (name) => plan.refresh[name] === null ? "–" : seconds(plan.refresh[name]);
+  where.appendChild(el("div", "", "fast " + period("fast") + " · slow " + period("slow")));
+  const use = plan.line_use === null ? "" : " · line " + Math.round(100 * plan.line_use) + " %";
+  where.appendChild(el("div", "sub", plan.demanded + "/" + plan.blocks + " read by clients: " + period("demanded") + use));
+  if (plan.behind) where.appendChild(el("div", "sub bad", plan.behind));
+  const bound = (name) => plan.age_bound[name] === null ? "–" : seconds(plan.age_bound[name]);
+  where.title = "achieved refresh periods; every block is read within its age bound: fast " + bound("fast") +
+    ", slow " + bound("slow") + ", read by clients " + bound("demanded") + "; mean transaction " +
+    (plan.transaction_time === null ? "–" : seconds(plan.transaction_time));
 }
 
 function renderSummary(status) {

@@ -29,6 +29,7 @@ from gateway.kinds.df1.target_build import build_target, target_link_labels, tar
 from gateway.kinds.df1.unit import PROCESSORS, Df1Unit, PcccDriver, PcccUnit
 from gateway.link_health import DownAfter
 from gateway.modbus.mapping import Plan, Table
+from gateway.poller import LineShare
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import ProcessorFamily
@@ -93,14 +94,17 @@ def df1_point_labels(link: Df1LinkConfig) -> PointLabels:
     return point_labels_plc5(map_items(link)) if _is_plc5(link) else point_labels_df1(map_items(link))
 
 
-def station_unit(driver: PcccDriver, link: Df1LinkConfig) -> PcccUnit[Any, Any]:
-    """The unit of one link over ``driver`` (its own full-duplex driver, or its station on a line)."""
+def station_unit(driver: PcccDriver, link: Df1LinkConfig, share: LineShare | None = None) -> PcccUnit[Any, Any]:
+    """The unit of one link over ``driver`` (its own full-duplex driver, or its station on a line whose
+    pollers share ``share``)."""
     items = map_items(link)
+    options = unit_options(link)
+    options["line_share"] = share
     if _is_plc5(link):
         return Plc5Unit(driver=driver, items=items, max_read_bytes=link.max_read_bytes,
-                        max_write_bytes=link.max_write_bytes, **unit_options(link))
+                        max_write_bytes=link.max_write_bytes, **options)
     return Df1Unit(driver=driver, items=items, max_read_bytes=_max_read(link), max_write_bytes=link.max_write_bytes,
-                   family=PROCESSORS[link.processor], **unit_options(link))
+                   family=PROCESSORS[link.processor], **options)
 
 
 def _checksum(link: Df1LinkConfig) -> Checksum:
@@ -173,8 +177,9 @@ def build_df1(links: Sequence[Df1LinkConfig]) -> Built:
     for line in group_lines(links):
         master = build_line(line)
         runners.append(master)
+        share = LineShare()  # one station's background waits while another's demanded blocks are read
         for index, link in zip(line.indexes, line.links, strict=True):
-            unit = units[index] = station_unit(master.station(link.station), link)
+            unit = units[index] = station_unit(master.station(link.station), link, share)
             table = master.register_tables.get(link.station)
             if table is not None:
                 unit.receive = ReceiveWindow(Table(link.receive_table), link.receive_start, table)

@@ -213,7 +213,8 @@ class Df1LinkConfig(LinkBase):
         "target": {
             **dict.fromkeys(
                 ("map", "processor", "source", "max_read_bytes", "max_write_bytes", "fast_interval", "slow_interval",
-                 "write_burst", "poll_burst", "retries", "timeout", "write_queue_per_client", "write_queue_per_link",
+                 "demand_hold", "background_interval", "read_wait", "write_burst", "poll_burst", "retries", "timeout",
+                 "write_queue_per_client", "write_queue_per_link",
                  "write_timeout", "down_after_failures", "down_after_seconds"),
                 "the PLC sends the commands; the gateway answers from [[link.file]] and never polls",
             ),

@@ -1,0 +1,369 @@
+"""Which block of a read plan to read next: deadlines and demand, sans-I/O (the caller passes ``now``).
+
+The rule (``docs/guide/freshness.md`` states it for users):
+
+* every block has its class period ``P`` (``fast_interval`` or ``slow_interval``) and a
+  background period ``B = max(P, background_interval)``;
+* a block is *demanded* for ``demand_hold`` seconds after a client read it (:meth:`Schedule.demand`);
+* a block is *urgent* once ``P`` has passed since its last read when it is demanded, or once ``B``
+  has passed when it is not; its deadline is then that time (last read + ``P`` or + ``B``);
+* a block nobody demands is *wanted* once ``P`` has passed: it is read when nothing is urgent;
+* the next read is: a bumped block (a client waits for it, :meth:`Schedule.bump`), first bumped
+  first; else the urgent block with the earliest deadline; else the wanted block with the
+  earliest deadline; else nothing until :meth:`Schedule.next_due`.
+
+So when the line has room every block is read at its class period (the fast class continuously
+when ``fast_interval`` is 0); when it has not, what clients read goes first and every other block
+is still read within ``B`` plus one read of every block (:meth:`Schedule.age_bound`): earliest
+deadline first lets a block be overtaken by each other block at most once.  At start
+(:meth:`Schedule.begin`) every block counts as read one class period ago: bumped and demanded
+blocks first, then the fast class, then the slow one; a block nobody reads is read when the line
+has room, and within ``B`` in any case.  After a loss the order goes on where it was.  A failed
+read counts as a read for the order (the block goes to the back, it does not block the line) but
+not for freshness.
+
+Each block's *stale limit* (the largest age at which it is served) is ``stale_after`` plus its
+period as planned when it was read: ``P`` when demanded, ``B`` when not (:attr:`Schedule.max_age`,
+shared with the image).  The schedule also measures what it achieves: the time of a transaction,
+the share of the time the line spends reading, and the refresh period of each class and of the
+demanded set (:meth:`Schedule.budget`).
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections.abc import Iterable, Sequence
+from typing import Final
+
+from gateway.frozen import frozen
+from gateway.modbus.mapping import Scan, Table
+
+__all__ = [
+    "DEFAULT_BACKGROUND_INTERVAL",
+    "DEFAULT_DEMAND_HOLD",
+    "DEFAULT_READ_WAIT",
+    "MAX_READ_WAIT",
+    "Budget",
+    "DemandLog",
+    "Schedule",
+]
+
+#: ``demand_hold``: a block stays demanded this many seconds after a client read it (longer than the
+#: 1-30 s between two polls of a SCADA screen or a historian, so a polled block stays demanded).
+DEFAULT_DEMAND_HOLD: Final = 60.0
+#: ``background_interval``: blocks nobody reads are refreshed at least this often.
+DEFAULT_BACKGROUND_INTERVAL: Final = 30.0
+#: ``read_wait``: a read of data not yet read or stale may wait this long for its block (well
+#: under the 1-3 s a SCADA client waits for an answer).
+DEFAULT_READ_WAIT: Final = 0.5
+#: The largest ``read_wait`` the config accepts.
+MAX_READ_WAIT: Final = 5.0
+
+NEVER: Final = -math.inf
+#: Seconds over which the line's use is measured (the last full window is shown).
+USE_WINDOW: Final = 10.0
+#: Weight of the newest transaction in the mean transaction time.
+_EWMA: Final = 0.1
+
+
+@frozen
+class Budget:
+    """What the schedule achieves at one moment (seconds; None: not known yet)."""
+
+    blocks: int
+    demanded: int
+    transaction_time: float | None  #: mean seconds of a read transaction
+    line_use: float | None  #: share of the last window the line spent reading
+    refresh: dict[str, float | None]  #: achieved refresh period of "fast", "slow", "demanded", "all"
+    age_bound: dict[str, float | None]  #: the bound on a block's age, per class and "demanded"
+
+
+class DemandLog:
+    """Requests read from the image since the last fold: noting one costs one dict store.
+
+    Reads are answered inside the Modbus server's ``data_received``; each stores its request in
+    ``keys`` and the poller folds the keys into block demand before each read.
+    """
+
+    __slots__ = ("keys",)
+
+    def __init__(self) -> None:
+        #: (table, address, count) -> the loop time of the last read
+        self.keys: dict[tuple[Table, int, int], float] = {}
+
+    def take(self) -> dict[tuple[Table, int, int], float]:
+        """The keys noted since the last call, and when each was last noted."""
+        keys, self.keys = self.keys, {}
+        return keys
+
+
+class Schedule:
+    """The read order of one plan's blocks (module docstring)."""
+
+    def __init__(
+        self,
+        scans: Sequence[Scan],
+        *,
+        fast_interval: float,
+        slow_interval: float,
+        stale_after: float,
+        demand_hold: float = DEFAULT_DEMAND_HOLD,
+        background_interval: float = DEFAULT_BACKGROUND_INTERVAL,
+    ) -> None:
+        periods = {Scan.FAST: fast_interval, Scan.SLOW: slow_interval}
+        self.scans = list(scans)
+        n = len(self.scans)
+        self.stale_after = stale_after
+        self.demand_hold = demand_hold
+        #: per block: its class period P and its background period B
+        self.period = [periods[scan] for scan in self.scans]
+        self.background = [max(p, background_interval) for p in self.period]
+        #: per block: when it is wanted again (its last read attempt plus P: the order), and the
+        #: loop time of its last read (freshness)
+        self.due = [NEVER] * n
+        self.read_at = [NEVER] * n
+        #: per block: the time its background period counts from (its last try, or its share of
+        #: the first B at start)
+        self.since = [NEVER] * n
+        #: the block whose read is on the line, and its times before (:meth:`untry`)
+        self._before = (-1, NEVER, NEVER)
+        #: per block: seconds between its last two reads (NaN: fewer than two since start or a loss)
+        self.interval = [math.nan] * n
+        #: per block: demanded until this loop time
+        self.demanded_until = [NEVER] * n
+        #: per block: the largest age at which it is served (shared with the image)
+        self.max_age = [stale_after + p for p in self.period]
+        #: per block: the stale limit its current value was read with
+        self._stamped = list(self.max_age)
+        #: blocks a waiting read asked for, first asked first
+        self.bumped: dict[int, None] = {}
+        #: reads that came after the block's stale limit (the line could not keep up)
+        self.late_reads = 0
+        self._tx_time = math.nan
+        self._window_start = NEVER
+        self._window_busy = 0.0
+        self._line_use = math.nan
+        self._tie = sorted(range(n), key=lambda i: (self.period[i], i))
+        #: per block: its place among ties (blocks never read): the fast class first, then the plan's order
+        self._rank = [0] * n
+        for place, index in enumerate(self._tie):
+            self._rank[index] = place
+        #: heaps of (urgent time, 1 if not demanded, rank, block, version) and (wanted time, rank,
+        #: block, version); an entry whose version is not the block's is stale
+        self._version = [0] * n
+        self._urgent: list[tuple[float, int, int, int, int]] = []
+        self._wanted: list[tuple[float, int, int, int]] = []
+        self._rebuild(NEVER)
+
+    # --- inputs -----------------------------------------------------------------------------
+
+    def begin(self, now: float) -> None:
+        """The poller starts at ``now``: a block never read is wanted at once (as if read one class
+        period ago; the fast class first) and urgent at once when demanded; the ones nobody reads
+        get urgent one after the other over ``B``, in that order."""
+        due, background = self.due, self.background
+        never = [i for i in self._tie if due[i] == NEVER]
+        for k, i in enumerate(never):
+            due[i] = now
+            # the blocks nobody reads get urgent one after the other over B, not all at once
+            self.since[i] = now - background[i] + background[i] * (k + 1) / len(never)
+        self._rebuild(now)
+
+    def demand(self, blocks: Iterable[int], now: float) -> None:
+        """A client read ``blocks`` at ``now``: they are demanded for ``demand_hold`` seconds."""
+        until = now + self.demand_hold
+        demanded = self.demanded_until
+        for block in blocks:
+            if demanded[block] < until:
+                newly = demanded[block] <= now
+                demanded[block] = until
+                if newly:
+                    self._push(block, now)  # urgent sooner now
+
+    def bump(self, blocks: Iterable[int]) -> None:
+        """A client waits for ``blocks``: read them before anything else, first asked first."""
+        for block in blocks:
+            self.bumped.setdefault(block, None)
+
+    def started(self, block: int, now: float) -> None:
+        """The read of ``block`` goes on the line: it goes to the back of the order; its stale limit
+        is set from its period as planned now (the image stamps the read with it)."""
+        self._before = (block, self.due[block], self.since[block])
+        self.due[block] = now + self.period[block]
+        self.since[block] = now
+        self._push(block, now)
+        self.bumped.pop(block, None)
+        demanded = self.demanded_until[block] > now
+        self.max_age[block] = self.stale_after + (self.period[block] if demanded else self.background[block])
+
+    def done(self, block: int, started: float, now: float, ok: bool) -> bool:
+        """The read of ``block`` that started at ``started`` ended at ``now`` (``ok``: data stored).
+
+        True when it was late: its previous value had passed the stale limit it was read with.
+        """
+        elapsed = max(0.0, now - started)
+        self._tx_time = elapsed if math.isnan(self._tx_time) else self._tx_time + _EWMA * (elapsed - self._tx_time)
+        self._busy(started, now)
+        if not ok:
+            return False
+        last = self.read_at[block]
+        late = False
+        if last != NEVER:
+            self.interval[block] = now - last
+            late = now - last > self._stamped[block]
+            self.late_reads += late
+        self.read_at[block] = now
+        self._stamped[block] = self.max_age[block]
+        return late
+
+    def lost(self) -> None:
+        """The link was lost: intervals restart (an outage is not a refresh period)."""
+        n = len(self.interval)
+        self.interval = [math.nan] * n
+        self.read_at = [NEVER] * n
+
+    def _busy(self, started: float, now: float) -> None:
+        if self._window_start == NEVER:
+            self._window_start = started
+        self._window_busy += now - started
+        span = now - self._window_start
+        if span >= USE_WINDOW:
+            self._line_use = min(1.0, self._window_busy / span)
+            self._window_start, self._window_busy = now, 0.0
+
+    # --- the order --------------------------------------------------------------------------
+
+    def next(self, now: float) -> int | None:
+        """The block to read now (module docstring), or None: nothing is due before :meth:`next_due`.
+
+        Ties (blocks never read) go to a demanded block first, then in the order of ``_rank``.
+        Two heaps, of the urgent times and of the wanted times, with stale entries dropped as they
+        come to the top: O(log n) a pick, not a look at every block.
+        """
+        if self.bumped:
+            return next(iter(self.bumped))
+        top = self._top_urgent(now)
+        if top is not None and top[0] <= now:
+            return top[3]
+        wanted = self._top_wanted()
+        if wanted is not None and wanted[0] <= now:
+            return wanted[2]
+        return None
+
+    def _urgent_key(self, block: int, now: float) -> tuple[float, int]:
+        """(the time ``block`` is urgent, 0 if demanded else 1) at ``now``."""
+        if self.demanded_until[block] > now:
+            return self.due[block], 0
+        return self.since[block] + self.background[block], 1
+
+    def _push(self, block: int, now: float) -> None:
+        """``block``'s times changed: new heap entries (the old ones are dropped when they surface)."""
+        version = self._version[block] = self._version[block] + 1
+        rank = self._rank[block]
+        urgent, demanded = self._urgent_key(block, now)
+        heapq.heappush(self._urgent, (urgent, demanded, rank, block, version))
+        heapq.heappush(self._wanted, (self.due[block], rank, block, version))
+        if len(self._urgent) > 4 * len(self.scans) + 16 or len(self._wanted) > 4 * len(self.scans) + 16:
+            self._rebuild(now)
+
+    def _rebuild(self, now: float) -> None:
+        self._urgent = []
+        self._wanted = []
+        for block in range(len(self.scans)):
+            urgent, demanded = self._urgent_key(block, now)
+            rank, version = self._rank[block], self._version[block]
+            self._urgent.append((urgent, demanded, rank, block, version))
+            self._wanted.append((self.due[block], rank, block, version))
+        heapq.heapify(self._urgent)
+        heapq.heapify(self._wanted)
+
+    def _top_urgent(self, now: float) -> tuple[float, int, int, int, int] | None:
+        heap, versions = self._urgent, self._version
+        while heap:
+            entry = heap[0]
+            urgent, demanded, rank, block, version = entry
+            if version != versions[block]:
+                heapq.heappop(heap)
+                continue
+            key = self._urgent_key(block, now)
+            if key != (urgent, demanded):  # its demand ran out: urgent later
+                heapq.heapreplace(heap, (*key, rank, block, version))
+                continue
+            return entry
+        return None
+
+    def _top_wanted(self) -> tuple[float, int, int, int] | None:
+        heap, versions = self._wanted, self._version
+        while heap and heap[0][3] != versions[heap[0][2]]:
+            heapq.heappop(heap)
+        return heap[0] if heap else None
+
+    def is_urgent(self, block: int, now: float) -> bool:
+        """Whether ``block`` is bumped or urgent at ``now`` (not only wanted)."""
+        if block in self.bumped:
+            return True
+        if self.demanded_until[block] > now:
+            return self.due[block] <= now
+        return self.since[block] + self.background[block] <= now
+
+    def urgent_at(self, block: int) -> float:
+        """When ``block`` gets urgent if nobody demands it (its background period passed)."""
+        return self.since[block] + self.background[block]
+
+    def hold(self, block: int, until: float) -> None:
+        """Do not read ``block`` again before ``until`` (a block the controller refuses)."""
+        self.due[block] = until
+        self.since[block] = until - self.period[block]
+        self._push(block, until)
+
+    def untry(self, block: int, now: float) -> None:
+        """The read of ``block`` never reached the controller (the link was lost): its place back."""
+        before, due, since = self._before
+        if before == block:
+            self.due[block], self.since[block] = due, since
+            self._push(block, now)
+
+    def next_due(self, now: float) -> float:
+        """The loop time the next block falls due (``inf``: no blocks); at most ``now`` if one is due."""
+        if self.bumped:
+            return now
+        wanted = self._top_wanted()
+        return math.inf if wanted is None else wanted[0]
+
+    # --- what is achieved -------------------------------------------------------------------
+
+    def demanded(self, now: float) -> list[int]:
+        return [i for i, until in enumerate(self.demanded_until) if until > now]
+
+    def refresh_period(self, blocks: Iterable[int]) -> float | None:
+        """The longest of the blocks' last refresh intervals (None: none measured yet)."""
+        intervals = [self.interval[i] for i in blocks]
+        known = [x for x in intervals if not math.isnan(x)]
+        return max(known) if known else None
+
+    def age_bound(self, blocks: Iterable[int], now: float) -> float | None:
+        """The largest age a read of ``blocks`` is due at, plus one read of every block (the most an
+        earliest-deadline-first order makes it wait); None before a transaction time is known."""
+        if math.isnan(self._tx_time):
+            return None
+        round_time = len(self.scans) * self._tx_time
+        demanded = self.demanded_until
+        periods = [self.period[i] if demanded[i] > now else self.background[i] for i in blocks]
+        return max(periods) + round_time if periods else None
+
+    def budget(self, now: float) -> Budget:
+        groups: dict[str, list[int]] = {
+            "fast": [i for i, s in enumerate(self.scans) if s is Scan.FAST],
+            "slow": [i for i, s in enumerate(self.scans) if s is Scan.SLOW],
+            "demanded": self.demanded(now),
+            "all": list(range(len(self.scans))),
+        }
+        return Budget(
+            blocks=len(self.scans),
+            demanded=len(groups["demanded"]),
+            transaction_time=None if math.isnan(self._tx_time) else self._tx_time,
+            line_use=None if math.isnan(self._line_use) else self._line_use,
+            refresh={name: self.refresh_period(blocks) for name, blocks in groups.items()},
+            age_bound={name: self.age_bound(blocks, now) for name, blocks in groups.items() if name != "all"},
+        )

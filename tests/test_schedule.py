@@ -1,0 +1,289 @@
+"""The read order of a plan's blocks (``gateway.schedule``), on a fake clock.
+
+The rule, as ``docs/guide/freshness.md`` states it: a bumped block first; else the urgent block
+with the earliest deadline (demanded: its class period P passed; not demanded: its background
+period B = max(P, background_interval) passed); else the wanted block with the earliest deadline
+(not demanded, P passed); else nothing.  Never-read blocks: demanded first, then fast, then slow.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection, Sequence
+from itertools import pairwise
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gateway.modbus.mapping import Scan
+from gateway.schedule import Schedule
+
+F, S = Scan.FAST, Scan.SLOW
+
+
+def schedule(scans: Sequence[Scan], *, fast: float = 0.0, slow: float = 10.0, stale_after: float = 5.0,
+             hold: float = 60.0, background: float = 30.0) -> Schedule:
+    return Schedule(scans, fast_interval=fast, slow_interval=slow, stale_after=stale_after, demand_hold=hold,
+                    background_interval=background)
+
+
+def read(s: Schedule, block: int, at: float, took: float = 0.0, ok: bool = True) -> bool:
+    s.started(block, at)
+    return s.done(block, at, at + took, ok)
+
+
+# --- which block is next: one table row per situation -------------------------------------------
+
+# (case, scans, reads done as (block, time), demanded blocks at 100, bumped, now, expected next)
+ORDER = [
+    ("start: fast class before slow, plan order", [S, F, S, F], [], [], [], 0.0, 1),
+    ("start: a demanded slow block before any fast one", [F, S, F], [], [1], [], 0.0, 1),
+    ("bumped first, even before a never-read block", [F, S], [(1, 99.0)], [], [1], 100.0, 1),
+    ("first bumped first", [F, F, F], [(0, 99), (1, 99), (2, 99)], [], [2, 0], 100.0, 2),
+    ("demanded fast (P=0) is urgent at once; undemanded wanted waits",
+     [F, F], [(0, 90.0), (1, 99.0)], [1], [], 100.0, 1),
+    ("nobody demands: the wanted block with the earliest deadline (a slow one due at 90)", [F, F, S],
+     [(0, 95), (1, 94), (2, 80)], [], [], 100.0, 2),
+    ("a slow block due (P=10) goes before a fast block read after its deadline", [F, S],
+     [(0, 99.5), (1, 89.0)], [], [], 100.0, 1),
+    ("a slow block not due: the fast one", [F, S], [(0, 99.5), (1, 95.0)], [], [], 100.0, 0),
+    ("undemanded, B passed: urgent, ahead of a demanded block with a later deadline", [F, F],
+     [(0, 68.0), (1, 99.0)], [1], [], 100.0, 0),
+    ("undemanded, B not passed: the demanded block", [F, F], [(0, 71.0), (1, 99.0)], [1], [], 100.0, 1),
+    ("a tie of deadlines: the demanded block", [F, F], [(0, 69.0), (1, 99.0)], [1], [], 100.0, 1),
+    ("start: a block nobody reads is urgent only at its share of B (here 30 / 2)", [F, F], [(1, 10.0)], [1], [],
+     10.0, 1),
+    ("start: ... and then ahead of the demanded one", [F, F], [(1, 15.5)], [1], [], 15.5, 0),
+    ("demanded slow (P=10) not due: the wanted fast block", [F, S], [(0, 99.0), (1, 95.0)], [1], [], 100.0, 0),
+    ("nothing due when every period is positive", [S, S], [(0, 95.0), (1, 96.0)], [], [], 100.0, None),
+]
+
+
+@pytest.mark.parametrize(("case", "scans", "reads", "demanded", "bumped", "now", "expected"), ORDER,
+                         ids=[row[0] for row in ORDER])
+def test_next_block(case: str, scans: list[Scan], reads: list[tuple[int, float]], demanded: list[int],
+                    bumped: list[int], now: float, expected: int | None) -> None:
+    s = schedule(scans)
+    s.begin(0.0)
+    for block, at in reads:
+        read(s, block, at)
+    s.demand(demanded, now)
+    s.bump(bumped)
+    assert s.next(now) == expected, case
+
+
+def test_next_due_is_the_earliest_class_deadline_and_now_when_bumped() -> None:
+    s = schedule([S, S], slow=10.0)
+    read(s, 0, 95.0)
+    read(s, 1, 96.0)
+    assert s.next_due(100.0) == 105.0
+    s.bump([1])
+    assert s.next_due(100.0) == 100.0
+
+
+def test_demand_lasts_demand_hold() -> None:
+    s = schedule([F, F], hold=60.0)
+    s.demand([0], 10.0)
+    assert s.demanded(69.9) == [0]
+    assert s.demanded(70.0) == []
+
+
+def test_a_read_that_never_reached_the_controller_keeps_its_place() -> None:
+    s = schedule([F, F, F])
+    for block in range(3):
+        read(s, block, float(block))
+    s.started(0, 10.0)
+    s.untry(0, 10.0)  # the link was lost under it
+    assert s.next(10.0) == 0
+    read(s, 0, 10.0, ok=False)  # a failed read: to the back
+    assert s.next(10.0) == 1
+
+
+def test_a_held_block_is_not_read_before_its_time() -> None:
+    s = schedule([F, F])
+    read(s, 0, 0.0)
+    read(s, 1, 0.0)
+    s.hold(0, 5.0)
+    assert [s.next(t) for t in (1.0, 4.9)] == [1, 1]
+    read(s, 1, 5.0)
+    assert s.next(5.0) == 0
+
+
+# --- stale limits and lateness ------------------------------------------------------------------
+
+
+def test_the_stale_limit_is_stale_after_plus_the_period_planned_at_the_read() -> None:
+    s = schedule([F, S], stale_after=5.0, slow=10.0, background=30.0)
+    assert s.max_age == [5.0, 15.0]  # before any read: the class periods
+    s.demand([0], 0.0)
+    s.started(0, 1.0)
+    s.started(1, 1.0)
+    assert s.max_age == [5.0 + 0.0, 5.0 + 30.0]  # demanded: P; nobody reads it: B
+
+
+def test_a_read_after_the_stale_limit_is_late() -> None:
+    s = schedule([F], stale_after=5.0)
+    s.demand([0], 0.0)
+    assert not read(s, 0, 0.0)
+    assert not read(s, 0, 4.9)
+    assert read(s, 0, 10.0)  # 5.1 s after the last read, limit 5 s
+    assert s.late_reads == 1
+    s.lost()
+    assert not read(s, 0, 60.0)  # an outage is not a refresh period
+
+
+def test_background_interval_zero_reads_every_block_at_its_class_period() -> None:
+    s = schedule([F, S], background=0.0)
+    assert s.background == s.period == [0.0, 10.0]
+
+
+# --- what the order achieves, simulated: each read takes T seconds ------------------------------
+
+
+def simulate(s: Schedule, seconds: float, took: float, demanded: Collection[int] = ()) -> list[list[float]]:
+    """Run the order for ``seconds`` of fake time, reads of ``took`` each, ``demanded`` read by a
+    client all along; the read times of each block."""
+    times: list[list[float]] = [[] for _ in s.scans]
+    now = 0.0
+    s.begin(now)
+    while now < seconds:
+        s.demand(demanded, now)
+        block = s.next(now)
+        if block is None:
+            now = max(now + 1e-3, s.next_due(now))
+            continue
+        read(s, block, now, took)
+        now += took
+        times[block].append(now)
+    return times
+
+
+def longest_gap(times: list[float], until: float) -> float:
+    """The longest time without a read, from the first read to ``until``."""
+    return max(b - a for a, b in zip(times, [*times[1:], until], strict=True))
+
+
+def stale_share(times: list[float], until: float, limit: float) -> float:
+    """The share of ``until`` seconds a value read at ``times`` was older than ``limit``."""
+    edges = [0.0, *times, until]
+    return sum(max(0.0, b - a - limit) for a, b in pairwise(edges)) / until
+
+
+# 120 blocks (55 fast, 65 slow) as the SLC 150 plan; a client reads 32 fast and 32 slow blocks, as
+# the accumulators and presets screen does (holding 0-31 and 32-63).
+PLAN = [F] * 55 + [S] * 65
+SCREEN = set(range(32)) | set(range(55, 87))
+
+
+@pytest.mark.parametrize(("took", "settled", "share"), [(0.066, 30.0, 0.0), (0.09, 300.0, 0.01)],
+                         ids=["15 reads per s", "11 reads per s"])
+def test_a_working_set_that_fits_the_line_stays_fresh_and_nothing_starves(
+    took: float, settled: float, share: float
+) -> None:
+    # Fits: 32 / 5 s + 32 / 15 s + 56 / 35 s = 10.1 reads/s are enough (stale_after 5, slow 10, B 30).
+    s = schedule(PLAN)
+    times = simulate(s, 600.0, took, SCREEN)
+    fast = range(32)
+    # the first reads of 64 blocks take a few seconds at start; then the set stays fresh
+    assert max(stale_share(times[b], 600.0, 5.0) for b in fast) <= share
+    assert max(longest_gap([t for t in times[b] if t > settled], 600.0) for b in fast) < 5.0
+    # stale_after + slow_interval
+    assert max(longest_gap([t for t in times[b] if t > settled], 600.0) for b in range(55, 87)) < 15.0
+    bound = 30.0 + len(PLAN) * took  # B plus one read of every block
+    others = max(longest_gap(times[b], 600.0) for b in range(120) if b not in SCREEN)
+    assert others <= bound, (others, bound)
+    assert s.age_bound(range(32, 55), 600.0) == pytest.approx(bound)
+
+
+def test_a_client_reading_everything_gets_every_block_in_turn() -> None:
+    scans = [F] * 55 + [S] * 65
+    s = schedule(scans)
+    times = simulate(s, 120.0, 0.05, set(range(120)))
+    fast = [longest_gap(times[b], 120.0) for b in range(55)]
+    # the fast class (P = 0) goes round; each slow block joins it every P = 10 s plus a round
+    assert max(fast) < 0.05 * 120, max(fast)
+    assert max(longest_gap(times[b], 120.0) for b in range(55, 120)) < 10.0 + 0.05 * 120
+
+
+def test_a_line_with_room_reads_every_block_at_its_class_period() -> None:
+    # fast_interval 1 s: 10 blocks of 0.01 s fit with room; nobody reads anything
+    s = schedule([F] * 5 + [S] * 5, fast=1.0, slow=10.0)
+    times = simulate(s, 60.0, 0.01)
+    assert all(longest_gap(times[b], 60.0) < 1.0 + 0.2 for b in range(5))
+    assert all(longest_gap(times[b], 60.0) < 10.0 + 0.2 for b in range(5, 10))
+
+
+def test_budget_reports_what_is_achieved() -> None:
+    s = schedule([F, F, S], background=0.0)
+    assert s.budget(0.0).transaction_time is None
+    simulate(s, 30.0, 0.1, {0})
+    budget = s.budget(30.0)
+    assert budget.blocks == 3 and budget.demanded == 1
+    assert budget.transaction_time == pytest.approx(0.1)
+    assert budget.line_use == pytest.approx(1.0)
+    assert budget.refresh["demanded"] is not None and budget.refresh["demanded"] < 0.5
+    assert budget.refresh["slow"] is not None and budget.refresh["slow"] == pytest.approx(10.0, abs=0.5)
+    assert math.isfinite(budget.age_bound["slow"] or math.inf)
+
+
+# --- the order, checked against the rule as the docs state it, on random histories -------------
+
+
+def rule(s: Schedule, now: float) -> int | None:
+    """The next block by the rule of ``docs/guide/freshness.md``, looking at every block."""
+    if s.bumped:
+        return next(iter(s.bumped))
+    tie = sorted(range(len(s.scans)), key=lambda i: (s.period[i], i))  # the fast class first, then plan order
+    urgent: list[tuple[float, int, int, int]] = []
+    wanted: list[tuple[float, int, int]] = []
+    for place, i in enumerate(tie):
+        demanded = s.demanded_until[i] > now
+        due = s.due[i]
+        if demanded and due <= now:
+            urgent.append((due, 0, place, i))
+        elif not demanded and s.since[i] + s.background[i] <= now:
+            urgent.append((s.since[i] + s.background[i], 1, place, i))
+        elif not demanded and due <= now:
+            wanted.append((due, place, i))
+    if urgent:
+        return min(urgent)[3]
+    if wanted:
+        return min(wanted)[2]
+    return None
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    scans=st.lists(st.sampled_from([F, S]), min_size=1, max_size=12),
+    steps=st.lists(st.tuples(st.sampled_from(["read", "fail", "demand", "hold", "lost", "bump"]),
+                             st.integers(0, 11), st.floats(0.0, 3.0)), max_size=60),
+    fast=st.sampled_from([0.0, 0.5]),
+    background=st.sampled_from([0.0, 2.0, 30.0]),
+)
+def test_the_order_is_the_rule(scans: list[Scan], steps: list[tuple[str, int, float]], fast: float,
+                               background: float) -> None:
+    s = schedule(scans, fast=fast, slow=1.5, hold=4.0, background=background)
+    now = 0.0
+    s.begin(now)
+    for action, block, dt in steps:
+        now += dt
+        block %= len(scans)
+        if action == "demand":
+            s.demand([block], now)
+        elif action == "hold":
+            s.hold(block, now + dt)
+        elif action == "bump":
+            s.bump([block])
+        else:
+            pick = s.next(now)
+            assert pick == rule(s, now), (action, now)
+            if pick is None:
+                continue
+            s.started(pick, now)
+            if action == "lost":
+                s.untry(pick, now)
+            else:
+                s.done(pick, now, now + 0.01, action == "read")
+        assert s.next(now) == rule(s, now)
+        assert s.next_due(now) == (now if s.bumped else min(s.due))
