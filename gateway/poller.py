@@ -38,9 +38,9 @@ never per retry, and never twice with the driver's words:
   poller can tell: ``link X: unavailable: <error>`` at WARNING once, and ``link X: back online``
   at INFO once the data comes back (also after a link loss in between).
 
-When the line cannot refresh blocks within their stale limit (``stale_after`` plus their period),
-the poller says so once, at WARNING, with the refresh period it achieves and what to change
-(:attr:`Poller.behind` keeps the words for the status page).
+When the line cannot refresh blocks within their stale limit (``stale_after`` plus their period)
+in three rounds in a row, the poller says so once, at WARNING, with the refresh period it
+achieves and what to change (:attr:`Poller.behind` keeps the words for the status page).
 
 ``stagger`` delays the first poll so that links do not all start, and then poll every
 ``fast_interval``, at the same instant: by default a share of ``fast_interval`` (at most
@@ -70,8 +70,10 @@ ReadBlock = Callable[[Block], Awaitable[bytes]]
 
 #: Seconds before a block the controller refused is tried again (at most the slow interval).
 _REFUSED_RETRY = 5.0
-#: Seconds the status page shows that the line could not keep up, after the last late read.
+#: Seconds the status page shows that the line could not keep up, after it was last seen.
 _BEHIND_SHOWN = 60.0
+#: Rounds in a row with a late read before the line is said not to keep up (not a start's burst).
+_LATE_ROUNDS = 3
 #: The most request keys whose blocks are remembered (a client scanning addresses cannot grow it).
 _MAX_KEYS = 4096
 #: Seconds a poller whose next read is only wanted waits at most for another's urgent reads to end.
@@ -193,6 +195,8 @@ class Poller:
         #: the words of the last warning that the line cannot keep up, and when it was last true
         self.behind_text: str | None = None
         self._behind_at = -math.inf
+        self._late_block = -1  # the last block read late in this round (-1: none)
+        self._late_rounds = 0  # rounds in a row with a late read
         self._warned = False  # the current unavailability was logged at WARNING
         self._round_tries = 0  # read attempts in this round
         self._round_read = 0  # blocks read in this round
@@ -257,8 +261,9 @@ class Poller:
             return None
         return self.behind_text
 
-    def _late(self, block: int, now: float) -> None:
-        """A read came after the block's stale limit: say once what the line achieves and what to change."""
+    def _behind(self, block: int, now: float) -> None:
+        """Reads came after their block's stale limit in ``_LATE_ROUNDS`` rounds in a row: say once
+        what the line achieves and what to change (``block``: the last one late)."""
         schedule = self.schedule
         demanded = schedule.demanded_until[block] > now
         group = schedule.demanded(now) if demanded else range(len(self.blocks))
@@ -321,7 +326,7 @@ class Poller:
         self.cache.store(index, data, now)
         self._answered(index)
         if late:
-            self._late(index, now)
+            self._late_block = index
         self._round_read += 1
         self.last_success = now
         if not self.available:
@@ -439,6 +444,10 @@ class Poller:
                 await asyncio.sleep(self._down_wait)
                 continue
             if self._round_tries >= rounds:
+                self._late_rounds = self._late_rounds + 1 if self._late_block >= 0 else 0
+                if self._late_rounds >= _LATE_ROUNDS:
+                    self._behind(self._late_block, loop.time())
+                self._late_block = -1
                 self._end_round()
                 self.scans += 1
                 await asyncio.sleep(0)  # let other links and the server run

@@ -152,6 +152,7 @@ class Schedule:
         #: heaps of (urgent time, 1 if not demanded, rank, block, version) and (wanted time, rank,
         #: block, version); an entry whose version is not the block's is stale
         self._version = [0] * n
+        self._heap_cap = 2 * n + 16
         self._urgent: list[tuple[float, int, int, int, int]] = []
         self._wanted: list[tuple[float, int, int, int]] = []
         self._rebuild(NEVER)
@@ -264,8 +265,8 @@ class Schedule:
         urgent, demanded = self._urgent_key(block, now)
         heapq.heappush(self._urgent, (urgent, demanded, rank, block, version))
         heapq.heappush(self._wanted, (self.due[block], rank, block, version))
-        if len(self._urgent) > 4 * len(self.scans) + 16 or len(self._wanted) > 4 * len(self.scans) + 16:
-            self._rebuild(now)
+        if len(self._urgent) > self._heap_cap or len(self._wanted) > self._heap_cap:
+            self._rebuild(now)  # drop the stale entries that have not surfaced (bounded memory)
 
     def _rebuild(self, now: float) -> None:
         self._urgent = []

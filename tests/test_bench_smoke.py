@@ -26,6 +26,7 @@ SCRIPTS = [
     "target_persist.py",
     "slc_write_verdicts.py",
     "freshness.py",
+    "schedule_cost.py",
 ]
 
 

@@ -573,6 +573,16 @@ BAD = [
         "fast_interval",
         "greater than or equal to 0",
     ),
+    ("demand-hold-0", ASCII_LINK + "demand_hold = 0\n", "(link[0]).demand_hold", "demand_hold", "greater than 0"),
+    (
+        "background-negative",
+        ASCII_LINK + "background_interval = -1\n",
+        "(link[0]).background_interval",
+        "background_interval",
+        "greater than or equal to 0",
+    ),
+    ("read-wait-6", ASCII_LINK + "read_wait = 6\n", "(link[0]).read_wait", "read_wait", "less than or equal to 5"),
+    ("read-wait-nan", ASCII_LINK + "read_wait = nan\n", "(link[0]).read_wait", "read_wait", "finite number"),
     (
         "df1-key-on-ascii",
         ASCII_LINK + "station = 3\n",

@@ -122,7 +122,9 @@ async def test_a_line_that_cannot_keep_up_says_so_once_with_what_to_change(caplo
     caplog.set_level(logging.WARNING, "gateway.poller")
     task = asyncio.create_task(unit.run())
     try:
-        await until(lambda: unit.schedule is not None and unit.schedule.late_reads >= 20, 20.0)
+        await until(lambda: unit.poller is not None and unit.poller.behind_text is not None, 20.0)
+        late = unit.schedule.late_reads if unit.schedule is not None else 0
+        await until(lambda: unit.schedule is not None and unit.schedule.late_reads >= late + 200, 20.0)
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)

@@ -104,10 +104,13 @@ async def test_a_screen_on_a_slow_controller_gets_every_read_with_data() -> None
                     reply = await client.read_holding_registers(32, count=32, device_id=1)
                     codes.append((loop.time() - start, exception_code(reply)))
                 await asyncio.sleep(max(0.0, start + second + 1 - loop.time()))
-        budget = gw.units[0].schedule.budget(loop.time())  # type: ignore[union-attr]
+        unit = gw.units[0]
+        assert unit.schedule is not None and unit.poller is not None
+        budget, behind = unit.schedule.budget(loop.time()), unit.poller.behind_text
     settled = [code for at, code in codes if at > 5.0]
     assert settled and all(code is None for code in settled), codes
     assert budget.demanded == 64, budget
+    assert behind is None  # the set fits: no warning
 
 
 async def test_at_start_the_blocks_a_client_reads_come_first() -> None:
@@ -221,6 +224,6 @@ async def test_a_link_that_is_down_answers_at_once() -> None:
         await until(lambda: not unit.driver.available)
         with pytest.raises(Exception) as stale:
             for block in range(len(unit.plan.blocks)):
-                unit.cache.images.expire(block)  # type: ignore[union-attr]
+                unit.images.expire(block)
             unit.read_register_bytes(Table.HOLDING, 0, 1)
         assert not isinstance(stale.value, StaleRead) and getattr(stale.value, "code", None) == TARGET_FAILED
