@@ -2,11 +2,13 @@
 
 A SCADA client reads all 31 presets of an SLC 150 (holding registers 32-62, presets of 901-931)
 over and over through the whole gateway (driver, poller, cache, unit, Modbus server) while the
-simulated controller (in-process, unpaced: the fastest peer, where the line's faults dominate)
-garbles, drops and power-cycles.  A read is *fresh* when it is answered with values (not
-exception 0x0B).  Counted after the first scan has completed.  Meanwhile a writer changes one
-preset every ``--write-every`` seconds (1); at the end every acknowledged write must have been
-applied exactly once, no write twice, and every value read must be one that preset held.
+simulated controller (in-process, unpaced, where the line's faults dominate) garbles, drops and
+power-cycles.  It answers at the end of its program scan, 20-60 ms (``REALISTIC_SCAN``,
+``docs/develop/controller-variants.md`` "Answer time"), as a real one does; ``--scan 0`` answers at once.
+A read is *fresh* when it is answered with values (not exception 0x0B).  Counted after the first
+scan has completed.  Meanwhile a writer changes one preset every ``--write-every`` seconds (1); at
+the end every acknowledged write must have been applied exactly once, no write twice, and every
+value read must be one that preset held.
 
 Fault mixes (1 in N replies garbled / dropped, a power cycle every N commands):
 
@@ -21,7 +23,7 @@ same variant.  A second part measures recovery: a device server in front of the 
 goes away for ``--outage`` seconds (10 by default); the time from its return to the first
 fresh read of all 31 presets is reported (the target is 2 s or less).
 
-    python bench/availability.py [--quick] [--seconds S] [--outage S]
+    python bench/availability.py [--quick] [--seconds S] [--outage S] [--scan S|MIN-MAX|0]
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
 from gateway.sim import create_simulator, get_simulator, reset_simulators
+from gateway.sim.scan import REALISTIC_SCAN
 from gateway.sim.serve import serve_tcp
 
 HOST = "127.0.0.1"
@@ -74,8 +77,18 @@ def describe(variants: dict[str, str]) -> str:
     return ",".join(f"{k}={v}" for k, v in variants.items())
 
 
-def sim_url(mix: dict[str, int], variants: dict[str, str], seed: int, extra: str = "") -> str:
+#: the controller's scan (``scan=`` of the sim:// URL): every answer at the end of the scan in progress
+SCAN = REALISTIC_SCAN.text()
+
+
+def scan_options(scan: str) -> dict[str, str]:
+    """The ``scan`` option of a simulator (none when ``scan`` is 0 or empty: answers at once)."""
+    return {"scan": scan} if scan.strip() not in ("", "0") else {}
+
+
+def sim_url(mix: dict[str, int], variants: dict[str, str], seed: int, extra: str = "", scan: str = SCAN) -> str:
     query = [f"{k}={v}" for k, v in mix.items()] + [f"variant={k}={v}" for k, v in variants.items()]
+    query += [f"{k}={v}" for k, v in scan_options(scan).items()]
     query += [extra] if extra else []
     query += ["ladder=0", f"seed={seed}", f"instance={uuid.uuid4().hex}"]
     return "sim://slc150?" + "&".join(query)
@@ -99,9 +112,9 @@ writable = ["holding:32-62"]
 
 
 async def measure(variants: dict[str, str], mix: dict[str, int], seconds: float, *, seed: int = 1,
-                  write_every: float = 5.0, extra: str = "") -> dict[str, Any]:
+                  write_every: float = 5.0, extra: str = "", scan: str = SCAN) -> dict[str, Any]:
     """Read the presets for ``seconds`` after the first scan; the figures and the correctness checks."""
-    url = sim_url(mix, variants, seed, extra)
+    url = sim_url(mix, variants, seed, extra, scan)
     sim = get_simulator(url)
     assert isinstance(sim, SlcAsciiSimulator)
     held = {reg: {sim.word(0x40 + 2 * (reg - 32)) & 0x7FFF} for reg in PRESETS}
@@ -229,9 +242,9 @@ async def until_fresh(client: AsyncModbusTcpClient, limit: float, what: str) -> 
     raise RuntimeError(f"no {what} within {limit:g} s")
 
 
-async def recovery(outage: float) -> float:
+async def recovery(outage: float, scan: str = SCAN) -> float:
     """Seconds from the device server's return to the first fresh read of all 31 presets."""
-    sim = create_simulator("slc150", {"ladder": "0"})
+    sim = create_simulator("slc150", {"ladder": "0", **scan_options(scan)})
     upstream = await serve_tcp(sim, HOST, 0)
     server = DeviceServer(upstream.sockets[0].getsockname()[1])
     await server.start()
@@ -281,7 +294,7 @@ async def run(args: argparse.Namespace) -> None:
         for mix in mixes:
             reset_simulators()
             figures = await measure(variant, MIXES[mix], args.seconds, seed=args.seed, extra=args.sim_option,
-                                    write_every=args.write_every)
+                                    write_every=args.write_every, scan=args.scan)
             if mix == "clean":
                 clean_goodput = figures["goodput"]
             relative = figures["goodput"] / clean_goodput if clean_goodput else float("nan")
@@ -303,12 +316,12 @@ async def run(args: argparse.Namespace) -> None:
     print(table(["variant", "mix", "fresh %", "reads", "goodput tx/s", "goodput vs clean", "wrong values",
                  "writes acked/sent", "write p99 s", "worst write s", "double writes", "acked writes lost"],
                 rows))
-    recovered = await recovery(args.outage) if not args.no_recovery else float("nan")
+    recovered = await recovery(args.outage, args.scan) if not args.no_recovery else float("nan")
     print(f"\nrecovery after a {args.outage:g} s outage: first fresh read of all 31 presets "
           f"{recovered:.2f} s after the device server returned (target <= 2 s)")
     result(worst_harsh_fresh_pct=100 * worst_harsh, worst_write_s=worst_write, wrong_values=wrong,
            double_writes=doubles, acked_writes_lost=lost, recovery_s=recovered, variants=len(variants),
-           seconds=args.seconds)
+           seconds=args.seconds, scan=args.scan)
 
 
 def main() -> None:
@@ -324,6 +337,8 @@ def main() -> None:
     parser.add_argument("--sim-option", default="", help="one more sim:// option, e.g. late_every=20")
     parser.add_argument("--write-every", type=float, default=1.0, help="seconds between writes (default 1)")
     parser.add_argument("--no-recovery", action="store_true", help="skip the recovery part")
+    parser.add_argument("--scan", default=SCAN, help=f"the controller's scan, seconds (default {SCAN}; 0: answers "
+                                                      "at once)")
     args = parser.parse_args()
     args.seconds = args.seconds or (3.0 if args.quick else 20.0)
     args.outage = args.outage or (2.0 if args.quick else 10.0)

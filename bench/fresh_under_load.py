@@ -1,8 +1,10 @@
 """Fresh under load: a paced SLC 150 polled at 9600 baud while 50 Modbus connections load the server.
 
 The gateway runs as its own process (``slc-gateway run``) against a controller paced at 9600 baud:
-the project's simulator (``slc-gateway simulate slc150 --paced``) and, when ``../shared/interop``
-is beside the repository, the independent interop peer (``slc_ascii_peer.py --baud 9600``).
+the project's simulator (``slc-gateway simulate slc150 --paced``, answering at the end of its
+program scan, 20-60 ms: ``REALISTIC_SCAN``, ``--scan 0`` for at once) and, when
+``../shared/interop`` is beside the repository, the independent interop peer
+(``slc_ascii_peer.py --baud 9600``, which answers at once).
 Windows of ``--seconds`` alternate between no load and load (``bench/loadgen.py read``: 50
 closed-loop connections reading the accumulators and presets as fast as the server answers);
 meanwhile a monitor reads every mapped table of the unit every 0.1 s and counts the reads
@@ -14,6 +16,7 @@ Target: no read answered 0x0B under load (a healthy line never lets a value go s
 poll cadence kept (ratio near 1).
 
     python bench/fresh_under_load.py [--seconds 20] [--pairs 3] [--connections 50] [--target sim|peer|both]
+                                     [--scan S|MIN-MAX|0]
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from _benchlib import print_machine, result, table
+
+from gateway.sim.scan import REALISTIC_SCAN
 
 HOST = "127.0.0.1"
 ROOT = Path(__file__).resolve().parent.parent
@@ -68,10 +73,11 @@ def process(args: list[str], port: int) -> Iterator[subprocess.Popen[bytes]]:
         proc.wait(10)
 
 
-def controller(target: str, port: int) -> list[str]:
+def controller(target: str, port: int, scan: str = REALISTIC_SCAN.text()) -> list[str]:
     if target == "peer":
         return [sys.executable, str(PEER), "--port", str(port), "--baud", "9600"]
-    return [*GATEWAY, "simulate", "slc150", "--paced", "--listen", f"{HOST}:{port}"]
+    scan_option = ["--option", f"scan={scan}"] if scan.strip() not in ("", "0") else []
+    return [*GATEWAY, "simulate", "slc150", "--paced", "--listen", f"{HOST}:{port}", *scan_option]
 
 
 class Monitor:
@@ -113,7 +119,7 @@ class Monitor:
         return reads, stale, (self.transactions() - tx0) / (time.monotonic() - t0)
 
 
-def measure(target: str, seconds: float, pairs: int, connections: int) -> dict[str, object]:
+def measure(target: str, seconds: float, pairs: int, connections: int, scan: str) -> dict[str, object]:
     cport, mport = free_port(), free_port()
     config = Path(tempfile.mkdtemp()) / "gateway.toml"
     config.write_text(f"""
@@ -133,7 +139,7 @@ unit = 1
 """)
     loaded_stale = loaded_reads = idle_stale = idle_reads = 0
     ratios: list[float] = []
-    with process(controller(target, cport), cport), process([*GATEWAY, "run", str(config)], mport):
+    with process(controller(target, cport, scan), cport), process([*GATEWAY, "run", str(config)], mport):
         monitor = Monitor(mport)
         deadline = time.monotonic() + 60
         while monitor.call(struct.pack(">BHH", 4, 0, 32))[0] & 0x80:  # the first scan
@@ -173,6 +179,8 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=3, help="pairs of windows, idle and loaded (default 3)")
     parser.add_argument("--connections", type=int, default=50)
     parser.add_argument("--target", choices=("sim", "peer", "both"), default="both")
+    parser.add_argument("--scan", default=REALISTIC_SCAN.text(),
+                        help="the simulator's scan, seconds (default %(default)s; 0: answers at once)")
     args = parser.parse_args()
     print_machine()
     targets = ["sim", "peer"] if args.target == "both" else [args.target]
@@ -181,7 +189,7 @@ def main() -> None:
         targets.remove("peer")
     rows = []
     for target in targets:
-        figures = measure(target, args.seconds, args.pairs, args.connections)
+        figures = measure(target, args.seconds, args.pairs, args.connections, args.scan)
         rows.append([target, figures["idle_reads"], figures["idle_stale"], figures["loaded_reads"],
                      figures["loaded_stale"], figures["cadence_ratio"]])
         result(**{f"{target}_{k}": v for k, v in figures.items() if k != "target"})

@@ -25,6 +25,7 @@ SCRIPTS = [
     "availability.py",
     "target_persist.py",
     "slc_write_verdicts.py",
+    "freshness.py",
     "schedule_cost.py",
     "sparkplug_publishing.py",  # needs mosquitto (Debian package): CI installs it
 ]

@@ -14,6 +14,9 @@ half-duplex multi-drop line ``df1line``; a link kind may add its own).  Options:
 ``ladder=0``           freeze the ladder (values change only when written)
 ``paced=1``            pace every character at the link's baud rate (a real line's speed)
 ``turnaround=S``       controller turnaround before each reply, seconds (with or without pacing)
+``scan=S``             the controller's program scan, seconds (``scan=0.02-0.06``: varying): every
+                       answer at the end of the scan in progress, at most 0.3 s (``gateway.sim.scan``;
+                       every model, ``df1line`` per station)
 ``instance=NAME``      a separate controller for each name (default: one per URL)
 ``variant=NAME=VALUE``  a reading of the manual where it leaves behaviour open (repeat the key,
                        or separate several with commas); see ``docs/develop/controller-variants.md``

@@ -7,7 +7,8 @@
       writers: one per holding 0-5               duplicated chunks, cut connections, outages
 
 Unit 1 is an SLC 150 (ASCII protocol, holding 0-7 = accumulators 901-908); unit 2 an SLC 5/04
-(DF1 full duplex, holding 0-7 = N7:10-N7:17).  Both ladders are frozen (``ladder=0``): a cell
+(DF1 full duplex, holding 0-7 = N7:10-N7:17).  Both answer at the end of their program scan
+(``REALISTIC_SCAN``, 20-60 ms), as real controllers do.  Both ladders are frozen (``ladder=0``): a cell
 changes only when a write is applied, or when the test itself changes the marker (holding 7)
 during an outage.  Each simulator is wrapped so that every change of a cell is recorded with
 the loop time at which the controller made it: the history of every cell.
@@ -55,6 +56,7 @@ from pymodbus.exceptions import ModbusException
 from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.sim import create_simulator
+from gateway.sim.scan import REALISTIC_SCAN
 from gateway.sim.serve import serve_tcp
 
 from .conftest import SoakPlan
@@ -209,7 +211,7 @@ class Link:
 
 
 async def slc_link(seed: int) -> Link:
-    sim = create_simulator("slc150", {"ladder": "0", "seed": str(seed)})
+    sim = create_simulator("slc150", {"ladder": "0", "seed": str(seed), "scan": REALISTIC_SCAN.text()})
 
     def read(cell: int) -> int:
         return sim.word(2 * cell) & 0x7FFF  # type: ignore[no-any-return]
@@ -224,7 +226,7 @@ async def slc_link(seed: int) -> Link:
 
 
 async def df1_link(seed: int) -> Link:
-    sim = create_simulator("slc504", {"ladder": "0", "seed": str(seed)})
+    sim = create_simulator("slc504", {"ladder": "0", "seed": str(seed), "scan": REALISTIC_SCAN.text()})
 
     def read(cell: int) -> int:
         return sim.word("N7", 10 + cell)  # type: ignore[no-any-return]

@@ -41,6 +41,11 @@ Where the manual leaves the controller's behaviour open, ``VARIANTS`` has a swit
   the prompt one); or mode changes and writes take ``slow_delay`` (``slow_changes``, "The
   exceptions are edit commands and mode changes").
 
+The ``scan`` option (``scan=0.05`` or ``scan=0.02-0.06`` seconds; :mod:`gateway.sim.scan`) gives the
+controller a program scan: every reply then comes at the end of the scan in progress when its command
+arrived, or later when the ``reply_time`` reading says so (the reading's time and the scan are not
+added: both count from the command).  Without it replies come at once.
+
 This class does no I/O: ``receive(data, now)`` returns the replies to send, each with a delay.
 ``gateway.sim.serve`` runs it in-process, over TCP or on a pty.
 """
@@ -61,6 +66,7 @@ from gateway.protocols.slc_ascii.framing import (
     RetransmitRequest,
 )
 from gateway.protocols.slc_ascii.memory_map import is_readable
+from gateway.sim.scan import ANSWER_BOUND, SCAN_OPTION, ScanTime, parse_scan, scan_clock
 from gateway.sim.serve import Output
 from gateway.sim.variants import resolve_variants
 
@@ -86,13 +92,17 @@ class FaultPlan:
     seed: int = 1
     late_delay: float = 0.36  # late_replies=some: a late reply comes this long after its command
     late_every: int = 50  # late_replies=some: 1 reply in N is late
-    reply_time: float = 0.3  # reply_time=spread / slow_changes: the longest normal reply time
+    reply_time: float = ANSWER_BOUND  # reply_time=spread / slow_changes: the longest normal reply time
     slow_delay: float = 0.6  # reply_time=slow_changes: a mode change or write takes this long
+    scan: ScanTime | None = None  # the controller's scan: every reply at the end of the scan in progress
 
     @classmethod
     def from_options(cls, options: dict[str, str]) -> FaultPlan:
         plan = cls()
         for key, text in options.items():
+            if key == SCAN_OPTION:
+                plan.scan = parse_scan(text)
+                continue
             if key not in ("garble", "drop", "delay", "power_cycle_every", "fault_every", "seed", "late_delay",
                            "late_every", "reply_time", "slow_delay"):
                 raise ValueError(f"unknown simulator fault option {key!r}")
@@ -171,6 +181,7 @@ class SlcAsciiSimulator:
         #: Every write applied, in order: (kind, address or rung, value).  Tests count these.
         self.applied_writes: list[tuple[str, int, int]] = []
         self._rng = random.Random(self.faults.seed)
+        self._scan_clock = scan_clock(self.faults.scan, self.faults.seed)
         self._decoder = framing.CommandDecoder()
         self._ladder = _Ladder(enabled=ladder)
         self._frames_seen = 0
@@ -292,9 +303,9 @@ class SlcAsciiSimulator:
                 if self._last_reply is not None:
                     again = self._last_garbled and self.variants["z_garbled_again"] == "once"
                     self._last_garbled = False  # garbled again once, not for ever
-                    self._emit(out, self._last_reply, garble=again)
+                    self._emit(out, now, self._last_reply, garble=again)
                 elif self.variants["z_after_power_up"] == "error":
-                    self._emit(out, framing.encode_refused(event.msg_id))
+                    self._emit(out, now, framing.encode_refused(event.msg_id))
                 continue
             assert isinstance(event, CommandFrame)
             self._frames_seen += 1
@@ -312,7 +323,7 @@ class SlcAsciiSimulator:
             if remembered:
                 self._last_reply = reply
                 self._last_garbled = False
-            garbled = self._emit(out, reply, slow=executed and self._is_change(event))
+            garbled = self._emit(out, now, reply, slow=executed and self._is_change(event))
             if remembered:
                 self._last_garbled = garbled
             if fault and self.variants["fault_report"] == "after_reply":
@@ -358,8 +369,9 @@ class SlcAsciiSimulator:
     def fault_frame(self) -> bytes:
         return framing.encode_fault(0)
 
-    def _emit(self, out: list[Output], reply: bytes, *, garble: bool = False, slow: bool = False) -> bool:
-        """Put ``reply`` on the line through the faults; True when it went out garbled."""
+    def _emit(self, out: list[Output], now: float, reply: bytes, *, garble: bool = False, slow: bool = False) -> bool:
+        """Put ``reply`` on the line through the faults, at the end of the scan in progress when the
+        controller has a scan; True when it went out garbled."""
         plan = self.faults
         if plan.drop and self._rng.randrange(plan.drop) == 0:
             self.counters.dropped += 1
@@ -368,7 +380,7 @@ class SlcAsciiSimulator:
         if garbled:
             self.counters.garbled_out += 1
             reply = self._garble(reply)
-        delay = plan.delay + self._turnaround(slow)
+        delay = plan.delay + max(self._turnaround(slow), self._scan_delay(now))
         if self.variants["late_replies"] == "some" and self._rng.randrange(max(1, plan.late_every)) == 0:
             self.counters.late += 1
             delay = max(delay, plan.late_delay)
@@ -376,6 +388,10 @@ class SlcAsciiSimulator:
             reply += b"\n"
         out.append(Output(delay, reply))
         return garbled
+
+    def _scan_delay(self, now: float) -> float:
+        """Seconds to the end of the scan in progress (``scan`` option), 0 without a scan."""
+        return self._scan_clock.delay(now) if self._scan_clock is not None else 0.0
 
     def _turnaround(self, slow: bool) -> float:
         """The controller's time to answer, as the ``reply_time`` reading has it."""

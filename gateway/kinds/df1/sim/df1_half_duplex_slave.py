@@ -7,8 +7,10 @@ simulator's, a PLC-5's, or a test's).
 
 Manual: 1775-KA p. 11-11/11-12 and 1770-KF2 p. 4-31/4-32 (slave transceiver actions);
 1770-6.5.16 p. 2-7 Table 2.C (DLE NAK = global link reset, DLE EOT).  Readings: section 4 and 5 of
-``docs/develop/df1-half-duplex-notes.md``.  The slave has no clock: it answers at once, so latency and
-lost bytes are the line's business (the test harness or the line simulator).
+``docs/develop/df1-half-duplex-notes.md``.  The slave has no clock of its own: the caller passes ``now``
+with the bytes, and ``answer_at(now)`` (the end of the controller's scan in progress, given by the
+line simulator) holds a reply back until then; latency and lost bytes are the line's business (the test harness
+or the line simulator).
 """
 
 from __future__ import annotations
@@ -92,6 +94,7 @@ class SlaveCounters:
 class _Outgoing:
     message: bytes
     sends: int = 0
+    ready_at: float = float("-inf")  #: polls before this time are answered as a busy slave's
 
 
 @dataclass(slots=True)
@@ -106,6 +109,8 @@ class HalfDuplexSlave:
     outgoing: deque[_Outgoing] = field(default_factory=deque)
     #: messages held back: ``busy`` replies become ready one poll later (a slow CPU)
     busy: int = 0
+    #: when the reply to a message heard at ``now`` is ready (None: at once)
+    answer_at: Callable[[float], float] | None = None
     counters: SlaveCounters = field(default_factory=SlaveCounters)
     _decoder: FrameDecoder = field(init=False)
     _out: bytearray = field(default_factory=bytearray)
@@ -124,15 +129,16 @@ class HalfDuplexSlave:
         self._out.clear()
         return data
 
-    def receive_data(self, data: bytes) -> None:
+    def receive_data(self, data: bytes, now: float = 0.0) -> None:
+        """Master bytes heard at ``now`` (seconds; only compared with ``ready_at``)."""
         self._decoder.feed(data)
         while (event := self._decoder.next_event()) is not NEED_DATA:
             if isinstance(event, Poll):
                 if event.station == self.station:
-                    self._on_poll()
+                    self._on_poll(now)
             elif isinstance(event, MasterMessage):
                 if event.station == self.station:
-                    self._on_message(event.message)
+                    self._on_message(event.message, now)
             elif isinstance(event, AckReceived):
                 if self._sent and self.outgoing:
                     self.outgoing.popleft()
@@ -147,7 +153,7 @@ class HalfDuplexSlave:
                     self._out += NAK_SYMBOL
             # Slave frames, EOTs, bad slave frames: another station talking.  Ignored.
 
-    def _on_poll(self) -> None:
+    def _on_poll(self, now: float) -> None:
         self.counters.polls += 1
         if self._sent and self.outgoing:
             head = self.outgoing[0]
@@ -158,8 +164,9 @@ class HalfDuplexSlave:
             else:
                 self.counters.resends += 1
         self._sent = False
-        if self.busy > 0:
-            self.busy -= 1
+        not_ready = bool(self.outgoing) and now < self.outgoing[0].ready_at
+        if self.busy > 0 or not_ready:
+            self.busy = max(0, self.busy - 1)
             if self.variant.silent_when_busy:
                 return
             self.counters.eots += 1
@@ -174,7 +181,7 @@ class HalfDuplexSlave:
         self._sent = True
         self._out += encode_frame(head.message, self.checksum)
 
-    def _on_message(self, message: bytes) -> None:
+    def _on_message(self, message: bytes, now: float) -> None:
         self.counters.messages += 1
         # KA p. 11-12 compares SRC, CMD and both TNS bytes; a runt is never a repeat
         key = duplicate_key(message) if len(message) >= HEADER_SIZE else None
@@ -187,4 +194,6 @@ class HalfDuplexSlave:
         self.counters.executed += 1
         reply = self.handler(message)
         if reply is not None:
-            self.outgoing.append(_Outgoing(address_reply(message, reply, self.variant.reply_addresses, self.station)))
+            ready_at = self.answer_at(now) if self.answer_at is not None else float("-inf")
+            reply = address_reply(message, reply, self.variant.reply_addresses, self.station)
+            self.outgoing.append(_Outgoing(reply, ready_at=ready_at))

@@ -22,7 +22,11 @@ whose command execution is the SLC 5/04 simulator's (``gateway.kinds.df1.sim.slc
 * ``slow`` - extra turnaround per station (a slow modem or CPU); ``busy_polls`` - per station, the
   number of polls after each command before its reply is ready (the slave answers them DLE EOT or
   not at all, per its ``when_busy`` variant);
-* ``echo`` - 2-wire RS-485: the master hears its own bytes back (as they came off the medium).
+* ``echo`` - 2-wire RS-485: the master hears its own bytes back (as they came off the medium);
+* ``scan`` - every station's program scan (``scan=0.05`` or ``scan=0.02-0.06`` seconds,
+  :mod:`gateway.sim.scan`; each station its own clock): a station ACKs a message at once, and its
+  reply is ready at the end of the scan in progress; polls before then are answered as a busy
+  station's (DLE EOT, or nothing, per ``when_busy``).
 
 The line paces itself (``char_time``) because it must judge collisions: serve it unpaced
 (``SimStream(line)``, ``serve_tcp(line, ...)`` without ``settings``).  It is a
@@ -32,7 +36,7 @@ return what reaches the master, as outputs with no delay (the line keeps its own
 Variants: the slave model's ``VARIANTS`` (``bad_frame_reply``, ``reply_retries``,
 ``duplicate_detect``, ``when_busy``), for every station.  Options as strings (``from_options``):
 ``checksum=bcc|crc stations=1,2,3 dead=4 slow=3:0.2 busy_polls=2:1 turnaround=S latency=S
-char_time=S corrupt=N ignore=N lose_symbol=N echo=0|1 seed=N model=slc504|plc5``.
+char_time=S corrupt=N ignore=N lose_symbol=N echo=0|1 seed=N model=slc504|plc5 scan=S|MIN-MAX``.
 
 No I/O; randomness from one seeded generator.
 """
@@ -55,12 +59,13 @@ from gateway.kinds.df1.sim.slc500 import Output, Slc500Options, Slc500Simulator
 from gateway.kinds.df1.sim.slc500_line import corrupt_frame
 from gateway.protocols.df1.framing import Checksum, Symbol
 from gateway.sim.models import read_sim_option
+from gateway.sim.scan import SCAN_OPTION, ScanTime, parse_scan, scan_clock
 
 __all__ = ["LineOptions", "MultidropCounters", "MultidropLine", "SlcStation"]
 
 _OPTION_NAMES: Final = (
     "checksum", "stations", "dead", "slow", "busy_polls", "turnaround", "latency", "char_time", "corrupt",
-    "ignore", "lose_symbol", "echo", "seed", "model",
+    "ignore", "lose_symbol", "echo", "seed", "model", SCAN_OPTION,
 )
 _MODELS: Final = ("slc504", "plc5")
 
@@ -90,6 +95,7 @@ class LineOptions:
     echo: bool = False
     seed: int = 1
     model: str = "slc504"
+    scan: ScanTime | None = None
 
     def __post_init__(self) -> None:
         if not self.stations:
@@ -165,6 +171,7 @@ class LineOptions:
             echo=get("echo", lambda text: text.lower() in ("1", "true", "yes"), False),
             seed=get("seed", int, 1),
             model=get("model", str.lower, "slc504"),
+            scan=parse_scan(options.get(SCAN_OPTION)),
         )
 
 
@@ -223,7 +230,9 @@ class MultidropLine:
             )
             self.controllers[number] = controller
             if number not in self.options.dead:
-                self.slaves[number] = HalfDuplexSlave(number, checksum, self._handler(number, controller), self.variant)
+                clock = scan_clock(self.options.scan, self.options.seed, salt=str(number))
+                self.slaves[number] = HalfDuplexSlave(number, checksum, self._handler(number, controller), self.variant,
+                                                      answer_at=clock.answer_at if clock is not None else None)
         self._seq = itertools.count()
         self._to_slaves: list[tuple[float, int, bytes, bool]] = []  # (time, seq, bytes, garbled)
         self._to_master: list[tuple[float, int, _Transmission]] = []
@@ -325,7 +334,7 @@ class MultidropLine:
                 self.counters.ignored += 1
                 continue
             for number, slave in self.slaves.items():
-                slave.receive_data(token)
+                slave.receive_data(token, at)
                 answer = slave.data_to_send()
                 if answer:
                     self._transmit(number, at, answer)

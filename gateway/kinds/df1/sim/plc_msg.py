@@ -32,7 +32,10 @@ duplicate the gateway must not run twice), ``nak_reply`` (a reply frame arrives 
 it and the gateway sends it again), ``duplicate`` (a frame we send goes out twice, as a PLC that
 answers a lost DLE ACK by sending the frame again rather than DLE ENQ: the gateway must ACK the
 copy and not run it again); ``seed``, ``every``, ``cycle``, ``station`` (the gateway's node,
-our DST), ``source`` (ours), ``checksum``.  Results: :attr:`PlcMsgSimulator.counters` and
+our DST), ``source`` (ours), ``checksum``, ``scan`` (``scan=0.05`` or ``scan=0.02-0.06`` seconds,
+:mod:`gateway.sim.scan`: the ladder enables a MSG during a scan and the channel sends it at the end
+of that scan, so each MSG goes out at the end of the scan in progress when its turn comes).
+Results: :attr:`PlcMsgSimulator.counters` and
 :attr:`PlcMsgSimulator.log` (the last results, newest last).
 """
 
@@ -84,6 +87,7 @@ from gateway.protocols.df1.transaction import (
     TransactionFailed,
     TransactionRefused,
 )
+from gateway.sim.scan import SCAN_OPTION, ScanTime, parse_scan, scan_clock
 from gateway.sim.serve import Output
 
 __all__ = ["DEMO_SCRIPT", "PlcMsgSimulator", "create_plc_msg"]
@@ -142,7 +146,8 @@ class PlcMsgSimulator:
 
     def __init__(self, *, script: Sequence[Msg] = DEMO_SCRIPT, every: float = 0.1, cycle: float = 1.0,
                  station: int = 1, source: int = 0, checksum: Checksum = Checksum.CRC, corrupt: int = 0,
-                 lose_ack: int = 0, nak_reply: int = 0, duplicate: int = 0, seed: int = 1) -> None:
+                 lose_ack: int = 0, nak_reply: int = 0, duplicate: int = 0, seed: int = 1,
+                 scan: ScanTime | None = None) -> None:
         self.script = tuple(script)
         self.every = every
         self.cycle_time = cycle
@@ -154,6 +159,7 @@ class PlcMsgSimulator:
         self.core = Df1Transactions(self.link, station=station, source=source, reply_timeout=2.0, retries=2)
         self.faults = {"corrupt": corrupt, "lose_ack": lose_ack, "nak_reply": nak_reply, "duplicate": duplicate}
         self._random = random.Random(seed)
+        self._scan_clock = scan_clock(scan, seed)
         self.counters = PlcMsgCounters()
         self.log: deque[MsgResult] = deque(maxlen=200)
         #: the data of the last successful reply to each MSG of the script, by label
@@ -197,9 +203,10 @@ class PlcMsgSimulator:
         if self._step == len(self.script):
             self._step = 0
             self._cycle += 1
-            self._next = now + self.cycle_time
+            due = now + self.cycle_time
         else:
-            self._next = now + self.every
+            due = now + self.every
+        self._next = self._scan_clock.answer_at(due) if self._scan_clock is not None else due
 
     def _after(self, now: float) -> list[Output]:
         while (event := self.core.next_event()) is not NEED_DATA:
@@ -300,4 +307,5 @@ def create_plc_msg(options: Mapping[str, str], ladder: bool = True,
         nak_reply=_int(options, "nak_reply", 0),
         duplicate=_int(options, "duplicate", 0),
         seed=_int(options, "seed", 1),
+        scan=parse_scan(options.get(SCAN_OPTION)),
     )

@@ -17,6 +17,9 @@ Fault injection (``1 in N`` drawn from a seeded generator; 0 = off):
 * ``noise=N``: an output is preceded by 1-8 random bytes without DLE, which a receiver
   hunting for DLE STX discards;
 * ``delay=S``: replies are queued on the link S seconds after the command arrived;
+* ``scan=S`` or ``scan=MIN-MAX`` (:mod:`gateway.sim.scan`): the program scans in S seconds (MIN to
+  MAX, varying); a command is executed at once, but its reply is queued at the end of the scan in
+  progress (plus ``delay``).  The link's DLE ACK is not held: the channel answers it at once;
 * ``lose_in=N``: a frame from the host is lost whole on the way in (the controller never sees
   it; a DLE ENQ then gets the last response, the ACK of the previous frame);
 * ``corrupt_in=N``: a frame from the host arrives damaged (its check fails): the controller
@@ -80,6 +83,7 @@ from gateway.protocols.df1.datalink import (
     SendFailed,
 )
 from gateway.protocols.df1.framing import ACK_SYMBOL, NEED_DATA, Symbol
+from gateway.sim.scan import scan_clock
 from gateway.sim.serve import Output
 from gateway.sim.variants import resolve_variants
 
@@ -122,6 +126,7 @@ class Slc500Simulator(Slc500Processor):
         self._last_reply: bytes | None = None  # the reply to the last message delivered
         self._held_acks = 0  # DLE ACKs owed, to go right after the next reply (reply_first)
         self._rng = random.Random(self.options.seed)
+        self._scan_clock = scan_clock(self.options.scan, self.options.seed)
         self._pending: deque[tuple[float, bytes]] = deque()  # (due, reply packet)
         self._last_frame: bytes | None = None  # the last frame the link wrote, before faults
 
@@ -165,7 +170,7 @@ class Slc500Simulator(Slc500Processor):
                 self._drain_events(now)
                 if duplicate and self._resend_reply and self._last_reply is not None:
                     self.counters.replies_resent += 1
-                    self._pending.append((now + self.options.delay, self._last_reply))
+                    self._pending.append((self._reply_due(now), self._last_reply))
                 self._send_due(now)
                 self._emit(out, link.data_to_send())
                 if hold and self.counters.replies_sent == replies_before and not self._pending:
@@ -236,11 +241,17 @@ class Slc500Simulator(Slc500Processor):
                     if self._is_write(payload) and self._one_in(self.options.drop):
                         self.counters.dropped += 1
                         continue
-                    self._pending.append((now + self.options.delay, reply))
+                    self._pending.append((self._reply_due(now), reply))
                 case SendComplete():
                     self.counters.replies_acked += 1
                 case SendFailed():
                     self.counters.replies_failed += 1
+
+    def _reply_due(self, now: float) -> float:
+        """When a reply to a command that arrived at ``now`` goes on the link: the end of the scan in
+        progress (``scan``), plus ``delay``."""
+        at = self._scan_clock.answer_at(now) if self._scan_clock is not None else now
+        return at + self.options.delay
 
     def _send_due(self, now: float) -> None:
         while self._pending and self._pending[0][0] <= now:

@@ -10,6 +10,7 @@ from typing import Final
 from gateway.frozen import frozen
 from gateway.protocols.df1.framing import Checksum
 from gateway.sim.models import read_sim_option
+from gateway.sim.scan import SCAN_OPTION, ScanTime, parse_scan
 
 __all__ = ["Slc500Counters", "Slc500Options"]
 
@@ -17,7 +18,7 @@ __all__ = ["Slc500Counters", "Slc500Options"]
 
 _ONE_IN_OPTIONS: Final = ("corrupt", "drop", "withhold_ack", "duplicate", "noise", "lose_in", "corrupt_in")
 _OPTION_NAMES: Final = (
-    *_ONE_IN_OPTIONS, "checksum", "station", "delay", "seed", "link_ack_timeout", "garble", "faults_on"
+    *_ONE_IN_OPTIONS, "checksum", "station", "delay", "seed", "link_ack_timeout", "garble", "faults_on", SCAN_OPTION
 )
 
 
@@ -38,6 +39,7 @@ class Slc500Options:
     lose_in: int = 0  #: lose 1 in N frames from the host whole
     corrupt_in: int = 0  #: damage 1 in N frames from the host
     faults_on: str = "all"  #: "writes": drop, lose_in and corrupt_in strike only write commands
+    scan: ScanTime | None = None  #: the program scan: replies at the end of the scan in progress (None: at once)
 
     def __post_init__(self) -> None:
         if not 0 <= self.station <= 254:
@@ -80,6 +82,7 @@ class Slc500Options:
             lose_in=one_in["lose_in"],
             corrupt_in=one_in["corrupt_in"],
             faults_on=options.get("faults_on", "all").strip().lower(),
+            scan=parse_scan(options.get(SCAN_OPTION)),
         )
 
 

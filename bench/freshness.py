@@ -1,0 +1,578 @@
+"""Freshness: the share of SCADA reads answered with data when the controllers take their time.
+
+A real controller answers at the end of its program scan (``docs/develop/controller-variants.md``, "Answer
+time"), not at once.  This bench runs the whole gateway (in-process, default config, no faults)
+against paced simulators whose every answer waits for the end of the scan in progress
+(``gateway/sim/scan.py``), and against the independent controllers of ``../shared/interop`` behind
+a proxy that holds each of their answers uniform(lo, hi) seconds (and paces the DF1 peer's line).
+Clients read through Modbus TCP on a schedule; a read is *with data* unless it is answered
+0x0B (or not at all within 3 s).  Each figure is printed beside the line's measured capacity
+(transactions/s, the status registers 1003-1004 of each unit, summed), the plan's blocks and the
+demanded set's blocks (the blocks holding the registers clients read).
+
+Cases (the targets of issue "Spend the line on what SCADA reads"):
+
+* ``slc``: SLC 150 at 9600 baud, scans of J/2-J (answers within 0-J) for J = 50 and 100 ms; one
+  client reads holding 0-31 every 1 s, another 32-63 every 2 s: >= 99 % with data;
+* ``slc-acc8``: the same with J = 250 ms, one client reading 8 accumulators (holding 0-7) every 1 s:
+  >= 99 %;
+* ``startup``: a client asks for holding 0-31 every 50 ms from the moment the Modbus port opens
+  (9600 baud, answers at once): the first data within 2.5 s (median of the runs);
+* ``load50``: 50 connections reading holding 0-31 or 32-63 from the moment the port opens
+  (answers at once): no 0x0B after the first 3 s;
+* ``df1``: an SLC 5/04 on DF1 full duplex at 19200 baud, a half-duplex line of 3 stations at 19200,
+  and one of 8 stations of which clients read 3 (the whole plan does not fit the line when the
+  scans are long, what clients read does); scans of 20-60 ms, a map of 100 + 10 + 20 registers and
+  64 coils per controller; per unit read a client reads holding 0-31 every 1 s and 32-63 every 2 s;
+* ``peers``: the same workloads against the interop peers (SLC 150 at 9600 with answers held
+  uniform(0, 50 / 100 ms); the DF1 peer paced at 19200 by the proxy, answers held 20-60 ms; the
+  half-duplex peer at 19200, every answer held 20-60 ms: a slow turnaround rather than a scan);
+* ``sweep``: reads with data against the controller's longest scan (0 = answers at once), per kind
+  (SLC 150, SLC 5/04 full duplex, the 3- and 8-station half-duplex lines), plotted to ``--png``
+  (``--compare`` earlier runs' ``--json`` files: their curves dashed).
+
+    python bench/freshness.py                      # every case, ~15 min
+    python bench/freshness.py --only slc,startup   # some cases
+    python bench/freshness.py --quick              # CI smoke: a few seconds per case, no plot
+
+The plot needs matplotlib: ``pip install -e '.[bench]'`` (the ``bench`` extra of pyproject.toml).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import functools
+import json
+import random
+import socket
+import statistics
+import struct
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Awaitable, Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from _benchlib import DF1_MAP, df1_link, print_machine, result, slc_link, table
+
+from gateway.app import Gateway
+from gateway.config import parse_config
+from gateway.modbus.mapping import Table
+from gateway.sim.scan import REALISTIC_SCAN, ScanTime
+
+HOST = "127.0.0.1"
+ROOT = Path(__file__).resolve().parent.parent
+PEERS = ROOT.parent / "shared" / "interop" / "peers"
+STALE = 0x0B
+TIMEOUT = -1  # no answer within the client's timeout
+CLIENT_TIMEOUT = 3.0
+DF1_CHAR = 10 / 19200
+#: what a SCADA screen reads: (function code, address, count, period s)
+SCREEN = ((3, 0, 32, 1.0), (3, 32, 32, 2.0))
+ACC8 = ((3, 0, 8, 1.0),)
+SWEEP = (0.0, 0.05, 0.1, 0.2, 0.3)
+
+
+def scan_for(longest: float) -> ScanTime | None:
+    """Answers within 0-``longest``: scans of ``longest``/2 to ``longest`` (None: answers at once)."""
+    return ScanTime(longest / 2, longest) if longest > 0 else None
+
+
+# ------------------------------------------------------------------------------- Modbus clients
+
+
+class Client:
+    """One Modbus TCP connection: reads, answered with data (0), an exception code or TIMEOUT."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader, self.writer, self.tid = reader, writer, 0
+
+    @classmethod
+    async def connect(cls, port: int) -> Client:
+        return cls(*await asyncio.open_connection(HOST, port))
+
+    async def read(self, unit: int, fc: int, address: int, count: int) -> tuple[int, bytes]:
+        self.tid = (self.tid + 1) & 0xFFFF
+        self.writer.write(struct.pack(">HHHBBHH", self.tid, 0, 6, unit, fc, address, count))
+        try:
+            async with asyncio.timeout(CLIENT_TIMEOUT):
+                head = await self.reader.readexactly(7)
+                body = await self.reader.readexactly(struct.unpack(">H", head[4:6])[0] - 1)
+        except TimeoutError:
+            self.close()
+            raise
+        if body[0] & 0x80:
+            return body[1], b""
+        return 0, body[2:]
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+@dataclass
+class Reader:
+    """A client reading ``count`` registers at ``address`` of ``unit`` every ``period`` seconds."""
+
+    unit: int
+    fc: int
+    address: int
+    count: int
+    period: float
+    results: list[tuple[float, int]] = field(default_factory=list)  #: (sent, s after the port opened; code)
+
+    async def run(self, port: int, opened: float, stop: asyncio.Event) -> None:
+        loop = asyncio.get_running_loop()
+        client = await Client.connect(port)
+        start, k = loop.time(), 0
+        try:
+            while not stop.is_set():
+                await asyncio.sleep(max(0.0, start + k * self.period - loop.time()))
+                sent = loop.time()
+                try:
+                    code, _ = await client.read(self.unit, self.fc, self.address, self.count)
+                except TimeoutError:
+                    code = TIMEOUT
+                    client = await Client.connect(port)
+                self.results.append((sent - opened, code))
+                k = max(k + 1, int((loop.time() - start) / self.period) + 1)  # a late answer skips its turns
+        finally:
+            client.close()
+
+    def share(self, since: float = 0.0) -> tuple[int, int]:
+        """(reads with data, reads) sent ``since`` seconds after the port opened."""
+        codes = [code for sent, code in self.results if sent >= since]
+        return sum(code == 0 for code in codes), len(codes)
+
+
+async def transactions(port: int, units: Sequence[int]) -> int:
+    """Transactions so far, summed over ``units`` (input registers 1003-1004 of each)."""
+    client = await Client.connect(port)
+    try:
+        total = 0
+        for unit in units:
+            code, data = await client.read(unit, 4, 1003, 2)
+            total += int.from_bytes(data, "big") if code == 0 else 0
+        return total
+    finally:
+        client.close()
+
+
+# ------------------------------------------------------------------------------------ gateways
+
+
+def config(links: str, connections: int = 16) -> Any:
+    return parse_config(f"""
+[modbus]
+listen = "{HOST}:0"
+max_connections = {connections + 16}
+max_connections_per_address = {connections + 16}
+
+[logging]
+level = "ERROR"
+
+{links}""")
+
+
+def instance() -> str:
+    return f"instance={uuid.uuid4().hex}"
+
+
+#: a gateway's links: (config text, its units, the units the clients read)
+Links = tuple[str, list[int], list[int]]
+
+
+def slc_links(scan: ScanTime | None, port: str = "") -> Links:
+    query = "&".join(["paced=1", "seed=1", instance()] + ([f"scan={scan.text()}"] if scan else []))
+    return slc_link("slc", port or f"sim://slc150?{query}", 1), [1], [1]
+
+
+def df1_full_links(scan: ScanTime | None, port: str = "") -> Links:
+    query = "&".join(["paced=1", "seed=1", instance()] + ([f"scan={scan.text()}"] if scan else []))
+    return df1_link("df1", port or f"sim://slc504?{query}", 1, baudrate=19200), [1], [1]
+
+
+def df1_half_links(scan: ScanTime | None, port: str = "", stations: int = 3, read: int = 3) -> Links:
+    numbers = list(range(1, stations + 1))
+    query = "&".join([f"stations={','.join(map(str, numbers))}", f"char_time={DF1_CHAR:.9f}", "seed=1", instance()]
+                     + ([f"scan={scan.text()}"] if scan else []))
+    port = port or f"sim://df1line?{query}"
+    links = [df1_link(f"station-{n}", port, n, DF1_MAP, duplex="half", station=n, baudrate=19200) for n in numbers]
+    return "\n".join(links), numbers, numbers[:read]
+
+
+def df1_line8_links(scan: ScanTime | None, port: str = "") -> Links:
+    """8 stations on the line, clients reading 3 of them: the whole plan does not fit a slow line."""
+    return df1_half_links(scan, port, stations=8, read=3)
+
+
+KINDS: dict[str, Callable[[ScanTime | None, str], Links]] = {
+    "SLC 150, 9600": slc_links,
+    "SLC 5/04 DF1 full duplex, 19200": df1_full_links,
+    "3 stations, DF1 half duplex, 19200": df1_half_links,
+    "8 stations (3 read), DF1 half duplex, 19200": df1_line8_links,
+}
+
+
+@dataclass
+class Figures:
+    with_data: int
+    reads: int
+    tx_per_s: float
+    plan_blocks: int
+    demanded_blocks: int
+    #: reads without data: (s after the port opened, unit, address, count, code), the first few
+    misses: list[tuple[float, int, int, int, int]] = field(default_factory=list)
+
+    @property
+    def share(self) -> float:
+        return self.with_data / self.reads if self.reads else float("nan")
+
+
+def demanded(gw: Gateway, readers: Sequence[Reader]) -> tuple[int, int]:
+    """(blocks of every unit's plan, blocks holding the registers the readers read)."""
+    plans = {unit.unit_id: unit.plan for unit in gw.units}
+    blocks = {(reader.unit, plans[reader.unit].registers(Table.HOLDING)[address].block)
+              for reader in readers for address in range(reader.address, reader.address + reader.count)
+              if address in plans[reader.unit].registers(Table.HOLDING)}
+    return sum(len(plan.blocks) for plan in plans.values()), len(blocks)
+
+
+async def steady(links: Links, screen: Sequence[tuple[int, int, int, float]], seconds: float,
+                 warmup: float) -> Figures:
+    """Readers of ``screen`` on every unit read; the share with data after ``warmup``."""
+    text, units, read = links
+    readers = [Reader(unit, fc, address, count, period) for unit in read for fc, address, count, period in screen]
+    async with Gateway(config(text)) as gw:
+        loop = asyncio.get_running_loop()
+        opened, stop = loop.time(), asyncio.Event()
+        tasks = [asyncio.create_task(reader.run(gw.port, opened, stop)) for reader in readers]
+        await asyncio.sleep(warmup)
+        tx0, t0 = await transactions(gw.port, units), loop.time()
+        await asyncio.sleep(seconds)
+        rate = (await transactions(gw.port, units) - tx0) / (loop.time() - t0)
+        stop.set()
+        await asyncio.gather(*tasks)
+        plan_blocks, demanded_blocks = demanded(gw, readers)
+    good = sum(reader.share(warmup)[0] for reader in readers)
+    total = sum(reader.share(warmup)[1] for reader in readers)
+    misses = sorted((sent, reader.unit, reader.address, reader.count, code) for reader in readers
+                    for sent, code in reader.results if sent >= warmup and code != 0)
+    return Figures(good, total, rate, plan_blocks, demanded_blocks, misses)
+
+
+async def startup(links: Links, limit: float = 15.0) -> float:
+    """Seconds from the port opening to the first read of holding 0-31 answered with data."""
+    async with Gateway(config(links[0])) as gw:
+        loop = asyncio.get_running_loop()
+        opened = loop.time()
+        client = await Client.connect(gw.port)
+        try:
+            while loop.time() < opened + limit:
+                code, _ = await client.read(1, 3, 0, 32)
+                if code == 0:
+                    return loop.time() - opened
+                await asyncio.sleep(0.05)
+        finally:
+            client.close()
+    return float("inf")
+
+
+async def load50(links: Links, seconds: float, connections: int = 50) -> tuple[int, int, int, int]:
+    """(0x0B, reads) in the first 3 s and after, of ``connections`` clients reading from the port's opening."""
+    readers = [Reader(1, 3, 32 * (n % 2), 32, 0.1) for n in range(connections)]
+    async with Gateway(config(links[0], connections)) as gw:
+        loop = asyncio.get_running_loop()
+        opened, stop = loop.time(), asyncio.Event()
+        tasks = [asyncio.create_task(reader.run(gw.port, opened, stop)) for reader in readers]
+        await asyncio.sleep(seconds)
+        stop.set()
+        await asyncio.gather(*tasks)
+    early = [code for reader in readers for sent, code in reader.results if sent < 3.0]
+    late = [code for reader in readers for sent, code in reader.results if sent >= 3.0]
+    return sum(c != 0 for c in early), len(early), sum(c != 0 for c in late), len(late)
+
+
+# ----------------------------------------------------------------------------------- the peers
+
+
+class AnswerDelayProxy:
+    """A TCP proxy in front of a peer: every answer (the controller's bytes after a host write) is held
+    uniform(``lo``, ``hi``) seconds, order kept; with ``char_time`` both ways are paced as a serial line."""
+
+    def __init__(self, upstream: int, lo: float, hi: float, *, char_time: float = 0.0, seed: int = 1) -> None:
+        self.upstream, self.lo, self.hi, self.char_time = upstream, lo, hi, char_time
+        self.rng = random.Random(seed)
+        self.server: asyncio.Server | None = None
+        self.port = 0
+
+    async def start(self) -> None:
+        self.server = await asyncio.start_server(self._session, HOST, 0)
+        self.port = self.server.sockets[0].getsockname()[1]
+
+    async def close(self) -> None:
+        if self.server is not None:
+            self.server.close()
+            with contextlib.suppress(Exception):
+                await self.server.wait_closed()
+
+    async def _session(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        up_reader, up_writer = await asyncio.open_connection(HOST, self.upstream)
+        answer = {"new": False}
+        pumps = [asyncio.create_task(self._pump(reader, up_writer, answer, up=True)),
+                 asyncio.create_task(self._pump(up_reader, writer, answer, up=False))]
+        await asyncio.wait(pumps, return_when=asyncio.FIRST_COMPLETED)
+        for pump in pumps:
+            pump.cancel()
+        for w in (writer, up_writer):
+            w.close()
+
+    async def _pump(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, answer: dict[str, bool], *,
+                    up: bool) -> None:
+        loop = asyncio.get_running_loop()
+        free_at = shift = 0.0
+        while data := await reader.read(4096):
+            if up:
+                answer["new"] = True
+            elif answer["new"]:
+                answer["new"] = False
+                shift = self.rng.uniform(self.lo, self.hi)
+            start = max(loop.time() + (0.0 if up else shift), free_at)
+            free_at = start + len(data) * self.char_time
+            await asyncio.sleep(max(0.0, free_at - loop.time()))
+            writer.write(data)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind((HOST, 0))
+        return int(s.getsockname()[1])
+
+
+@contextlib.contextmanager
+def peer(script: str, *args: str) -> Iterator[int]:
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, str(PEERS / script), "--port", str(port), *args],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            with contextlib.suppress(OSError), socket.create_connection((HOST, port), timeout=1):
+                break
+            time.sleep(0.1)
+        yield port
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
+async def through_peer(script: str, args: Sequence[str], lo: float, hi: float, char_time: float,
+                       links: Callable[[ScanTime | None, str], Links], seconds: float,
+                       warmup: float) -> Figures:
+    with peer(script, *args) as upstream:
+        proxy = AnswerDelayProxy(upstream, lo, hi, char_time=char_time)
+        await proxy.start()
+        try:
+            return await steady(links(None, f"socket://{HOST}:{proxy.port}"), SCREEN, seconds, warmup)
+        finally:
+            await proxy.close()
+
+
+# ------------------------------------------------------------------------------------ reporting
+
+
+def misses(fig: Figures, limit: int = 8) -> str:
+    """The first reads without data: ``t s unit/holding address+count (0x0B | timeout)``."""
+    shown = [f"{t:.1f}s u{unit} {address}+{count} {'timeout' if code == TIMEOUT else f'0x{code:02X}'}"
+             for t, unit, address, count, code in fig.misses[:limit]]
+    more = f" (+{len(fig.misses) - limit})" if len(fig.misses) > limit else ""
+    return "; ".join(shown) + more
+
+
+async def median_of(rounds: int, measure: Callable[[], Awaitable[Figures]]) -> tuple[Figures, list[float]]:
+    """``rounds`` measurements: the one of median share, and every share."""
+    figs = []
+    for _ in range(rounds):
+        figs.append(await measure())
+        if figs[-1].misses:
+            print(f"  reads without data: {misses(figs[-1])}", flush=True)
+    figs.sort(key=lambda fig: fig.share)
+    return figs[len(figs) // 2], [fig.share for fig in figs]
+
+
+def row(case: str, answers: str, fig: Figures, target: str, shares: Sequence[float] = ()) -> list[object]:
+    each = f" (rounds {', '.join(f'{100 * share:.1f}' for share in shares)})" if len(shares) > 1 else ""
+    return [case, answers, f"{100 * fig.share:.1f} %{each}", f"{fig.with_data}/{fig.reads}", fig.tx_per_s,
+            fig.plan_blocks, fig.demanded_blocks, target]
+
+
+HEADERS = ["case", "controller answers", "reads with data", "with data / reads", "line tx/s", "plan blocks",
+           "demanded blocks", "target"]
+
+
+#: a sweep's points per kind: (longest scan s, share of reads with data, line transactions/s)
+Points = dict[str, list[tuple[float, float, float]]]
+
+
+def plot(points: Points, path: Path, title: str, before: Points | None = None,
+         labels: tuple[str, str] = ("", "")) -> None:
+    """Reads with data (top) and the line's transactions/s (bottom) against the longest scan."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print(f"no plot: matplotlib is not installed; install it with: pip install -e '.[bench]' "
+              f"(then rerun to write {path})")
+        return
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7.5, 7.5), sharex=True, height_ratios=(3, 2))
+    for n, (kind, values) in enumerate(points.items()):
+        runs = [(values, "o", "-", 1.0, labels[1])]
+        if before and kind in before:
+            runs.append((before[kind], "x", "--", 0.6, labels[0]))
+        for series, marker, style, alpha, label in runs:
+            xs = [1000 * x for x, _, _ in series]
+            style_of = dict(marker=marker, linestyle=style, color=f"C{n}", alpha=alpha)
+            top.plot(xs, [100 * y for _, y, _ in series], label=f"{kind} {label}".strip(), **style_of)
+            bottom.plot(xs, [tx for _, _, tx in series], **style_of)
+    top.axhline(99, color="grey", linestyle=":", linewidth=1, label="target 99 %")
+    top.set_ylabel("reads answered with data, %")
+    top.set_ylim(0, 103)
+    top.set_title(title, fontsize=10)
+    top.legend(fontsize=7, loc="lower left")
+    bottom.set_ylabel("line transactions / s")
+    bottom.set_xlabel("controller's longest scan, ms (answers within 0 to it; scans of half to all of it)")
+    for ax in (top, bottom):
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"plot written to {path}")
+
+
+async def main_async(args: argparse.Namespace) -> tuple[dict[str, object], Points]:
+    only = set(args.only.split(",")) if args.only else {"slc", "slc-acc8", "startup", "load50", "df1", "peers",
+                                                         "sweep"}
+    seconds, warmup = args.seconds, args.warmup
+    rows: list[list[object]] = []
+    figures: dict[str, object] = {}
+    points: Points = {}
+    slc_cases = (0.05,) if args.quick else (0.05, 0.1)
+    if "slc" in only:
+        for longest in slc_cases:
+            fig, shares = await median_of(args.rounds, lambda longest=longest: steady(
+                slc_links(scan_for(longest)), SCREEN, seconds, warmup))
+            rows.append(row("SLC 150 9600: holding 0-31 / 1 s, 32-63 / 2 s", f"scan {longest / 2:g}-{longest:g} s",
+                            fig, ">= 99 %", shares))
+            figures[f"slc_{int(longest * 1000)}ms"] = fig.share
+            print(rows[-1], flush=True)
+    if "slc-acc8" in only:
+        fig, shares = await median_of(args.rounds, lambda: steady(slc_links(scan_for(0.25)), ACC8, seconds, warmup))
+        rows.append(row("SLC 150 9600: holding 0-7 / 1 s", "scan 0.125-0.25 s", fig, ">= 99 %", shares))
+        figures["slc_acc8_250ms"] = fig.share
+        print(rows[-1], flush=True)
+    if "df1" in only:
+        for name in [k for k in list(KINDS)[1:] if not args.kinds or any(p in k for p in args.kinds.split(","))]:
+            fig = await steady(KINDS[name](REALISTIC_SCAN, ""), SCREEN, seconds, warmup)
+            if fig.misses:
+                print(f"  reads without data: {misses(fig)}", flush=True)
+            rows.append(row(f"{name}: per unit read holding 0-31 / 1 s, 32-63 / 2 s",
+                            f"scan {REALISTIC_SCAN.text()} s", fig, "fresh whenever it fits"))
+            figures["df1_line8" if "8 stations" in name else "df1_half" if "half" in name else "df1_full"] = fig.share
+            print(rows[-1], flush=True)
+    if "peers" in only and PEERS.exists():
+        peer_cases = [
+            ("interop SLC 150 9600", "slc_ascii_peer.py", ["--model", "150", "--baud", "9600"], 0.0, 0.05, 0.0,
+             slc_links),
+            ("interop SLC 150 9600", "slc_ascii_peer.py", ["--model", "150", "--baud", "9600"], 0.0, 0.1, 0.0,
+             slc_links),
+            ("interop SLC 5/04 DF1 full duplex, paced 19200 by the proxy", "df1_peer.py", ["--crc"], 0.02, 0.06,
+             DF1_CHAR, df1_full_links),
+            ("interop 3 stations DF1 half duplex 19200", "df1_halfduplex_peer.py",
+             ["--stations", "1,2,3", "--crc", "--baud", "19200"], 0.02, 0.06, 0.0, df1_half_links),
+        ]
+        for name, script, peer_args, lo, hi, char_time, links in peer_cases[: 1 if args.quick else None]:
+            measure = functools.partial(through_peer, script, peer_args, lo, hi, char_time, links, seconds, warmup)
+            fig, shares = await median_of(args.rounds if "SLC 150" in name else 1, measure)
+            rows.append(row(f"{name}: holding 0-31 / 1 s, 32-63 / 2 s", f"held uniform {lo:g}-{hi:g} s", fig,
+                            ">= 99 %" if "SLC 150" in name else "fresh whenever it fits", shares))
+            figures[f"peer_{script.removesuffix('.py')}_{int(hi * 1000)}ms"] = fig.share
+            print(rows[-1], flush=True)
+    elif "peers" in only:
+        print(f"interop peers not found at {PEERS}: measuring the simulators only")
+    print(table(HEADERS, rows))
+    if "startup" in only:
+        runs = [await startup(slc_links(None)) for _ in range(1 if args.quick else args.repeats)]
+        median = statistics.median(runs)
+        print(f"start-up, SLC 150 9600 answering at once: first data for holding 0-31 after "
+              f"{', '.join(f'{r:.2f}' for r in runs)} s (median {median:.2f} s; target <= 2.5 s)")
+        figures["startup_s"] = median
+    if "load50" in only:
+        early_bad, early, late_bad, late = await load50(slc_links(None), 6.0 if args.quick else max(seconds, 10.0))
+        print(f"50 connections from the start, SLC 150 9600 answering at once: 0x0B {early_bad}/{early} in the "
+              f"first 3 s, {late_bad}/{late} after (target 0 after)")
+        figures["load50_0x0B_after_3s"] = late_bad
+    if "sweep" in only:
+        sweep = (SWEEP[0], SWEEP[-1]) if args.quick else SWEEP
+        kinds = list(KINDS)[:1] if args.quick else [k for k in KINDS if not args.kinds or any(
+            part in k for part in args.kinds.split(","))]
+        sweep_rows = []
+        for name in kinds:
+            for longest in sweep:
+                fig = await steady(KINDS[name](scan_for(longest), ""), SCREEN, seconds, warmup)
+                points.setdefault(name, []).append((longest, fig.share, fig.tx_per_s))
+                sweep_rows.append([name, f"{1000 * longest:g}", f"{100 * fig.share:.1f} %", fig.tx_per_s,
+                                   fig.plan_blocks, fig.demanded_blocks])
+                if fig.misses:
+                    print(f"  reads without data: {misses(fig)}", flush=True)
+                print(sweep_rows[-1], flush=True)
+        print(table(["kind", "longest scan ms", "reads with data", "line tx/s", "plan blocks", "demanded blocks"],
+                    sweep_rows))
+    return figures, points
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="CI smoke: short windows, one point per case, no plot")
+    parser.add_argument("--seconds", type=float, help="measuring window per case (default 30; quick 2)")
+    parser.add_argument("--warmup", type=float, help="seconds after start before counting (default 10; quick 1)")
+    parser.add_argument("--repeats", type=int, default=3, help="start-up runs (median; default 3)")
+    parser.add_argument("--rounds", type=int, default=1, help="rounds of each SLC 150 case with a 99 %% target: "
+                                                               "the median is reported, every round beside it")
+    parser.add_argument("--only", default="", help="comma-separated cases: slc, slc-acc8, startup, load50, df1, "
+                                                    "peers, sweep")
+    parser.add_argument("--kinds", default="", help="the sweep's and the df1 case's kinds whose name contains one "
+                                                     "of these (comma-separated; default every kind)")
+    parser.add_argument("--png", default=str(ROOT / "bench" / "freshness.png"), help="the sweep's plot")
+    parser.add_argument("--json", default="", help="write the figures and the sweep's points to this file")
+    parser.add_argument("--compare", default="",
+                        help="--json files of earlier runs (comma-separated): their sweeps drawn dashed")
+    parser.add_argument("--label", default="", help="the legend's label of this run's curves (e.g. 'after')")
+    parser.add_argument("--compare-label", default="before", help="the legend's label of --compare's curves")
+    parser.add_argument("--title", default="Reads with data vs controller answer time (default config, no faults)")
+    args = parser.parse_args()
+    args.seconds = args.seconds if args.seconds is not None else (2.0 if args.quick else 30.0)
+    args.warmup = args.warmup if args.warmup is not None else (1.0 if args.quick else 10.0)
+    print_machine()
+    figures, points = asyncio.run(main_async(args))
+    if args.json:
+        Path(args.json).write_text(json.dumps({"figures": figures, "sweep": points}, indent=1))
+    if args.png and points and not args.quick:
+        before = None
+        if args.compare:
+            before = {}
+            for name in args.compare.split(","):
+                sweep = json.loads(Path(name).read_text())["sweep"]
+                before.update({kind: [(x, y, tx) for x, y, tx in values] for kind, values in sweep.items()})
+        plot(points, Path(args.png), args.title, before, (args.compare_label, args.label))
+    result(**figures)
+
+
+if __name__ == "__main__":
+    main()
