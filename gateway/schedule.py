@@ -10,7 +10,10 @@ The rule (``docs/guide/freshness.md`` states it for users):
 * a block nobody demands is *wanted* once ``P`` has passed: it is read when nothing is urgent;
 * the next read is: a bumped block (a client waits for it, :meth:`Schedule.bump`), first bumped
   first; else the urgent block with the earliest deadline; else the wanted block with the
-  earliest deadline; else nothing until :meth:`Schedule.next_due`.
+  earliest deadline; else nothing until :meth:`Schedule.next_due`;
+* a block's first read after start or a loss sets its next due time at a share of ``P`` (its place
+  in its class, 1/k .. k/k), not at ``P``: blocks read in one burst then come due spread over ``P``,
+  not as one burst that would hold every other block up for as long as it takes to read them all.
 
 So when the line has room every block is read at its class period (the fast class continuously
 when ``fast_interval`` is 0); when it has not, what clients read goes first and every other block
@@ -144,6 +147,14 @@ class Schedule:
         self._window_start = NEVER
         self._window_busy = 0.0
         self._line_use = math.nan
+        #: per block: the share of its class period its first refresh comes after (its place in its class,
+        #: 1/k .. k/k): blocks read together at start or after a loss come due spread over P, not as one
+        #: burst that would hold every other block up for as long as it takes to read them all
+        self._phase = [1.0] * n
+        for period in set(self.period):
+            members = [i for i in range(n) if self.period[i] == period]
+            for place, i in enumerate(members):
+                self._phase[i] = (place + 1) / len(members)
         self._tie = sorted(range(n), key=lambda i: (self.period[i], i))
         #: per block: its place among ties (blocks never read): the fast class first, then the plan's order
         self._rank = [0] * n
@@ -191,7 +202,8 @@ class Schedule:
         """The read of ``block`` goes on the line: it goes to the back of the order; its stale limit
         is set from its period as planned now (the image stamps the read with it)."""
         self._before = (block, self.due[block], self.since[block])
-        self.due[block] = now + self.period[block]
+        first = self.read_at[block] == NEVER  # its first read since start or a loss: due spread over P
+        self.due[block] = now + self.period[block] * (self._phase[block] if first else 1.0)
         self.since[block] = now
         self._push(block, now)
         self.bumped.pop(block, None)

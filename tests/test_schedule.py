@@ -56,7 +56,8 @@ ORDER = [
      10.0, 1),
     ("start: ... and then ahead of the demanded one", [F, F], [(1, 15.5)], [1], [], 15.5, 0),
     ("demanded slow (P=10) not due: the wanted fast block", [F, S], [(0, 99.0), (1, 95.0)], [1], [], 100.0, 0),
-    ("nothing due when every period is positive", [S, S], [(0, 95.0), (1, 96.0)], [], [], 100.0, None),
+    ("nothing due when every period is positive", [S, S], [(0, 85.0), (1, 86.0), (0, 95.0), (1, 96.0)], [], [], 100.0,
+     None),
 ]
 
 
@@ -75,11 +76,28 @@ def test_next_block(case: str, scans: list[Scan], reads: list[tuple[int, float]]
 
 def test_next_due_is_the_earliest_class_deadline_and_now_when_bumped() -> None:
     s = schedule([S, S], slow=10.0)
-    read(s, 0, 95.0)
-    read(s, 1, 96.0)
+    for at in (85.0, 95.0):  # the second read: due one class period after it (the first: a share of it)
+        read(s, 0, at)
+        read(s, 1, at + 1.0)
     assert s.next_due(100.0) == 105.0
     s.bump([1])
     assert s.next_due(100.0) == 100.0
+
+
+def test_blocks_read_together_first_come_due_spread_over_their_class_period() -> None:
+    """The slow class read in one burst at start: its next reads are due 10/4, 20/4, 30/4 and 40/4 s
+    after, not all 10 s after (a burst of them would hold the fast class up for the whole burst); from
+    then on each block is due one class period after its last read."""
+    s = schedule([F, S, S, S, S], slow=10.0)
+    s.begin(0.0)
+    for block in (1, 2, 3, 4):
+        read(s, block, 1.0)
+    assert [s.due[b] for b in (1, 2, 3, 4)] == [3.5, 6.0, 8.5, 11.0]
+    read(s, 1, 3.5)
+    assert s.due[1] == 13.5
+    s.lost()  # after a loss the first reads spread again
+    read(s, 2, 20.0)
+    assert s.due[2] == 25.0
 
 
 def test_demand_lasts_demand_hold() -> None:
