@@ -53,7 +53,7 @@ class History:
 
 def run(fates: list[Fate], gaps: list[float]) -> None:
     sim = Slc500Simulator(Slc500Options(checksum=Checksum.CRC, link_ack_timeout=0.05), ladder=False)
-    link = Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.05, max_enq=2, max_nak=2)
+    link = Df1DataLink(checksum=Checksum.CRC, ack_timeout=0.05, enq_limit=2, nak_limit=2)
     core = Df1Transactions(link, station=1, source=0, reply_timeout=REPLY_TIMEOUT, retries=2, first_tns=7)
     history = History()
     fate_of = iter(fates)
