@@ -9,8 +9,10 @@ The rule (``docs/guide/freshness.md`` states it for users):
   has passed when it is not; its deadline is then that time (last read + ``P`` or + ``B``);
 * a block nobody demands is *wanted* once ``P`` has passed: it is read when nothing is urgent;
 * the next read is: a bumped block (a client waits for it, :meth:`Schedule.bump`), first bumped
-  first; else the urgent block with the earliest deadline; else the wanted block with the
-  earliest deadline; else nothing until :meth:`Schedule.next_due`;
+  first; else the urgent block with the earliest deadline, unless a *read ahead* goes first
+  (:meth:`Schedule._read_ahead`: a demanded block of a periodic class, read a little early while
+  the continuous block it goes before is still young); else the wanted block with the earliest
+  deadline; else nothing until :meth:`Schedule.next_due`;
 * a block's first read after start or a loss sets its next due time at a share of ``P`` (its place
   in its class, 1/k .. k/k), not at ``P``: blocks read in one burst then come due spread over ``P``,
   not as one burst that would hold every other block up for as long as it takes to read them all.
@@ -18,12 +20,13 @@ The rule (``docs/guide/freshness.md`` states it for users):
 So when the line has room every block is read at its class period (the fast class continuously
 when ``fast_interval`` is 0); when it has not, what clients read goes first and every other block
 is still read within ``B`` plus one read of every block (:meth:`Schedule.age_bound`): earliest
-deadline first lets a block be overtaken by each other block at most once.  At start
+deadline first lets a block be overtaken by each other block at most once, and a read ahead
+overtakes only a block younger than 70 % of its stale limit.  At start
 (:meth:`Schedule.begin`) every block counts as read one class period ago: bumped and demanded
 blocks first, then the fast class, then the slow one; a block nobody reads is read when the line
-has room, and within ``B`` in any case.  After a loss the order goes on where it was.  A failed
-read counts as a read for the order (the block goes to the back, it does not block the line) but
-not for freshness.
+has room, and within ``B`` in any case (spread over its second half).  After a loss the order
+goes on where it was.  A failed read counts as a read for the order (the block goes to the back,
+it does not block the line) but not for freshness.
 
 Each block's *stale limit* (the largest age at which it is served) is ``stale_after`` plus its
 period as planned when it was read: ``P`` when demanded, ``B`` when not (:attr:`Schedule.max_age`,
@@ -55,8 +58,9 @@ __all__ = [
 #: ``demand_hold``: a block stays demanded this many seconds after a client read it (longer than the
 #: 1-30 s between two polls of a SCADA screen or a historian, so a polled block stays demanded).
 DEFAULT_DEMAND_HOLD: Final = 60.0
-#: ``background_interval``: blocks nobody reads are refreshed at least this often.
-DEFAULT_BACKGROUND_INTERVAL: Final = 30.0
+#: ``background_interval``: blocks nobody reads are refreshed at least this often (``docs/guide/freshness.md``:
+#: 56 blocks nobody reads on an SLC 150 cost 56 / 65 s = 0.9 of the 11 transactions/s of a 9600-baud line).
+DEFAULT_BACKGROUND_INTERVAL: Final = 60.0
 #: ``read_wait``: a read of data not yet read or stale may wait this long for its block (well
 #: under the 1-3 s a SCADA client waits for an answer).
 DEFAULT_READ_WAIT: Final = 0.5
@@ -68,6 +72,15 @@ NEVER: Final = -math.inf
 USE_WINDOW: Final = 10.0
 #: Weight of the newest transaction in the mean transaction time.
 _EWMA: Final = 0.1
+#: Spreads the first background reads (``begin``): ``k * _GOLDEN mod 1`` for k = 1, 2, ... places any
+#: run of consecutive blocks evenly over the interval, so the blocks nobody reads, wherever they sit
+#: in the plan, do not come due as one burst.
+_GOLDEN: Final = (math.sqrt(5.0) - 1.0) / 2.0
+#: Read ahead (``next``): a demanded block of a periodic class may go before a block read continuously
+#: while that one's value is younger than this share of its stale limit (the rest, 30 %, absorbs the
+#: spread of answer times), and only within half its period of coming due.
+READ_AHEAD_AGE: Final = 0.7
+READ_AHEAD_DUE: Final = 0.5
 
 
 @frozen
@@ -135,6 +148,8 @@ class Schedule:
         self.interval = [math.nan] * n
         #: per block: demanded until this loop time
         self.demanded_until = [NEVER] * n
+        #: per block: not read before this loop time (:meth:`hold`)
+        self.held_until = [NEVER] * n
         #: per block: the largest age at which it is served (shared with the image)
         self.max_age = [stale_after + p for p in self.period]
         #: per block: the stale limit its current value was read with
@@ -166,6 +181,9 @@ class Schedule:
         self._heap_cap = 2 * n + 16
         self._urgent: list[tuple[float, int, int, int, int]] = []
         self._wanted: list[tuple[float, int, int, int]] = []
+        #: (due, rank, block, version) of the blocks of periodic classes, for reading ahead; an entry
+        #: of a block nobody demands is dropped when it surfaces (:meth:`demand` pushes it again)
+        self._ahead: list[tuple[float, int, int, int]] = []
         self._rebuild(NEVER)
 
     # --- inputs -----------------------------------------------------------------------------
@@ -173,13 +191,13 @@ class Schedule:
     def begin(self, now: float) -> None:
         """The poller starts at ``now``: a block never read is wanted at once (as if read one class
         period ago; the fast class first) and urgent at once when demanded; the ones nobody reads
-        get urgent one after the other over ``B``, in that order."""
+        get urgent spread evenly over the second half of ``B`` (the first half leaves the line to
+        the blocks clients wait for at start)."""
         due, background = self.due, self.background
         never = [i for i in self._tie if due[i] == NEVER]
         for k, i in enumerate(never):
             due[i] = now
-            # the blocks nobody reads get urgent one after the other over B, not all at once
-            self.since[i] = now - background[i] + background[i] * (k + 1) / len(never)
+            self.since[i] = now - background[i] / 2 * (1.0 - ((k + 1) * _GOLDEN) % 1.0)
         self._rebuild(now)
 
     def demand(self, blocks: Iterable[int], now: float) -> None:
@@ -207,8 +225,7 @@ class Schedule:
         self.since[block] = now
         self._push(block, now)
         self.bumped.pop(block, None)
-        demanded = self.demanded_until[block] > now
-        self.max_age[block] = self.stale_after + (self.period[block] if demanded else self.background[block])
+        self.max_age[block] = self._limit_now(block, now)
 
     def done(self, block: int, started: float, now: float, ok: bool) -> bool:
         """The read of ``block`` that started at ``started`` ended at ``now`` (``ok``: data stored).
@@ -258,11 +275,44 @@ class Schedule:
             return next(iter(self.bumped))
         top = self._top_urgent(now)
         if top is not None and top[0] <= now:
-            return top[3]
+            ahead = self._read_ahead(top[3], now)
+            return top[3] if ahead is None else ahead
         wanted = self._top_wanted()
         if wanted is not None and wanted[0] <= now:
             return wanted[2]
         return None
+
+    def _read_ahead(self, block: int, now: float) -> int | None:
+        """The demanded periodic block to read before ``block``, the most urgent block, or None.
+
+        Only when ``block`` is read continuously (period 0) and its value is younger than
+        ``READ_AHEAD_AGE`` of its stale limit: the demanded block of a periodic class that comes due
+        first, if it comes due within ``READ_AHEAD_DUE`` of its period, has been read before and is
+        not held.  A continuous class takes
+        every read nothing else is urgent for; without this, the periodic blocks read together at
+        start would be read at the last moment together for ever, and the continuous class would
+        age towards its stale limit each time they come due.  Read ahead while the continuous
+        class has time to spare, they spread over the line.
+        """
+        last = self.read_at[block]
+        if self.period[block] or last == NEVER or now - last >= READ_AHEAD_AGE * self._limit_now(block, now):
+            return None
+        heap, versions, demanded = self._ahead, self._version, self.demanded_until
+        while heap and (heap[0][3] != versions[heap[0][2]] or demanded[heap[0][2]] <= now):
+            heapq.heappop(heap)
+        if not heap:
+            return None
+        due, _rank, candidate, _version = heap[0]
+        if (due - now > READ_AHEAD_DUE * self.period[candidate] or self.held_until[candidate] > now
+                or self.read_at[candidate] == NEVER):  # a first read keeps its place in the start order
+            return None
+        return candidate
+
+    def _limit_now(self, block: int, now: float) -> float:
+        """The stale limit ``block`` would be read with at ``now``: ``stale_after`` plus its period as
+        planned now (``P`` when demanded, ``B`` when not)."""
+        demanded = self.demanded_until[block] > now
+        return self.stale_after + (self.period[block] if demanded else self.background[block])
 
     def _urgent_key(self, block: int, now: float) -> tuple[float, int]:
         """(the time ``block`` is urgent, 0 if demanded else 1) at ``now``."""
@@ -277,19 +327,25 @@ class Schedule:
         urgent, demanded = self._urgent_key(block, now)
         heapq.heappush(self._urgent, (urgent, demanded, rank, block, version))
         heapq.heappush(self._wanted, (self.due[block], rank, block, version))
-        if len(self._urgent) > self._heap_cap or len(self._wanted) > self._heap_cap:
+        if self.period[block]:
+            heapq.heappush(self._ahead, (self.due[block], rank, block, version))
+        if max(len(self._urgent), len(self._wanted), len(self._ahead)) > self._heap_cap:
             self._rebuild(now)  # drop the stale entries that have not surfaced (bounded memory)
 
     def _rebuild(self, now: float) -> None:
         self._urgent = []
         self._wanted = []
+        self._ahead = []
         for block in range(len(self.scans)):
             urgent, demanded = self._urgent_key(block, now)
             rank, version = self._rank[block], self._version[block]
             self._urgent.append((urgent, demanded, rank, block, version))
             self._wanted.append((self.due[block], rank, block, version))
+            if self.period[block]:
+                self._ahead.append((self.due[block], rank, block, version))
         heapq.heapify(self._urgent)
         heapq.heapify(self._wanted)
+        heapq.heapify(self._ahead)
 
     def _top_urgent(self, now: float) -> tuple[float, int, int, int, int] | None:
         heap, versions = self._urgent, self._version
@@ -326,7 +382,7 @@ class Schedule:
 
     def hold(self, block: int, until: float) -> None:
         """Do not read ``block`` again before ``until`` (a block the controller refuses)."""
-        self.due[block] = until
+        self.due[block] = self.held_until[block] = until
         self.since[block] = until - self.period[block]
         self._push(block, until)
 

@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gateway.modbus.mapping import Scan
-from gateway.schedule import Schedule
+from gateway.schedule import NEVER, Schedule
 
 F, S = Scan.FAST, Scan.SLOW
 
@@ -52,9 +52,19 @@ ORDER = [
      [(0, 68.0), (1, 99.0)], [1], [], 100.0, 0),
     ("undemanded, B not passed: the demanded block", [F, F], [(0, 71.0), (1, 99.0)], [1], [], 100.0, 1),
     ("a tie of deadlines: the demanded block", [F, F], [(0, 69.0), (1, 99.0)], [1], [], 100.0, 1),
-    ("start: a block nobody reads is urgent only at its share of B (here 30 / 2)", [F, F], [(1, 10.0)], [1], [],
-     10.0, 1),
-    ("start: ... and then ahead of the demanded one", [F, F], [(1, 15.5)], [1], [], 15.5, 0),
+    # the k-th block never read gets urgent at B / 2 + B / 2 * (k * 0.618... mod 1): for the first of
+    # two, 15 + 15 * 0.618 = 24.27 s; for the second, 15 + 15 * 0.236 = 18.54 s
+    ("start: a block nobody reads is urgent only at its place in the second half of B", [F, F], [(1, 24.0)], [1], [],
+     24.0, 1),
+    ("start: ... and then ahead of the demanded one", [F, F], [(1, 24.5)], [1], [], 24.5, 0),
+    ("start: the second of two nobody reads comes first (18.54 s)", [F, F], [(0, 18.58)], [0], [], 18.6, 1),
+    ("read ahead: a demanded slow block within half its period of due, before a young continuous one",
+     [F, S], [(0, 99.0), (1, 94.0)], [0, 1], [], 100.0, 1),
+    ("no read ahead: the slow block is not within half its period of due", [F, S], [(0, 99.0), (1, 95.5)],
+     [0, 1], [], 100.0, 0),
+    ("no read ahead: the continuous block is past 70 % of its stale limit (5 s)", [F, S], [(0, 96.4), (1, 94.0)],
+     [0, 1], [], 100.0, 0),
+    ("no read ahead for a slow block nobody demands", [F, S], [(0, 99.0), (1, 94.0)], [0], [], 100.0, 0),
     ("demanded slow (P=10) not due: the wanted fast block", [F, S], [(0, 99.0), (1, 95.0)], [1], [], 100.0, 0),
     ("nothing due when every period is positive", [S, S], [(0, 85.0), (1, 86.0), (0, 95.0), (1, 96.0)], [], [], 100.0,
      None),
@@ -199,8 +209,9 @@ SCREEN = set(range(32)) | set(range(55, 87))
 def test_a_working_set_that_fits_the_line_stays_fresh_and_nothing_starves(
     took: float, settled: float, share: float
 ) -> None:
-    # Fits: 32 / 5 s + 32 / 15 s + 56 / 35 s = 10.1 reads/s are enough (stale_after 5, slow 10, B 30).
-    s = schedule(PLAN)
+    # Fits: 32 / 5 s + 32 / 15 s + 56 / 65 s = 9.4 reads/s are enough (stale_after 5, slow 10, B 60:
+    # docs/guide/freshness.md)
+    s = schedule(PLAN, background=60.0)
     times = simulate(s, 600.0, took, SCREEN)
     fast = range(32)
     # the first reads of 64 blocks take a few seconds at start; then the set stays fresh
@@ -208,7 +219,7 @@ def test_a_working_set_that_fits_the_line_stays_fresh_and_nothing_starves(
     assert max(longest_gap([t for t in times[b] if t > settled], 600.0) for b in fast) < 5.0
     # stale_after + slow_interval
     assert max(longest_gap([t for t in times[b] if t > settled], 600.0) for b in range(55, 87)) < 15.0
-    bound = 30.0 + len(PLAN) * took  # B plus one read of every block
+    bound = 60.0 + len(PLAN) * took  # B plus one read of every block
     others = max(longest_gap(times[b], 600.0) for b in range(120) if b not in SCREEN)
     assert others <= bound, (others, bound)
     assert s.age_bound(range(32, 55), 600.0) == pytest.approx(bound)
@@ -265,7 +276,18 @@ def rule(s: Schedule, now: float) -> int | None:
         elif not demanded and due <= now:
             wanted.append((due, place, i))
     if urgent:
-        return min(urgent)[3]
+        pick = min(urgent)[3]
+        # read ahead: before a block read continuously whose value is younger than 70 % of its stale
+        # limit, the demanded periodic block that comes due first, within half its period, unless held
+        limit = 5.0 + (s.period[pick] if s.demanded_until[pick] > now else s.background[pick])  # stale_after 5
+        if s.period[pick] == 0 and s.read_at[pick] != NEVER and now - s.read_at[pick] < 0.7 * limit:
+            periodic = [(s.due[i], place, i) for place, i in enumerate(tie)
+                        if s.period[i] > 0 and s.demanded_until[i] > now]
+            if periodic:
+                due, _place, first = min(periodic)
+                if due - now <= 0.5 * s.period[first] and s.held_until[first] <= now and s.read_at[first] != NEVER:
+                    return first
+        return pick
     if wanted:
         return min(wanted)[2]
     return None
