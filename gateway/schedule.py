@@ -24,7 +24,8 @@ deadline first lets a block be overtaken by each other block at most once, and a
 overtakes only a block younger than 70 % of its stale limit.  At start
 (:meth:`Schedule.begin`) every block counts as read one class period ago: bumped and demanded
 blocks first, then the fast class, then the slow one; a block nobody reads is read when the line
-has room, and within ``B`` in any case (spread over its second half).  After a loss the order
+has room, and in any case first between ``B / 2`` and ``3 B / 2`` after start (spread evenly),
+then within ``B``.  After a loss the order
 goes on where it was.  A failed read counts as a read for the order (the block goes to the back,
 it does not block the line) but not for freshness.
 
@@ -74,7 +75,7 @@ USE_WINDOW: Final = 10.0
 _EWMA: Final = 0.1
 #: Spreads the first background reads (``begin``): ``k * _GOLDEN mod 1`` for k = 1, 2, ... places any
 #: run of consecutive blocks evenly over the interval, so the blocks nobody reads, wherever they sit
-#: in the plan, do not come due as one burst.
+#: in the plan, do not come due as one burst (then or any ``B`` later).
 _GOLDEN: Final = (math.sqrt(5.0) - 1.0) / 2.0
 #: Read ahead (``next``): a demanded block of a periodic class may go before a block read continuously
 #: while that one's value is younger than this share of its stale limit (the rest, 30 %, absorbs the
@@ -191,13 +192,14 @@ class Schedule:
     def begin(self, now: float) -> None:
         """The poller starts at ``now``: a block never read is wanted at once (as if read one class
         period ago; the fast class first) and urgent at once when demanded; the ones nobody reads
-        get urgent spread evenly over the second half of ``B`` (the first half leaves the line to
-        the blocks clients wait for at start)."""
+        get urgent spread evenly from ``B / 2`` to ``3 B / 2`` after ``now``: the first ``B / 2``
+        leaves the line to the blocks clients wait for at start, and spread over a whole ``B`` they
+        stay spread when each comes due again ``B`` after its read."""
         due, background = self.due, self.background
         never = [i for i in self._tie if due[i] == NEVER]
         for k, i in enumerate(never):
             due[i] = now
-            self.since[i] = now - background[i] / 2 * (1.0 - ((k + 1) * _GOLDEN) % 1.0)
+            self.since[i] = now - background[i] / 2 + background[i] * (((k + 1) * _GOLDEN) % 1.0)
         self._rebuild(now)
 
     def demand(self, blocks: Iterable[int], now: float) -> None:

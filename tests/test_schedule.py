@@ -9,7 +9,8 @@ period B = max(P, background_interval) passed); else the wanted block with the e
 from __future__ import annotations
 
 import math
-from collections.abc import Collection, Sequence
+import random
+from collections.abc import Callable, Collection, Sequence
 from itertools import pairwise
 
 import pytest
@@ -52,12 +53,12 @@ ORDER = [
      [(0, 68.0), (1, 99.0)], [1], [], 100.0, 0),
     ("undemanded, B not passed: the demanded block", [F, F], [(0, 71.0), (1, 99.0)], [1], [], 100.0, 1),
     ("a tie of deadlines: the demanded block", [F, F], [(0, 69.0), (1, 99.0)], [1], [], 100.0, 1),
-    # the k-th block never read gets urgent at B / 2 + B / 2 * (k * 0.618... mod 1): for the first of
-    # two, 15 + 15 * 0.618 = 24.27 s; for the second, 15 + 15 * 0.236 = 18.54 s
-    ("start: a block nobody reads is urgent only at its place in the second half of B", [F, F], [(1, 24.0)], [1], [],
-     24.0, 1),
-    ("start: ... and then ahead of the demanded one", [F, F], [(1, 24.5)], [1], [], 24.5, 0),
-    ("start: the second of two nobody reads comes first (18.54 s)", [F, F], [(0, 18.58)], [0], [], 18.6, 1),
+    # the k-th block never read gets urgent at B / 2 + B * (k * 0.618... mod 1): for the first of
+    # two, 15 + 30 * 0.618 = 33.54 s; for the second, 15 + 30 * 0.236 = 22.08 s
+    ("start: a block nobody reads is urgent only at its place, B / 2 to 3 B / 2", [F, F], [(1, 33.5)], [1], [],
+     33.5, 1),
+    ("start: ... and then ahead of the demanded one", [F, F], [(1, 33.6)], [1], [], 33.6, 0),
+    ("start: the second of two nobody reads comes first (22.08 s)", [F, F], [(0, 22.1)], [0], [], 22.1, 1),
     ("read ahead: a demanded slow block within half its period of due, before a young continuous one",
      [F, S], [(0, 99.0), (1, 94.0)], [0, 1], [], 100.0, 1),
     ("no read ahead: the slow block is not within half its period of due", [F, S], [(0, 99.0), (1, 95.5)],
@@ -169,9 +170,10 @@ def test_background_interval_zero_reads_every_block_at_its_class_period() -> Non
 # --- what the order achieves, simulated: each read takes T seconds ------------------------------
 
 
-def simulate(s: Schedule, seconds: float, took: float, demanded: Collection[int] = ()) -> list[list[float]]:
-    """Run the order for ``seconds`` of fake time, reads of ``took`` each, ``demanded`` read by a
-    client all along; the read times of each block."""
+def simulate(s: Schedule, seconds: float, took: float | Callable[[], float],
+             demanded: Collection[int] = ()) -> list[list[float]]:
+    """Run the order for ``seconds`` of fake time, reads of ``took`` each (or as long as each call of
+    it says), ``demanded`` read by a client all along; the read times of each block."""
     times: list[list[float]] = [[] for _ in s.scans]
     now = 0.0
     s.begin(now)
@@ -181,8 +183,9 @@ def simulate(s: Schedule, seconds: float, took: float, demanded: Collection[int]
         if block is None:
             now = max(now + 1e-3, s.next_due(now))
             continue
-        read(s, block, now, took)
-        now += took
+        duration = took() if callable(took) else took
+        read(s, block, now, duration)
+        now += duration
         times[block].append(now)
     return times
 
@@ -254,6 +257,20 @@ def test_budget_reports_what_is_achieved() -> None:
     assert budget.refresh["demanded"] is not None and budget.refresh["demanded"] < 0.5
     assert budget.refresh["slow"] is not None and budget.refresh["slow"] == pytest.approx(10.0, abs=0.5)
     assert math.isfinite(budget.age_bound["slow"] or math.inf)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_a_working_set_stays_fresh_when_answer_times_spread(seed: int) -> None:
+    # The SLC 150 screen on a 9600-baud line whose controller answers within 0-100 ms: a read takes
+    # 40 ms of characters plus uniform(0, 100) ms, 11.1 reads/s on average; the screen needs 9.4
+    # (docs/guide/freshness.md). Answers that come late and early in runs must not age the fast
+    # class past stale_after (5 s) nor the slow blocks past stale_after + slow_interval (15 s).
+    rng = random.Random(seed)
+    s = schedule(PLAN, background=60.0)
+    times = simulate(s, 300.0, lambda: 0.040 + rng.uniform(0.0, 0.1), SCREEN)
+    settled = 12.0  # the first reads of every block a client waits for, at start
+    assert max(longest_gap([t for t in times[b] if t > settled], 300.0) for b in range(32)) < 5.0
+    assert max(longest_gap([t for t in times[b] if t > settled], 300.0) for b in range(55, 87)) < 15.0
 
 
 # --- the order, checked against the rule as the docs state it, on random histories -------------
