@@ -42,7 +42,7 @@ from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, Df1Station
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import ACK_SYMBOL, Checksum, encode_frame, encode_master_message, encode_poll
-from gateway.protocols.df1.half_duplex_events import StationConfig
+from gateway.protocols.df1.half_duplex.events import StationConfig
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, encode_command
 from gateway.sim.serve import SimStream
 from gateway.streams import SerialSettings

@@ -11,7 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gateway.errors import InvalidRequest
-from gateway.protocols.df1.datalink import (
+from gateway.protocols.df1.framing import ACK_SYMBOL, ENQ_SYMBOL, NAK_SYMBOL, NEED_DATA, Checksum, encode_frame
+from gateway.protocols.df1.full_duplex.datalink import (
     BadFrameAnswer,
     DataLinkEvent,
     Df1DataLink,
@@ -22,7 +23,6 @@ from gateway.protocols.df1.datalink import (
     SendFailure,
     TxState,
 )
-from gateway.protocols.df1.framing import ACK_SYMBOL, ENQ_SYMBOL, NAK_SYMBOL, NEED_DATA, Checksum, encode_frame
 
 Fault = Callable[[bytes], bytes]
 

@@ -1,6 +1,6 @@
 """One full-duplex receiver for both roles: the host's data link and the target's responder.
 
-Both stations run the receiver of ``gateway.protocols.df1.full_duplex_table`` (A-B 1770-6.5.16
+Both stations run the receiver of ``gateway.protocols.df1.full_duplex.table`` (A-B 1770-6.5.16
 p. 4-8, the RECEIVER program), so to the same bytes they give the same link-layer response (DLE
 ACK, DLE NAK or nothing) and accept the same frames.  The responder's sink is made large enough
 never to fill (the data link has none): that is a role parameter, not a receiver rule.
@@ -14,10 +14,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived
 from gateway.protocols.df1.framing import ACK_SYMBOL, ENQ_SYMBOL, NAK_SYMBOL, NEED_DATA, Checksum, Noise, encode_frame
 from gateway.protocols.df1.framing.decoder import FrameDecoder
-from gateway.protocols.df1.full_duplex_table import (
+from gateway.protocols.df1.full_duplex.datalink import Df1DataLink, MessageReceived
+from gateway.protocols.df1.full_duplex.responder import Df1Responder
+from gateway.protocols.df1.full_duplex.responder_events import CommandReceived, DuplicateReceived
+from gateway.protocols.df1.full_duplex.table import (
     RECEIVER,
     BadFrameAnswer,
     EnqAnswer,
@@ -26,8 +28,6 @@ from gateway.protocols.df1.full_duplex_table import (
     receiver_table,
 )
 from gateway.protocols.df1.pccc.codec import HEADER_SIZE, duplicate_key
-from gateway.protocols.df1.responder import Df1Responder
-from gateway.protocols.df1.responder_events import CommandReceived, DuplicateReceived
 
 Station = Df1DataLink | Df1Responder
 

@@ -27,8 +27,7 @@ from gateway.protocols.df1.framing import (
     encode_master_message,
     encode_poll,
 )
-from gateway.protocols.df1.half_duplex import HalfDuplexMaster, LineState
-from gateway.protocols.df1.half_duplex_events import (
+from gateway.protocols.df1.half_duplex.events import (
     FailReason,
     LineConfig,
     MasterEvent,
@@ -40,7 +39,8 @@ from gateway.protocols.df1.half_duplex_events import (
     StationRestored,
     StrayReply,
 )
-from gateway.protocols.df1.half_duplex_transmitter import HalfDuplexTransmitter
+from gateway.protocols.df1.half_duplex.master import HalfDuplexMaster, LineState
+from gateway.protocols.df1.half_duplex.transmitter import HalfDuplexTransmitter
 from gateway.protocols.df1.pccc import PcccHeader, reply_matches
 from gateway.sim.variants import variant_matrix
 

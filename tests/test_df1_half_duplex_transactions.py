@@ -1,4 +1,4 @@
-"""PCCC transactions over the half-duplex master (``gateway.protocols.df1.half_duplex_transactions``).
+"""PCCC transactions over the half-duplex master (``gateway.protocols.df1.half_duplex.transactions``).
 
 Byte scripts with a fake clock: the stations are played by a function that decides, for each
 command the master puts on the line, whether it is acknowledged and what the reply is; polls are
@@ -16,8 +16,14 @@ import pytest
 
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import ACK_SYMBOL, EOT_SYMBOL, Checksum, NeedData, encode_frame, encode_poll
-from gateway.protocols.df1.half_duplex import HalfDuplexMaster
-from gateway.protocols.df1.half_duplex_events import (
+from gateway.protocols.df1.full_duplex.transaction import (
+    OutcomeUnknown,
+    TransactionDone,
+    TransactionEvent,
+    TransactionFailed,
+    TransactionRefused,
+)
+from gateway.protocols.df1.half_duplex.events import (
     FailReason,
     LineConfig,
     MasterEvent,
@@ -26,7 +32,8 @@ from gateway.protocols.df1.half_duplex_events import (
     StationConfig,
     StationDemoted,
 )
-from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions, PcccRequestLike, encode_packet
+from gateway.protocols.df1.half_duplex.master import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex.transactions import HalfDuplexTransactions, PcccRequestLike, encode_packet
 from gateway.protocols.df1.pccc import (
     PcccCommand,
     PcccHeader,
@@ -35,13 +42,6 @@ from gateway.protocols.df1.pccc import (
     decode_command,
     encode_command,
     encode_reply,
-)
-from gateway.protocols.df1.transaction import (
-    OutcomeUnknown,
-    TransactionDone,
-    TransactionEvent,
-    TransactionFailed,
-    TransactionRefused,
 )
 
 N = FileType.INTEGER

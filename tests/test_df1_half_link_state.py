@@ -20,7 +20,7 @@ from gateway.line_driver import LineDriver
 from gateway.link_health import DownAfter, LinkHealth
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex import StationConfig
+from gateway.protocols.df1.half_duplex.master import StationConfig
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead
 from gateway.sim.serve import SimStream
 from gateway.transport import ByteStream

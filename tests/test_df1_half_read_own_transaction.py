@@ -17,8 +17,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_df1_half_duplex_transactions import READ, Line, ok
 
+from gateway.protocols.df1.full_duplex.transaction import TransactionDone, TransactionFailed
 from gateway.protocols.df1.pccc import PcccCommand
-from gateway.protocols.df1.transaction import TransactionDone, TransactionFailed
 
 #: what a station does with one command, and where a held-back reply goes among those owed
 FATES = ["ok", "ok", "ok", "late", "twice", "lost", "unheard"]

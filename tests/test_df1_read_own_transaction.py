@@ -20,10 +20,10 @@ from hypothesis import strategies as st
 
 from gateway.kinds.df1.sim.slc500 import Slc500Options, Slc500Simulator
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
+from gateway.protocols.df1.full_duplex.datalink import Df1DataLink
+from gateway.protocols.df1.full_duplex.transaction import Df1Transactions, TransactionDone, TransactionFailed
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead
-from gateway.protocols.df1.transaction import Df1Transactions, TransactionDone, TransactionFailed
 
 REPLY_TIMEOUT = 0.1
 LINE_DELAY = 0.002

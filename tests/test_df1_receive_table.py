@@ -23,8 +23,8 @@ from gateway.kinds.df1.config import Df1LinkConfig
 from gateway.kinds.df1.receive import AGE_NEVER, ReceiveWindow
 from gateway.kinds.df1.sim.df1_multidrop import MultidropLine
 from gateway.modbus.mapping import Table
+from gateway.protocols.df1.half_duplex.slave_messages import RegisterTable, SlaveWrite
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeWrite, encode_command
-from gateway.protocols.df1.slave_messages import RegisterTable, SlaveWrite
 from gateway.sim import get_simulator, reset_simulators
 
 

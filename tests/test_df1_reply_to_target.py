@@ -19,9 +19,9 @@ from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.protocols.df1.framing import ACK_SYMBOL, NEED_DATA, Checksum, Frame, encode_frame
 from gateway.protocols.df1.framing.decoder import FrameDecoder
+from gateway.protocols.df1.half_duplex.slave_messages import RegisterTable, SlaveMessageVerdict, answer_slave_message
 from gateway.protocols.df1.pccc.target import PcccTarget
 from gateway.protocols.df1.pccc.target_table import DataTable
-from gateway.protocols.df1.slave_messages import RegisterTable, SlaveMessageVerdict, answer_slave_message
 
 GATEWAY = 0
 PLC = 1

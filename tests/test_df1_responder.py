@@ -1,6 +1,6 @@
-"""DF1 full-duplex responder (``gateway.protocols.df1.responder``): the link layer of DF1 target mode.
+"""DF1 full-duplex responder (``gateway.protocols.df1.full_duplex.responder``): the link layer of DF1 target mode.
 
-* the station's tables (``full_duplex_table``): every receiver input in both transmitter states,
+* the station's tables (``full_duplex/table.py``): every receiver input in both transmitter states,
   and every transmitter pair the responder can meet, walked through a real responder;
 * byte scripts with a fake clock, each fed whole, byte by byte, and followed by trailing garbage;
 * a property test: the responder against the master-side link (``Df1DataLink``) on a line that drops
@@ -18,8 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import gateway.protocols.df1.full_duplex as station_module
-from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed
+import gateway.protocols.df1.full_duplex.station as station_module
 from gateway.protocols.df1.framing import (
     ACK_SYMBOL,
     ENQ_SYMBOL,
@@ -30,8 +29,17 @@ from gateway.protocols.df1.framing import (
     encode_frame,
 )
 from gateway.protocols.df1.framing.decoder import FrameDecoder
-from gateway.protocols.df1.full_duplex import SendFailure, TxState
-from gateway.protocols.df1.full_duplex_table import (
+from gateway.protocols.df1.full_duplex.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed
+from gateway.protocols.df1.full_duplex.responder import Df1Responder
+from gateway.protocols.df1.full_duplex.responder_events import (
+    CommandReceived,
+    DuplicateReceived,
+    ReplyDelivered,
+    ReplyLost,
+    ResponderEvent,
+)
+from gateway.protocols.df1.full_duplex.station import SendFailure, TxState
+from gateway.protocols.df1.full_duplex.table import (
     RECEIVER,
     TRANSITIONS,
     RxInput,
@@ -40,14 +48,6 @@ from gateway.protocols.df1.full_duplex_table import (
     TxInput,
 )
 from gateway.protocols.df1.pccc.codec import HEADER_SIZE
-from gateway.protocols.df1.responder import Df1Responder
-from gateway.protocols.df1.responder_events import (
-    CommandReceived,
-    DuplicateReceived,
-    ReplyDelivered,
-    ReplyLost,
-    ResponderEvent,
-)
 
 S = TxState
 STATION = 1

@@ -2,7 +2,7 @@
 
 The core acknowledges a slave's own command (DLE ACK, 1770-6.5.16 ch. 3) and sends the PCCC reply
 back as a master message ahead of the station's commands (``send_reply``); the answer is decided by
-``gateway.protocols.df1.slave_messages``: writes to the gateway's own station go into the sending
+``gateway.protocols.df1.half_duplex.slave_messages``: writes to the gateway's own station go into the sending
 station's register table (STS 00), writes outside it the refusal the PCCC target core gives that
 command (``pccc.target.refusal``: SLC STS 50, PLC-5 STS F0 / EXT 06 or 09, p. 8-4), anything else
 STS 10 "illegal command or format" (p. 8-3).  Byte scripts with a fake clock, whole and byte by byte, with
@@ -27,8 +27,7 @@ from gateway.protocols.df1.framing import (
     encode_master_message,
     encode_poll,
 )
-from gateway.protocols.df1.half_duplex import HalfDuplexMaster
-from gateway.protocols.df1.half_duplex_events import (
+from gateway.protocols.df1.half_duplex.events import (
     FailReason,
     LineConfig,
     MessageDelivered,
@@ -36,6 +35,8 @@ from gateway.protocols.df1.half_duplex_events import (
     SlaveInitiated,
     StationConfig,
 )
+from gateway.protocols.df1.half_duplex.master import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex.slave_messages import RegisterTable, SlaveMessageVerdict, answer_slave_message
 from gateway.protocols.df1.pccc import (
     DataType,
     LogicalBinaryAddress,
@@ -47,7 +48,6 @@ from gateway.protocols.df1.pccc import (
 )
 from gateway.protocols.df1.pccc.target import PcccTarget
 from gateway.protocols.df1.pccc.target_table import DataTable
-from gateway.protocols.df1.slave_messages import RegisterTable, SlaveMessageVerdict, answer_slave_message
 from gateway.sim.serve import SimStream
 from gateway.transport import ByteStream
 

@@ -1,4 +1,4 @@
-"""The DF1 transaction core (``gateway.protocols.df1.transaction``): byte scripts, a fake clock.
+"""The DF1 transaction core (``gateway.protocols.df1.full_duplex.transaction``): byte scripts, a fake clock.
 
 Part 1 plays the controller by hand: scripted bytes fed whole, byte by byte and with trailing
 garbage, the clock moved by the test.  Part 2 (hypothesis) drives the core against the
@@ -18,18 +18,9 @@ from hypothesis import strategies as st
 
 from gateway.kinds.df1.sim.slc500 import Slc500Options, Slc500Simulator
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import ACK_SYMBOL, ENQ_SYMBOL, NAK_SYMBOL, NEED_DATA, Checksum, encode_frame
-from gateway.protocols.df1.pccc import (
-    PcccHeader,
-    ProtectedTypedLogicalMaskedWrite,
-    ProtectedTypedLogicalRead,
-    ProtectedTypedLogicalWrite,
-    Request,
-    decode_command,
-    encode_reply,
-)
-from gateway.protocols.df1.transaction import (
+from gateway.protocols.df1.full_duplex.datalink import Df1DataLink
+from gateway.protocols.df1.full_duplex.transaction import (
     Df1Transactions,
     OutcomeUnknown,
     TransactionDone,
@@ -38,6 +29,15 @@ from gateway.protocols.df1.transaction import (
     TransactionRefused,
     TxnState,
     read_back_for,
+)
+from gateway.protocols.df1.pccc import (
+    PcccHeader,
+    ProtectedTypedLogicalMaskedWrite,
+    ProtectedTypedLogicalRead,
+    ProtectedTypedLogicalWrite,
+    Request,
+    decode_command,
+    encode_reply,
 )
 from gateway.sim.variants import variant_matrix
 

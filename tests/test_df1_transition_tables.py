@@ -25,10 +25,13 @@ from typing import Any
 import pytest
 
 import gateway.protocols.df1 as df1
-from gateway.protocols.df1 import datalink, full_duplex_table, half_duplex, transaction, write_verdict
+from gateway.protocols.df1 import write_verdict
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.framing import decoder as frame_decoder
-from gateway.protocols.df1.half_duplex_events import LineConfig, StationConfig
+from gateway.protocols.df1.full_duplex import datalink, transaction
+from gateway.protocols.df1.full_duplex import table as full_duplex_table
+from gateway.protocols.df1.half_duplex import master as half_duplex
+from gateway.protocols.df1.half_duplex.events import LineConfig, StationConfig
 from gateway.protocols.df1.pccc import PcccHeader, ProtectedTypedLogicalRead, ProtectedTypedLogicalWrite, decode_reply
 from gateway.protocols.df1.transitions import Transition, require_complete
 

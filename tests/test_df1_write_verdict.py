@@ -13,11 +13,17 @@ from collections.abc import Callable
 import pytest
 
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import ACK_SYMBOL, EOT_SYMBOL, Checksum, NeedData, encode_frame, encode_poll
-from gateway.protocols.df1.half_duplex import HalfDuplexMaster
-from gateway.protocols.df1.half_duplex_events import LineConfig, StationConfig
-from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions
+from gateway.protocols.df1.full_duplex.datalink import Df1DataLink
+from gateway.protocols.df1.full_duplex.transaction import (
+    Df1Transactions,
+    OutcomeUnknown,
+    TransactionDone,
+    TransactionEvent,
+)
+from gateway.protocols.df1.half_duplex.events import LineConfig, StationConfig
+from gateway.protocols.df1.half_duplex.master import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex.transactions import HalfDuplexTransactions
 from gateway.protocols.df1.pccc import (
     DataType,
     LogicalBinaryAddress,
@@ -33,12 +39,6 @@ from gateway.protocols.df1.pccc import (
     decode_command,
     decode_reply,
     encode_reply,
-)
-from gateway.protocols.df1.transaction import (
-    Df1Transactions,
-    OutcomeUnknown,
-    TransactionDone,
-    TransactionEvent,
 )
 from gateway.protocols.df1.write_verdict import (
     DEFAULT_RETRIES,

@@ -18,7 +18,7 @@ from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, Df1Station
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex_events import StationConfig
+from gateway.protocols.df1.half_duplex.events import StationConfig
 from gateway.protocols.df1.pccc import (
     PcccError,
     ProtectedTypedLogicalMaskedWrite,

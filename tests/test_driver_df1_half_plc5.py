@@ -21,7 +21,7 @@ from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.modbus.mapping import Table
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex_events import StationConfig
+from gateway.protocols.df1.half_duplex.events import StationConfig
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeRead
 from gateway.sim.serve import SimStream
 from gateway.transport import ByteStream

@@ -24,9 +24,9 @@ from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.kinds.df1.sim.slc500 import Slc500Options
 from gateway.modbus.mapping import Table
 from gateway.protocols.df1.framing import Checksum
+from gateway.protocols.df1.full_duplex.transaction import read_back_for
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, ReadModifyWriteRequest, WordRangeRead, WordRangeWrite
 from gateway.protocols.df1.plc5_address import parse_plc5_address
-from gateway.protocols.df1.transaction import read_back_for
 from gateway.sim.serve import SimStream
 
 VARIANTS = ("refuse", "accept")

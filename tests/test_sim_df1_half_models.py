@@ -9,7 +9,7 @@ from gateway.kinds.df1.sim.df1_half_models import create_half_duplex_model, self
 from gateway.kinds.df1.sim.df1_multidrop import MultidropLine
 from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex_events import StationConfig
+from gateway.protocols.df1.half_duplex.events import StationConfig
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeRead
 from gateway.sim.serve import close_tcp, serve_tcp
 

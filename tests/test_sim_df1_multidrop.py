@@ -10,8 +10,7 @@ import pytest
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import EOT_SYMBOL, NEED_DATA, Checksum, encode_poll
-from gateway.protocols.df1.half_duplex import HalfDuplexMaster
-from gateway.protocols.df1.half_duplex_events import (
+from gateway.protocols.df1.half_duplex.events import (
     LineConfig,
     MasterEvent,
     ReplyReceived,
@@ -19,6 +18,7 @@ from gateway.protocols.df1.half_duplex_events import (
     StationConfig,
     StationDemoted,
 )
+from gateway.protocols.df1.half_duplex.master import HalfDuplexMaster
 from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalRead,
     ProtectedTypedLogicalWrite,

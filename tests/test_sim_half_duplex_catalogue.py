@@ -27,7 +27,7 @@ from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.kinds.df1.simulators import DF1LINE, PLC5
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex_events import StationConfig
+from gateway.protocols.df1.half_duplex.events import StationConfig
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead
 from gateway.sim import get_simulator, open_sim_stream, parse_sim_url, reset_simulators, variants_of
 from gateway.sim.models import sim_models

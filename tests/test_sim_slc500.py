@@ -12,7 +12,6 @@ from hypothesis import strategies as st
 
 from gateway.kinds.df1.sim.slc500 import Slc500Options, Slc500Simulator
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived
 from gateway.protocols.df1.framing import (
     ACK_SYMBOL,
     ENQ_SYMBOL,
@@ -26,6 +25,7 @@ from gateway.protocols.df1.framing import (
     Frame as WireFrame,
 )
 from gateway.protocols.df1.framing.decoder import FrameDecoder
+from gateway.protocols.df1.full_duplex.datalink import Df1DataLink, MessageReceived
 from gateway.protocols.df1.pccc import (
     DataType,
     DiagnosticStatus,

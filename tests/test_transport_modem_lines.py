@@ -19,7 +19,7 @@ import pytest
 
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex_events import StationConfig
+from gateway.protocols.df1.half_duplex.events import StationConfig
 from gateway.streams import SerialSettings
 from gateway.transport import (
     ProtocolStream,

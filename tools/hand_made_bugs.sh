@@ -36,7 +36,7 @@ run "S6 z_ever -> z_sent" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.p
 run "1 target: STS 0 though the save failed" "$TARGET_TESTS" gateway/kinds/df1/target_driver.py "reply = self._commit(command, result)" "self._commit(command, result)"
 run "2 target: a failed write not taken back" "$TARGET_TESTS" gateway/kinds/df1/target_unit.py "table_file.write_bytes(ref.element * size, bytes(self.cache.data[index]), stamp)" "pass"
 run "3 admission: loopback or not allowed" "$ADMISSION_TESTS" gateway/modbus/admission.py "is_loopback and not host_allowed(" "is_loopback or not host_allowed("
-run "4 responder: _last_reply kept on a new command" "$RESPONDER_TESTS" gateway/protocols/df1/responder.py "        self._last_reply = None
+run "4 responder: _last_reply kept on a new command" "$RESPONDER_TESTS" gateway/protocols/df1/full_duplex/responder.py "        self._last_reply = None
         self._pending.append(header)" "        self._pending.append(header)"
 run "5 SLC: a late reply taken in resync" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "if (not self._is_write and self._copies and isinstance(event, DataReply)" "if (not self._is_write and isinstance(event, DataReply)"
 run "5 SLC: the same, _msg_id given an initial value" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "if (not self._is_write and self._copies and isinstance(event, DataReply)" "if (not self._is_write and isinstance(event, DataReply)" gateway/protocols/slc_ascii/sender.py "        self._msg_id: int

@@ -31,10 +31,10 @@ from gateway.link_health import DownAfter
 from gateway.modbus.mapping import Plan, Table
 from gateway.poller import LineShare
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex_events import StationConfig
+from gateway.protocols.df1.half_duplex.events import StationConfig
+from gateway.protocols.df1.half_duplex.slave_messages import RegisterTable
 from gateway.protocols.df1.pccc import ProcessorFamily
 from gateway.protocols.df1.pccc.target_table import ElementRef
-from gateway.protocols.df1.slave_messages import RegisterTable
 from gateway.unit import Unit
 
 __all__ = [

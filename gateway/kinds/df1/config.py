@@ -24,7 +24,7 @@ from gateway.frozen import frozen
 from gateway.kinds.df1.target_config import TargetFile, target_file_problems
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
 from gateway.protocols.df1.address import parse_address
-from gateway.protocols.df1.half_duplex_events import DEMOTE_AFTER
+from gateway.protocols.df1.half_duplex.events import DEMOTE_AFTER
 from gateway.protocols.df1.plc5_address import parse_plc5_address
 
 __all__ = [

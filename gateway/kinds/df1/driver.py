@@ -1,7 +1,7 @@
 """Asyncio driver for DF1 full duplex + PCCC (SLC 500, PLC-5): a thin loop around the cores.
 
-The sans-I/O cores decide everything: :class:`~gateway.protocols.df1.datalink.Df1DataLink` (DLE ACK /
-NAK / ENQ) under :class:`~gateway.protocols.df1.transaction.Df1Transactions` (TNS, reply
+The sans-I/O cores decide everything: :class:`~gateway.protocols.df1.full_duplex.datalink.Df1DataLink` (DLE ACK /
+NAK / ENQ) under :class:`~gateway.protocols.df1.full_duplex.transaction.Df1Transactions` (TNS, reply
 matching, retries, the exactly-once verdict of a write and its read-back).  This module moves
 bytes, runs the one timer the core asks for (``next_deadline()`` / ``handle_timeout(now)``)
 and turns the core's verdicts into results and exceptions:
@@ -25,17 +25,9 @@ from gateway.errors import GatewayError, LinkTimeout, ProtocolError, WriteOutcom
 from gateway.kinds.df1.config import DF1_DEFAULTS
 from gateway.line_driver import LineDriver, LineDriverOptions, Priority
 from gateway.link_health import LineCounters, LineQuality
-from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
-from gateway.protocols.df1.pccc import (
-    DiagnosticStatus,
-    DiagnosticStatusInfo,
-    PcccReply,
-    ProcessorFamily,
-    Request,
-)
-from gateway.protocols.df1.pccc import is_write as pccc_is_write
-from gateway.protocols.df1.transaction import (
+from gateway.protocols.df1.full_duplex.datalink import Df1DataLink
+from gateway.protocols.df1.full_duplex.transaction import (
     Df1Transactions,
     OutcomeUnknown,
     TransactionCounters,
@@ -44,6 +36,14 @@ from gateway.protocols.df1.transaction import (
     TransactionFailed,
     TransactionRefused,
 )
+from gateway.protocols.df1.pccc import (
+    DiagnosticStatus,
+    DiagnosticStatusInfo,
+    PcccReply,
+    ProcessorFamily,
+    Request,
+)
+from gateway.protocols.df1.pccc import is_write as pccc_is_write
 from gateway.transport import SerialSettings
 
 __all__ = ["DF1_SETTINGS", "Df1Driver", "PcccLink", "WriteOutcomeUnknown", "transaction_result"]

@@ -1,6 +1,6 @@
 """Asyncio driver for a DF1 half-duplex multi-drop line: one line owner, one handle per station.
 
-The sans-I/O master core (:class:`~gateway.protocols.df1.half_duplex.HalfDuplexMaster`) decides
+The sans-I/O master core (:class:`~gateway.protocols.df1.half_duplex.master.HalfDuplexMaster`) decides
 everything on the wire: polling, resends of the identical master frame, demotion of a dead station,
 RTS timing, echo suppression.  :class:`Df1HalfDuplexLine` owns the port (reconnects through
 :class:`~gateway.line_driver.LineDriver`), feeds the core every byte, runs the one timer the core
@@ -11,7 +11,7 @@ Each station on the line gets a :class:`Df1Station` handle with the API a DF1 un
 ``available``, ``counters``, ``last_sts``, ``add_listener``, ``run()`` / ``close()`` and ``probe()``.
 Requests of different stations are in the core at the same time; it serves them round robin (writes
 first), so a dead or slow station never holds up the others.  The sans-I/O transaction layer
-(:class:`~gateway.protocols.df1.half_duplex_transactions.HalfDuplexTransactions`) gives each request
+(:class:`~gateway.protocols.df1.half_duplex.transactions.HalfDuplexTransactions`) gives each request
 its verdict - read retries with a new TNS, a write's verdict and read-backs
 (:mod:`gateway.protocols.df1.write_verdict`, shared with full duplex) - and this driver turns it into
 a result:
@@ -29,9 +29,9 @@ TNS are allocated per line (the core refuses a TNS already in use on the line).
 
 Messages a slave initiates (MSG instructions, report by exception) are acknowledged by the core
 (DLE ACK) and answered here with the PCCC reply decided by
-:func:`~gateway.protocols.df1.slave_messages.answer_slave_message`: a write to the gateway's own
+:func:`~gateway.protocols.df1.half_duplex.slave_messages.answer_slave_message`: a write to the gateway's own
 station (``source``) lands in the sending station's
-:class:`~gateway.protocols.df1.slave_messages.RegisterTable` (``register_tables``, by station) and is
+:class:`~gateway.protocols.df1.half_duplex.slave_messages.RegisterTable` (``register_tables``, by station) and is
 answered STS 00; a write outside it the PCCC target's refusal for that command, anything else STS 10
 (1770-6.5.16 p. 8-3).  The reply goes back as a master message
 (``HalfDuplexMaster.send_reply``).  Counted per station: ``slave_messages``, ``slave_writes``,
@@ -53,21 +53,21 @@ from gateway.errors import GatewayError, LinkDown
 from gateway.kinds.df1.driver import DF1_SETTINGS, transaction_result
 from gateway.line_driver import LineDriver, LineDriverOptions, run_to_the_end
 from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LineQuality, LinkHealth
-from gateway.protocols.df1 import half_duplex_events as master_events
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
-from gateway.protocols.df1.half_duplex import HalfDuplexMaster
-from gateway.protocols.df1.half_duplex_events import FailReason, LineConfig, StationConfig, StationCounters
-from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions, PcccRequestLike
-from gateway.protocols.df1.pccc import DiagnosticStatus, DiagnosticStatusInfo, PcccReply
-from gateway.protocols.df1.pccc import is_write as pccc_is_write
-from gateway.protocols.df1.slave_messages import RegisterTable, SlaveMessageVerdict, answer_slave_message
-from gateway.protocols.df1.transaction import (
+from gateway.protocols.df1.full_duplex.transaction import (
     OutcomeUnknown,
     TransactionDone,
     TransactionEvent,
     TransactionFailed,
     TransactionRefused,
 )
+from gateway.protocols.df1.half_duplex import events as master_events
+from gateway.protocols.df1.half_duplex.events import FailReason, LineConfig, StationConfig, StationCounters
+from gateway.protocols.df1.half_duplex.master import HalfDuplexMaster
+from gateway.protocols.df1.half_duplex.slave_messages import RegisterTable, SlaveMessageVerdict, answer_slave_message
+from gateway.protocols.df1.half_duplex.transactions import HalfDuplexTransactions, PcccRequestLike
+from gateway.protocols.df1.pccc import DiagnosticStatus, DiagnosticStatusInfo, PcccReply
+from gateway.protocols.df1.pccc import is_write as pccc_is_write
 from gateway.transport import SerialSettings, describe_url, enable_rs485, modem_lines
 
 __all__ = ["RTS_MODES", "Df1HalfDuplexLine", "Df1Station", "PcccRequestLike", "StationTotals"]

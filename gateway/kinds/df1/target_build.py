@@ -12,8 +12,8 @@ from gateway.kinds.df1.target_store import TargetStore
 from gateway.kinds.df1.target_unit import TargetUnit, load_table, target_plan, target_point_labels
 from gateway.modbus.mapping import Plan
 from gateway.protocols.df1.framing import Checksum
+from gateway.protocols.df1.full_duplex.responder import REPLY_ACK_TIMEOUT
 from gateway.protocols.df1.pccc.target import PcccTarget
-from gateway.protocols.df1.responder import REPLY_ACK_TIMEOUT
 
 __all__ = ["build_target", "target_link_labels", "target_link_plan"]
 

@@ -1,6 +1,6 @@
 """The runner of a DF1 target link: owns the port, answers the MSG instructions a PLC sends.
 
-A thin loop around two sans-I/O cores: :class:`~gateway.protocols.df1.responder.Df1Responder`
+A thin loop around two sans-I/O cores: :class:`~gateway.protocols.df1.full_duplex.responder.Df1Responder`
 (the full-duplex link layer: ACK / NAK / ENQ, duplicates, reply retransmission) and
 :class:`~gateway.protocols.df1.pccc.target.PcccTarget` (the commands against the data table).
 For each new command, in this order, without an ``await`` in between:
@@ -26,11 +26,11 @@ from gateway.errors import GatewayError
 from gateway.line_driver import LineDriver, LineDriverOptions
 from gateway.link_health import LineQuality
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
+from gateway.protocols.df1.full_duplex.responder import REPLY_ACK_TIMEOUT, Df1Responder
+from gateway.protocols.df1.full_duplex.responder_events import CommandReceived, DuplicateReceived, ReplyLost
 from gateway.protocols.df1.pccc import PcccHeader, Sts, encode_reply
 from gateway.protocols.df1.pccc.target import PcccTarget, TargetReply
 from gateway.protocols.df1.pccc.target_table import ElementRef
-from gateway.protocols.df1.responder import REPLY_ACK_TIMEOUT, Df1Responder
-from gateway.protocols.df1.responder_events import CommandReceived, DuplicateReceived, ReplyLost
 from gateway.streams import SerialSettings
 
 __all__ = ["TargetRunner"]

@@ -36,7 +36,7 @@ from gateway.kinds.df1.unit import PROCESSORS
 from gateway.line_driver import OpenStream
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex_events import StationConfig
+from gateway.protocols.df1.half_duplex.events import StationConfig
 from gateway.protocols.df1.pccc import (
     DiagnosticStatusInfo,
     PcccReply,

@@ -6,7 +6,7 @@ read-modify-write race with the ladder.  PCCC errors map to Modbus exceptions: a
 problem answers 0x02, another refusal 0x04, no answer 0x0B.
 
 When a write's frame may have reached the controller but its reply never came, the driver's
-transaction core (``gateway.protocols.df1.transaction``) reads the target back: if it holds
+transaction core (``gateway.protocols.df1.full_duplex.transaction``) reads the target back: if it holds
 what was written the write succeeded, otherwise SCADA gets 0x0B.  A write is never sent twice.
 """
 

@@ -4,8 +4,8 @@ Manual: "S4516-DF1 Program Development Manual" §2.4 *How the Transmitter Operat
 §2.5 *How the Receiver Operates* (after A-B 1770-6.5.16, chapter 2, full-duplex protocol).
 
 The receiver and the transmitter are the full-duplex station's
-(:class:`~gateway.protocols.df1.full_duplex.FullDuplexStation`, its tables in
-:mod:`~gateway.protocols.df1.full_duplex_table`), shared with the target's responder: a good frame
+(:class:`~gateway.protocols.df1.full_duplex.station.FullDuplexStation`, its tables in
+:mod:`~gateway.protocols.df1.full_duplex.table`), shared with the target's responder: a good frame
 is ACKed and delivered unless it duplicates the last one delivered, a damaged one (or one of fewer
 than 6 bytes) NAKed, a DLE ENQ answered with the last response symbol, and noise or a DLE ETX
 without DLE STX outside a frame makes the last response DLE NAK (1770-6.5.16 p. 4-8).  The data
@@ -65,8 +65,8 @@ from typing import Final
 from gateway.errors import InvalidRequest
 from gateway.frozen import frozen
 from gateway.protocols.df1.framing import DEFAULT_MAX_MESSAGE, Checksum
-from gateway.protocols.df1.full_duplex import FullDuplexCounters, FullDuplexStation, QueuedFrame, SendFailure
-from gateway.protocols.df1.full_duplex_table import (
+from gateway.protocols.df1.full_duplex.station import FullDuplexCounters, FullDuplexStation, QueuedFrame, SendFailure
+from gateway.protocols.df1.full_duplex.table import (
     TRANSITIONS,
     BadFrameAnswer,
     EnqAnswer,

@@ -1,6 +1,6 @@
 """PCCC transactions over a DF1 half-duplex line master (sans-I/O).
 
-:class:`HalfDuplexTransactions` sits on a :class:`~gateway.protocols.df1.half_duplex.HalfDuplexMaster`
+:class:`HalfDuplexTransactions` sits on a :class:`~gateway.protocols.df1.half_duplex.master.HalfDuplexMaster`
 and turns a PCCC request for a station into one verdict event, the same events as the full-duplex
 core (``transaction.py``): :class:`TransactionDone`, :class:`TransactionRefused`,
 :class:`OutcomeUnknown`, :class:`TransactionFailed`.  It owns the TNS (one allocator per line: the
@@ -27,16 +27,16 @@ from dataclasses import dataclass
 from typing import ClassVar, Protocol
 
 from gateway.protocols.df1.framing import NEED_DATA, NeedData
-from gateway.protocols.df1.half_duplex import HalfDuplexMaster
-from gateway.protocols.df1.half_duplex_events import FailReason, MasterEvent, ReplyReceived, RequestFailed
-from gateway.protocols.df1.pccc import PcccFormatError, PcccHeader, PcccReply, TnsAllocator, decode_reply
-from gateway.protocols.df1.transaction import (
+from gateway.protocols.df1.full_duplex.transaction import (
     OutcomeUnknown,
     TransactionDone,
     TransactionEvent,
     TransactionFailed,
     TransactionRefused,
 )
+from gateway.protocols.df1.half_duplex.events import FailReason, MasterEvent, ReplyReceived, RequestFailed
+from gateway.protocols.df1.half_duplex.master import HalfDuplexMaster
+from gateway.protocols.df1.pccc import PcccFormatError, PcccHeader, PcccReply, TnsAllocator, decode_reply
 from gateway.protocols.df1.write_verdict import (
     DEFAULT_RETRIES,
     SendReadBack,

@@ -55,8 +55,8 @@ from typing import Final
 
 from gateway.errors import InvalidRequest, format_seconds
 from gateway.frozen import frozen
-from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed
 from gateway.protocols.df1.framing import NEED_DATA, NeedData
+from gateway.protocols.df1.full_duplex.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed
 from gateway.protocols.df1.pccc import (
     PcccFormatError,
     PcccHeader,

@@ -1,6 +1,6 @@
 """The stations of a DF1 half-duplex line and the choice of its next exchange (sans-I/O).
 
-The master core (``half_duplex.py``) owns the line: bytes, timers, its transition table.  This
+The master core (``master.py``) owns the line: bytes, timers, its transition table.  This
 module owns what it knows of each station - its queued and awaiting requests, whether it answers
 (demotion), what a message it sends means (:meth:`StationRecord.received`) - and decides, each time
 the line is free, which exchange comes next (:meth:`ExchangeScheduler.next_exchange`).  Manuals:
@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from gateway.frozen import frozen
-from gateway.protocols.df1 import half_duplex_events as hd
+from gateway.protocols.df1.half_duplex import events as hd
 from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, duplicate_key, reply_matches
 from gateway.protocols.df1.pccc.codes import REPLY_BIT
 

@@ -24,8 +24,8 @@ What the core does
   (KA p. 11-17).  A bad slave frame is not acknowledged (never NAKed: on half duplex DLE NAK is the
   master's global link reset, Table 2.C) and the station is polled again (KA Figure 11.8).
 * Which exchange comes next - writes first, round robin, background and slow polls, demotion
-  after ``demote_after`` failures in a row - is ``half_duplex_schedule.py``'s.
-* When bytes may go (quiet time, RTS keying) and echo suppression are ``half_duplex_transmitter.py``'s;
+  after ``demote_after`` failures in a row - is ``schedule.py``'s.
+* When bytes may go (quiet time, RTS keying) and echo suppression are ``transmitter.py``'s;
   answer timers start when the last byte has left, and a collision runs the exchange into its timeout.
 
 Every change of :class:`LineState` is an entry of :data:`TRANSITIONS`: (state, input) -> (action,
@@ -57,7 +57,7 @@ from gateway.protocols.df1.framing import (
     encode_poll,
 )
 from gateway.protocols.df1.framing.decoder import FrameDecoder
-from gateway.protocols.df1.half_duplex_events import (
+from gateway.protocols.df1.half_duplex.events import (
     FailReason,
     LineConfig,
     MasterEvent,
@@ -66,14 +66,14 @@ from gateway.protocols.df1.half_duplex_events import (
     StationConfig,
     StationCounters,
 )
-from gateway.protocols.df1.half_duplex_schedule import (
+from gateway.protocols.df1.half_duplex.schedule import (
     ExchangeScheduler,
     LineStations,
     MasterRequest,
     PollStation,
     StationRecord,
 )
-from gateway.protocols.df1.half_duplex_transmitter import HalfDuplexTransmitter
+from gateway.protocols.df1.half_duplex.transmitter import HalfDuplexTransmitter
 from gateway.protocols.df1.pccc.codec import duplicate_key
 from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
 

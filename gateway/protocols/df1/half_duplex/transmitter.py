@@ -1,7 +1,7 @@
 """The half-duplex master's side of the wire: quiet time, RTS keying, echo suppression (sans-I/O).
 
 Manual: SLC 500 1747-RM001 p. 13-59 (RTS send delay, RTS off delay); the reading is in
-``docs/develop/df1-half-duplex-notes.md``.  The master core (``half_duplex.py``) decides what to send; this
+``docs/develop/df1-half-duplex-notes.md``.  The master core (``master.py``) decides what to send; this
 module decides when the bytes may go and what of the bytes heard are the line's, not our own:
 
 * the line is quiet ``pre_transmit_delay`` after the last byte heard before the master transmits;
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from typing import Final
 
-from gateway.protocols.df1.half_duplex_events import LineConfig
+from gateway.protocols.df1.half_duplex.events import LineConfig
 
 __all__ = ["HalfDuplexTransmitter"]
 

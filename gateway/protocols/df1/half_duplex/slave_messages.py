@@ -2,7 +2,7 @@
 
 On a DF1 half-duplex line a slave sends its own commands only in answer to a poll (1770-6.5.16
 chapter 3; KA p. 11-9); the master core acknowledges them with ``DLE ACK`` like any good slave
-message and hands them over as :class:`~gateway.protocols.df1.half_duplex.SlaveInitiated`.  The
+message and hands them over as :class:`~gateway.protocols.df1.half_duplex.master.SlaveInitiated`.  The
 slave's MSG instruction then waits for the PCCC *reply* (1770-6.5.16 chapter 6: CMD + 40 hex, same
 TNS, DST / SRC swapped), which the master sends as a master message (``DLE SOH STN ...``).  This
 module decides that reply (sans-I/O):

@@ -1,4 +1,4 @@
-"""Configuration and events of the DF1 half-duplex master (``gateway.protocols.df1.half_duplex``).
+"""Configuration and events of the DF1 half-duplex master (``gateway.protocols.df1.half_duplex.master``).
 
 The tunables of a line and of each station, checked when made, and what the master core reports
 to its driver (``next_event()``).  Sans-I/O: plain data.

@@ -1,11 +1,11 @@
 """The DF1 full-duplex station, in one role or the other: the host's data link and the target's responder.
 
 Both run a receiver and a transmitter at the same time on one line (A-B 1770-6.5.16 chapter 4,
-p. 4-2; S4516-DF1 manual §2.4 / §2.5): :class:`~gateway.protocols.df1.datalink.Df1DataLink` sends
-commands and receives replies, :class:`~gateway.protocols.df1.responder.Df1Responder` receives
+p. 4-2; S4516-DF1 manual §2.4 / §2.5): :class:`~gateway.protocols.df1.full_duplex.datalink.Df1DataLink` sends
+commands and receives replies, :class:`~gateway.protocols.df1.full_duplex.responder.Df1Responder` receives
 commands and sends replies.  :class:`FullDuplexStation` is the station; it does not know which
 role it plays.  It runs the one receiver table and the one transmitter table of
-:mod:`~gateway.protocols.df1.full_duplex_table`, and owns:
+:mod:`~gateway.protocols.df1.full_duplex.table`, and owns:
 
 * one output, in order: every response symbol, frame and DLE ENQ enters it whole;
 * the receiver's last response symbol (DLE NAK until a frame has been answered), which a DLE ENQ
@@ -50,7 +50,7 @@ from gateway.protocols.df1.framing import (
     encode_frame,
 )
 from gateway.protocols.df1.framing.decoder import FrameDecoder
-from gateway.protocols.df1.full_duplex_table import (
+from gateway.protocols.df1.full_duplex.table import (
     TRANSITIONS,
     BadFrameAnswer,
     EnqAnswer,

@@ -1,4 +1,4 @@
-"""Events and counters of the DF1 full-duplex responder (``gateway.protocols.df1.responder``).
+"""Events and counters of the DF1 full-duplex responder (``gateway.protocols.df1.full_duplex.responder``).
 
 What the responder reports to its driver (``next_event()``) and its link statistics.  Sans-I/O:
 plain data.
@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from gateway.frozen import frozen
-from gateway.protocols.df1.full_duplex import FullDuplexCounters, SendFailure
+from gateway.protocols.df1.full_duplex.station import FullDuplexCounters, SendFailure
 
 __all__ = [
     "CommandReceived",

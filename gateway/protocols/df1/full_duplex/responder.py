@@ -54,10 +54,10 @@ the DLE ENQ that follows is answered with the previous frame's ACK (p. 4-8: the 
 the peer takes it as delivered; the application layer's reply timeout covers that.
 
 The receiver and the transmitter are the full-duplex station's
-(:class:`~gateway.protocols.df1.full_duplex.FullDuplexStation`, its tables in
-:mod:`~gateway.protocols.df1.full_duplex_table`), shared with the host's data link; the responder
+(:class:`~gateway.protocols.df1.full_duplex.station.FullDuplexStation`, its tables in
+:mod:`~gateway.protocols.df1.full_duplex.table`), shared with the host's data link; the responder
 adds its role: the message sink of ``max_pending`` commands awaiting their reply, the DST check,
-the stored reply, and its events and counters (:mod:`~gateway.protocols.df1.responder_events`).
+the stored reply, and its events and counters (:mod:`~gateway.protocols.df1.full_duplex.responder_events`).
 This module does no I/O: the caller passes ``now`` and moves the bytes.
 """
 
@@ -66,11 +66,7 @@ from __future__ import annotations
 from typing import Final
 
 from gateway.protocols.df1.framing import DEFAULT_MAX_MESSAGE, Checksum
-from gateway.protocols.df1.full_duplex import FullDuplexStation, QueuedFrame, SendFailure, TxState
-from gateway.protocols.df1.full_duplex_table import TxInput
-from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, duplicate_key
-from gateway.protocols.df1.pccc.codes import REPLY_BIT
-from gateway.protocols.df1.responder_events import (
+from gateway.protocols.df1.full_duplex.responder_events import (
     CommandReceived,
     DuplicateReceived,
     ReplyDelivered,
@@ -78,6 +74,10 @@ from gateway.protocols.df1.responder_events import (
     ResponderCounters,
     ResponderEvent,
 )
+from gateway.protocols.df1.full_duplex.station import FullDuplexStation, QueuedFrame, SendFailure, TxState
+from gateway.protocols.df1.full_duplex.table import TxInput
+from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, duplicate_key
+from gateway.protocols.df1.pccc.codes import REPLY_BIT
 
 __all__ = ["REPLY_ACK_TIMEOUT", "Df1Responder"]
 
