@@ -38,7 +38,7 @@ from typing import Any
 
 from _benchlib import DF1_MAP, print_machine, result, table
 
-from gateway.kinds.df1.driver import Df1Driver
+from gateway.kinds.df1.full.driver import Df1Driver
 from gateway.kinds.df1.plan import MapItem
 from gateway.kinds.df1.unit import Df1Unit
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver

@@ -17,7 +17,7 @@ import pytest
 from gateway.errors import LinkTimeout
 from gateway.kinds.df1.build import build_df1
 from gateway.kinds.df1.config import Df1LinkConfig, line_problems
-from gateway.kinds.df1.half_duplex_driver import Df1Station
+from gateway.kinds.df1.half.driver import Df1Station
 from gateway.kinds.df1.plc5_unit import Plc5Unit
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.kinds.df1.unit import Df1Unit

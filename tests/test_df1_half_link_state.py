@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from gateway.errors import LinkTimeout
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, Df1Station
+from gateway.kinds.df1.half.driver import Df1HalfDuplexLine, Df1Station
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.line_driver import LineDriver
 from gateway.link_health import DownAfter, LinkHealth
@@ -128,7 +128,7 @@ async def test_a_lost_port_makes_every_station_down_at_once(caplog: pytest.LogCa
 
 def test_every_driver_uses_the_one_rule() -> None:
     """SLC 100/150, DF1 full duplex and each half-duplex station: one class holds the rule."""
-    from gateway.kinds.df1.driver import Df1Driver
+    from gateway.kinds.df1.full.driver import Df1Driver
     from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 
     for driver in (SlcAsciiDriver, Df1Driver, Df1HalfDuplexLine, Df1Station):

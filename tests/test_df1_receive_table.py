@@ -2,7 +2,7 @@
 
 ``receive_words`` words of ``N<receive_file>`` a station writes to the gateway (report by exception)
 are served read-only in ``receive_table`` from ``receive_start``, each word's age (0.1 s, 65535 =
-never) right after the words (``gateway.kinds.df1.receive``).  Config checks of the range; the
+never) right after the words (``gateway.kinds.df1.half.receive``).  Config checks of the range; the
 window alone with a fake clock; end to end: a gateway on ``sim://df1line``, two stations sending
 MSG writes, SCADA reading the ranges over Modbus TCP.
 """
@@ -20,7 +20,7 @@ from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.errors import ConfigError
 from gateway.kinds.df1.config import Df1LinkConfig
-from gateway.kinds.df1.receive import AGE_NEVER, ReceiveWindow
+from gateway.kinds.df1.half.receive import AGE_NEVER, ReceiveWindow
 from gateway.kinds.df1.sim.df1_multidrop import MultidropLine
 from gateway.modbus.mapping import Table
 from gateway.protocols.df1.half_duplex.slave_messages import RegisterTable, SlaveWrite

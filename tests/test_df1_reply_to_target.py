@@ -6,7 +6,7 @@ answer to a command of its own with that TNS.  The link layer still ACKs the fra
 intact, p. 4-8), and it does not hold a place in the target's message sink.
 
 Paths: the PCCC target (``pccc/target.py``), the half-duplex slave-message path
-(``slave_messages.py``) and the full-duplex target link (``kinds/df1/target_driver.py``), the last
+(``slave_messages.py``) and the full-duplex target link (``kinds/df1/target/driver.py``), the last
 one driven over a real loopback socket as the PLC.
 """
 

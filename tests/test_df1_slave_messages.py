@@ -17,7 +17,7 @@ from dataclasses import replace
 import pytest
 from test_df1_half_duplex_master import events, feed
 
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.half.driver import Df1HalfDuplexLine
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.protocols.df1.framing import (
     ACK_SYMBOL,

@@ -17,8 +17,8 @@ from gateway.config import parse_config
 from gateway.errors import ConfigError
 from gateway.kinds.df1.config import Df1LinkConfig
 from gateway.kinds.df1.sim.plc_msg import PlcMsgSimulator
-from gateway.kinds.df1.target_build import build_target
-from gateway.kinds.df1.target_unit import TargetUnit
+from gateway.kinds.df1.target.build import build_target
+from gateway.kinds.df1.target.unit import TargetUnit
 from gateway.sim import get_simulator, reset_simulators
 
 FILES = """

@@ -1,7 +1,7 @@
 """DF1 target mode with ``persist`` when saving fails: a full disk, a read-only database, an I/O
 error in the middle of a many-row save (a multi-packet PLC-5 write), a COMMIT that fails.
 
-The promises (``gateway/kinds/df1/target_store.py``, ``target_driver.py``, README "DF1 target
+The promises (``gateway/kinds/df1/target/store.py``, ``target_driver.py``, README "DF1 target
 mode"): no write is acknowledged that is not on disk.
 
 * the PLC's MSG gets STS 40 hex, "Host could not complete function due to hardware fault"
@@ -33,7 +33,7 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
 from gateway.config import parse_config
-from gateway.kinds.df1.target_unit import TargetUnit
+from gateway.kinds.df1.target.unit import TargetUnit
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.pccc import (
     LogicalBinaryAddress,

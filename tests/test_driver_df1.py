@@ -28,7 +28,7 @@ from urllib.parse import urlencode
 import pytest
 
 from gateway.errors import LinkDown, LinkTimeout
-from gateway.kinds.df1.driver import Df1Driver, WriteOutcomeUnknown
+from gateway.kinds.df1.full.driver import Df1Driver, WriteOutcomeUnknown
 from gateway.kinds.df1.sim.slc500 import Slc500Simulator
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import Checksum

@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from gateway.errors import LinkTimeout
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, Df1Station
+from gateway.kinds.df1.half.driver import Df1HalfDuplexLine, Df1Station
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import Checksum
@@ -174,7 +174,7 @@ async def test_echo_suppression_on_a_two_wire_line() -> None:
 async def test_write_without_reply_is_settled_by_a_read_back() -> None:
     """reply_retries=0 and every slave frame corrupted: the write ran, its reply is lost; the read-back
     (whose reply is lost too) cannot prove it, so the outcome is unknown - and the write was sent once."""
-    from gateway.kinds.df1.driver import WriteOutcomeUnknown
+    from gateway.kinds.df1.full.driver import WriteOutcomeUnknown
 
     line = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1,), corrupt=1), variants={"reply_retries": "0"})
     driver = make_driver(line, (1,))
@@ -245,7 +245,7 @@ async def test_every_slave_reading_values_right_and_writes_once(choices: dict[st
     duplicate_detect, when_busy), a busy and a slow station, lost and corrupted frames and lost slave
     ACKs: reads are right or fail, and no write runs twice (a write whose reply is lost is settled by
     a read-back or reported as possibly applied)."""
-    from gateway.kinds.df1.driver import WriteOutcomeUnknown
+    from gateway.kinds.df1.full.driver import WriteOutcomeUnknown
 
     options = LineOptions(checksum=Checksum.BCC, stations=(1, 2), corrupt=5, ignore=6, lose_symbol=4,
                           busy_polls={2: 1}, slow={1: 0.01}, seed=13)

@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from gateway.errors import LinkTimeout
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.half.driver import Df1HalfDuplexLine
 from gateway.kinds.df1.plan import MapItem
 from gateway.kinds.df1.plc5_unit import Plc5Unit
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine

@@ -52,7 +52,7 @@ from gateway.app import Gateway
 from gateway.cli import main as cli_main
 from gateway.config import parse_config
 from gateway.errors import GatewayError
-from gateway.kinds.df1.driver import Df1Driver
+from gateway.kinds.df1.full.driver import Df1Driver
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.protocols.df1 import framing as df1_framing
 from gateway.protocols.df1.framing import Checksum, encode_frame

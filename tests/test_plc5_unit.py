@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from gateway.errors import InvalidRequest
-from gateway.kinds.df1.driver import Df1Driver
+from gateway.kinds.df1.full.driver import Df1Driver
 from gateway.kinds.df1.plan import MapItem
 from gateway.kinds.df1.plc5_unit import Plc5BitWrite, Plc5Read, Plc5Unit, Plc5WordWrite, plan_plc5
 from gateway.kinds.df1.sim.plc5 import Plc5Simulator

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.half.driver import Df1HalfDuplexLine
 from gateway.kinds.df1.sim.df1_half_models import create_half_duplex_model, self_paced
 from gateway.kinds.df1.sim.df1_multidrop import MultidropLine
 from gateway.kinds.df1.sim.plc5 import Plc5Simulator

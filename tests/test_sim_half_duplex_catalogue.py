@@ -21,7 +21,7 @@ from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.errors import GatewayError, LinkDown, LinkTimeout
 from gateway.kinds import link_kind
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.half.driver import Df1HalfDuplexLine
 from gateway.kinds.df1.sim.df1_multidrop import MultidropLine
 from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.kinds.df1.simulators import DF1LINE, PLC5

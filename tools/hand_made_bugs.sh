@@ -33,8 +33,8 @@ run "S4 messages==1 dropped" "$SLC_TESTS" gateway/protocols/slc_ascii/transactio
 run "_next = 0 after unknown/failed removed" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "            self._next = 0  # we no longer know" "            pass  # we no longer know"
 run "S6 z_ever -> z_sent" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "z_sent=self._z_ever," "z_sent=bool(self._z_sent),"
 # issue 33's bugs: each fails the tests of its own module, not only an end-to-end or soak test
-run "1 target: STS 0 though the save failed" "$TARGET_TESTS" gateway/kinds/df1/target_driver.py "reply = self._commit(command, result)" "self._commit(command, result)"
-run "2 target: a failed write not taken back" "$TARGET_TESTS" gateway/kinds/df1/target_unit.py "table_file.write_bytes(ref.element * size, bytes(self.cache.data[index]), stamp)" "pass"
+run "1 target: STS 0 though the save failed" "$TARGET_TESTS" gateway/kinds/df1/target/driver.py "reply = self._commit(command, result)" "self._commit(command, result)"
+run "2 target: a failed write not taken back" "$TARGET_TESTS" gateway/kinds/df1/target/unit.py "table_file.write_bytes(ref.element * size, bytes(self.cache.data[index]), stamp)" "pass"
 run "3 admission: loopback or not allowed" "$ADMISSION_TESTS" gateway/modbus/admission.py "is_loopback and not host_allowed(" "is_loopback or not host_allowed("
 run "4 responder: _last_reply kept on a new command" "$RESPONDER_TESTS" gateway/protocols/df1/full_duplex/responder.py "        self._last_reply = None
         self._pending.append(header)" "        self._pending.append(header)"
@@ -44,4 +44,4 @@ run "5 SLC: the same, _msg_id given an initial value" "$SLC_TESTS" gateway/proto
 "
 run "6 unit: silent-link limit min -> max" "$UNIT_TESTS" gateway/unit.py "stale_after + min(self.schedule.period, default=0.0)" "stale_after + max(self.schedule.period, default=0.0)"
 run "6 SLC plan: presets not masked" "$SLC_PLAN_TESTS" gateway/kinds/slc_ascii/plan.py "plan.holding[32 + n] = word(0x40 + 2 * n, U16_BE_MASKED," "plan.holding[32 + n] = word(0x40 + 2 * n, U16_BE,"
-run "6 target: float word order" "$TARGET_TESTS" gateway/kinds/df1/target_unit.py 'low_first = entry.word_order == "low-first"' 'low_first = entry.word_order != "low-first"'
+run "6 target: float word order" "$TARGET_TESTS" gateway/kinds/df1/target/unit.py 'low_first = entry.word_order == "low-first"' 'low_first = entry.word_order != "low-first"'

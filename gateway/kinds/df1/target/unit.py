@@ -1,7 +1,7 @@
 """A DF1 target link served as a Modbus unit: the data files a PLC's MSG instructions read and write.
 
 The unit is not polled (:class:`gateway.unit.Unit` with ``polled=False``): the runner
-(:mod:`gateway.kinds.df1.target_driver`) answers the PLC and stores what it wrote; Modbus clients
+(:mod:`gateway.kinds.df1.target.driver`) answers the PLC and stores what it wrote; Modbus clients
 read the same values from the image and write into the same table, which the PLC's next read
 returns.  One block per element, so each element has its own time of last write: an element
 nobody wrote since start (and not loaded from ``persist`` or set by ``initial``) answers 0x0B.
@@ -24,9 +24,9 @@ from gateway.cache import NEVER
 from gateway.errors import GatewayError, ModbusExceptionReply
 from gateway.frozen import frozen
 from gateway.kinds.df1.plan import F32_HIGH, F32_LOW, U16_LE
-from gateway.kinds.df1.target_config import TargetFile
-from gateway.kinds.df1.target_driver import TargetRunner
-from gateway.kinds.df1.target_store import StoredElement, TargetStore
+from gateway.kinds.df1.target.config import TargetFile
+from gateway.kinds.df1.target.driver import TargetRunner
+from gateway.kinds.df1.target.store import StoredElement, TargetStore
 from gateway.modbus.mapping import BitPoint, Block, Plan, PointLabel, RegisterPoint, Scan, Table
 from gateway.protocols.df1.pccc.target_table import DataTable, ElementRef, TableFile
 from gateway.unit import Unit, UnitOptions, WriteStep

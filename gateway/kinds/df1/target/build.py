@@ -7,9 +7,9 @@ from typing import Any
 
 from gateway.kinds.contract import PointLabels, unit_options
 from gateway.kinds.df1.config import Df1LinkConfig
-from gateway.kinds.df1.target_driver import TargetRunner
-from gateway.kinds.df1.target_store import TargetStore
-from gateway.kinds.df1.target_unit import TargetUnit, load_table, target_plan, target_point_labels
+from gateway.kinds.df1.target.driver import TargetRunner
+from gateway.kinds.df1.target.store import TargetStore
+from gateway.kinds.df1.target.unit import TargetUnit, load_table, target_plan, target_point_labels
 from gateway.modbus.mapping import Plan
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.full_duplex.responder import REPLY_ACK_TIMEOUT

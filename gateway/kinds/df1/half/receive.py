@@ -1,7 +1,7 @@
 """A half-duplex station's register table served as Modbus registers of its own unit.
 
 Words a station writes to the gateway with an MSG instruction (report by exception) land in its
-:class:`~gateway.protocols.df1.half_duplex.slave_messages.RegisterTable` (``gateway.kinds.df1.half_duplex_driver``; keys
+:class:`~gateway.protocols.df1.half_duplex.slave_messages.RegisterTable` (``gateway.kinds.df1.half.driver``; keys
 ``receive_file`` / ``receive_words``).  The station's unit serves that table, read-only, in
 ``receive_table`` ("input" or "holding") from ``receive_start`` on:
 

@@ -7,7 +7,7 @@ RTS timing, echo suppression.  :class:`Df1HalfDuplexLine` owns the port (reconne
 asks for (``next_deadline()`` / ``handle_timeout(now)``) and drives RTS when the port can.
 
 Each station on the line gets a :class:`Df1Station` handle with the API a DF1 unit uses on
-:class:`~gateway.kinds.df1.driver.Df1Driver`: ``execute(request, name, write=...)`` -> the reply, plus
+:class:`~gateway.kinds.df1.full.driver.Df1Driver`: ``execute(request, name, write=...)`` -> the reply, plus
 ``available``, ``counters``, ``last_sts``, ``add_listener``, ``run()`` / ``close()`` and ``probe()``.
 Requests of different stations are in the core at the same time; it serves them round robin (writes
 first), so a dead or slow station never holds up the others.  The sans-I/O transaction layer
@@ -17,7 +17,7 @@ its verdict - read retries with a new TNS, a write's verdict and read-backs
 a result:
 
 * done -> the reply;  refused -> :class:`~gateway.protocols.df1.pccc.PcccError`;
-* outcome unknown -> :class:`~gateway.kinds.df1.driver.WriteOutcomeUnknown`;
+* outcome unknown -> :class:`~gateway.kinds.df1.full.driver.WriteOutcomeUnknown`;
 * failed (a read without an answer after ``retries + 1`` tries, a write that never left, a station
   demoted to slow poll) -> :class:`~gateway.errors.LinkTimeout` (Modbus 0x0B).
 
@@ -50,7 +50,7 @@ from typing import Final, Unpack
 
 from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import GatewayError, LinkDown
-from gateway.kinds.df1.driver import DF1_SETTINGS, transaction_result
+from gateway.kinds.df1.full.driver import DF1_SETTINGS, transaction_result
 from gateway.line_driver import LineDriver, LineDriverOptions, run_to_the_end
 from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LineQuality, LinkHealth
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
