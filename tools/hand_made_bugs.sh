@@ -5,13 +5,13 @@
 # ONLY=REGEX runs only the bugs whose name matches (e.g. ONLY='^[1-6] ').
 set -u
 SRC=$(cd "$(dirname "$0")/.." && pwd)
-SLC_TESTS="tests/test_slc_transaction.py tests/test_sans_io.py tests/test_driver_slc_ascii.py tests/test_slc_transaction_safety.py tests/test_slc_transaction_state_machine.py tests/test_slc_read_own_transaction.py"
+SLC_TESTS="tests/protocols/slc_ascii/test_transaction.py tests/test_sans_io.py tests/kinds/slc_ascii/test_driver.py tests/protocols/slc_ascii/test_transaction_safety.py tests/protocols/slc_ascii/test_transaction_state_machine.py tests/protocols/slc_ascii/test_transaction_read_own.py"
 H_TESTS="tests/test_modbus_handler.py tests/test_modbus_server.py tests/test_hostile_network.py tests/test_server_slow_reader.py tests/test_register_image.py"
-TARGET_TESTS="tests/test_df1_target.py tests/test_df1_target_persist_faults.py tests/test_df1_target_floats.py"
+TARGET_TESTS="tests/kinds/df1/target/test_end_to_end.py tests/kinds/df1/target/test_persist_faults.py tests/kinds/df1/target/test_unit_floats.py"
 ADMISSION_TESTS="tests/test_modbus_admission.py tests/test_modbus_server.py tests/test_hostile_network.py"
-RESPONDER_TESTS="tests/test_df1_responder.py"
+RESPONDER_TESTS="tests/protocols/df1/full_duplex/test_responder.py"
 UNIT_TESTS="tests/test_register_image.py tests/test_kind_not_polled.py tests/test_write_timeout.py"
-SLC_PLAN_TESTS="tests/test_slc_ascii_plan.py tests/test_slc_ascii_memory_map.py tests/test_driver_slc_ascii.py"
+SLC_PLAN_TESTS="tests/kinds/slc_ascii/test_plan.py tests/protocols/slc_ascii/test_memory_map.py tests/kinds/slc_ascii/test_driver.py"
 run() {
   name=$1; tests=$2; shift 2
   if [ -n "${ONLY:-}" ] && ! [[ "$name" =~ $ONLY ]]; then return; fi

@@ -1,7 +1,7 @@
 """Each reading of the SLC 100/150 manual the simulator can take, byte for byte.
 
 ``docs/develop/controller-variants.md`` lists them with the manual's words; the driver's behaviour
-under each is tested in tests/test_slc_transaction.py (core) and tests/soak (whole gateway).
+under each is tested in tests/protocols/slc_ascii/test_transaction.py (core) and tests/soak (whole gateway).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """Byte-exact frames the public manuals print, reproduced by the codecs the gateway sends with.
 
 The half-duplex framing vectors (1770-6.5.16 p. 5-5 / 5-7, KF2 p. 4-25) are in
-``test_df1_half_duplex_framing.py`` and the address / parameter-builder vectors (p. 13-12, 1785-KE
-p. 5-5 / 5-6) in ``test_df1_plc5_address.py``.  This file checks the *other* paths that carry the
+``framing/test_half_duplex_framing.py`` and the address / parameter-builder vectors (p. 13-12, 1785-KE
+p. 5-5 / 5-6) in ``test_plc5_address.py``.  This file checks the *other* paths that carry the
 same bytes: the full-duplex framing codec (``gateway.protocols.df1.framing``, used by every
 full-duplex link) and the PCCC request classes the PLC-5 unit sends (``encode_command`` of
 ``WordRangeRead`` / ``WordRangeWrite`` / ``plc5_read`` / ``plc5_write``), and the decoders, whole, byte

@@ -5,7 +5,7 @@ late (held back and sent at a later poll, after replies to later commands: out o
 or never; some commands are not heard at all.  Every value a read is answered with must have been
 held by the station at some time after that read began: never one already replaced when it began
 (the reply to an earlier read, taken for this one, would be such a value).  The station is played
-as in ``test_df1_half_duplex_transactions.py`` (its :class:`Line`): each command is answered with
+as in ``test_transactions.py`` (its :class:`Line`): each command is answered with
 the value the station holds when it hears it.
 """
 
@@ -15,10 +15,11 @@ import itertools
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_df1_half_duplex_transactions import READ, Line, ok
 
 from gateway.protocols.df1.full_duplex.transaction import TransactionDone, TransactionFailed
 from gateway.protocols.df1.pccc import PcccCommand
+
+from .test_transactions import READ, Line, ok
 
 #: what a station does with one command, and where a held-back reply goes among those owed
 FATES = ["ok", "ok", "ok", "late", "twice", "lost", "unheard"]

@@ -339,7 +339,7 @@ VARIANTS = list(variant_matrix(Slc500Simulator.VARIANTS))
 def pairwise(table: dict[str, tuple[str, ...]], fixed: dict[str, str] | None = None) -> list[dict[str, str]]:
     """A few combinations covering every pair of values of two variants (greedy).
 
-    The sans-I/O property test (tests/test_df1_transaction.py) runs every combination; a
+    The sans-I/O property test (tests/protocols/df1/full_duplex/test_transaction.py) runs every combination; a
     driver with real timers runs the pairs, which catch the interactions of two readings.
     """
     fixed = fixed or {}

@@ -15,7 +15,6 @@ import asyncio
 from dataclasses import replace
 
 import pytest
-from test_df1_half_duplex_master import events, feed
 
 from gateway.kinds.df1.half.driver import Df1HalfDuplexLine
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
@@ -51,8 +50,10 @@ from gateway.protocols.df1.pccc.target_table import DataTable
 from gateway.sim.serve import SimStream
 from gateway.transport import ByteStream
 
+from .test_master import events, feed
+
 GATEWAY = 0x00
-MODES = ["whole", "bytes"]  # as test_df1_half_duplex_master: whole, byte by byte
+MODES = ["whole", "bytes"]  # as test_master: whole, byte by byte
 
 
 def msg_word_range_write(station: int, tns: int, element: int, words: list[int], dst: int = GATEWAY) -> bytes:

@@ -25,7 +25,7 @@ After every step, whatever the line did:
 
 The default run is small enough for ``make test``.  More examples::
 
-    SLC_CORE_EXAMPLES=5000 .venv/bin/python -m pytest tests/test_slc_transaction_state_machine.py
+    SLC_CORE_EXAMPLES=5000 .venv/bin/python -m pytest tests/protocols/slc_ascii/test_transaction_state_machine.py
 """
 
 from __future__ import annotations

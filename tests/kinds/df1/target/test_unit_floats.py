@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import asyncio
 
-from df1_plc_line import STATION, Plc
 from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.pccc import PcccHeader, ProtectedTypedLogicalRead, ProtectedTypedLogicalWrite
+
+from .plc_line import STATION, Plc
 
 UNIT = 5
 

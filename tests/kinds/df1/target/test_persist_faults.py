@@ -28,7 +28,6 @@ from contextlib import AbstractContextManager, asynccontextmanager, contextmanag
 from pathlib import Path
 
 import pytest
-from df1_plc_line import STATION, Plc
 from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
@@ -40,6 +39,8 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalWrite,
     WordRangeWrite,
 )
+
+from .plc_line import STATION, Plc
 
 #: STS of a command the host could not complete due to a hardware fault (1770-6.5.16 p. 8-3)
 HOST_HARDWARE_FAULT = 0x40

@@ -32,7 +32,8 @@ from gateway.protocols.slc_ascii.framing import (
 )
 from gateway.protocols.slc_ascii.transaction import SessionCounters, SessionState, SlcSession, SlcVerdict, next_id
 from gateway.sim.variants import pairwise_cover
-from tests.slc_core_harness import FATES, FakeLine
+
+from .core_harness import FATES, FakeLine
 
 #: every reading of every variant, and every pair of readings of two variants, at least once
 VARIANTS = pairwise_cover(SlcAsciiSimulator.VARIANTS)
