@@ -16,9 +16,9 @@ Shared by both modes and every role:
 * :mod:`~gateway.protocols.df1.address` - SLC 500 logical addresses (``N7:0``, ``T4:3.ACC`` ...);
   :mod:`~gateway.protocols.df1.plc5_address` and :mod:`~gateway.protocols.df1.plc5_commands` - PLC-5
   addresses and the requests built on them
-* :mod:`~gateway.protocols.df1.transitions` - the transition tables' type and checks
 * :mod:`~gateway.protocols.df1.write_verdict` - the exactly-once verdict of a write
 
+The transition tables' type and checks are the protocols' shared :mod:`gateway.protocols.transitions`.
 Nothing here does I/O; the caller passes ``now`` and moves the bytes.
 
 Import from the modules themselves (``from gateway.protocols.df1.pccc import PcccError``): this

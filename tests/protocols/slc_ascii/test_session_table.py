@@ -1,17 +1,11 @@
-"""The transition tables of the protocol cores: every (state, input) pair is listed.
+"""The SLC 100/150 session's transition table (``slc_ascii/session_table.py``) as the session uses it.
 
-A core exposes its table as a mapping ``(state, input) -> entry`` (``TRANSITIONS``) with its state
-enum and its input enum; a pair missing from a table is a pair the core would meet with no
-decision, so the walk below fails on it.  Add each core's table to :data:`ALL_TABLES`.
+The table's form (every pair listed, entries of the table's enums, ignored pairs stay, every state
+reachable) is walked with every other core's in ``tests/protocols/test_transitions.py``; here, what
+is the session's own: unreachable pairs, its actions, and what it does when the table is broken.
 """
 
 from __future__ import annotations
-
-import itertools
-from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
-from enum import Enum
-from typing import Any
 
 import pytest
 
@@ -24,76 +18,14 @@ from gateway.protocols.slc_ascii.session_table import (
     SessionInput,
     SessionState,
     SessionTableError,
-    SessionTransition,
 )
+from gateway.protocols.transitions import Transition
 
 
-@dataclass(frozen=True)
-class Table:
-    """One core's transition table and the axes its keys range over."""
-
-    name: str
-    transitions: Mapping[Any, Any]
-    states: type[Enum]
-    inputs: type[Enum]
-    #: further key components after (state, input), e.g. ``(False, True)`` for a table keyed by a flag
-    more: tuple[Iterable[Any], ...] = ()
-    #: the states an entry may lead to, when the entry says (checked to be states of the table)
-    next_states: Callable[[Any], Iterable[Any]] | None = None
-
-    def pairs(self) -> list[tuple[Any, ...]]:
-        return list(itertools.product(self.states, self.inputs, *self.more))
-
-
-ALL_TABLES: list[Table] = [
-    Table("slc_ascii session", slc.TRANSITIONS, slc.SessionState, slc.SessionInput,
-          next_states=lambda entry: entry.next_states),
-    # The DF1 cores' tables go here, e.g.
-    # Table("df1 transaction", df1.TRANSITIONS, df1.TxnState, df1.TxnInput, more=((False, True),)),
-]
-
-
-@pytest.mark.parametrize("table", ALL_TABLES, ids=lambda table: table.name)
-def test_every_state_and_input_pair_is_in_the_table(table: Table) -> None:
-    missing = [pair for pair in table.pairs() if pair not in table.transitions]
-    assert not missing, f"{table.name}: no entry for {missing}"
-
-
-@pytest.mark.parametrize("table", ALL_TABLES, ids=lambda table: table.name)
-def test_the_table_has_no_other_keys(table: Table) -> None:
-    assert set(table.transitions) <= set(table.pairs())
-
-
-@pytest.mark.parametrize("table", [t for t in ALL_TABLES if t.next_states is not None], ids=lambda table: table.name)
-def test_every_next_state_is_a_state(table: Table) -> None:
-    assert table.next_states is not None
-    for key, entry in table.transitions.items():
-        assert set(table.next_states(entry)) <= set(table.states), (table.name, key)
-
-
-def test_the_walk_finds_a_missing_pair() -> None:
-    class State(Enum):
-        A = "a"
-        B = "b"
-
-    class Input(Enum):
-        X = "x"
-
-    table = Table("two states", {(State.A, Input.X): "go"}, State, Input)
-    assert [pair for pair in table.pairs() if pair not in table.transitions] == [(State.B, Input.X)]
-
-
-# --- the SLC 100/150 session table ---------------------------------------------------------
-
-
-def test_slc_ignored_pairs_stay_and_unreachable_ones_lead_nowhere() -> None:
+def test_slc_ignored_and_unreachable_pairs_lead_nowhere_but_back() -> None:
     for (state, _), entry in slc.TRANSITIONS.items():
-        if entry.action is SessionAction.IGNORE:
-            assert entry.next_states == {state}
-        elif entry.action is SessionAction.UNREACHABLE:
-            assert entry.next_states == frozenset()
-        else:
-            assert entry.next_states, (state, entry)
+        if entry.action in (SessionAction.IGNORE, SessionAction.UNREACHABLE):
+            assert entry.allowed == {state}, (state, entry)
 
 
 def test_slc_every_action_but_unreachable_has_its_method_and_is_used() -> None:
@@ -119,8 +51,7 @@ def test_slc_an_unreachable_pair_raises() -> None:
 def test_slc_a_state_outside_the_entry_raises(monkeypatch: pytest.MonkeyPatch) -> None:
     table = dict(slc.TRANSITIONS)
     # the first command resyncs: RESYNC (or QUIET), which this entry no longer allows
-    table[(SessionState.IDLE, SessionInput.START)] = SessionTransition(
-        SessionAction.BEGIN, frozenset({SessionState.SENT}))
+    table[(SessionState.IDLE, SessionInput.START)] = Transition(SessionAction.BEGIN, SessionState.SENT)
     monkeypatch.setattr(slc, "TRANSITIONS", table)
     session = slc_transaction.SlcSession()
     with pytest.raises(SessionTableError, match="BEGIN on START in IDLE went to RESYNC"):

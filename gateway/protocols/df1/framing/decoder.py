@@ -51,7 +51,7 @@ from gateway.protocols.df1.framing import (
     Symbol,
     master_check,
 )
-from gateway.protocols.df1.transitions import Table, Transition, require_complete
+from gateway.protocols.transitions import Table, Transition, require_complete
 
 __all__ = [
     "FULL_DUPLEX_TRANSITIONS",

@@ -10,6 +10,7 @@ What this package owns, and nothing else:
   the gateway), with its events and counters in :mod:`.responder_events`.
 
 What both duplex modes share stays one level up in :mod:`gateway.protocols.df1`: the framing and
-its checks, PCCC, the addresses, the transition-table helpers and the verdict of a write.
+its checks, PCCC, the addresses and the verdict of a write; the transition tables' form is every
+core's, :mod:`gateway.protocols.transitions`.
 Import from the modules themselves: this package re-exports nothing.
 """

@@ -44,7 +44,7 @@ from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Final, NamedTuple
 
-from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
+from gateway.protocols.transitions import Table, TableEnum, Transition, require_complete, stay
 
 __all__ = [
     "RECEIVER",

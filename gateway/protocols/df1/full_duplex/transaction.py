@@ -67,7 +67,6 @@ from gateway.protocols.df1.pccc import (
     encode_command,
     reply_matches,
 )
-from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
 from gateway.protocols.df1.write_verdict import (
     DEFAULT_RETRIES,
     ReadBack,
@@ -78,6 +77,7 @@ from gateway.protocols.df1.write_verdict import (
     WriteVerdict,
     read_back_for,
 )
+from gateway.protocols.transitions import Table, TableEnum, Transition, require_complete, stay
 
 __all__ = [
     "TRANSITIONS",

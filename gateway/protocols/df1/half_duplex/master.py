@@ -75,7 +75,7 @@ from gateway.protocols.df1.half_duplex.schedule import (
 )
 from gateway.protocols.df1.half_duplex.transmitter import HalfDuplexTransmitter
 from gateway.protocols.df1.pccc.codec import duplicate_key
-from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
+from gateway.protocols.transitions import Table, TableEnum, Transition, require_complete, stay
 
 __all__ = ["TRANSITIONS", "HalfDuplexMaster", "LineState", "MasterAction", "MasterInput"]
 

@@ -1,30 +1,31 @@
-"""Every transition table of the DF1 cores, walked: each (state, input) pair is an entry.
+"""Every transition table of the protocol cores, walked: each (state, input) pair is an entry.
 
-The cores (``gateway/protocols/df1/``) keep their state machines as data: ``TRANSITIONS`` maps
-(state, input) to a :class:`~gateway.protocols.df1.transitions.Transition` (action, next state,
-and the other states an action may choose).  One generic walk checks each table:
+The cores (``gateway/protocols/``: DF1 and the SLC 100/150 session) keep their state machines as
+data in one form: ``TRANSITIONS`` maps (state, input) to a
+:class:`~gateway.protocols.transitions.Transition` (action, next state, and the other states an
+action may choose).  One generic walk checks each table:
 
 * every pair of its states x inputs is present, and nothing else;
 * actions, next states and the states an action may choose are members of the table's enums;
 * an ignored pair (the action that does nothing) stays where it is;
 * every state is reachable from the initial one, and every state reached has its row;
 
-and for each core, a pair taken out of its table raises when the core meets it, instead of being
-dropped.
+and for each DF1 core, a pair taken out of its table raises when the core meets it, instead of being
+dropped (the SLC session's are in ``slc_ascii/test_session_table.py``).
 """
 
 from __future__ import annotations
 
 import enum
 import importlib
-import pkgutil
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import pytest
 
-import gateway.protocols.df1 as df1
+import gateway.protocols as protocols
 from gateway.protocols.df1 import write_verdict
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.framing import decoder as frame_decoder
@@ -33,7 +34,8 @@ from gateway.protocols.df1.full_duplex import table as full_duplex_table
 from gateway.protocols.df1.half_duplex import master as half_duplex
 from gateway.protocols.df1.half_duplex.events import LineConfig, StationConfig
 from gateway.protocols.df1.pccc import PcccHeader, ProtectedTypedLogicalRead, ProtectedTypedLogicalWrite, decode_reply
-from gateway.protocols.df1.transitions import Transition, require_complete
+from gateway.protocols.slc_ascii import session_table as slc_session
+from gateway.protocols.transitions import Transition, require_complete
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,8 @@ TABLES = [
           frame_decoder.ByteClass, frame_decoder.DecoderAction, frame_decoder.DecoderState.IDLE, None),
     Table("decoder, half duplex", frame_decoder.HALF_DUPLEX_TRANSITIONS, frozenset(frame_decoder.DecoderState),
           frame_decoder.ByteClass, frame_decoder.DecoderAction, frame_decoder.DecoderState.IDLE, None),
+    Table("slc_ascii session", slc_session.TRANSITIONS, frozenset(slc_session.SessionState), slc_session.SessionInput,
+          slc_session.SessionAction, slc_session.SessionState.IDLE, slc_session.SessionAction.IGNORE),
 ]
 
 
@@ -160,14 +164,19 @@ def test_a_missing_pair_raises(
         run()
 
 
-def test_the_walk_covers_every_df1_table() -> None:
-    """Every module-level ``TRANSITIONS`` / ``*_TRANSITIONS`` under gateway/protocols/df1/ is walked here."""
+def test_the_walk_covers_every_table() -> None:
+    """Every module-level ``TRANSITIONS`` / ``*_TRANSITIONS`` table under gateway/protocols/ (keyed by
+    (state, input)) is walked here.  The program transfer's ``_TRANSITIONS`` (``slc_ascii/transfer.py``)
+    is no such table: it lists the moves each state allows, which its core asserts as it moves."""
     walked = {id(t.transitions) for t in TABLES}
     found: dict[int, str] = {}  # a table imported into another module is the same table
-    for info in pkgutil.walk_packages(df1.__path__, df1.__name__ + "."):
-        module = importlib.import_module(info.name)
+    root = Path(protocols.__file__).parent
+    for path in sorted(root.rglob("*.py")):  # slc_ascii/ is a namespace package: walked by file
+        parts = path.relative_to(root.parent.parent).with_suffix("").parts
+        module_name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        module = importlib.import_module(module_name)
         for name, value in vars(module).items():
-            if name.endswith("TRANSITIONS") and isinstance(value, Mapping):
-                found.setdefault(id(value), f"{info.name}.{name}")
-                assert id(value) in walked, f"{info.name}.{name} is not walked"
+            if name.endswith("TRANSITIONS") and isinstance(value, Mapping) and isinstance(next(iter(value)), tuple):
+                found.setdefault(id(value), f"{module_name}.{name}")
+                assert id(value) in walked, f"{module_name}.{name} is not walked"
     assert len(found) == len(TABLES)

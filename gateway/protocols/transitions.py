@@ -1,10 +1,10 @@
-"""Transition tables of the DF1 cores, as data.
+"""Transition tables of the protocol cores, as data: one mechanism for the DF1 and SLC 100/150 cores.
 
 A core's table maps every (state, input) pair to a :class:`Transition`: the action to run and the
 state it leads to.  A pair that changes nothing is an entry too (an ``IGNORE``-style action back
 to the same state), so a pair missing from a table is a bug: the cores index their tables, and a
 missing pair raises ``KeyError`` instead of being dropped.  :func:`require_complete` checks a
-table when its module is imported; ``tests/protocols/df1/test_transitions.py`` walks every table.
+table when its module is imported; ``tests/protocols/test_transitions.py`` walks every table.
 
 An action that must choose between next states (send again, or give up) names the states it may
 choose besides ``next_state`` in ``or_states``; the core checks its choice with :meth:`Transition.allows`.
