@@ -38,15 +38,15 @@ from typing import Any
 
 from _benchlib import DF1_MAP, print_machine, result, table
 
-from gateway.kinds.df1.driver import Df1Driver
+from gateway.kinds.df1.full.driver import Df1Driver
 from gateway.kinds.df1.plan import MapItem
 from gateway.kinds.df1.unit import Df1Unit
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.kinds.slc_ascii.unit import SlcAsciiUnit
 from gateway.modbus.mapping import Block, Scan
-from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived, SendComplete
 from gateway.protocols.df1.framing import NEED_DATA as DF1_NEED_DATA
 from gateway.protocols.df1.framing import Checksum, encode_frame
+from gateway.protocols.df1.full_duplex.datalink import Df1DataLink, MessageReceived, SendComplete
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, decode_reply
 from gateway.protocols.df1.pccc import encode_command as encode_pccc
 from gateway.protocols.slc_ascii import commands as cmds

@@ -1,6 +1,6 @@
 """Half-duplex DF1 line: line efficiency with 1, 4 and 16 stations, and the cost of one dead station.
 
-The gateway's half-duplex line master (``gateway.kinds.df1.half_duplex_driver``) polls SLC 5/04 stations on the
+The gateway's half-duplex line master (``gateway.kinds.df1.half.driver``) polls SLC 5/04 stations on the
 multi-drop line simulator (``gateway.kinds.df1.sim.df1_multidrop``), which paces every byte at the baud rate
 (10 bits a character, 8N1) and lets a slave answer ``--turnaround`` seconds after it heard the last
 byte.  Each station's unit reads 10 words (N7:0-9, one protected typed logical read) over and over,
@@ -38,11 +38,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from _benchlib import percentile, print_machine, result, table
 
 from gateway.errors import GatewayError
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, Df1Station
+from gateway.kinds.df1.half.driver import Df1HalfDuplexLine, Df1Station
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import ACK_SYMBOL, Checksum, encode_frame, encode_master_message, encode_poll
-from gateway.protocols.df1.half_duplex_events import StationConfig
+from gateway.protocols.df1.half_duplex.events import StationConfig
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, encode_command
 from gateway.sim.serve import SimStream
 from gateway.streams import SerialSettings

@@ -37,7 +37,7 @@ from _benchlib import percentile, print_machine, result, table
 from gateway.errors import GatewayError
 from gateway.kinds.df1.build import build_line
 from gateway.kinds.df1.config import Df1LinkConfig, group_lines
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, Df1Station
+from gateway.kinds.df1.half.driver import Df1HalfDuplexLine, Df1Station
 from gateway.kinds.df1.sim.df1_multidrop import MultidropLine
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead, ProtectedTypedLogicalWrite

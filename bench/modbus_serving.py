@@ -216,7 +216,7 @@ def memory_per_link(units: int = 20) -> dict[str, float]:
     import gc
     import tracemalloc
 
-    from gateway.kinds.df1.driver import Df1Driver
+    from gateway.kinds.df1.full.driver import Df1Driver
     from gateway.kinds.df1.plan import MapItem
     from gateway.kinds.df1.unit import Df1Unit
     from gateway.kinds.slc_ascii.driver import SlcAsciiDriver

@@ -9,8 +9,8 @@ and sets that against what the line itself allows at 19200 baud 8N1.
 Setup: two gateways (``python -m gateway run``, one process each, so the PLC's CPU is not charged
 to them), the same config but for ``persist``.  Each connects to a local TCP port of this script
 (``socket://``), where the PLC is the gateway's own DF1 master cores
-(:class:`~gateway.protocols.df1.datalink.Df1DataLink` +
-:class:`~gateway.protocols.df1.transaction.Df1Transactions`, as ``sim://plc-msg`` drives them),
+(:class:`~gateway.protocols.df1.full_duplex.datalink.Df1DataLink` +
+:class:`~gateway.protocols.df1.full_duplex.transaction.Df1Transactions`, as ``sim://plc-msg`` drives them),
 unpaced: the next write goes out in the same write as the DLE ACK of the last reply.  So what is
 measured is the gateway's cost per write (and loopback TCP, and the PLC's own work), not a line's.
 
@@ -51,10 +51,10 @@ from _benchlib import DF1_CHAR_TIME, HOST, PYTHON, REPO, df1_frames, print_machi
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
+from gateway.protocols.df1.full_duplex.datalink import Df1DataLink
+from gateway.protocols.df1.full_duplex.transaction import Df1Transactions, TransactionDone
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalWrite
-from gateway.protocols.df1.transaction import Df1Transactions, TransactionDone
 
 GATEWAY_NODE, PLC_NODE = 1, 0
 FILE, ELEMENTS = 7, 100

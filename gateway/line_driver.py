@@ -160,7 +160,7 @@ class UnitDriver(Protocol):
     """What a unit, its write queue, the metrics and the app use of the driver under a unit.
 
     A :class:`LineDriver` is one (one controller per port); so is a station's handle on a shared
-    line (``gateway.kinds.df1.half_duplex_driver.Df1Station``), whose line is the runner instead.
+    line (``gateway.kinds.df1.half.driver.Df1Station``), whose line is the runner instead.
     """
 
     name: str

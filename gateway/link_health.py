@@ -2,7 +2,7 @@
 
 :class:`LinkHealth` is the base of :class:`~gateway.line_driver.LineDriver` (one controller per
 port) and of each station's handle on a shared half-duplex line
-(``gateway.kinds.df1.half_duplex_driver.Df1Station``), so every link goes up and down by the same
+(``gateway.kinds.df1.half.driver.Df1Station``), so every link goes up and down by the same
 rule and logs each change once.
 """
 
@@ -75,7 +75,7 @@ class LinkHealth(ABC):
     """Whether a link's controller answers: the one up/down rule of every driver.
 
     A :class:`~gateway.line_driver.LineDriver` is one (one controller per port), and so is each
-    station's handle on a shared half-duplex line (``gateway.kinds.df1.half_duplex_driver.Df1Station``).
+    station's handle on a shared half-duplex line (``gateway.kinds.df1.half.driver.Df1Station``).
     One failed transaction does not make a link down (Kepware's auto-demotion is the model): it goes
     down after ``down_after_failures`` failed transactions in a row or ``down_after_seconds`` without
     a valid reply while transactions fail, whichever comes first, and up again at the first answer.

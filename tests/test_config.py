@@ -29,7 +29,7 @@ from gateway.config import (
 )
 from gateway.errors import ConfigError
 from gateway.kinds.df1.config import DF1_DEFAULTS, Df1LinkConfig, MapEntry, classify_address
-from gateway.kinds.df1.target_config import TargetFile
+from gateway.kinds.df1.target.config import TargetFile
 from gateway.kinds.slc_ascii.config import SLC_ASCII_DEFAULTS, SlcAsciiLinkConfig
 from gateway.protocols.df1.address import parse_address
 
@@ -1504,7 +1504,7 @@ def test_drivers_and_tools_agree_with_the_serial_defaults_of_the_config() -> Non
     """config/slc_ascii.py and config/df1.py hold the serial defaults; the CLI tools read them there.
     The drivers keep a default of their own (for code that builds one without a config) until the
     link-kind registry passes the config's in: this keeps the two from drifting apart."""
-    from gateway.kinds.df1.driver import DF1_SETTINGS, Df1Driver
+    from gateway.kinds.df1.full.driver import DF1_SETTINGS, Df1Driver
     from gateway.kinds.slc_ascii.driver import SLC_ASCII_SETTINGS, SlcAsciiDriver
 
     assert SLC_ASCII_SETTINGS == SLC_ASCII_DEFAULTS.settings

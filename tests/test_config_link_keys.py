@@ -24,8 +24,8 @@ from gateway.errors import ConfigError
 from gateway.kinds import link_kind
 from gateway.kinds.df1.build import build_df1
 from gateway.kinds.df1.config import LINE_KEYS, Df1LinkConfig, Processor
-from gateway.kinds.df1.driver import Df1Driver
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.full.driver import Df1Driver
+from gateway.kinds.df1.half.driver import Df1HalfDuplexLine
 from gateway.kinds.df1.unit import PROCESSORS
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.link_health import DEFAULT_DOWN_AFTER

@@ -105,7 +105,7 @@ def test_local_and_remote_errors() -> None:
     assert not issubclass(ConfigError, LocalError | RemoteError)
     # a write whose outcome is unknown is a timeout to code that only asks "did it answer?"
     assert issubclass(WriteOutcomeUnknown, LinkTimeout)
-    from gateway.kinds.df1.driver import WriteOutcomeUnknown as reexported
+    from gateway.kinds.df1.full.driver import WriteOutcomeUnknown as reexported
 
     assert reexported is WriteOutcomeUnknown
 

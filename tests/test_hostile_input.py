@@ -52,12 +52,12 @@ from gateway.app import Gateway
 from gateway.cli import main as cli_main
 from gateway.config import parse_config
 from gateway.errors import GatewayError
-from gateway.kinds.df1.driver import Df1Driver
+from gateway.kinds.df1.full.driver import Df1Driver
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.protocols.df1 import framing as df1_framing
-from gateway.protocols.df1.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed
 from gateway.protocols.df1.framing import Checksum, encode_frame
 from gateway.protocols.df1.framing.decoder import FrameDecoder
+from gateway.protocols.df1.full_duplex.datalink import Df1DataLink, MessageReceived, SendComplete, SendFailed
 from gateway.protocols.df1.pccc import PcccReply, ProtectedTypedLogicalRead, ProtectedTypedLogicalWrite, decode_reply
 from gateway.protocols.slc_ascii import commands as slc_commands
 from gateway.protocols.slc_ascii import framing as slc_framing

@@ -192,7 +192,7 @@ GENERIC = (
 PROTOCOL_MODULES = (
     "gateway.protocols.",
     "gateway.kinds.slc_ascii.driver",
-    "gateway.kinds.df1.driver",
+    "gateway.kinds.df1.full.driver",
     "gateway.kinds.slc_ascii",
     "gateway.kinds.df1",
     "gateway.kinds.slc_ascii.config",

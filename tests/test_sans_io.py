@@ -31,7 +31,7 @@ def imported(tree: ast.AST) -> set[str]:
 
 def test_the_tree_has_the_cores() -> None:
     names = {p.relative_to(PROTOCOLS).as_posix() for p in MODULES}
-    assert {"slc_ascii/transaction.py", "slc_ascii/framing.py", "df1/datalink.py"} <= names
+    assert {"slc_ascii/transaction.py", "slc_ascii/framing.py", "df1/full_duplex/datalink.py"} <= names
 
 
 @pytest.mark.parametrize("module", MODULES, ids=lambda p: p.relative_to(PROTOCOLS).as_posix())

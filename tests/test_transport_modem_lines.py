@@ -17,9 +17,9 @@ from typing import Any
 
 import pytest
 
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.half.driver import Df1HalfDuplexLine
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex_events import StationConfig
+from gateway.protocols.df1.half_duplex.events import StationConfig
 from gateway.streams import SerialSettings
 from gateway.transport import (
     ProtocolStream,

@@ -5,13 +5,13 @@
 # ONLY=REGEX runs only the bugs whose name matches (e.g. ONLY='^[1-6] ').
 set -u
 SRC=$(cd "$(dirname "$0")/.." && pwd)
-SLC_TESTS="tests/test_slc_transaction.py tests/test_sans_io.py tests/test_driver_slc_ascii.py tests/test_slc_transaction_safety.py tests/test_slc_transaction_state_machine.py tests/test_slc_read_own_transaction.py"
+SLC_TESTS="tests/protocols/slc_ascii/test_transaction.py tests/test_sans_io.py tests/kinds/slc_ascii/test_driver.py tests/protocols/slc_ascii/test_transaction_safety.py tests/protocols/slc_ascii/test_transaction_state_machine.py tests/protocols/slc_ascii/test_transaction_read_own.py"
 H_TESTS="tests/test_modbus_handler.py tests/test_modbus_server.py tests/test_hostile_network.py tests/test_server_slow_reader.py tests/test_register_image.py"
-TARGET_TESTS="tests/test_df1_target.py tests/test_df1_target_persist_faults.py tests/test_df1_target_floats.py"
+TARGET_TESTS="tests/kinds/df1/target/test_end_to_end.py tests/kinds/df1/target/test_persist_faults.py tests/kinds/df1/target/test_unit_floats.py"
 ADMISSION_TESTS="tests/test_modbus_admission.py tests/test_modbus_server.py tests/test_hostile_network.py"
-RESPONDER_TESTS="tests/test_df1_responder.py"
+RESPONDER_TESTS="tests/protocols/df1/full_duplex/test_responder.py"
 UNIT_TESTS="tests/test_register_image.py tests/test_kind_not_polled.py tests/test_write_timeout.py"
-SLC_PLAN_TESTS="tests/test_slc_ascii_plan.py tests/test_slc_ascii_memory_map.py tests/test_driver_slc_ascii.py"
+SLC_PLAN_TESTS="tests/kinds/slc_ascii/test_plan.py tests/protocols/slc_ascii/test_memory_map.py tests/kinds/slc_ascii/test_driver.py"
 run() {
   name=$1; tests=$2; shift 2
   if [ -n "${ONLY:-}" ] && ! [[ "$name" =~ $ONLY ]]; then return; fi
@@ -33,10 +33,10 @@ run "S4 messages==1 dropped" "$SLC_TESTS" gateway/protocols/slc_ascii/transactio
 run "_next = 0 after unknown/failed removed" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "            self._next = 0  # we no longer know" "            pass  # we no longer know"
 run "S6 z_ever -> z_sent" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "z_sent=self._z_ever," "z_sent=bool(self._z_sent),"
 # issue 33's bugs: each fails the tests of its own module, not only an end-to-end or soak test
-run "1 target: STS 0 though the save failed" "$TARGET_TESTS" gateway/kinds/df1/target_driver.py "reply = self._commit(command, result)" "self._commit(command, result)"
-run "2 target: a failed write not taken back" "$TARGET_TESTS" gateway/kinds/df1/target_unit.py "table_file.write_bytes(ref.element * size, bytes(self.cache.data[index]), stamp)" "pass"
+run "1 target: STS 0 though the save failed" "$TARGET_TESTS" gateway/kinds/df1/target/driver.py "reply = self._commit(command, result)" "self._commit(command, result)"
+run "2 target: a failed write not taken back" "$TARGET_TESTS" gateway/kinds/df1/target/unit.py "table_file.write_bytes(ref.element * size, bytes(self.cache.data[index]), stamp)" "pass"
 run "3 admission: loopback or not allowed" "$ADMISSION_TESTS" gateway/modbus/admission.py "is_loopback and not host_allowed(" "is_loopback or not host_allowed("
-run "4 responder: _last_reply kept on a new command" "$RESPONDER_TESTS" gateway/protocols/df1/responder.py "        self._last_reply = None
+run "4 responder: _last_reply kept on a new command" "$RESPONDER_TESTS" gateway/protocols/df1/full_duplex/responder.py "        self._last_reply = None
         self._pending.append(header)" "        self._pending.append(header)"
 run "5 SLC: a late reply taken in resync" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "if (not self._is_write and self._copies and isinstance(event, DataReply)" "if (not self._is_write and isinstance(event, DataReply)"
 run "5 SLC: the same, _msg_id given an initial value" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "if (not self._is_write and self._copies and isinstance(event, DataReply)" "if (not self._is_write and isinstance(event, DataReply)" gateway/protocols/slc_ascii/sender.py "        self._msg_id: int
@@ -44,4 +44,4 @@ run "5 SLC: the same, _msg_id given an initial value" "$SLC_TESTS" gateway/proto
 "
 run "6 unit: silent-link limit min -> max" "$UNIT_TESTS" gateway/unit.py "stale_after + min(self.schedule.period, default=0.0)" "stale_after + max(self.schedule.period, default=0.0)"
 run "6 SLC plan: presets not masked" "$SLC_PLAN_TESTS" gateway/kinds/slc_ascii/plan.py "plan.holding[32 + n] = word(0x40 + 2 * n, U16_BE_MASKED," "plan.holding[32 + n] = word(0x40 + 2 * n, U16_BE,"
-run "6 target: float word order" "$TARGET_TESTS" gateway/kinds/df1/target_unit.py 'low_first = entry.word_order == "low-first"' 'low_first = entry.word_order != "low-first"'
+run "6 target: float word order" "$TARGET_TESTS" gateway/kinds/df1/target/unit.py 'low_first = entry.word_order == "low-first"' 'low_first = entry.word_order != "low-first"'

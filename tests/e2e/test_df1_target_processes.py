@@ -24,10 +24,10 @@ from pathlib import Path
 import pytest
 
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import NEED_DATA, Checksum
+from gateway.protocols.df1.full_duplex.datalink import Df1DataLink
+from gateway.protocols.df1.full_duplex.transaction import Df1Transactions, TransactionDone
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalWrite
-from gateway.protocols.df1.transaction import Df1Transactions, TransactionDone
 
 ROOT = Path(__file__).resolve().parents[2]
 PEER = ROOT / "tests" / "peers" / "plc_msg_peer.py"

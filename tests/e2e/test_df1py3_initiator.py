@@ -73,7 +73,7 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
 from gateway.config import parse_config
-from gateway.kinds.df1.target_unit import TargetUnit
+from gateway.kinds.df1.target.unit import TargetUnit
 
 #: the requirement line of the test extra
 DF1PY3 = "df1py3==1.0a45"

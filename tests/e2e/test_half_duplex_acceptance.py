@@ -41,7 +41,7 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
 from gateway.config import parse_config
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.half.driver import Df1HalfDuplexLine
 from gateway.kinds.df1.sim.df1_half_models import create_line
 from gateway.kinds.df1.sim.df1_multidrop import MultidropLine
 from gateway.sim.serve import close_tcp, serve_tcp

@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from gateway.errors import GatewayError
-from gateway.kinds.df1.driver import Df1Driver
+from gateway.kinds.df1.full.driver import Df1Driver
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.line_driver import LineDriver
 from gateway.sim import create_simulator

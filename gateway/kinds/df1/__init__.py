@@ -1,9 +1,14 @@
-"""The DF1 link kind: SLC 500 and PLC-5 controllers over DF1 full duplex, with a configured map.
+"""The DF1 link kind: SLC 500 and PLC-5 controllers over DF1, polled or answering their MSGs.
 
-Its rooms: the sans-I/O protocol in :mod:`gateway.protocols.df1`, the driver in
-:mod:`gateway.kinds.df1.driver`, the simulator in :mod:`gateway.kinds.df1.sim.slc500`, the ``[[link]]`` model in
-:mod:`gateway.kinds.df1.config`; here the plan (``plan``), the unit (``unit``) and the CLI commands
-(``tool``).
+One package per role, each over the sans-I/O protocol in :mod:`gateway.protocols.df1`:
+
+* :mod:`gateway.kinds.df1.full` - the full-duplex master: one controller per port;
+* :mod:`gateway.kinds.df1.half` - the half-duplex master: the stations of a multi-drop line;
+* :mod:`gateway.kinds.df1.target` - the target: a PLC's MSG instructions read and write the gateway.
+
+Shared by every role, here: the ``[[link]]`` model (``config``), the units and the read plan
+(``unit``, ``plc5_unit``, ``plan``), the build that picks the role (``build``), the CLI commands
+(``tool``) and the simulators (``sim``, ``simulators``).
 """
 
 from __future__ import annotations

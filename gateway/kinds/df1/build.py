@@ -1,16 +1,16 @@
 """Every DF1 ``[[link]]`` as a unit, and the runners of their lines (the DF1 kind's ``build``).
 
 * A full-duplex link (``duplex = "full"``, the default) gets its own
-  :class:`~gateway.kinds.df1.driver.Df1Driver`: one controller per port, the driver is the runner.
+  :class:`~gateway.kinds.df1.full.driver.Df1Driver`: one controller per port, the driver is the runner.
 * Links with the same ``port`` and ``duplex = "half"`` are the stations of one multi-drop line
-  (``gateway.kinds.df1.config.group_lines``): one :class:`~gateway.kinds.df1.half_duplex_driver.Df1HalfDuplexLine`
+  (``gateway.kinds.df1.config.group_lines``): one :class:`~gateway.kinds.df1.half.driver.Df1HalfDuplexLine`
   master per line is the runner, and each link's unit talks through its station's handle
   (``line.station(n)``, the same ``execute`` API as the full-duplex driver).
 
 Whatever the line, ``processor = "plc5"`` gets a :class:`~gateway.kinds.df1.plc5_unit.Plc5Unit` (word
 range commands, PLC-5 addresses), every SLC 500 processor a :class:`~gateway.kinds.df1.unit.Df1Unit`
 (typed logical commands).  A station with ``receive_words`` serves its register table (the words it
-sends with MSG instructions, and their ages) from ``receive_start`` (``gateway.kinds.df1.receive``).
+sends with MSG instructions, and their ages) from ``receive_start`` (``gateway.kinds.df1.half.receive``).
 """
 
 from __future__ import annotations
@@ -20,21 +20,21 @@ from typing import Any
 
 from gateway.kinds.contract import Built, LinkRunner, PointLabels, line_options, unit_options
 from gateway.kinds.df1.config import Df1LinkConfig, HalfDuplexLine, group_lines
-from gateway.kinds.df1.driver import Df1Driver
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.full.driver import Df1Driver
+from gateway.kinds.df1.half.driver import Df1HalfDuplexLine
+from gateway.kinds.df1.half.receive import ReceiveWindow
 from gateway.kinds.df1.plan import MapItem, point_labels_df1, shared_plan_df1
 from gateway.kinds.df1.plc5_unit import PLC5_MAX_READ_BYTES, Plc5Unit, point_labels_plc5, shared_plan_plc5
-from gateway.kinds.df1.receive import ReceiveWindow
-from gateway.kinds.df1.target_build import build_target, target_link_labels, target_link_plan
+from gateway.kinds.df1.target.build import build_target, target_link_labels, target_link_plan
 from gateway.kinds.df1.unit import PROCESSORS, Df1Unit, PcccDriver, PcccUnit
 from gateway.link_health import DownAfter
 from gateway.modbus.mapping import Plan, Table
 from gateway.poller import LineShare
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex_events import StationConfig
+from gateway.protocols.df1.half_duplex.events import StationConfig
+from gateway.protocols.df1.half_duplex.slave_messages import RegisterTable
 from gateway.protocols.df1.pccc import ProcessorFamily
 from gateway.protocols.df1.pccc.target_table import ElementRef
-from gateway.protocols.df1.slave_messages import RegisterTable
 from gateway.unit import Unit
 
 __all__ = [

@@ -21,10 +21,10 @@ from gateway.config._common import Loc, Model, Problems, optional_output_path, p
 from gateway.config.link import LinkBase, SerialDefaults
 from gateway.config.writer import table_lines
 from gateway.frozen import frozen
-from gateway.kinds.df1.target_config import TargetFile, target_file_problems
+from gateway.kinds.df1.target.config import TargetFile, target_file_problems
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
 from gateway.protocols.df1.address import parse_address
-from gateway.protocols.df1.half_duplex_events import DEMOTE_AFTER
+from gateway.protocols.df1.half_duplex.events import DEMOTE_AFTER
 from gateway.protocols.df1.plc5_address import parse_plc5_address
 
 __all__ = [
@@ -327,7 +327,7 @@ class Df1LinkConfig(LinkBase):
     receive_start: int = Field(0, ge=0, le=65535)
     """Station key: the Modbus address of word 0 of the receive range."""
 
-    # --- target mode (docs/guide/target-mode.md; gateway.kinds.df1.target_config) -------------
+    # --- target mode (docs/guide/target-mode.md; gateway.kinds.df1.target.config) -------------
     role: Literal["master", "target"] = "master"
     """"master": the gateway polls the controller; "target": the gateway is the station a PLC's MSG instructions read
     and write (station is then the gateway's own node), answering from [[link.file]]."""
@@ -453,7 +453,7 @@ def _overlaps(entries: Sequence[MapEntry]) -> list[tuple[Loc, str]]:
 #
 # Each station stays one ``[[link]]`` (its own ``unit``, ``station`` and map).  Links with the same
 # ``port``, ``protocol = "df1"`` and ``duplex = "half"`` are the stations of one line and share one
-# line master (``gateway.kinds.df1.half_duplex_driver.Df1HalfDuplexLine``).  Across the links of a line:
+# line master (``gateway.kinds.df1.half.driver.Df1HalfDuplexLine``).  Across the links of a line:
 #
 # * the serial settings (baud rate, data bits, parity, stop bits), the checksum, the gateway's own
 #   address (``source``) and the line keys (delays, RTS / DTR, echo, ACK timeout, message retries,

@@ -12,7 +12,7 @@ MicroLogix only (a PLC-5 may answer them STS 10; ``gateway.kinds.df1.sim.plc5`` 
   (1770-6.5.16 p. 7-20): only the written bits change, in the controller, in one command.
 
 Every write goes to the driver with ``write=True``: the exactly-once verdict and the read-back of a
-write whose reply was lost (``gateway.protocols.df1.transaction.read_back_for``: a word range read of
+write whose reply was lost (``gateway.protocols.df1.full_duplex.transaction.read_back_for``: a word range read of
 the same words) apply as for the SLC unit.  A write is never sent twice.
 
 Addresses are the forms users type (``N7:0``, ``B3/5``, ``B3:0/5``, ``T4:1.ACC``, ``T4:1/DN``,

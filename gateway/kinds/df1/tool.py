@@ -10,9 +10,9 @@ range write ``0F 00``; a bit is written with read-modify-write ``0F 26`` (only t
 the controller: :mod:`gateway.protocols.df1.plc5_commands`), as the PLC-5 unit does.
 
 ``--duplex half --station N`` talks to station N of a half-duplex multi-drop line or radio channel:
-a :class:`~gateway.kinds.df1.half_duplex_driver.Df1HalfDuplexLine` master with that one station, the commands
+a :class:`~gateway.kinds.df1.half.driver.Df1HalfDuplexLine` master with that one station, the commands
 through ``line.station(N)`` (the same ``execute`` API as the full-duplex
-:class:`~gateway.kinds.df1.driver.Df1Driver`).  ``--poll-timeout`` and ``--ack-timeout`` are the line's
+:class:`~gateway.kinds.df1.full.driver.Df1Driver`).  ``--poll-timeout`` and ``--ack-timeout`` are the line's
 answer timers (radio: raise them); ``--timeout`` is from the station's ACK to its reply.
 """
 
@@ -30,13 +30,13 @@ from gateway.errors import InvalidRequest, LinkTimeout
 from gateway.frozen import frozen
 from gateway.kinds.contract import ToolHints
 from gateway.kinds.df1.config import DF1_DEFAULTS
-from gateway.kinds.df1.driver import Df1Driver
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, PcccRequestLike
+from gateway.kinds.df1.full.driver import Df1Driver
+from gateway.kinds.df1.half.driver import Df1HalfDuplexLine, PcccRequestLike
 from gateway.kinds.df1.unit import PROCESSORS
 from gateway.line_driver import OpenStream
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.half_duplex_events import StationConfig
+from gateway.protocols.df1.half_duplex.events import StationConfig
 from gateway.protocols.df1.pccc import (
     DiagnosticStatusInfo,
     PcccReply,

@@ -6,7 +6,7 @@ read-modify-write race with the ladder.  PCCC errors map to Modbus exceptions: a
 problem answers 0x02, another refusal 0x04, no answer 0x0B.
 
 When a write's frame may have reached the controller but its reply never came, the driver's
-transaction core (``gateway.protocols.df1.transaction``) reads the target back: if it holds
+transaction core (``gateway.protocols.df1.full_duplex.transaction``) reads the target back: if it holds
 what was written the write succeeded, otherwise SCADA gets 0x0B.  A write is never sent twice.
 """
 
@@ -18,9 +18,9 @@ from typing import Any, Protocol, TypeVar, Unpack
 
 from gateway.errors import ControllerRefused, ModbusExceptionReply
 from gateway.kinds.df1.config import Processor
-from gateway.kinds.df1.driver import Df1Driver, check_reply_size
+from gateway.kinds.df1.full.driver import Df1Driver, check_reply_size
+from gateway.kinds.df1.half.receive import ReceiveWindow
 from gateway.kinds.df1.plan import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, shared_plan_df1
-from gateway.kinds.df1.receive import ReceiveWindow
 from gateway.line_driver import UnitDriver
 from gateway.modbus.mapping import BitPoint, Block, Half, Plan, RegisterPoint, Table, WordWrite
 from gateway.protocols.df1.address import FileType, SlcAddress
@@ -63,7 +63,7 @@ def pccc_exception(error: PcccError) -> ModbusExceptionReply:
 
 class PcccDriver(UnitDriver, Protocol):
     """What a PCCC unit needs of its driver: a full-duplex ``Df1Driver``, or a station's handle on a
-    half-duplex line (``gateway.kinds.df1.half_duplex_driver.Df1Station``)."""
+    half-duplex line (``gateway.kinds.df1.half.driver.Df1Station``)."""
 
     last_sts: int
 

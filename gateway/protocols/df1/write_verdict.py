@@ -51,7 +51,7 @@ from gateway.protocols.df1.pccc import (
     WordRangeRead,
     WordRangeWrite,
 )
-from gateway.protocols.df1.transitions import Table, TableEnum, Transition, require_complete, stay
+from gateway.protocols.transitions import Table, TableEnum, Transition, require_complete, stay
 
 __all__ = [
     "DEFAULT_RETRIES",

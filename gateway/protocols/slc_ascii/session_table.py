@@ -3,23 +3,26 @@
 :class:`~gateway.protocols.slc_ascii.transaction.SlcSession` runs one transaction at a time and
 is always in one :class:`SessionState`.  What happens to it is a :class:`SessionInput`: the
 caller's start, a reply as the session classifies it against the running transaction, or a
-deadline.  :data:`TRANSITIONS` maps every (state, input) pair to a :class:`SessionTransition`:
-the :class:`SessionAction` to run and the states the session may be in after it.  An action that
-can end in more than one state (a resend, a resync, a verdict) returns the one it chose, and the
-session checks that it is one of the entry's.
+deadline.  :data:`TRANSITIONS` maps every (state, input) pair to a
+:class:`~gateway.protocols.transitions.Transition`, the one table entry of every protocol core: the
+:class:`SessionAction` to run and the states the session may be in after it (``next_state``, and
+``or_states`` when the action chooses).  An action that can end in more than one state (a resend,
+a resync, a verdict) returns the one it chose, and the session checks that the entry allows it.
 
-Every pair is listed.  A pair that changes nothing is an ``IGNORE`` entry, whose next state is
-the state itself; a pair the session's classification never produces is an ``UNREACHABLE``
-entry.  :func:`transition` raises :class:`SessionTableError` for an unreachable pair and for
-one missing from the table, so neither can be dropped unnoticed.
+Every pair is listed (:func:`~gateway.protocols.transitions.require_complete` checks it on import).
+A pair that changes nothing is an ``IGNORE`` entry, whose next state is the state itself; a pair
+the session's classification never produces is an ``UNREACHABLE`` entry, which leads nowhere but
+back.  :func:`transition` raises :class:`SessionTableError` for an unreachable pair and for one
+missing from the table, so neither can be dropped unnoticed.
 """
 
 from __future__ import annotations
 
-import enum
 from collections.abc import Mapping
 from types import MappingProxyType
-from typing import Final, NamedTuple
+from typing import Final
+
+from gateway.protocols.transitions import Table, TableEnum, Transition, require_complete, stay
 
 __all__ = [
     "TRANSITIONS",
@@ -27,12 +30,11 @@ __all__ = [
     "SessionInput",
     "SessionState",
     "SessionTableError",
-    "SessionTransition",
     "transition",
 ]
 
 
-class SessionState(enum.Enum):
+class SessionState(TableEnum):
     IDLE = "idle"
     QUIET = "quiet"  # waiting for the line to be quiet before a resync
     RESYNC = "resync"  # the ID 00 probe sent, waiting for its answer
@@ -40,7 +42,7 @@ class SessionState(enum.Enum):
     Z_SENT = "z_sent"  # ;Z sent, waiting for the controller's last reply
 
 
-class SessionInput(enum.Enum):
+class SessionInput(TableEnum):
     """What happened, as the transition table sees it."""
 
     START = "the caller starts a transaction"
@@ -56,7 +58,7 @@ class SessionInput(enum.Enum):
     TIMEOUT = "deadline passed"
 
 
-class SessionAction(enum.Enum):
+class SessionAction(TableEnum):
     """What the session does; each is one method of :class:`SlcSession`."""
 
     BEGIN = "resync first, or send the first copy of the command"
@@ -79,18 +81,12 @@ class SessionAction(enum.Enum):
     UNREACHABLE = "the session's classification never gives this input in this state"
 
 
-class SessionTransition(NamedTuple):
-    action: SessionAction
-    #: the states the session may be in after the action (the state itself for IGNORE)
-    next_states: frozenset[SessionState]
-
-
 class SessionTableError(RuntimeError):
     """A (state, input) pair the table does not allow, or a next state outside an entry's: a bug
     in the session, never a fault of the line."""
 
 
-def transition(state: SessionState, what: SessionInput) -> SessionTransition:
+def transition(state: SessionState, what: SessionInput) -> Transition[SessionAction, SessionState]:
     """The table's entry for ``what`` in ``state``; raises :class:`SessionTableError` for a pair
     that is missing or ``UNREACHABLE``."""
     entry = TRANSITIONS.get((state, what))
@@ -101,55 +97,53 @@ def transition(state: SessionState, what: SessionInput) -> SessionTransition:
     return entry
 
 
-def _states(*states: SessionState) -> frozenset[SessionState]:
-    return frozenset(states)
-
-
 #: a verdict: the transaction is over
-_ENDS: Final = _states(SessionState.IDLE)
+_ENDS: Final = (SessionState.IDLE,)
 #: a resync: the ID 00 probe goes out, or the session waits for quiet before it
-_RESYNCS: Final = _states(SessionState.RESYNC, SessionState.QUIET)
+_RESYNCS: Final = (SessionState.RESYNC, SessionState.QUIET)
 #: a verdict, or a resync to ask again (a read; a write only before its first copy)
-_ENDS_OR_RESYNCS: Final = _ENDS | _RESYNCS
+_ENDS_OR_RESYNCS: Final = (*_ENDS, *_RESYNCS)
 #: ;Z, a verdict or a resync
-_Z_ENDS_OR_RESYNCS: Final = _ENDS_OR_RESYNCS | _states(SessionState.Z_SENT)
+_Z_ENDS_OR_RESYNCS: Final = (SessionState.Z_SENT, *_ENDS_OR_RESYNCS)
 #: a copy of the command, a verdict or a resync
-_COPY_ENDS_OR_RESYNCS: Final = _ENDS_OR_RESYNCS | _states(SessionState.SENT)
+_COPY_ENDS_OR_RESYNCS: Final = (SessionState.SENT, *_ENDS_OR_RESYNCS)
 #: anything a ;I with another ID may call for: a write's second copy or ;Z, a verdict, a read's resync
-_AFTER_ID_OTHER: Final = _Z_ENDS_OR_RESYNCS | _states(SessionState.SENT)
+_AFTER_ID_OTHER: Final = (SessionState.SENT, *_Z_ENDS_OR_RESYNCS)
+
+_Entry = Transition[SessionAction, SessionState]
+_SessionTable = Table[SessionState, SessionInput, SessionAction]
 
 
-def _entry(action: SessionAction, next_states: frozenset[SessionState]) -> SessionTransition:
-    return SessionTransition(action, next_states)
+def _entry(action: SessionAction, states: tuple[SessionState, ...]) -> _Entry:
+    """The action and the states it may end in, the first of them its ``next_state``."""
+    return Transition(action, states[0], frozenset(states[1:]))
 
 
-def _stay(state: SessionState) -> SessionTransition:
-    return SessionTransition(SessionAction.IGNORE, _states(state))
+def _stay(state: SessionState) -> _SessionTable:
+    """``IGNORE``: stale replies change nothing."""
+    return stay(SessionAction.IGNORE, state, SessionInput.STALE)
 
 
-#: the session's classification never gives this input in this state
-_NEVER: Final = SessionTransition(SessionAction.UNREACHABLE, frozenset())
-
-
-def _never(state: SessionState, *inputs: SessionInput) -> dict[tuple[SessionState, SessionInput], SessionTransition]:
-    """``UNREACHABLE`` entries: the session's classification never gives these inputs in ``state``."""
-    return {(state, what): _NEVER for what in inputs}
+def _never(state: SessionState, *inputs: SessionInput) -> _SessionTable:
+    """``UNREACHABLE`` entries: the session's classification never gives these inputs in ``state``
+    (:func:`transition` raises on them; they lead back to the state, nowhere else)."""
+    return stay(SessionAction.UNREACHABLE, state, *inputs)
 
 
 #: (state, input) -> (action, the states it may lead to), for every pair.
-TRANSITIONS: Final[Mapping[tuple[SessionState, SessionInput], SessionTransition]] = MappingProxyType({
+TRANSITIONS: Final[Mapping[tuple[SessionState, SessionInput], _Entry]] = MappingProxyType({
     # No transaction: start() begins one; replies are late ones of finished transactions; there is
     # no deadline.
-    (SessionState.IDLE, SessionInput.START): _entry(SessionAction.BEGIN, _RESYNCS | _states(SessionState.SENT)),
-    (SessionState.IDLE, SessionInput.STALE): _stay(SessionState.IDLE),
+    (SessionState.IDLE, SessionInput.START): _entry(SessionAction.BEGIN, (*_RESYNCS, SessionState.SENT)),
+    **_stay(SessionState.IDLE),
     **_never(
         SessionState.IDLE,
         SessionInput.OURS, SessionInput.OURS_REFUSED, SessionInput.OTHER, SessionInput.ID_OURS, SessionInput.ID_OTHER,
         SessionInput.GARBLED, SessionInput.PROBE_ANSWER, SessionInput.PROBE_REFUSED, SessionInput.TIMEOUT,
     ),
     # Waiting for quiet: every reply is a late one of an earlier message.
-    (SessionState.QUIET, SessionInput.TIMEOUT): _entry(SessionAction.QUIET_OVER, _states(SessionState.RESYNC)),
-    (SessionState.QUIET, SessionInput.STALE): _stay(SessionState.QUIET),
+    (SessionState.QUIET, SessionInput.TIMEOUT): _entry(SessionAction.QUIET_OVER, (SessionState.RESYNC,)),
+    **_stay(SessionState.QUIET),
     **_never(
         SessionState.QUIET,
         SessionInput.START, SessionInput.OURS, SessionInput.OURS_REFUSED, SessionInput.OTHER, SessionInput.ID_OURS,
@@ -157,12 +151,12 @@ TRANSITIONS: Final[Mapping[tuple[SessionState, SessionInput], SessionTransition]
     ),
     # The ID 00 probe is out: its answer, its refusal, a read's answer held back on the line, a
     # garbled reply; any other reply answers an earlier message (STALE).
-    (SessionState.RESYNC, SessionInput.PROBE_ANSWER): _entry(SessionAction.PROBE_ANSWER, _states(SessionState.SENT)),
+    (SessionState.RESYNC, SessionInput.PROBE_ANSWER): _entry(SessionAction.PROBE_ANSWER, (SessionState.SENT,)),
     (SessionState.RESYNC, SessionInput.PROBE_REFUSED): _entry(SessionAction.PROBE_REFUSED, _RESYNCS),
     (SessionState.RESYNC, SessionInput.OURS): _entry(SessionAction.LATE_READ_ANSWER, _ENDS),
     (SessionState.RESYNC, SessionInput.GARBLED): _entry(SessionAction.PROBE_GARBLED, _ENDS_OR_RESYNCS),
     (SessionState.RESYNC, SessionInput.TIMEOUT): _entry(SessionAction.PROBE_TIMEOUT, _ENDS_OR_RESYNCS),
-    (SessionState.RESYNC, SessionInput.STALE): _stay(SessionState.RESYNC),
+    **_stay(SessionState.RESYNC),
     **_never(
         SessionState.RESYNC,
         SessionInput.START, SessionInput.OURS_REFUSED, SessionInput.OTHER, SessionInput.ID_OURS, SessionInput.ID_OTHER,
@@ -170,7 +164,8 @@ TRANSITIONS: Final[Mapping[tuple[SessionState, SessionInput], SessionTransition]
     # A copy of the command is out.
     (SessionState.SENT, SessionInput.OURS): _entry(SessionAction.ANSWER, _ENDS),
     (SessionState.SENT, SessionInput.OURS_REFUSED): _entry(SessionAction.REFUSED, _ENDS_OR_RESYNCS),
-    (SessionState.SENT, SessionInput.OTHER): _stay(SessionState.SENT),  # a late reply to an earlier message
+    # a late reply to an earlier message
+    (SessionState.SENT, SessionInput.OTHER): Transition(SessionAction.IGNORE, SessionState.SENT),
     (SessionState.SENT, SessionInput.ID_OURS): _entry(SessionAction.ID_OURS, _Z_ENDS_OR_RESYNCS),
     (SessionState.SENT, SessionInput.ID_OTHER): _entry(SessionAction.ID_OTHER, _AFTER_ID_OTHER),
     (SessionState.SENT, SessionInput.GARBLED): _entry(SessionAction.GARBLED, _Z_ENDS_OR_RESYNCS),
@@ -192,3 +187,5 @@ TRANSITIONS: Final[Mapping[tuple[SessionState, SessionInput], SessionTransition]
         SessionInput.START, SessionInput.PROBE_ANSWER, SessionInput.PROBE_REFUSED, SessionInput.STALE,
     ),
 })
+
+require_complete(TRANSITIONS, SessionState, SessionInput, "SLC 100/150 session")

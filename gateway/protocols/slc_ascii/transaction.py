@@ -208,7 +208,7 @@ class SlcSession(SlcSender):
             self._reply_times.append(now - self._last_sent)
         entry = transition(self.state, what)
         next_state = _ACTIONS[entry.action](self, now, event)
-        if next_state not in entry.next_states:
+        if not entry.allows(next_state):
             raise SessionTableError(f"{entry.action.name} on {what.name} in {self.state.name} "
                                     f"went to {next_state.name}, not one of the table's")
         self.state = next_state

@@ -3,7 +3,8 @@
 It plays the initiating station on a DF1 full-duplex link: a PLC-5, SLC 500 or ControlLogix
 channel 0 whose ladder runs MSG instructions at the gateway, as the S4516-DF1 manual's examples
 do.  Its link and transaction layers are the gateway's own master cores
-(:class:`~gateway.protocols.df1.datalink.Df1DataLink`, :class:`~gateway.protocols.df1.transaction.Df1Transactions`):
+(:class:`~gateway.protocols.df1.full_duplex.datalink.Df1DataLink`,
+:class:`~gateway.protocols.df1.full_duplex.transaction.Df1Transactions`):
 DLE ACK / NAK / ENQ, retransmission, one TNS per message.  A MSG whose reply does not come is
 sent again with a new TNS, as a PLC's ladder re-triggers an errored MSG (every command of the
 script is safe to repeat).
@@ -51,7 +52,6 @@ from typing import Final
 
 from gateway.frozen import frozen
 from gateway.protocols.df1.address import FileType
-from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import (
     ACK_SYMBOL,
     ENQ_SYMBOL,
@@ -66,6 +66,14 @@ from gateway.protocols.df1.framing import (
     encode_frame,
 )
 from gateway.protocols.df1.framing.decoder import FrameDecoder
+from gateway.protocols.df1.full_duplex.datalink import Df1DataLink
+from gateway.protocols.df1.full_duplex.transaction import (
+    Df1Transactions,
+    OutcomeUnknown,
+    TransactionDone,
+    TransactionFailed,
+    TransactionRefused,
+)
 from gateway.protocols.df1.pccc import (
     DiagnosticStatus,
     LogicalBinaryAddress,
@@ -80,13 +88,6 @@ from gateway.protocols.df1.pccc import (
 )
 from gateway.protocols.df1.pccc.plc5 import DataType
 from gateway.protocols.df1.pccc.slc import Echo
-from gateway.protocols.df1.transaction import (
-    Df1Transactions,
-    OutcomeUnknown,
-    TransactionDone,
-    TransactionFailed,
-    TransactionRefused,
-)
 from gateway.sim.scan import SCAN_OPTION, ScanTime, parse_scan, scan_clock
 from gateway.sim.serve import Output
 

@@ -1,7 +1,7 @@
 """A simulated SLC 5/04 on DF1 full duplex (controller side), with fault injection.
 
 The processor (data table, ladder, PCCC commands: :mod:`gateway.kinds.df1.sim.slc500_processor`) behind a
-controller-side :class:`~gateway.protocols.df1.datalink.Df1DataLink` (duplicate detection on), so ACK /
+controller-side :class:`~gateway.protocols.df1.full_duplex.datalink.Df1DataLink` (duplicate detection on), so ACK /
 NAK / ENQ, retransmission after DLE NAK and DLE ENQ after the ACK timeout behave as the link
 module specifies (S4516-DF1 Program Development Manual; DF1 manual 1770-6.5.16 ch. 4).
 
@@ -45,7 +45,7 @@ default; docs/develop/controller-variants.md gives the manuals' words for each):
   SRC and SRC = the ``station`` option (an SLC on full duplex ignores the command's DST).
 
 Known limit: a duplicated frame is ACKed twice by the host; if the second ACK arrives after
-the next reply frame left, the link takes it for that frame's ACK (see ``gateway.protocols.df1.datalink``).
+the next reply frame left, the link takes it for that frame's ACK (see ``gateway.protocols.df1.full_duplex.datalink``).
 
 Beside this module: ``slc500_processor`` (data table, ladder, commands), ``slc500_options``
 (options, counters), ``slc500_data`` (the data files), ``slc500_line`` (cutting the wire into
@@ -74,7 +74,8 @@ from gateway.kinds.df1.sim.slc500_line import (
 )
 from gateway.kinds.df1.sim.slc500_options import Slc500Counters, Slc500Options
 from gateway.kinds.df1.sim.slc500_processor import ExtSts, Slc500Processor
-from gateway.protocols.df1.datalink import (
+from gateway.protocols.df1.framing import ACK_SYMBOL, NEED_DATA, Symbol
+from gateway.protocols.df1.full_duplex.datalink import (
     BadFrameAnswer,
     Df1DataLink,
     EnqAnswer,
@@ -82,7 +83,6 @@ from gateway.protocols.df1.datalink import (
     SendComplete,
     SendFailed,
 )
-from gateway.protocols.df1.framing import ACK_SYMBOL, NEED_DATA, Symbol
 from gateway.sim.scan import scan_clock
 from gateway.sim.serve import Output
 from gateway.sim.variants import resolve_variants

@@ -51,7 +51,7 @@ from gateway.protocols.df1.framing import (
     Symbol,
     master_check,
 )
-from gateway.protocols.df1.transitions import Table, Transition, require_complete
+from gateway.protocols.transitions import Table, Transition, require_complete
 
 __all__ = [
     "FULL_DUPLEX_TRANSITIONS",
@@ -316,7 +316,7 @@ class FrameDecoder:
     DLEs (hunting for a frame, or inside one) every byte takes the same transition, so such a run
     is skipped or copied with one ``bytes.find`` and one slice (see :func:`_verify_fast_paths`);
     a read that lies wholly inside a frame's data is appended in one step.  The events are exactly
-    those of feeding the table one byte at a time (``tests/test_df1_framing_equivalence.py``).
+    those of feeding the table one byte at a time (``tests/protocols/df1/framing/test_decoder_equivalence.py``).
     """
 
     def __init__(
