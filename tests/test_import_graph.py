@@ -4,7 +4,11 @@ The graph is built from the source with :mod:`ast`, not by importing: every ``im
 ``from ... import`` anywhere in a module counts, at module level, inside functions and under
 ``if TYPE_CHECKING:``, because a late import only hides a circle from the interpreter, not from
 the reader.  ``from package import name`` counts as an edge to ``package.name`` when that is a
-module, else to ``package``.  A package's ``__init__`` is the package's module.
+module, else to ``package``.  A package's ``__init__`` is the package's module, and importing
+``a.b.c`` runs the ``__init__`` of ``a`` and ``a.b`` first: an import counts as an edge to every
+package above its target too, except the importer's own packages (those are already running when
+it is imported).  So a module that imports a sibling package's submodule whose package
+``__init__`` leads back to it is a circle, though no ``import`` line names the package.
 """
 
 from __future__ import annotations
@@ -69,7 +73,16 @@ def import_graph(root: Path, package: str) -> dict[str, set[str]]:
                 owner = _owner(target, modules)
                 if owner is not None and owner != name:
                     graph[name].add(owner)
+                    graph[name].update(_parent_packages(owner, name, modules))
     return graph
+
+
+def _parent_packages(target: str, importer: str, modules: Iterable[str]) -> set[str]:
+    """The packages whose ``__init__`` importing ``target`` runs, less those of ``importer``."""
+    known = set(modules)
+    parts = target.split(".")
+    above = {".".join(parts[:end]) for end in range(1, len(parts))}
+    return {package for package in above & known if importer != package and not importer.startswith(package + ".")}
 
 
 def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -150,6 +163,27 @@ def test_gateway_has_no_import_cycles() -> None:
             },
             [["pkg", "pkg.sub", "pkg.sub.inner"]],
             id="through-package-inits",
+        ),
+        pytest.param(
+            {
+                "pkg/__init__.py": "",
+                "pkg/config/__init__.py": "from pkg.config.links import models\n",
+                "pkg/config/base.py": "class Base: ...\n",
+                "pkg/config/links.py": "def models() -> None:\n    from pkg.kinds import registry\n",
+                "pkg/kinds.py": "from pkg.config.base import Base\nregistry = [Base]\n",
+            },
+            [["pkg.config", "pkg.config.links", "pkg.kinds"]],
+            id="through-the-parent-package-init-of-an-imported-module",
+        ),
+        pytest.param(
+            {
+                "pkg/__init__.py": "from pkg.sub import x\n",
+                "pkg/sub/__init__.py": "from pkg.sub.a import x\n",
+                "pkg/sub/a.py": "from pkg.sub.b import y\nx = y\n",
+                "pkg/sub/b.py": "y = 1\n",
+            },
+            [],
+            id="siblings-under-a-package-that-re-exports-them",
         ),
         pytest.param(
             {"pkg/__init__.py": "", "pkg/a.py": "from pkg import b\nimport os\n", "pkg/b.py": "import json\n"},
@@ -250,3 +284,4 @@ def test_the_name_check_finds_a_name_defined_twice(tmp_path: Path) -> None:
                       "pkg/b.py": "class verdict: ...\nclass Other: ...\n"})
     names = top_level_names(tmp_path, "pkg")
     assert names["verdict"] == ["pkg.a", "pkg.b"] and names["Other"] == ["pkg.b"]
+
