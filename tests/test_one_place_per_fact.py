@@ -7,6 +7,8 @@ take the one value instead of a copy of it.
 from __future__ import annotations
 
 import inspect
+import subprocess
+import sys
 
 from gateway import retries, tools_common
 from gateway.config.link import LinkBase
@@ -21,3 +23,18 @@ def test_one_retries_default() -> None:
     assert write_verdict.DEFAULT_RETRIES is retries.DEFAULT_RETRIES
     for core in (transaction.Df1Transactions, half_duplex_transactions.HalfDuplexTransactions):
         assert inspect.signature(core).parameters["retries"].default is retries.DEFAULT_RETRIES, core
+
+
+def test_the_healthcheck_packs_the_servers_mbap_header_and_stays_light() -> None:
+    """MBAP (Modbus Messaging on TCP/IP Implementation Guide V1.0b §3.1.3): transaction id,
+    protocol id, length, unit id, big-endian, 7 bytes; the health check starts nothing heavy."""
+    from gateway import healthcheck
+    from gateway.modbus import mbap
+
+    assert healthcheck.MBAP is mbap.MBAP
+    assert mbap.MBAP.pack(0x4843, 0, 6, 1) == bytes.fromhex("48 43 00 00 00 06 01")
+    code = "import sys, gateway.healthcheck; print(sorted(m for m in sys.modules if m.split('.')[0] in " \
+           "('gateway', 'pymodbus', 'pydantic', 'asyncio')))"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert done.stdout.strip() == str(["gateway", "gateway.errors", "gateway.healthcheck", "gateway.modbus",
+                                        "gateway.modbus.mbap"])
