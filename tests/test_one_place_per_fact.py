@@ -38,3 +38,12 @@ def test_the_healthcheck_packs_the_servers_mbap_header_and_stays_light() -> None
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert done.stdout.strip() == str(["gateway", "gateway.errors", "gateway.healthcheck", "gateway.modbus",
                                         "gateway.modbus.mbap"])
+
+
+def test_one_never() -> None:
+    """The time of what has not happened yet: before every loop time, in the schedule, the cache's
+    stamps and the images' deadlines alike (a comparison with any of them must agree)."""
+    from gateway import cache, image, schedule
+
+    assert schedule.NEVER == float("-inf")
+    assert vars(cache)["NEVER"] is vars(image)["NEVER"] is schedule.NEVER

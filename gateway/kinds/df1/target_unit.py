@@ -20,7 +20,6 @@ import time
 from collections.abc import Hashable, Iterable, Sequence
 from typing import Unpack
 
-from gateway.cache import NEVER
 from gateway.errors import GatewayError, ModbusExceptionReply
 from gateway.frozen import frozen
 from gateway.kinds.df1.plan import F32_HIGH, F32_LOW, U16_LE
@@ -29,6 +28,7 @@ from gateway.kinds.df1.target_driver import TargetRunner
 from gateway.kinds.df1.target_store import StoredElement, TargetStore
 from gateway.modbus.mapping import BitPoint, Block, Plan, PointLabel, RegisterPoint, Scan, Table
 from gateway.protocols.df1.pccc.target_table import DataTable, ElementRef, TableFile
+from gateway.schedule import NEVER
 from gateway.unit import Unit, UnitOptions, WriteStep
 
 __all__ = ["TargetBit", "TargetElement", "TargetUnit", "load_table", "target_plan", "target_point_labels"]
