@@ -65,7 +65,7 @@ from gateway.protocols.slc_ascii.framing import (
     Garbled,
     RetransmitRequest,
 )
-from gateway.protocols.slc_ascii.memory_map import is_readable
+from gateway.protocols.slc_ascii.memory_map import ERROR_BITS_ADDRESS, MAP_SIZE, MODE_ADDRESS, is_readable
 from gateway.sim.scan import ANSWER_BOUND, SCAN_OPTION, ScanTime, parse_scan, scan_clock
 from gateway.sim.serve import Output
 from gateway.sim.variants import resolve_variants
@@ -75,9 +75,6 @@ __all__ = ["FaultPlan", "Output", "SlcAsciiSimulator"]
 #: Firmware revision the simulators report (FRN 5 for the SLC 100, the first the protocol supports).
 SIMULATED_FRN: Final = {ControllerType.SLC100: 0x05, ControllerType.SLC150: 0x47}
 
-MODE_ADDRESS: Final = 0x0101
-ERROR_BITS: Final = 0x84
-MEMORY_SIZE: Final = 0x113
 
 
 @dataclass
@@ -176,7 +173,7 @@ class SlcAsciiSimulator:
         self.model = model
         self.faults = faults or FaultPlan()
         self.counters = SimCounters()
-        self.memory = bytearray(MEMORY_SIZE)
+        self.memory = bytearray(MAP_SIZE)
         self.program = bytearray(model.block_count * 15)
         #: Every write applied, in order: (kind, address or rung, value).  Tests count these.
         self.applied_writes: list[tuple[str, int, int]] = []
@@ -361,7 +358,7 @@ class SlcAsciiSimulator:
     def next_deadline(self) -> float | None:
         return None
 
-    def raise_fault(self, byte: int = ERROR_BITS, bit: int = 3) -> None:
+    def raise_fault(self, byte: int = ERROR_BITS_ADDRESS, bit: int = 3) -> None:
         """Set an error bit (default 84H bit 3: error 8) as a ``;T`` will report."""
         self.counters.faults += 1
         self.set_bit(byte, bit, True)

@@ -49,6 +49,7 @@ from gateway.protocols.slc_ascii.error_bits import (
     error_description,
 )
 from gateway.protocols.slc_ascii.memory_map import (
+    MODE_ADDRESS,
     Item,
     ItemKind,
     check_byte_writable,
@@ -110,8 +111,6 @@ __all__ = [
     "write_word",
 ]
 
-MODE_ADDRESS = 0x0101
-"""Mode selection writes the controller mode byte: ``#0403 0101 <mode>`` ("Mode Selection")."""
 
 VALUE_LIMIT = 10_000
 """Data words must be "less than 2710H (10,000D)" ("Writing Data Words" and following)."""

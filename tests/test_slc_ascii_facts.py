@@ -1,0 +1,43 @@
+"""The SLC 100/150 memory map is stated once (protocols/slc_ascii/memory_map.py); the plan, the
+commands, the driver's fault read and the simulator derive their addresses from it.
+
+Expected values from shared/docs/slc100-150-ascii-protocol.md ("The Memory Map", "Mode
+Selection", "Reading Data").
+"""
+
+from __future__ import annotations
+
+from gateway.kinds.slc_ascii import sim
+from gateway.kinds.slc_ascii.plan import slc_ascii_plan
+from gateway.modbus.mapping import Scan
+from gateway.protocols.slc_ascii import commands
+from gateway.protocols.slc_ascii import memory_map as mm
+
+
+def test_the_named_rows_are_the_manuals() -> None:
+    assert (mm.ACCUMULATORS.start, mm.ACCUMULATORS.end) == (0x00, 0x3F)
+    assert (mm.PRESETS.start, mm.PRESETS.end) == (0x40, 0x7F)
+    assert (mm.ERROR_BITS_REGION.start, mm.ERROR_BITS_REGION.end) == (0x84, 0x85)
+    assert (mm.STEP_COUNTERS.start, mm.STEP_COUNTERS.end) == (0xBC, 0xDB)
+    assert (mm.FORCE_STATE.start, mm.FORCE_STATE.end) == (0x102, 0x111)
+    assert mm.MODE_ADDRESS == 0x0101 and mm.ERROR_BITS_ADDRESS == 0x84
+    assert mm.MAP_SIZE == 0x113  # 0000H .. 0112H, the access code byte
+    assert (mm.accumulator_address(932), mm.preset_address(901), mm.step_counter_address(932)) == (0x3E, 0x40, 0xDB)
+
+
+def test_the_others_take_the_maps_addresses() -> None:
+    assert commands.MODE_ADDRESS is mm.MODE_ADDRESS
+    assert commands.set_mode(commands.Mode.RUN).params == bytes((0x01, 0x01, commands.Mode.RUN))
+    simulator = sim.SlcAsciiSimulator()
+    assert len(simulator.memory) == 0x113
+
+
+def test_the_plan_reads_the_maps_rows() -> None:
+    plan = slc_ascii_plan()
+    read: dict[Scan, set[int]] = {Scan.FAST: set(), Scan.SLOW: set()}
+    for block in plan.blocks:
+        start, count = block.request  # (address, count)
+        read[block.scan].update(range(start, start + count))
+    assert read[Scan.FAST] == {*range(0x00, 0x40), *range(0x96, 0xBC), *range(0xDC, 0xE4)}
+    assert read[Scan.SLOW] == {*range(0x40, 0x80), *range(0x84, 0x96), *range(0xBC, 0xDC), *range(0x102, 0x112)}
+    assert plan.input[0x84 // 2].offset == 0 and plan.blocks[plan.input[0x84 // 2].block].request == (0x84, 2)
