@@ -12,7 +12,7 @@ from gateway.kinds.contract import LinkKind
 from gateway.kinds.df1.build import build_df1, df1_plan, df1_plan_lines, df1_point_labels
 from gateway.kinds.df1.config import Df1LinkConfig
 from gateway.kinds.df1.simulators import DF1LINE, PLC5, PLC_MSG, SLC504
-from gateway.kinds.df1.tool import HINTS, add_df1_options, add_df1_sim_options, run_df1_tool
+from gateway.kinds.df1.tool import DF1_TOOL_HINTS, add_df1_options, add_df1_sim_options, run_df1_tool
 
 __all__ = ["KIND"]
 
@@ -27,7 +27,7 @@ KIND: LinkKind[Df1LinkConfig] = LinkKind(
     is_polled=lambda link: link.role != "target",
     status_counter=("kind_counter", "DF1 master: always 0; DF1 target: duplicate messages (acknowledged, not run)"),
     tool=run_df1_tool,
-    hints=HINTS,
+    hints=DF1_TOOL_HINTS,
     tool_options=add_df1_options,
     simulate_options=add_df1_sim_options,
     item_examples=("N7:0 T4:1.ACC F8:2", "N7:0=5 B3:0/3=1"),

@@ -52,7 +52,7 @@ from gateway.protocols.df1.plc5_commands import plc5_bit_write, plc5_read, plc5_
 from gateway.tools_common import print_result, resolve_retries
 
 __all__ = [
-    "HINTS",
+    "DF1_TOOL_HINTS",
     "add_df1_options",
     "add_df1_sim_options",
     "decode_plc5_value",
@@ -65,7 +65,7 @@ __all__ = [
 #: DF1 link-layer symbols: DLE followed by STX, ETX, ENQ, ACK or NAK (1770-6.5.16, full duplex).
 _DLE_FRAMED = re.compile(rb"\x10[\x02\x03\x05\x06\x15]")
 
-HINTS = ToolHints(
+DF1_TOOL_HINTS = ToolHints(
     looks_like=lambda received: _DLE_FRAMED.search(received) is not None,
     wire="DF1 (DLE-framed): an SLC 500 or PLC-5?",
     controllers="an SLC 500 or PLC-5",

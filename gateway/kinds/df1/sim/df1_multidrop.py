@@ -63,7 +63,7 @@ from gateway.sim.scan import SCAN_OPTION, ScanTime, parse_scan, scan_clock
 
 __all__ = ["LineOptions", "MultidropCounters", "MultidropLine", "SlcStation"]
 
-_OPTION_NAMES: Final = (
+_MULTIDROP_OPTION_NAMES: Final = (
     "checksum", "stations", "dead", "slow", "busy_polls", "turnaround", "latency", "char_time", "corrupt",
     "ignore", "lose_symbol", "echo", "seed", "model", SCAN_OPTION,
 )
@@ -123,10 +123,10 @@ class LineOptions:
     @classmethod
     def from_options(cls, options: Mapping[str, str]) -> LineOptions:
         """Parse string options; ValueError names the bad one."""
-        unknown = sorted(set(options) - set(_OPTION_NAMES))
+        unknown = sorted(set(options) - set(_MULTIDROP_OPTION_NAMES))
         if unknown:
             raise ValueError(f"unknown multi-drop line option(s) {', '.join(unknown)} "
-                             f"(known: {', '.join(sorted(_OPTION_NAMES))})")
+                             f"(known: {', '.join(sorted(_MULTIDROP_OPTION_NAMES))})")
 
         def get(name: str, parse: Callable[[str], T], default: T) -> T:
             return read_sim_option(options, name, parse, default, what="multi-drop line option")

@@ -17,7 +17,7 @@ __all__ = ["Slc500Counters", "Slc500Options"]
 # ------------------------------------------------------------------------------------ options
 
 _ONE_IN_OPTIONS: Final = ("corrupt", "drop", "withhold_ack", "duplicate", "noise", "lose_in", "corrupt_in")
-_OPTION_NAMES: Final = (
+_SLC500_OPTION_NAMES: Final = (
     *_ONE_IN_OPTIONS, "checksum", "station", "delay", "seed", "link_ack_timeout", "garble", "faults_on", SCAN_OPTION
 )
 
@@ -57,11 +57,10 @@ class Slc500Options:
     @classmethod
     def from_options(cls, options: Mapping[str, str]) -> Slc500Options:
         """Parse ``sim://slc504?...`` options (strings); ValueError names the bad option."""
-        unknown = sorted(set(options) - set(_OPTION_NAMES))
+        unknown = sorted(set(options) - set(_SLC500_OPTION_NAMES))
         if unknown:
-            raise ValueError(
-                f"unknown slc504 simulator option(s) {', '.join(unknown)} (known: {', '.join(sorted(_OPTION_NAMES))})"
-            )
+            known = ", ".join(sorted(_SLC500_OPTION_NAMES))
+            raise ValueError(f"unknown slc504 simulator option(s) {', '.join(unknown)} (known: {known})")
         if "garble" in options and "corrupt" in options:
             raise ValueError("simulator options garble and corrupt are the same; give only one")
         one_in = {

@@ -42,6 +42,7 @@ __all__ = [
     "DEFAULT_MAX_MESSAGE",
     "ENQ_SYMBOL",
     "EOT_SYMBOL",
+    "ETX_BYTE",
     "NAK_SYMBOL",
     "NEED_DATA",
     "AckReceived",
@@ -104,7 +105,8 @@ EOT_SYMBOL: Final = bytes((Symbol.DLE, Symbol.EOT))
 #: under 250 bytes (manual §2: "can not be greater than 250"); a margin costs nothing.
 DEFAULT_MAX_MESSAGE: Final = 512
 
-_ETX_BYTE: Final = bytes((Symbol.ETX,))
+#: ETX as the one byte a CRC covers after the message (module docstring: over the message and ETX).
+ETX_BYTE: Final = bytes((Symbol.ETX,))
 
 
 # ------------------------------------------------------------------------------------- encoders
@@ -114,14 +116,14 @@ def frame_check(message: bytes, checksum: Checksum) -> bytes:
     """Check bytes of a ``DLE STX`` frame: BCC over the message; CRC over the message and ETX."""
     if checksum is Checksum.BCC:
         return bytes((bcc(message),))
-    return crc16(_ETX_BYTE, crc16(message)).to_bytes(2, "little")
+    return crc16(ETX_BYTE, crc16(message)).to_bytes(2, "little")
 
 
 def master_check(station: int, message: bytes, checksum: Checksum) -> bytes:
     """Check bytes of a master message: BCC over STN + message; CRC over STN STX message ETX."""
     if checksum is Checksum.BCC:
         return bytes((bcc(bytes((station,)) + message),))
-    return crc16(bytes((station, Symbol.STX)) + message + _ETX_BYTE).to_bytes(2, "little")
+    return crc16(bytes((station, Symbol.STX)) + message + ETX_BYTE).to_bytes(2, "little")
 
 
 def _check_station(station: int) -> None:
