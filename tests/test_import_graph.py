@@ -14,6 +14,7 @@ it is imported).  So a module that imports a sibling package's submodule whose p
 from __future__ import annotations
 
 import ast
+import re
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -285,3 +286,64 @@ def test_the_name_check_finds_a_name_defined_twice(tmp_path: Path) -> None:
     names = top_level_names(tmp_path, "pkg")
     assert names["verdict"] == ["pkg.a", "pkg.b"] and names["Other"] == ["pkg.b"]
 
+
+def module_constants(root: Path, package: str) -> dict[str, list[str]]:
+    """UPPER_CASE name -> the modules that assign it at their top level (``X = ...``, ``X: T = ...``,
+    ``X, Y = ...``).  Left out: a single capital letter (a type variable or a table's short name for
+    an enum, local to its module by convention), and a name bound to another name or an attribute
+    (``_MBAP: Final = mbap.MBAP``, ``_DLE = Symbol.DLE``): such an alias states nothing, it takes
+    the value from its one place."""
+    defined: dict[str, list[str]] = {}
+    for name, path in module_names(root, package).items():
+        found: set[str] = set()
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            targets: list[ast.expr] = []
+            if isinstance(node, ast.Assign):
+                targets = list(node.targets)
+            elif isinstance(node, ast.AnnAssign) and node.value is not None:
+                targets = [node.target]
+            if not targets or isinstance(getattr(node, "value", None), ast.Name | ast.Attribute):
+                continue
+            for target in targets:
+                elements = target.elts if isinstance(target, ast.Tuple) else [target]
+                found |= {e.id for e in elements if isinstance(e, ast.Name) and _CONSTANT.fullmatch(e.id)}
+        for constant in found:
+            defined.setdefault(constant, []).append(name)
+    return defined
+
+
+_CONSTANT = re.compile(r"_?[A-Z][A-Z0-9_]+")
+
+#: Names that several modules define on purpose, each meaning "this module's own" by a contract
+#: the reader knows from the name's one definition of that contract:
+SAME_NAME_BY_CONTRACT = {
+    # every kind's package exports its LinkKind as KIND (gateway/kinds/__init__.py's docstring)
+    "KIND": ["gateway.kinds.df1", "gateway.kinds.slc_ascii"],
+    # every state machine's table of (state, input) -> (action, next state) is its module's
+    # TRANSITIONS, which the table walkers (tests/test_df1_transition_tables.py) read by that name
+    "TRANSITIONS": [
+        "gateway.protocols.df1.full_duplex_table",
+        "gateway.protocols.df1.half_duplex",
+        "gateway.protocols.df1.transaction",
+        "gateway.protocols.df1.write_verdict",
+        "gateway.protocols.slc_ascii.session_table",
+    ],
+}
+
+
+def test_no_constant_is_defined_in_two_modules() -> None:
+    """One place per fact: a module-level constant of gateway/ is assigned in one module, and the
+    others import it (so that two values cannot drift apart); two facts get two names."""
+    twice = {name: modules for name, modules in module_constants(ROOT, "gateway").items() if len(modules) > 1}
+    assert {name: modules for name, modules in twice.items() if SAME_NAME_BY_CONTRACT.get(name) != modules} == {}
+
+
+def test_the_constant_check_finds_a_constant_defined_twice(tmp_path: Path) -> None:
+    _write(tmp_path, {
+        "pkg/__init__.py": "",
+        "pkg/a.py": "from typing import Final, TypeVar\nT = TypeVar('T')\nDEFAULT_RETRIES: Final = 3\n_MBAP = 7\n",
+        "pkg/b.py": "T = 1\nDEFAULT_RETRIES = 3\nONE, _MBAP = 1, 2\nlower = 4\n",
+        "pkg/c.py": "from pkg.a import DEFAULT_RETRIES\nfrom pkg import a\nONE = 1\n_MBAP = a._MBAP\n",
+    })
+    assert module_constants(tmp_path, "pkg") == {
+        "DEFAULT_RETRIES": ["pkg.a", "pkg.b"], "_MBAP": ["pkg.a", "pkg.b"], "ONE": ["pkg.b", "pkg.c"]}

@@ -20,7 +20,7 @@ def test_the_named_rows_are_the_manuals() -> None:
     assert (mm.ERROR_BITS_REGION.start, mm.ERROR_BITS_REGION.end) == (0x84, 0x85)
     assert (mm.STEP_COUNTERS.start, mm.STEP_COUNTERS.end) == (0xBC, 0xDB)
     assert (mm.FORCE_STATE.start, mm.FORCE_STATE.end) == (0x102, 0x111)
-    assert mm.MODE_ADDRESS == 0x0101 and mm.ERROR_BITS_ADDRESS == 0x84
+    assert mm.MODE_ADDRESS == 0x0101 and mm.ERROR_BITS_REGION.start == 0x84
     assert mm.MAP_SIZE == 0x113  # 0000H .. 0112H, the access code byte
     assert (mm.accumulator_address(932), mm.preset_address(901), mm.step_counter_address(932)) == (0x3E, 0x40, 0xDB)
 

@@ -198,13 +198,13 @@ class SlcAsciiDriver(LineDriver):
         """After ;T: "read the bytes at addresses 84H and 85H to find out the reason"."""
         self.session.fault_pending = False
         try:
-            answer = await self._transaction(cmds.read_bytes(mm.ERROR_BITS_ADDRESS, 2))
+            answer = await self._transaction(cmds.read_bytes(mm.ERROR_BITS_REGION.start, 2))
         except GatewayError as exc:
             log.warning("link %s: controller reported a fault (;T); its error bits could not be read: %s",
                         self.name, exc)
             return
         assert isinstance(answer, DataReply)
-        data = cmds.parse_read_reply(mm.ERROR_BITS_ADDRESS, 2, answer.body_hex)
+        data = cmds.parse_read_reply(mm.ERROR_BITS_REGION.start, 2, answer.body_hex)
         fault = cmds.controller_fault(data[0], data[1])
         if self.last_fault is None or self.last_fault.errors != fault.errors:
             log.warning("link %s: %s", self.name, fault)

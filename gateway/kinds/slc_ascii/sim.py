@@ -65,7 +65,7 @@ from gateway.protocols.slc_ascii.framing import (
     Garbled,
     RetransmitRequest,
 )
-from gateway.protocols.slc_ascii.memory_map import ERROR_BITS_ADDRESS, MAP_SIZE, MODE_ADDRESS, is_readable
+from gateway.protocols.slc_ascii.memory_map import ERROR_BITS_REGION, MAP_SIZE, MODE_ADDRESS, is_readable
 from gateway.sim.scan import ANSWER_BOUND, SCAN_OPTION, ScanTime, parse_scan, scan_clock
 from gateway.sim.serve import Output
 from gateway.sim.variants import resolve_variants
@@ -358,7 +358,7 @@ class SlcAsciiSimulator:
     def next_deadline(self) -> float | None:
         return None
 
-    def raise_fault(self, byte: int = ERROR_BITS_ADDRESS, bit: int = 3) -> None:
+    def raise_fault(self, byte: int = ERROR_BITS_REGION.start, bit: int = 3) -> None:
         """Set an error bit (default 84H bit 3: error 8) as a ``;T`` will report."""
         self.counters.faults += 1
         self.set_bit(byte, bit, True)

@@ -29,7 +29,6 @@ from gateway.frozen import frozen
 __all__ = [
     "ACCUMULATORS",
     "BYTE_WRITE_RANGE",
-    "ERROR_BITS_ADDRESS",
     "ERROR_BITS_REGION",
     "FINE_TIMER_BITS",
     "FORCE_SELECT",
@@ -144,7 +143,7 @@ class Region:
 
 _RW, _RO, _NO = Access.READ_WRITE, Access.READ_ONLY, Access.NO_ACCESS
 
-# The rows that other modules name (the plan's blocks, the driver's fault read, mode selection).
+# The rows other modules name (the plan's blocks, the error bits the driver reads after ;T, mode selection)
 ACCUMULATORS: Final = Region("timer/counter/sequencer accumulators", 0x0000, 0x003F, _RW, readable=True)
 PRESETS: Final = Region("timer/counter presets", 0x0040, 0x007F, _RW, readable=True)
 ERROR_BITS_REGION: Final = Region("controller error mode bits", 0x0084, 0x0085, _RW, readable=True)
@@ -191,8 +190,6 @@ MAP_SIZE: Final = MEMORY_MAP[-1].end + 1
 """Bytes from 0000H to the end of the map (0112H, the access code byte), 113H."""
 MODE_ADDRESS: Final = MODE_BYTE.start
 """Mode selection writes the controller mode byte: ``#0403 0101 <mode>`` ("Mode Selection")."""
-ERROR_BITS_ADDRESS: Final = ERROR_BITS_REGION.start
-"""After ;T, "read the bytes at addresses 84H and 85H to find out the reason" (the error bits)."""
 
 READ_RANGES: tuple[AddressRange, ...] = (
     AddressRange(0x0000, 0x003E, "timer/counter/sequencer accumulator"),
@@ -487,10 +484,10 @@ class ItemKind(Enum):
     """``@0x84``: a raw byte."""
 
 
-_SUFFIXES = {
-    kind.value: kind
-    for kind in (ItemKind.ACCUMULATOR, ItemKind.PRESET, ItemKind.PROTECTED, ItemKind.STEP)
-}
+#: A timer item's cell and the bytes read from it (PROTECTED: the preset's MSB, bit 7).
+_TIMER_ITEMS: Final = {ItemKind.ACCUMULATOR: (accumulator_address, 2), ItemKind.PRESET: (preset_address, 2),
+                       ItemKind.PROTECTED: (preset_address, 1), ItemKind.STEP: (step_counter_address, 1)}
+_SUFFIXES = {kind.value: kind for kind in _TIMER_ITEMS}
 
 _ITEM_RULE = (
     "use NNN.ACC, NNN.PRE, NNN.PROTECTED or NNN.STEP with NNN = 901-932, a user bit address "
@@ -581,14 +578,8 @@ def parse_item(text: str) -> Item:
         kind = _SUFFIXES.get(suffix)
         if kind is None:
             raise InvalidRequest(f"item {text!r}: unknown suffix {match.group(2)!r}; {_ITEM_RULE}")
-        canonical = f"{number}.{kind.value}"
-        if kind is ItemKind.ACCUMULATOR:
-            return Item(canonical, kind, accumulator_address(number), 2, number=number)
-        if kind is ItemKind.PRESET:
-            return Item(canonical, kind, preset_address(number), 2, number=number)
-        if kind is ItemKind.PROTECTED:
-            return Item(canonical, kind, preset_address(number), 1, number=number)
-        return Item(canonical, kind, step_counter_address(number), 1, number=number)
+        where, count = _TIMER_ITEMS[kind]
+        return Item(f"{number}.{kind.value}", kind, where(number), count, number=number)
     if _BIT_ITEM.fullmatch(stripped):
         user_address = int(stripped)
         if user_address not in _USER_BITS:
