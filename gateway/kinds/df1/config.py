@@ -24,6 +24,7 @@ from gateway.frozen import frozen
 from gateway.kinds.df1.target_config import TargetFile, target_file_problems
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
 from gateway.protocols.df1.address import parse_address
+from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM
 from gateway.protocols.df1.half_duplex_events import DEMOTE_AFTER
 from gateway.protocols.df1.plc5_address import parse_plc5_address
 
@@ -256,7 +257,7 @@ class Df1LinkConfig(LinkBase):
     """Master: the controller's DF1 node (destination). Target: the gateway's own node."""
     source: int = Field(0, ge=0, le=254)
     """The gateway's own DF1 node (source) as a master; a half-duplex station's MSG writes address it."""
-    checksum: Literal["bcc", "crc"] = "crc"
+    checksum: Literal["bcc", "crc"] = DEFAULT_CHECKSUM.value
     """"crc" (CRC-16) or "bcc": as the controller's channel 0 is set."""
     processor: Processor = "slc5/04"
     """slc500, slc5/01 ... slc5/05 or plc5: the size limits of a command and, for plc5, PLC-5 addresses and commands
@@ -290,9 +291,10 @@ class Df1LinkConfig(LinkBase):
     echo: bool = False
     """Line key: 2-wire RS-485 where the gateway hears its own bytes: they are stripped, and a byte that comes back
     different is counted as a collision."""
-    ack_timeout: float = Field(0.5, gt=0, le=60)
-    """Line key: wait for the DLE ACK of a master message. On a target (where the key is optional) the gateway waits
-    for the PLC's DLE ACK of its reply, 1.0 s when the key is not set (1747-RM001 p. 13-52, ACK Timeout 50 x 20 ms)."""
+    ack_timeout: float = Field(DEFAULT_ACK_TIMEOUT, gt=0, le=60)
+    """Line key: wait for the DLE ACK of a master message; on a target, for the PLC's DLE ACK of a reply. The default
+    is the SLC 500 channel's and the DF1 half-duplex master's ACK Timeout, 50 x 20 ms (1747-RM001G p. 13-52;
+    1766-RM001A p. 600)."""
     message_retries: int = Field(3, ge=0, le=10)
     """Line key: identical resends of a message without its DLE ACK."""
     duplicate_detect: bool = True

@@ -26,7 +26,7 @@ from gateway.kinds.df1.config import DF1_DEFAULTS
 from gateway.line_driver import LineDriver, LineDriverOptions, Priority
 from gateway.link_health import LineCounters, LineQuality
 from gateway.protocols.df1.datalink import Df1DataLink
-from gateway.protocols.df1.framing import NEED_DATA, Checksum
+from gateway.protocols.df1.framing import DEFAULT_CHECKSUM, NEED_DATA, Checksum
 from gateway.protocols.df1.pccc import (
     DiagnosticStatus,
     DiagnosticStatusInfo,
@@ -63,7 +63,7 @@ class Df1Driver(LineDriver):
         url: str,
         *,
         settings: SerialSettings = DF1_SETTINGS,
-        checksum: Checksum = Checksum.CRC,
+        checksum: Checksum = DEFAULT_CHECKSUM,
         station: int = 1,
         source: int = 0,
         family: ProcessorFamily = ProcessorFamily.SLC5_04,

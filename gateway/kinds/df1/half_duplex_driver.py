@@ -54,7 +54,7 @@ from gateway.kinds.df1.driver import DF1_SETTINGS, transaction_result
 from gateway.line_driver import LineDriver, LineDriverOptions, run_to_the_end
 from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LineQuality, LinkHealth
 from gateway.protocols.df1 import half_duplex_events as master_events
-from gateway.protocols.df1.framing import NEED_DATA, Checksum
+from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, NEED_DATA, Checksum
 from gateway.protocols.df1.half_duplex import HalfDuplexMaster
 from gateway.protocols.df1.half_duplex_events import FailReason, LineConfig, StationConfig, StationCounters
 from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions, PcccRequestLike
@@ -243,9 +243,9 @@ class Df1HalfDuplexLine(LineDriver):
         stations: Sequence[StationConfig],
         *,
         settings: SerialSettings = DF1_SETTINGS,
-        checksum: Checksum = Checksum.CRC,
+        checksum: Checksum = DEFAULT_CHECKSUM,
         source: int = 0,
-        ack_timeout: float = 0.5,
+        ack_timeout: float = DEFAULT_ACK_TIMEOUT,
         message_retries: int = 3,
         retries: int = DEFAULT_RETRIES,
         pre_transmit_delay: float = 0.0,

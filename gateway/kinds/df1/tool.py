@@ -35,7 +35,7 @@ from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, PcccRequestL
 from gateway.kinds.df1.unit import PROCESSORS
 from gateway.line_driver import OpenStream
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
-from gateway.protocols.df1.framing import Checksum
+from gateway.protocols.df1.framing import DEFAULT_CHECKSUM, Checksum
 from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import (
     DiagnosticStatusInfo,
@@ -215,7 +215,8 @@ def add_df1_options(parser: argparse.ArgumentParser) -> None:
     """The options only DF1 commands take."""
     parser.add_argument("--station", type=int, default=1, help="df1: destination node (default 1)")
     parser.add_argument("--source", type=int, default=0, help="df1: our node (default 0)")
-    parser.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc (default crc)")
+    parser.add_argument("--checksum", choices=("bcc", "crc"), default=DEFAULT_CHECKSUM.value,
+                        help=f"df1: bcc or crc (default {DEFAULT_CHECKSUM.value})")
     parser.add_argument("--processor", default="slc5/04", choices=tuple(PROCESSORS),
                         help="df1: processor family (default slc5/04; plc5: PLC-5 addresses, word range commands)")
     parser.add_argument("--duplex", choices=("full", "half"), default="full",
@@ -325,5 +326,5 @@ def add_df1_sim_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--withhold-ack", type=int, default=0, metavar="N", help="df1: withhold 1 in N ACKs")
     parser.add_argument("--duplicate", type=int, default=0, metavar="N", help="df1: send 1 in N replies twice")
     parser.add_argument("--noise", type=int, default=0, metavar="N", help="df1: garbage between frames, 1 in N")
-    parser.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc")
+    parser.add_argument("--checksum", choices=("bcc", "crc"), default=DEFAULT_CHECKSUM.value, help="df1: bcc or crc")
     parser.add_argument("--station", type=int, default=1, help="df1: our node number (default 1)")

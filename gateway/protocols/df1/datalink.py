@@ -64,7 +64,7 @@ from typing import Final
 
 from gateway.errors import InvalidRequest
 from gateway.frozen import frozen
-from gateway.protocols.df1.framing import DEFAULT_MAX_MESSAGE, Checksum
+from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, DEFAULT_MAX_MESSAGE, Checksum
 from gateway.protocols.df1.full_duplex import FullDuplexCounters, FullDuplexStation, QueuedFrame, SendFailure
 from gateway.protocols.df1.full_duplex_table import (
     TRANSITIONS,
@@ -137,8 +137,8 @@ class Df1DataLink(FullDuplexStation[DataLinkEvent, DataLinkCounters]):
     def __init__(
         self,
         *,
-        checksum: Checksum = Checksum.BCC,
-        ack_timeout: float = 1.0,
+        checksum: Checksum = DEFAULT_CHECKSUM,
+        ack_timeout: float = DEFAULT_ACK_TIMEOUT,
         enq_limit: int = 3,
         nak_limit: int = 3,
         duplicate_detect: bool = True,

@@ -10,7 +10,7 @@ import enum
 from dataclasses import dataclass
 
 from gateway.frozen import frozen
-from gateway.protocols.df1.framing import Checksum
+from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, Checksum
 
 __all__ = [
     "DEMOTE_AFTER",
@@ -76,7 +76,7 @@ class LineConfig:
     """Tunables of the line (seconds)."""
 
     checksum: Checksum
-    ack_timeout: float = 0.5  #: wait for DLE ACK after a master message
+    ack_timeout: float = DEFAULT_ACK_TIMEOUT  #: wait for DLE ACK after a master message
     message_resends: int = 3  #: identical copies sent again of a master message without its DLE ACK
     char_time: float = 0.0  #: time of one character on the wire (11 bits / baud); 0 = instantaneous
     pre_transmit_delay: float = 0.0  #: quiet time after the last byte heard before transmitting

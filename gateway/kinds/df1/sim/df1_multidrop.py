@@ -57,7 +57,7 @@ from gateway.kinds.df1.sim.df1_half_duplex_slave import HalfDuplexSlave, SlaveVa
 from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.kinds.df1.sim.slc500 import Output, Slc500Options, Slc500Simulator
 from gateway.kinds.df1.sim.slc500_line import corrupt_frame
-from gateway.protocols.df1.framing import Checksum, Symbol
+from gateway.protocols.df1.framing import DEFAULT_CHECKSUM, Checksum, Symbol
 from gateway.sim.models import read_sim_option
 from gateway.sim.scan import SCAN_OPTION, ScanTime, parse_scan, scan_clock
 
@@ -81,7 +81,7 @@ class SlcStation(Slc500Simulator):
 class LineOptions:
     """The line's stations, timing and faults (module docstring); ``1 in N`` faults are off at 0."""
 
-    checksum: Checksum = Checksum.CRC
+    checksum: Checksum = DEFAULT_CHECKSUM
     stations: tuple[int, ...] = (1, 2, 3)
     dead: frozenset[int] = frozenset()
     slow: Mapping[int, float] = field(default_factory=dict)
@@ -144,7 +144,7 @@ class LineOptions:
                     out[int(station)] = value
             return out
 
-        checksum_text = options.get("checksum", "crc").strip().lower()
+        checksum_text = options.get("checksum", DEFAULT_CHECKSUM.value).strip().lower()
         if checksum_text not in ("bcc", "crc"):
             raise ValueError(f"multi-drop line option checksum={checksum_text!r}: choose bcc or crc")
         no_pairs: dict[int, str] = {}

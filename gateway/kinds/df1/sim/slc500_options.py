@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from gateway.frozen import frozen
-from gateway.protocols.df1.framing import Checksum
+from gateway.protocols.df1.framing import DEFAULT_CHECKSUM, Checksum
 from gateway.sim.models import read_sim_option
 from gateway.sim.scan import SCAN_OPTION, ScanTime, parse_scan
 
@@ -26,7 +26,7 @@ _SLC500_OPTION_NAMES: Final = (
 class Slc500Options:
     """Link settings and fault injection; ``1 in N`` faults are off at 0."""
 
-    checksum: Checksum = Checksum.CRC
+    checksum: Checksum = DEFAULT_CHECKSUM
     station: int = 1  #: our DF1 node address
     corrupt: int = 0  #: corrupt 1 in N outgoing frames
     drop: int = 0  #: execute but never answer 1 in N commands
@@ -68,7 +68,7 @@ class Slc500Options:
             for name in _ONE_IN_OPTIONS
         }
         return cls(
-            checksum=_checksum_option(options.get("checksum", "crc")),
+            checksum=_checksum_option(options.get("checksum", DEFAULT_CHECKSUM.value)),
             station=read_sim_option(options, "station", int, 1),
             corrupt=one_in["corrupt"],
             drop=one_in["drop"],

@@ -39,6 +39,8 @@ from gateway.protocols.need_data import NEED_DATA, NeedData
 
 __all__ = [
     "ACK_SYMBOL",
+    "DEFAULT_ACK_TIMEOUT",
+    "DEFAULT_CHECKSUM",
     "DEFAULT_MAX_MESSAGE",
     "ENQ_SYMBOL",
     "EOT_SYMBOL",
@@ -104,6 +106,15 @@ EOT_SYMBOL: Final = bytes((Symbol.DLE, Symbol.EOT))
 #: Longest message (DST .. last data byte) the decoder stores.  PCCC packets over DF1 stay
 #: under 250 bytes (manual §2: "can not be greater than 250"); a margin costs nothing.
 DEFAULT_MAX_MESSAGE: Final = 512
+
+#: The error check of a link that does not name one: CRC, the default "Error Detection" of an SLC 500
+#: channel 0 in DF1 (1747-RM001G p. 13-52, Table 13.15).
+DEFAULT_CHECKSUM: Final = Checksum.CRC
+
+#: The wait for the peer's DLE ACK of a frame before a DLE ENQ (full duplex) or the frame again
+#: (half duplex): "ACK Timeout" 50 x 20 ms, the default of an SLC 500 channel 0 (1747-RM001G p. 13-52,
+#: Table 13.15) and of a DF1 half-duplex master (1766-RM001A p. 600).
+DEFAULT_ACK_TIMEOUT: Final = 1.0
 
 #: ETX as the one byte a CRC covers after the message (module docstring: over the message and ETX).
 ETX_BYTE: Final = bytes((Symbol.ETX,))
