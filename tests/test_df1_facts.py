@@ -19,6 +19,7 @@ from gateway.kinds.df1.target_driver import TargetRunner
 from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, Checksum
 from gateway.protocols.df1.half_duplex_events import LineConfig
+from gateway.protocols.df1.pccc.status import Sts, describe_status
 from gateway.protocols.df1.responder import Df1Responder
 
 
@@ -44,3 +45,12 @@ def test_one_checksum_default_the_slc_channels() -> None:
         assert _default(owner, "checksum") is Checksum.CRC, owner
     assert Slc500Options().checksum is Checksum.CRC
     assert LineOptions.__dataclass_fields__["checksum"].default is Checksum.CRC
+
+
+def test_the_two_hardware_faults_have_two_names() -> None:
+    # 1770-6.5.16 p. 8-2, local STS nibble: 08 "Hardware fault" (the local node could not send);
+    # p. 8-3, remote nibble: 40 "Host could not complete function due to hardware fault"
+    assert Sts.LOCAL_HARDWARE_FAULT == 0x08 and Sts.HOST_HARDWARE_FAULT == 0x40
+    assert describe_status(0x08).startswith("Hardware fault")
+    assert describe_status(0x40).startswith("Host could not complete function due to hardware fault")
+    assert not hasattr(Sts, "HARDWARE_FAULT")
