@@ -9,16 +9,22 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Callable
+from dataclasses import astuple
 
+from gateway.config import parse_config
+from gateway.kinds.df1.build import size_limits
 from gateway.kinds.df1.config import Df1LinkConfig
 from gateway.kinds.df1.driver import Df1Driver
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.sim import plc5 as sim_plc5
+from gateway.kinds.df1.sim import slc500_processor
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions
 from gateway.kinds.df1.sim.slc500_options import Slc500Options
 from gateway.kinds.df1.target_driver import TargetRunner
 from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, Checksum
 from gateway.protocols.df1.half_duplex_events import LineConfig
+from gateway.protocols.df1.pccc.limits import MAX_DATA_BYTES, PLC5_TYPED
 from gateway.protocols.df1.pccc.status import Sts, describe_status
 from gateway.protocols.df1.responder import Df1Responder
 
@@ -54,3 +60,46 @@ def test_the_two_hardware_faults_have_two_names() -> None:
     assert describe_status(0x08).startswith("Hardware fault")
     assert describe_status(0x40).startswith("Host could not complete function due to hardware fault")
     assert not hasattr(Sts, "HARDWARE_FAULT")
+
+
+def _link(processor: str, extra: str = "") -> Df1LinkConfig:
+    text = f"""
+[[link]]
+name = "press"
+protocol = "df1"
+port = "sim://slc504"
+unit = 1
+processor = "{processor}"
+{extra}
+[[link.map]]
+table = "holding"
+start = 0
+address = "N7:0"
+count = 1
+"""
+    (link,) = parse_config(text).links
+    assert isinstance(link, Df1LinkConfig)
+    return link
+
+
+def test_the_size_limits_are_the_families_and_an_override_only_lowers_them() -> None:
+    # notes §4.36: SLC 500 fixed, 5/01, 5/02: 82 bytes; 5/03-5/05: 236 read, 228 written.
+    # PLC-5 word range: 244 bytes of reply data (1770-6.5.16), 239 of address and data (KF2 p. 5-57).
+    expected = {"slc5/01": (82, 82), "slc5/04": (236, 228), "plc5": (244, 239)}
+    for processor, limits in expected.items():
+        assert astuple(size_limits(_link(processor))) == limits, processor
+        lowered = size_limits(_link(processor, "max_read_bytes = 40\nmax_write_bytes = 30"))
+        assert astuple(lowered) == (40, 30), processor
+        # above the family's limit: the family's, for SLC 500 and PLC-5 alike
+        raised = size_limits(_link(processor, "max_read_bytes = 244\nmax_write_bytes = 244"))
+        assert astuple(raised) == limits, processor
+    assert MAX_DATA_BYTES == 244
+    assert Df1LinkConfig.model_fields["max_read_bytes"].metadata[-1].le == 244
+
+
+def test_the_simulators_and_the_target_take_the_limits_table() -> None:
+    assert (slc500_processor.MAX_READ_BYTES, slc500_processor.MAX_WRITE_BYTES) == (236, 228)
+    assert (sim_plc5.MAX_WORD_RANGE_READ, sim_plc5.MAX_WORD_RANGE_WRITE) == (244, 239)
+    # a PLC-5 typed write carries at most 240 bytes of address, type/data parameter and data
+    # (1770-6.5.16 p. 7-30), a typed read's reply 244
+    assert (PLC5_TYPED.max_read_bytes, PLC5_TYPED.max_write_bytes) == (244, 240)

@@ -23,7 +23,7 @@ from gateway.kinds.df1.config import Df1LinkConfig, HalfDuplexLine, group_lines
 from gateway.kinds.df1.driver import Df1Driver
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
 from gateway.kinds.df1.plan import MapItem, point_labels_df1, shared_plan_df1
-from gateway.kinds.df1.plc5_unit import PLC5_MAX_READ_BYTES, Plc5Unit, point_labels_plc5, shared_plan_plc5
+from gateway.kinds.df1.plc5_unit import Plc5Unit, point_labels_plc5, shared_plan_plc5
 from gateway.kinds.df1.receive import ReceiveWindow
 from gateway.kinds.df1.target_build import build_target, target_link_labels, target_link_plan
 from gateway.kinds.df1.unit import PROCESSORS, Df1Unit, PcccDriver, PcccUnit
@@ -33,6 +33,7 @@ from gateway.poller import LineShare
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import ProcessorFamily
+from gateway.protocols.df1.pccc.limits import PLC5_WORD_RANGE, SizeLimits
 from gateway.protocols.df1.pccc.target_table import ElementRef
 from gateway.protocols.df1.slave_messages import RegisterTable
 from gateway.unit import Unit
@@ -57,8 +58,11 @@ def _is_plc5(link: Df1LinkConfig) -> bool:
     return PROCESSORS[link.processor] is ProcessorFamily.PLC5
 
 
-def _max_read(link: Df1LinkConfig) -> int:
-    return link.max_read_bytes or PROCESSORS[link.processor].max_read_bytes
+def size_limits(link: Df1LinkConfig) -> SizeLimits:
+    """The data bytes of a master link's packets: its family's limits (a PLC-5 is polled with word range
+    commands), lowered by ``max_read_bytes`` / ``max_write_bytes``, never raised above them."""
+    family = PLC5_WORD_RANGE if _is_plc5(link) else PROCESSORS[link.processor].limits
+    return family.lowered(link.max_read_bytes, link.max_write_bytes)
 
 
 def df1_plan(link: Df1LinkConfig) -> Plan[Any, Any]:
@@ -67,8 +71,8 @@ def df1_plan(link: Df1LinkConfig) -> Plan[Any, Any]:
     if link.role == "target":
         return target_link_plan(link)
     if _is_plc5(link):
-        return shared_plan_plc5(map_items(link), link.max_read_bytes or PLC5_MAX_READ_BYTES)
-    return shared_plan_df1(map_items(link), _max_read(link))
+        return shared_plan_plc5(map_items(link), size_limits(link).max_read_bytes)
+    return shared_plan_df1(map_items(link), size_limits(link).max_read_bytes)
 
 
 def df1_plan_lines(plan: Plan[Any, Any]) -> list[str]:
@@ -100,11 +104,12 @@ def station_unit(driver: PcccDriver, link: Df1LinkConfig, share: LineShare | Non
     items = map_items(link)
     options = unit_options(link)
     options["line_share"] = share
+    limits = size_limits(link)
     if _is_plc5(link):
-        return Plc5Unit(driver=driver, items=items, max_read_bytes=link.max_read_bytes,
-                        max_write_bytes=link.max_write_bytes, **options)
-    return Df1Unit(driver=driver, items=items, max_read_bytes=_max_read(link), max_write_bytes=link.max_write_bytes,
-                   family=PROCESSORS[link.processor], **options)
+        return Plc5Unit(driver=driver, items=items, max_read_bytes=limits.max_read_bytes,
+                        max_write_bytes=limits.max_write_bytes, **options)
+    return Df1Unit(driver=driver, items=items, max_read_bytes=limits.max_read_bytes,
+                   max_write_bytes=limits.max_write_bytes, family=PROCESSORS[link.processor], **options)
 
 
 def _checksum(link: Df1LinkConfig) -> Checksum:

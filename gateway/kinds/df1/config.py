@@ -26,6 +26,7 @@ from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
 from gateway.protocols.df1.address import parse_address
 from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM
 from gateway.protocols.df1.half_duplex_events import DEMOTE_AFTER
+from gateway.protocols.df1.pccc.limits import MAX_DATA_BYTES
 from gateway.protocols.df1.plc5_address import parse_plc5_address
 
 __all__ = [
@@ -262,12 +263,12 @@ class Df1LinkConfig(LinkBase):
     processor: Processor = "slc5/04"
     """slc500, slc5/01 ... slc5/05 or plc5: the size limits of a command and, for plc5, PLC-5 addresses and commands
     (word range read / write, read-modify-write)."""
-    max_read_bytes: int = Field(0, ge=0, le=240)
-    """Override the processor's PCCC read size limit (0: the family's: SLC 500, 5/01, 5/02: 82 data bytes; 5/03,
-    5/04, 5/05: 236; PLC-5: 230)."""
-    max_write_bytes: int = Field(0, ge=0, le=240)
-    """Override the processor's PCCC write size limit (0: the family's: SLC 500, 5/01, 5/02: 82; 5/03, 5/04, 5/05:
-    228; PLC-5: 222)."""
+    max_read_bytes: int = Field(0, ge=0, le=MAX_DATA_BYTES)
+    """Lower the processor's PCCC read size limit (0: the family's: SLC 500, 5/01, 5/02: 82 data bytes; 5/03,
+    5/04, 5/05: 236; PLC-5, word range reads: 244). A value above the family's limit gets the family's."""
+    max_write_bytes: int = Field(0, ge=0, le=MAX_DATA_BYTES)
+    """Lower the processor's PCCC write size limit (0: the family's: SLC 500, 5/01, 5/02: 82; 5/03, 5/04, 5/05:
+    228; PLC-5, word range writes: 239 with the address). A value above the family's limit gets the family's."""
     map: tuple[MapEntry, ...] = Field((), strict=False)
     """[[link.map]]: the controller addresses a master link polls and where Modbus sees them (required for a master)."""
 

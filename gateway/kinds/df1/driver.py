@@ -35,6 +35,8 @@ from gateway.protocols.df1.pccc import (
     Request,
 )
 from gateway.protocols.df1.pccc import is_write as pccc_is_write
+from gateway.protocols.df1.pccc.codec import HEADER_SIZE
+from gateway.protocols.df1.pccc.limits import MAX_DATA_BYTES
 from gateway.protocols.df1.transaction import (
     Df1Transactions,
     OutcomeUnknown,
@@ -51,8 +53,9 @@ __all__ = ["DF1_SETTINGS", "Df1Driver", "PcccLink", "WriteOutcomeUnknown", "tran
 #: DF1 full duplex default line settings (19200 8N1), kept with the link model's defaults.
 DF1_SETTINGS: Final = DF1_DEFAULTS.settings
 
-#: Characters of the longest DF1 frame: 6 header + 4 + 236 data bytes, framing, CRC, some DLE doubling.
-_LONGEST_FRAME: Final = 280
+#: Characters of the longest DF1 frame: the header, 4 bytes of function and address, the most data
+#: bytes of any family, DLE STX, DLE ETX and a CRC, and 28 for DLE doubling.
+_LONGEST_FRAME: Final = HEADER_SIZE + 4 + MAX_DATA_BYTES + 6 + 28
 
 
 class Df1Driver(LineDriver):
