@@ -12,20 +12,23 @@ from collections.abc import Callable
 from dataclasses import astuple
 
 from gateway.config import parse_config
+from gateway.kinds.df1 import tool
 from gateway.kinds.df1.build import size_limits
 from gateway.kinds.df1.config import Df1LinkConfig
 from gateway.kinds.df1.driver import Df1Driver
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
 from gateway.kinds.df1.sim import plc5 as sim_plc5
-from gateway.kinds.df1.sim import slc500_processor
+from gateway.kinds.df1.sim import slc500_data, slc500_processor
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions
 from gateway.kinds.df1.sim.slc500_options import Slc500Options
 from gateway.kinds.df1.target_driver import TargetRunner
+from gateway.protocols.df1.address import SIGNED_FILE_TYPES, FileType, element_words, parse_address
 from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, Checksum
 from gateway.protocols.df1.half_duplex_events import LineConfig
 from gateway.protocols.df1.pccc.limits import MAX_DATA_BYTES, PLC5_TYPED
 from gateway.protocols.df1.pccc.status import Sts, describe_status
+from gateway.protocols.df1.plc5_address import PLC5_SIGNED, PLC5_STRUCTURES, parse_plc5_address, plc5_element_words
 from gateway.protocols.df1.responder import Df1Responder
 
 
@@ -103,3 +106,24 @@ def test_the_simulators_and_the_target_take_the_limits_table() -> None:
     # a PLC-5 typed write carries at most 240 bytes of address, type/data parameter and data
     # (1770-6.5.16 p. 7-30), a typed read's reply 244
     assert (PLC5_TYPED.max_read_bytes, PLC5_TYPED.max_write_bytes) == (244, 240)
+
+
+def test_element_words_structures_and_signedness_one_table_per_family() -> None:
+    # SLC 500 (shared/docs/slc500-addressing-reference.md: "Each timer structure consists of three words",
+    # "Each floating-point element consists of two words"): a timer / counter / control element is 3 words
+    # (control, PRE or LEN, ACC or POS), a float 2, every other element 1; integers and the
+    # structures' words are signed.  PLC-5 (1770-6.5.16 p. 13-13): the same sizes by file letter.
+    slc = {FileType.TIMER: 3, FileType.COUNTER: 3, FileType.CONTROL: 3, FileType.FLOAT: 2,
+           FileType.INTEGER: 1, FileType.BIT: 1, FileType.STATUS: 1}
+    assert {file_type: element_words(file_type) for file_type in slc} == slc
+    assert SIGNED_FILE_TYPES == {FileType.INTEGER, FileType.TIMER, FileType.COUNTER, FileType.CONTROL}
+    plc5 = {"T": 3, "C": 3, "R": 3, "F": 2, "N": 1, "B": 1, "S": 1, "I": 1, "O": 1, "A": 1, "D": 1}
+    assert {letter: plc5_element_words(letter) for letter in plc5} == plc5
+    assert PLC5_STRUCTURES == {"T", "C", "R"} and PLC5_SIGNED == {"N", "T", "C", "R"}
+    # the simulator's files, the tool's decoding and the planners take these tables
+    files = slc500_data.data_files()
+    assert (files[4].element_words, files[8].element_words, files[7].element_words) == (3, 2, 1)
+    assert tool.decode_value(parse_address("N7:0"), b"\xff\xff") == -1
+    assert tool.decode_value(parse_address("B3:0"), b"\xff\xff") == 0xFFFF
+    assert tool.decode_plc5_value(parse_plc5_address("T4:0.ACC"), b"\xff\xff") == -1
+    assert tool.decode_plc5_value(parse_plc5_address("B3:0"), b"\xff\xff") == 0xFFFF

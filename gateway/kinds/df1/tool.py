@@ -34,7 +34,7 @@ from gateway.kinds.df1.driver import Df1Driver
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, PcccRequestLike
 from gateway.kinds.df1.unit import PROCESSORS
 from gateway.line_driver import OpenStream
-from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
+from gateway.protocols.df1.address import SIGNED_FILE_TYPES, FileType, SlcAddress, parse_address
 from gateway.protocols.df1.framing import DEFAULT_CHECKSUM, Checksum
 from gateway.protocols.df1.half_duplex_events import StationConfig
 from gateway.protocols.df1.pccc import (
@@ -47,7 +47,13 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalWrite,
     SetProcessorMode,
 )
-from gateway.protocols.df1.plc5_address import PLC5_STRUCTURES, AddressError, Plc5Address, parse_plc5_address
+from gateway.protocols.df1.plc5_address import (
+    PLC5_SIGNED,
+    PLC5_STRUCTURES,
+    AddressError,
+    Plc5Address,
+    parse_plc5_address,
+)
 from gateway.protocols.df1.plc5_commands import plc5_bit_write, plc5_read, plc5_write
 from gateway.tools_common import print_result, resolve_retries
 
@@ -82,7 +88,7 @@ def decode_value(address: SlcAddress, data: bytes) -> Any:
         return bool(words[0] >> address.bit & 1)
     if len(words) > 1:
         return words
-    signed = address.file_type in (FileType.INTEGER, FileType.TIMER, FileType.COUNTER, FileType.CONTROL)
+    signed = address.file_type in SIGNED_FILE_TYPES
     return words[0] - 0x10000 if signed and words[0] & 0x8000 else words[0]
 
 
@@ -109,10 +115,6 @@ def encode_value(address: SlcAddress, text: str) -> tuple[bytes, int | None]:
     return (value & 0xFFFF).to_bytes(2, "little"), None
 
 
-#: PLC-5 files whose words read as signed 16-bit numbers (integers, and timer / counter / control words)
-_PLC5_SIGNED = frozenset("NTCR")
-
-
 def _plc5_address(text: str) -> Plc5Address:
     try:
         return parse_plc5_address(text)
@@ -134,7 +136,7 @@ def decode_plc5_value(address: Plc5Address, data: bytes) -> Any:
     words = [int.from_bytes(data[i : i + 2], "little") for i in range(0, len(data), 2)]
     if len(words) > 1:
         return words
-    signed = address.file_type in _PLC5_SIGNED
+    signed = address.file_type in PLC5_SIGNED
     return words[0] - 0x10000 if signed and words[0] & 0x8000 else words[0]
 
 
