@@ -10,13 +10,14 @@ from __future__ import annotations
 import inspect
 from collections.abc import Callable
 from dataclasses import astuple
+from typing import get_args
 
 from gateway.config import parse_config
 from gateway.kinds.df1 import tool
 from gateway.kinds.df1.build import size_limits
 from gateway.kinds.df1.config import Df1LinkConfig
 from gateway.kinds.df1.driver import Df1Driver
-from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine
+from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, Df1Station
 from gateway.kinds.df1.sim import plc5 as sim_plc5
 from gateway.kinds.df1.sim import slc500_data, slc500_processor
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions
@@ -26,6 +27,7 @@ from gateway.protocols.df1.address import SIGNED_FILE_TYPES, FileType, element_w
 from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, Checksum
 from gateway.protocols.df1.half_duplex_events import LineConfig
+from gateway.protocols.df1.pccc.commands import Request, is_write
 from gateway.protocols.df1.pccc.limits import MAX_DATA_BYTES, PLC5_TYPED
 from gateway.protocols.df1.pccc.status import Sts, describe_status
 from gateway.protocols.df1.plc5_address import PLC5_SIGNED, PLC5_STRUCTURES, parse_plc5_address, plc5_element_words
@@ -127,3 +129,14 @@ def test_element_words_structures_and_signedness_one_table_per_family() -> None:
     assert tool.decode_value(parse_address("B3:0"), b"\xff\xff") == 0xFFFF
     assert tool.decode_plc5_value(parse_plc5_address("T4:0.ACC"), b"\xff\xff") == -1
     assert tool.decode_plc5_value(parse_plc5_address("B3:0"), b"\xff\xff") == 0xFFFF
+
+
+def test_is_write_has_one_authority() -> None:
+    """A command that changes the controller (CMD 0F): typed logical write AA, masked write AB, two
+    field write A9, set processor mode 80 (SLC 500 PCCC command notes); word range write 00,
+    typed write 67, read-modify-write 26 (1770-6.5.16 ch. 7).  Reads, file info, diagnostic
+    status and echo do not.  The drivers take no ``write=`` of their own: they ask ``is_write``."""
+    writes = {(cls.CMD, cls.FNC) for cls in get_args(Request) if is_write(object.__new__(cls))}
+    assert writes == {(0x0F, 0xAA), (0x0F, 0xAB), (0x0F, 0xA9), (0x0F, 0x80), (0x0F, 0x00), (0x0F, 0x67), (0x0F, 0x26)}
+    for driver in (Df1Driver, Df1Station):
+        assert list(inspect.signature(driver.execute).parameters) == ["self", "request", "name"], driver

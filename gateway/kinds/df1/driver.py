@@ -186,10 +186,11 @@ class Df1Driver(LineDriver):
             self._waiting.pop(handle, None)
         return transaction_result(self, event, name, getattr(request, "FNC", None))
 
-    async def execute(self, request: Request, name: str = "", *, write: bool | None = None) -> PcccReply:
-        """Send ``request`` and return the (successful) reply.  Writes jump ahead of polls."""
+    async def execute(self, request: Request, name: str = "") -> PcccReply:
+        """Send ``request`` and return the (successful) reply.  Writes (:func:`pccc_is_write`, the one
+        authority) jump ahead of polls."""
         label = name or type(request).__name__
-        is_write = pccc_is_write(request) if write is None else write
+        is_write = pccc_is_write(request)
         priority = Priority.WRITE if is_write else Priority.POLL
         return await self.submit(lambda: self._run(request, label, is_write), priority)
 

@@ -7,7 +7,7 @@ RTS timing, echo suppression.  :class:`Df1HalfDuplexLine` owns the port (reconne
 asks for (``next_deadline()`` / ``handle_timeout(now)``) and drives RTS when the port can.
 
 Each station on the line gets a :class:`Df1Station` handle with the API a DF1 unit uses on
-:class:`~gateway.kinds.df1.driver.Df1Driver`: ``execute(request, name, write=...)`` -> the reply, plus
+:class:`~gateway.kinds.df1.driver.Df1Driver`: ``execute(request, name)`` -> the reply, plus
 ``available``, ``counters``, ``last_sts``, ``add_listener``, ``run()`` / ``close()`` and ``probe()``.
 Requests of different stations are in the core at the same time; it serves them round robin (writes
 first), so a dead or slow station never holds up the others.  The sans-I/O transaction layer
@@ -193,10 +193,11 @@ class Df1Station(LinkHealth):
 
     # --- requests ---------------------------------------------------------------------------
 
-    async def execute(self, request: PcccRequestLike, name: str = "", *, write: bool | None = None) -> PcccReply:
-        """Send ``request`` to this station and return the (successful) reply (module docstring)."""
+    async def execute(self, request: PcccRequestLike, name: str = "") -> PcccReply:
+        """Send ``request`` to this station and return the (successful) reply (module docstring); a
+        write is what :func:`pccc_is_write` says it is."""
         label = name or type(request).__name__
-        is_write = pccc_is_write(request) if write is None else write
+        is_write = pccc_is_write(request)
         if not is_write:
             return await self._run(request, label, False)
         # a write goes on to its verdict even when its caller gives up (as Df1Driver.submit does)

@@ -11,7 +11,7 @@ MicroLogix only (a PLC-5 may answer them STS 10; ``gateway.kinds.df1.sim.plc5`` 
 * coils: read-modify-write ``0F 26`` of the word holding the bit, ``AND ~set_or_reset OR set``
   (1770-6.5.16 p. 7-20): only the written bits change, in the controller, in one command.
 
-Every write goes to the driver with ``write=True``: the exactly-once verdict and the read-back of a
+Every write is a write by :func:`gateway.protocols.df1.pccc.is_write`: the exactly-once verdict and the read-back of a
 write whose reply was lost (``gateway.protocols.df1.transaction.read_back_for``: a word range read of
 the same words) apply as for the SLC unit.  A write is never sent twice.
 
@@ -20,7 +20,7 @@ Addresses are the forms users type (``N7:0``, ``B3/5``, ``B3:0/5``, ``T4:1.ACC``
 :func:`plan_plc5` (the cost model and block choice of ``mapping_df1``, on PLC-5 word positions).
 
 The unit is the SLC :class:`~gateway.kinds.df1.unit.Df1Unit` with its commands replaced; it only needs a
-driver with ``execute(request, name, write=...)`` (``Df1Driver`` or a half-duplex ``Df1Station``).
+driver with ``execute(request, name)`` (``Df1Driver`` or a half-duplex ``Df1Station``).
 """
 
 from __future__ import annotations
@@ -261,7 +261,7 @@ class Plc5Unit(PcccUnit[Plc5WordWrite, Plc5BitWrite]):
         return data
 
     async def _write_words(self, address: Plc5Address, data: bytes) -> None:
-        await self._execute(WordRangeWrite(_logical_address(address), data), f"write {address}", write=True)
+        await self._execute(WordRangeWrite(_logical_address(address), data), f"write {address}")
 
     async def _write_register(self, target: Plc5WordWrite, value: int) -> None:
         await self._write_words(target.address, value.to_bytes(2, "little"))
@@ -331,7 +331,7 @@ class Plc5Unit(PcccUnit[Plc5WordWrite, Plc5BitWrite]):
             set_bits |= (1 << bit) if on else 0
         request = ReadModifyWriteRequest(((_logical_address(address), 0xFFFF & ~forced | set_bits, set_bits),))
         label = f"write {address}/" + ",".join(str(b) for b, _ in bits)
-        await self._execute(request, label, write=True)
+        await self._execute(request, label)
 
     async def _write_bit(self, target: Plc5BitWrite, value: bool) -> None:
         await self._write_bits(target.address, [(target.bit, value)])

@@ -208,7 +208,7 @@ def _write_item(text: str, plc5: bool) -> _Write:
 class _Target(Protocol):
     """What the commands use: ``Df1Driver``, or a station of a half-duplex line (``Df1Station``)."""
 
-    async def execute(self, request: Any, name: str = "", *, write: bool | None = None) -> PcccReply: ...
+    async def execute(self, request: Any, name: str = "") -> PcccReply: ...
 
     async def probe(self) -> DiagnosticStatusInfo: ...
 
@@ -259,18 +259,18 @@ async def run_df1_tool(command: str, args: argparse.Namespace, opener: OpenStrea
         elif command == "read":
             result: dict[str, Any] = {}
             for item in reads:
-                reply = await target.execute(item.request, f"read {item.text}", write=False)
+                reply = await target.execute(item.request, f"read {item.text}")
                 result[item.text] = item.decode(reply.data)
             print_result(result, args.json)
         elif command == "write":
             for write in writes:
-                await target.execute(write.request, f"write {write.text}", write=True)
+                await target.execute(write.request, f"write {write.text}")
             print_result({write.text: write.value for write in writes}, args.json)
         else:
             modes = {"run": ProcessorMode.RUN, "program": ProcessorMode.PROGRAM, "test": ProcessorMode.TEST_CONTINUOUS}
             if args.mode not in modes:
                 raise InvalidRequest(f"DF1 mode: choose run, program or test, not {args.mode}")
-            await target.execute(SetProcessorMode(modes[args.mode]), f"mode {args.mode}", write=True)
+            await target.execute(SetProcessorMode(modes[args.mode]), f"mode {args.mode}")
             print_result({"mode": args.mode}, args.json)
     return 0
 
