@@ -41,3 +41,14 @@ def test_the_plan_reads_the_maps_rows() -> None:
     assert read[Scan.FAST] == {*range(0x00, 0x40), *range(0x96, 0xBC), *range(0xDC, 0xE4)}
     assert read[Scan.SLOW] == {*range(0x40, 0x80), *range(0x84, 0x96), *range(0xBC, 0xDC), *range(0x102, 0x112)}
     assert plan.input[0x84 // 2].offset == 0 and plan.blocks[plan.input[0x84 // 2].block].request == (0x84, 2)
+
+
+def test_is_write_is_the_reply_and_an_upload_is_not_repeated() -> None:
+    """"Specific Commands": a write (word, byte, mode, sequencer preset, reset accumulator,
+    download block) is answered ;R, a read, an FRN read and an upload with data.  An upload moves
+    the block pointer on ("Upload and Download"), so it is no more repeatable than a write."""
+    assert commands.write_word(0x40, 1).is_write and commands.set_mode(commands.Mode.RUN).is_write
+    assert not commands.read_bytes(0x84, 2).is_write and not commands.read_frn().is_write
+    assert commands.read_bytes(0x84, 2).repeatable and not commands.write_word(0x40, 1).repeatable
+    upload = commands.upload_block()
+    assert upload.reply is commands.ReplyKind.DATA and not upload.is_write and not upload.repeatable

@@ -143,8 +143,7 @@ _WRITE_CODES: Final = frozenset({
 
 def _command(code: CommandCode, params: bytes, name: str, timeout_class: TimeoutClass = TimeoutClass.NORMAL) -> Command:
     """Command ``code`` with ``params``: a write is answered ``;R``, a read with data."""
-    is_write = code in _WRITE_CODES
-    return Command(code, params, name, ReplyKind.ACK if is_write else ReplyKind.DATA, timeout_class, is_write=is_write)
+    return Command(code, params, name, ReplyKind.ACK if code in _WRITE_CODES else ReplyKind.DATA, timeout_class)
 
 
 def read_bytes(address: int, count: int = 1) -> Command:
