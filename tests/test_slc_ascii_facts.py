@@ -7,6 +7,8 @@ Selection", "Reading Data").
 
 from __future__ import annotations
 
+import pytest
+
 from gateway.kinds.slc_ascii import sim
 from gateway.kinds.slc_ascii.plan import slc_ascii_plan
 from gateway.modbus.mapping import Scan
@@ -52,3 +54,22 @@ def test_is_write_is_the_reply_and_an_upload_is_not_repeated() -> None:
     assert commands.read_bytes(0x84, 2).repeatable and not commands.write_word(0x40, 1).repeatable
     upload = commands.upload_block()
     assert upload.reply is commands.ReplyKind.DATA and not upload.is_write and not upload.repeatable
+
+
+def test_the_simulator_takes_the_maps_rows_and_write_rules() -> None:
+    """Its program's cells and what its writes accept are the map's: presets 100 + 10 n at 40H.. with
+    932's preset and accumulator protected (bit 7 of the MSB), step counters at BCH.., the byte write
+    00A6H-00B4H only, the word write at even 0000H-007EH only."""
+    simulator = sim.SlcAsciiSimulator()
+    assert simulator.word(0x40) == 100 and simulator.word(0x7E) == 0x8000 | 500 and simulator.word(0x3E) == 0x8000 | 7
+    assert simulator.memory[0xBC + 6] == 1
+    assert simulator._write_byte(0xA6, 1) is None  # the write rules themselves, without a line
+    assert simulator._write_word(0x40, 9999) is None
+    for address in (0xB5, 0x96):
+        with pytest.raises(sim._AnswerE):  # answered ;E
+            simulator._write_byte(address, 1)
+    for address in (0x41, 0x80, 0x3E):  # odd, beyond the presets, a protected accumulator
+        with pytest.raises(sim._AnswerE):
+            simulator._write_word(address, 1)
+    with pytest.raises(sim._AnswerE):
+        simulator._write_word(0x42, 10000)
