@@ -14,19 +14,20 @@ from typing import get_args
 
 from gateway.config import parse_config
 from gateway.kinds.df1 import tool
-from gateway.kinds.df1.build import size_limits
-from gateway.kinds.df1.config import Df1LinkConfig
+from gateway.kinds.df1.build import build_line, size_limits
+from gateway.kinds.df1.config import Df1LinkConfig, group_lines
 from gateway.kinds.df1.driver import Df1Driver
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, Df1Station
 from gateway.kinds.df1.sim import plc5 as sim_plc5
 from gateway.kinds.df1.sim import slc500_data, slc500_processor
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions
 from gateway.kinds.df1.sim.slc500_options import Slc500Options
+from gateway.kinds.df1.target_build import build_target
 from gateway.kinds.df1.target_driver import TargetRunner
 from gateway.protocols.df1.address import SIGNED_FILE_TYPES, FileType, element_words, parse_address
 from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, Checksum
-from gateway.protocols.df1.half_duplex_events import LineConfig
+from gateway.protocols.df1.half_duplex_events import HALF_DUPLEX_ACK_TIMEOUT, LineConfig
 from gateway.protocols.df1.pccc.commands import Request, is_write
 from gateway.protocols.df1.pccc.limits import MAX_DATA_BYTES, PLC5_TYPED
 from gateway.protocols.df1.pccc.status import Sts, describe_status
@@ -38,14 +39,39 @@ def _default(callable_: Callable[..., object], name: str) -> object:
     return inspect.signature(callable_).parameters[name].default
 
 
-def test_one_ack_timeout_default_the_manuals() -> None:
-    # "ACK Timeout" 50 x 20 ms: SLC 500 channel 0 (1747-RM001G p. 13-52, Table 13.15) and a DF1
-    # half-duplex master (1766-RM001A p. 600)
+def test_one_ack_timeout_default_per_mode() -> None:
+    # full duplex and a target: the SLC 500 channel's "ACK Timeout" 50 x 20 ms (1747-RM001G p. 13-52,
+    # Table 13.15); a half-duplex master: 0.5 s, its line's (p. 13-61 sizes it to the line)
     assert DEFAULT_ACK_TIMEOUT == 50 * 0.020
-    assert Df1LinkConfig.model_fields["ack_timeout"].default is DEFAULT_ACK_TIMEOUT
-    assert LineConfig.__dataclass_fields__["ack_timeout"].default is DEFAULT_ACK_TIMEOUT
-    for owner in (Df1DataLink, Df1Responder, Df1HalfDuplexLine, TargetRunner):
+    for owner in (Df1DataLink, Df1Responder, TargetRunner):
         assert _default(owner, "ack_timeout") is DEFAULT_ACK_TIMEOUT, owner
+    assert HALF_DUPLEX_ACK_TIMEOUT == 0.5
+    assert LineConfig.__dataclass_fields__["ack_timeout"].default is HALF_DUPLEX_ACK_TIMEOUT
+    assert _default(Df1HalfDuplexLine, "ack_timeout") is HALF_DUPLEX_ACK_TIMEOUT
+    # the config states no number of its own: the key's default is the line's, a target's is filled in
+    assert Df1LinkConfig.model_fields["ack_timeout"].default is HALF_DUPLEX_ACK_TIMEOUT
+    (target,) = parse_config(_TARGET).links
+    assert isinstance(target, Df1LinkConfig) and target.ack_timeout == 1.0
+    assert build_target(target).driver.responder.ack_timeout == 1.0
+    half = _link("slc5/04", 'duplex = "half"', port="socket://127.0.0.1:9")
+    assert half.ack_timeout == 0.5
+    assert build_line(group_lines([half])[0]).tunables.ack_timeout == 0.5
+
+
+_TARGET = """
+[[link]]
+name = "msg"
+protocol = "df1"
+role = "target"
+port = "sim://plc-msg"
+unit = 5
+[[link.file]]
+file = 7
+type = "N"
+elements = 4
+table = "holding"
+start = 0
+"""
 
 
 def test_one_checksum_default_the_slc_channels() -> None:
@@ -67,12 +93,12 @@ def test_the_two_hardware_faults_have_two_names() -> None:
     assert not hasattr(Sts, "HARDWARE_FAULT")
 
 
-def _link(processor: str, extra: str = "") -> Df1LinkConfig:
+def _link(processor: str, extra: str = "", port: str = "sim://slc504") -> Df1LinkConfig:
     text = f"""
 [[link]]
 name = "press"
 protocol = "df1"
-port = "sim://slc504"
+port = "{port}"
 unit = 1
 processor = "{processor}"
 {extra}

@@ -67,7 +67,7 @@ def events(master: HalfDuplexMaster) -> list[MasterEvent]:
 def make(
     *stations: int, checksum: Checksum = Checksum.BCC, line: Mapping[str, Any] | None = None, **station_kw: Any
 ) -> HalfDuplexMaster:
-    config = replace(LineConfig(checksum, ack_timeout=0.5), **(line or {}))  # the times below count from 0.5 s
+    config = replace(LineConfig(checksum), **(line or {}))
     master = HalfDuplexMaster(config, [replace(StationConfig(s), **station_kw) for s in stations])
     master.start(0.0)
     return master

@@ -25,7 +25,7 @@ from gateway.kinds.df1.target_config import TargetFile, target_file_problems
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
 from gateway.protocols.df1.address import parse_address
 from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM
-from gateway.protocols.df1.half_duplex_events import DEMOTE_AFTER
+from gateway.protocols.df1.half_duplex_events import DEMOTE_AFTER, HALF_DUPLEX_ACK_TIMEOUT
 from gateway.protocols.df1.pccc.limits import MAX_DATA_BYTES
 from gateway.protocols.df1.plc5_address import parse_plc5_address
 
@@ -292,10 +292,11 @@ class Df1LinkConfig(LinkBase):
     echo: bool = False
     """Line key: 2-wire RS-485 where the gateway hears its own bytes: they are stripped, and a byte that comes back
     different is counted as a collision."""
-    ack_timeout: float = Field(DEFAULT_ACK_TIMEOUT, gt=0, le=60)
-    """Line key: wait for the DLE ACK of a master message; on a target, for the PLC's DLE ACK of a reply. The default
-    is the SLC 500 channel's and the DF1 half-duplex master's ACK Timeout, 50 x 20 ms (1747-RM001G p. 13-52;
-    1766-RM001A p. 600)."""
+    ack_timeout: float = Field(HALF_DUPLEX_ACK_TIMEOUT, gt=0, le=60)
+    """Line key: wait for the DLE ACK of a master message: 0.5 s by default, sized to a wired line (1747-RM001G
+    p. 13-61: a message and the slave's turnaround; the SLC channel's 1.0 s allows for modems). On a target, the
+    wait for the PLC's DLE ACK of a reply: not given, 1.0 s (the SLC 500 channel's ACK Timeout, 50 x 20 ms,
+    p. 13-52)."""
     message_retries: int = Field(3, ge=0, le=10)
     """Line key: identical resends of a message without its DLE ACK."""
     duplicate_detect: bool = True
@@ -341,6 +342,14 @@ class Df1LinkConfig(LinkBase):
     its answer, so the table survives a restart (even kill -9)."""
     check_dst: bool = False
     """Target: answer only frames whose DST is station (full duplex ignores DST by default)."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _ack_timeout_of_the_mode(cls, data: Any) -> Any:
+        """``ack_timeout`` not given on a target: the SLC channel's (the key's doc), not a line master's."""
+        if isinstance(data, dict) and "ack_timeout" not in data and data.get("role") == "target":
+            return {**data, "ack_timeout": DEFAULT_ACK_TIMEOUT}
+        return data
 
     @field_validator("persist", mode="before")
     @classmethod

@@ -54,9 +54,15 @@ from gateway.kinds.df1.driver import DF1_SETTINGS, transaction_result
 from gateway.line_driver import LineDriver, LineDriverOptions, run_to_the_end
 from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LineQuality, LinkHealth
 from gateway.protocols.df1 import half_duplex_events as master_events
-from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, NEED_DATA, Checksum
+from gateway.protocols.df1.framing import DEFAULT_CHECKSUM, NEED_DATA, Checksum
 from gateway.protocols.df1.half_duplex import HalfDuplexMaster
-from gateway.protocols.df1.half_duplex_events import FailReason, LineConfig, StationConfig, StationCounters
+from gateway.protocols.df1.half_duplex_events import (
+    HALF_DUPLEX_ACK_TIMEOUT,
+    FailReason,
+    LineConfig,
+    StationConfig,
+    StationCounters,
+)
 from gateway.protocols.df1.half_duplex_transactions import HalfDuplexTransactions, PcccRequestLike
 from gateway.protocols.df1.pccc import DiagnosticStatus, DiagnosticStatusInfo, PcccReply
 from gateway.protocols.df1.pccc import is_write as pccc_is_write
@@ -246,7 +252,7 @@ class Df1HalfDuplexLine(LineDriver):
         settings: SerialSettings = DF1_SETTINGS,
         checksum: Checksum = DEFAULT_CHECKSUM,
         source: int = 0,
-        ack_timeout: float = DEFAULT_ACK_TIMEOUT,
+        ack_timeout: float = HALF_DUPLEX_ACK_TIMEOUT,
         message_retries: int = 3,
         retries: int = DEFAULT_RETRIES,
         pre_transmit_delay: float = 0.0,

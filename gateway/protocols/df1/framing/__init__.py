@@ -111,9 +111,9 @@ DEFAULT_MAX_MESSAGE: Final = 512
 #: channel 0 in DF1 (1747-RM001G p. 13-52, Table 13.15).
 DEFAULT_CHECKSUM: Final = Checksum.CRC
 
-#: The wait for the peer's DLE ACK of a frame before a DLE ENQ (full duplex) or the frame again
-#: (half duplex): "ACK Timeout" 50 x 20 ms, the default of an SLC 500 channel 0 (1747-RM001G p. 13-52,
-#: Table 13.15) and of a DF1 half-duplex master (1766-RM001A p. 600).
+#: The wait for the peer's DLE ACK of a full-duplex frame before a DLE ENQ: "ACK Timeout" 50 x 20 ms,
+#: the default of an SLC 500 channel 0 (1747-RM001G p. 13-52, Table 13.15), the wait a PLC's MSG expects
+#: of a target.  A half-duplex master's is its line's (half_duplex_events.HALF_DUPLEX_ACK_TIMEOUT).
 DEFAULT_ACK_TIMEOUT: Final = 1.0
 
 #: ETX as the one byte a CRC covers after the message (module docstring: over the message and ETX).
