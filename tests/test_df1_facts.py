@@ -12,18 +12,23 @@ from collections.abc import Callable
 from dataclasses import astuple
 from typing import get_args
 
+from gateway.app import describe_map
 from gateway.config import parse_config
+from gateway.kinds import df1
 from gateway.kinds.df1 import tool
 from gateway.kinds.df1.build import build_line, size_limits
 from gateway.kinds.df1.config import Df1LinkConfig, group_lines
 from gateway.kinds.df1.driver import Df1Driver
 from gateway.kinds.df1.half_duplex_driver import Df1HalfDuplexLine, Df1Station
+from gateway.kinds.df1.plc5_unit import Plc5Unit
 from gateway.kinds.df1.sim import plc5 as sim_plc5
 from gateway.kinds.df1.sim import slc500_data, slc500_processor
 from gateway.kinds.df1.sim.df1_multidrop import LineOptions
 from gateway.kinds.df1.sim.slc500_options import Slc500Options
 from gateway.kinds.df1.target_build import build_target
 from gateway.kinds.df1.target_driver import TargetRunner
+from gateway.kinds.df1.target_unit import TargetUnit
+from gateway.kinds.df1.unit import Df1Unit
 from gateway.protocols.df1.address import SIGNED_FILE_TYPES, FileType, element_words, parse_address
 from gateway.protocols.df1.datalink import Df1DataLink
 from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, Checksum
@@ -166,3 +171,16 @@ def test_is_write_has_one_authority() -> None:
     assert writes == {(0x0F, 0xAA), (0x0F, 0xAB), (0x0F, 0xA9), (0x0F, 0x80), (0x0F, 0x00), (0x0F, 0x67), (0x0F, 0x26)}
     for driver in (Df1Driver, Df1Station):
         assert list(inspect.signature(driver.execute).parameters) == ["self", "request", "name"], driver
+
+
+def test_polled_or_not_is_the_unit_classes() -> None:
+    """A target's unit is filled by its runner as the PLC's MSGs arrive; a master's is polled.
+    ``check-config`` takes that from the unit class, not from a second test of the role."""
+    assert TargetUnit.POLLED is False and Df1Unit.POLLED is True and Plc5Unit.POLLED is True
+    (target,) = parse_config(_TARGET).links
+    master = _link("slc5/04")
+    assert isinstance(target, Df1LinkConfig)
+    assert (df1.KIND.is_polled(target), df1.KIND.is_polled(master)) == (False, True)
+    assert build_target(target).schedule is None  # no poller's schedule: nothing reads it
+    described = describe_map(parse_config(_TARGET))
+    assert "not polled: the peer sends its data" in described and "read plan:" not in described

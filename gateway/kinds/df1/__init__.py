@@ -9,7 +9,7 @@ Its rooms: the sans-I/O protocol in :mod:`gateway.protocols.df1`, the driver in
 from __future__ import annotations
 
 from gateway.kinds.contract import LinkKind
-from gateway.kinds.df1.build import build_df1, df1_plan, df1_plan_lines, df1_point_labels
+from gateway.kinds.df1.build import build_df1, df1_plan, df1_plan_lines, df1_point_labels, df1_unit_class
 from gateway.kinds.df1.config import Df1LinkConfig
 from gateway.kinds.df1.simulators import DF1LINE, PLC5, PLC_MSG, SLC504
 from gateway.kinds.df1.tool import DF1_TOOL_HINTS, add_df1_options, add_df1_sim_options, run_df1_tool
@@ -24,7 +24,7 @@ KIND: LinkKind[Df1LinkConfig] = LinkKind(
     controllers="SLC 500 / PLC-5",
     simulators=(SLC504, PLC5, DF1LINE, PLC_MSG),
     plan_lines=df1_plan_lines,
-    is_polled=lambda link: link.role != "target",
+    unit_class=df1_unit_class,
     status_counter=("kind_counter", "DF1 master: always 0; DF1 target: duplicate messages (acknowledged, not run)"),
     tool=run_df1_tool,
     hints=DF1_TOOL_HINTS,

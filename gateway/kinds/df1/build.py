@@ -26,6 +26,7 @@ from gateway.kinds.df1.plan import MapItem, point_labels_df1, shared_plan_df1
 from gateway.kinds.df1.plc5_unit import Plc5Unit, point_labels_plc5, shared_plan_plc5
 from gateway.kinds.df1.receive import ReceiveWindow
 from gateway.kinds.df1.target_build import build_target, target_link_labels, target_link_plan
+from gateway.kinds.df1.target_unit import TargetUnit
 from gateway.kinds.df1.unit import PROCESSORS, Df1Unit, PcccDriver, PcccUnit
 from gateway.link_health import DownAfter
 from gateway.modbus.mapping import Plan, Table
@@ -63,6 +64,13 @@ def size_limits(link: Df1LinkConfig) -> SizeLimits:
     commands), lowered by ``max_read_bytes`` / ``max_write_bytes``, never raised above them."""
     family = PLC5_WORD_RANGE if _is_plc5(link) else PROCESSORS[link.processor].limits
     return family.lowered(link.max_read_bytes, link.max_write_bytes)
+
+
+def df1_unit_class(link: Df1LinkConfig) -> type[Unit[Any, Any]]:
+    """The class of a link's unit: a target's files, a PLC-5 or an SLC 500 polled over DF1."""
+    if link.role == "target":
+        return TargetUnit
+    return Plc5Unit if _is_plc5(link) else Df1Unit
 
 
 def df1_plan(link: Df1LinkConfig) -> Plan[Any, Any]:

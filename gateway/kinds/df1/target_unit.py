@@ -1,6 +1,6 @@
 """A DF1 target link served as a Modbus unit: the data files a PLC's MSG instructions read and write.
 
-The unit is not polled (:class:`gateway.unit.Unit` with ``polled=False``): the runner
+The unit is not polled (:attr:`gateway.unit.Unit.POLLED` False): the runner
 (:mod:`gateway.kinds.df1.target_driver`) answers the PLC and stores what it wrote; Modbus clients
 read the same values from the image and write into the same table, which the PLC's next read
 returns.  One block per element, so each element has its own time of last write: an element
@@ -144,11 +144,12 @@ def stored_elements(table: DataTable, refs: Iterable[ElementRef]) -> list[Stored
 class TargetUnit(Unit[TargetElement, TargetBit]):
     """A target link's data files as a Modbus unit (module doc)."""
 
+    POLLED = False
     driver: TargetRunner
 
     def __init__(self, *, driver: TargetRunner, files: Sequence[TargetFile], store: TargetStore | None,
                  **common: Unpack[UnitOptions]) -> None:
-        super().__init__(driver=driver, plan=target_plan(files), polled=False, **common)
+        super().__init__(driver=driver, plan=target_plan(files), **common)
         self.files = tuple(files)
         table = driver.target.table
         self.table = table
