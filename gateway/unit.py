@@ -148,7 +148,6 @@ class Unit(ABC, Generic[R, B]):
         driver: UnitDriver,
         plan: Plan[R, B],
         stale_after: float = 5.0,
-        read_only: bool = False,
         writable: Sequence[WritableRange] = (),
         fast_interval: float = 0.0,
         slow_interval: float = 10.0,
@@ -162,6 +161,7 @@ class Unit(ABC, Generic[R, B]):
         write_queue_per_link: int = 32,
         write_timeout: float = 0.9,
         stagger: float | None = None,
+        read_only: bool = False,
     ) -> None:
         self.unit_id = unit_id
         self.name = name
