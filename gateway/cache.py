@@ -22,12 +22,12 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
+from gateway.schedule import NEVER
+
 if TYPE_CHECKING:
     from gateway.image import Images
 
 __all__ = ["BlockCache"]
-
-NEVER = float("-inf")
 
 
 class BlockCache:

@@ -18,7 +18,8 @@ Every line printed names the policy applied.  Exits 1, with the reason on stderr
 connection, no reply within ``--timeout`` seconds (default 3), an exception reply, a malformed
 reply, or (``--require-link``) a link that is down.
 
-Standard library only, a plain socket: no Modbus library, nothing to start but the interpreter.
+Standard library only, a plain socket: no Modbus library, nothing to start but the interpreter
+(the MBAP header is the server's own, :data:`gateway.modbus.mbap.MBAP`, a ``struct``).
 """
 
 from __future__ import annotations
@@ -29,13 +30,14 @@ import struct
 import sys
 from collections.abc import Sequence
 
+from gateway.modbus.mbap import MBAP
+
 __all__ = ["POLICY_LINK", "POLICY_SERVING", "check", "run_healthcheck"]
 
 STATUS_LINK_UP = 1000
 #: What each policy demands, as printed on every line of output.
 POLICY_SERVING = "policy serving: the Modbus server answers; the link's state does not count (--require-link: it does)"
 POLICY_LINK = "policy link (--require-link): the Modbus server answers and the controller link is up"
-_MBAP = struct.Struct(">HHHB")  # transaction id, protocol id (0), length, unit id
 _TID = 0x4843  # "HC"
 
 
@@ -64,10 +66,10 @@ def _receive(sock: socket.socket, size: int) -> bytes:
 
 def check(host: str, port: int, unit: int = 1, timeout: float = 3.0) -> int:
     """The value of status register 1000 (1 = link up).  Raises ``OSError`` or ``ValueError``."""
-    request = _MBAP.pack(_TID, 0, 6, unit) + struct.pack(">BHH", 4, STATUS_LINK_UP, 1)
+    request = MBAP.pack(_TID, 0, 6, unit) + struct.pack(">BHH", 4, STATUS_LINK_UP, 1)
     with socket.create_connection((host, port), timeout=timeout) as sock:
         sock.sendall(request)
-        tid, protocol, length, reply_unit = _MBAP.unpack(_receive(sock, _MBAP.size))
+        tid, protocol, length, reply_unit = MBAP.unpack(_receive(sock, MBAP.size))
         if (tid, protocol, reply_unit) != (_TID, 0, unit) or not 2 <= length <= 254:
             raise ValueError(f"malformed reply header (tid {tid}, protocol {protocol}, length {length})")
         pdu = _receive(sock, length - 1)

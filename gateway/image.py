@@ -33,13 +33,12 @@ from typing import Any
 
 from gateway.frozen import frozen
 from gateway.modbus.mapping import BitPoint, Plan, RegisterPoint, Table
+from gateway.schedule import NEVER
 
 __all__ = ["BIT_TABLES", "REGISTER_TABLES", "ImageMiss", "Images"]
 
 REGISTER_TABLES = (Table.HOLDING, Table.INPUT)
 BIT_TABLES = (Table.COIL, Table.DISCRETE)
-
-NEVER = float("-inf")
 
 #: bytes.translate table clearing bit 7 of a register's MSB (a codec's ``mask``)
 _MASK_7F = bytes(b & 0x7F for b in range(256))

@@ -45,7 +45,7 @@ from gateway.config import parse_listen
 from gateway.logutil import RepeatLog
 from gateway.modbus.admission import IPNetwork, format_address, host_allowed, peer_host
 from gateway.sparkplug.report import families as sparkplug_families
-from gateway.status import StatusPage, data_age, link_fresh, public_error, stale_limit
+from gateway.status import JSON_CONTENT_TYPE, StatusPage, data_age, link_fresh, public_error, stale_limit
 
 if TYPE_CHECKING:
     from gateway.config.link import LinkBase
@@ -63,7 +63,6 @@ _MAX_HEAD: Final = 8192
 """Largest request head (request line + headers) accepted; larger gets 431."""
 _MAX_CONNECTIONS: Final = 32
 """Concurrent HTTP connections by default; more are closed at once."""
-_JSON: Final = "application/json"
 _TEXT: Final = "text/plain; charset=utf-8"
 _REASONS: Final = {
     200: "OK",
@@ -530,7 +529,7 @@ class MetricsServer:
             return 200, CONTENT_TYPE_LATEST, body, []
         healthy, document = health(self.gateway, asyncio.get_running_loop().time())
         body = (json.dumps(document, separators=(",", ":")) + "\n").encode()
-        return (200 if healthy else 503), _JSON, body, []
+        return (200 if healthy else 503), JSON_CONTENT_TYPE, body, []
 
 
 async def _read_head(reader: asyncio.StreamReader) -> bytes:

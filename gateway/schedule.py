@@ -51,6 +51,7 @@ __all__ = [
     "DEFAULT_DEMAND_HOLD",
     "DEFAULT_READ_WAIT",
     "MAX_READ_WAIT",
+    "NEVER",
     "Budget",
     "DemandLog",
     "Schedule",
@@ -68,6 +69,8 @@ DEFAULT_READ_WAIT: Final = 0.5
 #: The largest ``read_wait`` the config accepts.
 MAX_READ_WAIT: Final = 5.0
 
+#: A loop time before every other: the time of what has not happened yet (a block never read,
+#: never due); the cache's and the images' stamps start at it too.
 NEVER: Final = -math.inf
 #: Seconds over which the line's use is measured (the last full window is shown).
 USE_WINDOW: Final = 10.0

@@ -51,6 +51,7 @@ if TYPE_CHECKING:
     from gateway.unit import Unit
 
 __all__ = [
+    "JSON_CONTENT_TYPE",
     "LINE_QUALITY",
     "MAX_COUNT",
     "StatusPage",
@@ -66,8 +67,9 @@ __all__ = [
 #: The most values one register view request returns (a Modbus read of registers holds 125).
 MAX_COUNT: Final = 125
 _DEFAULT_COUNT: Final = 16
+#: The Content-Type of the JSON answers of the status API and of /healthz.
+JSON_CONTENT_TYPE: Final = "application/json"
 _MAX_ERROR_TEXT: Final = 300
-_JSON: Final = "application/json"
 _UNIT_PATH: Final = re.compile(r"/api/units/([^/]{1,16})/([^/]{1,16})")
 _STATES: Final = {
     ModbusExceptionReply.GATEWAY_TARGET_FAILED: "stale",
@@ -216,7 +218,7 @@ class StatusPage:
         except _BadRequest as error:
             status, document = error.status, {"error": str(error)}
         body = (json.dumps(document, separators=(",", ":"), allow_nan=False) + "\n").encode()
-        return status, _JSON, body, [("X-Content-Type-Options", "nosniff")]
+        return status, JSON_CONTENT_TYPE, body, [("X-Content-Type-Options", "nosniff")]
 
     # --- /api/status ----------------------------------------------------------------------
 

@@ -38,7 +38,7 @@ __all__ = ["CSV_HEADER", "FORMATS", "KepwareDevice", "Tag", "config_tags", "kepw
 CSV_HEADER: Final = ("name", "unit", "table", "address", "reference", "type", "access", "description")
 
 #: the first digit of a table's 1-based reference (the classic 0xxxx / 1xxxx / 3xxxx / 4xxxx notation)
-_PREFIX: Final = {Table.COIL: 0, Table.DISCRETE: 1, Table.INPUT: 3, Table.HOLDING: 4}
+_REFERENCE_PREFIX: Final = {Table.COIL: 0, Table.DISCRETE: 1, Table.INPUT: 3, Table.HOLDING: 4}
 
 _STATUS_TEXT: Final = {
     "link_up": "link up (1) / down (0)",
@@ -55,7 +55,7 @@ def reference(table: Table, address: int) -> str:
 
     Six digits for every address (``465536`` is holding 65535), as the Kepware Modbus drivers take them.
     """
-    return f"{_PREFIX[table]}{address + 1:05d}"
+    return f"{_REFERENCE_PREFIX[table]}{address + 1:05d}"
 
 
 @frozen

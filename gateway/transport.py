@@ -39,6 +39,7 @@ from gateway.logutil import redact_url
 from gateway.streams import MISSING_PORT_HINT, ByteStream, SerialSettings
 
 __all__ = [
+    "LOW_7_BITS",
     "ByteStream",
     "ModemLines",
     "ProtocolStream",
@@ -252,7 +253,8 @@ def _parity_table(odd: bool) -> bytes:
 
 
 _EVEN, _ODD = _parity_table(False), _parity_table(True)
-_LOW_7_BITS = bytes(b & 0x7F for b in range(256))
+#: ``bytes.translate`` table: the low 7 bits of each byte (7 data bits, the parity bit cleared).
+LOW_7_BITS = bytes(b & 0x7F for b in range(256))
 
 
 class SoftwareParityStream(ByteStream):
@@ -268,7 +270,7 @@ class SoftwareParityStream(ByteStream):
         self._table = _ODD if parity == "O" else _EVEN
 
     async def read(self) -> bytes:
-        return (await self._inner.read()).translate(_LOW_7_BITS)
+        return (await self._inner.read()).translate(LOW_7_BITS)
 
     def write(self, data: bytes) -> None:
         self._inner.write(data.translate(self._table))
@@ -277,7 +279,7 @@ class SoftwareParityStream(ByteStream):
         await self._inner.close()
 
     def start_push(self, receive: Callable[[bytes], None], lost: Callable[[str], None]) -> bool:
-        return self._inner.start_push(lambda data: receive(data.translate(_LOW_7_BITS)), lost)
+        return self._inner.start_push(lambda data: receive(data.translate(LOW_7_BITS)), lost)
 
     def char_time(self, settings: SerialSettings) -> float:
         return self._inner.char_time(settings)

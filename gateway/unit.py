@@ -1,7 +1,7 @@
 """One controller served as one Modbus unit: driver + read plan + cache + poller + access rules.
 
 A unit is *polled* (the default: its poller reads the plan's blocks from the controller) or not
-(``polled=False``: the kind's runner owns the line and fills the image itself, with
+(its class sets :attr:`Unit.POLLED` False: the kind's runner owns the line and fills the image itself, with
 :meth:`Unit.store` when data arrives and :meth:`Unit.heard` when the peer is heard from; a
 non-polled value never ages on its own and is stale only once the peer has been silent for
 ``stale_after``).  Everything else (the image, the status block, writes, access rules) is the same.
@@ -45,7 +45,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Callable, Hashable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any, Generic, NotRequired, TypedDict, TypeVar
+from typing import Any, ClassVar, Generic, NotRequired, TypedDict, TypeVar
 
 from gateway.cache import BlockCache
 from gateway.clients import current_client
@@ -138,6 +138,8 @@ class Unit(ABC, Generic[R, B]):
     exactly the targets its plan holds.
     """
 
+    POLLED: ClassVar[bool] = True  #: False: the kind's runner fills the image (module doc; LinkKind.is_polled)
+
     def __init__(
         self,
         *,
@@ -146,7 +148,6 @@ class Unit(ABC, Generic[R, B]):
         driver: UnitDriver,
         plan: Plan[R, B],
         stale_after: float = 5.0,
-        read_only: bool = False,
         writable: Sequence[WritableRange] = (),
         fast_interval: float = 0.0,
         slow_interval: float = 10.0,
@@ -160,7 +161,7 @@ class Unit(ABC, Generic[R, B]):
         write_queue_per_link: int = 32,
         write_timeout: float = 0.9,
         stagger: float | None = None,
-        polled: bool = True,
+        read_only: bool = False,
     ) -> None:
         self.unit_id = unit_id
         self.name = name
@@ -177,7 +178,7 @@ class Unit(ABC, Generic[R, B]):
         self.schedule = Schedule(
             [block.scan for block in plan.blocks], fast_interval=fast_interval, slow_interval=slow_interval,
             stale_after=stale_after, demand_hold=demand_hold, background_interval=background_interval,
-        ) if polled else None
+        ) if self.POLLED else None
         #: per block: the largest age at which its bytes are still served; polled: the schedule sets
         #: each as the block is read (see the module doc); a value that is not polled does not age
         self._max_age = self.schedule.max_age if self.schedule is not None else [math.inf] * len(plan.blocks)

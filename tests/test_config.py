@@ -644,10 +644,10 @@ BAD = [
     ),
     (
         "max-read",
-        DF1_LINK.replace("unit = 2", "unit = 2\nmax_read_bytes = 241"),
+        DF1_LINK.replace("unit = 2", "unit = 2\nmax_read_bytes = 245"),  # a PLC-5 reply holds 244 (pccc/limits.py)
         "(link[0]).max_read_bytes",
         "max_read_bytes",
-        "240",
+        "244",
     ),
     (
         "map-table",

@@ -4,12 +4,17 @@ The graph is built from the source with :mod:`ast`, not by importing: every ``im
 ``from ... import`` anywhere in a module counts, at module level, inside functions and under
 ``if TYPE_CHECKING:``, because a late import only hides a circle from the interpreter, not from
 the reader.  ``from package import name`` counts as an edge to ``package.name`` when that is a
-module, else to ``package``.  A package's ``__init__`` is the package's module.
+module, else to ``package``.  A package's ``__init__`` is the package's module, and importing
+``a.b.c`` runs the ``__init__`` of ``a`` and ``a.b`` first: an import counts as an edge to every
+package above its target too, except the importer's own packages (those are already running when
+it is imported).  So a module that imports a sibling package's submodule whose package
+``__init__`` leads back to it is a circle, though no ``import`` line names the package.
 """
 
 from __future__ import annotations
 
 import ast
+import re
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -69,7 +74,16 @@ def import_graph(root: Path, package: str) -> dict[str, set[str]]:
                 owner = _owner(target, modules)
                 if owner is not None and owner != name:
                     graph[name].add(owner)
+                    graph[name].update(_parent_packages(owner, name, modules))
     return graph
+
+
+def _parent_packages(target: str, importer: str, modules: Iterable[str]) -> set[str]:
+    """The packages whose ``__init__`` importing ``target`` runs, less those of ``importer``."""
+    known = set(modules)
+    parts = target.split(".")
+    above = {".".join(parts[:end]) for end in range(1, len(parts))}
+    return {package for package in above & known if importer != package and not importer.startswith(package + ".")}
 
 
 def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -150,6 +164,27 @@ def test_gateway_has_no_import_cycles() -> None:
             },
             [["pkg", "pkg.sub", "pkg.sub.inner"]],
             id="through-package-inits",
+        ),
+        pytest.param(
+            {
+                "pkg/__init__.py": "",
+                "pkg/config/__init__.py": "from pkg.config.links import models\n",
+                "pkg/config/base.py": "class Base: ...\n",
+                "pkg/config/links.py": "def models() -> None:\n    from pkg.kinds import registry\n",
+                "pkg/kinds.py": "from pkg.config.base import Base\nregistry = [Base]\n",
+            },
+            [["pkg.config", "pkg.config.links", "pkg.kinds"]],
+            id="through-the-parent-package-init-of-an-imported-module",
+        ),
+        pytest.param(
+            {
+                "pkg/__init__.py": "from pkg.sub import x\n",
+                "pkg/sub/__init__.py": "from pkg.sub.a import x\n",
+                "pkg/sub/a.py": "from pkg.sub.b import y\nx = y\n",
+                "pkg/sub/b.py": "y = 1\n",
+            },
+            [],
+            id="siblings-under-a-package-that-re-exports-them",
         ),
         pytest.param(
             {"pkg/__init__.py": "", "pkg/a.py": "from pkg import b\nimport os\n", "pkg/b.py": "import json\n"},
@@ -250,3 +285,65 @@ def test_the_name_check_finds_a_name_defined_twice(tmp_path: Path) -> None:
                       "pkg/b.py": "class verdict: ...\nclass Other: ...\n"})
     names = top_level_names(tmp_path, "pkg")
     assert names["verdict"] == ["pkg.a", "pkg.b"] and names["Other"] == ["pkg.b"]
+
+
+def module_constants(root: Path, package: str) -> dict[str, list[str]]:
+    """UPPER_CASE name -> the modules that assign it at their top level (``X = ...``, ``X: T = ...``,
+    ``X, Y = ...``).  Left out: a single capital letter (a type variable or a table's short name for
+    an enum, local to its module by convention), and a name bound to another name or an attribute
+    (``_MBAP: Final = mbap.MBAP``, ``_DLE = Symbol.DLE``): such an alias states nothing, it takes
+    the value from its one place."""
+    defined: dict[str, list[str]] = {}
+    for name, path in module_names(root, package).items():
+        found: set[str] = set()
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            targets: list[ast.expr] = []
+            if isinstance(node, ast.Assign):
+                targets = list(node.targets)
+            elif isinstance(node, ast.AnnAssign) and node.value is not None:
+                targets = [node.target]
+            if not targets or isinstance(getattr(node, "value", None), ast.Name | ast.Attribute):
+                continue
+            for target in targets:
+                elements = target.elts if isinstance(target, ast.Tuple) else [target]
+                found |= {e.id for e in elements if isinstance(e, ast.Name) and _CONSTANT.fullmatch(e.id)}
+        for constant in found:
+            defined.setdefault(constant, []).append(name)
+    return defined
+
+
+_CONSTANT = re.compile(r"_?[A-Z][A-Z0-9_]+")
+
+#: Names that several modules define on purpose, each meaning "this module's own" by a contract
+#: the reader knows from the name's one definition of that contract:
+SAME_NAME_BY_CONTRACT = {
+    # every kind's package exports its LinkKind as KIND (gateway/kinds/__init__.py's docstring)
+    "KIND": ["gateway.kinds.df1", "gateway.kinds.slc_ascii"],
+    # every state machine's table of (state, input) -> (action, next state) is its module's
+    # TRANSITIONS, which the table walker (tests/protocols/test_transitions.py) reads by that name
+    "TRANSITIONS": [
+        "gateway.protocols.df1.full_duplex.table",
+        "gateway.protocols.df1.full_duplex.transaction",
+        "gateway.protocols.df1.half_duplex.master",
+        "gateway.protocols.df1.write_verdict",
+        "gateway.protocols.slc_ascii.session_table",
+    ],
+}
+
+
+def test_no_constant_is_defined_in_two_modules() -> None:
+    """One place per fact: a module-level constant of gateway/ is assigned in one module, and the
+    others import it (so that two values cannot drift apart); two facts get two names."""
+    twice = {name: modules for name, modules in module_constants(ROOT, "gateway").items() if len(modules) > 1}
+    assert {name: modules for name, modules in twice.items() if SAME_NAME_BY_CONTRACT.get(name) != modules} == {}
+
+
+def test_the_constant_check_finds_a_constant_defined_twice(tmp_path: Path) -> None:
+    _write(tmp_path, {
+        "pkg/__init__.py": "",
+        "pkg/a.py": "from typing import Final, TypeVar\nT = TypeVar('T')\nDEFAULT_RETRIES: Final = 3\n_MBAP = 7\n",
+        "pkg/b.py": "T = 1\nDEFAULT_RETRIES = 3\nONE, _MBAP = 1, 2\nlower = 4\n",
+        "pkg/c.py": "from pkg.a import DEFAULT_RETRIES\nfrom pkg import a\nONE = 1\n_MBAP = a._MBAP\n",
+    })
+    assert module_constants(tmp_path, "pkg") == {
+        "DEFAULT_RETRIES": ["pkg.a", "pkg.b"], "_MBAP": ["pkg.a", "pkg.b"], "ONE": ["pkg.b", "pkg.c"]}

@@ -153,9 +153,10 @@ class FeedRunner(LineDriver):
 
 class FeedUnit(Unit[ValueTarget, None]):
     driver: FeedRunner
+    POLLED = False
 
     def __init__(self, *, driver: FeedRunner, **common: Unpack[UnitOptions]) -> None:
-        super().__init__(driver=driver, plan=feed_plan(), polled=False, **common)
+        super().__init__(driver=driver, plan=feed_plan(), **common)
         driver.unit = self
 
     async def read_block(self, block: Block) -> bytes:
@@ -188,6 +189,7 @@ KIND: LinkKind[FeedLinkConfig] = LinkKind(
     plan=feed_plan,
     controllers="feed peers",
     simulators=(FEED_SIM,),
+    unit_class=lambda link: FeedUnit,
 )
 
 # --- the acceptance test -------------------------------------------------------------------------

@@ -43,5 +43,5 @@ run "5 SLC: the same, _msg_id given an initial value" "$SLC_TESTS" gateway/proto
 " "        self._msg_id: int = 0
 "
 run "6 unit: silent-link limit min -> max" "$UNIT_TESTS" gateway/unit.py "stale_after + min(self.schedule.period, default=0.0)" "stale_after + max(self.schedule.period, default=0.0)"
-run "6 SLC plan: presets not masked" "$SLC_PLAN_TESTS" gateway/kinds/slc_ascii/plan.py "plan.holding[32 + n] = word(0x40 + 2 * n, U16_BE_MASKED," "plan.holding[32 + n] = word(0x40 + 2 * n, U16_BE,"
+run "6 SLC plan: presets not masked" "$SLC_PLAN_TESTS" gateway/kinds/slc_ascii/plan.py "plan.holding[timers + n] = word(preset, U16_BE_MASKED," "plan.holding[timers + n] = word(preset, U16_BE,"
 run "6 target: float word order" "$TARGET_TESTS" gateway/kinds/df1/target/unit.py 'low_first = entry.word_order == "low-first"' 'low_first = entry.word_order != "low-first"'

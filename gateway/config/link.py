@@ -19,6 +19,7 @@ from gateway.config._common import Loc, Model, Problems, array, check_port_url, 
 from gateway.config.writer import table_lines
 from gateway.frozen import frozen
 from gateway.link_health import DEFAULT_DOWN_AFTER
+from gateway.retries import DEFAULT_RETRIES
 from gateway.schedule import DEFAULT_BACKGROUND_INTERVAL, DEFAULT_DEMAND_HOLD, DEFAULT_READ_WAIT, MAX_READ_WAIT
 from gateway.streams import SerialSettings
 
@@ -39,9 +40,6 @@ Parity = Literal["N", "E", "O"]
 #: The baud rates a link may use.
 BAUDRATES = (110, 300, 600, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
 
-#: ``retries``: tries after the first before a transaction fails.  The default of the key, of every
-#: kind's driver and of the CLI's ``--retries`` (one value, here).
-DEFAULT_RETRIES = 3
 
 _NAME_RE = re.compile(r"[A-Za-z0-9_.-]{1,40}")
 #: The serial keys' allowed values, and the problem (with the value given) when it is another.

@@ -7,13 +7,15 @@ one.  Each model's ``protocol`` field is a one-value ``Literal``: an unknown pro
 naming the known ones, never a fallback to a default protocol, and each model refuses the keys
 it does not have (``extra="forbid"``).
 
-The registry is read when a config is validated, not when this module is imported: the kinds'
-packages import the config models, so the config cannot import the kinds first.
+The config does not import the registry (the kinds' packages import the config models, so that
+would be a circle): the registry passes itself in when it is imported
+(:func:`use_link_kinds`, called by :mod:`gateway.kinds`), and it is read when a config is
+validated, so that a kind registered later is seen.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Annotated, Any, TypeAlias, Union
 
 from pydantic import (
@@ -40,6 +42,7 @@ __all__ = [
     "protocol_names",
     "protocol_of",
     "sim_model_names",
+    "use_link_kinds",
 ]
 
 #: The type of one ``[[link]]``: the link model of one protocol (a LinkBase subclass).
@@ -49,10 +52,23 @@ LinkConfig: TypeAlias = LinkBase
 LinkProtocol: TypeAlias = str
 
 
-def _by_protocol() -> Mapping[str, type[LinkBase]]:
-    from gateway.kinds import link_kinds
+#: The registry's config models by protocol, as :func:`use_link_kinds` was given them.
+_registry: list[Callable[[], Mapping[str, type[LinkBase]]]] = []
 
-    return {name: kind.config_model for name, kind in link_kinds().items()}
+
+def use_link_kinds(models: Callable[[], Mapping[str, type[LinkBase]]]) -> None:
+    """Validate ``[[link]]`` tables by ``models()``: protocol -> config model, built-in ones first.
+
+    Called once by the registry of link kinds (:mod:`gateway.kinds`) when it is imported; it is
+    called again at every validation, so that kinds registered later are seen.
+    """
+    _registry[:] = [models]
+
+
+def _by_protocol() -> Mapping[str, type[LinkBase]]:
+    if not _registry:
+        raise RuntimeError("no link kinds are known to the config: import gateway.kinds before validating a config")
+    return _registry[0]()
 
 
 def link_models() -> tuple[type[LinkBase], ...]:

@@ -15,6 +15,8 @@ from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Any
 
+from gateway.config.link import LinkBase
+from gateway.config.links import use_link_kinds
 from gateway.kinds import df1, slc_ascii
 from gateway.kinds.contract import Built, LinkKind, LinkRunner, ToolHints, unit_options
 from gateway.sim.models import register_sim_model, unregister_sim_model
@@ -47,6 +49,13 @@ _version = [0]
 
 #: Every registered kind by protocol name (a read-only view: use register_link_kind to add one).
 LINK_KINDS: Mapping[str, LinkKind[Any]] = MappingProxyType(_kinds)
+
+
+def _config_models() -> Mapping[str, type[LinkBase]]:
+    return {name: kind.config_model for name, kind in _kinds.items()}
+
+
+use_link_kinds(_config_models)
 
 
 def link_kinds() -> Mapping[str, LinkKind[Any]]:

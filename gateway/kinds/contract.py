@@ -121,8 +121,8 @@ class LinkKind(Generic[C]):
     simulate_options: Callable[[argparse.ArgumentParser], None] | None = None
     #: examples of the items of ``slc-gateway read`` and ``write``, for help texts
     item_examples: tuple[str, str] = ("", "")
-    #: whether a link's unit is polled (False: the kind's runner fills its image, see gateway.unit)
-    is_polled: Callable[[C], bool] = lambda link: True
+    #: the class of a link's unit (``check-config`` asks it whether the unit is polled)
+    unit_class: Callable[[C], type[Unit[Any, Any]]] = lambda link: Unit
     #: (tag name, description) of the status block's kind counter, input registers 1009-1010
     #: (:attr:`gateway.unit.Unit.kind_counter`)
     status_counter: tuple[str, str] = ("kind_counter", "not used by this kind (always 0)")
@@ -130,6 +130,10 @@ class LinkKind(Generic[C]):
     @property
     def name(self) -> str:
         return protocol_of(self.config_model)
+
+    def is_polled(self, link: C) -> bool:
+        """Whether ``link``'s unit is polled: its unit class says (:attr:`gateway.unit.Unit.POLLED`)."""
+        return self.unit_class(link).POLLED
 
     @property
     def serial_defaults(self) -> SerialDefaults:

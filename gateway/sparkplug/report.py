@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 
 __all__ = ["families", "status"]
 
-_PREFIX: Final = "slc_gateway_sparkplug_"
+_METRIC_PREFIX: Final = "slc_gateway_sparkplug_"
 
 
 def status(node: SparkplugNode | None) -> dict[str, object] | None:
@@ -50,21 +50,21 @@ def families(node: SparkplugNode | None) -> Iterator[Metric]:
     """``/metrics``: the session (gauges) and the messages and commands (counters)."""
     if node is None:
         return
-    state = GaugeMetricFamily(_PREFIX + "session", "1 for the state the MQTT session is in "
+    state = GaugeMetricFamily(_METRIC_PREFIX + "session", "1 for the state the MQTT session is in "
                               "(disconnected, connected: waiting for the primary host, online: births published).",
                               labels=["state"])
-    sessions = CounterMetricFamily(_PREFIX + "sessions", "MQTT sessions established (each a new bdSeq).")
-    published = CounterMetricFamily(_PREFIX + "messages_published", "Sparkplug messages handed to the broker.",
+    sessions = CounterMetricFamily(_METRIC_PREFIX + "sessions", "MQTT sessions established (each a new bdSeq).")
+    published = CounterMetricFamily(_METRIC_PREFIX + "messages_published", "Sparkplug messages handed to the broker.",
                                     labels=["type"])
-    received = CounterMetricFamily(_PREFIX + "commands_received", "NCMD, DCMD and STATE messages received.",
+    received = CounterMetricFamily(_METRIC_PREFIX + "commands_received", "NCMD, DCMD and STATE messages received.",
                                    labels=["type"])
-    refused = CounterMetricFamily(_PREFIX + "commands_refused",
+    refused = CounterMetricFamily(_METRIC_PREFIX + "commands_refused",
                                   "Command metrics that changed nothing (unknown or read-only metric, bad "
                                   "payload or value) and DCMD writes that failed.", labels=["reason"])
-    born = GaugeMetricFamily(_PREFIX + "devices_online", "Devices (links) with a DBIRTH and no DDEATH since.")
-    cpu = CounterMetricFamily(_PREFIX + "cpu_seconds", "CPU the edge node's own steps took on the event loop "
+    born = GaugeMetricFamily(_METRIC_PREFIX + "devices_online", "Devices (links) with a DBIRTH and no DDEATH since.")
+    cpu = CounterMetricFamily(_METRIC_PREFIX + "cpu_seconds", "CPU the edge node's own steps took on the event loop "
                               "(reading the image, building DDATA; not the MQTT client's own work).")
-    longest = GaugeMetricFamily(_PREFIX + "longest_step_seconds", "The longest of those steps (CPU): the most "
+    longest = GaugeMetricFamily(_METRIC_PREFIX + "longest_step_seconds", "The longest of those steps (CPU): the most "
                                 "a Modbus answer can wait behind the edge node.")
     current = node.session_state
     for name in ("disconnected", "connected", "online"):

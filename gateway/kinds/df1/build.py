@@ -24,8 +24,9 @@ from gateway.kinds.df1.full.driver import Df1Driver
 from gateway.kinds.df1.half.driver import Df1HalfDuplexLine
 from gateway.kinds.df1.half.receive import ReceiveWindow
 from gateway.kinds.df1.plan import MapItem, point_labels_df1, shared_plan_df1
-from gateway.kinds.df1.plc5_unit import PLC5_MAX_READ_BYTES, Plc5Unit, point_labels_plc5, shared_plan_plc5
+from gateway.kinds.df1.plc5_unit import Plc5Unit, point_labels_plc5, shared_plan_plc5
 from gateway.kinds.df1.target.build import build_target, target_link_labels, target_link_plan
+from gateway.kinds.df1.target.unit import TargetUnit
 from gateway.kinds.df1.unit import PROCESSORS, Df1Unit, PcccDriver, PcccUnit
 from gateway.link_health import DownAfter
 from gateway.modbus.mapping import Plan, Table
@@ -34,6 +35,7 @@ from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.half_duplex.events import StationConfig
 from gateway.protocols.df1.half_duplex.slave_messages import RegisterTable
 from gateway.protocols.df1.pccc import ProcessorFamily
+from gateway.protocols.df1.pccc.limits import PLC5_WORD_RANGE, SizeLimits
 from gateway.protocols.df1.pccc.target_table import ElementRef
 from gateway.unit import Unit
 
@@ -57,8 +59,18 @@ def _is_plc5(link: Df1LinkConfig) -> bool:
     return PROCESSORS[link.processor] is ProcessorFamily.PLC5
 
 
-def _max_read(link: Df1LinkConfig) -> int:
-    return link.max_read_bytes or PROCESSORS[link.processor].max_read_bytes
+def size_limits(link: Df1LinkConfig) -> SizeLimits:
+    """The data bytes of a master link's packets: its family's limits (a PLC-5 is polled with word range
+    commands), lowered by ``max_read_bytes`` / ``max_write_bytes``, never raised above them."""
+    family = PLC5_WORD_RANGE if _is_plc5(link) else PROCESSORS[link.processor].limits
+    return family.lowered(link.max_read_bytes, link.max_write_bytes)
+
+
+def df1_unit_class(link: Df1LinkConfig) -> type[Unit[Any, Any]]:
+    """The class of a link's unit: a target's files, a PLC-5 or an SLC 500 polled over DF1."""
+    if link.role == "target":
+        return TargetUnit
+    return Plc5Unit if _is_plc5(link) else Df1Unit
 
 
 def df1_plan(link: Df1LinkConfig) -> Plan[Any, Any]:
@@ -67,8 +79,8 @@ def df1_plan(link: Df1LinkConfig) -> Plan[Any, Any]:
     if link.role == "target":
         return target_link_plan(link)
     if _is_plc5(link):
-        return shared_plan_plc5(map_items(link), link.max_read_bytes or PLC5_MAX_READ_BYTES)
-    return shared_plan_df1(map_items(link), _max_read(link))
+        return shared_plan_plc5(map_items(link), size_limits(link).max_read_bytes)
+    return shared_plan_df1(map_items(link), size_limits(link).max_read_bytes)
 
 
 def df1_plan_lines(plan: Plan[Any, Any]) -> list[str]:
@@ -100,11 +112,12 @@ def station_unit(driver: PcccDriver, link: Df1LinkConfig, share: LineShare | Non
     items = map_items(link)
     options = unit_options(link)
     options["line_share"] = share
+    limits = size_limits(link)
     if _is_plc5(link):
-        return Plc5Unit(driver=driver, items=items, max_read_bytes=link.max_read_bytes,
-                        max_write_bytes=link.max_write_bytes, **options)
-    return Df1Unit(driver=driver, items=items, max_read_bytes=_max_read(link), max_write_bytes=link.max_write_bytes,
-                   family=PROCESSORS[link.processor], **options)
+        return Plc5Unit(driver=driver, items=items, max_read_bytes=limits.max_read_bytes,
+                        max_write_bytes=limits.max_write_bytes, **options)
+    return Df1Unit(driver=driver, items=items, max_read_bytes=limits.max_read_bytes,
+                   max_write_bytes=limits.max_write_bytes, family=PROCESSORS[link.processor], **options)
 
 
 def _checksum(link: Df1LinkConfig) -> Checksum:

@@ -24,7 +24,9 @@ from gateway.frozen import frozen
 from gateway.kinds.df1.target.config import TargetFile, target_file_problems
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
 from gateway.protocols.df1.address import parse_address
-from gateway.protocols.df1.half_duplex.events import DEMOTE_AFTER
+from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM
+from gateway.protocols.df1.half_duplex.events import DEMOTE_AFTER, HALF_DUPLEX_ACK_TIMEOUT
+from gateway.protocols.df1.pccc.limits import MAX_DATA_BYTES
 from gateway.protocols.df1.plc5_address import parse_plc5_address
 
 __all__ = [
@@ -256,17 +258,17 @@ class Df1LinkConfig(LinkBase):
     """Master: the controller's DF1 node (destination). Target: the gateway's own node."""
     source: int = Field(0, ge=0, le=254)
     """The gateway's own DF1 node (source) as a master; a half-duplex station's MSG writes address it."""
-    checksum: Literal["bcc", "crc"] = "crc"
+    checksum: Literal["bcc", "crc"] = DEFAULT_CHECKSUM.value
     """"crc" (CRC-16) or "bcc": as the controller's channel 0 is set."""
     processor: Processor = "slc5/04"
     """slc500, slc5/01 ... slc5/05 or plc5: the size limits of a command and, for plc5, PLC-5 addresses and commands
     (word range read / write, read-modify-write)."""
-    max_read_bytes: int = Field(0, ge=0, le=240)
-    """Override the processor's PCCC read size limit (0: the family's: SLC 500, 5/01, 5/02: 82 data bytes; 5/03,
-    5/04, 5/05: 236; PLC-5: 230)."""
-    max_write_bytes: int = Field(0, ge=0, le=240)
-    """Override the processor's PCCC write size limit (0: the family's: SLC 500, 5/01, 5/02: 82; 5/03, 5/04, 5/05:
-    228; PLC-5: 222)."""
+    max_read_bytes: int = Field(0, ge=0, le=MAX_DATA_BYTES)
+    """Lower the processor's PCCC read size limit (0: the family's: SLC 500, 5/01, 5/02: 82 data bytes; 5/03,
+    5/04, 5/05: 236; PLC-5, word range reads: 244). A value above the family's limit gets the family's."""
+    max_write_bytes: int = Field(0, ge=0, le=MAX_DATA_BYTES)
+    """Lower the processor's PCCC write size limit (0: the family's: SLC 500, 5/01, 5/02: 82; 5/03, 5/04, 5/05:
+    228; PLC-5, word range writes: 239 with the address). A value above the family's limit gets the family's."""
     map: tuple[MapEntry, ...] = Field((), strict=False)
     """[[link.map]]: the controller addresses a master link polls and where Modbus sees them (required for a master)."""
 
@@ -290,9 +292,11 @@ class Df1LinkConfig(LinkBase):
     echo: bool = False
     """Line key: 2-wire RS-485 where the gateway hears its own bytes: they are stripped, and a byte that comes back
     different is counted as a collision."""
-    ack_timeout: float = Field(0.5, gt=0, le=60)
-    """Line key: wait for the DLE ACK of a master message. On a target (where the key is optional) the gateway waits
-    for the PLC's DLE ACK of its reply, 1.0 s when the key is not set (1747-RM001 p. 13-52, ACK Timeout 50 x 20 ms)."""
+    ack_timeout: float = Field(HALF_DUPLEX_ACK_TIMEOUT, gt=0, le=60)
+    """Line key: wait for the DLE ACK of a master message: 0.5 s by default, sized to a wired line (1747-RM001G
+    p. 13-61: a message and the slave's turnaround; the SLC channel's 1.0 s allows for modems). On a target, the
+    wait for the PLC's DLE ACK of a reply: not given, 1.0 s (the SLC 500 channel's ACK Timeout, 50 x 20 ms,
+    p. 13-52)."""
     message_retries: int = Field(3, ge=0, le=10)
     """Line key: identical resends of a message without its DLE ACK."""
     duplicate_detect: bool = True
@@ -338,6 +342,14 @@ class Df1LinkConfig(LinkBase):
     its answer, so the table survives a restart (even kill -9)."""
     check_dst: bool = False
     """Target: answer only frames whose DST is station (full duplex ignores DST by default)."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _ack_timeout_of_the_mode(cls, data: Any) -> Any:
+        """``ack_timeout`` not given on a target: the SLC channel's (the key's doc), not a line master's."""
+        if isinstance(data, dict) and "ack_timeout" not in data and data.get("role") == "target":
+            return {**data, "ack_timeout": DEFAULT_ACK_TIMEOUT}
+        return data
 
     @field_validator("persist", mode="before")
     @classmethod

@@ -35,7 +35,7 @@ from gateway.modbus.mapping import (
     Table,
     WordWrite,
 )
-from gateway.protocols.df1.address import STRUCTURE_FILE_TYPES, FileType, SlcAddress, parse_address
+from gateway.protocols.df1.address import STRUCTURE_FILE_TYPES, FileType, SlcAddress, element_words, parse_address
 from gateway.protocols.df1.plc5_address import Plc5Address
 
 __all__ = [
@@ -120,10 +120,7 @@ def _locate(address: SlcAddress) -> tuple[Key, int]:
 
 
 def _element_words(key: Key) -> int:
-    file_type = key[0]
-    if file_type in STRUCTURE_FILE_TYPES:
-        return 3
-    return 2 if file_type == FileType.FLOAT else 1
+    return element_words(FileType(key[0]))
 
 
 def block_cost(words: int, overhead: int = READ_OVERHEAD_BYTES) -> int:

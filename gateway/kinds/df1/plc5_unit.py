@@ -11,7 +11,7 @@ MicroLogix only (a PLC-5 may answer them STS 10; ``gateway.kinds.df1.sim.plc5`` 
 * coils: read-modify-write ``0F 26`` of the word holding the bit, ``AND ~set_or_reset OR set``
   (1770-6.5.16 p. 7-20): only the written bits change, in the controller, in one command.
 
-Every write goes to the driver with ``write=True``: the exactly-once verdict and the read-back of a
+Every write is a write by :func:`gateway.protocols.df1.pccc.is_write`: the exactly-once verdict and the read-back of a
 write whose reply was lost (``gateway.protocols.df1.full_duplex.transaction.read_back_for``: a word range read of
 the same words) apply as for the SLC unit.  A write is never sent twice.
 
@@ -20,7 +20,7 @@ Addresses are the forms users type (``N7:0``, ``B3/5``, ``B3:0/5``, ``T4:1.ACC``
 :func:`plan_plc5` (the cost model and block choice of ``mapping_df1``, on PLC-5 word positions).
 
 The unit is the SLC :class:`~gateway.kinds.df1.unit.Df1Unit` with its commands replaced; it only needs a
-driver with ``execute(request, name, write=...)`` (``Df1Driver`` or a half-duplex ``Df1Station``).
+driver with ``execute(request, name)`` (``Df1Driver`` or a half-duplex ``Df1Station``).
 """
 
 from __future__ import annotations
@@ -61,6 +61,7 @@ from gateway.protocols.df1.plc5_address import (
     Plc5Address,
     encode_logical_binary,
     parse_plc5_address,
+    plc5_element_words,
 )
 from gateway.unit import UnitOptions, WriteStep
 
@@ -97,23 +98,15 @@ Plc5Plan: TypeAlias = Plan[Plc5WordWrite, Plc5BitWrite]
 _Key = tuple[str, int]  # file type letter, file number
 
 
-#: Words per element (1770-6.5.16 p. 13-13): a float 2, a timer / counter / control 3, else 1.
-_ELEMENT_WORDS = {"F": 2, "T": 3, "C": 3, "R": 3}
-
-
-def _words_per_element(file_type: str) -> int:
-    return _ELEMENT_WORDS.get(file_type, 1)
-
-
 def _position(address: Plc5Address) -> int:
     """Word position of ``address`` in its file."""
-    return address.element * _words_per_element(address.file_type) + (address.sub_element or 0)
+    return address.element * plc5_element_words(address.file_type) + (address.sub_element or 0)
 
 
 def _word_address(key: _Key, position: int) -> Plc5Address:
     """The address of word ``position`` of a file: element (and sub-element of a structure)."""
     file_type, file_number = key
-    size = _words_per_element(file_type)
+    size = plc5_element_words(file_type)
     element, sub = divmod(position, size)
     if file_type in PLC5_STRUCTURES:
         return Plc5Address(file_type, file_number, element, sub)
@@ -140,12 +133,13 @@ def _plc5_cells(item: MapItem) -> list[_Plc5Cell]:
     key = (base.file_type, base.file_number)
     first = _position(base)
     structure = base.file_type in PLC5_STRUCTURES
+    element_words = plc5_element_words(base.file_type)
     cells: list[_Plc5Cell] = []
     if table in (Table.COIL, Table.DISCRETE):
         first_bit = base.bit or 0
         for k in range(item.count):
             if structure:  # T4:0/DN, count 3: the DN bits of T4:0, T4:1, T4:2
-                position, bit = first + 3 * k, first_bit
+                position, bit = first + element_words * k, first_bit
             else:  # B3/5 or B3:0/5, count 20: bits 5..24 of the file
                 position, bit = first + (first_bit + k) // 16, (first_bit + k) % 16
             cells.append(_Plc5Cell(table, item.start + k, key, position, None, bit, scan))
@@ -163,7 +157,7 @@ def _plc5_cells(item: MapItem) -> list[_Plc5Cell]:
         return cells
     if base.file_type == "F":
         raise InvalidRequest(f"map address {item.address!r}: an F file holds floats: type = \"float32\"")
-    step = 3 if structure and base.sub_element is not None else 1  # T4:0.ACC, count 3: ACC of T4:0-2
+    step = element_words if structure and base.sub_element is not None else 1  # T4:0.ACC, count 3: ACC of T4:0-2
     for k in range(item.count):
         cells.append(_Plc5Cell(table, item.start + k, key, first + step * k, U16_LE, None, scan))
     return cells
@@ -182,7 +176,7 @@ def plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTE
     where: dict[tuple[Scan, _Key], list[tuple[int, int, int]]] = {}
     for (scan, key), spans in sorted(needed.items(), key=lambda kv: (kv[0][0].value, kv[0][1])):
         entries = []
-        for start, words in optimal_blocks(spans, _words_per_element(key[0]), max_words, READ_OVERHEAD_BYTES):
+        for start, words in optimal_blocks(spans, plc5_element_words(key[0]), max_words, READ_OVERHEAD_BYTES):
             address = _word_address(key, start)
             index = len(plan.blocks)
             plan.blocks.append(Block(Plc5Read(address, words), 2 * words, scan, f"{address} ({words} words)"))
@@ -267,7 +261,7 @@ class Plc5Unit(PcccUnit[Plc5WordWrite, Plc5BitWrite]):
         return data
 
     async def _write_words(self, address: Plc5Address, data: bytes) -> None:
-        await self._execute(WordRangeWrite(_logical_address(address), data), f"write {address}", write=True)
+        await self._execute(WordRangeWrite(_logical_address(address), data), f"write {address}")
 
     async def _write_register(self, target: Plc5WordWrite, value: int) -> None:
         await self._write_words(target.address, value.to_bytes(2, "little"))
@@ -337,7 +331,7 @@ class Plc5Unit(PcccUnit[Plc5WordWrite, Plc5BitWrite]):
             set_bits |= (1 << bit) if on else 0
         request = ReadModifyWriteRequest(((_logical_address(address), 0xFFFF & ~forced | set_bits, set_bits),))
         label = f"write {address}/" + ",".join(str(b) for b, _ in bits)
-        await self._execute(request, label, write=True)
+        await self._execute(request, label)
 
     async def _write_bit(self, target: Plc5BitWrite, value: bool) -> None:
         await self._write_bits(target.address, [(target.bit, value)])

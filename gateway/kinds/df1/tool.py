@@ -34,8 +34,8 @@ from gateway.kinds.df1.full.driver import Df1Driver
 from gateway.kinds.df1.half.driver import Df1HalfDuplexLine, PcccRequestLike
 from gateway.kinds.df1.unit import PROCESSORS
 from gateway.line_driver import OpenStream
-from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
-from gateway.protocols.df1.framing import Checksum
+from gateway.protocols.df1.address import SIGNED_FILE_TYPES, FileType, SlcAddress, parse_address
+from gateway.protocols.df1.framing import DEFAULT_CHECKSUM, Checksum
 from gateway.protocols.df1.half_duplex.events import StationConfig
 from gateway.protocols.df1.pccc import (
     DiagnosticStatusInfo,
@@ -47,12 +47,18 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalWrite,
     SetProcessorMode,
 )
-from gateway.protocols.df1.plc5_address import PLC5_STRUCTURES, AddressError, Plc5Address, parse_plc5_address
+from gateway.protocols.df1.plc5_address import (
+    PLC5_SIGNED,
+    PLC5_STRUCTURES,
+    AddressError,
+    Plc5Address,
+    parse_plc5_address,
+)
 from gateway.protocols.df1.plc5_commands import plc5_bit_write, plc5_read, plc5_write
 from gateway.tools_common import print_result, resolve_retries
 
 __all__ = [
-    "HINTS",
+    "DF1_TOOL_HINTS",
     "add_df1_options",
     "add_df1_sim_options",
     "decode_plc5_value",
@@ -65,7 +71,7 @@ __all__ = [
 #: DF1 link-layer symbols: DLE followed by STX, ETX, ENQ, ACK or NAK (1770-6.5.16, full duplex).
 _DLE_FRAMED = re.compile(rb"\x10[\x02\x03\x05\x06\x15]")
 
-HINTS = ToolHints(
+DF1_TOOL_HINTS = ToolHints(
     looks_like=lambda received: _DLE_FRAMED.search(received) is not None,
     wire="DF1 (DLE-framed): an SLC 500 or PLC-5?",
     controllers="an SLC 500 or PLC-5",
@@ -82,7 +88,7 @@ def decode_value(address: SlcAddress, data: bytes) -> Any:
         return bool(words[0] >> address.bit & 1)
     if len(words) > 1:
         return words
-    signed = address.file_type in (FileType.INTEGER, FileType.TIMER, FileType.COUNTER, FileType.CONTROL)
+    signed = address.file_type in SIGNED_FILE_TYPES
     return words[0] - 0x10000 if signed and words[0] & 0x8000 else words[0]
 
 
@@ -109,10 +115,6 @@ def encode_value(address: SlcAddress, text: str) -> tuple[bytes, int | None]:
     return (value & 0xFFFF).to_bytes(2, "little"), None
 
 
-#: PLC-5 files whose words read as signed 16-bit numbers (integers, and timer / counter / control words)
-_PLC5_SIGNED = frozenset("NTCR")
-
-
 def _plc5_address(text: str) -> Plc5Address:
     try:
         return parse_plc5_address(text)
@@ -134,7 +136,7 @@ def decode_plc5_value(address: Plc5Address, data: bytes) -> Any:
     words = [int.from_bytes(data[i : i + 2], "little") for i in range(0, len(data), 2)]
     if len(words) > 1:
         return words
-    signed = address.file_type in _PLC5_SIGNED
+    signed = address.file_type in PLC5_SIGNED
     return words[0] - 0x10000 if signed and words[0] & 0x8000 else words[0]
 
 
@@ -206,7 +208,7 @@ def _write_item(text: str, plc5: bool) -> _Write:
 class _Target(Protocol):
     """What the commands use: ``Df1Driver``, or a station of a half-duplex line (``Df1Station``)."""
 
-    async def execute(self, request: Any, name: str = "", *, write: bool | None = None) -> PcccReply: ...
+    async def execute(self, request: Any, name: str = "") -> PcccReply: ...
 
     async def probe(self) -> DiagnosticStatusInfo: ...
 
@@ -215,7 +217,8 @@ def add_df1_options(parser: argparse.ArgumentParser) -> None:
     """The options only DF1 commands take."""
     parser.add_argument("--station", type=int, default=1, help="df1: destination node (default 1)")
     parser.add_argument("--source", type=int, default=0, help="df1: our node (default 0)")
-    parser.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc (default crc)")
+    parser.add_argument("--checksum", choices=("bcc", "crc"), default=DEFAULT_CHECKSUM.value,
+                        help=f"df1: bcc or crc (default {DEFAULT_CHECKSUM.value})")
     parser.add_argument("--processor", default="slc5/04", choices=tuple(PROCESSORS),
                         help="df1: processor family (default slc5/04; plc5: PLC-5 addresses, word range commands)")
     parser.add_argument("--duplex", choices=("full", "half"), default="full",
@@ -256,18 +259,18 @@ async def run_df1_tool(command: str, args: argparse.Namespace, opener: OpenStrea
         elif command == "read":
             result: dict[str, Any] = {}
             for item in reads:
-                reply = await target.execute(item.request, f"read {item.text}", write=False)
+                reply = await target.execute(item.request, f"read {item.text}")
                 result[item.text] = item.decode(reply.data)
             print_result(result, args.json)
         elif command == "write":
             for write in writes:
-                await target.execute(write.request, f"write {write.text}", write=True)
+                await target.execute(write.request, f"write {write.text}")
             print_result({write.text: write.value for write in writes}, args.json)
         else:
             modes = {"run": ProcessorMode.RUN, "program": ProcessorMode.PROGRAM, "test": ProcessorMode.TEST_CONTINUOUS}
             if args.mode not in modes:
                 raise InvalidRequest(f"DF1 mode: choose run, program or test, not {args.mode}")
-            await target.execute(SetProcessorMode(modes[args.mode]), f"mode {args.mode}", write=True)
+            await target.execute(SetProcessorMode(modes[args.mode]), f"mode {args.mode}")
             print_result({"mode": args.mode}, args.json)
     return 0
 
@@ -325,5 +328,5 @@ def add_df1_sim_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--withhold-ack", type=int, default=0, metavar="N", help="df1: withhold 1 in N ACKs")
     parser.add_argument("--duplicate", type=int, default=0, metavar="N", help="df1: send 1 in N replies twice")
     parser.add_argument("--noise", type=int, default=0, metavar="N", help="df1: garbage between frames, 1 in N")
-    parser.add_argument("--checksum", choices=("bcc", "crc"), default="crc", help="df1: bcc or crc")
+    parser.add_argument("--checksum", choices=("bcc", "crc"), default=DEFAULT_CHECKSUM.value, help="df1: bcc or crc")
     parser.add_argument("--station", type=int, default=1, help="df1: our node number (default 1)")

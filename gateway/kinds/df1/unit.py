@@ -67,7 +67,7 @@ class PcccDriver(UnitDriver, Protocol):
 
     last_sts: int
 
-    async def execute(self, request: Any, name: str = "", *, write: bool | None = None) -> PcccReply: ...
+    async def execute(self, request: Any, name: str = "") -> PcccReply: ...
 
 
 class PcccUnit(Unit[R, B]):
@@ -97,10 +97,10 @@ class PcccUnit(Unit[R, B]):
             for first, n, inside in window.split(address, count)
         )
 
-    async def _execute(self, request: Any, label: str, *, write: bool | None = None) -> None:
+    async def _execute(self, request: Any, label: str) -> None:
         """Run a write command; a PCCC refusal becomes its Modbus exception."""
         try:
-            await self.driver.execute(request, label, write=write)
+            await self.driver.execute(request, label)
         except PcccError as exc:
             raise pccc_exception(exc) from exc
 

@@ -12,7 +12,12 @@ from gateway.kinds.contract import LinkKind
 from gateway.kinds.slc_ascii.config import SlcAsciiLinkConfig
 from gateway.kinds.slc_ascii.plan import plan_lines, point_labels, slc_ascii_plan
 from gateway.kinds.slc_ascii.simulators import SLC100, SLC150
-from gateway.kinds.slc_ascii.tool import HINTS, add_slc_ascii_options, add_slc_ascii_sim_options, run_slc_ascii_tool
+from gateway.kinds.slc_ascii.tool import (
+    SLC_ASCII_TOOL_HINTS,
+    add_slc_ascii_options,
+    add_slc_ascii_sim_options,
+    run_slc_ascii_tool,
+)
 from gateway.kinds.slc_ascii.unit import build_slc_ascii
 
 __all__ = ["KIND"]
@@ -26,7 +31,7 @@ KIND: LinkKind[SlcAsciiLinkConfig] = LinkKind(
     point_labels=lambda link: point_labels(),
     simulators=(SLC150, SLC100),
     tool=run_slc_ascii_tool,
-    hints=HINTS,
+    hints=SLC_ASCII_TOOL_HINTS,
     tool_options=add_slc_ascii_options,
     simulate_options=add_slc_ascii_sim_options,
     item_examples=("901.ACC 901.PRE 701 11 @0x84", "905.PRE=1234 701=1"),

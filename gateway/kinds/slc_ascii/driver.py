@@ -27,6 +27,7 @@ from gateway.kinds.slc_ascii.config import SLC_ASCII_DEFAULTS
 from gateway.line_driver import LineDriver, LineDriverOptions, Priority
 from gateway.link_health import LineQuality
 from gateway.protocols.slc_ascii import commands as cmds
+from gateway.protocols.slc_ascii import memory_map as mm
 from gateway.protocols.slc_ascii.commands import Command, ControllerType, FrnInfo, Mode, TimeoutClass
 from gateway.protocols.slc_ascii.framing import Ack, DataReply
 from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS, SlcSession, SlcVerdict
@@ -197,13 +198,13 @@ class SlcAsciiDriver(LineDriver):
         """After ;T: "read the bytes at addresses 84H and 85H to find out the reason"."""
         self.session.fault_pending = False
         try:
-            answer = await self._transaction(cmds.read_bytes(0x84, 2))
+            answer = await self._transaction(cmds.read_bytes(mm.ERROR_BITS_REGION.start, 2))
         except GatewayError as exc:
             log.warning("link %s: controller reported a fault (;T); its error bits could not be read: %s",
                         self.name, exc)
             return
         assert isinstance(answer, DataReply)
-        data = cmds.parse_read_reply(0x84, 2, answer.body_hex)
+        data = cmds.parse_read_reply(mm.ERROR_BITS_REGION.start, 2, answer.body_hex)
         fault = cmds.controller_fault(data[0], data[1])
         if self.last_fault is None or self.last_fault.errors != fault.errors:
             log.warning("link %s: %s", self.name, fault)

@@ -88,6 +88,21 @@ def plan_byte_blocks(addresses: Iterable[int], scan: Scan, max_count: int = 2) -
     return blocks
 
 
+#: The rows of the memory map read every fast period (what the program changes every scan) and
+#: every slow period (what changes by a write or a mode change).
+_FAST_REGIONS: tuple[mm.Region, ...] = (
+    mm.ACCUMULATORS, mm.OUTPUT_STATE, mm.INPUT_STATE, mm.INTERNAL_RELAYS, mm.FINE_TIMER_BITS,
+    mm.TCS_OUTPUT_BITS, mm.TCS_OVERFLOW_BITS,
+)
+_SLOW_REGIONS: tuple[mm.Region, ...] = (
+    mm.PRESETS, mm.STEP_COUNTERS, mm.ERROR_BITS_REGION, mm.FORCE_SELECT, mm.FORCE_STATE,
+)
+
+
+def _addresses(region: mm.Region) -> range:
+    return range(region.start, region.end + 1)
+
+
 @functools.cache
 def slc_ascii_plan() -> SlcAsciiPlan:
     """The default map of an SLC 100/150 (module docstring).
@@ -96,15 +111,8 @@ def slc_ascii_plan() -> SlcAsciiPlan:
     that 64 links hold one plan and one image layout (``gateway.image``), not 64.
     """
     plan: SlcAsciiPlan = mapping.Plan()
-    fast: set[int] = set()
-    slow: set[int] = set()
-    fast.update(range(0x00, 0x40))  # accumulators
-    slow.update(range(0x40, 0x80))  # presets
-    fast.update(range(0x96, 0xBC))  # outputs, inputs, relays, fine timer bits
-    fast.update(range(0xDC, 0xE4))  # timer/counter/sequencer outputs and overflow
-    slow.update(range(0xBC, 0xDC))  # step counters
-    slow.update(range(0x84, 0x96))  # error bits, force select table
-    slow.update(range(0x102, 0x112))  # force state table
+    fast = {address for region in _FAST_REGIONS for address in _addresses(region)}
+    slow = {address for region in _SLOW_REGIONS for address in _addresses(region)}
     where: dict[int, tuple[int, int]] = {}  # byte address -> (block, offset)
     for scan, addresses in ((Scan.FAST, fast), (Scan.SLOW, slow)):
         for start, count, _ in plan_byte_blocks(addresses, scan):
@@ -121,16 +129,16 @@ def slc_ascii_plan() -> SlcAsciiPlan:
             raise AssertionError(f"word at 0x{address:04X} split across blocks")
         return mapping.RegisterPoint(block, offset, codec, write, max_value)
 
-    for n in range(32):
-        plan.holding[n] = word(2 * n, U16_BE_MASKED, SlcWordWrite(2 * n), 9999)
-        plan.holding[32 + n] = word(0x40 + 2 * n, U16_BE_MASKED, SlcWordWrite(0x40 + 2 * n), 9999)
-        block, offset = where[0xBC + n]
+    timers = len(mm.TIMER_NUMBERS)
+    for n, number in enumerate(mm.TIMER_NUMBERS):
+        accumulator, preset = mm.accumulator_address(number), mm.preset_address(number)
+        plan.holding[n] = word(accumulator, U16_BE_MASKED, SlcWordWrite(accumulator), 9999)
+        plan.holding[timers + n] = word(preset, U16_BE_MASKED, SlcWordWrite(preset), 9999)
+        block, offset = where[mm.step_counter_address(number)]
         plan.input[n] = mapping.RegisterPoint(block, offset, U8)
-    plan.input[0x84 // 2] = word(0x84, U16_BE)
-    for address in range(0x86, 0x96, 2):
-        plan.input[address // 2] = word(address, U16_BE)
-    for address in range(0x102, 0x112, 2):
-        plan.input[address // 2] = word(address, U16_BE)
+    for region in (mm.ERROR_BITS_REGION, mm.FORCE_SELECT, mm.FORCE_STATE):
+        for address in _addresses(region)[::2]:
+            plan.input[address // 2] = word(address, U16_BE)
     for user in mm.all_user_bits():
         byte, bit = mm.user_bit_to_byte(user)
         block, offset = where[byte]

@@ -58,14 +58,22 @@ from dataclasses import dataclass, field
 from typing import ClassVar, Final
 
 from gateway.protocols.slc_ascii import framing
-from gateway.protocols.slc_ascii.commands import ControllerType, Mode
+from gateway.protocols.slc_ascii import memory_map as mm
+from gateway.protocols.slc_ascii.commands import VALUE_LIMIT, ControllerType, Mode
 from gateway.protocols.slc_ascii.framing import (
     NEED_DATA,
     CommandFrame,
     Garbled,
     RetransmitRequest,
 )
-from gateway.protocols.slc_ascii.memory_map import is_readable
+from gateway.protocols.slc_ascii.memory_map import (
+    ERROR_BITS_REGION,
+    MAP_SIZE,
+    MODE_ADDRESS,
+    PROTECT_BIT,
+    WORD_VALUE_MASK,
+    is_readable,
+)
 from gateway.sim.scan import ANSWER_BOUND, SCAN_OPTION, ScanTime, parse_scan, scan_clock
 from gateway.sim.serve import Output
 from gateway.sim.variants import resolve_variants
@@ -75,9 +83,10 @@ __all__ = ["FaultPlan", "Output", "SlcAsciiSimulator"]
 #: Firmware revision the simulators report (FRN 5 for the SLC 100, the first the protocol supports).
 SIMULATED_FRN: Final = {ControllerType.SLC100: 0x05, ControllerType.SLC150: 0x47}
 
-MODE_ADDRESS: Final = 0x0101
-ERROR_BITS: Final = 0x84
-MEMORY_SIZE: Final = 0x113
+
+
+#: (byte, bit) of the simulated program's input 1, output 11 and relay 821 (user bit addresses).
+_INPUT_1, _OUTPUT_11, _RELAY_821 = (mm.user_bit_to_byte(user) for user in (1, 11, 821))
 
 
 @dataclass
@@ -176,7 +185,7 @@ class SlcAsciiSimulator:
         self.model = model
         self.faults = faults or FaultPlan()
         self.counters = SimCounters()
-        self.memory = bytearray(MEMORY_SIZE)
+        self.memory = bytearray(MAP_SIZE)
         self.program = bytearray(model.block_count * 15)
         #: Every write applied, in order: (kind, address or rung, value).  Tests count these.
         self.applied_writes: list[tuple[str, int, int]] = []
@@ -196,13 +205,12 @@ class SlcAsciiSimulator:
     # --- state ------------------------------------------------------------------------------
 
     def _init_memory(self) -> None:
-        for n in range(32):
-            self.set_word(0x40 + 2 * n, 100 + 10 * n)  # presets
-        self.set_word(0x40 + 2 * 31, 0x8000 | 500)  # 932: protected preset
-        self.set_word(2 * 31, 0x8000 | 7)  # 932: protected accumulator
+        for n, number in enumerate(mm.TIMER_NUMBERS):
+            self.set_word(mm.preset_address(number), 100 + 10 * n)
+            self.memory[mm.step_counter_address(number)] = n % 5
+        self.set_word(mm.preset_address(932), PROTECT_BIT | 500)  # 932: protected preset
+        self.set_word(mm.accumulator_address(932), PROTECT_BIT | 7)  # 932: protected accumulator
         self.memory[MODE_ADDRESS] = Mode.RUN
-        for n in range(32):
-            self.memory[0xBC + n] = n % 5  # sequencer step counters
         # A stored program: a recognisable pattern, with the preset table at the end.
         for i in range(len(self.program)):
             self.program[i] = (i * 7 + 3) & 0xFF
@@ -264,25 +272,26 @@ class SlcAsciiSimulator:
 
     def _scan(self) -> None:
         # Timers 901-904: accumulate to the preset, set the done bit, restart.
-        for n in range(4):
-            acc_address, pre_address = 2 * n, 0x40 + 2 * n
-            preset = self.word(pre_address) & 0x7FFF
+        done_bits, overflow_bits = mm.TCS_OUTPUT_BITS.start, mm.TCS_OVERFLOW_BITS.start
+        for n, number in enumerate(range(901, 905)):
+            acc_address = mm.accumulator_address(number)
+            preset = self.word(mm.preset_address(number)) & WORD_VALUE_MASK
             acc = self.word(acc_address) + 1
             done = acc >= preset
-            self.set_bit(0xDC, n, done)
+            self.set_bit(done_bits, n, done)
             self.set_word(acc_address, 0 if done else min(acc, 9999))
         # Input 1 toggles every scan; counter 905 counts its rising edges.
-        input_one = not (self.memory[0x9D] & 1)
-        self.set_bit(0x9D, 0, input_one)
+        input_one = not self.memory[_INPUT_1[0]] >> _INPUT_1[1] & 1
+        self.set_bit(*_INPUT_1, input_one)
         if input_one:
-            acc = self.word(8) + 1
+            acc = self.word(mm.accumulator_address(905)) + 1
             overflow = acc > 9999
-            self.set_bit(0xE0, 4, overflow)
-            self.set_word(8, 0 if overflow else acc)
-            self.set_bit(0xDC, 4, acc >= (self.word(0x48) & 0x7FFF))
+            self.set_bit(overflow_bits, 4, overflow)
+            self.set_word(mm.accumulator_address(905), 0 if overflow else acc)
+            self.set_bit(done_bits, 4, acc >= (self.word(mm.preset_address(905)) & WORD_VALUE_MASK))
         # Output 11 follows timer 901's done bit; relay 821 (read-only range) follows input 1.
-        self.set_bit(0x96, 0, bool(self.memory[0xDC] & 1))
-        self.set_bit(0xB5, 0, input_one)
+        self.set_bit(*_OUTPUT_11, bool(self.memory[done_bits] & 1))
+        self.set_bit(*_RELAY_821, input_one)
 
     # --- the line ---------------------------------------------------------------------------
 
@@ -361,7 +370,7 @@ class SlcAsciiSimulator:
     def next_deadline(self) -> float | None:
         return None
 
-    def raise_fault(self, byte: int = ERROR_BITS, bit: int = 3) -> None:
+    def raise_fault(self, byte: int = ERROR_BITS_REGION.start, bit: int = 3) -> None:
         """Set an error bit (default 84H bit 3: error 8) as a ``;T`` will report."""
         self.counters.faults += 1
         self.set_bit(byte, bit, True)
@@ -487,15 +496,15 @@ class SlcAsciiSimulator:
             self.applied_writes.append(("mode", address, value))
             return None
         self._require_run()
-        self._require(0xA6 <= address <= 0xB4)
+        self._require(mm.is_byte_writable(address))
         self.memory[address] = value
         self.applied_writes.append(("byte", address, value))
         return None
 
     def _write_word(self, address: int, value: int) -> str | None:
         self._require_run()
-        self._require(address % 2 == 0 and 0 <= address <= 0x7E)
-        self._require(value < 10000)
+        self._require(mm.is_word_writable(address))
+        self._require(value < VALUE_LIMIT)
         self._require(not self.memory[address] & 0x80)  # protected
         self.set_word(address, value)
         self.applied_writes.append(("word", address, value))

@@ -31,11 +31,11 @@ from gateway.protocols.slc_ascii.commands import ControllerType, Mode
 from gateway.protocols.slc_ascii.memory_map import Item, parse_item
 from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS
 from gateway.tools_common import print_result, resolve_retries
-from gateway.transport import SerialSettings
+from gateway.transport import LOW_7_BITS, SerialSettings
 
 __all__ = [
-    "HINTS",
     "PROGRAM_FORMAT",
+    "SLC_ASCII_TOOL_HINTS",
     "add_slc_ascii_options",
     "add_slc_ascii_sim_options",
     "load_program_file",
@@ -50,15 +50,14 @@ _MODES = {"run": Mode.RUN, "program": Mode.PROGRAM, "test": Mode.CONTINUOUS_TEST
 
 #: SLC 100/150 ASCII replies: ":" data / acknowledge or ";" status lines ending in CR.
 _ASCII_REPLY = re.compile(rb"[:;][0-9A-Fa-f?]{1,80}\r")
-_LOW_7_BITS = bytes(b & 0x7F for b in range(256))
 
 
 def _looks_like_ascii(received: bytes) -> bool:
     # A 7E1 talker read at 8N1 arrives with its parity bit as bit 7.
-    return _ASCII_REPLY.search(received.translate(_LOW_7_BITS)) is not None
+    return _ASCII_REPLY.search(received.translate(LOW_7_BITS)) is not None
 
 
-HINTS = ToolHints(
+SLC_ASCII_TOOL_HINTS = ToolHints(
     looks_like=_looks_like_ascii,
     wire="the SLC 100/150 ASCII protocol (':'/';' lines):",
     controllers="an SLC 100 or 150",

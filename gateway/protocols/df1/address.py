@@ -31,10 +31,12 @@ from gateway.errors import InvalidRequest
 from gateway.frozen import frozen
 
 __all__ = [
+    "SIGNED_FILE_TYPES",
     "STRUCTURE_FILE_TYPES",
     "AddressError",
     "FileType",
     "SlcAddress",
+    "element_words",
     "parse_address",
 ]
 
@@ -101,6 +103,17 @@ _USER_TYPES: Final = frozenset(
 )
 #: The structure files: timers, counters, controls (three words per element).
 STRUCTURE_FILE_TYPES: Final = frozenset({FileType.TIMER, FileType.COUNTER, FileType.CONTROL})
+#: Files whose words are signed 16-bit numbers: integers, and the words of timers, counters and
+#: controls (PRE, ACC, LEN, POS).
+SIGNED_FILE_TYPES: Final = frozenset({FileType.INTEGER, *STRUCTURE_FILE_TYPES})
+
+
+def element_words(file_type: FileType) -> int:
+    """Words per element of a file of ``file_type``: timer / counter / control 3, float 2, others 1."""
+    if file_type in STRUCTURE_FILE_TYPES:
+        return 3
+    return 2 if file_type is FileType.FLOAT else 1
+
 #: Files whose bits may be addressed by absolute bit number 0-4095 (page 4 of the reference).
 _ABSOLUTE_BIT_TYPES: Final = frozenset(
     {FileType.BIT, FileType.CONTROL, FileType.INPUT, FileType.INTEGER, FileType.OUTPUT, FileType.STATUS}
@@ -168,10 +181,8 @@ class SlcAddress:
 
     @property
     def element_size_words(self) -> int:
-        """Words per element: timer/counter/control 3, float 2, others 1."""
-        if self.file_type in STRUCTURE_FILE_TYPES:
-            return 3
-        return 2 if self.file_type is FileType.FLOAT else 1
+        """Words per element: timer/counter/control 3, float 2, others 1 (:func:`element_words`)."""
+        return element_words(self.file_type)
 
     @property
     def is_structure(self) -> bool:

@@ -32,6 +32,7 @@ from gateway.frozen import frozen
 from gateway.protocols.df1.address import AddressError
 
 __all__ = [
+    "PLC5_SIGNED",
     "PLC5_STRUCTURES",
     "AddressError",
     "Plc5Address",
@@ -40,6 +41,7 @@ __all__ = [
     "encode_logical_ascii",
     "encode_logical_binary",
     "parse_plc5_address",
+    "plc5_element_words",
 ]
 
 #: Most level values the logical binary address can carry (two bytes after FF).
@@ -72,6 +74,14 @@ _SUB_ELEMENTS: Final[dict[str, dict[str, int]]] = {
 
 #: File type letters of the structure files (timer, counter, control: three words per element).
 PLC5_STRUCTURES: Final = frozenset(_SUB_ELEMENTS)
+#: File type letters whose words are signed 16-bit numbers: integers, and the words of timers,
+#: counters and controls (PRE, ACC, LEN, POS; two's complement, 1770-6.5.16 p. 13-13).
+PLC5_SIGNED: Final = frozenset({"N", *PLC5_STRUCTURES})
+
+
+def plc5_element_words(file_type: str) -> int:
+    """Words per element of a file of ``file_type`` (a float 2, a timer / counter / control 3, else 1)."""
+    return _FILE_TYPES[file_type][1]
 
 #: Status bits in the control word (sub-element 0) of timers, counters and controls.
 _STATUS_BITS: Final[dict[str, dict[str, int]]] = {
@@ -125,7 +135,7 @@ class Plc5Address:
         """Words one element at this address occupies (a float 2, a whole timer 3, else 1)."""
         if self.sub_element is not None or self.bit is not None:
             return 1
-        return _FILE_TYPES[self.file_type][1]
+        return plc5_element_words(self.file_type)
 
     def __str__(self) -> str:
         octal = _FILE_TYPES[self.file_type][2]

@@ -52,6 +52,7 @@ from gateway.protocols.df1.pccc import (
     WordRangeWrite,
 )
 from gateway.protocols.transitions import Table, TableEnum, Transition, require_complete, stay
+from gateway.retries import DEFAULT_RETRIES
 
 __all__ = [
     "DEFAULT_RETRIES",
@@ -69,8 +70,6 @@ __all__ = [
     "read_back_tries",
 ]
 
-#: The ``retries`` key's default (``gateway.config.link``): a read gets ``retries + 1`` tries.
-DEFAULT_RETRIES: Final = 3
 
 
 def read_back_tries(retries: int) -> int:

@@ -129,7 +129,6 @@ class Command:
     name: str
     reply: ReplyKind
     timeout_class: TimeoutClass
-    is_write: bool
 
     def __post_init__(self) -> None:
         if isinstance(self.code, bool) or not isinstance(self.code, int) or not 0 <= self.code <= 0xFF:
@@ -145,6 +144,18 @@ class Command:
     def byte_count(self) -> int:
         """The <byte count> field: command code plus parameter bytes."""
         return 1 + len(self.params)
+
+    @property
+    def is_write(self) -> bool:
+        """Whether it changes the controller: a write is answered ``;R``, a read with data
+        ("Specific Commands"); the reply is the one place this is stated."""
+        return self.reply is ReplyKind.ACK
+
+    @property
+    def repeatable(self) -> bool:
+        """Whether sending it twice does what sending it once does: not a write, and not an upload
+        (each upload moves the controller's block pointer on: "Upload and Download")."""
+        return not self.is_write and self.code != CommandCode.UPLOAD
 
 
 def check_int(what: str, value: object, low: int, high: int, rule: str) -> int:

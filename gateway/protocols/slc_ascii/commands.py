@@ -49,6 +49,7 @@ from gateway.protocols.slc_ascii.error_bits import (
     error_description,
 )
 from gateway.protocols.slc_ascii.memory_map import (
+    MODE_ADDRESS,
     Item,
     ItemKind,
     check_byte_writable,
@@ -110,8 +111,6 @@ __all__ = [
     "write_word",
 ]
 
-MODE_ADDRESS = 0x0101
-"""Mode selection writes the controller mode byte: ``#0403 0101 <mode>`` ("Mode Selection")."""
 
 VALUE_LIMIT = 10_000
 """Data words must be "less than 2710H (10,000D)" ("Writing Data Words" and following)."""
@@ -144,8 +143,7 @@ _WRITE_CODES: Final = frozenset({
 
 def _command(code: CommandCode, params: bytes, name: str, timeout_class: TimeoutClass = TimeoutClass.NORMAL) -> Command:
     """Command ``code`` with ``params``: a write is answered ``;R``, a read with data."""
-    is_write = code in _WRITE_CODES
-    return Command(code, params, name, ReplyKind.ACK if is_write else ReplyKind.DATA, timeout_class, is_write=is_write)
+    return Command(code, params, name, ReplyKind.ACK if code in _WRITE_CODES else ReplyKind.DATA, timeout_class)
 
 
 def read_bytes(address: int, count: int = 1) -> Command:

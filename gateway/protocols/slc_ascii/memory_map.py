@@ -21,15 +21,31 @@ import re
 from collections.abc import Iterator, Mapping
 from enum import Enum
 from types import MappingProxyType
+from typing import Final
 
 from gateway.errors import InvalidRequest, ProtocolError
 from gateway.frozen import frozen
 
 __all__ = [
+    "ACCUMULATORS",
     "BYTE_WRITE_RANGE",
+    "ERROR_BITS_REGION",
+    "FINE_TIMER_BITS",
+    "FORCE_SELECT",
+    "FORCE_STATE",
+    "INPUT_STATE",
+    "INTERNAL_RELAYS",
+    "MAP_SIZE",
     "MEMORY_MAP",
+    "MODE_ADDRESS",
+    "MODE_BYTE",
+    "OUTPUT_STATE",
+    "PRESETS",
     "PROTECT_BIT",
     "READ_RANGES",
+    "STEP_COUNTERS",
+    "TCS_OUTPUT_BITS",
+    "TCS_OVERFLOW_BITS",
     "TIMER_NUMBERS",
     "WORD_VALUE_MASK",
     "WORD_WRITE_RANGES",
@@ -127,20 +143,35 @@ class Region:
 
 _RW, _RO, _NO = Access.READ_WRITE, Access.READ_ONLY, Access.NO_ACCESS
 
+# The rows other modules name (the plan's blocks, the error bits the driver reads after ;T, mode selection)
+ACCUMULATORS: Final = Region("timer/counter/sequencer accumulators", 0x0000, 0x003F, _RW, readable=True)
+PRESETS: Final = Region("timer/counter presets", 0x0040, 0x007F, _RW, readable=True)
+ERROR_BITS_REGION: Final = Region("controller error mode bits", 0x0084, 0x0085, _RW, readable=True)
+FORCE_SELECT: Final = Region("force select table", 0x0086, 0x0095, _RW, readable=True)
+OUTPUT_STATE: Final = Region("output state table", 0x0096, 0x009C, _RO, readable=True)
+INPUT_STATE: Final = Region("input state table", 0x009D, 0x00A5, _RO, readable=True)
+INTERNAL_RELAYS: Final = Region("internal relays", 0x00A6, 0x00BA, _RO, readable=True)
+FINE_TIMER_BITS: Final = Region("fine timer bits, AUTO/MAN switch", 0x00BB, 0x00BB, _RO, readable=True)
+STEP_COUNTERS: Final = Region("sequencer step counters", 0x00BC, 0x00DB, _RO, readable=True)
+TCS_OUTPUT_BITS: Final = Region("timer/counter/sequencer output bits", 0x00DC, 0x00DF, _RO, readable=True)
+TCS_OVERFLOW_BITS: Final = Region("timer/counter/sequencer overflow bits", 0x00E0, 0x00E3, _RO, readable=True)
+MODE_BYTE: Final = Region("controller mode byte", 0x0101, 0x0101, _RW)
+FORCE_STATE: Final = Region("force state table", 0x0102, 0x0111, _RW, readable=True)
+
 MEMORY_MAP: tuple[Region, ...] = (
-    Region("timer/counter/sequencer accumulators", 0x0000, 0x003F, _RW, readable=True),
-    Region("timer/counter presets", 0x0040, 0x007F, _RW, readable=True),
+    ACCUMULATORS,
+    PRESETS,
     Region("checksum of last ladder diagram", 0x0080, 0x0081, _NO),
     Region("current rung number", 0x0082, 0x0083, _RO),
-    Region("controller error mode bits", 0x0084, 0x0085, _RW, readable=True),
-    Region("force select table", 0x0086, 0x0095, _RW, readable=True),
-    Region("output state table", 0x0096, 0x009C, _RO, readable=True),
-    Region("input state table", 0x009D, 0x00A5, _RO, readable=True),
-    Region("internal relays", 0x00A6, 0x00BA, _RO, readable=True),
-    Region("fine timer bits, AUTO/MAN switch", 0x00BB, 0x00BB, _RO, readable=True),
-    Region("sequencer step counters", 0x00BC, 0x00DB, _RO, readable=True),
-    Region("timer/counter/sequencer output bits", 0x00DC, 0x00DF, _RO, readable=True),
-    Region("timer/counter/sequencer overflow bits", 0x00E0, 0x00E3, _RO, readable=True),
+    ERROR_BITS_REGION,
+    FORCE_SELECT,
+    OUTPUT_STATE,
+    INPUT_STATE,
+    INTERNAL_RELAYS,
+    FINE_TIMER_BITS,
+    STEP_COUNTERS,
+    TCS_OUTPUT_BITS,
+    TCS_OVERFLOW_BITS,
     Region("timer/counter/sequencer immediate rung bits", 0x00E4, 0x00E7, _RO),
     Region("reset instruction immediate rung state bits", 0x00E8, 0x00EB, _RO),
     Region("up counter/timer/sequencer last state bits", 0x00EC, 0x00EF, _NO),
@@ -149,11 +180,16 @@ MEMORY_MAP: tuple[Region, ...] = (
     Region("flags to identify sequencer instructions", 0x00F8, 0x00FB, _NO),
     Region("RTF instruction identifier bits", 0x00FC, 0x00FF, _NO),
     Region("RAM size, new check sum flag, watchdog fault", 0x0100, 0x0100, _RO),
-    Region("controller mode byte", 0x0101, 0x0101, _RW),
-    Region("force state table", 0x0102, 0x0111, _RW, readable=True),
+    MODE_BYTE,
+    FORCE_STATE,
     Region("access code byte", 0x0112, 0x0112, _RW, readable=True),
 )
 """Every cell of "The Memory Map" with an address, in address order, without gaps."""
+
+MAP_SIZE: Final = MEMORY_MAP[-1].end + 1
+"""Bytes from 0000H to the end of the map (0112H, the access code byte), 113H."""
+MODE_ADDRESS: Final = MODE_BYTE.start
+"""Mode selection writes the controller mode byte: ``#0403 0101 <mode>`` ("Mode Selection")."""
 
 READ_RANGES: tuple[AddressRange, ...] = (
     AddressRange(0x0000, 0x003E, "timer/counter/sequencer accumulator"),
@@ -270,7 +306,7 @@ def is_readable(address: int, count: int = 1) -> bool:
 
 def _all_readable() -> frozenset[tuple[int, int]]:
     readable = set()
-    for address in range(0x113):
+    for address in range(MAP_SIZE):
         for count in READ_COUNTS:
             try:
                 check_readable(address, count)
@@ -414,17 +450,17 @@ def _check_timer_number(number: int) -> int:
 
 def accumulator_address(number: int) -> int:
     """Address of the accumulator word (MSB) of timer/counter/sequencer ``number`` (00H-3FH)."""
-    return 2 * (_check_timer_number(number) - 901)
+    return ACCUMULATORS.start + 2 * (_check_timer_number(number) - TIMER_NUMBERS.start)
 
 
 def preset_address(number: int) -> int:
     """Address of the preset word (MSB) of timer/counter ``number`` (40H-7FH)."""
-    return 0x40 + 2 * (_check_timer_number(number) - 901)
+    return PRESETS.start + 2 * (_check_timer_number(number) - TIMER_NUMBERS.start)
 
 
 def step_counter_address(number: int) -> int:
     """Address of the step counter byte of sequencer ``number`` (BCH-DBH, one byte each)."""
-    return 0xBC + (_check_timer_number(number) - 901)
+    return STEP_COUNTERS.start + (_check_timer_number(number) - TIMER_NUMBERS.start)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -448,10 +484,10 @@ class ItemKind(Enum):
     """``@0x84``: a raw byte."""
 
 
-_SUFFIXES = {
-    kind.value: kind
-    for kind in (ItemKind.ACCUMULATOR, ItemKind.PRESET, ItemKind.PROTECTED, ItemKind.STEP)
-}
+#: A timer item's cell and the bytes read from it (PROTECTED: the preset's MSB, bit 7).
+_TIMER_ITEMS: Final = {ItemKind.ACCUMULATOR: (accumulator_address, 2), ItemKind.PRESET: (preset_address, 2),
+                       ItemKind.PROTECTED: (preset_address, 1), ItemKind.STEP: (step_counter_address, 1)}
+_SUFFIXES = {kind.value: kind for kind in _TIMER_ITEMS}
 
 _ITEM_RULE = (
     "use NNN.ACC, NNN.PRE, NNN.PROTECTED or NNN.STEP with NNN = 901-932, a user bit address "
@@ -542,14 +578,8 @@ def parse_item(text: str) -> Item:
         kind = _SUFFIXES.get(suffix)
         if kind is None:
             raise InvalidRequest(f"item {text!r}: unknown suffix {match.group(2)!r}; {_ITEM_RULE}")
-        canonical = f"{number}.{kind.value}"
-        if kind is ItemKind.ACCUMULATOR:
-            return Item(canonical, kind, accumulator_address(number), 2, number=number)
-        if kind is ItemKind.PRESET:
-            return Item(canonical, kind, preset_address(number), 2, number=number)
-        if kind is ItemKind.PROTECTED:
-            return Item(canonical, kind, preset_address(number), 1, number=number)
-        return Item(canonical, kind, step_counter_address(number), 1, number=number)
+        where, count = _TIMER_ITEMS[kind]
+        return Item(f"{number}.{kind.value}", kind, where(number), count, number=number)
     if _BIT_ITEM.fullmatch(stripped):
         user_address = int(stripped)
         if user_address not in _USER_BITS:

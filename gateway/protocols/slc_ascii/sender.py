@@ -34,7 +34,7 @@ from typing import Final
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import Command
 from gateway.protocols.slc_ascii.framing import MAX_ID, ReplyDecoder, encode_retransmit, frame_command
-from gateway.protocols.slc_ascii.memory_map import is_readable
+from gateway.protocols.slc_ascii.memory_map import MAP_SIZE, is_readable
 from gateway.protocols.slc_ascii.session_table import SessionState
 from gateway.protocols.slc_ascii.write_proof import Result
 
@@ -50,7 +50,7 @@ _PROBE: Final = cmds.read_frn()
 #: when nothing was ever sent: every quiet time has passed since
 _LONG_AGO: Final = float("-inf")
 #: Bytes a barrier read may ask for (every readable byte of the "Reading Data" list).
-_BARRIER_ADDRESSES: Final = tuple(a for a in range(0x113) if is_readable(a, 1))
+_BARRIER_ADDRESSES: Final = tuple(a for a in range(MAP_SIZE) if is_readable(a, 1))
 
 
 def next_id(msg_id: int) -> int:

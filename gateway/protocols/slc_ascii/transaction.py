@@ -109,7 +109,7 @@ class SlcSession(SlcSender):
             raise RuntimeError("a transaction is already running")
         self.result = None
         self._command = command
-        self._is_write = command.is_write or command.code == cmds.CommandCode.UPLOAD
+        self._is_write = not command.repeatable
         self._until = until if self._is_write else None
         self._timeout = timeout if timeout is not None else self.timeout
         #: the configured reply time: the last wait before a verdict is never shorter

@@ -29,7 +29,7 @@ from gateway.sim import create_simulator
 
 def raw(code: int, params_hex: str = "") -> Command:
     """A command the builders would refuse to make (the simulator must refuse it too)."""
-    return Command(code, bytes.fromhex(params_hex), "raw", ReplyKind.ACK, TimeoutClass.NORMAL, False)
+    return Command(code, bytes.fromhex(params_hex), "raw", ReplyKind.ACK, TimeoutClass.NORMAL)
 
 
 class Host:

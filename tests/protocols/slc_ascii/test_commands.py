@@ -261,7 +261,7 @@ def test_rung_commands_reject(build: object, message: str) -> None:
 def test_command_validates_itself(kwargs: dict[str, object], message: str) -> None:
     fields: dict[str, object] = {
         "code": 0x02, "params": b"", "name": "x", "reply": ReplyKind.ACK,
-        "timeout_class": TimeoutClass.NORMAL, "is_write": False,
+        "timeout_class": TimeoutClass.NORMAL,
     }
     fields.update(kwargs)
     with pytest.raises(InvalidRequest, match=message):
@@ -269,7 +269,7 @@ def test_command_validates_itself(kwargs: dict[str, object], message: str) -> No
 
 
 def test_largest_command_fits() -> None:
-    assert Command(0x01, bytes(254), "x", ReplyKind.ACK, TimeoutClass.NORMAL, False).byte_count == 0xFF
+    assert Command(0x01, bytes(254), "x", ReplyKind.ACK, TimeoutClass.NORMAL).byte_count == 0xFF
 
 
 @given(st.integers(min_value=0, max_value=0x120), st.sampled_from([1, 2]))
@@ -507,8 +507,7 @@ def test_a_data_reply_that_does_not_answer_the_command_is_refused(command: Comma
 
 def test_a_read_whose_count_field_is_not_1_or_2_has_no_answer() -> None:
     """A hand-built read of 0101H bytes: no reply answers it, not even one byte at its address."""
-    bad = Command(CommandCode.READ, bytes.fromhex("0101" "0084"), "bad read", ReplyKind.DATA, TimeoutClass.NORMAL,
-                  is_write=False)
+    bad = Command(CommandCode.READ, bytes.fromhex("0101" "0084"), "bad read", ReplyKind.DATA, TimeoutClass.NORMAL)
     with pytest.raises(InvalidRequest, match="byte count 257 is not allowed"):
         parse_reply(bad, "01008481")
 
@@ -517,8 +516,7 @@ def test_a_read_whose_count_field_is_not_1_or_2_has_no_answer() -> None:
 def test_a_read_whose_parameters_are_not_a_count_and_an_address_has_no_answer(params: str) -> None:
     """A hand-built read is answered only if its parameters are what ``read_bytes`` builds: a
     2-byte count and a 2-byte address; a byte more or less is refused whatever the reply."""
-    bad = Command(CommandCode.READ, bytes.fromhex(params), "bad read", ReplyKind.DATA, TimeoutClass.NORMAL,
-                  is_write=False)
+    bad = Command(CommandCode.READ, bytes.fromhex(params), "bad read", ReplyKind.DATA, TimeoutClass.NORMAL)
     with pytest.raises(InvalidRequest, match="a read's parameters are 4 bytes"):
         parse_reply(bad, "01008481")
 
@@ -671,10 +669,10 @@ def test_the_frn_probe_is_named_as_the_manual_names_it() -> None:
 
 
 def test_a_command_code_is_a_byte_and_a_data_word_may_be_9999() -> None:
-    assert Command(0xFF, b"", "code FF", ReplyKind.ACK, TimeoutClass.NORMAL, is_write=False).code == 0xFF
+    assert Command(0xFF, b"", "code FF", ReplyKind.ACK, TimeoutClass.NORMAL).code == 0xFF
     for code in (True, 0x100, -1):
         with pytest.raises(InvalidRequest, match="is not a byte"):
-            Command(code, b"", "bad", ReplyKind.ACK, TimeoutClass.NORMAL, is_write=False)
+            Command(code, b"", "bad", ReplyKind.ACK, TimeoutClass.NORMAL)
     assert write_word(0x0040, 9999).params == b"\x00\x40\x27\x0f"
     with pytest.raises(InvalidRequest, match="out of range"):
         write_word(0x0040, 10000)

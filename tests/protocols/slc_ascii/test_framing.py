@@ -507,7 +507,7 @@ def test_reply_round_trip(events: list[ReplyEvent], chunk: int, parity_bit: bool
 
 
 command_strategy = st.builds(
-    lambda code, params: Command(code, params, "test", ReplyKind.ACK, TimeoutClass.NORMAL, False),
+    lambda code, params: Command(code, params, "test", ReplyKind.ACK, TimeoutClass.NORMAL),
     st.integers(min_value=0, max_value=0xFF),
     st.binary(max_size=(MAX_FRAME - 9) // 2),
 )

@@ -25,7 +25,7 @@ from gateway.errors import GatewayError, LinkTimeout, ProtocolError, WriteOutcom
 from gateway.kinds.df1.config import DF1_DEFAULTS
 from gateway.line_driver import LineDriver, LineDriverOptions, Priority
 from gateway.link_health import LineCounters, LineQuality
-from gateway.protocols.df1.framing import NEED_DATA, Checksum
+from gateway.protocols.df1.framing import DEFAULT_CHECKSUM, NEED_DATA, Checksum
 from gateway.protocols.df1.full_duplex.datalink import Df1DataLink
 from gateway.protocols.df1.full_duplex.transaction import (
     Df1Transactions,
@@ -44,6 +44,8 @@ from gateway.protocols.df1.pccc import (
     Request,
 )
 from gateway.protocols.df1.pccc import is_write as pccc_is_write
+from gateway.protocols.df1.pccc.codec import HEADER_SIZE
+from gateway.protocols.df1.pccc.limits import MAX_DATA_BYTES
 from gateway.transport import SerialSettings
 
 __all__ = ["DF1_SETTINGS", "Df1Driver", "PcccLink", "WriteOutcomeUnknown", "transaction_result"]
@@ -51,8 +53,9 @@ __all__ = ["DF1_SETTINGS", "Df1Driver", "PcccLink", "WriteOutcomeUnknown", "tran
 #: DF1 full duplex default line settings (19200 8N1), kept with the link model's defaults.
 DF1_SETTINGS: Final = DF1_DEFAULTS.settings
 
-#: Characters of the longest DF1 frame: 6 header + 4 + 236 data bytes, framing, CRC, some DLE doubling.
-_LONGEST_FRAME: Final = 280
+#: Characters of the longest DF1 frame: the header, 4 bytes of function and address, the most data
+#: bytes of any family, DLE STX, DLE ETX and a CRC, and 28 for DLE doubling.
+_LONGEST_FRAME: Final = HEADER_SIZE + 4 + MAX_DATA_BYTES + 6 + 28
 
 
 class Df1Driver(LineDriver):
@@ -63,9 +66,9 @@ class Df1Driver(LineDriver):
         url: str,
         *,
         settings: SerialSettings = DF1_SETTINGS,
-        checksum: Checksum = Checksum.CRC,
         station: int = 1,
         source: int = 0,
+        checksum: Checksum = DEFAULT_CHECKSUM,
         family: ProcessorFamily = ProcessorFamily.SLC5_04,
         timeout: float = 1.0,
         ack_timeout: float | None = None,
@@ -183,10 +186,11 @@ class Df1Driver(LineDriver):
             self._waiting.pop(handle, None)
         return transaction_result(self, event, name, getattr(request, "FNC", None))
 
-    async def execute(self, request: Request, name: str = "", *, write: bool | None = None) -> PcccReply:
-        """Send ``request`` and return the (successful) reply.  Writes jump ahead of polls."""
+    async def execute(self, request: Request, name: str = "") -> PcccReply:
+        """Send ``request`` and return the (successful) reply.  Writes (:func:`pccc_is_write`, the one
+        authority) jump ahead of polls."""
         label = name or type(request).__name__
-        is_write = pccc_is_write(request) if write is None else write
+        is_write = pccc_is_write(request)
         priority = Priority.WRITE if is_write else Priority.POLL
         return await self.submit(lambda: self._run(request, label, is_write), priority)
 

@@ -1,13 +1,13 @@
 """Asyncio driver for a DF1 half-duplex multi-drop line: one line owner, one handle per station.
 
-The sans-I/O master core (:class:`~gateway.protocols.df1.half_duplex.master.HalfDuplexMaster`) decides
+The sans-I/O master core (:class:`~gateway.protocols.df1.half_duplex.HalfDuplexMaster`) decides
 everything on the wire: polling, resends of the identical master frame, demotion of a dead station,
 RTS timing, echo suppression.  :class:`Df1HalfDuplexLine` owns the port (reconnects through
 :class:`~gateway.line_driver.LineDriver`), feeds the core every byte, runs the one timer the core
 asks for (``next_deadline()`` / ``handle_timeout(now)``) and drives RTS when the port can.
 
 Each station on the line gets a :class:`Df1Station` handle with the API a DF1 unit uses on
-:class:`~gateway.kinds.df1.full.driver.Df1Driver`: ``execute(request, name, write=...)`` -> the reply, plus
+:class:`~gateway.kinds.df1.full.driver.Df1Driver`: ``execute(request, name)`` -> the reply, plus
 ``available``, ``counters``, ``last_sts``, ``add_listener``, ``run()`` / ``close()`` and ``probe()``.
 Requests of different stations are in the core at the same time; it serves them round robin (writes
 first), so a dead or slow station never holds up the others.  The sans-I/O transaction layer
@@ -53,7 +53,7 @@ from gateway.errors import GatewayError, LinkDown
 from gateway.kinds.df1.full.driver import DF1_SETTINGS, transaction_result
 from gateway.line_driver import LineDriver, LineDriverOptions, run_to_the_end
 from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LineQuality, LinkHealth
-from gateway.protocols.df1.framing import NEED_DATA, Checksum
+from gateway.protocols.df1.framing import DEFAULT_CHECKSUM, NEED_DATA, Checksum
 from gateway.protocols.df1.full_duplex.transaction import (
     OutcomeUnknown,
     TransactionDone,
@@ -62,7 +62,13 @@ from gateway.protocols.df1.full_duplex.transaction import (
     TransactionRefused,
 )
 from gateway.protocols.df1.half_duplex import events as master_events
-from gateway.protocols.df1.half_duplex.events import FailReason, LineConfig, StationConfig, StationCounters
+from gateway.protocols.df1.half_duplex.events import (
+    HALF_DUPLEX_ACK_TIMEOUT,
+    FailReason,
+    LineConfig,
+    StationConfig,
+    StationCounters,
+)
 from gateway.protocols.df1.half_duplex.master import HalfDuplexMaster
 from gateway.protocols.df1.half_duplex.slave_messages import RegisterTable, SlaveMessageVerdict, answer_slave_message
 from gateway.protocols.df1.half_duplex.transactions import HalfDuplexTransactions, PcccRequestLike
@@ -193,10 +199,11 @@ class Df1Station(LinkHealth):
 
     # --- requests ---------------------------------------------------------------------------
 
-    async def execute(self, request: PcccRequestLike, name: str = "", *, write: bool | None = None) -> PcccReply:
-        """Send ``request`` to this station and return the (successful) reply (module docstring)."""
+    async def execute(self, request: PcccRequestLike, name: str = "") -> PcccReply:
+        """Send ``request`` to this station and return the (successful) reply (module docstring); a
+        write is what :func:`pccc_is_write` says it is."""
         label = name or type(request).__name__
-        is_write = pccc_is_write(request) if write is None else write
+        is_write = pccc_is_write(request)
         if not is_write:
             return await self._run(request, label, False)
         # a write goes on to its verdict even when its caller gives up (as Df1Driver.submit does)
@@ -243,9 +250,9 @@ class Df1HalfDuplexLine(LineDriver):
         stations: Sequence[StationConfig],
         *,
         settings: SerialSettings = DF1_SETTINGS,
-        checksum: Checksum = Checksum.CRC,
+        checksum: Checksum = DEFAULT_CHECKSUM,
         source: int = 0,
-        ack_timeout: float = 0.5,
+        ack_timeout: float = HALF_DUPLEX_ACK_TIMEOUT,
         message_retries: int = 3,
         retries: int = DEFAULT_RETRIES,
         pre_transmit_delay: float = 0.0,

@@ -57,13 +57,13 @@ from gateway.kinds.df1.sim.df1_half_duplex_slave import HalfDuplexSlave, SlaveVa
 from gateway.kinds.df1.sim.plc5 import Plc5Simulator
 from gateway.kinds.df1.sim.slc500 import Output, Slc500Options, Slc500Simulator
 from gateway.kinds.df1.sim.slc500_line import corrupt_frame
-from gateway.protocols.df1.framing import Checksum, Symbol
+from gateway.protocols.df1.framing import DEFAULT_CHECKSUM, Checksum, Symbol
 from gateway.sim.models import read_sim_option
 from gateway.sim.scan import SCAN_OPTION, ScanTime, parse_scan, scan_clock
 
 __all__ = ["LineOptions", "MultidropCounters", "MultidropLine", "SlcStation"]
 
-_OPTION_NAMES: Final = (
+_MULTIDROP_OPTION_NAMES: Final = (
     "checksum", "stations", "dead", "slow", "busy_polls", "turnaround", "latency", "char_time", "corrupt",
     "ignore", "lose_symbol", "echo", "seed", "model", SCAN_OPTION,
 )
@@ -81,7 +81,7 @@ class SlcStation(Slc500Simulator):
 class LineOptions:
     """The line's stations, timing and faults (module docstring); ``1 in N`` faults are off at 0."""
 
-    checksum: Checksum = Checksum.CRC
+    checksum: Checksum = DEFAULT_CHECKSUM
     stations: tuple[int, ...] = (1, 2, 3)
     dead: frozenset[int] = frozenset()
     slow: Mapping[int, float] = field(default_factory=dict)
@@ -123,10 +123,10 @@ class LineOptions:
     @classmethod
     def from_options(cls, options: Mapping[str, str]) -> LineOptions:
         """Parse string options; ValueError names the bad one."""
-        unknown = sorted(set(options) - set(_OPTION_NAMES))
+        unknown = sorted(set(options) - set(_MULTIDROP_OPTION_NAMES))
         if unknown:
             raise ValueError(f"unknown multi-drop line option(s) {', '.join(unknown)} "
-                             f"(known: {', '.join(sorted(_OPTION_NAMES))})")
+                             f"(known: {', '.join(sorted(_MULTIDROP_OPTION_NAMES))})")
 
         def get(name: str, parse: Callable[[str], T], default: T) -> T:
             return read_sim_option(options, name, parse, default, what="multi-drop line option")
@@ -144,7 +144,7 @@ class LineOptions:
                     out[int(station)] = value
             return out
 
-        checksum_text = options.get("checksum", "crc").strip().lower()
+        checksum_text = options.get("checksum", DEFAULT_CHECKSUM.value).strip().lower()
         if checksum_text not in ("bcc", "crc"):
             raise ValueError(f"multi-drop line option checksum={checksum_text!r}: choose bcc or crc")
         no_pairs: dict[int, str] = {}

@@ -54,6 +54,8 @@ from gateway.frozen import frozen
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import (
     ACK_SYMBOL,
+    DEFAULT_ACK_TIMEOUT,
+    DEFAULT_CHECKSUM,
     ENQ_SYMBOL,
     NAK_SYMBOL,
     NEED_DATA,
@@ -146,7 +148,7 @@ class PlcMsgSimulator:
     """The initiating PLC (module doc).  A :class:`gateway.sim.serve.SimDevice`."""
 
     def __init__(self, *, script: Sequence[Msg] = DEMO_SCRIPT, every: float = 0.1, cycle: float = 1.0,
-                 station: int = 1, source: int = 0, checksum: Checksum = Checksum.CRC, corrupt: int = 0,
+                 station: int = 1, source: int = 0, checksum: Checksum = DEFAULT_CHECKSUM, corrupt: int = 0,
                  lose_ack: int = 0, nak_reply: int = 0, duplicate: int = 0, seed: int = 1,
                  scan: ScanTime | None = None) -> None:
         self.script = tuple(script)
@@ -156,7 +158,7 @@ class PlcMsgSimulator:
         #: the one DF1 decoder, reading our own bytes and the gateway's (to inject faults per frame)
         self._out_decoder = FrameDecoder(checksum)
         self._in_decoder = FrameDecoder(checksum)
-        self.link = Df1DataLink(checksum=checksum, ack_timeout=1.0)
+        self.link = Df1DataLink(checksum=checksum, ack_timeout=DEFAULT_ACK_TIMEOUT)
         self.core = Df1Transactions(self.link, station=station, source=source, reply_timeout=2.0, retries=2)
         self.faults = {"corrupt": corrupt, "lose_ack": lose_ack, "nak_reply": nak_reply, "duplicate": duplicate}
         self._random = random.Random(seed)
@@ -294,7 +296,7 @@ def _int(options: Mapping[str, str], key: str, default: int) -> int:
 def create_plc_msg(options: Mapping[str, str], ladder: bool = True,
                    variants: Mapping[str, str] | None = None) -> PlcMsgSimulator:
     """The simulator of a ``sim://plc-msg?...`` URL (module doc lists the options)."""
-    checksum = options.get("checksum", "crc")
+    checksum = options.get("checksum", DEFAULT_CHECKSUM.value)
     if checksum not in ("crc", "bcc"):
         raise ValueError(f"sim://plc-msg: checksum={checksum!r}: crc or bcc")
     return PlcMsgSimulator(

@@ -6,7 +6,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Final
 
-from gateway.protocols.df1.address import AddressError, FileType, SlcAddress
+from gateway.protocols.df1.address import AddressError, FileType, SlcAddress, element_words
 from gateway.protocols.df1.pccc import DataType
 
 __all__ = ["FILE_NAME_RE", "SLOTS", "TYPED_ID", "WORDS_PER_SLOT", "DataFile", "data_files"]
@@ -76,18 +76,12 @@ FILE_NAME_RE: Final = re.compile(r"(?P<letter>[OISBTCRNF])(?P<number>\d*)")
 
 
 def data_files() -> dict[int, DataFile]:
+    sizes = ((FileType.STATUS, 2, 164), (FileType.BIT, 3, 64), (FileType.TIMER, 4, 20), (FileType.COUNTER, 5, 20),
+             (FileType.CONTROL, 6, 10), (FileType.INTEGER, 7, 256), (FileType.FLOAT, 8, 64),
+             (FileType.INTEGER, 10, 100), (FileType.BIT, 12, 16), (FileType.FLOAT, 13, 10))
     files = [
         DataFile(FileType.OUTPUT, 0, SLOTS, WORDS_PER_SLOT),
         DataFile(FileType.INPUT, 1, SLOTS, WORDS_PER_SLOT),
-        DataFile(FileType.STATUS, 2, 164, 1),
-        DataFile(FileType.BIT, 3, 64, 1),
-        DataFile(FileType.TIMER, 4, 20, 3),
-        DataFile(FileType.COUNTER, 5, 20, 3),
-        DataFile(FileType.CONTROL, 6, 10, 3),
-        DataFile(FileType.INTEGER, 7, 256, 1),
-        DataFile(FileType.FLOAT, 8, 64, 2),
-        DataFile(FileType.INTEGER, 10, 100, 1),
-        DataFile(FileType.BIT, 12, 16, 1),
-        DataFile(FileType.FLOAT, 13, 10, 2),
+        *(DataFile(file_type, number, elements, element_words(file_type)) for file_type, number, elements in sizes),
     ]
     return {f.number: f for f in files}

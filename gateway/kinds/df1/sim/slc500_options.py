@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from gateway.frozen import frozen
-from gateway.protocols.df1.framing import Checksum
+from gateway.protocols.df1.framing import DEFAULT_CHECKSUM, Checksum
 from gateway.sim.models import read_sim_option
 from gateway.sim.scan import SCAN_OPTION, ScanTime, parse_scan
 
@@ -17,7 +17,7 @@ __all__ = ["Slc500Counters", "Slc500Options"]
 # ------------------------------------------------------------------------------------ options
 
 _ONE_IN_OPTIONS: Final = ("corrupt", "drop", "withhold_ack", "duplicate", "noise", "lose_in", "corrupt_in")
-_OPTION_NAMES: Final = (
+_SLC500_OPTION_NAMES: Final = (
     *_ONE_IN_OPTIONS, "checksum", "station", "delay", "seed", "link_ack_timeout", "garble", "faults_on", SCAN_OPTION
 )
 
@@ -26,7 +26,7 @@ _OPTION_NAMES: Final = (
 class Slc500Options:
     """Link settings and fault injection; ``1 in N`` faults are off at 0."""
 
-    checksum: Checksum = Checksum.CRC
+    checksum: Checksum = DEFAULT_CHECKSUM
     station: int = 1  #: our DF1 node address
     corrupt: int = 0  #: corrupt 1 in N outgoing frames
     drop: int = 0  #: execute but never answer 1 in N commands
@@ -57,11 +57,10 @@ class Slc500Options:
     @classmethod
     def from_options(cls, options: Mapping[str, str]) -> Slc500Options:
         """Parse ``sim://slc504?...`` options (strings); ValueError names the bad option."""
-        unknown = sorted(set(options) - set(_OPTION_NAMES))
+        unknown = sorted(set(options) - set(_SLC500_OPTION_NAMES))
         if unknown:
-            raise ValueError(
-                f"unknown slc504 simulator option(s) {', '.join(unknown)} (known: {', '.join(sorted(_OPTION_NAMES))})"
-            )
+            known = ", ".join(sorted(_SLC500_OPTION_NAMES))
+            raise ValueError(f"unknown slc504 simulator option(s) {', '.join(unknown)} (known: {known})")
         if "garble" in options and "corrupt" in options:
             raise ValueError("simulator options garble and corrupt are the same; give only one")
         one_in = {
@@ -69,7 +68,7 @@ class Slc500Options:
             for name in _ONE_IN_OPTIONS
         }
         return cls(
-            checksum=_checksum_option(options.get("checksum", "crc")),
+            checksum=_checksum_option(options.get("checksum", DEFAULT_CHECKSUM.value)),
             station=read_sim_option(options, "station", int, 1),
             corrupt=one_in["corrupt"],
             drop=one_in["drop"],

@@ -93,6 +93,7 @@ from gateway.protocols.df1.pccc import (
     encode_reply,
     encode_typed_data,
 )
+from gateway.protocols.df1.pccc.limits import SLC_MODULAR
 from gateway.protocols.df1.pccc.slc import Echo, ProtectedTypedLogicalTwoFieldRead, ProtectedTypedLogicalTwoFieldWrite
 
 __all__ = ["CATALOG", "FRN", "MAX_READ_BYTES", "MAX_WRITE_BYTES", "PROCESSOR_TYPE", "SERIES", "TICK", "ExtSts",
@@ -105,8 +106,8 @@ SERIES: Final = "C"
 FRN: Final = 3
 
 #: Data bytes per packet, SLC 5/03-5/04 channel 0 without the Internet field (notes §4.36).
-MAX_READ_BYTES: Final = 236
-MAX_WRITE_BYTES: Final = 228
+MAX_READ_BYTES: Final = SLC_MODULAR.max_read_bytes
+MAX_WRITE_BYTES: Final = SLC_MODULAR.max_write_bytes
 
 #: Ladder time base, seconds.
 TICK: Final = 0.1

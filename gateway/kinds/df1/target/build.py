@@ -12,7 +12,6 @@ from gateway.kinds.df1.target.store import TargetStore
 from gateway.kinds.df1.target.unit import TargetUnit, load_table, target_plan, target_point_labels
 from gateway.modbus.mapping import Plan
 from gateway.protocols.df1.framing import Checksum
-from gateway.protocols.df1.full_duplex.responder import REPLY_ACK_TIMEOUT
 from gateway.protocols.df1.pccc.target import PcccTarget
 
 __all__ = ["build_target", "target_link_labels", "target_link_plan"]
@@ -37,10 +36,6 @@ def build_target(link: Df1LinkConfig) -> TargetUnit:
     """The unit of a target link, its table loaded (``initial``, then ``persist``); its runner is ``unit.driver``."""
     store = TargetStore(link.persist) if link.persist is not None else None
     table = load_table(link.file, store, _now())
-    # the key as given; unset, the model's default is the half-duplex master's, and a target's is the SLC channel's
-    ack_timeout = link.ack_timeout
-    if "ack_timeout" not in link.model_fields_set:
-        ack_timeout = REPLY_ACK_TIMEOUT
     runner = TargetRunner(
         link.port,
         name=link.name,
@@ -50,7 +45,7 @@ def build_target(link: Df1LinkConfig) -> TargetUnit:
         checksum=Checksum.CRC if link.checksum == "crc" else Checksum.BCC,
         duplicate_detect=link.duplicate_detect,
         check_dst=link.check_dst,
-        ack_timeout=ack_timeout,
+        ack_timeout=link.ack_timeout,
         trace=link.trace,
     )
     options = unit_options(link)

@@ -25,8 +25,8 @@ from typing import Unpack
 from gateway.errors import GatewayError
 from gateway.line_driver import LineDriver, LineDriverOptions
 from gateway.link_health import LineQuality
-from gateway.protocols.df1.framing import NEED_DATA, Checksum
-from gateway.protocols.df1.full_duplex.responder import REPLY_ACK_TIMEOUT, Df1Responder
+from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, NEED_DATA, Checksum
+from gateway.protocols.df1.full_duplex.responder import Df1Responder
 from gateway.protocols.df1.full_duplex.responder_events import CommandReceived, DuplicateReceived, ReplyLost
 from gateway.protocols.df1.pccc import PcccHeader, Sts, encode_reply
 from gateway.protocols.df1.pccc.target import PcccTarget, TargetReply
@@ -52,7 +52,7 @@ class TargetRunner(LineDriver):
         checksum: Checksum,
         duplicate_detect: bool = True,
         check_dst: bool = False,
-        ack_timeout: float = REPLY_ACK_TIMEOUT,
+        ack_timeout: float = DEFAULT_ACK_TIMEOUT,
         **line: Unpack[LineDriverOptions],
     ) -> None:
         super().__init__(url, settings=settings, **line)

@@ -1,6 +1,6 @@
 """A DF1 target link served as a Modbus unit: the data files a PLC's MSG instructions read and write.
 
-The unit is not polled (:class:`gateway.unit.Unit` with ``polled=False``): the runner
+The unit is not polled (:attr:`gateway.unit.Unit.POLLED` False): the runner
 (:mod:`gateway.kinds.df1.target.driver`) answers the PLC and stores what it wrote; Modbus clients
 read the same values from the image and write into the same table, which the PLC's next read
 returns.  One block per element, so each element has its own time of last write: an element
@@ -20,7 +20,6 @@ import time
 from collections.abc import Hashable, Iterable, Sequence
 from typing import Unpack
 
-from gateway.cache import NEVER
 from gateway.errors import GatewayError, ModbusExceptionReply
 from gateway.frozen import frozen
 from gateway.kinds.df1.plan import F32_HIGH, F32_LOW, U16_LE
@@ -29,6 +28,7 @@ from gateway.kinds.df1.target.driver import TargetRunner
 from gateway.kinds.df1.target.store import StoredElement, TargetStore
 from gateway.modbus.mapping import BitPoint, Block, Plan, PointLabel, RegisterPoint, Scan, Table
 from gateway.protocols.df1.pccc.target_table import DataTable, ElementRef, TableFile
+from gateway.schedule import NEVER
 from gateway.unit import Unit, UnitOptions, WriteStep
 
 __all__ = ["TargetBit", "TargetElement", "TargetUnit", "load_table", "target_plan", "target_point_labels"]
@@ -144,11 +144,12 @@ def stored_elements(table: DataTable, refs: Iterable[ElementRef]) -> list[Stored
 class TargetUnit(Unit[TargetElement, TargetBit]):
     """A target link's data files as a Modbus unit (module doc)."""
 
+    POLLED = False
     driver: TargetRunner
 
     def __init__(self, *, driver: TargetRunner, files: Sequence[TargetFile], store: TargetStore | None,
                  **common: Unpack[UnitOptions]) -> None:
-        super().__init__(driver=driver, plan=target_plan(files), polled=False, **common)
+        super().__init__(driver=driver, plan=target_plan(files), **common)
         self.files = tuple(files)
         table = driver.target.table
         self.table = table

@@ -39,9 +39,12 @@ from gateway.protocols.need_data import NEED_DATA, NeedData
 
 __all__ = [
     "ACK_SYMBOL",
+    "DEFAULT_ACK_TIMEOUT",
+    "DEFAULT_CHECKSUM",
     "DEFAULT_MAX_MESSAGE",
     "ENQ_SYMBOL",
     "EOT_SYMBOL",
+    "ETX_BYTE",
     "NAK_SYMBOL",
     "NEED_DATA",
     "AckReceived",
@@ -104,7 +107,17 @@ EOT_SYMBOL: Final = bytes((Symbol.DLE, Symbol.EOT))
 #: under 250 bytes (manual §2: "can not be greater than 250"); a margin costs nothing.
 DEFAULT_MAX_MESSAGE: Final = 512
 
-_ETX_BYTE: Final = bytes((Symbol.ETX,))
+#: The error check of a link that does not name one: CRC, the default "Error Detection" of an SLC 500
+#: channel 0 in DF1 (1747-RM001G p. 13-52, Table 13.15).
+DEFAULT_CHECKSUM: Final = Checksum.CRC
+
+#: The wait for the peer's DLE ACK of a full-duplex frame before a DLE ENQ: "ACK Timeout" 50 x 20 ms,
+#: the default of an SLC 500 channel 0 (1747-RM001G p. 13-52, Table 13.15), the wait a PLC's MSG expects
+#: of a target.  A half-duplex master's is its line's (half_duplex_events.HALF_DUPLEX_ACK_TIMEOUT).
+DEFAULT_ACK_TIMEOUT: Final = 1.0
+
+#: ETX as the one byte a CRC covers after the message (module docstring: over the message and ETX).
+ETX_BYTE: Final = bytes((Symbol.ETX,))
 
 
 # ------------------------------------------------------------------------------------- encoders
@@ -114,14 +127,14 @@ def frame_check(message: bytes, checksum: Checksum) -> bytes:
     """Check bytes of a ``DLE STX`` frame: BCC over the message; CRC over the message and ETX."""
     if checksum is Checksum.BCC:
         return bytes((bcc(message),))
-    return crc16(_ETX_BYTE, crc16(message)).to_bytes(2, "little")
+    return crc16(ETX_BYTE, crc16(message)).to_bytes(2, "little")
 
 
 def master_check(station: int, message: bytes, checksum: Checksum) -> bytes:
     """Check bytes of a master message: BCC over STN + message; CRC over STN STX message ETX."""
     if checksum is Checksum.BCC:
         return bytes((bcc(bytes((station,)) + message),))
-    return crc16(bytes((station, Symbol.STX)) + message + _ETX_BYTE).to_bytes(2, "little")
+    return crc16(bytes((station, Symbol.STX)) + message + ETX_BYTE).to_bytes(2, "little")
 
 
 def _check_station(station: int) -> None:

@@ -34,6 +34,7 @@ from typing import Final
 from gateway.protocols.df1.checks import bcc, crc16
 from gateway.protocols.df1.framing import (
     DEFAULT_MAX_MESSAGE,
+    ETX_BYTE,
     NEED_DATA,
     AckReceived,
     BadFrame,
@@ -281,7 +282,6 @@ _HALF_DUPLEX_STEP: Final = _compile(HALF_DUPLEX_TRANSITIONS)
 
 # Plain-int copies of the states and actions the decoder's loop tests.
 _DLE: Final = int(Symbol.DLE)
-_ETX_BYTE: Final = bytes((Symbol.ETX,))
 _IDLE: Final = int(S.IDLE)
 _IDLE_DLE: Final = int(S.IDLE_DLE)
 _DATA: Final = int(S.DATA)
@@ -496,7 +496,7 @@ class FrameDecoder:
             elif self.checksum is Checksum.BCC:
                 good = check[0] == bcc(message)
             else:
-                good = check[0] | check[1] << 8 == crc16(_ETX_BYTE, crc16(message))
+                good = check[0] | check[1] << 8 == crc16(ETX_BYTE, crc16(message))
             if not good:
                 bad = BadFrameReason.CHECKSUM
         check.clear()

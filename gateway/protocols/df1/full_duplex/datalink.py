@@ -4,7 +4,7 @@ Manual: "S4516-DF1 Program Development Manual" §2.4 *How the Transmitter Operat
 §2.5 *How the Receiver Operates* (after A-B 1770-6.5.16, chapter 2, full-duplex protocol).
 
 The receiver and the transmitter are the full-duplex station's
-(:class:`~gateway.protocols.df1.full_duplex.station.FullDuplexStation`, its tables in
+(:class:`~gateway.protocols.df1.full_duplex.FullDuplexStation`, its tables in
 :mod:`~gateway.protocols.df1.full_duplex.table`), shared with the target's responder: a good frame
 is ACKed and delivered unless it duplicates the last one delivered, a damaged one (or one of fewer
 than 6 bytes) NAKed, a DLE ENQ answered with the last response symbol, and noise or a DLE ETX
@@ -64,7 +64,7 @@ from typing import Final
 
 from gateway.errors import InvalidRequest
 from gateway.frozen import frozen
-from gateway.protocols.df1.framing import DEFAULT_MAX_MESSAGE, Checksum
+from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, DEFAULT_MAX_MESSAGE, Checksum
 from gateway.protocols.df1.full_duplex.station import FullDuplexCounters, FullDuplexStation, QueuedFrame, SendFailure
 from gateway.protocols.df1.full_duplex.table import (
     TRANSITIONS,
@@ -137,8 +137,8 @@ class Df1DataLink(FullDuplexStation[DataLinkEvent, DataLinkCounters]):
     def __init__(
         self,
         *,
-        checksum: Checksum = Checksum.BCC,
-        ack_timeout: float = 1.0,
+        checksum: Checksum = DEFAULT_CHECKSUM,
+        ack_timeout: float = DEFAULT_ACK_TIMEOUT,
         enq_limit: int = 3,
         nak_limit: int = 3,
         duplicate_detect: bool = True,

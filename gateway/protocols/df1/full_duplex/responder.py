@@ -54,7 +54,7 @@ the DLE ENQ that follows is answered with the previous frame's ACK (p. 4-8: the 
 the peer takes it as delivered; the application layer's reply timeout covers that.
 
 The receiver and the transmitter are the full-duplex station's
-(:class:`~gateway.protocols.df1.full_duplex.station.FullDuplexStation`, its tables in
+(:class:`~gateway.protocols.df1.full_duplex.FullDuplexStation`, its tables in
 :mod:`~gateway.protocols.df1.full_duplex.table`), shared with the host's data link; the responder
 adds its role: the message sink of ``max_pending`` commands awaiting their reply, the DST check,
 the stored reply, and its events and counters (:mod:`~gateway.protocols.df1.full_duplex.responder_events`).
@@ -65,7 +65,7 @@ from __future__ import annotations
 
 from typing import Final
 
-from gateway.protocols.df1.framing import DEFAULT_MAX_MESSAGE, Checksum
+from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, DEFAULT_MAX_MESSAGE, Checksum
 from gateway.protocols.df1.full_duplex.responder_events import (
     CommandReceived,
     DuplicateReceived,
@@ -79,11 +79,7 @@ from gateway.protocols.df1.full_duplex.table import TxInput
 from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, duplicate_key
 from gateway.protocols.df1.pccc.codes import REPLY_BIT
 
-__all__ = ["REPLY_ACK_TIMEOUT", "Df1Responder"]
-
-#: The wait for the peer's DLE ACK of a reply before DLE ENQ: the SLC 500 channel 0 default, "ACK
-#: Timeout 50" x 20 ms (1747-RM001G p. 13-52, Table 13.15), the station a PLC's MSG expects.
-REPLY_ACK_TIMEOUT: Final = 1.0
+__all__ = ["Df1Responder"]
 
 
 class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
@@ -100,8 +96,8 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
         self,
         *,
         station: int = 0,
-        checksum: Checksum = Checksum.CRC,
-        ack_timeout: float = REPLY_ACK_TIMEOUT,
+        checksum: Checksum = DEFAULT_CHECKSUM,
+        ack_timeout: float = DEFAULT_ACK_TIMEOUT,
         nak_limit: int = 3,
         enq_limit: int = 3,
         duplicate_detect: bool = True,

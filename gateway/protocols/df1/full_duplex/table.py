@@ -114,7 +114,7 @@ _BAD_FRAME: Final = {
     BadFrameAnswer.SILENCE: RxAction.LAST_NAK,
     BadFrameAnswer.IGNORE: RxAction.IGNORE,
 }
-_ENQ: Final = {EnqAnswer.LAST_RESPONSE: RxAction.ANSWER_ENQ, EnqAnswer.NAK: RxAction.ANSWER_NAK}
+_ENQ_ANSWER: Final = {EnqAnswer.LAST_RESPONSE: RxAction.ANSWER_ENQ, EnqAnswer.NAK: RxAction.ANSWER_NAK}
 
 
 def receiver_table(
@@ -128,7 +128,7 @@ def receiver_table(
         RxInput.SINK_FULL: RxAction.REFUSE,
         RxInput.BAD_FRAME: _BAD_FRAME[bad_frame],
         RxInput.ENQ_IN_FRAME: RxAction.REJECT,
-        RxInput.ENQ: _ENQ[enq_answer],
+        RxInput.ENQ: _ENQ_ANSWER[enq_answer],
         RxInput.NOISE: RxAction.LAST_NAK,
     }
     missing = set(RxInput) - set(table)

@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from typing import Final
 
 from gateway.frozen import frozen
 from gateway.protocols.df1.framing import Checksum
 
 __all__ = [
     "DEMOTE_AFTER",
+    "HALF_DUPLEX_ACK_TIMEOUT",
     "FailReason",
     "LineConfig",
     "MasterEvent",
@@ -43,6 +45,11 @@ def _positive(name: str, value: float, *, allow_zero: bool = True) -> None:
 #: hit a live station every minute or two of continuous polling, which then serves 0x0B until its next
 #: slow poll; five in a row is some hours (tests/e2e/test_half_duplex_acceptance.py measures it).
 DEMOTE_AFTER = 5
+#: A half-duplex master's wait for the DLE ACK of its message, counted from its last byte.  1747-RM001G
+#: p. 13-61 sizes it to the line (modem turnaround, RTS send delay, the slave's scan); on a wire a slave's
+#: two-byte ACK comes within that, so 0.5 s, not the SLC channel's 1.0 s default, which allows for
+#: modems: a radio line sets the ``ack_timeout`` key.
+HALF_DUPLEX_ACK_TIMEOUT: Final = 0.5
 
 
 @frozen
@@ -76,7 +83,7 @@ class LineConfig:
     """Tunables of the line (seconds)."""
 
     checksum: Checksum
-    ack_timeout: float = 0.5  #: wait for DLE ACK after a master message
+    ack_timeout: float = HALF_DUPLEX_ACK_TIMEOUT  #: wait for DLE ACK after a master message
     message_resends: int = 3  #: identical copies sent again of a master message without its DLE ACK
     char_time: float = 0.0  #: time of one character on the wire (11 bits / baud); 0 = instantaneous
     pre_transmit_delay: float = 0.0  #: quiet time after the last byte heard before transmitting

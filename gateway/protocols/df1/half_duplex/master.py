@@ -312,7 +312,7 @@ class HalfDuplexMaster:
             self.ignored += 1
             return False
         self._state = entry.next_state
-        _ACTIONS[entry.action](self, now)
+        _MASTER_ACTIONS[entry.action](self, now)
         assert entry.allows(self._state), f"{entry.action.name} ended in {self._state.name}, not in {entry.allowed}"
         return True
 
@@ -482,7 +482,7 @@ class HalfDuplexMaster:
 
 
 #: What each :class:`MasterAction` runs.
-_ACTIONS: Final[dict[MasterAction, Callable[[HalfDuplexMaster, float], None]]] = {
+_MASTER_ACTIONS: Final[dict[MasterAction, Callable[[HalfDuplexMaster, float], None]]] = {
     MasterAction.SCHEDULE: HalfDuplexMaster._on_schedule,
     MasterAction.SEND: HalfDuplexMaster._on_send,
     MasterAction.ACKED: HalfDuplexMaster._on_acked,

@@ -19,7 +19,15 @@ from typing import Final
 
 from gateway.frozen import frozen
 
-__all__ = ["PLC5_TYPED_LOGICAL", "PLC5_WORD_RANGE", "SLC_MODULAR", "SLC_SMALL", "SizeLimits"]
+__all__ = [
+    "MAX_DATA_BYTES",
+    "PLC5_TYPED",
+    "PLC5_TYPED_LOGICAL",
+    "PLC5_WORD_RANGE",
+    "SLC_MODULAR",
+    "SLC_SMALL",
+    "SizeLimits",
+]
 
 
 @frozen
@@ -42,6 +50,12 @@ class SizeLimits:
     def max_write_elements(self, element_bytes: int, expanded_fields: int = 0) -> int:
         return self.write_limit(expanded_fields) // element_bytes
 
+    def lowered(self, max_read_bytes: int = 0, max_write_bytes: int = 0) -> SizeLimits:
+        """These limits with a link's overrides (0: not given), each at most the limit it overrides:
+        a controller refuses a packet over its limit whatever a config says."""
+        return SizeLimits(min(max_read_bytes or self.max_read_bytes, self.max_read_bytes),
+                          min(max_write_bytes or self.max_write_bytes, self.max_write_bytes))
+
 
 #: SLC 500 fixed, 5/01, 5/02: 0-82 bytes (notes §4.36).
 SLC_SMALL: Final = SizeLimits(82, 82)
@@ -51,3 +65,12 @@ SLC_MODULAR: Final = SizeLimits(236, 228)
 PLC5_TYPED_LOGICAL: Final = SizeLimits(230, 222)
 #: PLC-5 word range read (reply data bytes) and write (address + data bytes).
 PLC5_WORD_RANGE: Final = SizeLimits(244, 239)
+#: PLC-5 typed read (reply: type/data parameter + data, 244 as a word range read's, KF2 p. 5-57) and
+#: typed write (command: address + type/data parameter + data, 1770-6.5.16 p. 7-30, KF2 p. 5-51: 240).
+PLC5_TYPED: Final = SizeLimits(PLC5_WORD_RANGE.max_read_bytes, 240)
+#: The most data bytes a packet of any family carries: the highest a link's override may ask for,
+#: and what the longest frame a driver waits for holds.
+MAX_DATA_BYTES: Final = max(
+    max(limits.max_read_bytes, limits.max_write_bytes)
+    for limits in (SLC_SMALL, SLC_MODULAR, PLC5_TYPED_LOGICAL, PLC5_WORD_RANGE, PLC5_TYPED)
+)

@@ -29,11 +29,11 @@ class Sts(enum.IntEnum):
     APPLICATION_TIMEOUT = 0x05
     DUPLICATE_NODE = 0x06
     STATION_OFFLINE = 0x07
-    HARDWARE_FAULT = 0x08
+    LOCAL_HARDWARE_FAULT = 0x08  # local nibble: "Hardware fault" (1770-6.5.16 p. 8-2)
     ILLEGAL_COMMAND_OR_FORMAT = 0x10
     HOST_PROBLEM = 0x20
     REMOTE_HOST_MISSING = 0x30
-    HOST_HARDWARE_FAULT = 0x40
+    HOST_HARDWARE_FAULT = 0x40  # remote nibble: the host could not complete the function (p. 8-3)
     ADDRESSING_PROBLEM = 0x50
     COMMAND_PROTECTION = 0x60
     PROGRAM_MODE = 0x70

@@ -86,7 +86,7 @@ from gateway.errors import GatewayError
 from gateway.frozen import frozen
 from gateway.protocols.df1.pccc.codec import LogicalBinaryAddress, PcccFormatError, PcccHeader, encode_reply
 from gateway.protocols.df1.pccc.commands import Request, decode_command
-from gateway.protocols.df1.pccc.limits import PLC5_WORD_RANGE, SLC_MODULAR, SizeLimits
+from gateway.protocols.df1.pccc.limits import PLC5_TYPED, SLC_MODULAR, SizeLimits
 from gateway.protocols.df1.pccc.plc5 import (
     TypedRead,
     TypedWrite,
@@ -119,10 +119,6 @@ __all__ = [
 
 #: Bulletin name in the diagnostic status reply (11 ASCII characters).
 GATEWAY_NAME: Final = "DF1-GATEWAY"
-#: Typed write: address + type/data parameter + data (1770-6.5.16 p. 7-30, KF2 p. 5-51: 240 bytes).
-_TYPED_WRITE_BYTES: Final = 240
-#: Typed read reply: type/data parameter + data, the reply ceiling of a PLC-5 read (KF2 p. 5-57: 244).
-_TYPED_READ_BYTES: Final = PLC5_WORD_RANGE.max_read_bytes
 
 
 class UnwrittenReads(enum.Enum):
@@ -306,7 +302,7 @@ class PcccTarget:
                 table_file, element = self._resolve(request.address)
                 type_id, unit = self._typed(table_file), table_file.kind.element_bytes
                 size = request.count * unit
-                if len(encode_typed_data(type_id, unit, bytes(size))) > _TYPED_READ_BYTES:  # the reply's data
+                if len(encode_typed_data(type_id, unit, bytes(size))) > PLC5_TYPED.max_read_bytes:  # the reply's data
                     raise _Refused(Problem.FORMAT)
                 if request.packet_offset + request.count > request.total_elements:
                     raise _Refused(Problem.FORMAT)
@@ -318,7 +314,7 @@ class PcccTarget:
                 unit = table_file.kind.element_bytes
                 if (request.data_type, request.element_size) != (self._typed(table_file), unit):
                     raise _Refused(Problem.TYPE)
-                if len(request.encode_params()) - 4 > _TYPED_WRITE_BYTES:  # less packet offset and total
+                if len(request.encode_params()) - 4 > PLC5_TYPED.max_write_bytes:  # less packet offset and total
                     raise _Refused(Problem.FORMAT)
                 return self._multi_packet(header, request, table_file, element * unit, unit, now)
             case DiagnosticStatus():

@@ -515,7 +515,7 @@ def test_the_limits_reject_a_negative_count_of_either_kind() -> None:
 def test_by_default_a_frame_is_sent_again_on_3_naks_and_enquired_3_times() -> None:
     """The DF1 manuals' default retry counts (3 DLE NAKs, 3 DLE ENQs), which the simulated
     controllers' links run with."""
-    link = Df1DataLink(ack_timeout=0.1)
+    link = Df1DataLink(checksum=Checksum.BCC, ack_timeout=0.1)
     frame = encode_frame(packet(1), Checksum.BCC)
     link.send(packet(1), 0.0)
     assert link.data_to_send() == frame
