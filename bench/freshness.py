@@ -78,6 +78,8 @@ DF1_CHAR = 10 / 19200
 SCREEN = ((3, 0, 32, 1.0), (3, 32, 32, 2.0))
 ACC8 = ((3, 0, 8, 1.0),)
 SWEEP = (0.0, 0.05, 0.1, 0.2, 0.3)
+#: The sweep's curve of the independent SLC 150 peer (``../shared/interop``), answers held uniform(0, J).
+PEER_SWEEP_KIND = "interop SLC 150 peer, 9600"
 
 
 def scan_for(longest: float) -> ScanTime | None:
@@ -522,10 +524,18 @@ async def main_async(args: argparse.Namespace) -> tuple[dict[str, object], Point
         sweep = (SWEEP[0], SWEEP[-1]) if args.quick else SWEEP
         kinds = list(KINDS)[:1] if args.quick else [k for k in KINDS if not args.kinds or any(
             part in k for part in args.kinds.split(","))]
+        # the independent SLC 150 peer, its every answer held uniform(0, J) by the proxy (the issue's own
+        # measure of a controller that "answers within J")
+        peer_sweep = not args.quick and PEERS.exists() and (not args.kinds or any(
+            part in PEER_SWEEP_KIND for part in args.kinds.split(",")))
         sweep_rows = []
-        for name in kinds:
+        for name in [*kinds, *([PEER_SWEEP_KIND] if peer_sweep else [])]:
             for longest in sweep:
-                fig = await steady(KINDS[name](scan_for(longest), ""), SCREEN, seconds, warmup)
+                if name == PEER_SWEEP_KIND:
+                    fig = await through_peer("slc_ascii_peer.py", ["--model", "150", "--baud", "9600"], 0.0, longest,
+                                             0.0, slc_links, seconds, warmup)
+                else:
+                    fig = await steady(KINDS[name](scan_for(longest), ""), SCREEN, seconds, warmup)
                 points.setdefault(name, []).append((longest, fig.share, fig.tx_per_s))
                 sweep_rows.append([name, f"{1000 * longest:g}", f"{100 * fig.share:.1f} %", fig.tx_per_s,
                                    fig.plan_blocks, fig.demanded_blocks])
@@ -555,23 +565,32 @@ def main() -> None:
                         help="--json files of earlier runs (comma-separated): their sweeps drawn dashed")
     parser.add_argument("--label", default="", help="the legend's label of this run's curves (e.g. 'after')")
     parser.add_argument("--compare-label", default="before", help="the legend's label of --compare's curves")
+    parser.add_argument("--plot-only", default="",
+                        help="--json files (comma-separated) whose sweeps are this run's curves: plot, measure nothing")
     parser.add_argument("--title", default="Reads with data vs controller answer time (default config, no faults)")
     args = parser.parse_args()
     args.seconds = args.seconds if args.seconds is not None else (2.0 if args.quick else 30.0)
     args.warmup = args.warmup if args.warmup is not None else (1.0 if args.quick else 10.0)
-    print_machine()
-    figures, points = asyncio.run(main_async(args))
+    def sweeps(files: str) -> Points:
+        merged: Points = {}
+        for name in files.split(","):
+            sweep = json.loads(Path(name).read_text())["sweep"]
+            merged.update({kind: [(x, y, tx) for x, y, tx in values] for kind, values in sweep.items()})
+        return merged
+
+    if args.plot_only:
+        figures: dict[str, object] = {}
+        points = sweeps(args.plot_only)
+    else:
+        print_machine()
+        figures, points = asyncio.run(main_async(args))
     if args.json:
         Path(args.json).write_text(json.dumps({"figures": figures, "sweep": points}, indent=1))
     if args.png and points and not args.quick:
-        before = None
-        if args.compare:
-            before = {}
-            for name in args.compare.split(","):
-                sweep = json.loads(Path(name).read_text())["sweep"]
-                before.update({kind: [(x, y, tx) for x, y, tx in values] for kind, values in sweep.items()})
+        before = sweeps(args.compare) if args.compare else None
         plot(points, Path(args.png), args.title, before, (args.compare_label, args.label))
-    result(**figures)
+    if figures:
+        result(**figures)
 
 
 if __name__ == "__main__":
