@@ -33,6 +33,8 @@ from pathlib import Path
 from typing import Any, Final
 
 import aiomqtt
+from paho.mqtt.client import MQTT_ERR_SUCCESS
+from paho.mqtt.client import time_func as paho_clock
 
 from gateway.clients import Client, audit_write, current_client
 from gateway.config.link import LinkBase
@@ -90,6 +92,32 @@ class _Busy:
         self.seconds += spent
         self.steps += 1
         self.longest = max(self.longest, spent)
+
+
+class _MqttClient(aiomqtt.Client):
+    """aiomqtt's client, whose keepalive clock starts when its CONNECT is written, not before.
+
+    paho (the client under aiomqtt) stamps "last message out" when a connect begins, before the TCP
+    connection, and its keepalive check (aiomqtt runs it once a second on the loop, the first time as
+    soon as the socket is handed to the loop, before the CONNECT is written) closes a connection that
+    has had no CONNACK for ``keepalive`` seconds since that stamp.  A connect that spends that long
+    before the loop takes the socket over (a busy loop at start-up, a loaded machine: the TCP connect
+    runs in a thread, the CONNECT is written by the loop) is closed before its CONNECT ever leaves,
+    silently: aiomqtt then waits out its whole ``timeout`` (10 s) for a CONNACK that cannot come, and
+    the next attempt takes the next bdSeq.  Here, while the CONNECT still waits in paho's queue, the
+    clock is restarted before each check: the keepalive measures the broker's silence after the
+    CONNECT, as MQTT 3.1.1 §3.1.2.10 means it; once written, paho's own rule applies unchanged.  (These are
+    paho-mqtt 2.2.0's internals and aiomqtt 2.5.1's misc loop: both pinned in pyproject.toml.)"""
+
+    async def _misc_loop(self) -> None:
+        paho = self._client
+        while True:
+            if not paho.is_connected() and paho.want_write():  # no CONNACK yet, our CONNECT not written
+                with paho._msgtime_mutex:
+                    paho._last_msg_out = paho._last_bytes_received = paho_clock()
+            if paho.loop_misc() != MQTT_ERR_SUCCESS:
+                return
+            await asyncio.sleep(1)
 
 
 class _HostOffline(Exception):
@@ -164,7 +192,8 @@ class SparkplugNode:
             will = self.core.connecting(self._now_ms())
             bd_seq = self.core.bd_seq or 0
             try:
-                save_bd_seq(self.config.state_file, bd_seq)
+                # fsync takes milliseconds, more on a busy disk: in a thread, the loop answers meanwhile
+                await asyncio.to_thread(save_bd_seq, self.config.state_file, bd_seq)
                 state_error = False
             except OSError as exc:
                 if not state_error:
@@ -195,7 +224,7 @@ class SparkplugNode:
     async def _session(self, will: Publish) -> None:
         config = self.config
         host, port = config.address
-        client = aiomqtt.Client(
+        client = _MqttClient(
             host, port,
             identifier=config.client_id or f"slc-gateway-{config.group_id}-{config.edge_node_id}",
             username=config.username, password=config.password,
