@@ -18,15 +18,22 @@ run, nothing is read, built or sent), window after window, the order rotated per
 ``on`` window the broker is started and the node's births are waited for.  One process, one farm,
 windows next to each other: the machine (shared, often loaded) is as alike as it gets for both.
 
-Each row is the mode's median window: Modbus requests/s, latency p50 / p99, the gateway's CPU per
-second and per request, and (``on``) the Sparkplug messages published per second (``/metrics``)
-and delivered to the subscriber, the edge node's own CPU on the event loop per second and its
-longest step (``sparkplug_cpu_seconds_total``, ``sparkplug_longest_step_seconds``: reading the
-image, building births and DDATA; not paho's packets and socket writes), which bounds what a
-Modbus answer can wait behind it.  "Publishing costs no Modbus answer time" reads as the ``on`` /
-``off`` ratios of p50 and p99, per pair, their median.
+Each mode gets two load windows: closed loop (each connection sends its next request as soon as
+the reply is in: the machine's 2 cores are saturated, so req/s and latency show CPU taken from the
+answers by anything, the broker and subscriber included) and paced (``--rate`` requests/s per
+connection, 1000/s in all by default, well below what the gateway serves: latency there shows
+answers waiting, not throughput).  Each row is the mode's median window: Modbus requests/s, latency
+p50 / p99, the gateway's CPU per second and per request, and (``on``) the Sparkplug messages
+published per second (``/metrics``) and delivered to the subscriber, the edge node's own CPU on the
+event loop per second and its longest step (``sparkplug_cpu_seconds_total``,
+``sparkplug_longest_step_seconds``: reading the image, building births and DDATA; not paho's
+packets and socket writes), which bounds what a Modbus answer can wait behind it, and the CPU the
+broker and the subscriber took on the same machine.  "Publishing costs no Modbus answer time" reads
+as the ``on`` / ``off`` ratios of p50 and p99, per pair, their median.  ``--source DIR`` runs the
+gateway from another tree (an older commit exported with ``git archive``) for a before / after.
 
     python bench/sparkplug_publishing.py [--quick] [--rounds N] [--duration S] [--connections C] [--links N]
+                                         [--rate R] [--source DIR]
 """
 
 from __future__ import annotations

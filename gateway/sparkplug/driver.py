@@ -51,9 +51,9 @@ log = logging.getLogger("gateway.sparkplug")
 
 #: the MQTT operations (connect, subscribe, publish) that take longer than this fail the session
 _MQTT_TIMEOUT: Final = 10.0
-#: messages handed to the MQTT client at once, at most: paho writes them in one loop step (about 40 µs of
+#: messages handed to the MQTT client at once, at most: paho writes them in one loop step (40-60 µs of
 #: CPU each on the 2-core bench machine), so this bounds that step; a birth sequence queues one per device
-_BATCH: Final = 8
+_BATCH: Final = 4
 
 
 def load_bd_seq(path: Path) -> int | None:
