@@ -35,6 +35,7 @@ from typing import Any, Final
 import aiomqtt
 from paho.mqtt.client import MQTT_ERR_SUCCESS
 from paho.mqtt.client import time_func as paho_clock
+from paho.mqtt.enums import _ConnectionState
 
 from gateway.clients import Client, audit_write, current_client
 from gateway.config.link import LinkBase
@@ -115,7 +116,7 @@ class _MqttClient(aiomqtt.Client):
     async def _misc_loop(self) -> None:
         paho = self._client
         while True:
-            if not paho.is_connected() and paho.want_write():  # no CONNACK yet, our CONNECT not written
+            if paho._state is _ConnectionState.MQTT_CS_CONNECTING and paho.want_write():  # CONNECT not written yet
                 with paho._msgtime_mutex:
                     paho._last_msg_out = paho._last_bytes_received = paho_clock()
             if paho.loop_misc() != MQTT_ERR_SUCCESS:
