@@ -6,7 +6,8 @@
     python bench/loadgen.py flood --port P [--unit U] [--in-flight K] [--span N] [--duration S]
 
 ``read``: C connections, each a closed loop (send one FC3 request (``--function``: 1-4), await its reply, repeat) for
-S seconds after a short warm-up; prints one JSON line: requests, exception replies, latency
+S seconds after a short warm-up (``--rate R``: paced, each connection's next request 1/R s after its last one,
+or at once when its reply came later); prints one JSON line: requests, exception replies, latency
 percentiles (ms), and this process's CPU seconds per second (to show whether the generator
 itself was the limit).  With ``--marks`` it prints ``START`` and ``STOP`` lines around the
 measurement window, so a parent can sample the server's CPU time at those moments.
@@ -46,9 +47,13 @@ def _cpu() -> float:
 class ReadLoop(asyncio.Protocol):
     """One closed-loop connection: request, reply, request ..."""
 
-    def __init__(self, unit: int, address: int, count: int, latencies: list[float], function: int = 3) -> None:
+    def __init__(self, unit: int, address: int, count: int, latencies: list[float], function: int = 3,
+                 rate: float = 0.0) -> None:
         self.unit, self.address, self.count, self.function = unit, address, count, function
         self.latencies = latencies
+        #: requests per second (0: the next request as soon as the reply is in)
+        self.period = 1.0 / rate if rate else 0.0
+        self.loop = asyncio.get_running_loop()
         self.recording = False
         self.running = True
         self.exceptions = 0
@@ -60,7 +65,10 @@ class ReadLoop(asyncio.Protocol):
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
-        self.send()
+        if self.period:  # paced connections start at random phases, not in step
+            self.loop.call_later(random.uniform(0, self.period), self.send)
+        else:
+            self.send()
 
     def send(self) -> None:
         self.tid = (self.tid + 1) & 0xFFFF
@@ -81,7 +89,10 @@ class ReadLoop(asyncio.Protocol):
                 if buffer[7] & 0x80:
                     self.exceptions += 1
             buffer = buffer[end:]
-            if self.running:
+            if self.running and self.period:
+                # paced: the next request one period after the last one went out (at once if late)
+                self.loop.call_later(max(0.0, self.sent_at + self.period - time.perf_counter()), self.send)
+            elif self.running:
                 self.send()
             elif self.transport is not None:
                 self.transport.close()
@@ -136,7 +147,7 @@ async def read_load(args: argparse.Namespace) -> dict[str, object]:
     loops: list[ReadLoop] = []
     for _ in range(args.connections):
         _, protocol = await loop.create_connection(
-            lambda: ReadLoop(args.unit, args.address, args.count, latencies, args.function), HOST, args.port
+            lambda: ReadLoop(args.unit, args.address, args.count, latencies, args.function, args.rate), HOST, args.port
         )
         loops.append(protocol)
     await asyncio.sleep(args.warmup)
@@ -220,6 +231,8 @@ def main() -> None:
     parser.add_argument("--address", type=int, default=0)
     parser.add_argument("--count", type=int, default=100)
     parser.add_argument("--connections", type=int, default=1)
+    parser.add_argument("--rate", type=float, default=0.0,
+                        help="read: requests per second per connection (default 0: closed loop, as fast as answered)")
     parser.add_argument("--duration", type=float, default=5.0)
     parser.add_argument("--warmup", type=float, default=0.5)
     parser.add_argument("--writes", type=int, default=100)

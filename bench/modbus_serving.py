@@ -156,11 +156,13 @@ def link_rates(gw_port: int, start: dict[str, int], t0: float) -> dict[str, floa
 
 
 def run_load(port: int, pid: int, unit: int, function: int, address: int, count: int, connections: int,
-             duration: float, warmup: float, gw_port: int = 0) -> dict[str, object]:
-    """One window of the load generator against ``port``; with ``gw_port``: the links' tx/s in it."""
+             duration: float, warmup: float, gw_port: int = 0, rate: float = 0.0) -> dict[str, object]:
+    """One window of the load generator against ``port``; with ``gw_port``: the links' tx/s in it;
+    ``rate``: requests per second per connection (0: closed loop)."""
     command = [PYTHON, str(BENCH_DIR / "loadgen.py"), "read", "--port", str(port), "--unit", str(unit),
                "--function", str(function), "--address", str(address), "--count", str(count),
-               "--connections", str(connections), "--duration", str(duration), "--warmup", str(warmup), "--marks"]
+               "--connections", str(connections), "--duration", str(duration), "--warmup", str(warmup), "--marks",
+               "--rate", str(rate)]
     generator = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, cwd=str(REPO))
     assert generator.stdout is not None
     cpu0 = cpu1 = 0.0

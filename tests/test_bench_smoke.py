@@ -28,6 +28,7 @@ SCRIPTS = [
     "freshness.py",
     "schedule_cost.py",
     "sparkplug_publishing.py",  # needs mosquitto (Debian package): CI installs it
+    "sparkplug_cpu.py",  # the same
 ]
 
 

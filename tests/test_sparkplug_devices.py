@@ -12,6 +12,8 @@ import uuid
 from typing import Any
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from gateway.app import build_units
 from gateway.config import parse_config
@@ -143,3 +145,39 @@ async def test_a_null_carries_the_time_it_was_found_stale() -> None:
     holding = next(run for run in press.runs if run.table is Table.HOLDING and run.first == 0)
     samples = press.read(holding, 1000, failed_at=5000)
     assert [s.timestamp for _, s in samples] == [5000, 5000]
+
+
+WIDTHS = st.lists(st.sampled_from(["int16", "uint16", "int32", "float32"]), min_size=1, max_size=12)
+
+
+@given(WIDTHS, st.data())
+def test_only_the_values_whose_bytes_differ_are_decoded(types: list[str], data: st.DataObject) -> None:
+    from gateway.sparkplug.devices import Point, _changed_members, _runs
+
+    points, address = [], 0
+    for kind in types:
+        points.append(Point(Table.HOLDING, address, kind, False, 0))
+        address += points[-1].width
+    (run,) = _runs(points)
+    size = 2 * address
+    before = data.draw(st.binary(min_size=size, max_size=size))
+    after = bytearray(before)
+    for i in data.draw(st.lists(st.integers(0, size - 1), max_size=4)):  # a few bytes changed, anywhere
+        after[i] ^= data.draw(st.integers(1, 255))
+    # a value changed when any of its bytes did (its registers, 2 bytes each, from its offset)
+    expected = [(m, at) for m, at in run.members
+                if before[at : at + 2 * points[m].width] != after[at : at + 2 * points[m].width]]
+    assert _changed_members(run, before, bytes(after)) == expected
+
+
+@given(st.integers(1, 40), st.data())
+def test_only_the_bits_that_differ_are_reported(count: int, data: st.DataObject) -> None:
+    from gateway.sparkplug.devices import Point, _changed_members, _runs
+
+    (run,) = _runs([Point(Table.COIL, i, "bool", False, 0) for i in range(count)])
+    size = (count + 7) // 8
+    before = data.draw(st.binary(min_size=size, max_size=size))
+    after = data.draw(st.binary(min_size=size, max_size=size))
+    # bit k of the read is LSB first in byte k // 8; bits past count (padding) are no member's
+    expected = [(m, at) for m, at in run.members if (before[at // 8] ^ after[at // 8]) >> (at % 8) & 1]
+    assert _changed_members(run, before, after) == expected

@@ -28,11 +28,14 @@ import os
 import struct
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, Final
 
 import aiomqtt
+from paho.mqtt.client import MQTT_ERR_SUCCESS
+from paho.mqtt.client import time_func as paho_clock
+from paho.mqtt.enums import _ConnectionState
 
 from gateway.clients import Client, audit_write, current_client
 from gateway.config.link import LinkBase
@@ -49,6 +52,9 @@ log = logging.getLogger("gateway.sparkplug")
 
 #: the MQTT operations (connect, subscribe, publish) that take longer than this fail the session
 _MQTT_TIMEOUT: Final = 10.0
+#: messages handed to the MQTT client at once, at most: paho writes them in one loop step (40-60 µs of
+#: CPU each on the 2-core bench machine), so this bounds that step; a birth sequence queues one per device
+_BATCH: Final = 4
 
 
 def load_bd_seq(path: Path) -> int | None:
@@ -92,6 +98,60 @@ class _Busy:
         self.longest = max(self.longest, spent)
 
 
+class _MqttClient(aiomqtt.Client):
+    """aiomqtt's client, whose keepalive clock starts when its CONNECT is written, not before.
+
+    paho (the client under aiomqtt) stamps "last message out" when a connect begins, before the TCP
+    connection, and its keepalive check (aiomqtt runs it once a second on the loop, the first time as
+    soon as the socket is handed to the loop, before the CONNECT is written) closes a connection that
+    has had no CONNACK for ``keepalive`` seconds since that stamp.  A connect that spends that long
+    before the loop takes the socket over (a busy loop at start-up, a loaded machine: the TCP connect
+    runs in a thread, the CONNECT is written by the loop) is closed before its CONNECT ever leaves,
+    silently: aiomqtt then waits out its whole ``timeout`` (10 s) for a CONNACK that cannot come, and
+    the next attempt takes the next bdSeq.  Here, while the CONNECT still waits in paho's queue, the
+    clock is restarted before each check: the keepalive measures the broker's silence after the
+    CONNECT, as MQTT 3.1.1 §3.1.2.10 means it; once written, paho's own rule applies unchanged.  (These are
+    paho-mqtt 2.2.0's internals and aiomqtt 2.5.1's misc loop: both pinned in pyproject.toml.)"""
+
+    async def _misc_loop(self) -> None:
+        paho = self._client
+        while True:
+            if paho._state is _ConnectionState.MQTT_CS_CONNECTING and paho.want_write():  # CONNECT not written yet
+                with paho._msgtime_mutex:
+                    paho._last_msg_out = paho._last_bytes_received = paho_clock()
+            if paho.loop_misc() != MQTT_ERR_SUCCESS:
+                return
+            await asyncio.sleep(1)
+
+    async def publish_in_order(self, messages: Sequence[Publish]) -> None:
+        """``messages`` to the broker in their order; returns once they are written to the socket.
+
+        The QoS 0 ones go into paho's queue together, written in one go when the socket takes them, and
+        only the last is waited for (aiomqtt's ``publish`` waits for each: a task and a few loop steps
+        apiece).  A QoS 1 one (the NDEATH of a clean stop) waits for its PUBACK, as aiomqtt publishes it."""
+        last: int | None = None
+        for message in messages:
+            if message.qos:
+                await self.publish(message.topic, message.payload, message.qos, message.retain)
+                last = None
+                continue
+            info = self._client.publish(message.topic, message.payload, 0, message.retain)
+            if info.rc != MQTT_ERR_SUCCESS:
+                raise aiomqtt.MqttCodeError(info.rc, "Could not publish message")
+            last = None if info.is_published() else info.mid
+        if last is None:
+            return
+        written = asyncio.Event()  # set by aiomqtt's on_publish: paho wrote that message (and those before it)
+        self._pending_publishes[last] = written
+        try:
+            async with asyncio.timeout(self.timeout):
+                await written.wait()
+        except TimeoutError:
+            raise aiomqtt.MqttError("Operation timed out") from None
+        finally:
+            self._pending_publishes.pop(last, None)
+
+
 class _HostOffline(Exception):
     """The primary host went offline: this session ends (§5.5)."""
 
@@ -114,6 +174,11 @@ class SparkplugNode:
         self.sessions = 0
         self._client: aiomqtt.Client | None = None
         self._outbox: asyncio.Queue[Publish] = asyncio.Queue()
+        #: set while no pass of the node (over the devices, a step each) is under way: the sender waits
+        #: for it, so a pass's messages go to the MQTT client together
+        self._idle = asyncio.Event()
+        self._idle.set()
+        self._passes = 0
         self._wake = asyncio.Event()
         #: per device: blocks stored or patched since the last pass, with their read time (None: a patch)
         self._dirty: list[dict[int, float | None]] = [{} for _ in self.devices]
@@ -164,7 +229,8 @@ class SparkplugNode:
             will = self.core.connecting(self._now_ms())
             bd_seq = self.core.bd_seq or 0
             try:
-                save_bd_seq(self.config.state_file, bd_seq)
+                # fsync takes milliseconds, more on a busy disk: in a thread, the loop answers meanwhile
+                await asyncio.to_thread(save_bd_seq, self.config.state_file, bd_seq)
                 state_error = False
             except OSError as exc:
                 if not state_error:
@@ -195,7 +261,7 @@ class SparkplugNode:
     async def _session(self, will: Publish) -> None:
         config = self.config
         host, port = config.address
-        client = aiomqtt.Client(
+        client = _MqttClient(
             host, port,
             identifier=config.client_id or f"slc-gateway-{config.group_id}-{config.edge_node_id}",
             username=config.username, password=config.password,
@@ -261,14 +327,32 @@ class SparkplugNode:
             self._outbox.get_nowait()
             self._outbox.task_done()
 
-    async def _sender(self, client: aiomqtt.Client) -> None:
+    @contextlib.contextmanager
+    def _pass(self) -> Iterator[None]:
+        """A pass over the devices, one step each: its messages are sent together when it ends."""
+        self._passes += 1
+        self._idle.clear()
+        try:
+            yield
+        finally:
+            self._passes -= 1
+            if not self._passes:
+                self._idle.set()
+
+    async def _sender(self, client: _MqttClient) -> None:
+        """The outbox to the broker, in order: what a pass queued, in one go (at most ``_BATCH``)."""
         while True:
-            message = await self._outbox.get()
+            batch = [await self._outbox.get()]
             try:
-                await client.publish(message.topic, message.payload, message.qos, message.retain)
-                self.sent[message.topic.split("/")[2]] += 1
+                await self._idle.wait()
+                while len(batch) < _BATCH and not self._outbox.empty():
+                    batch.append(self._outbox.get_nowait())
+                await client.publish_in_order(batch)
+                for message in batch:
+                    self.sent[message.topic.split("/")[2]] += 1
             finally:
-                self._outbox.task_done()
+                for _ in batch:
+                    self._outbox.task_done()
 
     async def _flush_outbox(self, client: aiomqtt.Client) -> None:
         with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
@@ -327,18 +411,20 @@ class SparkplugNode:
             now = loop.time()
             if now >= next_check:
                 next_check = now + interval
-                await self._links(now)
                 status = now >= next_status
                 if status:
                     next_status = now + self.config.status_interval
-                await self._check(now, status)
-            for index in range(len(self.devices)):
-                if self._dirty[index]:
-                    started = time.thread_time()
-                    self._changed(index, now)
-                    self._send(self.core.flush(self._wall_ms(now), (index,)))
-                    self.busy.add(started)
-                    await asyncio.sleep(0)  # one device at a time: Modbus answers go in between
+                with self._pass():
+                    await self._links(now)
+                    await self._check(now, status)
+            with self._pass():
+                for index in range(len(self.devices)):
+                    if self._dirty[index]:
+                        started = time.thread_time()
+                        self._changed(index, now)
+                        self._send(self.core.flush(self._wall_ms(now), (index,)))
+                        self.busy.add(started)
+                        await asyncio.sleep(0)  # one device at a time: Modbus answers go in between
 
     async def _links(self, now: float) -> None:
         """Links gone down (DDEATH) or come back (DBIRTH, with its values as they are now), one device a step."""
@@ -356,15 +442,16 @@ class SparkplugNode:
     async def _dbirths(self) -> None:
         """The DBIRTHs of a birth sequence, one device a step, each with its values as they are now."""
         loop = asyncio.get_running_loop()
-        while self.core.unborn:
-            await asyncio.sleep(0)
-            started = time.thread_time()
-            now = loop.time()
-            self._refresh(now, self.core.unborn[0])
-            message = self.core.next_birth(self._wall_ms(now))
-            if message is not None:
-                self._send([message])
-            self.busy.add(started)
+        with self._pass():
+            while self.core.unborn:
+                await asyncio.sleep(0)
+                started = time.thread_time()
+                now = loop.time()
+                self._refresh(now, self.core.unborn[0])
+                message = self.core.next_birth(self._wall_ms(now))
+                if message is not None:
+                    self._send([message])
+                self.busy.add(started)
 
     def _refresh(self, now: float, only: int | None = None) -> None:
         """Every metric (of device ``only``) as it is now, for the births."""
