@@ -21,7 +21,7 @@ from collections.abc import AsyncIterator, Sequence
 from pathlib import Path
 
 import pytest
-from test_modbus_server import (
+from modbus.test_server import (
     DictBackend,
     _client_context,
     _make_certificates,

@@ -6,9 +6,9 @@
 set -u
 SRC=$(cd "$(dirname "$0")/.." && pwd)
 SLC_TESTS="tests/protocols/slc_ascii/test_transaction.py tests/test_sans_io.py tests/kinds/slc_ascii/test_driver.py tests/protocols/slc_ascii/test_transaction_safety.py tests/protocols/slc_ascii/test_transaction_state_machine.py tests/protocols/slc_ascii/test_transaction_read_own.py"
-H_TESTS="tests/test_modbus_handler.py tests/test_modbus_server.py tests/test_hostile_network.py tests/test_server_slow_reader.py tests/test_register_image.py"
+H_TESTS="tests/modbus/test_handler.py tests/modbus/test_server.py tests/test_hostile_network.py tests/modbus/test_server_slow_reader.py tests/test_register_image.py"
 TARGET_TESTS="tests/kinds/df1/target/test_end_to_end.py tests/kinds/df1/target/test_persist_faults.py tests/kinds/df1/target/test_unit_floats.py"
-ADMISSION_TESTS="tests/test_modbus_admission.py tests/test_modbus_server.py tests/test_hostile_network.py"
+ADMISSION_TESTS="tests/test_modbus_admission.py tests/modbus/test_server.py tests/test_hostile_network.py"
 RESPONDER_TESTS="tests/protocols/df1/full_duplex/test_responder.py"
 UNIT_TESTS="tests/test_register_image.py tests/test_kind_not_polled.py tests/test_write_timeout.py"
 SLC_PLAN_TESTS="tests/kinds/slc_ascii/test_plan.py tests/protocols/slc_ascii/test_memory_map.py tests/kinds/slc_ascii/test_driver.py"

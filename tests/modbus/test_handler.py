@@ -139,7 +139,7 @@ def frame(tid: int, unit: int, pdu: bytes) -> bytes:
 
 async def read_reply(reader: asyncio.StreamReader) -> tuple[int, int, bytes]:
     """One reply frame: (transaction id, unit, PDU).  The 2 s bound only keeps a broken server
-    from hanging the test (as in test_modbus_server.py); nothing here depends on how fast the reply
+    from hanging the test (as in modbus/test_server.py); nothing here depends on how fast the reply
     comes."""
     async with asyncio.timeout(2.0):
         header = await reader.readexactly(7)

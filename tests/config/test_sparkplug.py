@@ -11,7 +11,7 @@ from gateway.config import parse_config
 from gateway.config.sparkplug import SparkplugConfig
 from gateway.errors import ConfigError
 
-EXAMPLE = Path(__file__).resolve().parent.parent / "config" / "example-full.toml"
+EXAMPLE = Path(__file__).resolve().parents[2] / "config" / "example-full.toml"
 LINK = '\n[[link]]\nname = "{name}"\nprotocol = "slc-ascii"\nport = "sim://slc150"\nunit = 1\n'
 
 

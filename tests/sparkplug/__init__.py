@@ -1,0 +1,1 @@
+"""Tests of ``gateway/sparkplug/``: one test module per module, by its name (``test_<module>.py``)."""
