@@ -43,6 +43,7 @@ from gateway.modbus.mapping import (
 )
 from gateway.modbus.mapping import Codec as CodecType
 from gateway.modbus.server import ModbusTcpServer
+from gateway.poller import LineShare
 from gateway.unit import Unit
 
 
@@ -620,7 +621,8 @@ class MemoryUnit(Unit[str, str]):
 
     def __init__(self, **options: Any) -> None:
         options.setdefault("driver", FakeDriver())
-        super().__init__(unit_id=1, name="mem", plan=memory_plan(), **options)
+        options.setdefault("plan", memory_plan())
+        super().__init__(unit_id=1, name="mem", **options)
         self.applied: list[tuple[str, int]] = []
         self.refuse: set[str] = set()
         self.gate: asyncio.Event | None = None
@@ -844,9 +846,7 @@ async def test_a_refused_write_is_answered_0x04_and_a_partial_one_is_logged(capl
     unit.refuse = {"w0"}
     await _write_raised(unit.write_registers(0, [1]))  # nothing applied: not partial
     assert unit.partial_writes == 3
-    unit.refuse = {"c1"}
-    await _write_raised(unit.write_bits(0, [True, True]))
-    assert "write partly applied: coil 0 written, coil 1 and after not" in caplog.text
+
 
 
 def test_a_write_footprint_is_the_word_its_target_changes() -> None:
@@ -928,7 +928,41 @@ def test_writable_ranges_let_a_write_through_only_whole_in_one_range_of_its_tabl
         else:
             assert expected, (address, count)
     unit._check_writable(Table.COIL, 0, 1)
-    assert _raised(unit._check_writable, Table.COIL, 1, 1).code == ILLEGAL_ADDRESS
+    error = _raised(unit._check_writable, Table.COIL, 1, 1)
+    assert (error.code, str(error)) == (ILLEGAL_ADDRESS, "coil 1 is not in a writable range")
+    error = _raised(MemoryUnit(read_only=True)._check_writable, Table.HOLDING, 1, 1)
+    assert (error.code, str(error)) == (ILLEGAL_ADDRESS, "mem is read only")
+
+
+async def test_a_partial_coil_write_is_logged_by_coil(caplog: pytest.LogCaptureFixture) -> None:
+    unit = MemoryUnit()
+    _fresh(unit)
+    unit.refuse = {"c1"}
+    await _write_raised(unit.write_bits(0, [True, True]))
+    assert "write partly applied: coil 0 written, coil 1 and after not" in caplog.text
+    assert unit.applied == [("c0", 1)] and unit.cache.data[0][18] & 1
+
+
+def test_the_poller_reads_by_the_units_schedule_demand_intervals_and_driver() -> None:
+    driver, share = FakeDriver(), LineShare()
+    unit = MemoryUnit(driver=driver, line_share=share, fast_interval=1.0, slow_interval=4.0, stagger=0.25,
+                      demand_hold=7.0, background_interval=45.0)
+    poller, schedule = unit.poller, unit.schedule
+    assert poller is not None and schedule is not None
+    assert poller.schedule is schedule and poller.demand is unit.demand and poller._share is share
+    assert (poller.fast_interval, poller.slow_interval, poller.stagger) == (1.0, 4.0, 0.25)
+    assert (schedule.period, schedule.demand_hold, schedule.background) == ([1.0, 4.0], 7.0, [45.0, 45.0])
+    assert poller._ready == driver.first_attempt
+    responding = poller._responding
+    assert responding is not None and responding()
+    driver.available = False
+    assert not responding()
+
+
+def test_a_unit_with_an_empty_map_serves_its_status_block() -> None:
+    unit = MemoryUnit(plan=Plan())
+    unit.now = 10.0
+    assert unit.read_registers(Table.INPUT, 1000, 1) == [1]
 
 
 async def test_a_command_due_at_the_write_deadline_is_not_sent() -> None:
