@@ -943,10 +943,11 @@ async def test_a_partial_coil_write_is_logged_by_coil(caplog: pytest.LogCaptureF
     assert unit.applied == [("c0", 1)] and unit.cache.data[0][18] & 1
 
 
-def test_the_poller_reads_by_the_units_schedule_demand_intervals_and_driver() -> None:
+def test_the_poller_and_write_queue_take_the_units_options() -> None:
     driver, share = FakeDriver(), LineShare()
     unit = MemoryUnit(driver=driver, line_share=share, fast_interval=1.0, slow_interval=4.0, stagger=0.25,
-                      demand_hold=7.0, background_interval=45.0)
+                      demand_hold=7.0, background_interval=45.0, write_queue_per_client=3, write_queue_per_link=5)
+    assert (unit.writes.per_client, unit.writes.per_link) == (3, 5)
     poller, schedule = unit.poller, unit.schedule
     assert poller is not None and schedule is not None
     assert poller.schedule is schedule and poller.demand is unit.demand and poller._share is share
