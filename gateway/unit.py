@@ -317,10 +317,6 @@ class Unit(ABC, Generic[R, B]):
         blocks = self.images.stale_blocks(table, address, count, now)
         return StaleRead(str(stale), partial(poller.wait_for, blocks), self.read_wait)
 
-    def _silent(self, now: float) -> bool:
-        """The controller answered no poll for ``stale_after`` seconds past its scan period."""
-        return now - self.cache.newest > self._silent_after
-
     def _stale(self, block: int | None = None) -> ModbusExceptionReply:
         refused = self.poller.refused.get(block) if block is not None and self.poller is not None else None
         if refused is not None:
@@ -495,9 +491,11 @@ class Unit(ABC, Generic[R, B]):
                 "nothing was written; send it again")
 
         def outcome(done: asyncio.Future[None]) -> None:
-            error = None if done.cancelled() else done.exception()
-            audit.info("unit %d: %s answered 0x0B at write_timeout %s, then: %s", self.unit_id, what, seconds,
-                       "applied" if error is None else error)
+            if done.cancelled():  # the gateway stopped while it was on the line
+                verdict: object = "not known (the gateway stopped before its verdict)"
+            else:
+                verdict = done.exception() or "applied"
+            audit.info("unit %d: %s answered 0x0B at write_timeout %s, then: %s", self.unit_id, what, seconds, verdict)
 
         future.add_done_callback(outcome)
         return ModbusExceptionReply(

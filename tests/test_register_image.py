@@ -10,9 +10,11 @@ the whole reply frames of both paths byte for byte.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
 import struct
 from bisect import bisect_right
-from collections.abc import Coroutine, Sequence
+from collections.abc import AsyncIterator, Coroutine, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,16 +23,19 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gateway.app import GatewayBackend
-from gateway.errors import ControllerRefused, ModbusExceptionReply
+from gateway.clients import Client, current_client
+from gateway.errors import ControllerRefused, ModbusExceptionReply, StaleRead
 from gateway.kinds.df1 import plan as df1_plan
 from gateway.kinds.slc_ascii import plan as slc_plan
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.kinds.slc_ascii.plan import slc_ascii_plan
 from gateway.kinds.slc_ascii.unit import SlcAsciiUnit
+from gateway.link_health import LineCounters
 from gateway.modbus.mapping import (
     STATUS_BASE,
     BitPoint,
     Block,
+    Half,
     Plan,
     RegisterPoint,
     Scan,
@@ -38,6 +43,7 @@ from gateway.modbus.mapping import (
 )
 from gateway.modbus.mapping import Codec as CodecType
 from gateway.modbus.server import ModbusTcpServer
+from gateway.poller import LineShare
 from gateway.unit import Unit
 
 
@@ -541,3 +547,505 @@ async def test_pipelined_reads_answered_in_order_with_their_own_ids() -> None:
         writer.close()
     finally:
         await server.close()
+
+
+# --- the generic unit (gateway/unit.py) over a controller in memory --------------------------------
+#
+# The rules are those of gateway/unit.py's module doc, the status block's reference
+# (docs/reference/status-block.md) and the write path's (README "Reads, staleness and writes"):
+# exceptions by cause, the status registers, image patches after confirmed writes, partial writes
+# logged, the write_timeout answers and their audit lines.
+
+BE = CodecType("be", 0, 1)  # high byte first
+LE = CodecType("le", 1, 0)  # low byte first
+BYTE = CodecType("byte", None, 0)  # one byte, high byte 0
+SPLIT = CodecType("split", 3, 0)  # low byte at the offset, high byte 3 further
+GAP_BE = CodecType("gap-be", 0, 2)  # high byte at the offset, low byte 2 further
+GAP_LE = CodecType("gap-le", 2, 0)  # low byte at the offset, high byte 2 further
+HIGH = CodecType("f32-high", 0, 1, half=Half.HIGH)
+LOW = CodecType("f32-low", 0, 1, half=Half.LOW)
+
+
+def memory_plan() -> Plan[str, str]:
+    """Block 0 (20 bytes, fast): holding 0-7 in every byte layout, a 32-bit pair at 4-5, 7 read
+    only; coils 0-2 in byte 18 (bits 0, 3, 5; 2 read only).  Block 1 (12 bytes, slow): two
+    32-bit pairs at 8-11, the second with halves of two different values; 12 and 13 with their
+    bytes 2 apart, interleaved (bytes 8-11)."""
+    plan: Plan[str, str] = Plan(blocks=[Block(None, 20, Scan.FAST), Block(None, 12, Scan.SLOW)])
+    for address, offset, codec, target in (
+        (0, 0, BE, "w0"), (1, 2, LE, "w1"), (2, 4, BYTE, "w2"), (3, 5, SPLIT, "w3"),
+        (4, 10, HIGH, "f"), (5, 12, LOW, "f"), (6, 14, BE, "w6"), (7, 16, BE, None),
+    ):
+        plan.holding[address] = RegisterPoint(0, offset, codec, target, max_value=9999 if address == 1 else 0xFFFF)
+    for address, offset, codec, target in (
+        (8, 0, HIGH, "p"), (9, 2, LOW, "p"), (10, 4, HIGH, "q"), (11, 6, LOW, "r"), (12, 8, GAP_BE, "g1"),
+        (13, 9, GAP_LE, "g2"),
+    ):
+        plan.holding[address] = RegisterPoint(1, offset, codec, target)
+    for address, bit, target in ((0, 0, "c0"), (1, 3, "c1"), (2, 5, None)):
+        plan.coils[address] = BitPoint(0, 18, bit, target)
+    for address in range(16):  # discrete inputs 0-15: the bits of bytes 18 and 19, least significant first
+        plan.discrete[address] = BitPoint(0, 18 + address // 8, address % 8)
+    return plan
+
+
+class FakeDriver:
+    """A driver (``gateway.line_driver.UnitDriver``) whose line is always free."""
+
+    def __init__(self) -> None:
+        self.name = "mem"
+        self.url = "mem://"
+        self.counters = LineCounters()
+        self.last_error = ""
+        self.state_since: float | None = None
+        self.write_burst = 1
+        self.poll_burst = 2
+        self.available = True
+        self.connected = True
+
+    @contextlib.asynccontextmanager
+    async def write_session(self) -> AsyncIterator[None]:
+        yield
+
+    def extend_burst(self) -> None:
+        pass
+
+    async def first_attempt(self) -> None:
+        pass
+
+
+class MemoryUnit(Unit[str, str]):
+    """A unit whose controller is a list of the commands it applied; a target in ``refuse`` is
+    refused (as a PLC refuses a protected file); ``gate``, when set, holds every command until it
+    is opened; ``now``, when set, is the unit's clock."""
+
+    def __init__(self, **options: Any) -> None:
+        options.setdefault("driver", FakeDriver())
+        options.setdefault("plan", memory_plan())
+        super().__init__(unit_id=1, name="mem", **options)
+        self.applied: list[tuple[str, int]] = []
+        self.refuse: set[str] = set()
+        self.gate: asyncio.Event | None = None
+        self.now: float | None = None
+        self.fault = 0
+        self.image_refuses: dict[str, str] = {}
+
+    def _loop_time(self) -> float:
+        return self.now if self.now is not None else super()._loop_time()
+
+    async def read_block(self, block: Block) -> bytes:
+        await asyncio.Event().wait()  # a line that never answers: the poller runs, nothing is read
+        raise AssertionError("not reached")
+
+    async def _command(self, target: str, value: int) -> None:
+        if self.gate is not None:
+            await self.gate.wait()
+        if target in self.refuse:
+            raise ControllerRefused(f"{target} is protected")
+        self.applied.append((target, value))
+
+    async def _write_register(self, target: str, value: int) -> None:
+        await self._command(target, value)
+
+    async def _write_bit(self, target: str, value: bool) -> None:
+        await self._command(target, int(value))
+
+    def _refused_by_image(self, point: RegisterPoint[str]) -> str | None:
+        return self.image_refuses.get(point.write or "")
+
+    @property
+    def last_fault_number(self) -> int:
+        return self.fault
+
+
+class PairUnit(MemoryUnit):
+    """A unit whose controller takes a 32-bit value in one command."""
+
+    async def _write_pair(self, target: str, raw: int) -> None:
+        await self._command(target, raw)
+
+
+def _fresh(unit: MemoryUnit, now: float | None = None) -> None:
+    """Every block read at ``now`` (the unit's clock; default: the loop's, which writes need)."""
+    unit.now = now
+    if now is None:
+        now = asyncio.get_running_loop().time()
+    for block, spec in enumerate(unit.plan.blocks):
+        unit.cache.store(block, bytes(spec.size) if block else bytes(18) + b"\x0a\x01", now)
+
+
+def _raised(call: Any, *args: Any) -> ModbusExceptionReply:
+    with pytest.raises(ModbusExceptionReply) as info:
+        call(*args)
+    return info.value
+
+
+async def _write_raised(write: Any) -> ModbusExceptionReply:
+    with pytest.raises(ModbusExceptionReply) as info:
+        await write
+    return info.value
+
+
+def test_the_status_block_registers() -> None:
+    """docs/reference/status-block.md: 1000 link up (1) / down (0); 1001 age of the oldest
+    fast-class value in 100 ms units, 65535 never read or saturated; 1002 last fault; 1003-1010
+    32-bit counters, high word first; a read past 1010 is refused 0x02."""
+    unit = MemoryUnit(stale_after=5.0)
+    driver = unit.driver
+    assert isinstance(driver, FakeDriver)
+    driver.counters.transactions = 0x12345
+    driver.counters.errors = 7
+    driver.counters.retries_by_kind = {"nak": 3, "enq": 1}
+    unit.fault = 0x10000  # wider than its register: saturated
+    unit.now = 50.0
+    assert unit.read_registers(Table.INPUT, 1000, 11) == [1, 65535, 65535, 1, 0x2345, 0, 7, 0, 4, 0, 0]
+    assert unit.status_values(50.0)["data_age"] == 65535  # never read
+    unit.cache.store(0, bytes(20), 100.0)
+    unit.cache.store(1, bytes(12), 90.0)  # slow: not in the age
+    for now, tenths in ((100.5, 5), (103.0, 30), (100.0 + 6553.4, 65534), (100.0 + 7000.0, 65535)):
+        unit.now = now
+        assert unit.read_registers(Table.INPUT, 1001, 1) == [tenths], now
+        assert unit.status_values(now)["data_age"] == tenths
+    driver.available = False
+    assert unit.read_registers(Table.INPUT, 1000, 1) == [0]
+    error = _raised(unit.read_register_bytes, Table.INPUT, 1010, 2)
+    assert error.code == ModbusExceptionReply.ILLEGAL_DATA_ADDRESS
+
+
+def test_the_data_age_of_a_unit_not_polled_is_the_time_since_its_peer_was_heard() -> None:
+    unit = MemoryUnit(polled=False)
+    unit.heard(100.0)
+    unit.now = 100.5
+    assert unit.read_registers(Table.INPUT, 1001, 1) == [5]
+
+
+def test_bits_are_read_least_significant_first_across_bytes() -> None:
+    unit = MemoryUnit()
+    _fresh(unit, 100.0)  # byte 18 0b1010, byte 19 0b0001
+    assert unit.read_bits(Table.DISCRETE, 0, 16) == [i in (1, 3, 8) for i in range(16)]
+
+
+def test_reads_note_demand_and_a_silent_controller_answers_stale() -> None:
+    """Silent: no answer for ``stale_after`` plus the shortest scan period (here 1 + 0.5 s)."""
+    unit = MemoryUnit(stale_after=1.0, fast_interval=0.5, slow_interval=4.0)
+    _fresh(unit, 100.0)
+    unit.now = 101.5  # silent exactly at its limit: not yet
+    assert unit.read_registers(Table.HOLDING, 0, 2) == [0, 0]
+    assert unit.demand.keys == {(Table.HOLDING, 0, 2): 101.5}
+    unit.now = 105.0  # the slow block (read at 100) is within its own limit, but the line is silent
+    error = _raised(unit.read_registers, Table.HOLDING, 8, 2)
+    assert (error.code, str(error)) == (TARGET_FAILED, "mem: no fresh data (stale after 1 s)")
+    error = _raised(unit.read_registers, Table.HOLDING, 20, 1)
+    assert (error.code, str(error)) == (ILLEGAL_ADDRESS, "holding register 20 is not mapped")
+
+
+async def test_a_stale_read_on_a_link_that_is_up_may_wait_for_its_block() -> None:
+    driver = FakeDriver()
+    unit = MemoryUnit(stale_after=1.0, fast_interval=0.5, read_wait=0.5, driver=driver)
+    poller = asyncio.create_task(unit.run())
+    try:
+        await asyncio.sleep(0.01)
+        now = asyncio.get_running_loop().time()
+        unit.cache.store(0, bytes(20), now - 10.0)
+        unit.cache.store(1, bytes(12), now)  # the line answers: not silent
+        error = _raised(unit.read_register_bytes, Table.HOLDING, 0, 1)
+        assert isinstance(error, StaleRead) and error.read_wait == 0.5
+        assert str(error) == "mem: no fresh data (stale after 1 s)"
+        waited = error.wait()  # asks the poller for block 0 (which never comes)
+        assert isinstance(waited, asyncio.Future) and not waited.done()
+        assert unit.poller is not None and unit.poller.read_waits == 1
+        driver.available = False
+        assert not isinstance(_raised(unit.read_register_bytes, Table.HOLDING, 0, 1), StaleRead)
+        driver.available = True
+        unit.read_wait = 0.0
+        assert not isinstance(_raised(unit.read_register_bytes, Table.HOLDING, 0, 1), StaleRead)
+    finally:
+        poller.cancel()
+        await asyncio.gather(poller, return_exceptions=True)
+
+
+async def test_confirmed_writes_patch_each_register_layout() -> None:
+    unit = PairUnit()
+    _fresh(unit)
+    await unit.write_registers(0, [0x1234, 0x1234, 0xAB, 0x1234])
+    await unit.write_registers(3, [0x0102, 0x4049, 0x0FDB, 0x0506])  # the pair of 4-5 in one command
+    assert unit.applied == [("w0", 0x1234), ("w1", 0x1234), ("w2", 0xAB), ("w3", 0x1234),
+                            ("w3", 0x0102), ("f", 0x40490FDB), ("w6", 0x0506)]
+    data = unit.cache.data[0]
+    assert data[0:2] == b"\x12\x34" and data[2:4] == b"\x34\x12" and data[4] == 0xAB
+    assert (data[8], data[5]) == (0x01, 0x02)  # the split register: high byte 3 after the low
+    assert data[10:14] == b"\x40\x49\x0f\xdb" and data[14:16] == b"\x05\x06"
+    assert unit.read_registers(Table.HOLDING, 0, 7) == [0x1234, 0x1234, 0xAB, 0x0102, 0x4049, 0x0FDB, 0x0506]
+    await unit.write_registers(1, [0x0A0B])  # its two bytes only: the byte of register 2 after them stays
+    assert unit.cache.data[0][2:5] == b"\x0b\x0a\xab"
+    await unit.write_registers(12, [0x1234, 0x5678])
+    assert unit.cache.data[1][8:12] == b"\x12\x78\x34\x56"
+    assert unit.read_registers(Table.HOLDING, 12, 2) == [0x1234, 0x5678]
+    assert (unit.write_requests, unit.write_failures) == (4, 0)
+
+
+async def test_confirmed_coil_writes_change_their_bit_only() -> None:
+    unit = MemoryUnit()
+    _fresh(unit)  # coil byte 0b1010: coil 1 (bit 3) on, bit 1 (no coil) on
+    await unit.write_bits(0, [True, False])
+    assert unit.cache.data[0][18] == 0b0011
+    await unit.write_bits(0, [False])
+    assert unit.cache.data[0][18] == 0b0010
+    assert unit.applied == [("c0", 1), ("c1", 0), ("c0", 0)]
+    error = await _write_raised(unit.write_bits(1, [True, True]))
+    assert (error.code, str(error)) == (ILLEGAL_ADDRESS, "coil 2 is not writable")
+
+
+@pytest.mark.parametrize(
+    ("address", "values", "code", "message"),
+    [
+        (0, [1, 10000], 0x03, "holding register 1: 10000 > 9999"),
+        (3, [1, 2, 3, 4, 5], 0x02, "holding register 7 is not writable"),
+        (4, [1], 0x02, "holding register 4 is half of a 32-bit value: write both of its registers in one request"),
+        (5, [1, 2], 0x02, "holding register 5 is half of a 32-bit value: write both of its registers in one request"),
+        (8, [1, 2, 3, 4], 0x02,
+         "holding register 10 is half of a 32-bit value: write both of its registers in one request"),
+        (1, [5, 6], 0x04, "holding register 2: the file is protected; nothing written"),
+    ],
+)
+async def test_a_write_is_checked_whole_before_anything_is_sent(
+    address: int, values: list[int], code: int, message: str
+) -> None:
+    unit = PairUnit()
+    _fresh(unit)
+    unit.image_refuses["w2"] = "the file is protected"
+    error = await _write_raised(unit.write_registers(address, values))
+    assert (error.code, str(error)) == (code, message)
+    assert unit.applied == []
+    await unit.write_registers(1, [9999])  # the largest value allowed
+
+
+async def test_a_32_bit_pair_on_a_unit_without_32_bit_registers_is_refused() -> None:
+    unit = MemoryUnit()
+    _fresh(unit)
+    error = await _write_raised(unit.write_registers(4, [1, 2]))
+    assert (error.code, str(error)) == (ILLEGAL_ADDRESS, "this unit has no 32-bit registers")
+    assert (unit.write_requests, unit.write_failures) == (1, 1)
+
+
+async def test_a_refused_write_is_answered_0x04_and_a_partial_one_is_logged(caplog: pytest.LogCaptureFixture) -> None:
+    unit = PairUnit()
+    _fresh(unit)
+    unit.refuse = {"w6"}
+    error = await _write_raised(unit.write_registers(0, [1, 2, 3, 4, 5, 6, 7]))
+    assert error.code == DEVICE_FAILURE and "w6 is protected" in str(error)
+    assert unit.cache.data[0][14:16] == b"\x00\x00"  # not written: not patched
+    assert "write partly applied: holding 0-5 written, holding 6 and after not" in caplog.text
+    unit.refuse = {"f"}
+    await _write_raised(unit.write_registers(3, [1, 2, 3]))
+    assert "write partly applied: holding 3 written, holding 4-5 and after not" in caplog.text
+    unit.refuse = {"w2"}
+    await _write_raised(unit.write_registers(0, [1, 2, 3]))
+    assert "write partly applied: holding 0-1 written, holding 2 and after not" in caplog.text
+    assert (unit.partial_writes, unit.write_requests, unit.write_failures) == (3, 3, 3)
+    unit.refuse = {"w0"}
+    await _write_raised(unit.write_registers(0, [1]))  # nothing applied: not partial
+    assert unit.partial_writes == 3
+
+
+
+def test_a_write_footprint_is_the_word_its_target_changes() -> None:
+    unit = MemoryUnit()
+
+    @dataclass(frozen=True)
+    class Word:
+        address: str
+
+    footprint: Any = unit._footprint  # any kind's target: one with an address, or the address itself
+    assert footprint(Word("N7:0")) == "N7:0"
+    assert footprint("w0") == "w0"
+
+
+async def test_write_timeout_answers_and_their_audit_lines(caplog: pytest.LogCaptureFixture) -> None:
+    """README: a write still waiting for the line at write_timeout is withdrawn (nothing written);
+    one on the line is answered 0x0B and its outcome is audited; a multi-command write sends nothing
+    more after its answer."""
+    caplog.set_level(logging.INFO, logger="gateway.audit")
+    unit = MemoryUnit(write_timeout=0.05)
+    _fresh(unit)
+    unit.now = None
+    unit.gate = asyncio.Event()
+    on_line = asyncio.ensure_future(unit.write_registers(0, [1, 2]))
+    await asyncio.sleep(0)
+    waiting = asyncio.ensure_future(unit.write_registers(6, [3]))
+    started = asyncio.get_running_loop().time()
+    first, second = await asyncio.gather(_write_raised(on_line), _write_raised(waiting))
+    assert asyncio.get_running_loop().time() - started < 0.5
+    assert first.code == second.code == TARGET_FAILED
+    assert "no verdict within write_timeout (0.05 s)" in str(first)
+    assert "the write was withdrawn, nothing was written" in str(second)
+    assert "unit 1: holding 6 not sent within write_timeout 0.05 s: withdrawn, nothing written" in caplog.messages
+    unit.gate.set()
+    for _ in range(100):
+        if "then:" in caplog.text:
+            break
+        await asyncio.sleep(0.01)
+    assert unit.applied == [("w0", 1)]  # the second command was not sent after the answer
+    assert "unit 1: holding 0-1 answered 0x0B at write_timeout 0.05 s, then: " in caplog.text
+    assert "(write_timeout passed before this command); answered 0x0B" in caplog.text
+    assert (unit.write_requests, unit.write_failures, unit.write_latency.count) == (2, 2, 2)
+    assert unit.write_latency.total < 1.0
+
+    for refused, verdict in (({"w6"}, "w6 is protected"), (set(), "applied")):
+        unit.gate = asyncio.Event()
+        unit.refuse = refused
+        await _write_raised(unit.write_registers(6, [4]))
+        unit.gate.set()
+        line = f"unit 1: holding 6 answered 0x0B at write_timeout 0.05 s, then: {verdict}"
+        for _ in range(100):
+            if line in caplog.messages:
+                break
+            await asyncio.sleep(0.01)
+        assert line in caplog.messages
+
+    unit.gate = asyncio.Event()  # never opened: the gateway stops with the write on the line
+    await _write_raised(unit.write_registers(6, [6]))
+    worker = unit.writes._worker
+    assert worker is not None
+    worker.cancel()
+    await asyncio.gather(worker, return_exceptions=True)
+    await asyncio.sleep(0)
+    assert (
+        "unit 1: holding 6 answered 0x0B at write_timeout 0.05 s, then: not known (the gateway stopped before its "
+        "verdict)" in caplog.messages
+    )
+
+
+def test_writable_ranges_let_a_write_through_only_whole_in_one_range_of_its_table() -> None:
+    """``writable``: a write must lie whole in one range of its own table (else 0x02)."""
+    unit = MemoryUnit(writable=[(Table.HOLDING, 1, 3), (Table.COIL, 0, 0)])
+    allowed = {(1, 3): True, (1, 1): True, (3, 1): True, (0, 1): False, (3, 2): False, (0, 5): False, (4, 1): False}
+    for (address, count), expected in allowed.items():
+        try:
+            unit._check_writable(Table.HOLDING, address, count)
+        except ModbusExceptionReply as error:
+            assert (expected, error.code) == (False, ILLEGAL_ADDRESS), (address, count)
+        else:
+            assert expected, (address, count)
+    unit._check_writable(Table.COIL, 0, 1)
+    error = _raised(unit._check_writable, Table.COIL, 1, 1)
+    assert (error.code, str(error)) == (ILLEGAL_ADDRESS, "coil 1 is not in a writable range")
+    error = _raised(MemoryUnit(read_only=True)._check_writable, Table.HOLDING, 1, 1)
+    assert (error.code, str(error)) == (ILLEGAL_ADDRESS, "mem is read only")
+
+
+async def test_a_partial_coil_write_is_logged_by_coil(caplog: pytest.LogCaptureFixture) -> None:
+    unit = MemoryUnit()
+    _fresh(unit)
+    unit.refuse = {"c1"}
+    await _write_raised(unit.write_bits(0, [True, True]))
+    assert "write partly applied: coil 0 written, coil 1 and after not" in caplog.text
+    assert unit.applied == [("c0", 1)] and unit.cache.data[0][18] & 1
+
+
+def test_the_poller_and_write_queue_take_the_units_options() -> None:
+    driver, share = FakeDriver(), LineShare()
+    unit = MemoryUnit(driver=driver, line_share=share, fast_interval=1.0, slow_interval=4.0, stagger=0.25,
+                      demand_hold=7.0, background_interval=45.0, write_queue_per_client=3, write_queue_per_link=5)
+    assert (unit.writes.per_client, unit.writes.per_link) == (3, 5)
+    poller, schedule = unit.poller, unit.schedule
+    assert poller is not None and schedule is not None
+    assert poller.schedule is schedule and poller.demand is unit.demand and poller._share is share
+    assert (poller.fast_interval, poller.slow_interval, poller.stagger) == (1.0, 4.0, 0.25)
+    assert (schedule.period, schedule.demand_hold, schedule.background) == ([1.0, 4.0], 7.0, [45.0, 45.0])
+    assert poller._ready == driver.first_attempt
+    responding = poller._responding
+    assert responding is not None and responding()
+    driver.available = False
+    assert not responding()
+
+
+def test_a_unit_with_an_empty_map_serves_its_status_block() -> None:
+    unit = MemoryUnit(plan=Plan())
+    unit.now = 10.0
+    assert unit.read_registers(Table.INPUT, 1000, 1) == [1]
+
+
+async def test_a_command_due_at_the_write_deadline_is_not_sent() -> None:
+    """The write was answered 0x0B at its deadline: nothing more of it goes out from then on."""
+    unit = MemoryUnit()
+    _fresh(unit)
+    start = unit.now = asyncio.get_running_loop().time()
+    command = unit._command
+
+    async def first_takes_the_whole_timeout(target: str, value: int) -> None:
+        await command(target, value)
+        unit.now = start + unit.write_timeout
+
+    unit._command = first_takes_the_whole_timeout  # type: ignore[method-assign]
+    error = await _write_raised(unit.write_registers(0, [1, 2]))
+    assert (error.code, unit.applied) == (TARGET_FAILED, [("w0", 1)])
+
+
+async def test_the_write_queue_bound_is_per_client() -> None:
+    """write_queue_per_client: a client with that many writes waiting is answered 0x06 (busy), another
+    client is not."""
+    unit = MemoryUnit(write_queue_per_client=1, write_timeout=2.0)
+    _fresh(unit)
+    unit.gate = asyncio.Event()
+
+    async def write_as(client: Client, address: int) -> ModbusExceptionReply | None:
+        current_client.set(client)
+        try:
+            await unit.write_registers(address, [1])
+        except ModbusExceptionReply as error:
+            return error
+        return None
+
+    a, b = Client("10.0.0.1:1"), Client("10.0.0.2:1")
+    first = asyncio.create_task(write_as(a, 0))
+    await asyncio.sleep(0.01)  # on the line (held at the gate)
+    queued = asyncio.create_task(write_as(a, 1))
+    await asyncio.sleep(0)
+    busy = asyncio.create_task(write_as(a, 2))
+    other = asyncio.create_task(write_as(b, 3))
+    await asyncio.sleep(0.2)
+    unit.gate.set()
+    results = await asyncio.gather(first, queued, busy, other)
+    assert [None if r is None else r.code for r in results] == [None, None, 0x06, None]
+
+
+class RefusingUnit(MemoryUnit):
+    """Block 0 reads (zeros); the controller refuses to give block 1, as a PLC in program mode may."""
+
+    async def read_block(self, block: Block) -> bytes:
+        if block is self.plan.blocks[1]:
+            raise ControllerRefused("N7 is protected")
+        return bytes(block.size)
+
+
+async def test_data_the_controller_refuses_to_give_is_answered_0x04_with_its_reason() -> None:
+    """The module doc: controller refused -> 0x04, not 0x0B (the link is up, the data will not come)."""
+    unit = RefusingUnit(fast_interval=0.05, slow_interval=0.1)
+    poller = asyncio.create_task(unit.run())
+    try:
+        for _ in range(200):
+            if unit.poller is not None and 1 in unit.poller.refused:
+                break
+            await asyncio.sleep(0.01)
+        error = _raised(unit.read_register_bytes, Table.HOLDING, 8, 1)
+        assert (error.code, str(error)) == (DEVICE_FAILURE, "mem: N7 is protected")
+        assert unit.read_registers(Table.HOLDING, 0, 1) == [0]  # block 0 serves
+    finally:
+        poller.cancel()
+        await asyncio.gather(poller, return_exceptions=True)
+
+
+def test_a_unit_built_without_options_has_the_documented_defaults() -> None:
+    """docs/reference/config.md: stale_after 5, fast_interval 0, slow_interval 10, demand_hold 60,
+    background_interval 30, read_wait 0.5, write_burst 1, poll_burst 2, write_queue_per_client 8,
+    write_queue_per_link 32, write_timeout 0.9; not read_only, every address writable."""
+    unit = MemoryUnit()
+    schedule, poller = unit.schedule, unit.poller
+    assert schedule is not None and poller is not None
+    assert (unit.stale_after, schedule.stale_after, schedule.demand_hold) == (5.0, 5.0, 60.0)
+    assert schedule.period == [0.0, 10.0] and schedule.background == [30.0, 30.0]
+    assert (poller.fast_interval, poller.slow_interval, unit.read_wait) == (0.0, 10.0, 0.5)
+    assert (unit.driver.write_burst, unit.driver.poll_burst) == (1, 2)
+    assert (unit.writes.per_client, unit.writes.per_link, unit.write_timeout) == (8, 32, 0.9)
+    assert (unit.read_only, unit.writable) == (False, ())

@@ -319,8 +319,7 @@ class Admission:
             if not self._make_room():
                 return self._refuse(f"already {self.max_connections} connections, none idle", peer, host)
             self._established[slot] = host
-        if host is not None:
-            self._per_address[host] = self._per_address.get(host, 0) + 1
+        self._count(host)
         return True
 
     def read_only(self, peer: object) -> bool:
@@ -333,7 +332,13 @@ class Admission:
     def handshake_done(self, slot: Slot, peer: object) -> bool:
         """Move a TLS connection from the handshake budget to the connection slots (False: refused)."""
         entry = self._handshaking.pop(slot, None)
-        host = entry[1] if entry is not None else peer_host(peer)
+        if entry is not None:
+            host = entry[1]
+        elif slot in self._established:  # admitted to a slot at once (no handshake budget): counted already
+            return True
+        else:  # not admitted (or no longer): counted in now, as its release counts it out
+            host = peer_host(peer)
+            self._count(host)
         if not self._make_room():
             self._uncount(host)
             return self._refuse(f"TLS handshake done but already {self.max_connections} connections", peer, host)
@@ -348,6 +353,10 @@ class Admission:
             self._uncount(self._handshaking.pop(slot)[1])
 
     # -- internals ---------------------------------------------------------------------
+
+    def _count(self, host: str | None) -> None:
+        if host is not None:
+            self._per_address[host] = self._per_address.get(host, 0) + 1
 
     def _uncount(self, host: str | None) -> None:
         if host is None:
