@@ -712,8 +712,14 @@ def test_the_status_block_registers() -> None:
     assert error.code == ModbusExceptionReply.ILLEGAL_DATA_ADDRESS
 
 
+class HeardUnit(MemoryUnit):
+    """A unit whose kind's runner fills the image (not polled)."""
+
+    POLLED = False
+
+
 def test_the_data_age_of_a_unit_not_polled_is_the_time_since_its_peer_was_heard() -> None:
-    unit = MemoryUnit(polled=False)
+    unit = HeardUnit()
     unit.heard(100.0)
     unit.now = 100.5
     assert unit.read_registers(Table.INPUT, 1001, 1) == [5]
@@ -1038,13 +1044,13 @@ async def test_data_the_controller_refuses_to_give_is_answered_0x04_with_its_rea
 
 def test_a_unit_built_without_options_has_the_documented_defaults() -> None:
     """docs/reference/config.md: stale_after 5, fast_interval 0, slow_interval 10, demand_hold 60,
-    background_interval 30, read_wait 0.5, write_burst 1, poll_burst 2, write_queue_per_client 8,
+    background_interval 60, read_wait 0.5, write_burst 1, poll_burst 2, write_queue_per_client 8,
     write_queue_per_link 32, write_timeout 0.9; not read_only, every address writable."""
     unit = MemoryUnit()
     schedule, poller = unit.schedule, unit.poller
     assert schedule is not None and poller is not None
     assert (unit.stale_after, schedule.stale_after, schedule.demand_hold) == (5.0, 5.0, 60.0)
-    assert schedule.period == [0.0, 10.0] and schedule.background == [30.0, 30.0]
+    assert schedule.period == [0.0, 10.0] and schedule.background == [60.0, 60.0]
     assert (poller.fast_interval, poller.slow_interval, unit.read_wait) == (0.0, 10.0, 0.5)
     assert (unit.driver.write_burst, unit.driver.poll_burst) == (1, 2)
     assert (unit.writes.per_client, unit.writes.per_link, unit.write_timeout) == (8, 32, 0.9)
