@@ -65,7 +65,7 @@ def write_tls(cert: Path, key: Path, ca: Path | None = None) -> None:
         ca.write_bytes(pem["cert"])
 
 HERE = Path(__file__).resolve().parent
-EXAMPLE = HERE.parent / "config" / "example-full.toml"
+EXAMPLE = HERE.parents[1] / "config" / "example-full.toml"
 
 ASCII_LINK = """
 [[link]]
@@ -1396,7 +1396,8 @@ def test_metrics_allow_and_cap() -> None:
 
 
 def test_shipped_gateway_toml_binds_metrics_to_loopback() -> None:
-    config = parse_config((HERE.parent / "config" / "gateway.toml").read_text(), base_dir=HERE.parent / "config")
+    shipped = HERE.parents[1] / "config"
+    config = parse_config((shipped / "gateway.toml").read_text(), base_dir=shipped)
     assert config.metrics is not None
     assert ipaddress.ip_address(config.metrics.address[0]).is_loopback
     # its port is the usual USB adapter's, which this machine need not have

@@ -86,7 +86,7 @@ def test_guide_half_duplex_example_passes() -> None:
 
     from gateway.config import parse_config
 
-    page = Path(__file__).resolve().parent.parent / "docs" / "guide" / "df1-half-duplex.md"
+    page = Path(__file__).resolve().parents[3] / "docs" / "guide" / "df1-half-duplex.md"
     section = page.read_text(encoding="utf-8")
     example = section[section.index("```toml\n") + 8 : section.index("\n```", section.index("```toml\n"))]
     config = parse_config(example)
