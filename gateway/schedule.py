@@ -25,9 +25,8 @@ overtakes only a block younger than 70 % of its stale limit.  At start
 (:meth:`Schedule.begin`) every block counts as read one class period ago: bumped and demanded
 blocks first, then the fast class, then the slow one; a block nobody reads is read when the line
 has room, and in any case first between ``B / 2`` and ``3 B / 2`` after start (spread evenly),
-then within ``B``.  After a loss the order
-goes on where it was.  A failed read counts as a read for the order (the block goes to the back,
-it does not block the line) but not for freshness.
+then within ``B``.  After a loss the order goes on where it was.  A failed read counts as a read
+for the order (the block goes to the back, it does not block the line) but not for freshness.
 
 Each block's *stale limit* (the largest age at which it is served) is ``stale_after`` plus its
 period as planned when it was read: ``P`` when demanded, ``B`` when not (:attr:`Schedule.max_age`,
@@ -293,11 +292,10 @@ class Schedule:
         Only when ``block`` is read continuously (period 0) and its value is younger than
         ``READ_AHEAD_AGE`` of its stale limit: the demanded block of a periodic class that comes due
         first, if it comes due within ``READ_AHEAD_DUE`` of its period, has been read before and is
-        not held.  A continuous class takes
-        every read nothing else is urgent for; without this, the periodic blocks read together at
-        start would be read at the last moment together for ever, and the continuous class would
-        age towards its stale limit each time they come due.  Read ahead while the continuous
-        class has time to spare, they spread over the line.
+        not held.  A continuous class takes every read nothing else is urgent for; without this, the
+        periodic blocks read together at start would be read at the last moment together for ever,
+        and the continuous class would age towards its stale limit each time they come due.  Read
+        ahead while the continuous class has time to spare, they spread over the line.
         """
         last = self.read_at[block]
         if self.period[block] or last == NEVER or now - last >= READ_AHEAD_AGE * self._limit_now(block, now):

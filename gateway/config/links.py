@@ -59,8 +59,8 @@ _registry: list[Callable[[], Mapping[str, type[LinkBase]]]] = []
 def use_link_kinds(models: Callable[[], Mapping[str, type[LinkBase]]]) -> None:
     """Validate ``[[link]]`` tables by ``models()``: protocol -> config model, built-in ones first.
 
-    Called once by the registry of link kinds (:mod:`gateway.kinds`) when it is imported; it is
-    called again at every validation, so that kinds registered later are seen.
+    Called once by the registry of link kinds (:mod:`gateway.kinds`) when it is imported;
+    ``models`` is called at every validation, so that kinds registered later are seen.
     """
     _registry[:] = [models]
 
