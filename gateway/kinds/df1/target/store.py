@@ -35,6 +35,15 @@ CREATE TABLE IF NOT EXISTS element (
     PRIMARY KEY (file, element)
 ) WITHOUT ROWID
 """
+# The statements, stated once beside the schema they work on.  ``isolation_level=None`` at connect:
+# the transactions are these statements' own, not ones the ``sqlite3`` module would open for us.
+_WAL = "PRAGMA journal_mode=WAL"
+_FULL_SYNC = "PRAGMA synchronous=FULL"
+_LOAD = "SELECT file, element, value, written_at FROM element ORDER BY file, element"
+_BEGIN = "BEGIN IMMEDIATE"
+_UPSERT = "INSERT OR REPLACE INTO element (file, element, value, written_at) VALUES (?, ?, ?, ?)"
+_COMMIT = "COMMIT"
+_ROLLBACK = "ROLLBACK"
 
 
 @frozen
@@ -46,25 +55,23 @@ class StoredElement:
 
 
 class TargetStore:
-    """The persisted data table of one target link.  Not thread-safe: one event loop uses it."""
+    """The persisted data table of one target link, used by the thread that opened it (the event loop's;
+    ``sqlite3`` refuses a connection used from another thread)."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=FULL")
-            self._db.execute(_SCHEMA)
+            self._db = sqlite3.connect(path, isolation_level=None)
+            for statement in (_WAL, _FULL_SYNC, _SCHEMA):
+                self._db.execute(statement)
         except sqlite3.Error as exc:
             raise OSError(f"persist = {str(path)!r}: cannot open the database ({exc}); check the path "
                           "and that the directory is writable") from exc
-        #: commits made (one per acknowledged write)
-        self.commits = 0
 
     def load(self) -> Iterator[StoredElement]:
         """Every element written before, in file and element order."""
-        rows = self._db.execute("SELECT file, element, value, written_at FROM element ORDER BY file, element")
+        rows = self._db.execute(_LOAD)
         for file, element, value, written_at in rows:
             yield StoredElement(int(file), int(element), bytes(value), float(written_at))
 
@@ -74,18 +81,16 @@ class TargetStore:
         if not rows:
             return
         db = self._db
-        db.execute("BEGIN IMMEDIATE")
+        db.execute(_BEGIN)
         try:
-            db.executemany("INSERT OR REPLACE INTO element (file, element, value, written_at) VALUES (?, ?, ?, ?)",
-                           rows)
-            db.execute("COMMIT")
+            db.executemany(_UPSERT, rows)
+            db.execute(_COMMIT)
         except BaseException:
             # After some errors (SQLITE_FULL, SQLITE_IOERR) SQLite has rolled back already; a COMMIT
             # that failed may leave the transaction open, and the next save must not commit its rows.
             if db.in_transaction:
-                db.execute("ROLLBACK")
+                db.execute(_ROLLBACK)
             raise
-        self.commits += 1
 
     def close(self) -> None:
         self._db.close()
