@@ -161,6 +161,21 @@ def _natural(name: str) -> tuple[str, int]:
     return stem, int(number) if number.isdigit() else 0
 
 
+def prune_stale_copies() -> None:
+    """Remove from ``mutants/`` the copies (and results) of files the tree no longer has.
+
+    mutmut copies the tree into ``mutants/`` but never deletes there: a module moved or removed
+    since the last run stays importable in the copy, and a test that walks the packages (the
+    transition-table walker) imports it and fails against the moved code, which stops mutmut's
+    test-map collection."""
+    for top in ("gateway", "tests"):
+        for copy in sorted((MUTANTS / top).rglob("*")) if (MUTANTS / top).is_dir() else []:
+            relative = copy.relative_to(MUTANTS)
+            source = ROOT / (str(relative).removesuffix(".meta"))
+            if copy.is_file() and copy.suffix in {".py", ".meta"} and not source.exists():
+                copy.unlink()
+
+
 def run_mutmut(selected: list[str], children: int) -> None:
     names = [] if selected == configured_modules() else [dotted(m) + ".*" for m in selected]
     command = [str(Path(sys.executable).parent / "mutmut"), "run", "--max-children", str(children), *names]
@@ -361,6 +376,7 @@ def main() -> int:
             for module in to_run:  # forget these modules' results, keep the others'
                 (MUTANTS / (module + ".meta")).unlink(missing_ok=True)
                 (MUTANTS / module).unlink(missing_ok=True)
+        prune_stale_copies()
         start = time.monotonic()
         sources = source_hashes(to_run)  # before the run: an edit made while it runs is not in its results
         run_mutmut(to_run, args.children)
