@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 from collections.abc import Iterator
 
 import pytest
@@ -52,6 +53,25 @@ def _mutation_test_cpu_limit(nodeid: str) -> float | None:
 def _timed_out(signum: int, frame: object) -> None:
     # mutmut reads exit code 36 as "timeout" (killed); pytest is not unwound, this mutant is done
     os._exit(36)
+
+
+def _clear_gateway_caches() -> None:
+    """Empty every ``functools`` cache of the gateway's modules, under `make mutation` only.
+
+    mutmut forks each mutant's run from the process that ran the clean tests, so a cache filled
+    there (the SLC 100/150 plan, the shared DF1 and PLC-5 plans) hands the mutant's tests the
+    unmutated result, and a mutant of the cached function, or of anything it calls, never runs:
+    it survives whatever the tests check."""
+    for name, module in list(sys.modules.items()):
+        if name == "gateway" or name.startswith("gateway."):
+            for value in list(vars(module).values()):
+                if callable(getattr(value, "cache_clear", None)) and hasattr(value, "cache_info"):
+                    value.cache_clear()
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    if "__mutmut_" in os.environ.get("MUTANT_UNDER_TEST", ""):
+        _clear_gateway_caches()
 
 
 @pytest.hookimpl(hookwrapper=True)

@@ -171,8 +171,8 @@ def prune_stale_copies() -> None:
     for top in ("gateway", "tests"):
         for copy in sorted((MUTANTS / top).rglob("*")) if (MUTANTS / top).is_dir() else []:
             relative = copy.relative_to(MUTANTS)
-            source = ROOT / (str(relative).removesuffix(".meta"))
-            if copy.is_file() and copy.suffix in {".py", ".meta"} and not source.exists():
+            source = ROOT / str(relative).removesuffix(".meta").removesuffix(".spans")
+            if copy.is_file() and copy.suffix in {".py", ".meta", ".spans"} and not source.exists():
                 copy.unlink()
 
 
