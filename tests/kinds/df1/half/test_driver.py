@@ -284,3 +284,167 @@ async def test_every_slave_reading_values_right_and_writes_once(choices: dict[st
             assert runs == []
     assert sum(o == "done" for o in outcomes.values()) >= 4, outcomes
     assert line.counters.lost_symbols > 0
+
+
+# --- the line's keys, counters and life cycle (docs/guide/df1-half-duplex.md) -------------------------
+
+
+def test_line_keys_default_as_the_guide_says() -> None:
+    """docs/guide/df1-half-duplex.md "Keys": ack_timeout 0.5 s, message_retries 3, link_reset true,
+    rts "toggle", dtr true, no delays, no echo; a line is 19200 8N1 by default (df1-full-duplex.md)."""
+    from gateway.protocols.df1.half_duplex.events import LineConfig
+    from gateway.streams import SerialSettings
+
+    line = Df1HalfDuplexLine("sim://line", [StationConfig(1)], checksum=Checksum.CRC)
+    assert line.tunables == LineConfig(Checksum.CRC, ack_timeout=0.5, message_resends=3, pre_transmit_delay=0.0,
+                                       rts_send_delay=0.0, rts_off_delay=0.0, echo=False)
+    assert line.link_reset is True and line.dtr is True and line.rts_mode == "toggle"
+    assert line.settings == SerialSettings(19200, 8, "N", 1)
+    assert line.stray_replies == 0 and line.station_metrics()[1]["stray_replies"] == 0
+    given = Df1HalfDuplexLine("sim://line", [StationConfig(1)], checksum=Checksum.BCC, ack_timeout=0.2,
+                              message_retries=5, pre_transmit_delay=0.01, rts_send_delay=0.02, rts_off_delay=0.03,
+                              echo=True)
+    assert given.tunables == LineConfig(Checksum.BCC, ack_timeout=0.2, message_resends=5, pre_transmit_delay=0.01,
+                                        rts_send_delay=0.02, rts_off_delay=0.03, echo=True)
+    # slaves without duplicate detection: a master frame is never sent again
+    no_dd = Df1HalfDuplexLine("sim://line", [StationConfig(1)], message_retries=5, duplicate_detect=False)
+    assert no_dd.tunables.message_resends == 0
+
+
+async def test_the_line_is_opened_with_its_serial_settings_and_down_after_rule_per_station() -> None:
+    from gateway.link_health import DownAfter
+    from gateway.streams import SerialSettings
+
+    sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1, 2)))
+    opened: list[object] = []
+
+    async def opener(url: str, settings: object, **_: object) -> ByteStream:
+        opened.append(settings)
+        return SimStream(sim)
+
+    driver = Df1HalfDuplexLine("sim://line", stations(1, 2), checksum=Checksum.BCC, opener=opener,
+                               down_after={2: DownAfter(failures=7, seconds=9.0)})
+    assert (driver.station(2).down_after_failures, driver.station(2).down_after_seconds) == (7, 9.0)
+    assert (driver.station(1).down_after_failures, driver.station(1).down_after_seconds) == (3, 5.0)  # defaults
+    handle = driver.station(1)
+    await handle.start()
+    try:
+        assert opened == [SerialSettings(19200, 8, "N", 1)]
+    finally:
+        await handle.close()
+
+
+async def test_commands_carry_the_first_tns_and_the_source_address() -> None:
+    """The TNS of the first command is ``first_tns`` when given, else a random one in 1..65535 (never 0);
+    the reply comes back addressed to the gateway's own station (``source``)."""
+    sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1,)))
+    seed(sim)
+    driver = make_driver(sim, (1,), source=9)
+    driver_random = Df1HalfDuplexLine("sim://line", stations(1), checksum=Checksum.BCC, opener=opener_for(sim))
+    read = ProtectedTypedLogicalRead(N, 7, 0, 0, 2)
+    for line, tns in ((driver, 1), (driver_random, None)):
+        handle = line.station(1)
+        await handle.start()
+        try:
+            reply = await handle.execute(read)
+        finally:
+            await handle.close()
+        assert reply.data == expected(1)[:2]
+        if tns is None:
+            assert 1 <= reply.tns <= 0xFFFF
+        else:
+            assert (reply.tns, reply.dst) == (tns, 9)
+
+
+async def test_a_read_is_tried_retries_plus_one_times() -> None:
+    """``retries`` (the link key): a read without an answer is sent again with a new TNS that many times."""
+    sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1,), dead=frozenset({1})))
+    driver = Df1HalfDuplexLine("sim://line", stations(1, demote_after=50), checksum=Checksum.BCC, ack_timeout=0.02,
+                               message_retries=0, retries=1, opener=opener_for(sim), link_reset=False)
+    handle = driver.station(1)
+    await handle.start()
+    try:
+        with pytest.raises(LinkTimeout):
+            await handle.execute(ProtectedTypedLogicalRead(N, 7, 0, 0, 2))
+        totals = handle.totals
+        quality = handle.line_quality()
+    finally:
+        await handle.close()
+    assert totals.read_retries == 1 and totals.resends == 0
+    # line quality: the master frames sent again and the timeouts of this station, no DLE NAK count
+    assert quality.retransmits == 1 and quality.timeouts == totals.timeouts >= 2 and quality.check_errors == 0
+
+
+async def test_the_last_station_closing_closes_the_line_and_run_shares_one_line_task() -> None:
+    sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1, 2)))
+    seed(sim)
+    driver = make_driver(sim, (1, 2))
+    one, two = driver.station(1), driver.station(2)
+    runs = [asyncio.create_task(one.run()), asyncio.create_task(two.run())]
+    try:
+        for _ in range(200):
+            if driver.connected:
+                break
+            await asyncio.sleep(0.01)
+        assert (await two.execute(ProtectedTypedLogicalRead(N, 7, 0, 0, 10))).data == expected(2)
+        await one.close()
+        await one.close()  # a second close of one handle does not release the line again
+        assert driver.connected  # station 2 still uses it
+        assert (await two.execute(ProtectedTypedLogicalRead(N, 7, 0, 0, 10))).data == expected(2)
+        await two.close()
+        assert not driver.connected
+    finally:
+        for task in runs:
+            task.cancel()
+        await asyncio.gather(*runs, return_exceptions=True)
+
+
+async def test_a_started_station_alone_owns_the_line() -> None:
+    sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1,)))
+    seed(sim)
+    driver = make_driver(sim, (1,))
+    handle = driver.station(1)
+    await handle.start()
+    assert driver.connected
+    info = await handle.probe()
+    await handle.close()
+    assert not driver.connected
+    assert info.raw  # the diagnostic status reply's data (1770-6.5.16 ch. 7 "diagnostic status")
+
+
+async def test_messages_a_station_initiates_are_counted_stored_or_refused() -> None:
+    """A station's MSG write to the gateway's own station lands in its register table (STS 00); a read
+    is refused with STS 10 (1770-6.5.16 p. 8-3): counted per station as slave_messages / slave_writes /
+    slave_refused, the other station's counts untouched."""
+    from gateway.protocols.df1.half_duplex.slave_messages import RegisterTable
+    from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeWrite, encode_command
+
+    sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1, 2)))
+    table = RegisterTable(file_number=7, size=10)
+    driver = make_driver(sim, (1, 2), register_tables={2: table}, link_reset=False)
+    one, two = driver.station(1), driver.station(2)
+    await one.start()
+    write = WordRangeWrite(LogicalBinaryAddress.of(0, 7, 1), (42).to_bytes(2, "little"))
+    try:
+        sim.slaves[2].initiate(encode_command(write, dst=0, src=2, tns=21))
+        for _ in range(300):
+            if table.value(1) == 42 and two.metrics()["slave_writes"] >= 1:
+                break
+            await asyncio.sleep(0.01)
+        sim.slaves[2].initiate(encode_command(ProtectedTypedLogicalRead(N, 7, 0, 0, 2), dst=0, src=2, tns=22))
+        sim.slaves[2].initiate(encode_command(ProtectedTypedLogicalRead(N, 7, 0, 0, 2), dst=0, src=2, tns=23))
+        for _ in range(300):
+            if two.metrics()["slave_refused"] >= 2:
+                break
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(0.3)  # the replies are delivered
+        counted = ("slave_messages", "slave_writes", "slave_refused", "slave_replies_lost", "stray_replies")
+        counts = {k: two.metrics()[k] for k in counted}
+        others = {k: one.metrics()[k] for k in counted}
+    finally:
+        await one.close()
+        await two.close()
+    assert table.value(1) == 42
+    assert counts == {"slave_messages": 3, "slave_writes": 1, "slave_refused": 2, "slave_replies_lost": 0,
+                      "stray_replies": 0}
+    assert others == dict.fromkeys(counted, 0)
