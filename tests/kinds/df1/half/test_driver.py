@@ -406,10 +406,37 @@ async def test_a_started_station_alone_owns_the_line() -> None:
     handle = driver.station(1)
     await handle.start()
     assert driver.connected
+    assert handle.last_sts == 0 and handle.metrics()["data_age"] == -1.0  # nothing answered yet
     info = await handle.probe()
+    now = asyncio.get_running_loop().time() + 100.0
+    ages = (handle.metrics(now)["data_age"], driver.station_metrics(now)[1]["data_age"])
     await handle.close()
     assert not driver.connected
     assert info.raw  # the diagnostic status reply's data (1770-6.5.16 ch. 7 "diagnostic status")
+    assert ages[0] == ages[1] and 100.0 <= ages[0] < 101.0  # the age at the given time, for every station
+
+
+@pytest.mark.parametrize("link_reset", [None, False])
+async def test_the_link_reset_at_start_empties_the_slaves_queued_messages(link_reset: bool | None) -> None:
+    """``link_reset`` (default true): a DLE NAK when the line starts empties the messages the slaves had
+    queued (docs/guide/df1-half-duplex.md); without it they are delivered at the first poll."""
+    from gateway.protocols.df1.half_duplex.slave_messages import RegisterTable
+    from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeWrite, encode_command
+
+    sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1,)))
+    table = RegisterTable(file_number=7, size=10)
+    kwargs: dict[str, Any] = {} if link_reset is None else {"link_reset": link_reset}
+    driver = make_driver(sim, (1,), register_tables={1: table}, **kwargs)
+    handle = driver.station(1)
+    write = WordRangeWrite(LogicalBinaryAddress.of(0, 7, 0), (7).to_bytes(2, "little"))
+    sim.slaves[1].initiate(encode_command(write, dst=0, src=1, tns=5))
+    await handle.start()
+    try:
+        await asyncio.sleep(0.5)  # polled every 0.2 s
+        received = handle.metrics()["slave_messages"]
+    finally:
+        await handle.close()
+    assert (received, table.value(0)) == ((0, 0) if link_reset is None else (1, 7))
 
 
 async def test_messages_a_station_initiates_are_counted_stored_or_refused() -> None:
