@@ -364,10 +364,13 @@ async def test_a_read_is_tried_retries_plus_one_times() -> None:
     handle = driver.station(1)
     await handle.start()
     try:
-        with pytest.raises(LinkTimeout):
+        # the error names the command: its given name, else its type
+        with pytest.raises(LinkTimeout, match="ProtectedTypedLogicalRead"):
             await handle.execute(ProtectedTypedLogicalRead(N, 7, 0, 0, 2))
         totals = handle.totals
         quality = handle.line_quality()
+        with pytest.raises(LinkTimeout, match="diagnostic status"):
+            await handle.probe()
     finally:
         await handle.close()
     assert totals.read_retries == 1 and totals.resends == 0
@@ -475,3 +478,19 @@ async def test_messages_a_station_initiates_are_counted_stored_or_refused() -> N
     assert counts == {"slave_messages": 3, "slave_writes": 1, "slave_refused": 2, "slave_replies_lost": 0,
                       "stray_replies": 0}
     assert others == dict.fromkeys(counted, 0)
+
+
+async def test_start_waits_as_long_as_asked_for_the_first_connection() -> None:
+    async def opener(url: str, settings: object, **_: object) -> ByteStream:
+        await asyncio.sleep(3600)  # a port that never opens
+        raise AssertionError
+
+    driver = Df1HalfDuplexLine("sim://line", stations(1), opener=opener, connect_timeout=30.0)
+    handle = driver.station(1)
+    started = time.monotonic()
+    try:
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(handle.start(0.1), 3.0)
+        assert time.monotonic() - started < 2.0  # the 0.1 s asked, not the 30 s connect timeout
+    finally:
+        await handle.close()
