@@ -494,3 +494,20 @@ async def test_start_waits_as_long_as_asked_for_the_first_connection() -> None:
         assert time.monotonic() - started < 2.0  # the 0.1 s asked, not the 30 s connect timeout
     finally:
         await handle.close()
+
+
+async def test_two_started_stations_share_the_line_until_both_close() -> None:
+    sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1, 2)))
+    seed(sim)
+    driver = make_driver(sim, (1, 2))
+    one, two = driver.station(1), driver.station(2)
+    await one.start()
+    await two.start()  # the line is running: the second start only takes a share of it
+    try:
+        await one.close()
+        assert driver.connected
+        assert (await two.execute(ProtectedTypedLogicalRead(N, 7, 0, 0, 10))).data == expected(2)
+    finally:
+        await one.close()
+        await two.close()
+    assert not driver.connected
