@@ -511,3 +511,45 @@ async def test_two_started_stations_share_the_line_until_both_close() -> None:
         await one.close()
         await two.close()
     assert not driver.connected
+
+
+async def test_counters_are_totals_over_reconnects() -> None:
+    """Df1Station.metrics: "Counters are totals since the line was created (reconnects included)"."""
+    from collections.abc import Callable
+
+    class PullableStream(SimStream):
+        lost: Callable[[str], None]
+
+        def start_push(self, receive: Callable[[bytes], None], lost: Callable[[str], None]) -> bool:
+            self.lost = lost
+            return super().start_push(receive, lost)
+
+    sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1,)))
+    seed(sim)
+    streams: list[PullableStream] = []
+
+    async def opener(url: str, settings: object, **_: object) -> ByteStream:
+        streams.append(PullableStream(sim))
+        return streams[-1]
+
+    driver = Df1HalfDuplexLine("sim://line", stations(1), checksum=Checksum.BCC, opener=opener, first_tns=1,
+                               reconnect_min=0.01, reconnect_max=0.01)
+    handle = driver.station(1)
+    await handle.start()
+    try:
+        for _ in range(3):
+            await handle.execute(ProtectedTypedLogicalRead(N, 7, 0, 0, 2))
+        before = handle.metrics()
+        streams[-1].lost("cable pulled")
+        for _ in range(500):
+            if len(streams) == 2 and driver.connected:
+                break
+            await asyncio.sleep(0.01)
+        await handle.execute(ProtectedTypedLogicalRead(N, 7, 0, 0, 2))
+        after = handle.metrics()
+    finally:
+        await handle.close()
+    assert before["messages_sent"] >= 3 and before["messages_received"] >= 3
+    assert after["messages_sent"] >= before["messages_sent"] + 1
+    assert after["messages_received"] >= before["messages_received"] + 1
+    assert after["polls"] >= before["polls"]
