@@ -553,3 +553,29 @@ async def test_counters_are_totals_over_reconnects() -> None:
     assert after["messages_sent"] >= before["messages_sent"] + 1
     assert after["messages_received"] >= before["messages_received"] + 1
     assert after["polls"] >= before["polls"]
+
+
+async def test_a_demoted_station_is_down_and_an_abandoned_request_harms_no_other() -> None:
+    """A station demoted to slow poll counts as a failed link (down after ``down_after_failures``, here 1,
+    with the reason); a caller that gives up on its request leaves the line serving the others."""
+    from gateway.link_health import DownAfter
+
+    sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1, 2), dead=frozenset({2})))
+    seed(sim)
+    driver = make_driver(sim, (1, 2), demote_after=1, down_after={2: DownAfter(failures=1)})
+    one, two = driver.station(1), driver.station(2)
+    await one.start()
+    try:
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(two.execute(ProtectedTypedLogicalRead(N, 7, 0, 0, 2)), 0.01)
+        for _ in range(300):
+            if not two.available:
+                break
+            await asyncio.sleep(0.01)
+        assert not two.available and "slow poll" in (two.last_error or "")
+        await asyncio.sleep(0.3)  # the abandoned request's verdict comes and goes
+        assert (await one.execute(ProtectedTypedLogicalRead(N, 7, 0, 0, 10))).data == expected(1)
+        assert one.available and driver.connected
+    finally:
+        await one.close()
+        await two.close()
