@@ -408,7 +408,7 @@ async def test_a_started_station_alone_owns_the_line() -> None:
     driver = make_driver(sim, (1,))
     handle = driver.station(1)
     await handle.start()
-    assert driver.connected
+    assert driver.connected and driver.last_error == ""  # coming up gives no error
     assert handle.last_sts == 0 and handle.metrics()["data_age"] == -1.0  # nothing answered yet
     info = await handle.probe()
     now = asyncio.get_running_loop().time() + 100.0
