@@ -106,6 +106,11 @@ async def run_port(port: Any, url: str = "/dev/ttyFAKE", *, connections: int = 1
     await line.start()
     try:
         await asyncio.sleep(0.1)
+        for _ in range(200):  # a loaded machine: let toggling show its first four changes
+            toggled = line.rts_mode == "toggle" or (line.rts_mode == "rs485" and getattr(port, "refuse", False))
+            if port is None or not toggled or sum(name == "rts" for name, _ in port.changes) >= 4:
+                break
+            await asyncio.sleep(0.01)
         for _ in range(connections - 1):
             streams[-1].connection_lost(None)
             for _ in range(200):
