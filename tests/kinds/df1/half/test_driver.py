@@ -556,8 +556,8 @@ async def test_counters_are_totals_over_reconnects() -> None:
 
 
 async def test_a_demoted_station_is_down_and_an_abandoned_request_harms_no_other() -> None:
-    """A station demoted to slow poll counts as a failed link (down after ``down_after_failures``, here 1,
-    ); a caller that gives up on its request leaves the line serving the others."""
+    """A station demoted to slow poll counts as a failed link (down after ``down_after_failures``, here 1);
+    a caller that gives up on its request leaves the line serving the others."""
     from gateway.link_health import DownAfter
 
     sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1, 2), dead=frozenset({2})))
