@@ -334,7 +334,8 @@ def metrics_reference() -> str:
     lines += [
         "",
         "`slc_gateway_retries_total` splits the retries by a `kind` label that each link kind names: "
-        "`retransmit` (`;Z`) and `id_resync` on SLC 100/150 links, `enq` and `nak` on DF1 links.",
+        "`retransmit` (`;Z`) and `id_resync` on SLC 100/150 links, `enq` and `nak` on DF1 links, and on DF1 "
+        "target links also `enq_received` (the DLE ENQs the PLC sent).",
         "",
         "## Numbers a link's driver reports",
         "",
