@@ -413,3 +413,12 @@ async def test_max_read_bytes_sets_the_units_blocks() -> None:
     sim = make_sim("refuse")
     async with plc5_unit(sim, [MapItem("holding", 0, "N7:0", 20)], max_read_bytes=20) as unit:
         assert [b.size for b in unit.plan.blocks] == [20, 20]
+
+
+async def test_coils_read_each_bit_of_its_word() -> None:
+    """B3/0 x16 are bits 0-15 of B3:0 (the word read low byte first, KF2 p. 5-57): only bit 8 and 15 on."""
+    sim = make_sim("refuse")
+    sim.set_word("B3", 0, 0x8100)
+    async with plc5_unit(sim, [MapItem("coil", 0, "B3/0", 16, "bool")]) as unit:
+        await refresh(unit)
+        assert unit.read_bits(Table.COIL, 0, 16) == [k in (8, 15) for k in range(16)]
