@@ -422,3 +422,17 @@ async def test_coils_read_each_bit_of_its_word() -> None:
     async with plc5_unit(sim, [MapItem("coil", 0, "B3/0", 16, "bool")]) as unit:
         await refresh(unit)
         assert unit.read_bits(Table.COIL, 0, 16) == [k in (8, 15) for k in range(16)]
+
+
+async def test_floats_read_in_their_word_order() -> None:
+    """F8:2 x2 high-first and F8:0 low-first: 1.1 is 0x3F8CCCCD in IEEE 754 single precision."""
+    sim = make_sim("refuse")
+    sim.set_float("F8", 0, 1.1)
+    sim.set_float("F8", 2, -2.5)  # 0xC0200000
+    sim.set_float("F8", 3, 1.1)
+    sim.set_float("F8", 4, 7.0)  # 0x40E00000, mapped by nothing
+    items = [MapItem("holding", 10, "F8:2", 2, "float32"), MapItem("holding", 20, "F8:0", 1, "float32", "low-first")]
+    async with plc5_unit(sim, items) as unit:
+        await refresh(unit)
+        assert unit.read_registers(Table.HOLDING, 10, 4) == [0xC020, 0x0000, 0x3F8C, 0xCCCD]
+        assert unit.read_registers(Table.HOLDING, 20, 2) == [0xCCCD, 0x3F8C]
