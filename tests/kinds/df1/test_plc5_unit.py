@@ -372,15 +372,15 @@ async def test_one_word_range_write_covers_only_neighbours_of_one_plain_file() -
     """Words of other files, gaps and timer members are written each with its own command: one word range
     write writes consecutive words only, so nothing between them changes."""
     sim = make_sim("refuse")
-    items = [MapItem("holding", 0, "N7:0", 2), MapItem("holding", 2, "N10:2", 1), MapItem("holding", 3, "N7:5", 1),
+    items = [MapItem("holding", 0, "N7:0", 2), MapItem("holding", 2, "N7:5", 1), MapItem("holding", 3, "N10:6", 1),
              MapItem("holding", 4, "T4:1.ACC", 2)]
-    before = {("N7", 2): sim.word("N7", 2), ("N7", 4): sim.word("N7", 4), ("T4", 2): sim.word("T4", 2)}
+    before = {("N7", 2): sim.word("N7", 2), ("N7", 6): sim.word("N7", 6), ("T4", 2): sim.word("T4", 2)}
     async with plc5_unit(sim, items) as unit:
         await write_registers(unit, 0, [1, 2, 3, 4, 100, 200])
-    assert [sim.word("N7", 0), sim.word("N7", 1), sim.word("N10", 2), sim.word("N7", 5)] == [1, 2, 3, 4]
+    assert [sim.word("N7", 0), sim.word("N7", 1), sim.word("N7", 5), sim.word("N10", 6)] == [1, 2, 3, 4]
     assert sim.word("T4", 1, sub=2) == 100 and sim.word("T4", 2, sub=2) == 200
     assert {key: sim.word(*key) for key in before} == before
-    assert [w for _k, w, _d in sim.applied_writes] == ["N7:0", "N10:2", "N7:5", "T4:1.ACC", "T4:2.ACC"]
+    assert [w for _k, w, _d in sim.applied_writes] == ["N7:0", "N7:5", "N10:6", "T4:1.ACC", "T4:2.ACC"]
 
 
 async def test_a_write_refused_part_way_names_what_was_written(caplog: pytest.LogCaptureFixture) -> None:
