@@ -183,8 +183,8 @@ def test_only_holding_registers_and_coils_are_writable_in_the_tag_list() -> None
 def test_check_config_names_each_file_with_its_elements() -> None:
     lines = df1_plan_lines(target_plan(link().file))
     # one line per file, its first and last element in the PLC's notation
-    assert [line.split(":", 1)[0] + ":" + line.split(":", 2)[1] for line in lines] == [
-        "file B3:0-2", "file N7:0-9", "file N10:0-4", "file B12:0-1"
+    assert [re.findall(r"^file ([A-Z]\d+:\d+-\d+):", line) for line in lines] == [
+        ["B3:0-2"], ["N7:0-9"], ["N10:0-4"], ["B12:0-1"]
     ]
 
 
@@ -283,6 +283,8 @@ async def test_each_modbus_write_is_audited_with_its_unit_and_elements(caplog: p
     assert len(messages) == 2, messages
     elements = re.compile(r"\b[NB]\d+:\d+\b")
     assert all(re.search(rf"\bunit {UNIT}\b", m) for m in messages), messages
+    # a Modbus client's write, told apart from the PLC's own (which the runner audits by its node)
+    assert all(re.search(r"\bModbus\b", m) for m in messages), messages
     assert [elements.findall(m) for m in messages] == [["N7:4", "N7:5"], ["B3:1"]]
 
 
