@@ -55,6 +55,11 @@ class Table(enum.Enum):
     # table keys the image's segments and the demand of each request (gateway.schedule.DemandLog).
     __hash__ = object.__hash__
 
+    @property
+    def writable(self) -> bool:
+        """Whether Modbus writes this table (holding registers and coils; the other two are read-only)."""
+        return self in (Table.HOLDING, Table.COIL)
+
 
 class Scan(enum.Enum):
     """Fast: read continuously.  Slow: read every ``slow_interval`` seconds (10 s by default)."""

@@ -261,7 +261,7 @@ def plan_df1(items: Sequence[MapItem], max_read_bytes: int, overhead: int = READ
     word_writes: dict[SlcAddress, Df1WordWrite] = {}  # one per word or float (both halves share it)
     for cell in cells:
         block, offset = find(cell)
-        writable = cell.table in (Table.HOLDING, Table.COIL)
+        writable = cell.table.writable
         if cell.bit is not None:
             write = Df1BitWrite(cell.address, cell.bit) if writable else None
             point = BitPoint(block, offset + cell.bit // 8, cell.bit % 8, write)

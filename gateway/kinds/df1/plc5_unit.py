@@ -189,7 +189,7 @@ def plan_plc5(items: Sequence[MapItem], max_read_bytes: int = PLC5_MAX_READ_BYTE
             for start, words, index in where[scan, cell.key]
             if start <= cell.position < start + words
         )
-        writable = cell.table in (Table.HOLDING, Table.COIL)
+        writable = cell.table.writable
         word = _word_address(cell.key, cell.position)
         if cell.bit is not None:
             target = Plc5BitWrite(word, cell.bit) if writable else None

@@ -96,15 +96,16 @@ def target_point_labels(files: Sequence[TargetFile]) -> dict[tuple[Table, int], 
     labels: dict[tuple[Table, int], PointLabel] = {}
     for entry in files:
         table = Table(entry.table)
+        writers = "written by the PLC's MSG or a Modbus client" if table.writable else "written by the PLC's MSG"
         for element in range(entry.elements):
             if entry.is_bits:
                 for k in range(16):
                     labels[(table, entry.start + 16 * element + k)] = PointLabel(f"{entry.name}:{element}/{k}", "bool",
-                                                                                 "written by the PLC's MSG")
+                                                                                 writers)
                 continue
             for word in range(entry.words):
                 labels[(table, entry.start + entry.words * element + word)] = PointLabel(
-                    f"{entry.name}:{element}", types[entry.type], "written by the PLC's MSG or a Modbus client")
+                    f"{entry.name}:{element}", types[entry.type], writers)
     return labels
 
 

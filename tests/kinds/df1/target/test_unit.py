@@ -214,11 +214,11 @@ start = 70
     expected: dict[tuple[Table, int], PointLabel] = {}
     for element in range(3):
         for k in range(16):
-            expected[(Table.COIL, 100 + 16 * element + k)] = PointLabel(f"B3:{element}/{k}", "bool", by_plc)
+            expected[(Table.COIL, 100 + 16 * element + k)] = PointLabel(f"B3:{element}/{k}", "bool", by_either)
     for element in range(10):
         expected[(Table.HOLDING, element)] = PointLabel(f"N7:{element}", "int16", by_either)
     for element in range(5):
-        expected[(Table.INPUT, 20 + element)] = PointLabel(f"N10:{element}", "int16", by_either)
+        expected[(Table.INPUT, 20 + element)] = PointLabel(f"N10:{element}", "int16", by_plc)
     for element in range(2):
         for k in range(16):
             expected[(Table.DISCRETE, 200 + 16 * element + k)] = PointLabel(f"B12:{element}/{k}", "bool", by_plc)
