@@ -575,7 +575,7 @@ def test_line_quality_of_a_new_link_is_all_zero_and_has_no_naks() -> None:
 async def test_line_quality_counts_each_silent_wait_and_each_z() -> None:
     url = "sim://slc150?ladder=0"
     sim = simulator(url)
-    driver = SlcAsciiDriver(url, timeout=0.01, retries=3)
+    driver = SlcAsciiDriver(url, timeout=0.05, retries=3)
     async with asyncio.timeout(5), driver:
         await driver.read(0x40, 2)
         assert driver.line_quality() == LineQuality(check_errors=0, timeouts=0, retransmits=0, resyncs=0)
@@ -819,3 +819,54 @@ async def test_a_request_in_flight_fails_at_once_when_the_link_drops() -> None:
                 await request
     finally:
         await driver.close()
+
+
+async def test_max_resyncs_bounds_the_id_00_resyncs_of_a_read() -> None:
+    # no resync allowed: a read whose reply and ;Z answer are lost fails after its one command frame
+    url = "sim://slc150?ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.01, retries=1, max_resyncs=0)
+    async with asyncio.timeout(5), driver:
+        await driver.read(0x40, 2)
+        frames = sim.counters.commands
+        sim.faults.drop = 1
+        with pytest.raises(LinkTimeout):
+            await driver.read(0x40, 2)
+    assert sim.counters.commands == frames + 1
+    assert sim.counters.retransmits == 1
+
+
+async def test_the_characters_time_on_the_line_is_added_to_the_reply_time() -> None:
+    # docs/reference/config.md, timeout: "the characters' time on the line at baudrate is added".
+    # 600 baud 7E1: 10 bits, 16.7 ms a character.  A read (#05...: 18 characters) answered 0.4 s
+    # late with 16 characters ends 0.97 s after it began: within 0.1 s + the characters of the
+    # command and of the longest reply (57 characters, 0.95 s), no timeout.
+    url = "sim://slc150?ladder=0&paced=1"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.1, settings=SerialSettings(600, 7, "E", 1))
+    async with asyncio.timeout(10), driver:
+        assert await driver.read(0x40, 2) == (100).to_bytes(2, "big")
+        sim.faults.delay = 0.4
+        assert await driver.read(0x40, 2) == (100).to_bytes(2, "big")
+        assert driver.counters.timeouts == 0
+        assert driver.counters.retries == 0
+
+
+async def test_the_wait_follows_the_reply_times_seen_on_a_paced_line() -> None:
+    # The core's rule (gateway/protocols/slc_ascii/sender.py): after 8 replies the wait for a
+    # command of the normal reply time is 2 x the slowest reply seen (at least 0.05 s), at most
+    # the configured one.  At 9600 baud a read is answered within ~40 ms: a reply 0.5 s late is
+    # then waited out and asked for again, although the configured 1 s would have covered it.
+    url = "sim://slc150?ladder=0&paced=1"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=1.0, retries=3)
+    async with asyncio.timeout(20), driver:
+        for _ in range(10):
+            await driver.read(0x40, 2)
+        assert driver.counters.timeouts == 0
+        sim.faults.delay = 0.5
+        try:
+            await driver.read(0x40, 2)
+        except GatewayError:
+            pass
+        assert driver.counters.timeouts >= 1
