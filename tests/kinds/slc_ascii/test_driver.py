@@ -557,8 +557,12 @@ async def test_a_download_that_cannot_complete_names_the_block() -> None:
     program = bytes(ControllerType.SLC150.block_count * 15)
     async with asyncio.timeout(60), driver:
         await driver.set_mode(Mode.PROGRAM)
-        with pytest.raises(GatewayError, match=r"download failed at block 0x[0-9A-F]{2} of 165 .*download again"):
+        failed = r"download failed at block 0x[0-9A-F]{2} of 165 .*download again"
+        with pytest.raises(GatewayError, match=failed) as info:
             await driver.download_program(ControllerType.SLC150, program)
+        # the error is chained to the last failure, whose message it repeats
+        assert isinstance(info.value.__cause__, GatewayError)
+        assert str(info.value.__cause__) in str(info.value)
     assert not [w for w in sim.applied_writes if w[0] == "program"]  # never reported complete
 
 
