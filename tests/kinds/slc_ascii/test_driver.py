@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import random
 from collections import Counter
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -19,6 +19,7 @@ from gateway.errors import ControllerRefused, GatewayError, LinkDown, LinkTimeou
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
 from gateway.line_driver import Priority
+from gateway.link_health import LineQuality
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii.commands import ControllerType, Mode
 from gateway.protocols.slc_ascii.framing import DataReply
@@ -556,6 +557,320 @@ async def test_a_download_that_cannot_complete_names_the_block() -> None:
     program = bytes(ControllerType.SLC150.block_count * 15)
     async with asyncio.timeout(60), driver:
         await driver.set_mode(Mode.PROGRAM)
-        with pytest.raises(GatewayError, match=r"download failed at block 0x[0-9A-F]{2} of 165 .*download again"):
+        failed = r"download failed at block 0x[0-9A-F]{2} of 165 .*download again"
+        with pytest.raises(GatewayError, match=failed) as info:
             await driver.download_program(ControllerType.SLC150, program)
+        # the error is chained to the last failure, whose message it repeats
+        assert isinstance(info.value.__cause__, GatewayError)
+        assert str(info.value.__cause__) in str(info.value)
     assert not [w for w in sim.applied_writes if w[0] == "program"]  # never reported complete
+
+
+# ---------------------------------------------------------------------------------------------
+# Line quality (docs/guide/status-page-columns.md: check errors, timeouts, retransmits (;Z),
+# resyncs (ID 00 after the first); the protocol has no NAK)
+
+
+def test_line_quality_of_a_new_link_is_all_zero_and_has_no_naks() -> None:
+    driver = SlcAsciiDriver("sim://slc150?ladder=0", timeout=0.05)
+    assert driver.line_quality() == LineQuality(check_errors=0, timeouts=0, naks=None, retransmits=0, resyncs=0)
+
+
+async def test_line_quality_counts_each_silent_wait_and_each_z() -> None:
+    url = "sim://slc150?ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.05, retries=3)
+    async with asyncio.timeout(5), driver:
+        await driver.read(0x40, 2)
+        assert driver.line_quality() == LineQuality(check_errors=0, timeouts=0, retransmits=0, resyncs=0)
+        sim.faults.drop = 1  # every reply lost: the write waits, asks ;Z three times, waits each time
+        with pytest.raises(WriteOutcomeUnknown):
+            await driver.write_word(0x40, 4321)
+        assert driver.line_quality() == LineQuality(check_errors=0, timeouts=4, retransmits=3, resyncs=0)
+
+
+async def test_line_quality_counts_replies_with_a_bad_checksum() -> None:
+    url = "sim://slc150?ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.02, retries=2)
+    async with asyncio.timeout(5), driver:
+        await driver.read(0x40, 2)
+        sim.faults.garble = 1  # every reply corrupted
+        with pytest.raises(LinkTimeout):
+            await driver.read(0x40, 2)
+    quality = driver.line_quality()
+    assert quality.check_errors >= 1
+    assert quality.retransmits is not None and quality.retransmits >= 1  # a bad reply is asked for again
+
+
+async def test_line_quality_counts_the_id_resyncs_after_the_first() -> None:
+    # as test_a_write_meeting_a_power_cycle_is_unknown_and_the_next_command_resyncs_with_id_00:
+    # one resync after each unknown write that another command followed
+    url = "sim://slc150?power_cycle_every=4&ladder=0"
+    driver, _, unknown = await _write_through_power_cycles(url, range(1, 11))
+    followed = [value for value in unknown if value != 10]
+    assert followed
+    assert driver.line_quality().resyncs == len(followed)
+
+
+# ---------------------------------------------------------------------------------------------
+# Byte writes, priorities of the typed operations
+
+
+async def test_write_byte_writes_the_byte(quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator]) -> None:
+    driver, sim = quiet
+    await driver.write_byte(0xA6, 0x5A)
+    assert sim.memory[0xA6] == 0x5A
+    assert sim.applied_writes == [("byte", 0xA6, 0x5A)]
+
+
+async def test_update_byte_sets_and_clears_a_middle_bit(quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator]) -> None:
+    driver, sim = quiet
+    sim.memory[0xA6] = 0b0000_0001
+    assert await driver.update_byte(0xA6, 3, True) == 0b0000_1001  # relay 704 on, 701 kept
+    assert sim.memory[0xA6] == 0b0000_1001
+    assert await driver.update_byte(0xA6, 3, False) == 0b0000_0001
+
+
+async def _order_behind_polls(driver: SlcAsciiDriver, late: Callable[[], Awaitable[object]]) -> list[str]:
+    """Hold the line, queue three polls, then ``late``: the order in which they ran."""
+    gate = asyncio.Event()
+    order: list[str] = []
+
+    async def hold_the_line() -> None:
+        await gate.wait()
+
+    async def poll(n: int) -> None:
+        await driver.read(0x40, 2)
+        order.append(f"poll{n}")
+
+    async def run_late() -> None:
+        await late()
+        order.append("late")
+
+    blocker = asyncio.create_task(driver.submit(hold_the_line, Priority.POLL))
+    polls = [asyncio.create_task(poll(n)) for n in range(3)]
+    await asyncio.sleep(0.01)
+    later = asyncio.create_task(run_late())
+    await asyncio.sleep(0.01)
+    gate.set()
+    await asyncio.wait_for(asyncio.gather(blocker, later, *polls), 5)
+    return order
+
+
+async def test_update_byte_goes_before_polls(quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator]) -> None:
+    driver, _ = quiet
+    order = await _order_behind_polls(driver, lambda: driver.update_byte(0xA6, 2, True))
+    assert order == ["late", "poll0", "poll1", "poll2"]
+
+
+async def test_a_read_at_write_priority_goes_before_polls(quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator]) -> None:
+    driver, _ = quiet
+    order = await _order_behind_polls(driver, lambda: driver.read(0x42, 2, Priority.WRITE))
+    assert order == ["late", "poll0", "poll1", "poll2"]
+
+
+async def test_execute_gives_reads_the_poll_priority(quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator]) -> None:
+    # a read through execute() without a priority queues as a poll: a write queued after it goes first
+    driver, _ = quiet
+    order = await _order_behind_polls(driver, lambda: driver.write_word(0x40, 7))
+    assert order == ["late", "poll0", "poll1", "poll2"]
+    gate = asyncio.Event()
+    ran: list[str] = []
+
+    async def hold_the_line() -> None:
+        await gate.wait()
+
+    async def read() -> None:
+        await driver.execute(cmds.read_bytes(0x40, 2))
+        ran.append("read")
+
+    async def write() -> None:
+        await driver.write_word(0x40, 8)
+        ran.append("write")
+
+    blocker = asyncio.create_task(driver.submit(hold_the_line, Priority.POLL))
+    reader = asyncio.create_task(read())
+    await asyncio.sleep(0.01)
+    writer = asyncio.create_task(write())
+    await asyncio.sleep(0.01)
+    gate.set()
+    await asyncio.wait_for(asyncio.gather(blocker, reader, writer), 5)
+    assert ran == ["write", "read"]
+
+
+async def test_a_program_upload_goes_before_polls(quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator]) -> None:
+    driver, _ = quiet
+    await driver.set_mode(Mode.PROGRAM)
+    gate = asyncio.Event()
+    order: list[str] = []
+
+    async def hold_the_line() -> None:
+        await gate.wait()
+
+    async def probe(n: int) -> None:
+        await driver.probe()
+        order.append(f"probe{n}")
+
+    async def upload() -> None:
+        await driver.upload_program(ControllerType.SLC150)
+        order.append("upload")
+
+    blocker = asyncio.create_task(driver.submit(hold_the_line, Priority.POLL))
+    probes = [asyncio.create_task(probe(n)) for n in range(2)]
+    await asyncio.sleep(0.01)
+    uploader = asyncio.create_task(upload())
+    await asyncio.sleep(0.01)
+    gate.set()
+    await asyncio.wait_for(asyncio.gather(blocker, uploader, *probes), 10)
+    assert order == ["upload", "probe0", "probe1"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Settings, reply times, write budget, refusals, faults, link loss
+
+
+def test_the_manuals_line_settings_are_the_default() -> None:
+    # the manual: 9600 baud, 7 data bits, even parity, 1 stop bit
+    assert SlcAsciiDriver("sim://slc150").settings == SerialSettings(9600, 7, "E", 1)
+    assert SlcAsciiDriver("sim://slc150", settings=SerialSettings(1200, 8, "N", 1)).settings.baudrate == 1200
+
+
+async def test_a_port_with_its_own_parity_sends_the_characters_as_they_are(tmp_path: Path) -> None:
+    # only an 8N1 port gets the parity bit computed by the driver; an 8E1 port adds its own
+    url = "sim://slc150?ladder=0"
+    trace = tmp_path / "trace.txt"
+    driver = SlcAsciiDriver(url, timeout=0.05, settings=SerialSettings(9600, 8, "E", 1), trace=trace)
+    async with asyncio.timeout(5), driver:
+        await driver.write_word(0x40, 1234)
+    sent = b"".join(
+        bytes.fromhex(line.split(" TX ", 1)[1].split("  |", 1)[0])
+        for line in trace.read_text().splitlines()
+        if " TX " in line
+    )
+    assert sent.startswith(b"#010800A3\r")
+    assert not any(byte & 0x80 for byte in sent)
+
+
+async def test_a_mode_change_gets_the_slow_reply_time() -> None:
+    # "The exceptions are edit commands and mode changes": a mode change answered after the
+    # normal reply time but within the slow one is no timeout
+    url = "sim://slc150?ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.02, slow_timeout=1.0)
+    async with asyncio.timeout(5), driver:
+        await driver.read(0x40, 2)
+        sim.faults.delay = 0.15
+        await driver.set_mode(Mode.PROGRAM)
+        assert driver.counters.timeouts == 0
+        assert driver.counters.retries == 0
+    assert [w[2] for w in sim.applied_writes if w[0] == "mode"] == [Mode.PROGRAM]
+
+
+async def test_a_write_budget_asks_again_until_it_is_spent() -> None:
+    # write_budget: ;Z while a further wait fits in it, in place of the retries count
+    url = "sim://slc150?ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.02, retries=1, write_budget=0.5)
+    loop = asyncio.get_running_loop()
+    async with asyncio.timeout(5), driver:
+        await driver.read(0x40, 2)
+        sim.faults.drop = 1
+        started = loop.time()
+        with pytest.raises(WriteOutcomeUnknown, match="outcome unknown"):
+            await driver.write_word(0x40, 4321)
+        assert loop.time() - started >= 0.5 - 0.03  # the budget, less at most one wait that did not fit
+    assert sim.counters.retransmits >= 3  # more than retries=1
+    assert sim.applied_writes == [("word", 0x40, 4321)]
+
+
+async def test_a_refusal_carries_the_manuals_reason(quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator]) -> None:
+    driver, _ = quiet
+    with pytest.raises(ControllerRefused) as info:
+        await driver.write_word(0x7E, 5)  # 932.PRE is protected
+    assert info.value.reason
+
+
+async def test_a_repeated_fault_is_logged_once(caplog: pytest.LogCaptureFixture) -> None:
+    # a link logs a change, not every report of the same fault
+    url = "sim://slc150?fault_every=2&ladder=0"
+    driver = SlcAsciiDriver(url, timeout=0.05)
+    with caplog.at_level("WARNING", logger="gateway.link"):
+        async with asyncio.timeout(5), driver:
+            for _ in range(8):
+                await driver.read(0x40, 2)
+            await wait_for(lambda: driver.counters.faults >= 2)
+            await driver.read(0x40, 2)
+    assert driver.last_fault is not None and driver.last_fault.errors == (8,)
+    assert len([r for r in caplog.records if "error 8" in r.getMessage()]) == 1
+
+
+async def test_a_request_in_flight_fails_at_once_when_the_link_drops() -> None:
+    # a 3 s reply time: the LinkDown comes from the drop, not from the wait running out
+    sim = SlcAsciiSimulator(ControllerType.SLC150, ladder=False)
+    server = await serve_tcp(sim, "127.0.0.1", 0, turnaround=2.0)
+    port = server.sockets[0].getsockname()[1]
+    driver = SlcAsciiDriver(f"socket://127.0.0.1:{port}", timeout=3.0, reconnect_min=0.05)
+    try:
+        async with asyncio.timeout(10):
+            await driver.start()
+            request = asyncio.create_task(driver.read(0x40, 2))
+            await asyncio.sleep(0.05)
+            await close_tcp(server)
+            done, _ = await asyncio.wait([request], timeout=1.0)
+            assert done, "the request still waits after the link dropped"
+            with pytest.raises(LinkDown):
+                await request
+    finally:
+        await driver.close()
+
+
+async def test_max_resyncs_bounds_the_id_00_resyncs_of_a_read() -> None:
+    # no resync allowed: a read whose reply and ;Z answer are lost fails after its one command frame
+    url = "sim://slc150?ladder=0"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.01, retries=1, max_resyncs=0)
+    async with asyncio.timeout(5), driver:
+        await driver.read(0x40, 2)
+        frames = sim.counters.commands
+        sim.faults.drop = 1
+        with pytest.raises(LinkTimeout):
+            await driver.read(0x40, 2)
+    assert sim.counters.commands == frames + 1
+    assert sim.counters.retransmits == 1
+
+
+async def test_the_characters_time_on_the_line_is_added_to_the_reply_time() -> None:
+    # docs/reference/config.md, timeout: "the characters' time on the line at baudrate is added".
+    # 600 baud 7E1: 10 bits, 16.7 ms a character.  A read (#05...: 18 characters) answered 0.4 s
+    # late with 16 characters ends 0.97 s after it began: within 0.1 s + the characters of the
+    # command and of the longest reply (57 characters, 0.95 s), no timeout.
+    url = "sim://slc150?ladder=0&paced=1"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=0.1, settings=SerialSettings(600, 7, "E", 1))
+    async with asyncio.timeout(10), driver:
+        assert await driver.read(0x40, 2) == (100).to_bytes(2, "big")
+        sim.faults.delay = 0.4
+        assert await driver.read(0x40, 2) == (100).to_bytes(2, "big")
+        assert driver.counters.timeouts == 0
+        assert driver.counters.retries == 0
+
+
+async def test_the_wait_follows_the_reply_times_seen_on_a_paced_line() -> None:
+    # The core's rule (gateway/protocols/slc_ascii/sender.py): after 8 replies the wait for a
+    # command of the normal reply time is 2 x the slowest reply seen (at least 0.05 s), at most
+    # the configured one.  At 9600 baud a read is answered within ~40 ms: a reply 0.5 s late is
+    # then waited out and asked for again, although the configured 1 s would have covered it.
+    url = "sim://slc150?ladder=0&paced=1"
+    sim = simulator(url)
+    driver = SlcAsciiDriver(url, timeout=1.0, retries=3)
+    async with asyncio.timeout(20), driver:
+        for _ in range(10):
+            await driver.read(0x40, 2)
+        assert driver.counters.timeouts == 0
+        sim.faults.delay = 0.5
+        try:
+            await driver.read(0x40, 2)
+        except GatewayError:
+            pass
+        assert driver.counters.timeouts >= 1
