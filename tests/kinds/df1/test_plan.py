@@ -28,6 +28,7 @@ from gateway.kinds.df1.plan import (
     block_cost,
     optimal_blocks,
     plan_df1,
+    point_labels_df1,
 )
 from gateway.modbus.mapping import Plan, Scan, Table
 from gateway.protocols.df1.address import FileType, SlcAddress, parse_address
@@ -359,3 +360,75 @@ def test_links_with_the_same_map_share_one_plan() -> None:
     assert shared_plan_df1(items, 236) is shared_plan_df1(same, 236)
     assert shared_plan_df1(items, 236) is not shared_plan_df1(other, 236)
     assert shared_plan_df1(items, 236) is not shared_plan_df1(items, 100)
+
+
+# --------------------------------------------------------------------------------------------
+# What check-config and the tag lists show (docs/guide/df1-full-duplex.md, "Read plan")
+
+
+def test_block_labels_are_the_check_config_lines_of_the_guide() -> None:
+    # the guide's example map is DEMO_MAP; its read plan as check-config prints it
+    plan = plan_df1(DEMO_MAP, 236)
+    assert {(block.scan, block.label) for block in plan.blocks} == {
+        (Scan.FAST, "B3:0 (4 words)"),
+        (Scan.FAST, "T4:0 (30 words)"),
+        (Scan.FAST, "N7:0 (100 words)"),
+        (Scan.FAST, "F8:0 (20 words)"),
+        (Scan.SLOW, "I:1.0 (8 words)"),
+    }
+    # a read from the middle of a file is named by its first element, a read of a slot by slot.word
+    far = plan_df1([MapItem("holding", 0, "N7:0", 1), MapItem("holding", 1, "N7:100", 2)], 236)
+    assert sorted(block.label for block in far.blocks) == ["N7:0 (1 words)", "N7:100 (2 words)"]
+    io = plan_df1([MapItem("input", 0, "I:2.3", 2)], 236)
+    assert [block.label for block in io.blocks] == ["I:2.3 (2 words)"]
+
+
+def test_slot_0_is_an_io_slot_like_any_other() -> None:
+    # slot 0 holds the processor's own (fixed controller) I/O: I:0.1 is word 1 of slot 0
+    plan = plan_df1([MapItem("input", 0, "I:0.1", 2)], 236)
+    assert all_reads(plan) == [Df1Read(INPUT, 1, 0, 1, 4)]
+    assert [block.label for block in plan.blocks] == ["I:0.1 (2 words)"]
+
+
+def test_a_gap_that_costs_as_much_as_another_read_is_not_merged() -> None:
+    # The guide: neighbours merge "when reading a gap costs less than another transaction".  A gap of
+    # READ_OVERHEAD_BYTES / 2 words costs exactly one more transaction: two reads.
+    even = READ_OVERHEAD_BYTES // 2
+    assert optimal_blocks([(0, 1), (1 + even, 1)], 1, 118) == [(0, 1), (1 + even, 1)]
+
+
+def test_the_plan_uses_the_transaction_overhead_it_is_given() -> None:
+    items = [MapItem("holding", 0, "N7:0", 1), MapItem("holding", 1, "N7:2", 1)]
+    # the default overhead: reading the one-word gap is cheaper than a second read
+    assert all_reads(plan_df1(items, 236)) == [Df1Read(INTEGER, 7, 0, 0, 6)]
+    # no overhead per read: the gap costs 2 bytes, a second read nothing
+    assert all_reads(plan_df1(items, 236, overhead=0)) == [Df1Read(INTEGER, 7, 0, 0, 2), Df1Read(INTEGER, 7, 2, 0, 2)]
+
+
+def test_point_labels_name_each_point_by_its_slc_500_address() -> None:
+    items = [
+        MapItem("holding", 0, "N7:10", 2),
+        MapItem("holding", 10, "F8:2", 1, "float32"),
+        MapItem("coil", 0, "B3:0/14", 4, "bool"),
+        MapItem("discrete", 0, "T4:0/DN", 2, "bool"),
+    ]
+    labels = point_labels_df1(items)
+    assert {key: (label.address, label.type) for key, label in labels.items()} == {
+        (Table.HOLDING, 0): ("N7:10", "int16"),
+        (Table.HOLDING, 1): ("N7:11", "int16"),
+        (Table.HOLDING, 10): ("F8:2", "float32"),
+        (Table.HOLDING, 11): ("F8:2", "float32"),
+        # bits of a word file carry into the next word: B3:0/15, then B3:1/0 (the reference's B3/16)
+        (Table.COIL, 0): ("B3:0/14", "bool"),
+        (Table.COIL, 1): ("B3:0/15", "bool"),
+        (Table.COIL, 2): ("B3:1/0", "bool"),
+        (Table.COIL, 3): ("B3:1/1", "bool"),
+        (Table.DISCRETE, 0): ("T4:0/DN", "bool"),
+        (Table.DISCRETE, 1): ("T4:1/DN", "bool"),
+    }
+    # each point's description is the map entry it comes from
+    n7, f8, b3 = labels[Table.HOLDING, 0], labels[Table.HOLDING, 10], labels[Table.COIL, 0]
+    assert labels[Table.HOLDING, 1].description == n7.description
+    assert "N7:10" in n7.description and "int16" in n7.description and "fast" in n7.description
+    assert "F8:2" in f8.description and "float32" in f8.description
+    assert "B3:0/14" in b3.description and "bool" in b3.description
