@@ -543,6 +543,8 @@ def test_defaults_are_the_documented_df1_line() -> None:
     assert (driver.settings.baudrate, driver.settings.bytesize, driver.settings.parity,
             driver.settings.stopbits) == (19200, 8, "N", 1)
     assert driver.last_sts == 0  # no refusal yet: STS 0 is "success"
+    # nothing on the line yet, nothing to report (status-page-columns.md: DF1 full duplex counts all four)
+    assert driver.line_quality() == LineQuality(check_errors=0, timeouts=0, naks=0, retransmits=0)
 
 
 async def test_commands_carry_station_source_and_the_first_tns_then_new_ones_after_a_reconnect() -> None:
@@ -721,5 +723,6 @@ async def test_a_probe_without_answer_says_it_was_the_diagnostic_status() -> Non
     async with controller("sim", checksum="bcc") as ctl, driver_for(
         ctl, checksum=Checksum.CRC, timeout=0.05, retries=0
     ) as driver:
-        with pytest.raises(LinkTimeout, match="diagnostic status"):
+        with pytest.raises(LinkTimeout) as caught:
             await driver.probe()
+        assert ": diagnostic status: " in str(caught.value)  # "link <name>: <command>: <reason>"
