@@ -702,9 +702,12 @@ async def test_a_long_frame_on_a_slow_line_is_not_taken_for_a_lost_ack() -> None
 
 async def test_a_write_goes_ahead_of_queued_polls() -> None:
     """Writes jump ahead of polls (docs/guide: a write is not held up by the poll cycle)."""
-    async with variant_controller({}, delay=0.05) as ctl, variant_driver(ctl) as driver:
-        first = asyncio.create_task(driver.execute(read(N, 7, 5)))  # on the line
-        await asyncio.sleep(0.01)
+    async with variant_controller({}, delay=0.3) as ctl, variant_driver(ctl) as driver:
+        first = asyncio.create_task(driver.execute(read(N, 7, 5)))  # on the line, its reply 0.3 s away
+        for _ in range(100):
+            if ctl.sim.counters.frames_received:
+                break
+            await asyncio.sleep(0.001)
         polls = [asyncio.create_task(driver.execute(read(N, 7, 5))) for _ in range(2)]
         await asyncio.sleep(0)
         await driver.execute(write(N, 7, 5, (777).to_bytes(2, "little")))
