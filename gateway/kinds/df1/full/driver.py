@@ -70,7 +70,7 @@ class Df1Driver(LineDriver):
         source: int = 0,
         checksum: Checksum = DEFAULT_CHECKSUM,
         family: ProcessorFamily = ProcessorFamily.SLC5_04,
-        timeout: float = 1.0,
+        timeout: float = DF1_DEFAULTS.timeout,
         ack_timeout: float | None = None,
         retries: int = DEFAULT_RETRIES,
         first_tns: int | None = None,

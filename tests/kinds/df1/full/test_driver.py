@@ -19,7 +19,7 @@ import struct
 import time
 import uuid
 from collections import Counter
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -30,21 +30,25 @@ import pytest
 from gateway.errors import LinkDown, LinkTimeout
 from gateway.kinds.df1.full.driver import Df1Driver, WriteOutcomeUnknown
 from gateway.kinds.df1.sim.slc500 import Slc500Simulator
+from gateway.link_health import LineQuality
 from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.pccc import (
     LogicalBinaryAddress,
     PcccError,
     PcccReply,
+    ProcessorFamily,
     ProtectedTypedLogicalMaskedWrite,
     ProtectedTypedLogicalRead,
     ProtectedTypedLogicalWrite,
+    ReadFileInfo,
     Request,
     WordRangeRead,
 )
 from gateway.sim import create_simulator, get_simulator, reset_simulators
 from gateway.sim.serve import SimStream, close_tcp, serve_tcp
 from gateway.sim.variants import variant_matrix
+from gateway.streams import SerialSettings
 
 HOST = "127.0.0.1"
 N, F, B = FileType.INTEGER, FileType.FLOAT, FileType.BIT
@@ -472,3 +476,256 @@ async def test_a_write_acked_but_never_applied_is_outcome_unknown(variants: dict
         assert ctl.sim.applied_writes == [] and ctl.sim.word("N7", 9) == 9
         assert ctl.sim.counters.lost_in == 1
         assert driver.transaction_counters.read_backs >= 1 and driver.transaction_counters.verified == 0
+
+
+# --------------------------------------------------------------------------------------------
+# The driver's own bookkeeping: defaults, TNS, verdicts counted, line quality, priorities, probe
+
+
+class RecordingStream(SimStream):
+    """A ``SimStream`` that keeps every byte the driver wrote, to read the frames on the wire."""
+
+    def __init__(self, device: Slc500Simulator, wire: list[bytes]) -> None:
+        super().__init__(device)
+        self._wire_log = wire
+
+    def write(self, data: bytes) -> None:
+        self._wire_log.append(data)
+        super().write(data)
+
+    def start_push(self, receive: Callable[[bytes], None], lost: Callable[[str], None]) -> bool:
+        self.lost = lost
+        return super().start_push(receive, lost)
+
+
+def command_headers(wire: list[bytes]) -> list[tuple[int, int, int, int]]:
+    """(DST, SRC, CMD, TNS) of every command frame the driver sent (DLE STX, DLE doubling undone)."""
+    data = b"".join(wire)
+    headers = []
+    start = data.find(b"\x10\x02")
+    while start >= 0:
+        end = data.find(b"\x10\x03", start)
+        body = data[start + 2 : end].replace(b"\x10\x10", b"\x10")
+        headers.append((body[0], body[1], body[2], int.from_bytes(body[4:6], "little")))
+        start = data.find(b"\x10\x02", end)
+    return headers
+
+
+@asynccontextmanager
+async def recorded_driver(ctl: Controller, **options: Any) -> AsyncIterator[tuple[Df1Driver, list[bytes],
+                                                                                  list[RecordingStream]]]:
+    """A driver on in-process streams to ``ctl.sim`` (a new stream per connect), its bytes recorded."""
+    wire: list[bytes] = []
+    streams: list[RecordingStream] = []
+
+    async def opener(url: str, settings: Any, **_: Any) -> RecordingStream:
+        streams.append(RecordingStream(ctl.sim, wire))
+        return streams[-1]
+
+    async with driver_for(ctl, opener=opener, **options) as driver:
+        yield driver, wire, streams
+
+
+async def reconnect(driver: Df1Driver, streams: list[RecordingStream]) -> None:
+    """The stream breaks; wait until the driver has opened a new one."""
+    count = len(streams)
+    streams[-1].lost("cable pulled")
+    for _ in range(500):
+        if len(streams) > count and driver.connected:
+            return
+        await asyncio.sleep(0.01)
+    raise AssertionError("the driver did not reconnect within 5 s")
+
+
+def test_defaults_are_the_documented_df1_line() -> None:
+    # docs/guide/df1-full-duplex.md: "19200 8N1 by default"
+    driver = Df1Driver("sim://slc504")
+    assert (driver.settings.baudrate, driver.settings.bytesize, driver.settings.parity,
+            driver.settings.stopbits) == (19200, 8, "N", 1)
+    assert driver.last_sts == 0  # no refusal yet: STS 0 is "success"
+    # nothing on the line yet, nothing to report (status-page-columns.md: DF1 full duplex counts all four)
+    assert driver.line_quality() == LineQuality(check_errors=0, timeouts=0, naks=0, retransmits=0)
+
+
+async def test_commands_carry_station_source_and_the_first_tns_then_new_ones_after_a_reconnect() -> None:
+    async with variant_controller({}) as ctl, recorded_driver(ctl, first_tns=0x1234, reconnect_min=0.01) as (
+        driver, wire, streams
+    ):
+        await driver.execute(read(N, 7, 0))
+        await driver.execute(read(N, 7, 1))
+        # DST = the controller's station (1), SRC = our node (default 0: docs/reference/cli.md),
+        # CMD 0F (protected typed logical read), TNS from the given first one
+        assert command_headers(wire)[0] == (1, 0, 0x0F, 0x1234)
+        await reconnect(driver, streams)
+        # After a reconnect the numbering goes on: the controller's duplicate detection (same SRC,
+        # CMD and TNS as the last message) must not discard the next command.
+        assert words(await driver.execute(read(N, 7, 2))) == [2]
+        tns = [header[3] for header in command_headers(wire)]
+        assert len(tns) == 3 and len(set(tns)) == 3, tns
+        assert ctl.sim.counters.duplicates_received == 0
+
+
+async def test_each_session_starts_at_its_own_tns() -> None:
+    """A new session must not repeat the last one's SRC/CMD/TNS (duplicate detection would drop it)."""
+    first = set()
+    for _ in range(3):
+        async with variant_controller({}) as ctl, recorded_driver(ctl) as (driver, wire, _streams):
+            await driver.execute(read(N, 7, 0))
+            first.add(command_headers(wire)[0][3])
+    assert len(first) > 1, first
+
+
+async def test_a_refusal_counts_each_time_and_carries_the_commands_own_description() -> None:
+    async with variant_controller({}) as ctl, variant_driver(ctl) as driver:
+        for count in (1, 2):
+            with pytest.raises(PcccError) as caught:
+                await driver.execute(ReadFileInfo(11))
+            # notes §7.5: read file info of a missing file is STS 50 "Bad address; file doesn't exist"
+            assert caught.value.sts == 0x50
+            assert caught.value.description == "Bad address; file doesn't exist"
+            assert driver.counters.refusals == count
+        assert driver.last_sts == 0x50
+        # without a name, the error names the command by its type
+        with pytest.raises(PcccError, match="ReadFileInfo"):
+            await driver.execute(ReadFileInfo(11))
+
+
+async def test_no_answer_is_one_timeout_per_request_with_a_message_naming_link_and_command() -> None:
+    async with controller("sim", checksum="bcc") as ctl, driver_for(
+        ctl, checksum=Checksum.CRC, timeout=0.05, retries=0, name="line-9"
+    ) as driver:
+        for count in (1, 2):
+            with pytest.raises(LinkTimeout) as caught:
+                await driver.execute(read(N, 7, 0), "poll N7:0")
+            assert "line-9" in str(caught.value) and "poll N7:0" in str(caught.value)
+            # status-page-columns.md: timeouts = requests with no valid answer after their retries
+            assert driver.counters.timeouts == count and driver.line_quality().timeouts == count
+        assert "poll N7:0" in driver.last_error
+        assert driver.counters.errors == 2 and driver.counters.transactions == 0
+
+
+async def test_a_write_of_unknown_outcome_is_one_timeout_and_a_failed_transaction() -> None:
+    async with variant_controller({}, lose_in=1, faults_on="writes") as ctl, variant_driver(
+        ctl, timeout=0.05, ack_timeout=0.05, name="line-8"
+    ) as driver:
+        await driver.execute(read(N, 7, 9))
+        for count in (1, 2):
+            with pytest.raises(WriteOutcomeUnknown) as caught:
+                await driver.execute(write(N, 7, 9, b"\x39\x30"), "write N7:9")
+            assert "line-8" in str(caught.value) and "write N7:9" in str(caught.value)
+            assert driver.counters.timeouts == count
+            assert driver.counters.errors == count and driver.counters.transactions == 1
+            assert "write N7:9" in driver.last_error
+
+
+async def test_line_quality_counts_naks_retransmissions_and_bad_frames_across_reconnects() -> None:
+    # every frame damaged on the way in is answered DLE NAK (bad_frame=nak, the default) and sent
+    # again; every damaged frame out is a bad CRC for us
+    # (retries enough that no frame is given up after its last NAK: each NAK is then one frame again)
+    faults = {"corrupt_in": 3, "corrupt": 3}
+    async with variant_controller({}, **faults) as ctl, recorded_driver(
+        ctl, timeout=0.1, ack_timeout=0.02, retries=8, reconnect_min=0.01
+    ) as (driver, _wire, streams):
+        sim = ctl.sim
+
+        async def some_reads() -> None:
+            for element in range(12):
+                assert words(await driver.execute(read(N, 7, element))) == [element]
+
+        await some_reads()
+        first = driver.line_quality()
+        assert sim.counters.corrupted_in > 0 and sim.counters.corrupted > 0
+        # each DLE NAK the controller sent is one for us, and our frame went again after it
+        assert first.naks == first.retransmits == sim.link.counters.naks_sent > 0
+        assert first.check_errors == sim.counters.corrupted == driver.counters.crc_errors
+        assert first.timeouts == 0
+        # counted since the link was created: a reconnect loses none of them
+        for _ in range(2):
+            await reconnect(driver, streams)
+            await some_reads()
+        after = driver.line_quality()
+        assert after.naks == after.retransmits == sim.link.counters.naks_sent > first.naks
+        assert after.check_errors == sim.counters.corrupted > first.check_errors
+
+
+async def test_enqs_sent_for_withheld_acks_are_counted_across_reconnects() -> None:
+    # (the replies come late, so the ACK wait ends before a reply could stand for the ACK)
+    async with variant_controller({}, withhold_ack=2, delay=0.06) as ctl, recorded_driver(
+        ctl, timeout=0.2, ack_timeout=0.02, retries=3, reconnect_min=0.01
+    ) as (driver, _wire, streams):
+        sim = ctl.sim
+        for round_ in range(2):
+            if round_:
+                await reconnect(driver, streams)
+            for element in range(8):
+                assert words(await driver.execute(read(N, 7, element))) == [element]
+            # a withheld DLE ACK: we ask with DLE ENQ (answered with the ACK), once per frame
+            assert driver.counters.retries_by_kind["enq"] == sim.counters.withheld_acks > 0
+
+
+@pytest.mark.parametrize("bad_frame", ["nak", "ignore"])
+async def test_with_no_retries_a_frame_goes_once(bad_frame: str) -> None:
+    """retries = 0 (docs/reference/config.md: retries before a request fails): a frame the controller
+    cannot read (wrong checksum) is not sent again after its DLE NAK, nor asked about with DLE ENQ."""
+    async with variant_controller({"bad_frame": bad_frame}, checksum="bcc") as ctl, recorded_driver(
+        ctl, checksum=Checksum.CRC, timeout=0.05, ack_timeout=0.02, retries=0
+    ) as (driver, wire, _streams):
+        with pytest.raises(LinkTimeout):
+            await driver.execute(read(N, 7, 0))
+        sent = b"".join(wire)
+        assert sent.count(b"\x10\x02") == 1 and b"\x10\x05" not in sent
+        assert driver.line_quality().retransmits == 0 and driver.counters.retries_by_kind["enq"] == 0
+
+
+async def test_a_clean_line_has_nothing_to_report() -> None:
+    async with variant_controller({}) as ctl, variant_driver(ctl) as driver:
+        await driver.execute(read(N, 7, 0))
+        assert driver.line_quality() == LineQuality(check_errors=0, timeouts=0, naks=0, retransmits=0)
+        assert driver.counters.retries_by_kind["enq"] == 0
+
+
+async def test_a_long_frame_on_a_slow_line_is_not_taken_for_a_lost_ack() -> None:
+    """The DLE ACK can only come after the whole frame went out: at 9600 baud a write of 228 bytes
+    (the SLC 5/04's largest) takes about 0.25 s on the wire, so a clean line draws no DLE ENQ."""
+    settings = SerialSettings(baudrate=9600, bytesize=8, parity="N", stopbits=1)
+    async with variant_controller({}) as ctl:
+        async def paced(url: str, line: Any, **_: Any) -> SimStream:
+            return SimStream(ctl.sim, line)
+
+        async with driver_for(ctl, opener=paced, settings=settings, timeout=0.5, ack_timeout=0.02) as driver:
+            for element in range(10):  # the link learns how fast ACKs come on this line
+                assert words(await driver.execute(read(N, 7, element))) == [element]
+            await driver.execute(write(N, 7, 0, bytes(range(228))))
+            assert ctl.sim.word("N7", 113) == 0xE3E2
+            assert driver.counters.retries_by_kind["enq"] == 0
+
+
+async def test_a_write_goes_ahead_of_queued_polls() -> None:
+    """Writes jump ahead of polls (docs/guide: a write is not held up by the poll cycle)."""
+    async with variant_controller({}, delay=0.3) as ctl, variant_driver(ctl) as driver:
+        first = asyncio.create_task(driver.execute(read(N, 7, 5)))  # on the line, its reply 0.3 s away
+        for _ in range(100):
+            if ctl.sim.counters.frames_received:
+                break
+            await asyncio.sleep(0.001)
+        polls = [asyncio.create_task(driver.execute(read(N, 7, 5))) for _ in range(2)]
+        await asyncio.sleep(0)
+        await driver.execute(write(N, 7, 5, (777).to_bytes(2, "little")))
+        assert words(await first) == [5]
+        assert [words(await poll) for poll in polls] == [[777], [777]]
+
+
+async def test_probe_identifies_the_slc_5_04() -> None:
+    async with variant_controller({}) as ctl, variant_driver(ctl) as driver:
+        info = await driver.probe()
+        # notes §6.0: processor type 5B hex = SLC 5/04
+        assert info.processor_type == 0x5B and info.family is ProcessorFamily.SLC5_04
+
+
+async def test_a_probe_without_answer_says_it_was_the_diagnostic_status() -> None:
+    async with controller("sim", checksum="bcc") as ctl, driver_for(
+        ctl, checksum=Checksum.CRC, timeout=0.05, retries=0
+    ) as driver:
+        with pytest.raises(LinkTimeout) as caught:
+            await driver.probe()
+        assert ": diagnostic status: " in str(caught.value)  # "link <name>: <command>: <reason>"
