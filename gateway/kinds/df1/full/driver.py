@@ -88,8 +88,7 @@ class Df1Driver(LineDriver):
         # A random first TNS: a new session (CLI run, gateway restart) must not repeat the last
         # session's SRC/CMD/TNS, or the controller's duplicate detection would discard it.
         # (``first_tns`` fixes it for replays of recorded traffic.)
-        self._first_tns = random.randrange(1, 0x10000) if first_tns is None else first_tns
-        self._core = self._new_core(self._first_tns)
+        self._core = self._new_core(random.randrange(1, 0x10000) if first_tns is None else first_tns)
         self._link_base = (0, 0, 0)  # enq, nak, bad frames of links before this one
         self._retransmissions_before = 0  # frames sent again after a DLE NAK, on links before this one
         self._waiting: dict[int, asyncio.Future[TransactionEvent]] = {}
@@ -124,8 +123,9 @@ class Df1Driver(LineDriver):
         enq, nak, bad = self._link_base
         self._link_base = (enq + old.enqs_sent, nak + old.naks_received, bad + old.bad_frames)
         self._retransmissions_before += old.retransmissions
-        # a reconnect goes on from the last TNS (a new core: the line state is gone)
-        self._core = self._new_core(self._core.allocate_tns() if self._core.counters.started else self._first_tns)
+        # a reconnect goes on from the last TNS (a new core: the line state is gone); a core that sent
+        # nothing hands on the TNS it was given, so reconnects in a row never go back to an old one
+        self._core = self._new_core(self._core.allocate_tns())
         for waiter in self._waiting.values():
             waiter.cancel()
         self._waiting.clear()

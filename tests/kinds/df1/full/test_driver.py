@@ -565,6 +565,21 @@ async def test_commands_carry_station_source_and_the_first_tns_then_new_ones_aft
         assert ctl.sim.counters.duplicates_received == 0
 
 
+async def test_reconnects_in_a_row_never_go_back_to_a_tns_already_sent() -> None:
+    """Two reconnects with no command between them: the next command's TNS is still a new one (the
+    controller's duplicate detection drops a command that repeats the last message's SRC/CMD/TNS)."""
+    async with variant_controller({}) as ctl, recorded_driver(ctl, first_tns=0x1234, reconnect_min=0.01) as (
+        driver, wire, streams
+    ):
+        await driver.execute(read(N, 7, 0))
+        await driver.execute(read(N, 7, 1))
+        await reconnect(driver, streams)
+        await reconnect(driver, streams)
+        assert words(await driver.execute(read(N, 7, 2))) == [2]
+        tns = [header[3] for header in command_headers(wire)]
+        assert tns[:2] == [0x1234, 0x1235] and tns[2] not in tns[:2], [hex(t) for t in tns]
+
+
 async def test_each_session_starts_at_its_own_tns() -> None:
     """A new session must not repeat the last one's SRC/CMD/TNS (duplicate detection would drop it)."""
     first = set()
