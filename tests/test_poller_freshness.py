@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import re
 from collections.abc import AsyncIterator, Callable
 
 import pytest
@@ -134,4 +135,10 @@ async def test_a_line_that_cannot_keep_up_says_so_once_with_what_to_change(caplo
     assert len(behind) == 1, lines
     assert behind[0].startswith("link press-1 refreshes its 120 blocks every ")
     assert behind[0].endswith(" s; stale_after is 0.2 s: raise stale_after, or map fewer addresses")
-    assert unit.poller is not None and unit.poller.behind_text == behind[0]
+    assert unit.poller is not None
+    # the status page shows the same warning, its figure kept current (the log says it once): on a
+    # loaded machine the refresh period measured since the log line may differ by a tenth
+    shown = re.fullmatch(r"link press-1 refreshes its 120 blocks every (\d+\.\d) s; stale_after is 0\.2 s: "
+                         r"raise stale_after, or map fewer addresses", unit.poller.behind_text or "")
+    assert shown is not None, unit.poller.behind_text
+    assert float(shown.group(1)) > 0.2  # longer than stale_after: that is what it warns of
