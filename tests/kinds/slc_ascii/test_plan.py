@@ -25,6 +25,8 @@ from gateway.kinds.slc_ascii.unit import SlcAsciiUnit
 from gateway.modbus import mapping
 from gateway.modbus.mapping import Scan, Table
 
+from .units import unit_with
+
 
 def _word_at(unit: SlcAsciiUnit, byte_address: int, raw: int) -> None:
     """The controller's word at ``byte_address`` is ``raw`` (MSB first), read now."""
@@ -126,19 +128,9 @@ def test_a_block_that_is_no_byte_read_is_refused() -> None:
 # address table of the manual for the bits)
 
 
-def _unit_with(image: dict[int, int]) -> SlcAsciiUnit:
-    """A unit whose every block was just read; the bytes of ``image`` (address -> value), others 0."""
-    unit = SlcAsciiUnit(driver=SlcAsciiDriver("sim://slc150?ladder=0"), unit_id=1, name="slc", stale_after=60.0)
-    now = asyncio.get_running_loop().time()
-    for index, block in enumerate(unit.plan.blocks):
-        start, count = byte_read(block)
-        unit.cache.store(index, bytes(image.get(start + k, 0) for k in range(count)), now)
-    return unit
-
-
 async def test_input_registers_serve_step_counters_error_bits_and_force_tables() -> None:
-    unit = _unit_with({0xBC: 7, 0xDB: 200, 0x84: 0x12, 0x85: 0x34, 0x86: 0xAB, 0x87: 0xCD, 0x94: 1, 0x95: 2,
-                       0x102: 0x56, 0x103: 0x78, 0x110: 3, 0x111: 4})
+    unit = unit_with({0xBC: 7, 0xDB: 200, 0x84: 0x12, 0x85: 0x34, 0x86: 0xAB, 0x87: 0xCD, 0x94: 1, 0x95: 2,
+                      0x102: 0x56, 0x103: 0x78, 0x110: 3, 0x111: 4})
     assert unit.read_registers(Table.INPUT, 0, 1) == [7]  # 901.STEP at BCH
     assert unit.read_registers(Table.INPUT, 31, 1) == [200]  # 932.STEP at DBH
     assert unit.read_registers(Table.INPUT, 66, 9) == [0x1234, 0xABCD, 0, 0, 0, 0, 0, 0, 0x0102]
@@ -146,7 +138,7 @@ async def test_input_registers_serve_step_counters_error_bits_and_force_tables()
 
 
 async def test_bits_are_served_at_their_user_addresses() -> None:
-    unit = _unit_with({0x96: 0x80, 0x9D: 0x01, 0xA4: 0x04, 0xA6: 0x01, 0xB4: 0x80, 0xBA: 0x80})
+    unit = unit_with({0x96: 0x80, 0x9D: 0x01, 0xA4: 0x04, 0xA6: 0x01, 0xB4: 0x80, 0xBA: 0x80})
     assert unit.read_bits(Table.DISCRETE, 18, 1) == [True]  # output 18: 96H bit 7
     assert unit.read_bits(Table.DISCRETE, 11, 2) == [False, False]
     assert unit.read_bits(Table.DISCRETE, 1, 2) == [True, False]  # input 1: 9DH bit 0

@@ -8,17 +8,16 @@ reference (docs/reference/modbus-map.md: "a protected preset answers 0x04").
 
 from __future__ import annotations
 
-import asyncio
 from typing import Any
 
 import pytest
 
 from gateway.errors import ModbusExceptionReply
 from gateway.kinds.slc_ascii.config import SlcAsciiLinkConfig
-from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
-from gateway.kinds.slc_ascii.plan import byte_read
 from gateway.kinds.slc_ascii.unit import SlcAsciiUnit, build_slc_ascii
 from gateway.streams import SerialSettings
+
+from .units import unit_with
 
 
 def link(name: str, unit: int, **keys: Any) -> SlcAsciiLinkConfig:
@@ -55,17 +54,10 @@ def test_no_links_build_nothing() -> None:
     assert list(built.units) == [] and list(built.runners) == []
 
 
-def _unit_with(image: dict[int, int]) -> SlcAsciiUnit:
-    unit = SlcAsciiUnit(driver=SlcAsciiDriver("sim://slc150?ladder=0"), unit_id=1, name="slc", stale_after=60.0)
-    now = asyncio.get_running_loop().time()
-    for index, block in enumerate(unit.plan.blocks):
-        start, count = byte_read(block)
-        unit.cache.store(index, bytes(image.get(start + k, 0) for k in range(count)), now)
-    return unit
 
 
 async def test_a_protected_preset_is_refused_with_0x04_and_nothing_sent() -> None:
-    unit = _unit_with({0x40: 0x80, 0x41: 100})  # 901.PRE = 100, protected
+    unit = unit_with({0x40: 0x80, 0x41: 100})  # 901.PRE = 100, protected
     with pytest.raises(ModbusExceptionReply) as refused:
         unit.check_register_write(32, [50])
     assert refused.value.code == 0x04
@@ -75,6 +67,6 @@ async def test_a_protected_preset_is_refused_with_0x04_and_nothing_sent() -> Non
 
 async def test_an_unprotected_word_is_accepted_whatever_its_other_bits() -> None:
     # 902.PRE = 7FFFH: every bit but the protect bit set; 901.ACC = 0100H
-    unit = _unit_with({0x42: 0x7F, 0x43: 0xFF, 0x00: 0x01})
+    unit = unit_with({0x42: 0x7F, 0x43: 0xFF, 0x00: 0x01})
     assert [(address, value) for address, _, value in unit.check_register_write(33, [1234])] == [(33, 1234)]
     assert [(address, value) for address, _, value in unit.check_register_write(0, [9999])] == [(0, 9999)]
