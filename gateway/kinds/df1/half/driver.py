@@ -95,7 +95,7 @@ class StationTotals(StationCounters):
     slave_messages: int = 0  #: messages the station initiated (acknowledged and answered)
     slave_writes: int = 0  #: ... of them writes stored in the station's register table
     slave_refused: int = 0  #: ... of them answered with an error (STS 10, or the target's refusal outside the table)
-    slave_replies_lost: int = 0  #: replies to them the station never acknowledged
+    slave_replies_lost: int = 0  #: replies to them the station never acknowledged (or pending when the port was lost)
 
     def add(self, core: StationCounters) -> StationTotals:
         total = StationTotals(**{f.name: getattr(self, f.name) for f in fields(self)})
@@ -408,6 +408,10 @@ class Df1HalfDuplexLine(LineDriver):
             if not waiter.done():
                 waiter.set_exception(exc)
         self._waiting.clear()
+        # replies to stations' messages still waiting for their DLE ACK go with the line's core
+        for station in self._replies.values():
+            self.stations[station]._base.slave_replies_lost += 1
+        self._replies.clear()
 
     def data_received(self, data: bytes) -> None:
         if self.core is not None:
@@ -444,8 +448,8 @@ class Df1HalfDuplexLine(LineDriver):
             self.stations[event.station].judge(True)
         elif isinstance(event, master_events.SlaveInitiated):
             self._answer(event)
-        elif isinstance(event, master_events.MessageDelivered):
-            self._replies.pop(event.request_id, None)
+        elif isinstance(event, master_events.MessageDelivered):  # only replies are sent without a reply
+            del self._replies[event.request_id]
         elif isinstance(event, master_events.StrayReply):
             self.stray_replies += 1
             self.stations[event.station]._base.stray_replies += 1
