@@ -29,7 +29,7 @@ from gateway.link_health import LineQuality
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii import memory_map as mm
 from gateway.protocols.slc_ascii.commands import Command, ControllerType, FrnInfo, Mode, TimeoutClass
-from gateway.protocols.slc_ascii.framing import Ack, DataReply
+from gateway.protocols.slc_ascii.framing import Ack, DataReply, frame_command
 from gateway.protocols.slc_ascii.transaction import MAX_RESYNCS, SlcSession, SlcVerdict
 from gateway.protocols.slc_ascii.transfer import MAX_TRANSFER_RESTARTS, Download, Restart, Upload
 from gateway.transport import SerialSettings
@@ -95,7 +95,9 @@ class SlcAsciiDriver(LineDriver):
     def on_connect(self) -> None:
         # Upon power up the controller expects ID 00: the first transaction resynchronises.
         self.session.connected()
-        # The core's reply time also covers the characters of a command and the longest reply.
+        # The core's normal reply time (up to it the wait adapts; 1.5 x it is the late bound): the
+        # configured one plus a frame of 2 x 8 + 9 characters, more than any normal command's (at
+        # most 20), and the longest reply.
         self.session.timeout = self.timeout + (2 * 8 + 9 + _LONGEST_REPLY) * self.char_time
         self.session.late_bound = 1.5 * self.session.timeout
         # a frame's characters follow each other; a pause of 20 characters (50 ms at least, for
@@ -116,7 +118,8 @@ class SlcAsciiDriver(LineDriver):
         loop = asyncio.get_running_loop()
         session = self.session
         timeout = self.slow_timeout if command.timeout_class is TimeoutClass.SLOW else self.timeout
-        timeout += (2 * command.byte_count + 9 + _LONGEST_REPLY) * self.char_time
+        # the characters of the command's frame (its ID's value does not change its length) and of the longest reply
+        timeout += (len(frame_command(command, 0)) + _LONGEST_REPLY) * self.char_time
         self._aborted = None
         now = loop.time()
         until = now + self.write_budget if self.write_budget is not None and command.is_write else None

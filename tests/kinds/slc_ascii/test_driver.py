@@ -844,7 +844,7 @@ async def test_the_characters_time_on_the_line_is_added_to_the_reply_time() -> N
     # docs/reference/config.md, timeout: "the characters' time on the line at baudrate is added".
     # 600 baud 7E1: 10 bits, 16.7 ms a character.  A read (#05...: 18 characters) answered 0.4 s
     # late with 16 characters ends 0.97 s after it began: within 0.1 s + the characters of the
-    # command and of the longest reply (57 characters, 0.95 s), no timeout.
+    # command and of the longest reply (56 characters, 0.93 s), no timeout.
     url = "sim://slc150?ladder=0&paced=1"
     sim = simulator(url)
     driver = SlcAsciiDriver(url, timeout=0.1, settings=SerialSettings(600, 7, "E", 1))
@@ -874,3 +874,63 @@ async def test_the_wait_follows_the_reply_times_seen_on_a_paced_line() -> None:
         except GatewayError:
             pass
         assert driver.counters.timeouts >= 1
+
+
+async def test_each_commands_reply_time_adds_the_characters_of_its_frame_and_of_the_longest_reply(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # docs/reference/config.md, timeout: "the characters' time on the line at baudrate is added":
+    # those of the command as it goes on the line, and of the longest reply, an upload block
+    # ":<block><15 bytes><ID><CRC>CR" (1 + 2 + 30 + 2 + 2 + 1 = 38 characters).  600 baud 7E1: 10 bits.
+    url = "sim://slc150?ladder=0&paced=1"
+    char = 10 / 600
+    driver = SlcAsciiDriver(url, timeout=0.1, slow_timeout=2.0, settings=SerialSettings(600, 7, "E", 1))
+    async with asyncio.timeout(30), driver:
+        await driver.read(0x40, 2)  # the first command after connecting resynchronises with ID 00
+        reply_times: list[float | None] = []
+        frames: list[bytes] = []
+        start, send = driver.session.start, driver.send
+
+        def spy_start(command: cmds.Command, now: float, timeout: float | None = None, *,
+                      until: float | None = None) -> None:
+            reply_times.append(timeout)
+            start(command, now, timeout, until=until)
+
+        def spy_send(data: bytes) -> None:
+            frames.append(data)
+            send(data)
+
+        monkeypatch.setattr(driver.session, "start", spy_start)
+        monkeypatch.setattr(driver, "send", spy_send)
+        await driver.read(0x40, 2)
+        await driver.write_word(0x40, 100)
+        await driver.set_mode(Mode.RUN)  # a mode change: the slow reply time
+    assert driver.counters.retries == 0 and driver.counters.timeouts == 0  # one frame sent for each
+    assert [len(frame) for frame in frames] == [18, 18, 16]  # "#05..." twice, "#04..."
+    base = [0.1, 0.1, 2.0]
+    assert reply_times == [pytest.approx(b + (len(f) + 38) * char, abs=1e-9) for b, f in zip(base, frames, strict=True)]
+
+
+async def test_the_session_waits_by_the_lines_character_time(quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator]) -> None:
+    # the core's bounds after connecting: the normal reply time counts a frame of 25 characters
+    # (more than any normal command's 20) and the longest reply (38); the late bound is 1.5 x it
+    # (gateway/protocols/slc_ascii/sender.py); a frame is cut after a pause of 20 characters, 50 ms
+    # at least (device servers cut frames into packets)
+    fast, _ = quiet
+    assert fast.char_time == 0.0  # an unpaced simulator: no character time
+    assert (fast.session.timeout, fast.session.late_bound) == (0.05, pytest.approx(1.5 * 0.05))
+    assert fast.session.char_gap == 0.05
+    char = 10 / 600  # 600 baud 7E1
+    driver = SlcAsciiDriver("sim://slc150?ladder=0&paced=1", timeout=0.1, settings=SerialSettings(600, 7, "E", 1))
+    async with asyncio.timeout(10), driver:
+        session = driver.session
+        assert session.timeout == pytest.approx(0.1 + (25 + 38) * char)
+        assert session.late_bound == pytest.approx(1.5 * (0.1 + (25 + 38) * char))
+        assert session.char_gap == pytest.approx(20 * char)
+
+
+async def test_a_read_reads_one_byte_unless_told(quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator]) -> None:
+    driver, sim = quiet
+    sim.memory[0x40:0x42] = bytes([0x12, 0x34])
+    assert await driver.read(0x41) == bytes([0x34])
+    assert await driver.read(0x40, 2) == bytes([0x12, 0x34])
