@@ -21,6 +21,7 @@ from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.modbus.mapping import Block, Scan
 from gateway.poller import MAX_STAGGER, Poller, default_stagger
 from gateway.sim import get_simulator
+from tests.waiting import until
 
 
 def blocks(n: int) -> list[Block]:
@@ -43,14 +44,6 @@ class Script:
         if error is not None:
             raise error
         return b"\x00\x01"
-
-
-async def until(condition: Callable[[], bool], seconds: float = 5.0) -> None:
-    for _ in range(int(seconds / 0.002)):
-        if condition():
-            return
-        await asyncio.sleep(0.002)
-    raise AssertionError(f"condition not met within {seconds} s")
 
 
 async def rounds(script: Script, n: int) -> None:

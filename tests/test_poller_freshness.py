@@ -10,7 +10,7 @@ import asyncio
 import contextlib
 import logging
 import re
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 
 import pytest
 
@@ -18,6 +18,7 @@ from gateway.errors import LinkDown, ModbusExceptionReply
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.kinds.slc_ascii.unit import SlcAsciiUnit
 from gateway.modbus.mapping import Block, Table
+from tests.waiting import until
 
 TARGET_FAILED = ModbusExceptionReply.GATEWAY_TARGET_FAILED
 
@@ -38,14 +39,6 @@ class Controller:
             raise self.error
         self.reads.append(index)
         return bytes(block.size)
-
-
-async def until(condition: Callable[[], bool], seconds: float = 5.0) -> None:
-    for _ in range(int(seconds / 0.002)):
-        if condition():
-            return
-        await asyncio.sleep(0.002)
-    raise AssertionError(f"condition not met within {seconds} s")
 
 
 def make_unit(stale_after: float = 5.0, background_interval: float = 30.0) -> tuple[SlcAsciiUnit, Controller]:

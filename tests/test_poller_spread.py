@@ -11,19 +11,12 @@ from gateway.cache import BlockCache
 from gateway.errors import LinkDown
 from gateway.modbus.mapping import Block, Scan
 from gateway.poller import LineShare, Poller
+from tests.waiting import until
 
 
 def plan(fast: int, slow: int, prefix: str = "") -> list[Block]:
     blocks = [Block((prefix, "f", n), 1, Scan.FAST, f"{prefix}f{n}") for n in range(fast)]
     return blocks + [Block((prefix, "s", n), 1, Scan.SLOW, f"{prefix}s{n}") for n in range(slow)]
-
-
-async def until(condition: Callable[[], bool], seconds: float = 5.0) -> None:
-    for _ in range(int(seconds / 0.002)):
-        if condition():
-            return
-        await asyncio.sleep(0.002)
-    raise AssertionError(f"condition not met within {seconds} s")
 
 
 async def run_for(poller: Poller, seconds: float) -> None:

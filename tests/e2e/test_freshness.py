@@ -24,6 +24,7 @@ from gateway.modbus.mapping import Block, Table
 from gateway.sim import get_simulator, reset_simulators
 from gateway.unit import Unit
 from tests.e2e.modbus_support import HOST, connect, exception_code
+from tests.waiting import until
 
 TARGET_FAILED = 0x0B
 
@@ -63,14 +64,6 @@ def _forget_simulators() -> Iterator[None]:
 def block_of(unit: Unit[Any, Any], table: Table, address: int) -> int:
     points = unit.plan.registers(table) if table in (Table.HOLDING, Table.INPUT) else unit.plan.bits(table)
     return points[address].block
-
-
-async def until(condition: Callable[[], bool], seconds: float = 5.0) -> None:
-    for _ in range(int(seconds / 0.005)):
-        if condition():
-            return
-        await asyncio.sleep(0.005)
-    raise AssertionError(f"condition not met within {seconds} s")
 
 
 def mbap(tid: int, pdu: bytes) -> bytes:

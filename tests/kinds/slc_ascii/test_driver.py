@@ -26,6 +26,7 @@ from gateway.protocols.slc_ascii.framing import DataReply
 from gateway.sim import get_simulator, reset_simulators
 from gateway.sim.serve import close_tcp, serve_tcp
 from gateway.transport import SerialSettings
+from tests.waiting import until
 
 #: Word addresses a test may write: accumulators and presets 901-931 (932 is protected).
 WORD_ADDRESSES = [*range(0x00, 0x3E, 2), *range(0x40, 0x7E, 2)]
@@ -51,15 +52,6 @@ async def quiet() -> AsyncIterator[tuple[SlcAsciiDriver, SlcAsciiSimulator]]:
     driver = SlcAsciiDriver(url, timeout=0.05)
     async with driver:
         yield driver, simulator(url)
-
-
-async def wait_for(condition: Callable[[], bool], seconds: float = 3.0) -> None:
-    """Poll ``condition`` (the driver's public state) until it holds."""
-    for _ in range(int(seconds / 0.005)):
-        if condition():
-            return
-        await asyncio.sleep(0.005)
-    raise AssertionError(f"condition not met within {seconds} s")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -295,7 +287,7 @@ async def test_fault_report_is_read_and_recorded() -> None:
         assert driver.last_fault is None
         for _ in range(3):
             await driver.read(0x40, 2)
-        await wait_for(lambda: driver.last_fault is not None)
+        await until(lambda: driver.last_fault is not None, 3.0)
         assert driver.counters.faults == 1
         assert driver.last_fault is not None
         assert driver.last_fault.errors == (8,)  # 84H bit 3
@@ -434,7 +426,7 @@ async def test_link_down_fails_fast_and_the_driver_reconnects() -> None:
             assert driver.available
 
             await close_tcp(server)  # the device server goes away, and its connections with it
-            await wait_for(lambda: not driver.connected)
+            await until(lambda: not driver.connected, 3.0)
             assert not driver.available
             for _ in range(3):
                 started = loop.time()
@@ -445,7 +437,7 @@ async def test_link_down_fails_fast_and_the_driver_reconnects() -> None:
             assert not driver.connected
 
             server = await serve_tcp(sim, "127.0.0.1", port)  # back on the same port
-            await wait_for(lambda: driver.connected)
+            await until(lambda: driver.connected, 3.0)
             assert await driver.read(0x40, 2) == (1111).to_bytes(2, "big")
             await driver.write_word(0x40, 2222)
             assert driver.available
@@ -468,9 +460,9 @@ async def test_listeners_hear_the_link_go_down_and_come_back() -> None:
             await driver.start()
             await driver.read(0x40, 2)
             await close_tcp(server)
-            await wait_for(lambda: not driver.connected)
+            await until(lambda: not driver.connected, 3.0)
             server = await serve_tcp(sim, "127.0.0.1", port)
-            await wait_for(lambda: driver.connected)
+            await until(lambda: driver.connected, 3.0)
             await driver.read(0x40, 2)
             assert changes == [True, False, True]  # up at the first answer, down at the loss, up again
     finally:
@@ -799,7 +791,7 @@ async def test_a_repeated_fault_is_logged_once(caplog: pytest.LogCaptureFixture)
         async with asyncio.timeout(5), driver:
             for _ in range(8):
                 await driver.read(0x40, 2)
-            await wait_for(lambda: driver.counters.faults >= 2)
+            await until(lambda: driver.counters.faults >= 2, 3.0)
             await driver.read(0x40, 2)
     assert driver.last_fault is not None and driver.last_fault.errors == (8,)
     assert len([r for r in caplog.records if "error 8" in r.getMessage()]) == 1

@@ -24,6 +24,7 @@ from gateway.protocols.df1.half_duplex.master import StationConfig
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead
 from gateway.sim.serve import SimStream
 from gateway.transport import ByteStream
+from tests.waiting import until
 
 READ = ProtectedTypedLogicalRead(FileType.INTEGER, 7, 0, 0, 2)
 
@@ -52,14 +53,6 @@ def make_line(sim: MultidropLine, streams: list[CuttableStream], down_after: dic
         "sim://line", configs, name="line", checksum=Checksum.BCC, ack_timeout=0.02, message_retries=1, retries=0,
         opener=opener, first_tns=1, station_names={1: "s1", 2: "s2"}, down_after=down_after,
     )
-
-
-async def until(condition: Callable[[], bool]) -> None:
-    for _ in range(5000):
-        if condition():
-            return
-        await asyncio.sleep(0.001)
-    raise AssertionError("condition never met")
 
 
 def link_lines(caplog: pytest.LogCaptureFixture, name: str) -> list[str]:
@@ -112,11 +105,11 @@ async def test_a_lost_port_makes_every_station_down_at_once(caplog: pytest.LogCa
                 await handle.execute(READ, "read")
                 assert handle.available
             streams[-1].lost("cable pulled")
-            await until(lambda: not line.connected)
+            await until(lambda: not line.connected, step=0.001)
             for handle in handles:
                 assert not handle.available and handle.state_changes == 2
                 assert handle.last_error == "cable pulled"
-            await until(lambda: len(streams) == 2 and line.connected)  # the line reopens the port by itself
+            await until(lambda: len(streams) == 2 and line.connected, step=0.001)  # the line reopens the port by itself
             for handle in handles:
                 await handle.execute(READ, "read")
                 assert handle.available and handle.state_changes == 3

@@ -13,7 +13,7 @@ docs/guide/status-page-columns.md (a target's line quality) and docs/reference/c
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
@@ -39,6 +39,7 @@ from gateway.protocols.df1.pccc.target import PcccTarget
 from gateway.protocols.df1.pccc.target_table import DataTable
 from gateway.streams import SerialSettings
 from gateway.transport import open_stream
+from tests.waiting import until
 
 from .plc_line import PLC_NODE, STATION
 
@@ -123,14 +124,6 @@ async def target_link(checksum: Checksum = Checksum.CRC, **options: Any) -> Asyn
         await server.wait_closed()
 
 
-async def until(check: Callable[[], bool], what: str) -> None:
-    for _ in range(500):
-        if check():
-            return
-        await asyncio.sleep(0.01)
-    raise AssertionError(f"no {what} within 5 s")
-
-
 async def test_counters_metrics_and_line_quality_of_a_plc_session(tmp_path: Path) -> None:
     """Every number a target link reports, after a session with one of each thing that can happen."""
     trace = tmp_path / "target.trace"
@@ -165,7 +158,7 @@ async def test_counters_metrics_and_line_quality_of_a_plc_session(tmp_path: Path
         assert (await plc.command(read_n7(0, tns=5))).sts == 0
         for _ in range(ENQ_RETRIES):
             await plc.expect(EnqReceived)
-        await until(lambda: runner.metrics()["target_replies_lost"] == 1, "lost reply")
+        await until(lambda: runner.metrics()["target_replies_lost"] == 1, what="the lost reply")
 
         assert runner.metrics() == {
             "target_commands": 5.0,  # TNS 1, 2, 3, 4, 5: the duplicate and the damaged frame are not commands
@@ -241,7 +234,7 @@ async def test_without_duplicate_detect_a_repeated_frame_runs_again() -> None:
         for _ in range(2):
             assert (await plc.command(write_n7(0, 7, tns=1))).tns == 1
             plc.send(ACK_SYMBOL)
-        await until(lambda: runner.metrics()["target_commands"] == 2, "second command")
+        await until(lambda: runner.metrics()["target_commands"] == 2, what="the second command")
         assert runner.duplicates == 0
 
 
