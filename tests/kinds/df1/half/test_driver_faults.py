@@ -9,7 +9,6 @@ integrator sees (docs/guide/df1-half-duplex.md), on the multi-drop simulator ove
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable
 
 import pytest
 
@@ -20,20 +19,20 @@ from gateway.kinds.df1.sim.df1_multidrop import LineOptions, MultidropLine
 from gateway.link_health import DownAfter
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.half_duplex.slave_messages import RegisterTable
-from gateway.protocols.df1.pccc import LogicalBinaryAddress, ProtectedTypedLogicalRead, WordRangeWrite, encode_command
+from gateway.protocols.df1.pccc import (
+    LogicalBinaryAddress,
+    PcccHeader,
+    ProtectedTypedLogicalRead,
+    WordRangeWrite,
+    encode_command,
+    encode_reply,
+)
 from gateway.transport import ByteStream
+from tests.waiting import until
 
 from .lines import N, PullableStream, expected, opener_for, seed, stations
 
 COUNTED = ("slave_messages", "slave_writes", "slave_refused", "slave_replies_lost", "stray_replies")
-
-
-async def until(condition: Callable[[], bool], seconds: float = 5.0) -> None:
-    for _ in range(int(seconds / 0.01)):
-        if condition():
-            return
-        await asyncio.sleep(0.01)
-    raise AssertionError(f"not reached within {seconds} s")
 
 
 class DeafToMessages(HalfDuplexSlave):
@@ -105,8 +104,8 @@ async def test_replies_nobody_asked_for_are_counted_on_the_line_and_the_station(
     one, two = driver.station(1), driver.station(2)
     await one.start()
     try:
-        for tns in (0x1234, 0x1235):  # DST, SRC, CMD 0x4F (reply to 0F), STS 0, TNS low, high
-            sim.slaves[2].initiate(bytes([0, 2, 0x4F, 0x00, tns & 0xFF, tns >> 8]))
+        for tns in (0x1234, 0x1235):  # replies (CMD 0x4F) to CMD 0F commands of ours never sent
+            sim.slaves[2].initiate(encode_reply(PcccHeader(dst=2, src=0, cmd=0x0F, sts=0, tns=tns)))
         await until(lambda: driver.stray_replies >= 2)
         await asyncio.sleep(0.3)  # a poll cycle more: nothing else is counted
         counts = {k: two.metrics()[k] for k in COUNTED}
