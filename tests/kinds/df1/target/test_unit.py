@@ -82,6 +82,15 @@ table = "discrete"
 start = 200
 """
 
+#: a float file (two words an element) at holding register 50
+FLOAT_FILE = """
+[[link.file]]
+file = 8
+type = "F"
+elements = 2
+start = 50
+"""
+
 
 def link(files: str = FILES, persist: Path | None = None) -> Df1LinkConfig:
     db = f'persist = "{persist}"' if persist is not None else ""
@@ -189,13 +198,7 @@ def test_check_config_names_each_file_with_its_elements() -> None:
 
 
 def test_point_labels_are_the_elements_and_bits_in_the_plcs_notation() -> None:
-    files = link(FILES + """
-[[link.file]]
-file = 8
-type = "F"
-elements = 2
-start = 50
-
+    files = link(FILES + FLOAT_FILE + """
 [[link.file]]
 file = 9
 type = "L"
@@ -332,13 +335,7 @@ async def test_a_modbus_write_that_cannot_be_saved_answers_04_and_is_not_kept(
 
 def test_the_table_comes_back_with_its_values_and_write_times(tmp_path: Path,
                                                              caplog: pytest.LogCaptureFixture) -> None:
-    files = link(FILES + """
-[[link.file]]
-file = 8
-type = "F"
-elements = 2
-start = 50
-""").file
+    files = link(FILES + FLOAT_FILE).file
     store = TargetStore(tmp_path / "line3.db")
     wall = time.time()
     store.save([
