@@ -168,6 +168,9 @@ class StaleRead(ModbusExceptionReply):
         super().__init__(ModbusExceptionReply.GATEWAY_TARGET_FAILED, message)
         self.wait = wait
         self.read_wait = read_wait
+        #: what the link's ``offline`` policy serves once the wait is over and the data still not
+        #: fresh (None: this exception)
+        self.held: bytes | None = None
 
 
 #: Error type -> Modbus exception code (the table of the module docstring).  Looked up along the

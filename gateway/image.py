@@ -8,8 +8,9 @@ leaves its segment meets an unmapped address):
   words, the halves of a float, single bytes);
 * bit tables: one Python int whose bit ``k`` is the segment's ``k``-th point, so a FC1/FC2
   reply is a shift, a mask and ``to_bytes(..., "little")``;
-* beside each image, per point, its *deadline*: the read time of its block plus the largest
-  age at which that block is still served.  A read is fresh when ``min(deadlines[i:j])`` is not
+* beside each image, per point, its *deadline*: the time after which its block's value is
+  stale, as the one verdict gives it (``gateway.freshness``: the read time plus the largest age
+  at which that block is served).  A read is fresh when ``min(deadlines[i:j])`` is not
   before ``now`` (one C loop, no Python loop per register); only on a miss does a Python loop
   look for the first stale point, to answer with that point's block.
 
@@ -28,7 +29,7 @@ from __future__ import annotations
 import weakref
 from array import array
 from bisect import bisect_right
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from gateway.frozen import frozen
@@ -248,11 +249,14 @@ class Images:
     The layout (what goes where) is computed once per plan and shared by the units of that plan.
     """
 
-    __slots__ = ("_bit_runs", "_copies", "_max_age", "_stamps", "_tables", "segments")
+    __slots__ = ("_bit_runs", "_copies", "_deadline", "_stamps", "_tables", "block_deadline", "segments")
 
-    def __init__(self, plan: Plan[Any, Any], max_age: Sequence[float]) -> None:
+    def __init__(self, plan: Plan[Any, Any], deadline: Callable[[int, float], float]) -> None:
         layout = _layout(plan)
-        self._max_age = max_age
+        #: (block, read time) -> the time its value is stale after (``gateway.freshness.Freshness.deadline``)
+        self._deadline = deadline
+        #: per block: the deadline stamped on its points (NEVER: never read, or expired)
+        self.block_deadline = [NEVER] * len(plan.blocks)
         self._copies = layout.copies
         self._bit_runs = layout.bit_runs
         self._stamps = layout.stamps
@@ -277,8 +281,8 @@ class Images:
                 segment.bits = (segment.bits & run.keep) | (((value >> run.shift) & run.mask) << run.at)
 
     def stamp(self, block: int, now: float) -> None:
-        """The points of ``block`` were read at ``now``: fresh until now + the block's max age."""
-        deadline = now + self._max_age[block]
+        """The points of ``block`` were read at ``now``: fresh until the deadline the verdict gives."""
+        deadline = self.block_deadline[block] = self._deadline(block, now)
         segments = self.segments
         for s in self._stamps[block]:
             deadlines = segments[s.segment].deadlines
@@ -289,6 +293,7 @@ class Images:
 
     def expire(self, block: int) -> None:
         """The points of ``block`` are stale until it is stored again."""
+        self.block_deadline[block] = NEVER
         segments = self.segments
         for s in self._stamps[block]:
             deadlines = segments[s.segment].deadlines
@@ -368,3 +373,25 @@ class Images:
         """Bits ``address``.. packed LSB first, as a FC1/FC2 reply; ImageMiss at the first failing one."""
         segment, i, _ = self._segment(table, address, count, now)
         return ((segment.bits >> i) & ((1 << count) - 1)).to_bytes((count + 7) // 8, "little")
+
+    def held(self, table: Table, address: int, count: int, now: float | None) -> bytes:
+        """As :meth:`registers` or :meth:`bits` whatever the freshness (a link's ``offline`` policy):
+        the values last stored; with ``now``, every point stale at ``now`` as 0.  The range must be
+        mapped (ImageMiss at the first unmapped address)."""
+        segment = self._find(table, address)
+        if segment is None:
+            raise ImageMiss(address, None)
+        i = address - segment.first
+        if address + count - 1 > segment.last:
+            raise ImageMiss(segment.last + 1, None)
+        deadlines = segment.deadlines
+        stale = [] if now is None else [k for k in range(count) if deadlines[i + k] < now]
+        if table in REGISTER_TABLES:
+            data = bytearray(segment.image[2 * i : 2 * (i + count)])
+            for k in stale:
+                data[2 * k : 2 * k + 2] = b"\0\0"
+            return bytes(data)
+        bits = (segment.bits >> i) & ((1 << count) - 1)
+        for k in stale:
+            bits &= ~(1 << k)
+        return bits.to_bytes((count + 7) // 8, "little")

@@ -11,8 +11,8 @@ numbers a driver reports itself (``driver.metrics()``: ``link_<key>_total``, ``l
 ``link_<key>_seconds``), per Modbus server (label ``server``), the config file and its reloads
 (``gateway.reload``), and with ``[sparkplug]`` the edge node's session (``gateway.sparkplug.report``).
 
-``/healthz`` answers 200 when every link is up and its fast-class data is younger than its stale
-limit (``stale_after`` plus the fast class's achieved refresh period, ``stale_limit_seconds``), 503
+``/healthz`` answers 200 when every link's verdict is up (``gateway.freshness``: the controller
+answers and its fast-class data is younger than its stale limit, ``stale_limit_seconds``), 503
 otherwise, with a JSON body naming each link's state (no paths, no
 configuration beyond the link names and unit ids).
 
@@ -45,7 +45,7 @@ from gateway.config import parse_listen
 from gateway.logutil import RepeatLog
 from gateway.modbus.admission import IPNetwork, format_address, host_allowed, peer_host
 from gateway.sparkplug.report import families as sparkplug_families
-from gateway.status import JSON_CONTENT_TYPE, StatusPage, data_age, link_fresh, public_error, stale_limit
+from gateway.status import JSON_CONTENT_TYPE, StatusPage, public_error
 
 if TYPE_CHECKING:
     from gateway.config.link import LinkBase
@@ -155,9 +155,10 @@ class _GatewayCollector:
             labels = (unit.name, str(unit.unit_id))
             driver = unit.driver
             counters = driver.counters
-            link_up.add_metric(labels, 1.0 if driver.available else 0.0)
+            verdict = unit.verdict(now)
+            link_up.add_metric(labels, 1.0 if verdict.up else 0.0)
             connected.add_metric(labels, 1.0 if driver.connected else 0.0)
-            age.add_metric(labels, data_age(unit, now))
+            age.add_metric(labels, verdict.age)
             stale.add_metric(labels, unit.stale_after)
             for field, family in plain.items():
                 family.add_metric(labels, getattr(counters, field))
@@ -235,7 +236,7 @@ class _BudgetFamilies:
         if schedule is None or poller is None:
             return
         budget = schedule.budget(now)
-        self.limit.add_metric(labels, stale_limit(unit))
+        self.limit.add_metric(labels, unit.freshness.stale_limit())
         for name, value in budget.refresh.items():
             if value is not None and name != "all":
                 self.refresh.add_metric((*labels, name), value)
@@ -348,14 +349,13 @@ def health(gateway: GatewayView, now: float) -> tuple[bool, dict[str, object]]:
     links: dict[str, object] = {}
     healthy = True
     for unit in gateway.units:
-        age = data_age(unit, now)
-        up = unit.driver.available
-        fresh = link_fresh(unit, now)
-        healthy = healthy and up and fresh
+        verdict = unit.verdict(now)
+        age = verdict.age
+        healthy = healthy and verdict.fresh
         links[unit.name] = {
             "unit": unit.unit_id,
-            "up": up,
-            "fresh": fresh,
+            "up": verdict.up,
+            "fresh": verdict.fresh,
             "age_seconds": round(age, 3) if math.isfinite(age) else None,
             "last_error": public_error(unit.driver.last_error),
         }

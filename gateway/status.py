@@ -6,11 +6,11 @@ Read-only: nothing here writes to a controller; writes stay on Modbus, where the
   (``gateway/web/``), no build step and nothing fetched from elsewhere; it asks the API every second.
 * ``GET /api/status``: the gateway and one row per unit (a link, or a station of a half-duplex
   line): name, kind, port (credentials redacted), unit id, whether it is polled, up / stale / down
-  and since when (the time in that state: :meth:`StatusPage.state`), data age (the oldest
+  and since when (the one verdict: ``gateway.freshness``, :meth:`Unit.verdict`), data age (the oldest
   fast-class value), transactions, errors, retries, the line's quality (``line``: check errors,
   NAKs, timeouts, retransmissions, resyncs; null where the protocol has no such thing:
   :class:`gateway.link_health.LineQuality`), the last error and its time, and the line's budget
-  (``schedule``: :func:`schedule_document`).  *Stale* is a data age at or over :func:`stale_limit`.
+  (``schedule``: :func:`schedule_document`).
   ``config``: the config file served (the first 12 hex digits of its SHA-256, when it was loaded,
   reloads done and failed, the last failure, what changed but takes a restart: ``gateway.reload``).
 * ``GET /api/units/{unit}/{table}?start=&count=``: ``count`` (1..:data:`MAX_COUNT`) values of
@@ -26,6 +26,7 @@ Times are Unix seconds (``time.time()``); ages are seconds, ``null`` when never 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 import re
@@ -37,6 +38,7 @@ from urllib.parse import parse_qs
 
 from gateway import __version__
 from gateway.errors import ModbusExceptionReply
+from gateway.freshness import Source
 from gateway.kinds import link_kind
 from gateway.logutil import redact_url
 from gateway.modbus.mapping import Table
@@ -56,12 +58,9 @@ __all__ = [
     "MAX_COUNT",
     "StatusPage",
     "StatusView",
-    "data_age",
     "line_quality",
-    "link_fresh",
     "public_error",
     "schedule_document",
-    "stale_limit",
 ]
 
 #: The most values one register view request returns (a Modbus read of registers holds 125).
@@ -106,33 +105,10 @@ class StatusView(Protocol):
     def servers(self) -> Sequence[ModbusTcpServer]: ...
 
 
-def data_age(unit: Unit[Any, Any], now: float) -> float:
-    """Seconds since the oldest fast-class block was read; +Inf if one never was."""
-    return unit.data_age(now)
-
-
 def line_quality(unit: Unit[Any, Any]) -> dict[str, int | None]:
     """The unit's line quality by :data:`LINE_QUALITY` (None: not a thing of its protocol)."""
     quality = unit.driver.line_quality()
     return {key: getattr(quality, key) for key in LINE_QUALITY}
-
-
-def stale_limit(unit: Unit[Any, Any]) -> float:
-    """The data age above which a link is *stale* (the page's state, ``/healthz``): ``stale_after`` plus
-    the refresh period the schedule achieves for the fast class (the slow class when the plan has no
-    fast class; before one is measured: the class period).  A healthy slow line is not stale; a silent
-    controller is, ``stale_after`` after its refresh period (the README's meaning)."""
-    schedule = unit.schedule
-    if schedule is None:
-        return unit.stale_after
-    blocks = [i for i, scan in enumerate(schedule.scans) if scan.value == "fast"] or range(len(schedule.scans))
-    achieved = schedule.refresh_period(blocks) or 0.0
-    return unit.stale_after + max([achieved, *(schedule.period[i] for i in blocks)])
-
-
-def link_fresh(unit: Unit[Any, Any], now: float) -> bool:
-    """The data of ``unit`` is fresh: its age is under :func:`stale_limit`."""
-    return data_age(unit, now) < stale_limit(unit)
 
 
 def schedule_document(unit: Unit[Any, Any], now: float) -> dict[str, object] | None:
@@ -153,7 +129,7 @@ def schedule_document(unit: Unit[Any, Any], now: float) -> dict[str, object] | N
         "line_use": None if budget.line_use is None else round(budget.line_use, 3),
         "refresh": seconds(budget.refresh),
         "age_bound": seconds(budget.age_bound),
-        "stale_limit": _finite(stale_limit(unit)),
+        "stale_limit": _finite(unit.freshness.stale_limit()),
         "late_reads": schedule.late_reads,
         "read_waits": poller.read_waits,
         "behind": poller.behind,
@@ -194,10 +170,6 @@ class StatusPage:
         """The ``[[link]]`` tables of the units (at start, and after a config reload)."""
         self._links = {link.name: link for link in links}
         self._tags: dict[str, dict[tuple[Table, int], Tag]] = {}
-        #: per unit: the state it was in at the last answer, and since when it has been fresh again
-        #: after being stale (loop time), as seen by this page (:meth:`state`)
-        self._last_state: dict[str, str] = {}
-        self._fresh_since: dict[str, float] = {}
 
     def handles(self, path: str) -> bool:
         return path in _FILES or path == "/api/status" or _UNIT_PATH.fullmatch(path) is not None
@@ -230,37 +202,6 @@ class StatusPage:
         kind = link_kind(link.protocol)
         return kind.name, kind.controllers
 
-    def state(self, unit: Unit[Any, Any], now: float) -> tuple[str, float | None]:
-        """``(state, since)`` of a unit at loop time ``now``: down (the link), stale (up, but the oldest
-        fast-class value is :func:`stale_limit` old) or up, and the loop time it has been so since.
-
-        Down and up: since the link's last change, or for up after stale since this page first saw
-        the data fresh again (the read times cannot tell when that was).  Stale: since the oldest
-        value passed the stale limit, or since the link came up if that was later.  None: never.
-        """
-        driver = unit.driver
-        age = data_age(unit, now)
-        since = driver.state_since
-        if not driver.available:
-            state = "down"
-        elif age < (limit := stale_limit(unit)):
-            state = "up"
-            since = self._up_since(unit.name, since, now)
-        else:
-            state = "stale"
-            if math.isfinite(age):
-                crossed = now - (age - limit)
-                since = crossed if since is None else max(since, crossed)
-        self._last_state[unit.name] = state
-        return state, since
-
-    def _up_since(self, name: str, link_up: float | None, now: float) -> float | None:
-        """Up since the link came up, or since the page first saw the data fresh after stale if later."""
-        if self._last_state.get(name) == "stale":
-            self._fresh_since[name] = now
-        fresh = self._fresh_since.get(name)
-        return fresh if fresh is not None and (link_up is None or fresh > link_up) else link_up
-
     def status(self, now: float, wall: float) -> dict[str, object]:
         """The document of ``/api/status`` at loop time ``now`` (Unix time ``wall``)."""
 
@@ -272,9 +213,8 @@ class StatusPage:
         for unit in self.gateway.units:
             driver = unit.driver
             counters = driver.counters
-            age = data_age(unit, now)
-            state, since = self.state(unit, now)
-            up_count += state == "up"
+            verdict = unit.verdict(now)
+            up_count += verdict.fresh
             kind, controllers = self._kind(unit.name)
             error = unit.last_error
             rows.append({
@@ -284,9 +224,9 @@ class StatusPage:
                 "port": describe_url(driver.url),
                 "unit": unit.unit_id,
                 "polled": unit.poller is not None,
-                "state": state,
-                "since": at(since),
-                "data_age": _finite(age),
+                "state": verdict.state.value,
+                "since": at(verdict.since),
+                "data_age": _finite(verdict.age),
                 "stale_after": _finite(unit.stale_after),  # null: never stale
                 "transactions": counters.transactions,
                 "errors": counters.errors,
@@ -375,18 +315,21 @@ def _query_int(query: str, key: str, default: int, low: int, high: int) -> int:
 
 def _read(unit: Unit[Any, Any], table: Table, start: int, count: int,
           now: float) -> list[tuple[int | None, str, int | None]]:
-    """Per address: (value, state, block).  The state is what a Modbus read of that address answers
-    now (``Unit.read_register_bytes`` / ``read_bit_bytes``, the rule that answers 0x0B); a stale value
-    is the one last read (``Images.peek``)."""
+    """Per address: (value, state, block).  The view is a client's read: its range counts as demand,
+    as a Modbus read of it would (``Source.SERVE``).  The state is the truth whatever the link's
+    ``offline`` policy serves: what a peek of that address answers now (``Source.PEEK``, the one
+    verdict of ``gateway.freshness``); a stale value is the one last read (``Images.peek``)."""
     registers = table in (Table.HOLDING, Table.INPUT)
     images = unit.images
     out: list[tuple[int | None, str, int | None]] = []
+    with contextlib.suppress(ModbusExceptionReply):
+        (unit.read_register_bytes if registers else unit.read_bit_bytes)(table, start, count, Source.SERVE)
     try:
         if registers:
-            raw = unit.read_register_bytes(table, start, count)
+            raw = unit.read_register_bytes(table, start, count, Source.PEEK)
             fresh = [int.from_bytes(raw[2 * k : 2 * k + 2], "big") for k in range(count)]
         else:
-            bits = int.from_bytes(unit.read_bit_bytes(table, start, count), "little")
+            bits = int.from_bytes(unit.read_bit_bytes(table, start, count, Source.PEEK), "little")
             fresh = [bits >> k & 1 for k in range(count)]
     except ModbusExceptionReply:
         fresh = []  # something in the range is not served: ask address by address
@@ -398,9 +341,9 @@ def _read(unit: Unit[Any, Any], table: Table, start: int, count: int,
             continue
         try:
             if registers:
-                value: int | None = int.from_bytes(unit.read_register_bytes(table, address, 1), "big")
+                value: int | None = int.from_bytes(unit.read_register_bytes(table, address, 1, Source.PEEK), "big")
             else:
-                value = unit.read_bit_bytes(table, address, 1)[0] & 1
+                value = unit.read_bit_bytes(table, address, 1, Source.PEEK)[0] & 1
             out.append((value, "fresh", block))
         except ModbusExceptionReply as exc:
             state = _STATES.get(exc.code, "error")

@@ -47,6 +47,7 @@ _STATUS_TEXT: Final = {
     "transactions": "transactions the controller answered",
     "errors": "failed transactions",
     "retries": "protocol retries",
+    "state": "link state: 0 up (fresh), 1 stale, 2 down",
 }
 
 

@@ -39,17 +39,16 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import struct
 from abc import ABC, abstractmethod
-from collections.abc import Awaitable, Callable, Hashable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Hashable, Sequence
 from functools import partial
-from typing import Any, ClassVar, Generic, NotRequired, TypedDict, TypeVar
+from typing import ClassVar, Generic, NotRequired, TypedDict, TypeVar
 
 from gateway.cache import BlockCache
 from gateway.clients import current_client
-from gateway.errors import ControllerRefused, GatewayError, ModbusExceptionReply, StaleRead, modbus_exception
+from gateway.errors import ControllerRefused, GatewayError, ModbusExceptionReply, StaleRead
+from gateway.freshness import Freshness, Offline, Source, LinkVerdict
 from gateway.image import ImageMiss, Images
 from gateway.latency import LATENCY_BUCKETS, LatencyHistogram
 from gateway.line_driver import UnitDriver
@@ -69,12 +68,17 @@ from gateway.schedule import (
     DEFAULT_BACKGROUND_INTERVAL,
     DEFAULT_DEMAND_HOLD,
     DEFAULT_READ_WAIT,
+    NEVER,
     DemandLog,
     Schedule,
 )
+from gateway.write_steps import WritableRange, WriteStep, in_writable, span, spans, target_of, translated
 from gateway.writes import WriteQueue
 
-__all__ = ["LATENCY_BUCKETS", "LatencyHistogram", "Unit", "UnitOptions", "WritableRange", "WriteStep", "in_writable"]
+__all__ = [
+    "LATENCY_BUCKETS", "LatencyHistogram", "Source", "Unit", "UnitOptions", "WritableRange", "WriteStep", "in_writable",
+    "translated",
+]
 
 log = logging.getLogger("gateway.unit")
 audit = logging.getLogger("gateway.audit")
@@ -84,7 +88,6 @@ ILLEGAL_VALUE = ModbusExceptionReply.ILLEGAL_DATA_VALUE
 DEVICE_FAILURE = ModbusExceptionReply.SERVER_DEVICE_FAILURE
 TARGET_FAILED = ModbusExceptionReply.GATEWAY_TARGET_FAILED
 
-WritableRange = tuple[Table, int, int]  # table, first, last
 
 #: The write target types of a unit's plan: R for a holding register, B for a coil.
 R = TypeVar("R")
@@ -115,15 +118,7 @@ class UnitOptions(TypedDict):
     write_queue_per_link: NotRequired[int]
     write_timeout: NotRequired[float]
     stagger: NotRequired[float | None]
-
-
-def in_writable(writable: Sequence[WritableRange], table: Table, address: int, count: int) -> bool:
-    """Whether ``writable`` (empty: everything) lets a write to ``address``.. (``count``) of ``table`` through.
-
-    One range must hold the whole write."""
-    return not writable or any(
-        t is table and first <= address and address + count - 1 <= last for t, first, last in writable
-    )
+    offline: NotRequired[Offline]
 
 
 def _pack_registers(values: Sequence[int]) -> bytes:
@@ -162,6 +157,7 @@ class Unit(ABC, Generic[R, B]):
         write_timeout: float = 0.9,
         stagger: float | None = None,
         read_only: bool = False,
+        offline: Offline = Offline.EXCEPTION,
     ) -> None:
         self.unit_id = unit_id
         self.name = name
@@ -179,21 +175,20 @@ class Unit(ABC, Generic[R, B]):
             [block.scan for block in plan.blocks], fast_interval=fast_interval, slow_interval=slow_interval,
             stale_after=stale_after, demand_hold=demand_hold, background_interval=background_interval,
         ) if self.POLLED else None
-        #: per block: the largest age at which its bytes are still served; polled: the schedule sets
-        #: each as the block is read (see the module doc); a value that is not polled does not age
-        self._max_age = self.schedule.max_age if self.schedule is not None else [math.inf] * len(plan.blocks)
+        #: the one verdict on the unit's data and link (``gateway.freshness``): every face reads it
+        self.freshness = Freshness(stale_after=stale_after, schedule=self.schedule, link=driver,
+                                   blocks=len(plan.blocks))
+        #: what a client's read of data that is not fresh gets (``gateway.freshness.Offline``)
+        self.offline = Offline(offline)
         #: the four tables decoded when a block is stored (a read is a slice)
-        self.images = Images(plan, self._max_age)
+        self.images = Images(plan, self.freshness.deadline)
         self.cache = BlockCache([block.size for block in plan.blocks], images=self.images,
                                 fast=[i for i, block in enumerate(plan.blocks) if block.scan is Scan.FAST])
-        #: the controller is silent after this long without an answer to a poll (the poller reads a
-        #: block at least every shortest class period: fast_interval, or slow_interval when the
-        #: plan has no fast class); a non-polled peer, after stale_after without a message
-        self._silent_after = stale_after + min(self.schedule.period, default=0.0) if self.schedule else stale_after
+        self.freshness.watch(self.cache, self.images)
         #: None: not polled (the kind's runner fills the image)
         self.poller = Poller(
             name, plan.blocks, self.cache, self.read_block, fast_interval=fast_interval, slow_interval=slow_interval,
-            responding=lambda: driver.available,
+            responding=lambda: self.freshness.link.available,
             ready=driver.first_attempt,
             stagger=stagger,  # None: a share of fast_interval from the name (gateway.poller.default_stagger)
             schedule=self.schedule, demand=self.demand, share=line_share,
@@ -227,10 +222,12 @@ class Unit(ABC, Generic[R, B]):
 
     def data_age(self, now: float) -> float:
         """Polled: seconds since the oldest fast-class block was read.  Not polled: since the peer was
-        last heard.  +Inf: never."""
-        if self.poller is None:
-            return max(0.0, now - self.cache.newest)
-        return max(0.0, self.cache.oldest_fast_age(now))
+        last heard.  +Inf: never (``gateway.freshness.Freshness.data_age``)."""
+        return self.freshness.data_age(now)
+
+    def verdict(self, now: float) -> LinkVerdict:
+        """The link's state at ``now``: up, stale or down (``gateway.freshness``, the one verdict)."""
+        return self.freshness.verdict(now)
 
     @property
     def last_error(self) -> GatewayError | None:
@@ -267,32 +264,57 @@ class Unit(ABC, Generic[R, B]):
 
     # --- reads ------------------------------------------------------------------------------
 
-    def _note_read(self, table: Table, address: int, count: int, now: float) -> None:
-        """Note a read as demand (one dict store); a silent controller's mapped data answers stale."""
-        self.demand.keys[(table, address, count)] = now
-        if now - self.cache.newest > self._silent_after and self.images.mapped(table, address, count):
-            raise self._stale()
-
-    def read_register_bytes(self, table: Table, address: int, count: int) -> bytes:
+    def read_register_bytes(self, table: Table, address: int, count: int, source: Source = Source.SERVE) -> bytes:
         """Registers ``address``.. (``count``) as the big-endian bytes of a FC3/FC4 reply: a slice of the
-        image; the first unmapped or stale register, in address order, decides the exception."""
+        image; the first unmapped or stale register, in address order, decides the exception.
+        ``source``: who reads (``gateway.freshness.Source``: a client's read is demand and gets the
+        ``offline`` policy; a peek is neither)."""
         now = self._loop_time()
         if table is Table.INPUT and address >= STATUS_BASE:
             return _pack_registers(self._status(address, count, now))
-        self._note_read(table, address, count, now)
-        try:
-            return self.images.registers(table, address, count, now)
-        except ImageMiss as miss:
-            raise self._miss(table, miss, f"{table.value} register", address, count, now) from None
+        return self._read(table, address, count, now, source, self.images.registers, f"{table.value} register")
 
-    def read_bit_bytes(self, table: Table, address: int, count: int) -> bytes:
+    def read_bit_bytes(self, table: Table, address: int, count: int, source: Source = Source.SERVE) -> bytes:
         """Bits ``address``.. (``count``) packed LSB first, as the payload of a FC1/FC2 reply."""
-        now = self._loop_time()
-        self._note_read(table, address, count, now)
-        try:
-            return self.images.bits(table, address, count, now)
-        except ImageMiss as miss:
-            raise self._miss(table, miss, table.value, address, count, now) from None
+        return self._read(table, address, count, self._loop_time(), source, self.images.bits, table.value)
+
+    def _read(self, table: Table, address: int, count: int, now: float, source: Source,
+              read: Callable[[Table, int, int, float], bytes], what: str) -> bytes:
+        serve = source is Source.SERVE
+        if serve:
+            self.demand.keys[(table, address, count)] = now  # demand: one dict store (note_demand)
+        if self.freshness.silent(now) and self.images.mapped(table, address, count):
+            miss = ImageMiss(address, self.images.blocks_in(table, address, 1)[0])
+            answer = self._stale()
+        else:
+            try:
+                return read(table, address, count, now)
+            except ImageMiss as found:
+                miss = found
+            answer = self._miss(table, miss, what, address, count, now, serve)
+        if serve and answer.code == TARGET_FAILED and miss.block is not None:
+            held = self._offline_bytes(table, address, count, now)
+            if held is not None:
+                if isinstance(answer, StaleRead):
+                    answer.held = held  # served after the read's wait if the data is still not fresh
+                else:
+                    return held
+        raise answer
+
+    def note_demand(self, table: Table, address: int, count: int) -> None:
+        """Count a read of ``address``.. (``count``) as demand without reading (a face that demands
+        but peeks, as the Sparkplug node with ``demand = true``)."""
+        self.demand.keys[(table, address, count)] = self._loop_time()
+
+    def _offline_bytes(self, table: Table, address: int, count: int, now: float) -> bytes | None:
+        """What the ``offline`` policy serves for data that is not fresh (None: the exception)."""
+        policy = self.offline
+        if policy is Offline.EXCEPTION:
+            return None
+        images, stamps = self.images, self.cache.stamps
+        if policy is Offline.HOLD and any(stamps[b] == NEVER for b in images.blocks_in(table, address, count)):
+            return None  # nothing read yet to hold
+        return images.held(table, address, count, None if policy is Offline.HOLD else now)
 
     def read_registers(self, table: Table, address: int, count: int) -> list[int]:
         return list(struct.unpack(f">{count}H", self.read_register_bytes(table, address, count)))
@@ -305,13 +327,13 @@ class Unit(ABC, Generic[R, B]):
         return asyncio.get_running_loop().time()
 
     def _miss(self, table: Table, miss: ImageMiss, what: str, address: int, count: int,
-              now: float) -> ModbusExceptionReply:
+              now: float, serve: bool = True) -> ModbusExceptionReply:
         if miss.block is None:
             return ModbusExceptionReply(ILLEGAL_ADDRESS, f"{what} {miss.address} is not mapped")
         stale = self._stale(miss.block)
         poller = self.poller
-        if (stale.code != TARGET_FAILED or poller is None or not poller.running or self.read_wait <= 0
-                or not self.driver.available):
+        if (not serve or stale.code != TARGET_FAILED or poller is None or not poller.running or self.read_wait <= 0
+                or not self.freshness.link.available):
             return stale
         # The link is up: the reader may wait for an immediate read of the stale blocks.
         blocks = self.images.stale_blocks(table, address, count, now)
@@ -329,15 +351,17 @@ class Unit(ABC, Generic[R, B]):
 
     def status_values(self, now: float) -> dict[str, int]:
         counters = self.driver.counters
-        age = self.data_age(now)
+        verdict = self.freshness.verdict(now)
+        age = verdict.age
         return {
-            "link_up": 1 if self.driver.available else 0,
+            "link_up": 1 if verdict.up else 0,
             "data_age": min(65535, int(age * 10)) if age != float("inf") else 65535,
             "last_fault": self.last_fault_number,
             "transactions": counters.transactions,
             "errors": counters.errors,
             "retries": counters.retries,
             "kind_counter": self.kind_counter,
+            "state": verdict.state.number,
         }
 
     def _status(self, address: int, count: int, now: float) -> list[int]:
@@ -383,7 +407,7 @@ class Unit(ABC, Generic[R, B]):
         i = 0
         while i < len(checked):
             address, point, value = checked[i]
-            target = _target(point)
+            target = target_of(point)
             if point.codec.half is not None:
                 pair = checked[i : i + 2]
                 halves = {p.codec.half: v for _, p, v in pair}
@@ -399,7 +423,7 @@ class Unit(ABC, Generic[R, B]):
 
     def _bit_steps(self, checked: list[tuple[int, BitPoint[B], bool]]) -> list[WriteStep]:
         """One step per coil; protocols may merge more."""
-        return [WriteStep(a, a, partial(self._write_bit, _target(bit), value), bit_patches=[(bit, value)])
+        return [WriteStep(a, a, partial(self._write_bit, target_of(bit), value), bit_patches=[(bit, value)])
                 for a, bit, value in checked]
 
     def check_register_write(self, address: int, values: Sequence[int]) -> list[tuple[int, RegisterPoint[R], int]]:
@@ -437,7 +461,7 @@ class Unit(ABC, Generic[R, B]):
     async def write_registers(self, address: int, values: Sequence[int]) -> None:
         checked = self.check_register_write(address, values)
         steps = self._register_steps(checked)
-        footprint = frozenset(self._footprint(_target(p)) for _, p, _ in checked)
+        footprint = frozenset(self._footprint(target_of(p)) for _, p, _ in checked)
         await self._queue_write(Table.HOLDING, steps, footprint)
 
     async def write_bits(self, address: int, values: Sequence[bool]) -> None:
@@ -448,7 +472,7 @@ class Unit(ABC, Generic[R, B]):
             if point is None or point.write is None:
                 raise ModbusExceptionReply(ILLEGAL_ADDRESS, f"coil {address + i} is not writable")
         steps = self._bit_steps([(address + i, points[address + i], value) for i, value in enumerate(values)])
-        footprint = frozenset(self._footprint(_target(points[address + i])) for i in range(len(values)))
+        footprint = frozenset(self._footprint(target_of(points[address + i])) for i in range(len(values)))
         await self._queue_write(Table.COIL, steps, footprint)
 
     async def _queue_write(self, table: Table, steps: list[WriteStep], footprint: frozenset[Hashable]) -> None:
@@ -480,7 +504,7 @@ class Unit(ABC, Generic[R, B]):
     def _late_write(self, table: Table, steps: list[WriteStep],
                     future: asyncio.Future[None]) -> ModbusExceptionReply:
         """The answer to a write not done within ``write_timeout``."""
-        what = f"{table.value} {_span(steps[0].first, steps[-1].last)}"
+        what = f"{table.value} {span(steps[0].first, steps[-1].last)}"
         seconds = f"{self.write_timeout:g} s"
         if self.writes.withdraw(future):
             audit.info("unit %d: %s not sent within write_timeout %s: withdrawn, nothing written",
@@ -512,7 +536,7 @@ class Unit(ABC, Generic[R, B]):
                 self._partial_write(table, done, step, exc)
                 raise exc
             try:
-                await _translated(step.run())
+                await translated(step.run())
             except ModbusExceptionReply as exc:
                 if done:
                     self._partial_write(table, done, step, exc)
@@ -527,10 +551,10 @@ class Unit(ABC, Generic[R, B]):
 
     def _partial_write(self, table: Table, done: list[WriteStep], failed: WriteStep, exc: ModbusExceptionReply) -> None:
         self.partial_writes += 1
-        written = _spans(done)
+        written = spans(done)
         log.warning(
             "link %s: write partly applied: %s %s written, %s %s and after not (%s); answered 0x%02X",
-            self.name, table.value, written, table.value, _span(failed.first, failed.last), exc, exc.code,
+            self.name, table.value, written, table.value, span(failed.first, failed.last), exc, exc.code,
         )
 
     def _patch(self, point: RegisterPoint[R], value: int) -> None:
@@ -548,50 +572,3 @@ class Unit(ABC, Generic[R, B]):
         else:
             self.cache.patch(point.block, msb, bytes((value >> 8 & 0xFF,)))
             self.cache.patch(point.block, lsb, bytes((value & 0xFF,)))
-
-
-@dataclass(slots=True)
-class WriteStep:
-    """One controller command of a write request: Modbus addresses first..last."""
-
-    first: int
-    last: int
-    run: Callable[[], Awaitable[None]]
-    patches: list[tuple[RegisterPoint[Any], int]] = field(default_factory=list)
-    bit_patches: list[tuple[BitPoint[Any], bool]] = field(default_factory=list)
-
-
-T = TypeVar("T")
-
-
-def _target(point: RegisterPoint[T] | BitPoint[T]) -> T:
-    """The write target of a point checked writable (``write`` not None)."""
-    target = point.write
-    if target is None:
-        raise ModbusExceptionReply(ILLEGAL_ADDRESS, "not writable")
-    return target
-
-
-def _span(first: int, last: int) -> str:
-    return f"{first}" if first == last else f"{first}-{last}"
-
-
-def _spans(steps: list[WriteStep]) -> str:
-    runs: list[list[int]] = []
-    for step in steps:
-        if runs and runs[-1][1] == step.first - 1:
-            runs[-1][1] = step.last
-        else:
-            runs.append([step.first, step.last])
-    return ", ".join(_span(a, b) for a, b in runs)
-
-
-async def _translated(write: Awaitable[None]) -> None:
-    """Await a write, translating its error to the Modbus exception of ``gateway.errors.MODBUS_CODES``."""
-    try:
-        await write
-    except GatewayError as exc:
-        reply = modbus_exception(exc)
-        if reply is exc:
-            raise  # already translated (e.g. a PCCC address problem: 0x02)
-        raise reply from exc

@@ -152,7 +152,7 @@ def test_every_point_of_every_plan_is_one_tag_of_its_width() -> None:
                 assert (tag.table, address) not in covered, (tag, covered.get((tag.table, address)))
                 covered[tag.table, address] = tag.name
         mapped = {(table, a) for table in Table for a, _ in _points(plan, table)}
-        status = {(Table.INPUT, a) for a in range(STATUS_BASE, STATUS_BASE + 11)}
+        status = {(Table.INPUT, a) for a in range(STATUS_BASE, STATUS_BASE + 12)}
         assert set(covered) == mapped | status, link.name
         assert len({tag.name for tag in tags}) == len(tags), "tag names are unique within a link"
 

@@ -191,7 +191,7 @@ def image_operations(draw: st.DrawFn, plan: Plan[None, None]) -> list[tuple[Any,
 def test_every_slice_of_the_images_equals_the_points_decoded_one_by_one(data: st.DataObject) -> None:
     plan = data.draw(layout_plans())
     max_age = [data.draw(st.sampled_from(AGES)) for _ in plan.blocks]
-    images = Images(plan, max_age)
+    images = Images(plan, lambda block, read_at: read_at + max_age[block])
     cache = BlockCache([b.size for b in plan.blocks], images=images)
     model = NaiveImages(plan, max_age)
     for op in data.draw(image_operations(plan)):
@@ -237,7 +237,7 @@ def test_a_read_fails_at_its_first_stale_point_not_at_one_exactly_at_its_deadlin
     plan: Plan[None, None] = Plan(blocks=[Block(None, 2, Scan.FAST), Block(None, 2, Scan.FAST)])
     plan.holding[10] = RegisterPoint(0, 0, Codec("u16", 0, 1))
     plan.holding[11] = RegisterPoint(1, 0, Codec("u16", 0, 1))
-    images = Images(plan, [1.0, 1.0])
+    images = Images(plan, lambda block, read_at: read_at + 1.0)
     cache = BlockCache([2, 2], images=images)
     cache.store(0, b"\x12\x34", 5.0)  # deadline 6.0
     cache.store(1, b"\x56\x78", 4.5)  # deadline 5.5
@@ -256,7 +256,7 @@ def test_a_point_whose_block_was_never_stored_peeks_as_the_caches_zero_bytes() -
     plan.holding[11] = RegisterPoint(1, 0, Codec("u16", 0, 1))
     plan.coils[20] = BitPoint(0, 0, 0)
     plan.coils[21] = BitPoint(1, 0, 0)
-    images = Images(plan, [1.0, 1.0])
+    images = Images(plan, lambda block, read_at: read_at + 1.0)
     cache = BlockCache([2, 2], images=images)
     cache.store(1, b"\xff\xff", 5.0)
     assert [images.peek(Table.HOLDING, a) for a in (10, 11)] == [(0, 0), (0xFFFF, 1)]
@@ -273,6 +273,7 @@ def test_the_layout_is_computed_once_per_plan_and_shared_by_its_images() -> None
         return made
 
     first, other = plan(), plan()
-    a, b, c = Images(first, [1.0]), Images(first, [2.0]), Images(other, [1.0])
+    a, b, c = (Images(first, lambda _, t: t + 1.0), Images(first, lambda _, t: t + 2.0),
+               Images(other, lambda _, t: t + 1.0))
     assert a._copies is b._copies and a._bit_runs is b._bit_runs and a._stamps is b._stamps
     assert a._copies is not c._copies and a._copies == c._copies

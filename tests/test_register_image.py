@@ -124,7 +124,7 @@ class ReferenceReader:
         self._runs = {table: _register_runs(unit.plan.registers(table)) for table in (Table.HOLDING, Table.INPUT)}
 
     def _silent(self, now: float) -> bool:
-        return now - self.unit.cache.newest > self.unit._silent_after
+        return now - self.unit.cache.newest > self.unit.freshness.silent_after
 
     def _stale(self, block: int | None = None) -> ModbusExceptionReply:
         refused = self.unit.poller.refused.get(block) if block is not None else None
@@ -136,7 +136,7 @@ class ReferenceReader:
         now = self.now
         assert not (table is Table.INPUT and address >= STATUS_BASE)
         points = self.unit.plan.registers(table)
-        stamps, data, max_age = self.unit.cache.stamps, self.unit.cache.data, self.unit._max_age
+        stamps, data, max_age = self.unit.cache.stamps, self.unit.cache.data, self.unit.freshness.limits
         if self._silent(now):
             if all(a in points for a in range(address, address + count)):
                 raise self._stale()
@@ -168,7 +168,7 @@ class ReferenceReader:
     def read_bits(self, table: Table, address: int, count: int) -> list[bool]:
         now = self.now
         points = self.unit.plan.bits(table)
-        stamps, data, max_age = self.unit.cache.stamps, self.unit.cache.data, self.unit._max_age
+        stamps, data, max_age = self.unit.cache.stamps, self.unit.cache.data, self.unit.freshness.limits
         if self._silent(now):
             if all(a in points for a in range(address, address + count)):
                 raise self._stale()
@@ -463,7 +463,7 @@ def test_freshness_boundary_equals_the_old_decoder(scan: Scan) -> None:
     new = ModbusTcpServer(GatewayBackend([unit]), "127.0.0.1", 0)
     old = ModbusTcpServer(ReferenceBackend(reference), "127.0.0.1", 0)
     unit.cache.store(0, b"\x12\x34", 10.0)
-    max_age = unit._max_age[0]
+    max_age = unit.freshness.limits[0]
     for now in (10.0 + max_age - 0.125, 10.0 + max_age, 10.0 + max_age + 0.125):
         unit.cache.store(1, b"\x56\x78", now)  # the link answers: never silent
         unit.now = reference.now = now
@@ -689,7 +689,8 @@ async def _write_raised(write: Any) -> ModbusExceptionReply:
 def test_the_status_block_registers() -> None:
     """docs/reference/status-block.md: 1000 link up (1) / down (0); 1001 age of the oldest
     fast-class value in 100 ms units, 65535 never read or saturated; 1002 last fault; 1003-1010
-    32-bit counters, high word first; a read past 1010 is refused 0x02."""
+    32-bit counters, high word first; 1011 the link's state (0 up, 1 stale, 2 down); a read past 1011
+    is refused 0x02."""
     unit = MemoryUnit(stale_after=5.0)
     driver = unit.driver
     assert isinstance(driver, FakeDriver)
@@ -698,7 +699,8 @@ def test_the_status_block_registers() -> None:
     driver.counters.retries_by_kind = {"nak": 3, "enq": 1}
     unit.fault = 0x10000  # wider than its register: saturated
     unit.now = 50.0
-    assert unit.read_registers(Table.INPUT, 1000, 11) == [1, 65535, 65535, 1, 0x2345, 0, 7, 0, 4, 0, 0]
+    # never read: the controller answers, its data is stale (state 1)
+    assert unit.read_registers(Table.INPUT, 1000, 12) == [1, 65535, 65535, 1, 0x2345, 0, 7, 0, 4, 0, 0, 1]
     assert unit.status_values(50.0)["data_age"] == 65535  # never read
     unit.cache.store(0, bytes(20), 100.0)
     unit.cache.store(1, bytes(12), 90.0)  # slow: not in the age
@@ -706,9 +708,12 @@ def test_the_status_block_registers() -> None:
         unit.now = now
         assert unit.read_registers(Table.INPUT, 1001, 1) == [tenths], now
         assert unit.status_values(now)["data_age"] == tenths
+    unit.now = 100.5
+    assert unit.read_registers(Table.INPUT, 1011, 1) == [0]  # fresh: up
     driver.available = False
     assert unit.read_registers(Table.INPUT, 1000, 1) == [0]
-    error = _raised(unit.read_register_bytes, Table.INPUT, 1010, 2)
+    assert unit.read_registers(Table.INPUT, 1011, 1) == [2]  # down
+    error = _raised(unit.read_register_bytes, Table.INPUT, 1011, 2)
     assert error.code == ModbusExceptionReply.ILLEGAL_DATA_ADDRESS
 
 

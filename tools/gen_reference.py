@@ -13,6 +13,7 @@ page is stale and when a key has no description.
 from __future__ import annotations
 
 import argparse
+import enum
 import sys
 import types
 import typing
@@ -85,6 +86,8 @@ def _type_name(annotation: Any) -> str:
         return simple[annotation]
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
         return "table"
+    if isinstance(annotation, type) and issubclass(annotation, enum.Enum):
+        return " | ".join(f"`{toml_value(member.value)}`" for member in annotation)
     return getattr(annotation, "__name__", str(annotation))
 
 

@@ -17,6 +17,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from gateway.config._common import Loc, Model, Problems, array, check_port_url, optional_output_path, show
 from gateway.config.writer import table_lines
+from gateway.freshness import Offline
 from gateway.frozen import frozen
 from gateway.link_health import DEFAULT_DOWN_AFTER
 from gateway.retries import DEFAULT_RETRIES
@@ -190,6 +191,11 @@ class LinkBase(Model):
     read_wait: float = Field(DEFAULT_READ_WAIT, ge=0, le=MAX_READ_WAIT)
     """Seconds a Modbus read of data not yet read or stale, on a link that is up, may wait for an immediate read of its
     blocks before answering 0x0B (0: answer at once). Other connections never wait."""
+    offline: Offline = Offline.EXCEPTION
+    """What a Modbus read of data that is not fresh (stale, or the link down) gets: "exception" answers 0x0B (the
+    SCADA shows the point bad), "hold" the last value read (a SCADA that shows no quality; register 1011 says stale),
+    "zero" 0 (a PLC program or HMI that must never read an old value as current). Sparkplug and the status page show
+    the data stale whatever this says (docs/guide/reads-and-writes.md)."""
     write_burst: int = Field(1, ge=1, le=100)
     """Under write load: write transactions in a row before waiting polls get the line (for poll_burst transactions),
     so the data stays fresh under any write load."""

@@ -70,6 +70,11 @@ class SparkplugConfig(Model):
     """Seconds between checks for values going stale and links going up or down."""
     batch_interval: float = Field(0.05, ge=0, le=10)
     """Seconds from a new read to its DDATA: the reads of that time go out as one DDATA per device (0: each read)."""
+    demand: bool = False
+    """Whether the node's reads count as client demand, as a Modbus client's do (docs/guide/freshness.md): true
+    keeps every published tag demanded, so it is read at its class period (fast_interval, slow_interval) at the
+    cost of the line's priority for what SCADA reads; false (the default): the node publishes what the schedule
+    reads, tags nobody else reads at least every background_interval."""
     status_interval: float = Field(5.0, gt=0, le=3600)
     """Seconds between publishing the status block's metrics (when they changed)."""
     ndeath_on_stop: Literal[True, False] = True

@@ -289,14 +289,17 @@ class RequestHandler:
     ) -> bytes | InOrder:
         """A read served from memory (``backend.read_now``): the whole reply frame, no task; or, for
         data not read yet or stale that the backend lets wait (:class:`~gateway.errors.StaleRead`),
-        a reply that waits at most its ``read_wait`` for the data, then reads again."""
+        a reply that waits at most its ``read_wait`` for the data, then reads again (and then serves
+        what the link's ``offline`` policy holds, if anything, rather than 0x0B)."""
         assert self._read_now is not None
         try:
             data = self._read_now(unit, function_code, address, count)
         except StaleRead as stale:
             if may_wait and stale.read_wait > 0:
                 return InOrder(self._read_after_wait(tid, unit, function_code, address, count, size, stale))
-            return self._exception_reply(tid, unit, function_code, stale)
+            if stale.held is None:
+                return self._exception_reply(tid, unit, function_code, stale)
+            data = stale.held  # the link's offline policy: a held (or zero) value rather than 0x0B
         except ModbusExceptionReply as reply:
             return self._exception_reply(tid, unit, function_code, reply)
         except Exception as error:

@@ -193,4 +193,5 @@ STATUS_REGISTERS = (
     ("errors", 2),  # 1005-1006
     ("retries", 2),  # 1007-1008
     ("kind_counter", 2),  # 1009-1010: a counter the link's kind names (LinkKind.status_counter)
+    ("state", 1),  # 1011: the link's state by the one verdict (gateway.freshness): 0 up, 1 stale, 2 down
 )

@@ -5,10 +5,11 @@ as the tag without its ``<link>/`` prefix (``N7:0``, ``T4:2.ACC``, ``901.PRE``, 
 with the Sparkplug datatype of its type (§6.4.16 "Data Types").  Aliases are numbered in the
 order of the links and their tags, after ``bdSeq``; they are unique across the node (§6.4.6).
 
-A metric's value is what a Modbus read of its registers or bit answers now, by the unit's own
-rule: a value, or the exception that read gets.  0x0B (no fresh data) is quality STALE; any other
-(the controller refuses the block: 0x04, or 0x02 for an address it does not have) is BAD; the
-exception's text is the reason.  The metrics are read a run at a time (consecutive addresses of
+A metric's value is what a peek of its registers or bit answers now (``gateway.freshness``: the
+one verdict, no demand unless ``[sparkplug] demand``, no ``offline`` policy): a value, or the
+exception that read gets.  0x0B (no fresh data) is quality STALE; any other (the controller
+refuses the block: 0x04, or 0x02 for an address it does not have) is BAD; the exception's text is
+the reason.  The metrics are read a run at a time (consecutive addresses of
 one block: one read, one freshness), and only those whose bytes changed are decoded.  The status
 block's values come from :meth:`gateway.unit.Unit.status_values` and are always good.
 
@@ -29,7 +30,7 @@ from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Table
 from gateway.sparkplug.node import BD_SEQ_ALIAS, Device, MetricSpec, Sample
 from gateway.sparkplug.payload import BAD, STALE, SparkplugType, Value
 from gateway.tags import Tag, link_tags
-from gateway.unit import Unit
+from gateway.unit import Source, Unit
 
 __all__ = ["DATATYPES", "LinkDevice", "build_devices"]
 
@@ -75,8 +76,10 @@ def _decode(point: Point, data: bytes) -> Value:
 class LinkDevice:
     """One link (unit) as a device: the core's :class:`Device`, and each metric's :class:`Point`."""
 
-    def __init__(self, link: LinkBase, unit: Unit[Any, Any], first_alias: int) -> None:
+    def __init__(self, link: LinkBase, unit: Unit[Any, Any], first_alias: int, *, demand: bool = False) -> None:
         self.unit = unit
+        #: the node's reads count as client demand (``[sparkplug] demand``); they peek all the same
+        self.demand = demand
         self.name = link.name
         deadbands = link.deadbands()
         specs: list[MetricSpec] = []
@@ -143,9 +146,14 @@ class LinkDevice:
         return out
 
     def _bytes(self, run: _Run) -> bytes:
+        """The run's bytes as a peek (``Source.PEEK``): the node's reads are no client's demand, and
+        it publishes the truth whatever the link's ``offline`` policy serves Modbus.  With ``demand``
+        the run is noted as demand all the same (``Unit.note_demand``)."""
+        if self.demand:
+            self.unit.note_demand(run.table, run.first, run.count)
         if run.bits:
-            return self.unit.read_bit_bytes(run.table, run.first, run.count)
-        return self.unit.read_register_bytes(run.table, run.first, run.count)
+            return self.unit.read_bit_bytes(run.table, run.first, run.count, Source.PEEK)
+        return self.unit.read_register_bytes(run.table, run.first, run.count, Source.PEEK)
 
     def sample(self, metric: int, timestamp: int) -> Sample:
         """Metric ``metric`` as a Modbus read of it answers now (its run's last read is left alone)."""
@@ -248,12 +256,14 @@ def _block_of(unit: Unit[Any, Any], tag: Tag) -> int:
     return plan.registers(tag.table)[tag.address].block
 
 
-def build_devices(links: Sequence[LinkBase], units: Sequence[Unit[Any, Any]]) -> list[LinkDevice]:
-    """A :class:`LinkDevice` per link (``units`` in the same order), aliases numbered after bdSeq."""
+def build_devices(links: Sequence[LinkBase], units: Sequence[Unit[Any, Any]], *,
+                  demand: bool = False) -> list[LinkDevice]:
+    """A :class:`LinkDevice` per link (``units`` in the same order), aliases numbered after bdSeq;
+    ``demand``: the node's reads count as client demand (``[sparkplug] demand``)."""
     devices: list[LinkDevice] = []
     alias = BD_SEQ_ALIAS + 1
     for link, unit in zip(links, units, strict=True):
-        device = LinkDevice(link, unit, alias)
+        device = LinkDevice(link, unit, alias, demand=demand)
         alias = max(alias, device.next_alias)
         devices.append(device)
     return devices

@@ -161,7 +161,7 @@ class SparkplugNode:
 
     def __init__(self, config: SparkplugConfig, links: Sequence[LinkBase], units: Sequence[Unit[Any, Any]]) -> None:
         self.config = config
-        self.devices: list[LinkDevice] = build_devices(links, units)
+        self.devices: list[LinkDevice] = build_devices(links, units, demand=config.demand)
         self.core = EdgeNode(config.group_id, config.edge_node_id, [d.device for d in self.devices],
                              primary_host_id=config.primary_host_id, bd_seq=load_bd_seq(config.state_file))
         #: DCMD writes the controller refused or that failed (also counted in ``core.refused``)
@@ -429,7 +429,7 @@ class SparkplugNode:
     async def _links(self, now: float) -> None:
         """Links gone down (DDEATH) or come back (DBIRTH, with its values as they are now), one device a step."""
         for index, device in enumerate(self.devices):
-            up = device.unit.driver.available
+            up = device.unit.verdict(now).up
             if up == device.device.alive:
                 continue
             await asyncio.sleep(0)

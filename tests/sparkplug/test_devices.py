@@ -65,7 +65,7 @@ count = 1
 """
 
 STATUS = ["status.link_up", "status.data_age", "status.last_fault", "status.transactions", "status.errors",
-          "status.retries", "status.kind_counter"]
+          "status.retries", "status.kind_counter", "status.state"]
 
 
 def devices() -> tuple[list[LinkDevice], list[Unit[Any, Any]]]:
@@ -82,7 +82,7 @@ def test_metrics_are_the_tags_with_their_datatypes_aliases_and_access() -> None:
                                                SparkplugType.Int16, SparkplugType.Boolean, SparkplugType.Boolean]
     assert all(s.datatype is SparkplugType.UInt16 for s in specs[6:9]) and specs[9].datatype is SparkplugType.UInt32
     # writable: the holding and coil points inside `writable`; inputs and the status block never
-    assert [s.writable for s in specs] == [True, True, False, False, True, True] + [False] * 7
+    assert [s.writable for s in specs] == [True, True, False, False, True, True] + [False] * 8
     assert [s.deadband for s in specs[:4]] == [0.0, 0.0, 0.5, 0.0]
     # aliases: 1 is bdSeq, then every metric of every device, unique across the node
     aliases = [s.alias for s in specs] + [s.alias for s in oven.device.specs]

@@ -32,7 +32,7 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalRead,
     ProtectedTypedLogicalWrite,
 )
-from gateway.unit import Unit, UnitOptions, WriteStep
+from gateway.unit import Source, Unit, UnitOptions, WriteStep
 
 R = TypeVar("R")
 B = TypeVar("B")
@@ -86,14 +86,15 @@ class PcccUnit(Unit[R, B]):
         #: the station's register table of messages it sent (half duplex, ``receive_words``), set by the builder
         self.receive: ReceiveWindow | None = None
 
-    def read_register_bytes(self, table: Table, address: int, count: int) -> bytes:
+    def read_register_bytes(self, table: Table, address: int, count: int, source: Source = Source.SERVE) -> bytes:
         """As :meth:`Unit.read_register_bytes`; the receive window's part from the table (``receive``)."""
         window = self.receive
         if window is None or not window.overlaps(table, address, count):
-            return super().read_register_bytes(table, address, count)
+            return super().read_register_bytes(table, address, count, source)
         now = self._loop_time()
         return b"".join(
-            window.registers(first, n, now) if inside else super(PcccUnit, self).read_register_bytes(table, first, n)
+            window.registers(first, n, now) if inside
+            else super(PcccUnit, self).read_register_bytes(table, first, n, source)
             for first, n, inside in window.split(address, count)
         )
 

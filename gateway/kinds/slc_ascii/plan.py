@@ -17,7 +17,7 @@ input register     0-31          sequencer step counters of 901-932
 input register     66            error bits 84H (high byte) and 85H (low byte)
 input register     67-74         force select table 86H-95H (word at byte 2n)
 input register     129-136       force state table 102H-111H (word at byte 2n)
-input register     1000-1010     status block (see ``STATUS_REGISTERS``), always served
+input register     1000-1011     status block (see ``STATUS_REGISTERS``), always served
 =================  ============  ======================================================  ========
 """
 

@@ -72,7 +72,7 @@ def test_defaults_and_a_valid_range() -> None:
          "Modbus address 65535: start 65530 + 2 x receive_words 4 - 1 = 65537"),
         ({"receive_words": 4, "receive_start": 995},
          "(link[0]).receive_start: the receive range (input 995-1002: 4 words, then their ages) overlaps the "
-         "unit's status block (input 1000-1010)"),
+         "unit's status block (input 1000-1011)"),
         ({"receive_words": 4, "receive_start": 20, "duplex": "full"},
          '(link[0]).receive_words: not used by df1 links with duplex = "full" (a half-duplex station key: on a '
          "full-duplex link the gateway takes no messages from the controller)"),
