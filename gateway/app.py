@@ -17,13 +17,16 @@ from gateway.config import GatewayConfig, TlsConfig, parse_listen
 from gateway.config._common import show
 from gateway.config.link import LinkBase
 from gateway.errors import ConfigError, GatewayError, ModbusExceptionReply
+from gateway.health import Health
+from gateway.http import HttpServer, Routes
 from gateway.kinds import LinkKind, LinkRunner, link_kind, link_kinds
-from gateway.metrics import MetricsServer
+from gateway.metrics import Prometheus
 from gateway.modbus.admission import RolePolicy
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Table
 from gateway.modbus.server import ModbusTcpServer, make_tls_context
 from gateway.reload import ConfigSource, ConfigStatus, LoadedConfig, line_changes, lines_of, restart_needed
 from gateway.sparkplug.driver import SparkplugNode
+from gateway.status import StatusPage
 from gateway.transport import describe_url, set_trace_limits
 from gateway.unit import Unit
 
@@ -205,20 +208,20 @@ class Gateway:
             tls_host, tls_port = parse_listen(modbus.tls.listen)
             self.servers.append(ModbusTcpServer(self.backend, tls_host, tls_port, name="modbus-tls",
                                                 **_tls_options(modbus.tls), **common))
-        self.metrics: MetricsServer | None = None
+        #: the Sparkplug B edge node ([sparkplug]), None when not configured
+        self.sparkplug = SparkplugNode(config.sparkplug, config.link, self.units) if config.sparkplug else None
+        #: the [metrics] listener's rooms, side by side: the status page, /metrics, /healthz (gateway.http)
+        self.status_page = StatusPage(self, config.link, self.config_status)
+        self.metrics: HttpServer | None = None
         if config.metrics is not None:
-            self.metrics = MetricsServer(
-                self,
+            self.metrics = HttpServer(
+                self.http_routes(),
                 config.metrics.listen,
                 allow=list(config.metrics.allow) or None,
                 max_connections=config.metrics.max_connections,
                 log_interval=config.logging.repeat_interval,
-                links=config.link,
-                config=self.config_status,
             )
         self._group: asyncio.TaskGroup | None = None
-        #: the Sparkplug B edge node ([sparkplug]), None when not configured
-        self.sparkplug = SparkplugNode(config.sparkplug, config.link, self.units) if config.sparkplug else None
         self._sparkplug_task: asyncio.Task[None] | None = None
         self._started = asyncio.Event()
         self._reloader: asyncio.Task[None] | None = None
@@ -425,10 +428,19 @@ class Gateway:
                 server.reconfigure(**common)
             elif tls is not None:  # [modbus.tls] removed: the listener runs on as it is till a restart
                 server.reconfigure(**tls, **common)
+        self.status_page.set_links(config.link)
         if self.metrics is not None and config.metrics is not None:
             self.metrics.reconfigure(allow=list(config.metrics.allow) or None,
                                      max_connections=config.metrics.max_connections,
-                                     log_interval=config.logging.repeat_interval, links=config.link)
+                                     log_interval=config.logging.repeat_interval)
+
+    def http_routes(self) -> Routes:
+        """The [metrics] listener's path -> handler table: its rooms side by side (``gateway.http``)."""
+        routes = Routes()
+        self.status_page.add_routes(routes)
+        routes.add("/metrics", Prometheus(self, self.config_status).route)
+        routes.add("/healthz", Health(self).route)
+        return routes
 
     async def __aenter__(self) -> Gateway:
         self._stop = asyncio.Event()

@@ -28,7 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final
 
-__all__ = ["MAX_ADDRESSES", "RepeatLog", "redact_url"]
+__all__ = ["MAX_ADDRESSES", "RepeatLog", "public_error", "redact_url"]
 
 MAX_ADDRESSES: Final = 8
 """Addresses named in one summary line; more are counted as "and N other addresses"."""
@@ -39,6 +39,16 @@ _USERINFO: Final = re.compile(r"(?<=://)[^/@\s?#]*@")
 def redact_url(text: str) -> str:
     """``text`` with any ``user:password@`` after a ``scheme://`` replaced by ``***@``."""
     return _USERINFO.sub("***@", text)
+
+
+#: The longest error text a page or a health answer shows.
+_MAX_ERROR_TEXT: Final = 300
+
+
+def public_error(text: str) -> str:
+    """An error for a page or a health answer: credentials in URLs redacted, length capped."""
+    text = redact_url(text)
+    return text if len(text) <= _MAX_ERROR_TEXT else text[: _MAX_ERROR_TEXT - 3] + "..."
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""HTTP ``/metrics`` (Prometheus text format) and ``/healthz`` for the running gateway.
+"""``GET /metrics``: the running gateway in the Prometheus text format (a room of ``gateway.http``).
 
 The values are read from the live gateway objects at scrape time: a custom collector on a private
 :class:`~prometheus_client.CollectorRegistry` turns the links' and Modbus servers' counters into
@@ -11,81 +11,36 @@ numbers a driver reports itself (``driver.metrics()``: ``link_<key>_total``, ``l
 ``link_<key>_seconds``), per Modbus server (label ``server``), the config file and its reloads
 (``gateway.reload``), and with ``[sparkplug]`` the edge node's session (``gateway.sparkplug.report``).
 
-``/healthz`` answers 200 when every link's verdict is up (``gateway.freshness``: the controller
-answers and its fast-class data is younger than its stale limit, ``stale_limit_seconds``), 503
-otherwise, with a JSON body naming each link's state (no paths, no
-configuration beyond the link names and unit ids).
-
-The same listener serves the status page (``/``) and its JSON API (``/api/...``), read-only:
-:mod:`gateway.status`.
-
-The HTTP side is deliberately tiny: one request per connection (``Connection: close``), ``GET``
-and ``HEAD`` only, HTTP/1.0 and HTTP/1.1 only (others get 505), a bounded request head, timeouts
-on reading and writing, an ``allow`` list of client networks (others are closed at accept, before
-a byte is read) and a cap on concurrent connections (``max_connections``; more are closed at
-once). Refusals are logged: the first of each cause at once, then a count per interval with the
-addresses (:class:`gateway.logutil.RepeatLog`). It is meant for a Prometheus scraper, a container
-health check and a status page that asks once a second, not for heavy browsing.
+Link state and data age are the one verdict's (``gateway.freshness``), read through the declared
+view of the gateway (``gateway.view``), Sparkplug's families included.
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import math
 import re
 from collections.abc import Iterator, Sequence
-from typing import TYPE_CHECKING, Any, Final, Protocol
+from typing import TYPE_CHECKING, Any, Final
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 
-from gateway.config import parse_listen
-from gateway.logutil import RepeatLog
-from gateway.modbus.admission import IPNetwork, format_address, host_allowed, peer_host
+from gateway.http import HttpError, Response
 from gateway.sparkplug.report import families as sparkplug_families
-from gateway.status import JSON_CONTENT_TYPE, StatusPage, public_error
+from gateway.view import GatewayView
 
 if TYPE_CHECKING:
-    from gateway.config.link import LinkBase
     from gateway.modbus.server import ModbusTcpServer
     from gateway.reload import ConfigStatus
     from gateway.unit import Unit
 
-__all__ = ["GatewayView", "MetricsServer", "health"]
+__all__ = ["Prometheus"]
 
 log = logging.getLogger("gateway.metrics")
 
 PREFIX: Final = "slc_gateway_"
-
-_MAX_HEAD: Final = 8192
-"""Largest request head (request line + headers) accepted; larger gets 431."""
-_MAX_CONNECTIONS: Final = 32
-"""Concurrent HTTP connections by default; more are closed at once."""
-_TEXT: Final = "text/plain; charset=utf-8"
-_REASONS: Final = {
-    200: "OK",
-    400: "Bad Request",
-    404: "Not Found",
-    405: "Method Not Allowed",
-    408: "Request Timeout",
-    431: "Request Header Fields Too Large",
-    500: "Internal Server Error",
-    503: "Service Unavailable",
-    505: "HTTP Version Not Supported",
-}
-_REQUEST_LINE: Final = re.compile(rb"([A-Z]{1,16}) (\S{1,2048}) HTTP/(\d)\.(\d)")
-
-
-class GatewayView(Protocol):
-    """What the metrics server reads from the gateway (:class:`gateway.app.Gateway` has it)."""
-
-    @property
-    def units(self) -> Sequence[Unit[Any, Any]]: ...
-
-    @property
-    def servers(self) -> Sequence[ModbusTcpServer]: ...
 
 
 # --------------------------------------------------------------------------------------------
@@ -119,7 +74,7 @@ class _GatewayCollector:
         yield from self._server_families(self._gateway.servers)
         if self._config is not None:
             yield from _config_families(self._config)
-        yield from sparkplug_families(getattr(self._gateway, "sparkplug", None))
+        yield from sparkplug_families(self._gateway.sparkplug)
 
     @staticmethod
     def _link_families(units: Sequence[Unit[Any, Any]], now: float) -> list[Metric]:
@@ -340,215 +295,18 @@ def _driver_families(units: Sequence[Unit[Any, Any]], taken: set[str]) -> list[M
     return list(families.values())
 
 
-# --------------------------------------------------------------------------------------------
-# Health
+class Prometheus:
+    """The ``/metrics`` room of the HTTP listener (``gateway.http``): a private registry with the
+    gateway's collector (module docstring)."""
 
-
-def health(gateway: GatewayView, now: float) -> tuple[bool, dict[str, object]]:
-    """``(healthy, body)`` of ``/healthz`` at loop time ``now``."""
-    links: dict[str, object] = {}
-    healthy = True
-    for unit in gateway.units:
-        verdict = unit.verdict(now)
-        age = verdict.age
-        healthy = healthy and verdict.fresh
-        links[unit.name] = {
-            "unit": unit.unit_id,
-            "up": verdict.up,
-            "fresh": verdict.fresh,
-            "age_seconds": round(age, 3) if math.isfinite(age) else None,
-            "last_error": public_error(unit.driver.last_error),
-        }
-    return healthy, {"status": "ok" if healthy else "degraded", "links": links}
-
-
-# --------------------------------------------------------------------------------------------
-# HTTP
-
-
-class _HttpError(Exception):
-    def __init__(self, status: int, message: str = "") -> None:
-        super().__init__(message or _REASONS[status])
-        self.status = status
-
-
-class MetricsServer:
-    """The ``[metrics]`` listener: ``/metrics``, ``/healthz`` and the status page over HTTP/1.1, one
-    request per connection.
-
-    ``request_timeout``: seconds a client has to send its request head, and again to take the reply.
-    ``links``: the ``[[link]]`` tables of the units, for the status page (``gateway.status.StatusPage``).
-    """
-
-    def __init__(
-        self,
-        gateway: GatewayView,
-        listen: str,
-        *,
-        request_timeout: float = 5.0,
-        allow: Sequence[IPNetwork] | None = None,
-        max_connections: int = _MAX_CONNECTIONS,
-        log_interval: float = 60.0,
-        links: Sequence[LinkBase] = (),
-        config: ConfigStatus | None = None,
-    ) -> None:
-        self.gateway = gateway
-        self.status = StatusPage(gateway, links, config)
-        self.host, self._requested_port = parse_listen(listen)
-        self.request_timeout = request_timeout
-        self.refused = 0
-        self.repeat_log = RepeatLog(log, log_interval)
-        self.reconfigure(allow=allow, max_connections=max_connections, log_interval=log_interval, links=links)
+    def __init__(self, gateway: GatewayView, config: ConfigStatus | None = None) -> None:
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(_GatewayCollector(gateway, config))
-        self._server: asyncio.Server | None = None
-        self._handlers: set[asyncio.Task[None]] = set()
 
-    def reconfigure(self, *, allow: Sequence[IPNetwork] | None, max_connections: int, log_interval: float,
-                    links: Sequence[LinkBase]) -> None:
-        """Settings for the requests from now on (a config reload): the ``allow`` list, the connection
-        cap, and the links the status page describes."""
-        self.allow = None if allow is None else tuple(allow)
-        self.max_connections = max_connections
-        self.repeat_log.interval = log_interval
-        self.status.set_links(links)
-
-    @property
-    def port(self) -> int:
-        """The bound TCP port (the actual one when 0 was asked for)."""
-        if self._server is None or not self._server.sockets:
-            raise RuntimeError("metrics: server not started")
-        port: int = self._server.sockets[0].getsockname()[1]
-        return port
-
-    async def start(self) -> None:
-        """Bind and start answering."""
-        if self._server is not None:
-            raise RuntimeError("metrics: server already started")
-        self._server = await asyncio.start_server(
-            self._handle, self.host, self._requested_port, limit=_MAX_HEAD, reuse_address=True
-        )
-        log.info(
-            "metrics: serving /metrics, /healthz and the status page on http://%s",
-            ", ".join(format_address(sock.getsockname()) for sock in self._server.sockets),
-        )
-
-    async def close(self) -> None:
-        """Stop accepting and end the connections still open (idempotent)."""
-        server, self._server = self._server, None
-        if server is None:
-            return
-        server.close()
-        for task in list(self._handlers):
-            task.cancel()
-        if self._handlers:
-            await asyncio.wait(set(self._handlers))
-        await server.wait_closed()
-        self.repeat_log.flush_all()
-
-    # -- one connection ----------------------------------------------------------------
-
-    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        peer = writer.get_extra_info("peername")
-        host = peer_host(peer)
-        reason = None
-        if self.allow is not None and not host_allowed(host, self.allow):
-            reason = "peer not in the allowed networks"
-        elif task is None or len(self._handlers) >= self.max_connections:
-            reason = f"already {self.max_connections} connections (max_connections)"
-        if reason is not None:
-            self.refused += 1
-            self.repeat_log.log(
-                logging.WARNING,
-                f"metrics: connection refused, {reason}",
-                host,
-                "metrics: refused connection from %s: %s",
-                format_address(peer),
-                reason,
-            )
-            writer.transport.abort()
-            return
-        assert task is not None
-        self._handlers.add(task)
+    def route(self, path: str, query: str) -> Response:
         try:
-            await self._exchange(reader, writer)
-        except (ConnectionError, TimeoutError):
-            pass
-        finally:
-            self._handlers.discard(task)
-            writer.transport.abort()  # a no-op after a clean close
-
-    async def _exchange(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        head_only = False
-        try:
-            async with asyncio.timeout(self.request_timeout):
-                head = await _read_head(reader)
-            method, path = _parse_head(head)
-            head_only = method == "HEAD"
-            status, content_type, body, extra = self._route(method, path)
-        except _HttpError as error:
-            status, content_type, body = error.status, _TEXT, f"{error}\n".encode()
-            extra = [("Allow", "GET, HEAD")] if error.status == 405 else []
-        except TimeoutError:
-            status, content_type, body, extra = 408, _TEXT, b"request timeout\n", []
-        headers = [
-            ("Content-Type", content_type),
-            ("Content-Length", str(len(body))),
-            ("Cache-Control", "no-store"),
-            ("Connection", "close"),
-            *extra,
-        ]
-        lines = [f"HTTP/1.1 {status} {_REASONS[status]}", *(f"{k}: {v}" for k, v in headers), "", ""]
-        writer.write("\r\n".join(lines).encode("latin-1"))
-        if not head_only:
-            writer.write(body)
-        async with asyncio.timeout(self.request_timeout):
-            await writer.drain()
-            writer.close()
-            await writer.wait_closed()
-
-    def _route(self, method: str, target: str) -> tuple[int, str, bytes, list[tuple[str, str]]]:
-        path, _, query = target.partition("?")
-        if path not in ("/metrics", "/healthz") and not self.status.handles(path):
-            raise _HttpError(404)
-        if method not in ("GET", "HEAD"):
-            raise _HttpError(405)
-        if path not in ("/metrics", "/healthz"):
-            try:
-                return self.status.route(path, query)
-            except Exception:
-                log.exception("metrics: the status page failed")
-                raise _HttpError(500) from None
-        if path == "/metrics":
-            try:
-                body = generate_latest(self.registry)
-            except Exception:
-                log.exception("metrics: collecting failed")
-                raise _HttpError(500) from None
-            return 200, CONTENT_TYPE_LATEST, body, []
-        healthy, document = health(self.gateway, asyncio.get_running_loop().time())
-        body = (json.dumps(document, separators=(",", ":")) + "\n").encode()
-        return (200 if healthy else 503), JSON_CONTENT_TYPE, body, []
-
-
-async def _read_head(reader: asyncio.StreamReader) -> bytes:
-    """The request line and headers, up to the blank line (the reader's limit bounds the size)."""
-    try:
-        return await reader.readuntil(b"\r\n\r\n")
-    except asyncio.LimitOverrunError:
-        raise _HttpError(431) from None
-    except asyncio.IncompleteReadError:
-        raise ConnectionResetError("client closed before the end of its request") from None
-
-
-def _parse_head(head: bytes) -> tuple[str, str]:
-    """``(method, target)`` of a request head: the target is the path with its query string."""
-    request_line = head.split(b"\r\n", 1)[0]
-    match = _REQUEST_LINE.fullmatch(request_line)
-    if match is None:
-        raise _HttpError(400, "malformed request line")
-    method, target, major, minor = match.groups()
-    if major != b"1" or minor not in (b"0", b"1"):
-        raise _HttpError(505)
-    return method.decode("ascii"), target.decode("ascii", "replace")
+            body = generate_latest(self.registry)
+        except Exception:
+            log.exception("metrics: collecting failed")
+            raise HttpError(500) from None
+        return 200, CONTENT_TYPE_LATEST, body, []

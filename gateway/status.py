@@ -1,4 +1,4 @@
-"""The status page and its JSON API, served on the ``[metrics]`` listener (``gateway.metrics``).
+"""The status page and its JSON API, a room of the ``[metrics]`` listener (``gateway.http``).
 
 Read-only: nothing here writes to a controller; writes stay on Modbus, where the access rules live.
 
@@ -33,42 +33,37 @@ import re
 import time
 from collections.abc import Mapping, Sequence
 from importlib import resources
-from typing import TYPE_CHECKING, Any, Final, Protocol
+from typing import TYPE_CHECKING, Any, Final
 from urllib.parse import parse_qs
 
 from gateway import __version__
 from gateway.errors import ModbusExceptionReply
 from gateway.freshness import Source
+from gateway.http import JSON_CONTENT_TYPE, Response, Routes
 from gateway.kinds import link_kind
-from gateway.logutil import redact_url
+from gateway.logutil import public_error
 from gateway.modbus.mapping import Table
 from gateway.sparkplug.report import status as sparkplug_status
 from gateway.tags import Tag, link_tags
 from gateway.transport import describe_url
+from gateway.view import GatewayView
 
 if TYPE_CHECKING:
     from gateway.config.link import LinkBase
-    from gateway.modbus.server import ModbusTcpServer
     from gateway.reload import ConfigStatus
     from gateway.unit import Unit
 
 __all__ = [
-    "JSON_CONTENT_TYPE",
     "LINE_QUALITY",
     "MAX_COUNT",
     "StatusPage",
-    "StatusView",
     "line_quality",
-    "public_error",
     "schedule_document",
 ]
 
 #: The most values one register view request returns (a Modbus read of registers holds 125).
 MAX_COUNT: Final = 125
 _DEFAULT_COUNT: Final = 16
-#: The Content-Type of the JSON answers of the status API and of /healthz.
-JSON_CONTENT_TYPE: Final = "application/json"
-_MAX_ERROR_TEXT: Final = 300
 _UNIT_PATH: Final = re.compile(r"/api/units/([^/]{1,16})/([^/]{1,16})")
 _STATES: Final = {
     ModbusExceptionReply.GATEWAY_TARGET_FAILED: "stale",
@@ -92,17 +87,6 @@ _PAGE_HEADERS: Final = [
 #: the line-quality numbers of a row (``gateway.link_health.LineQuality``), in the page's column order
 LINE_QUALITY: Final = ("check_errors", "naks", "timeouts", "retransmits", "resyncs")
 
-Response = tuple[int, str, bytes, list[tuple[str, str]]]
-
-
-class StatusView(Protocol):
-    """What the page reads from the gateway (:class:`gateway.app.Gateway` has it)."""
-
-    @property
-    def units(self) -> Sequence[Unit[Any, Any]]: ...
-
-    @property
-    def servers(self) -> Sequence[ModbusTcpServer]: ...
 
 
 def line_quality(unit: Unit[Any, Any]) -> dict[str, int | None]:
@@ -136,12 +120,6 @@ def schedule_document(unit: Unit[Any, Any], now: float) -> dict[str, object] | N
     }
 
 
-def public_error(text: str) -> str:
-    """An error for a page or a health answer: credentials in URLs redacted, length capped."""
-    text = redact_url(text)
-    return text if len(text) <= _MAX_ERROR_TEXT else text[: _MAX_ERROR_TEXT - 3] + "..."
-
-
 class _BadRequest(Exception):
     def __init__(self, status: int, message: str) -> None:
         super().__init__(message)
@@ -159,7 +137,8 @@ class StatusPage:
     the register view's tag names (without them the page shows neither).
     """
 
-    def __init__(self, gateway: StatusView, links: Sequence[LinkBase] = (), config: ConfigStatus | None = None) -> None:
+    def __init__(self, gateway: GatewayView, links: Sequence[LinkBase] = (),
+                 config: ConfigStatus | None = None) -> None:
         self.gateway = gateway
         self.config = config
         self._files = {path: resources.files("gateway").joinpath("web", name).read_bytes()
@@ -171,11 +150,14 @@ class StatusPage:
         self._links = {link.name: link for link in links}
         self._tags: dict[str, dict[tuple[Table, int], Tag]] = {}
 
-    def handles(self, path: str) -> bool:
-        return path in _FILES or path == "/api/status" or _UNIT_PATH.fullmatch(path) is not None
+    def add_routes(self, routes: Routes) -> None:
+        """Its paths in the HTTP listener's table (``gateway.http``): the page's files and the API."""
+        for path in (*_FILES, "/api/status"):
+            routes.add(path, self.route)
+        routes.add(_UNIT_PATH, self.route)
 
     def route(self, path: str, query: str) -> Response:
-        """The response to a GET of ``path`` (one :meth:`handles` accepts)."""
+        """The response to a GET of ``path`` (one of those :meth:`add_routes` gave the listener)."""
         if path in _FILES:
             return 200, _FILES[path][1], self._files[path], list(_PAGE_HEADERS)
         loop_now, wall_now = asyncio.get_running_loop().time(), time.time()
@@ -244,7 +226,7 @@ class StatusPage:
         } for server in self.gateway.servers]
         document: dict[str, object] = {"version": __version__, "time": round(wall, 3), "links": rows,
                                        "up": up_count, "servers": servers,
-                                       "sparkplug": sparkplug_status(getattr(self.gateway, "sparkplug", None))}
+                                       "sparkplug": sparkplug_status(self.gateway.sparkplug)}
         if self.config is not None:
             document["config"] = self.config.document()
         return document

@@ -28,7 +28,7 @@ from test_register_image import FakeDriver, MemoryUnit
 from gateway.errors import ModbusExceptionReply
 from gateway.freshness import LinkState, Offline, Source
 from gateway.link_health import LineQuality
-from gateway.metrics import health
+from gateway.health import health
 from gateway.modbus.mapping import Table
 from gateway.status import StatusPage
 
@@ -47,6 +47,8 @@ class Reference:
         self.read_at: dict[int, float] = {}
         self.limit: dict[int, float] = {}
         self.interval: dict[int, float] = {}
+        #: the blocks read since the last loss (a refresh interval counts from their last read)
+        self.since_loss: set[int] = set()
         self.expired: set[int] = set()
         self.demanded_until = {FAST: -math.inf, SLOW: -math.inf}
         self.lost_at: float | None = None
@@ -61,15 +63,17 @@ class Reference:
             self.lost_at = None
         demanded = self.demanded_until[block] > started
         self.limit[block] = self.stale_after + (self.period[block] if demanded else self.background[block])
-        if block in self.read_at:
+        if block in self.since_loss:
             self.interval[block] = now - self.read_at[block]
         self.read_at[block] = now
+        self.since_loss.add(block)
         self.expired.discard(block)
 
     def lose(self, now: float) -> None:
         if self.lost_at is None:
             self.lost_at = now
         self.interval.clear()  # an outage is not a refresh period
+        self.since_loss.clear()
 
     def fresh(self, block: int, now: float) -> bool:
         if block not in self.read_at or block in self.expired:
@@ -117,7 +121,7 @@ def test_every_face_says_what_the_rule_says(events: list[tuple[str, int, float]]
                       background_interval=background, demand_hold=hold, driver=driver)
     assert unit.schedule is not None
     ref = Reference(stale_after, fast, slow, background)
-    view: Any = SimpleNamespace(units=[unit], servers=[])
+    view: Any = SimpleNamespace(units=[unit], servers=[], sparkplug=None)
     page = StatusPage(view)
     now = 100.0
     for kind, block, step in events:

@@ -19,7 +19,7 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
 from gateway.config import parse_config
-from gateway.metrics import MetricsServer
+from gateway.http import HttpServer
 from gateway.modbus.mapping import STATUS_BASE
 
 HOST = "127.0.0.1"
@@ -284,8 +284,8 @@ async def test_allow_list_refuses_other_networks_and_logs_once_per_interval(
     gateway: Gateway, caplog: pytest.LogCaptureFixture
 ) -> None:
     """Issue 14: the metrics listener had no allow list."""
-    caplog.set_level(logging.WARNING, logger="gateway.metrics")
-    server = MetricsServer(gateway, "127.0.0.1:0", allow=[ipaddress.ip_network("10.0.0.0/8")], log_interval=0.5)
+    caplog.set_level(logging.WARNING, logger="gateway.http")
+    server = HttpServer(gateway.http_routes(), "127.0.0.1:0", allow=[ipaddress.ip_network("10.0.0.0/8")], log_interval=0.5)
     await server.start()
     try:
         for _ in range(4):
@@ -302,8 +302,8 @@ async def test_allow_list_refuses_other_networks_and_logs_once_per_interval(
 
 async def test_connection_cap_is_logged(gateway: Gateway, caplog: pytest.LogCaptureFixture) -> None:
     """Issue 14: connections over the cap were closed silently."""
-    caplog.set_level(logging.WARNING, logger="gateway.metrics")
-    server = MetricsServer(gateway, "127.0.0.1:0", max_connections=2)
+    caplog.set_level(logging.WARNING, logger="gateway.http")
+    server = HttpServer(gateway.http_routes(), "127.0.0.1:0", max_connections=2)
     await server.start()
     held = []
     try:
@@ -329,7 +329,7 @@ async def test_head_gives_headers_only(gateway: Gateway) -> None:
 
 
 async def test_a_silent_client_times_out_and_does_not_block_others(gateway: Gateway) -> None:
-    server = MetricsServer(gateway, "127.0.0.1:0", request_timeout=0.3)
+    server = HttpServer(gateway.http_routes(), "127.0.0.1:0", request_timeout=0.3)
     await server.start()
     try:
         reader, writer = await asyncio.open_connection(HOST, server.port)
@@ -345,7 +345,7 @@ async def test_a_silent_client_times_out_and_does_not_block_others(gateway: Gate
 
 
 async def test_close_ends_open_connections_and_stops_listening(gateway: Gateway) -> None:
-    server = MetricsServer(gateway, "127.0.0.1:0")
+    server = HttpServer(gateway.http_routes(), "127.0.0.1:0")
     await server.start()
     port = server.port
     reader, writer = await asyncio.open_connection(HOST, port)
