@@ -2,7 +2,7 @@
 # The hand-made one-line bugs of docs/develop/mutation.md ("The one-line bugs put in by hand"), put back one
 # at a time in a copy of the tree: each must make the tests of its own module fail (exit 1).
 # run NAME TESTS FILE OLD NEW [FILE OLD NEW ...]: every replacement is made (the first occurrence).
-# ONLY=REGEX runs only the bugs whose name matches (e.g. ONLY='^[1-6] ').
+# ONLY=REGEX runs only the bugs whose name matches (e.g. ONLY='^[1-6] '); PY=python to run (default .venv's).
 set -u
 SRC=$(cd "$(dirname "$0")/.." && pwd)
 SLC_TESTS="tests/protocols/slc_ascii/test_transaction.py tests/test_sans_io.py tests/kinds/slc_ascii/test_driver.py tests/protocols/slc_ascii/test_transaction_safety.py tests/protocols/slc_ascii/test_transaction_state_machine.py tests/protocols/slc_ascii/test_transaction_read_own.py"
@@ -23,7 +23,7 @@ PY
     then echo "$name: NOT APPLIED: the line is no longer in $1 (update this script)"; rm -rf $d; return; fi
     shift 3
   done
-  (cd $d && PYTHONPATH=$d timeout 900 $SRC/.venv/bin/python -m pytest -q -x -p no:cacheprovider $tests > $d/out.txt 2>&1); rc=$?
+  (cd $d && PYTHONPATH=$d timeout 900 ${PY:-$SRC/.venv/bin/python} -m pytest -q -x -p no:cacheprovider $tests > $d/out.txt 2>&1); rc=$?
   echo "$name: exit $rc $(tail -1 $d/out.txt)"; rm -rf $d
 }
 run "handler >= 0x10000" "$H_TESTS" gateway/modbus/handler.py "if address + count > 0x10000:" "if address + count >= 0x10000:"
@@ -45,3 +45,8 @@ run "5 SLC: the same, _msg_id given an initial value" "$SLC_TESTS" gateway/proto
 run "6 unit: silent-link limit min -> max" "$UNIT_TESTS" gateway/unit.py "stale_after + min(self.schedule.period, default=0.0)" "stale_after + max(self.schedule.period, default=0.0)"
 run "6 SLC plan: presets not masked" "$SLC_PLAN_TESTS" gateway/kinds/slc_ascii/plan.py "plan.holding[timers + n] = word(preset, U16_BE_MASKED," "plan.holding[timers + n] = word(preset, U16_BE,"
 run "6 target: float word order" "$TARGET_TESTS" gateway/kinds/df1/target/unit.py 'low_first = entry.word_order == "low-first"' 'low_first = entry.word_order != "low-first"'
+# issue 42's harms: each fails the tests of its own module
+LINK_HEALTH_TESTS="tests/test_link_health.py"
+run "42.1 link_health: failures counted across answers" "$LINK_HEALTH_TESTS" gateway/link_health.py "            self._failures_in_row = 0
+            self._last_ok = now" "            self._last_ok = now"
+run "42.2 link_health: never answered counts as available" "$LINK_HEALTH_TESTS" gateway/link_health.py "return self.connected and self._state is True" "return self.connected and self._state is not False"
