@@ -50,3 +50,8 @@ LINK_HEALTH_TESTS="tests/test_link_health.py"
 run "42.1 link_health: failures counted across answers" "$LINK_HEALTH_TESTS" gateway/link_health.py "            self._failures_in_row = 0
             self._last_ok = now" "            self._last_ok = now"
 run "42.2 link_health: never answered counts as available" "$LINK_HEALTH_TESTS" gateway/link_health.py "return self.connected and self._state is True" "return self.connected and self._state is not False"
+TAGS_TESTS="tests/test_export_tags.py"
+run "42.9 tags: int32 exported as DWord" "$TAGS_TESTS" gateway/tags.py '"int32": "Long"' '"int32": "DWord"'
+run "42.10 tags: a 32-bit tag half outside writable read-write" "$TAGS_TESTS" gateway/tags.py "width = 2 if word_order else 1" "width = 1"
+PAYLOAD_TESTS="tests/sparkplug/test_payload.py tests/sparkplug/test_node.py"
+run "42.8 payload: the sign check ignores signed" "$PAYLOAD_TESTS" gateway/sparkplug/payload.py "return value - (1 << bits) if signed and value >> (bits - 1) else value" "return value - (1 << bits) if value >> (bits - 1) else value"
