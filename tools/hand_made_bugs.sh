@@ -55,3 +55,9 @@ run "42.9 tags: int32 exported as DWord" "$TAGS_TESTS" gateway/tags.py '"int32":
 run "42.10 tags: a 32-bit tag half outside writable read-write" "$TAGS_TESTS" gateway/tags.py "width = 2 if word_order else 1" "width = 1"
 PAYLOAD_TESTS="tests/sparkplug/test_payload.py tests/sparkplug/test_node.py"
 run "42.8 payload: the sign check ignores signed" "$PAYLOAD_TESTS" gateway/sparkplug/payload.py "return value - (1 << bits) if signed and value >> (bits - 1) else value" "return value - (1 << bits) if value >> (bits - 1) else value"
+POLLER_TESTS="tests/test_poller_failures.py tests/test_poller_link_state.py tests/test_poller_availability.py tests/test_poller_freshness.py tests/test_poller_spread.py"
+run "42.3 poller: a link down by timeouts not lost" "$POLLER_TESTS" gateway/poller.py "return self._responding is None or self._responding()" "return True"
+run "42.4 poller: a refused block never cleared" "$POLLER_TESTS" gateway/poller.py "            del self.refused[index]
+" "            pass
+"
+run "42.5 poller: no down_wait" "$POLLER_TESTS" gateway/poller.py "await asyncio.sleep(self._down_wait)" "await asyncio.sleep(0)"
