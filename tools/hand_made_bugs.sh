@@ -61,3 +61,5 @@ run "42.4 poller: a refused block never cleared" "$POLLER_TESTS" gateway/poller.
 " "            pass
 "
 run "42.5 poller: no down_wait" "$POLLER_TESTS" gateway/poller.py "await asyncio.sleep(self._down_wait)" "await asyncio.sleep(0)"
+CONNECTION_TESTS="tests/modbus/test_connection.py tests/modbus/test_server.py"
+run "42.6 connection: a later request not held behind a waiting read" "$CONNECTION_TESTS" gateway/modbus/connection.py "                self._held = True" "                self._held = False"
