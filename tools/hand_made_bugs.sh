@@ -64,3 +64,6 @@ run "42.5 poller: no down_wait" "$POLLER_TESTS" gateway/poller.py "await asyncio
 CONNECTION_TESTS="tests/modbus/test_connection.py tests/modbus/test_server.py"
 run "42.6 connection: a later request not held behind a waiting read" "$CONNECTION_TESTS" gateway/modbus/connection.py "                self._held = True" "                self._held = False"
 run "42.13 SLC driver: a port write that fails leaves its transaction running" "$SLC_TESTS" gateway/kinds/slc_ascii/driver.py "                self.session.connected()  # not sent: the transaction ends here, and the next one resyncs" "                pass"
+RELOAD_TESTS="tests/test_reload_keys.py tests/test_reload_plan.py"
+run "42.11 reload: a changed TLS listen address counted as live" "$RELOAD_TESTS" gateway/reload.py '"modbus.tls": frozenset({"cert",' '"modbus.tls": frozenset({"listen", "cert",'
+run "42.11 reload: a key in LIVE_KEYS without its handler" "$RELOAD_TESTS" gateway/reload.py '"metrics": frozenset({"allow", "max_connections"}),' '"metrics": frozenset({"allow", "max_connections", "listen"}),'
