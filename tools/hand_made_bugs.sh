@@ -67,3 +67,7 @@ run "42.13 SLC driver: a port write that fails leaves its transaction running" "
 RELOAD_TESTS="tests/test_reload_keys.py tests/test_reload_plan.py"
 run "42.11 reload: a changed TLS listen address counted as live" "$RELOAD_TESTS" gateway/reload.py '"modbus.tls": frozenset({"cert",' '"modbus.tls": frozenset({"listen", "cert",'
 run "42.11 reload: a key in LIVE_KEYS without its handler" "$RELOAD_TESTS" gateway/reload.py '"metrics": frozenset({"allow", "max_connections"}),' '"metrics": frozenset({"allow", "max_connections", "listen"}),'
+APP_RELOAD_TESTS="tests/e2e/test_sparkplug_reload.py tests/e2e/test_reload.py"
+run "42.12 app: a reload that only removes links keeps the Sparkplug session" "$APP_RELOAD_TESTS" gateway/app.py "        if changes.started or changes.stopped:
+            await self._renew_sparkplug()" "        if changes.started:
+            await self._renew_sparkplug()"
