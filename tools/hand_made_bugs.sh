@@ -71,3 +71,7 @@ APP_RELOAD_TESTS="tests/e2e/test_sparkplug_reload.py tests/e2e/test_reload.py"
 run "42.12 app: a reload that only removes links keeps the Sparkplug session" "$APP_RELOAD_TESTS" gateway/app.py "        if changes.started or changes.stopped:
             await self._renew_sparkplug()" "        if changes.started:
             await self._renew_sparkplug()"
+SPARKPLUG_DRIVER_TESTS="tests/sparkplug/test_driver.py"
+run "42.7 sparkplug driver: a lost session's outbox not drained" "$SPARKPLUG_DRIVER_TESTS" gateway/sparkplug/driver.py "                self._drain_outbox()
+" "                pass
+"
