@@ -16,7 +16,7 @@ from gateway.app import Gateway
 from gateway.config import load_config, parse_config
 from gateway.kinds import link_kind
 from gateway.modbus.mapping import STATUS_BASE, Plan, Table
-from gateway.tags import CSV_HEADER, KEPWARE_HEADER, config_tags, link_tags, reference, render
+from gateway.tags import CSV_HEADER, KEPWARE_HEADER, config_tags, kepware_rows, link_tags, reference, render
 from tests.cli_support import cli, fails, ok
 from tests.e2e.modbus_support import connect, exception_code
 
@@ -375,3 +375,67 @@ def test_kepware_warns_of_a_unit_whose_32_bit_values_mix_word_orders(config_file
     records = {record["Tag Name"]: record for record in kepware_file(out / "unit-3.csv")}
     assert "reads wrong" in records["press_3.F8_3"]["Description"]
     assert "reads wrong" not in records["press_3.F8_0"]["Description"]
+
+
+# --- the type and access of 32-bit values (issue 42) ------------------------------------------------
+
+TARGET_LONGS = """
+[[link]]
+name = "plc"
+protocol = "df1"
+role = "target"
+port = "socket://127.0.0.1:9"
+station = 1
+unit = 7
+
+[[link.file]]
+file = 9
+type = "L"
+elements = 2
+start = 60
+"""
+
+
+def test_a_signed_32_bit_value_is_a_kepware_long_and_an_unsigned_one_a_dword() -> None:
+    """Kepware's Long is signed, DWord unsigned: an L element as DWord reads -1 as 4294967295."""
+    (target,) = parse_config(TARGET_LONGS).link
+    tags = link_tags(target)
+    rows = {row[0]: row for row in kepware_rows(tags)}
+    assert [tag.type for tag in tags if tag.name.startswith("plc/L9:")] == ["int32", "int32"]
+    assert rows["plc.L9_0"][1:3] == ("400061", "Long")
+    assert rows["plc.L9_1"][1:3] == ("400063", "Long")
+    assert rows["plc.status_transactions"][1:3] == ("301004", "DWord")  # a counter: unsigned
+
+
+FLOATS_WRITABLE = """
+[[link]]
+name = "oven"
+protocol = "df1"
+port = "sim://slc504"
+unit = 3
+writable = ["holding:{first}-{last}"]
+
+[[link.map]]
+table = "holding"
+start = 200
+address = "F8:0"
+count = 3
+type = "float32"
+"""
+
+
+@pytest.mark.parametrize(("first", "last", "access"), [
+    (200, 205, ["read-write", "read-write", "read-write"]),
+    (200, 202, ["read-write", "read", "read"]),  # F8:1 is 202-203: its second half is outside
+    (201, 205, ["read", "read-write", "read-write"]),  # F8:0 is 200-201: its first half is outside
+    (201, 202, ["read", "read", "read"]),  # one half of F8:0 and one of F8:1: neither whole
+])
+def test_a_32_bit_value_is_read_write_only_when_writable_holds_both_its_registers(
+        first: int, last: int, access: list[str]) -> None:
+    """A write of one half of a float is refused (one range must hold the whole write), so a tag with
+    a half outside ``writable`` is read-only in every format: SCADA must not offer a write that always fails."""
+    (oven,) = parse_config(FLOATS_WRITABLE.format(first=first, last=last)).link
+    tags = {tag.name: tag for tag in link_tags(oven)}
+    assert [tags[f"oven/F8:{n}"].access for n in range(3)] == access
+    kepware = {row[0]: row[4] for row in kepware_rows(list(tags.values()))}
+    assert [kepware[f"oven.F8_{n}"] for n in range(3)] == ["RW" if a == "read-write" else "RO" for a in access]

@@ -2,7 +2,7 @@
 # The hand-made one-line bugs of docs/develop/mutation.md ("The one-line bugs put in by hand"), put back one
 # at a time in a copy of the tree: each must make the tests of its own module fail (exit 1).
 # run NAME TESTS FILE OLD NEW [FILE OLD NEW ...]: every replacement is made (the first occurrence).
-# ONLY=REGEX runs only the bugs whose name matches (e.g. ONLY='^[1-6] ').
+# ONLY=REGEX runs only the bugs whose name matches (e.g. ONLY='^[1-6] '); PY=python to run (default .venv's).
 set -u
 SRC=$(cd "$(dirname "$0")/.." && pwd)
 SLC_TESTS="tests/protocols/slc_ascii/test_transaction.py tests/test_sans_io.py tests/kinds/slc_ascii/test_driver.py tests/protocols/slc_ascii/test_transaction_safety.py tests/protocols/slc_ascii/test_transaction_state_machine.py tests/protocols/slc_ascii/test_transaction_read_own.py"
@@ -23,7 +23,7 @@ PY
     then echo "$name: NOT APPLIED: the line is no longer in $1 (update this script)"; rm -rf $d; return; fi
     shift 3
   done
-  (cd $d && PYTHONPATH=$d timeout 900 $SRC/.venv/bin/python -m pytest -q -x -p no:cacheprovider $tests > $d/out.txt 2>&1); rc=$?
+  (cd $d && PYTHONPATH=$d timeout 900 ${PY:-$SRC/.venv/bin/python} -m pytest -q -x -p no:cacheprovider $tests > $d/out.txt 2>&1); rc=$?
   echo "$name: exit $rc $(tail -1 $d/out.txt)"; rm -rf $d
 }
 run "handler >= 0x10000" "$H_TESTS" gateway/modbus/handler.py "if address + count > 0x10000:" "if address + count >= 0x10000:"
@@ -45,3 +45,33 @@ run "5 SLC: the same, _msg_id given an initial value" "$SLC_TESTS" gateway/proto
 run "6 unit: silent-link limit min -> max" "$UNIT_TESTS" gateway/unit.py "stale_after + min(self.schedule.period, default=0.0)" "stale_after + max(self.schedule.period, default=0.0)"
 run "6 SLC plan: presets not masked" "$SLC_PLAN_TESTS" gateway/kinds/slc_ascii/plan.py "plan.holding[timers + n] = word(preset, U16_BE_MASKED," "plan.holding[timers + n] = word(preset, U16_BE,"
 run "6 target: float word order" "$TARGET_TESTS" gateway/kinds/df1/target/unit.py 'low_first = entry.word_order == "low-first"' 'low_first = entry.word_order != "low-first"'
+# issue 42's harms: each fails the tests of its own module
+LINK_HEALTH_TESTS="tests/test_link_health.py"
+run "42.1 link_health: failures counted across answers" "$LINK_HEALTH_TESTS" gateway/link_health.py "            self._failures_in_row = 0
+            self._last_ok = now" "            self._last_ok = now"
+run "42.2 link_health: never answered counts as available" "$LINK_HEALTH_TESTS" gateway/link_health.py "return self.connected and self._state is True" "return self.connected and self._state is not False"
+TAGS_TESTS="tests/test_export_tags.py"
+run "42.9 tags: int32 exported as DWord" "$TAGS_TESTS" gateway/tags.py '"int32": "Long"' '"int32": "DWord"'
+run "42.10 tags: a 32-bit tag half outside writable read-write" "$TAGS_TESTS" gateway/tags.py "width = 2 if word_order else 1" "width = 1"
+PAYLOAD_TESTS="tests/sparkplug/test_payload.py tests/sparkplug/test_node.py"
+run "42.8 payload: the sign check ignores signed" "$PAYLOAD_TESTS" gateway/sparkplug/payload.py "return value - (1 << bits) if signed and value >> (bits - 1) else value" "return value - (1 << bits) if value >> (bits - 1) else value"
+POLLER_TESTS="tests/test_poller_failures.py tests/test_poller_link_state.py tests/test_poller_availability.py tests/test_poller_freshness.py tests/test_poller_spread.py"
+run "42.3 poller: a link down by timeouts not lost" "$POLLER_TESTS" gateway/poller.py "return self._responding is None or self._responding()" "return True"
+run "42.4 poller: a refused block never cleared" "$POLLER_TESTS" gateway/poller.py "            del self.refused[index]
+" "            pass
+"
+run "42.5 poller: no down_wait" "$POLLER_TESTS" gateway/poller.py "await asyncio.sleep(self._down_wait)" "await asyncio.sleep(0)"
+CONNECTION_TESTS="tests/modbus/test_connection.py tests/modbus/test_server.py"
+run "42.6 connection: a later request not held behind a waiting read" "$CONNECTION_TESTS" gateway/modbus/connection.py "                self._held = True" "                self._held = False"
+run "42.13 SLC driver: a port write that fails leaves its transaction running" "$SLC_TESTS" gateway/kinds/slc_ascii/driver.py "                self.session.connected()  # not sent: the transaction ends here, and the next one resyncs" "                pass"
+RELOAD_TESTS="tests/test_reload_keys.py tests/test_reload_plan.py"
+run "42.11 reload: a changed TLS listen address counted as live" "$RELOAD_TESTS" gateway/reload.py '"modbus.tls": frozenset({"cert",' '"modbus.tls": frozenset({"listen", "cert",'
+run "42.11 reload: a key in LIVE_KEYS without its handler" "$RELOAD_TESTS" gateway/reload.py '"metrics": frozenset({"allow", "max_connections"}),' '"metrics": frozenset({"allow", "max_connections", "listen"}),'
+APP_RELOAD_TESTS="tests/e2e/test_sparkplug_reload.py tests/e2e/test_reload.py"
+run "42.12 app: a reload that only removes links keeps the Sparkplug session" "$APP_RELOAD_TESTS" gateway/app.py "        if changes.started or changes.stopped:
+            await self._renew_sparkplug()" "        if changes.started:
+            await self._renew_sparkplug()"
+SPARKPLUG_DRIVER_TESTS="tests/sparkplug/test_driver.py"
+run "42.7 sparkplug driver: a lost session's outbox not drained" "$SPARKPLUG_DRIVER_TESTS" gateway/sparkplug/driver.py "                self._drain_outbox()
+" "                pass
+"

@@ -41,3 +41,26 @@ async def test_a_link_added_by_reload_is_born_in_a_new_session(plant: Plant, tmp
         assert await gw.apply(parse_config(config_text(plant.broker.port, plant.state_file, links)))
         await plant.wait(kind("DDATA", "press"), since=count)
         assert not any(m.message_type in ("NDEATH", "NBIRTH") for m in plant.host.messages[count:])
+
+
+async def test_a_reload_that_only_removes_a_link_ends_the_session_and_its_device_is_not_born_again(
+        plant: Plant) -> None:  # noqa: F811
+    """No line starts, one stops: the births of the node are its devices, so the session still ends
+    (NDEATH) and the new one's births are without the removed device (a DCMD to it would go nowhere)."""
+    async with Gateway(plant.config()) as gw:
+        nbirth = await plant.wait(kind("NBIRTH"))
+        await plant.wait(kind("DBIRTH", "oven"))
+        await plant.wait(kind("DBIRTH", "press"))
+        first = nbirth.metric("bdSeq").value
+        count = len(plant.host.messages)
+        links = link_text("press", 1, plant.press)  # the oven's link removed, nothing added
+        assert await gw.apply(parse_config(config_text(plant.broker.port, plant.state_file, links)))
+        assert [device.name for device in gw.sparkplug.devices] == ["press"]  # type: ignore[union-attr]
+        ndeath = await plant.wait(kind("NDEATH"), since=count)
+        assert ndeath.metric("bdSeq").value == first
+        reborn = await plant.wait(kind("NBIRTH"), since=count)
+        assert reborn.metric("bdSeq").value == (first + 1) % 256
+        await plant.wait(kind("DBIRTH", "press"), since=reborn.index)
+        # the next pass of the node (a DDATA of the press) comes after every birth of the new session
+        await plant.wait(kind("DDATA", "press"), since=reborn.index)
+        assert not any(m.device_id == "oven" for m in plant.host.messages[reborn.index:])

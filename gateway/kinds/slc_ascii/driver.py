@@ -166,7 +166,11 @@ class SlcAsciiDriver(LineDriver):
     def _flush(self) -> None:
         data = self.session.data_to_send()
         if data:
-            self.send(data.translate(_EVEN_PARITY) if self._software_parity else data)
+            try:
+                self.send(data.translate(_EVEN_PARITY) if self._software_parity else data)
+            except BaseException:
+                self.session.connected()  # not sent: the transaction ends here, and the next one resyncs
+                raise
 
     def _sync_counters(self) -> None:
         core, mine = self.session.counters, self.counters

@@ -926,3 +926,34 @@ async def test_a_read_reads_one_byte_unless_told(quiet: tuple[SlcAsciiDriver, Sl
     sim.memory[0x40:0x42] = bytes([0x12, 0x34])
     assert await driver.read(0x41) == bytes([0x34])
     assert await driver.read(0x40, 2) == bytes([0x12, 0x34])
+
+
+# ---------------------------------------------------------------------------------------------
+# A port write that fails as a transaction starts (issue 42)
+
+
+async def test_a_port_write_failing_as_a_transaction_starts_leaves_no_transaction_running(
+        quiet: tuple[SlcAsciiDriver, SlcAsciiSimulator], caplog: pytest.LogCaptureFixture) -> None:
+    """The first bytes of a transaction cannot be written (the port's write raises LinkDown, as a
+    transport that is closing or an OSError makes it): that transaction fails with LinkDown, and the
+    next one runs: not "a transaction is already running" (an internal error logged with its
+    traceback on every poll) until the link reconnects."""
+    driver, sim = quiet
+    stream = driver._stream
+    assert stream is not None
+    write = stream.write
+    failures = [LinkDown("port write failed: [Errno 5] Input/output error")]
+
+    def failing_write(data: bytes) -> None:
+        if failures:
+            raise failures.pop()
+        write(data)
+
+    stream.write = failing_write  # type: ignore[method-assign]
+    async with asyncio.timeout(5):
+        with pytest.raises(LinkDown):
+            await driver.read(0x40, 2)
+        assert not failures  # the fault was met
+        sim.set_word(0x40, 4321)
+        assert await driver.read(0x40, 2) == (4321).to_bytes(2, "big")
+    assert not [r for r in caplog.records if r.name == "gateway.link" and "unexpected error" in r.getMessage()]
