@@ -27,8 +27,8 @@ from test_register_image import FakeDriver, MemoryUnit
 
 from gateway.errors import ModbusExceptionReply
 from gateway.freshness import LinkState, Offline, Source
-from gateway.link_health import LineQuality
 from gateway.health import health
+from gateway.link_health import LineQuality
 from gateway.modbus.mapping import Table
 from gateway.status import StatusPage
 

@@ -285,7 +285,8 @@ async def test_allow_list_refuses_other_networks_and_logs_once_per_interval(
 ) -> None:
     """Issue 14: the metrics listener had no allow list."""
     caplog.set_level(logging.WARNING, logger="gateway.http")
-    server = HttpServer(gateway.http_routes(), "127.0.0.1:0", allow=[ipaddress.ip_network("10.0.0.0/8")], log_interval=0.5)
+    server = HttpServer(gateway.http_routes(), "127.0.0.1:0", allow=[ipaddress.ip_network("10.0.0.0/8")],
+                        log_interval=0.5)
     await server.start()
     try:
         for _ in range(4):
