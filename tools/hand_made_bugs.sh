@@ -10,7 +10,8 @@ H_TESTS="tests/modbus/test_handler.py tests/modbus/test_server.py tests/test_hos
 TARGET_TESTS="tests/kinds/df1/target/test_end_to_end.py tests/kinds/df1/target/test_persist_faults.py tests/kinds/df1/target/test_unit_floats.py"
 ADMISSION_TESTS="tests/modbus/test_admission.py tests/modbus/test_server.py tests/test_hostile_network.py"
 RESPONDER_TESTS="tests/protocols/df1/full_duplex/test_responder.py"
-UNIT_TESTS="tests/test_register_image.py tests/kinds/test_not_polled.py tests/test_write_timeout.py"
+UNIT_TESTS="tests/test_register_image.py tests/kinds/test_not_polled.py tests/test_write_timeout.py tests/test_freshness.py"
+FRESHNESS_TESTS="tests/test_freshness.py"
 SLC_PLAN_TESTS="tests/kinds/slc_ascii/test_plan.py tests/protocols/slc_ascii/test_memory_map.py tests/kinds/slc_ascii/test_driver.py"
 run() {
   name=$1; tests=$2; shift 2
@@ -42,7 +43,7 @@ run "5 SLC: a late reply taken in resync" "$SLC_TESTS" gateway/protocols/slc_asc
 run "5 SLC: the same, _msg_id given an initial value" "$SLC_TESTS" gateway/protocols/slc_ascii/transaction.py "if (not self._is_write and self._copies and isinstance(event, DataReply)" "if (not self._is_write and isinstance(event, DataReply)" gateway/protocols/slc_ascii/sender.py "        self._msg_id: int
 " "        self._msg_id: int = 0
 "
-run "6 unit: silent-link limit min -> max" "$UNIT_TESTS" gateway/unit.py "stale_after + min(self.schedule.period, default=0.0)" "stale_after + max(self.schedule.period, default=0.0)"
+run "6 unit: silent-link limit min -> max" "$UNIT_TESTS" gateway/freshness.py "stale_after + min(schedule.period, default=0.0)" "stale_after + max(schedule.period, default=0.0)"
 run "6 SLC plan: presets not masked" "$SLC_PLAN_TESTS" gateway/kinds/slc_ascii/plan.py "plan.holding[timers + n] = word(preset, U16_BE_MASKED," "plan.holding[timers + n] = word(preset, U16_BE,"
 run "6 target: float word order" "$TARGET_TESTS" gateway/kinds/df1/target/unit.py 'low_first = entry.word_order == "low-first"' 'low_first = entry.word_order != "low-first"'
 # issue 42's harms: each fails the tests of its own module
@@ -75,3 +76,6 @@ SPARKPLUG_DRIVER_TESTS="tests/sparkplug/test_driver.py"
 run "42.7 sparkplug driver: a lost session's outbox not drained" "$SPARKPLUG_DRIVER_TESTS" gateway/sparkplug/driver.py "                self._drain_outbox()
 " "                pass
 "
+# issue 42's staleness harms: the stale limit moved from status.py into the one verdict (gateway/freshness.py)
+run "42.s1 verdict: stale limit max -> min over the achieved periods" "$FRESHNESS_TESTS" gateway/freshness.py "return self.stale_after + max([achieved, *(schedule.period[i] for i in blocks)])" "return self.stale_after + min([achieved, *(schedule.period[i] for i in blocks)])"
+run "42.s2 verdict: slow class included in the stale limit" "$FRESHNESS_TESTS" gateway/freshness.py 'if scan.value == "fast"] or list(' 'if scan.value in ("fast", "slow")] or list('
