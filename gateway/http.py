@@ -24,7 +24,7 @@ from typing import Final
 
 from gateway.config import parse_listen
 from gateway.logutil import RepeatLog
-from gateway.modbus.admission import IPNetwork, format_address, host_allowed, peer_host
+from gateway.modbus.admission import IPNetwork, bound_port, format_address, host_allowed, peer_host
 
 __all__ = ["JSON_CONTENT_TYPE", "HttpError", "HttpServer", "Response", "Routes"]
 
@@ -127,10 +127,7 @@ class HttpServer:
     @property
     def port(self) -> int:
         """The bound TCP port (the actual one when 0 was asked for)."""
-        if self._server is None or not self._server.sockets:
-            raise RuntimeError(f"{self.name}: server not started")
-        port: int = self._server.sockets[0].getsockname()[1]
-        return port
+        return bound_port(self._server, self.name)
 
     async def start(self) -> None:
         """Bind and start answering."""

@@ -42,6 +42,7 @@ before it is walked, so only the path to the extensions is decoded, bounds-check
 
 from __future__ import annotations
 
+import asyncio
 import ipaddress
 import logging
 import ssl
@@ -58,6 +59,7 @@ __all__ = [
     "IPNetwork",
     "Rights",
     "RolePolicy",
+    "bound_port",
     "format_address",
     "host_allowed",
     "peer_host",
@@ -252,6 +254,14 @@ def format_address(address: object) -> str:
         host, port = address[0], address[1]
         return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
     return str(address)
+
+
+def bound_port(server: asyncio.Server | None, name: str) -> int:
+    """The TCP port a listener is bound to (the actual one when 0 was asked for)."""
+    if server is None or not server.sockets:
+        raise RuntimeError(f"{name}: server not started")
+    port: int = server.sockets[0].getsockname()[1]
+    return port
 
 
 def host_allowed(host: str | None, allow: Sequence[IPNetwork]) -> bool:

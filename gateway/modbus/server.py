@@ -44,7 +44,7 @@ from collections.abc import Sequence
 from typing import Final
 
 from gateway.logutil import RepeatLog
-from gateway.modbus.admission import Admission, IPNetwork, RolePolicy, format_address
+from gateway.modbus.admission import Admission, IPNetwork, RolePolicy, bound_port, format_address
 from gateway.modbus.connection import Connection
 from gateway.modbus.handler import ModbusBackend, ModbusServerCounters, ReadNow, RequestHandler
 from gateway.modbus.mbap import FunctionCode
@@ -222,10 +222,7 @@ class ModbusTcpServer(RequestHandler):
     @property
     def port(self) -> int:
         """The bound TCP port (the actual one when 0 was asked for)."""
-        if self._server is None or not self._server.sockets:
-            raise RuntimeError(f"{self.name}: server not started")
-        port: int = self._server.sockets[0].getsockname()[1]
-        return port
+        return bound_port(self._server, self.name)
 
     @property
     def connection_count(self) -> int:

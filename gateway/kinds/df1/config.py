@@ -25,7 +25,11 @@ from gateway.kinds.df1.target.config import TargetFile, target_file_problems
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
 from gateway.protocols.df1.address import parse_address
 from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM
-from gateway.protocols.df1.half_duplex.events import DEMOTE_AFTER, HALF_DUPLEX_ACK_TIMEOUT
+from gateway.protocols.df1.half_duplex.events import (
+    DEFAULT_MESSAGE_RESENDS,
+    HALF_DUPLEX_ACK_TIMEOUT,
+    StationConfig,
+)
 from gateway.protocols.df1.pccc.limits import MAX_DATA_BYTES
 from gateway.protocols.df1.plc5_address import parse_plc5_address
 
@@ -53,6 +57,9 @@ DF1_DEFAULTS = SerialDefaults(baudrate=19200, bytesize=8, parity="N", stopbits=1
 _BIT_TABLES = ("coil", "discrete")
 _BIT_FILES = frozenset({"B", "N", "I", "O", "S", "R"})
 """Files whose elements are words of addressable bits (SLC 500 addressing reference)."""
+
+#: a station's defaults, the line core's own (its station keys default to them)
+_STATION_DEFAULTS: Final = StationConfig(0)
 
 
 class AddressKind(NamedTuple):
@@ -297,7 +304,7 @@ class Df1LinkConfig(LinkBase):
     p. 13-61: a message and the slave's turnaround; the SLC channel's 1.0 s allows for modems). On a target, the
     wait for the PLC's DLE ACK of a reply: not given, 1.0 s (the SLC 500 channel's ACK Timeout, 50 x 20 ms,
     p. 13-52)."""
-    message_retries: int = Field(3, ge=0, le=10)
+    message_retries: int = Field(DEFAULT_MESSAGE_RESENDS, ge=0, le=10)
     """Line key: identical resends of a message without its DLE ACK."""
     duplicate_detect: bool = True
     """Line key: the slaves detect duplicate messages (1747-RM001 "Duplicate Packet Detect", on by default in the
@@ -307,19 +314,19 @@ class Df1LinkConfig(LinkBase):
     """Line key: DLE NAK (global link reset) when the line starts, as a master does at power-up (Table 2.C); it
     empties the slaves' queued messages."""
     # Station keys (this link's station): the reply ``timeout`` above is from the ACK to the reply.
-    poll_timeout: float = Field(0.5, gt=0, le=60)
+    poll_timeout: float = Field(_STATION_DEFAULTS.poll_timeout, gt=0, le=60)
     """Station key: wait for the answer to a poll (a message or DLE EOT)."""
-    reply_wait: float = Field(0.0, ge=0, le=60)
+    reply_wait: float = Field(_STATION_DEFAULTS.reply_wait, ge=0, le=60)
     """Station key: after the ACK of a command, before the first poll for its reply (1747-RM001 p. 13-67, "Reply
     Message Wait Time")."""
-    max_polls: int = Field(20, ge=1, le=1000)
+    max_polls: int = Field(_STATION_DEFAULTS.max_polls, ge=1, le=1000)
     """Station key: DLE EOT answers tolerated while waiting for one reply."""
-    poll_interval: float = Field(1.0, gt=0, le=3600)
+    poll_interval: float = Field(_STATION_DEFAULTS.poll_interval, gt=0, le=3600)
     """Station key: background poll period for the station's own messages (report by exception)."""
-    demote_after: int = Field(DEMOTE_AFTER, ge=1, le=100)
+    demote_after: int = Field(_STATION_DEFAULTS.demote_after, ge=1, le=100)
     """Station key: answerless polls or unacknowledged messages in a row before the station is demoted: its unit
     answers 0x0B at once and it is polled every slow_poll_interval."""
-    slow_poll_interval: float = Field(10.0, gt=0, le=3600)
+    slow_poll_interval: float = Field(_STATION_DEFAULTS.slow_poll_interval, gt=0, le=3600)
     """Station key: poll period of a demoted station."""
     receive_file: int = Field(7, ge=0, le=999)
     """Station key: the station's MSG writes of N<receive_file>:0 onwards are stored (others get STS 10)."""

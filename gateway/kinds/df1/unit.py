@@ -31,6 +31,7 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalMaskedWrite,
     ProtectedTypedLogicalRead,
     ProtectedTypedLogicalWrite,
+    Sts,
 )
 from gateway.unit import Source, Unit, UnitOptions, WriteStep
 
@@ -56,7 +57,7 @@ _ADDRESS_EXT_STS = frozenset({0x02, 0x03, 0x06, 0x07, 0x0A, 0x13})
 
 def pccc_exception(error: PcccError) -> ModbusExceptionReply:
     """A PCCC refusal as a Modbus exception: address problems 0x02, other refusals 0x04."""
-    address = error.sts == 0x50 or (error.sts == 0xF0 and error.ext_sts in _ADDRESS_EXT_STS)
+    address = error.sts == Sts.ADDRESSING_PROBLEM or (error.sts == Sts.EXTENDED and error.ext_sts in _ADDRESS_EXT_STS)
     code = ModbusExceptionReply.ILLEGAL_DATA_ADDRESS if address else ModbusExceptionReply.SERVER_DEVICE_FAILURE
     return ModbusExceptionReply(code, str(error))
 

@@ -33,6 +33,7 @@ from gateway.protocols.df1.address import SIGNED_FILE_TYPES, FileType, element_w
 from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, Checksum
 from gateway.protocols.df1.full_duplex.datalink import Df1DataLink
 from gateway.protocols.df1.full_duplex.responder import Df1Responder
+from gateway.protocols.df1.full_duplex.station import FullDuplexStation
 from gateway.protocols.df1.half_duplex.events import HALF_DUPLEX_ACK_TIMEOUT, LineConfig
 from gateway.protocols.df1.pccc.commands import Request, is_write
 from gateway.protocols.df1.pccc.limits import MAX_DATA_BYTES, PLC5_TYPED
@@ -48,8 +49,9 @@ def test_one_ack_timeout_default_per_mode() -> None:
     # full duplex and a target: the SLC 500 channel's "ACK Timeout" 50 x 20 ms (1747-RM001G p. 13-52,
     # Table 13.15); a half-duplex master: 0.5 s, its line's (p. 13-61 sizes it to the line)
     assert DEFAULT_ACK_TIMEOUT == 50 * 0.020
-    for owner in (Df1DataLink, Df1Responder, TargetRunner):
+    for owner in (FullDuplexStation, TargetRunner):  # the data link and the responder take the station's
         assert _default(owner, "ack_timeout") is DEFAULT_ACK_TIMEOUT, owner
+    assert Df1DataLink().ack_timeout is Df1Responder().ack_timeout is DEFAULT_ACK_TIMEOUT
     assert HALF_DUPLEX_ACK_TIMEOUT == 0.5
     assert LineConfig.__dataclass_fields__["ack_timeout"].default is HALF_DUPLEX_ACK_TIMEOUT
     assert _default(Df1HalfDuplexLine, "ack_timeout") is HALF_DUPLEX_ACK_TIMEOUT
@@ -83,8 +85,9 @@ def test_one_checksum_default_the_slc_channels() -> None:
     # "Error Detection" CRC: the SLC 500 channel 0 default in DF1 (1747-RM001G p. 13-52, Table 13.15)
     assert DEFAULT_CHECKSUM is Checksum.CRC
     assert Df1LinkConfig.model_fields["checksum"].default == "crc"
-    for owner in (Df1DataLink, Df1Responder, Df1HalfDuplexLine, Df1Driver):
+    for owner in (FullDuplexStation, Df1HalfDuplexLine, Df1Driver):
         assert _default(owner, "checksum") is Checksum.CRC, owner
+    assert Df1DataLink().checksum is Df1Responder().checksum is Checksum.CRC
     assert Slc500Options().checksum is Checksum.CRC
     assert LineOptions.__dataclass_fields__["checksum"].default is Checksum.CRC
 

@@ -63,6 +63,7 @@ from gateway.protocols.df1.full_duplex.transaction import (
 )
 from gateway.protocols.df1.half_duplex import events as master_events
 from gateway.protocols.df1.half_duplex.events import (
+    DEFAULT_MESSAGE_RESENDS,
     HALF_DUPLEX_ACK_TIMEOUT,
     FailReason,
     LineConfig,
@@ -253,7 +254,7 @@ class Df1HalfDuplexLine(LineDriver):
         checksum: Checksum = DEFAULT_CHECKSUM,
         source: int = 0,
         ack_timeout: float = HALF_DUPLEX_ACK_TIMEOUT,
-        message_retries: int = 3,
+        message_retries: int = DEFAULT_MESSAGE_RESENDS,
         retries: int = DEFAULT_RETRIES,
         pre_transmit_delay: float = 0.0,
         rts_send_delay: float = 0.0,

@@ -60,12 +60,17 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Final
+from typing import Final, Unpack
 
 from gateway.errors import InvalidRequest
 from gateway.frozen import frozen
-from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, DEFAULT_MAX_MESSAGE, Checksum
-from gateway.protocols.df1.full_duplex.station import FullDuplexCounters, FullDuplexStation, QueuedFrame, SendFailure
+from gateway.protocols.df1.full_duplex.station import (
+    FullDuplexCounters,
+    FullDuplexStation,
+    QueuedFrame,
+    SendFailure,
+    StationOptions,
+)
 from gateway.protocols.df1.full_duplex.table import (
     TRANSITIONS,
     BadFrameAnswer,
@@ -137,32 +142,17 @@ class Df1DataLink(FullDuplexStation[DataLinkEvent, DataLinkCounters]):
     def __init__(
         self,
         *,
-        checksum: Checksum = DEFAULT_CHECKSUM,
-        ack_timeout: float = DEFAULT_ACK_TIMEOUT,
-        enq_limit: int = 3,
-        nak_limit: int = 3,
-        duplicate_detect: bool = True,
-        max_message: int = DEFAULT_MAX_MESSAGE,
         bad_frame: BadFrameAnswer = BadFrameAnswer.NAK,
         enq_answer: EnqAnswer = EnqAnswer.LAST_RESPONSE,
         char_time: float = 0.0,
         min_ack_timeout: float = 0.05,
+        **station: Unpack[StationOptions],
     ) -> None:
-        super().__init__(
-            DataLinkCounters(),
-            checksum=checksum,
-            ack_timeout=ack_timeout,
-            max_message=max_message,
-            nak_limit=nak_limit,
-            enq_limit=enq_limit,
-            duplicate_detect=duplicate_detect,
-            bad_frame=bad_frame,
-            enq_answer=enq_answer,
-        )
+        super().__init__(DataLinkCounters(), bad_frame=bad_frame, enq_answer=enq_answer, **station)
         #: seconds per character on the line: a frame's ACK comes after its last character
         self.char_time: Final = char_time
         #: the ACK wait adapts to the peer's measured ACK times (see _ack_wait), never below this
-        self.min_ack_timeout: Final = min(min_ack_timeout, ack_timeout)
+        self.min_ack_timeout: Final = min(min_ack_timeout, self.ack_timeout)
         self._ack_times: deque[float] = deque(maxlen=32)
 
     # ------------------------------------------------------------------------------ public API

@@ -63,9 +63,8 @@ This module does no I/O: the caller passes ``now`` and moves the bytes.
 
 from __future__ import annotations
 
-from typing import Final
+from typing import Final, Unpack
 
-from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM, DEFAULT_MAX_MESSAGE, Checksum
 from gateway.protocols.df1.full_duplex.responder_events import (
     CommandReceived,
     DuplicateReceived,
@@ -74,7 +73,13 @@ from gateway.protocols.df1.full_duplex.responder_events import (
     ResponderCounters,
     ResponderEvent,
 )
-from gateway.protocols.df1.full_duplex.station import FullDuplexStation, QueuedFrame, SendFailure, TxState
+from gateway.protocols.df1.full_duplex.station import (
+    FullDuplexStation,
+    QueuedFrame,
+    SendFailure,
+    StationOptions,
+    TxState,
+)
 from gateway.protocols.df1.full_duplex.table import TxInput
 from gateway.protocols.df1.pccc.codec import HEADER_SIZE, PcccHeader, duplicate_key
 from gateway.protocols.df1.pccc.codes import REPLY_BIT
@@ -96,30 +101,16 @@ class Df1Responder(FullDuplexStation[ResponderEvent, ResponderCounters]):
         self,
         *,
         station: int = 0,
-        checksum: Checksum = DEFAULT_CHECKSUM,
-        ack_timeout: float = DEFAULT_ACK_TIMEOUT,
-        nak_limit: int = 3,
-        enq_limit: int = 3,
-        duplicate_detect: bool = True,
         check_dst: bool = False,
         max_pending: int = 4,
-        max_message: int = DEFAULT_MAX_MESSAGE,
         resend_reply: bool = False,
+        **options: Unpack[StationOptions],
     ) -> None:
         if not 0 <= station <= 254:
             raise ValueError("station must be 0..254")
         if max_pending < 1:
             raise ValueError("max_pending must be at least 1")
-        super().__init__(
-            ResponderCounters(),
-            checksum=checksum,
-            ack_timeout=ack_timeout,
-            max_message=max_message,
-            nak_limit=nak_limit,
-            enq_limit=enq_limit,
-            duplicate_detect=duplicate_detect,
-            accept_dst=station if check_dst else None,
-        )
+        super().__init__(ResponderCounters(), accept_dst=station if check_dst else None, **options)
         self.station: Final = station
         self.check_dst: Final = check_dst
         #: a duplicate command gets the stored reply again (module docstring; off: p. 4-13)

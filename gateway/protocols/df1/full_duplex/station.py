@@ -30,11 +30,14 @@ import enum
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass
-from typing import Final, Generic, TypeVar
+from typing import Final, Generic, TypedDict, TypeVar
 
 from gateway.frozen import frozen
 from gateway.protocols.df1.framing import (
     ACK_SYMBOL,
+    DEFAULT_ACK_TIMEOUT,
+    DEFAULT_CHECKSUM,
+    DEFAULT_MAX_MESSAGE,
     ENQ_SYMBOL,
     NAK_SYMBOL,
     NEED_DATA,
@@ -64,7 +67,7 @@ from gateway.protocols.df1.full_duplex.table import (
 )
 from gateway.protocols.df1.pccc.codec import HEADER_SIZE, duplicate_key
 
-__all__ = ["FullDuplexCounters", "FullDuplexStation", "QueuedFrame", "SendFailure", "TxState"]
+__all__ = ["FullDuplexCounters", "FullDuplexStation", "QueuedFrame", "SendFailure", "StationOptions", "TxState"]
 
 #: How many steps a station keeps in ``history``.
 _HISTORY: Final = 64
@@ -121,6 +124,18 @@ EventT = TypeVar("EventT")
 CountersT = TypeVar("CountersT", bound=FullDuplexCounters)
 
 
+class StationOptions(TypedDict, total=False):
+    """The keywords of a station (:class:`FullDuplexStation`) its two roles share: the master's data link
+    (``datalink.DataLink``) and the target's responder (``responder.Responder``)."""
+
+    checksum: Checksum
+    ack_timeout: float
+    max_message: int
+    nak_limit: int
+    enq_limit: int
+    duplicate_detect: bool
+
+
 class FullDuplexStation(ABC, Generic[EventT, CountersT]):
     """One full-duplex station: its receiver and transmitter tables, output, timer (module docstring)."""
 
@@ -128,11 +143,11 @@ class FullDuplexStation(ABC, Generic[EventT, CountersT]):
         self,
         counters: CountersT,
         *,
-        checksum: Checksum,
-        ack_timeout: float,
-        max_message: int,
-        nak_limit: int,
-        enq_limit: int,
+        checksum: Checksum = DEFAULT_CHECKSUM,
+        ack_timeout: float = DEFAULT_ACK_TIMEOUT,
+        max_message: int = DEFAULT_MAX_MESSAGE,
+        nak_limit: int = 3,
+        enq_limit: int = 3,
         duplicate_detect: bool = True,
         accept_dst: int | None = None,
         bad_frame: BadFrameAnswer = BadFrameAnswer.NAK,

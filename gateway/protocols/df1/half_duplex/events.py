@@ -14,6 +14,7 @@ from gateway.frozen import frozen
 from gateway.protocols.df1.framing import Checksum
 
 __all__ = [
+    "DEFAULT_MESSAGE_RESENDS",
     "DEMOTE_AFTER",
     "HALF_DUPLEX_ACK_TIMEOUT",
     "FailReason",
@@ -50,6 +51,8 @@ DEMOTE_AFTER = 5
 #: two-byte ACK comes within that, so 0.5 s, not the SLC channel's 1.0 s default, which allows for
 #: modems: a radio line sets the ``ack_timeout`` key.
 HALF_DUPLEX_ACK_TIMEOUT: Final = 0.5
+#: Identical resends of a master message without its DLE ACK (the ``message_retries`` key's default).
+DEFAULT_MESSAGE_RESENDS: Final = 3
 
 
 @frozen
@@ -84,7 +87,8 @@ class LineConfig:
 
     checksum: Checksum
     ack_timeout: float = HALF_DUPLEX_ACK_TIMEOUT  #: wait for DLE ACK after a master message
-    message_resends: int = 3  #: identical copies sent again of a master message without its DLE ACK
+    #: identical copies sent again of a master message without its DLE ACK
+    message_resends: int = DEFAULT_MESSAGE_RESENDS
     char_time: float = 0.0  #: time of one character on the wire (11 bits / baud); 0 = instantaneous
     pre_transmit_delay: float = 0.0  #: quiet time after the last byte heard before transmitting
     rts_send_delay: float = 0.0  #: RTS on to first byte (modem key-up, RM p. 13-59)

@@ -34,6 +34,7 @@ import enum
 from collections.abc import Iterator, Sequence
 
 from gateway.frozen import frozen
+from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.pccc import (
     PcccFormatError,
     PcccHeader,
@@ -48,10 +49,6 @@ from gateway.protocols.df1.pccc.plc5 import DataType
 from gateway.protocols.df1.pccc.target import Problem, refusal
 
 __all__ = ["RegisterTable", "SlaveMessageVerdict", "SlaveWrite", "answer_slave_message"]
-
-#: SLC file type of an integer file (N), as in a protected typed logical write (notes §4.36).
-_INTEGER_FILE = 0x89
-
 
 class SlaveMessageVerdict(enum.Enum):
     STORED = "stored"
@@ -148,7 +145,7 @@ def _slave_write(request: Request) -> SlaveWrite | None:
     if isinstance(request, WordRangeWrite) and request.packet_offset == 0:
         return _file_element_write(request.address.levels, request.data)
     if isinstance(request, ProtectedTypedLogicalWrite):
-        if request.file_type == _INTEGER_FILE and request.sub_element == 0 and len(request.data) % 2 == 0:
+        if request.file_type == FileType.INTEGER and request.sub_element == 0 and len(request.data) % 2 == 0:
             return SlaveWrite(request.file_number, request.element, _words(request.data))
         return None
     if isinstance(request, TypedWrite) and request.data_type == DataType.INTEGER and request.element_size == 2:
