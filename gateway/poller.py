@@ -11,7 +11,8 @@ another's demanded blocks.
 
 Every block is one request on the driver's queue at poll priority, so a write waits at most
 for the one poll transaction already on the line.  A block that fails keeps its last value
-in the cache and ages; it goes to the back of the order (a failure never holds the line).  A
+in the cache and ages; it goes to the back of the order (a failure never holds the line), a
+demanded one whose value is still served is tried again one transaction later (``Schedule._retry``).  A
 block the controller refuses is tried again no sooner than ``min(slow_interval, 5 s)``.  While
 the link is down (the driver's own verdict: several failures in a row, not one) the poller probes
 it with one read every ``down_wait`` instead of spinning; the block a lost link interrupted is

@@ -162,6 +162,36 @@ def test_a_read_after_the_stale_limit_is_late() -> None:
     assert not read(s, 0, 60.0)  # an outage is not a refresh period
 
 
+def test_a_failed_read_of_a_demanded_block_is_tried_again_before_its_value_goes_stale() -> None:
+    # slow_interval 10, stale_after 4: the value read at 0.5 is served until 14.5.  Its read at 10
+    # fails: it is tried again one transaction (0.5 s) later, behind the block already urgent, not
+    # a whole period later (at 20: 5.5 s of 0x0B to every client on a line that failed once).
+    s = schedule([S, S], slow=10.0, stale_after=4.0)
+    s.begin(0.0)
+    s.demand([0, 1], 0.0)
+    read(s, 0, 0.0, took=0.5)  # due again at 5 (its share of P: the first of 2), then every 10 s
+    read(s, 0, 5.0, took=0.5)  # due at 15; its value, read at 5.5, served until 19.5
+    read(s, 1, 5.5, took=0.5)  # due at 15.5
+    read(s, 0, 15.0, took=0.5, ok=False)  # ends at 15.5: tried again at 16
+    assert s.next(15.5) == 1  # already urgent: first
+    read(s, 1, 15.5, took=0.5)
+    for at in (16.0, 17.0, 18.0):  # fails again and again: one retry a transaction after each failure
+        assert s.next(at) == 0
+        read(s, 0, at, took=0.5, ok=False)
+        assert s.next(at + 0.5) is None  # the line is free a transaction for other reads
+    assert s.next(19.0) == 0
+    read(s, 0, 19.0, took=0.5, ok=False)  # no time left before 19.5: to the back, due at 29
+    assert s.due[0] == 29.0
+    assert s.next_due(19.5) == 25.5  # block 1, read at 15.5, comes due first
+
+
+def test_a_failed_read_of_a_block_nobody_reads_goes_to_the_back_of_the_order() -> None:
+    s = schedule([S], slow=10.0, stale_after=4.0)
+    read(s, 0, 0.0, took=0.5)
+    read(s, 0, 10.0, took=0.5, ok=False)
+    assert s.due[0] == 20.0
+
+
 def test_background_interval_zero_reads_every_block_at_its_class_period() -> None:
     s = schedule([F, S], background=0.0)
     assert s.background == s.period == [0.0, 10.0]
