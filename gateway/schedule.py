@@ -8,11 +8,12 @@ The rule (``docs/guide/freshness.md`` states it for users):
 * a block is *urgent* once ``P`` has passed since its last read when it is demanded, or once ``B``
   has passed when it is not; its deadline is then that time (last read + ``P`` or + ``B``);
 * a block nobody demands is *wanted* once ``P`` has passed: it is read when nothing is urgent;
-* the next read is: a bumped block (a client waits for it, :meth:`Schedule.bump`), first bumped
-  first; else the urgent block with the earliest deadline, unless a *read ahead* goes first
-  (:meth:`Schedule._read_ahead`: a demanded block of a periodic class, read a little early while
-  the continuous block it goes before is still young); else the wanted block with the earliest
-  deadline; else nothing until :meth:`Schedule.next_due`;
+* the next read is: a bumped block (a client waits for it, :meth:`Schedule.bump`; not the block
+  whose read is on the line: the client waits for that read), first bumped first; else the urgent
+  block with the earliest deadline, unless a *read ahead* goes first (:meth:`Schedule._read_ahead`:
+  a demanded block of a periodic class, read a little early while the continuous block it goes
+  before is still young); else the wanted block with the earliest deadline; else nothing until
+  :meth:`Schedule.next_due`;
 * a block's first read after start or a loss sets its next due time at a share of ``P`` (its place
   in its class, 1/k .. k/k), not at ``P``: blocks read in one burst then come due spread over ``P``,
   not as one burst that would hold every other block up for as long as it takes to read them all.
@@ -158,6 +159,8 @@ class Schedule:
         self.since = [NEVER] * n
         #: the block whose read is on the line, and its times before (:meth:`untry`)
         self._before = (-1, NEVER, NEVER)
+        #: the block whose read is on the line (-1: none): a bump does not read it a second time
+        self.on_line = -1
         #: per block: seconds between its last two reads (NaN: fewer than two since start or a loss)
         self.interval = [math.nan] * n
         #: per block: demanded until this loop time
@@ -227,14 +230,17 @@ class Schedule:
                     self._push(block, now)  # urgent sooner now
 
     def bump(self, blocks: Iterable[int]) -> None:
-        """A client waits for ``blocks``: read them before anything else, first asked first."""
+        """A client waits for ``blocks``: read them before anything else, first asked first; not the
+        block on the line (its read, under way, is the one the client waits for)."""
         for block in blocks:
-            self.bumped.setdefault(block, None)
+            if block != self.on_line:
+                self.bumped.setdefault(block, None)
 
     def started(self, block: int, now: float) -> None:
         """The read of ``block`` goes on the line: it goes to the back of the order; its stale limit
         is set from its period as planned now (the image stamps the read with it)."""
         self._before = (block, self.due[block], self.since[block])
+        self.on_line = block
         first = self.read_at[block] == NEVER  # its first read since start or a loss: due spread over P
         self.due[block] = now + self.period[block] * (self._phase[block] if first else 1.0)
         self.since[block] = now
@@ -247,6 +253,7 @@ class Schedule:
 
         True when it was late: its previous value had passed the stale limit it was read with.
         """
+        self.on_line = -1
         elapsed = max(0.0, now - started)
         self._tx_time = elapsed if math.isnan(self._tx_time) else self._tx_time + _EWMA * (elapsed - self._tx_time)
         self._busy(started, now)
@@ -415,6 +422,7 @@ class Schedule:
     def untry(self, block: int, now: float) -> None:
         """The read of ``block`` never reached the controller (the link was lost): its place back."""
         before, due, since = self._before
+        self.on_line = -1
         if before == block:
             self.due[block], self.since[block] = due, since
             self._push(block, now)

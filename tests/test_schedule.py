@@ -192,6 +192,23 @@ def test_a_failed_read_of_a_block_nobody_reads_goes_to_the_back_of_the_order() -
     assert s.due[0] == 20.0
 
 
+def test_a_client_waiting_for_the_block_on_the_line_does_not_have_it_read_twice() -> None:
+    s = schedule([F, F])
+    read(s, 0, 0.0)
+    read(s, 1, 0.0)
+    s.started(0, 1.0)
+    s.bump([0, 1])  # a client waits for both; block 0's read is under way: it is the one awaited
+    assert list(s.bumped) == [1]
+    s.done(0, 1.0, 1.1, True)
+    assert s.next(1.1) == 1
+    read(s, 1, 1.1)
+    assert not s.bumped
+    s.started(0, 2.0)
+    s.untry(0, 2.0)  # the link was lost under it: bumped again, it is read again
+    s.bump([0])
+    assert list(s.bumped) == [0]
+
+
 def test_background_interval_zero_reads_every_block_at_its_class_period() -> None:
     s = schedule([F, S], background=0.0)
     assert s.background == s.period == [0.0, 10.0]
