@@ -26,7 +26,8 @@ overtakes only a block younger than 70 % of its stale limit.  At start
 (:meth:`Schedule.begin`) every block counts as read one class period ago: bumped and demanded
 blocks first, then the fast class, then the slow one; a block nobody reads is read when the line
 has room, and in any case first between ``B / 2`` and ``3 B / 2`` after start (spread evenly),
-then within ``B``.  After a loss the order goes on where it was.
+then within ``B``.  After a loss (:meth:`Schedule.lost`) the order goes on where it was, except
+that a demanded block due later is due at once: no value read before a loss is served after it.
 
 A failed read counts as a read for the order (the block goes to the back, it does not block the
 line) but not for freshness, except for a demanded block whose value is still served: it is due
@@ -281,11 +282,17 @@ class Schedule:
             self.due[block] = retry
             self._push(block, now)
 
-    def lost(self) -> None:
-        """The link was lost: intervals restart (an outage is not a refresh period)."""
+    def lost(self, now: float) -> None:
+        """The link was lost at ``now``: intervals restart (an outage is not a refresh period), and no
+        value read before is served until its block is read again (``BlockCache.expire_before``), so a
+        demanded block due later is due at ``now`` (the blocks a client reads are read again first)."""
         n = len(self.interval)
         self.interval = [math.nan] * n
         self.read_at = [NEVER] * n
+        for block, until in enumerate(self.demanded_until):
+            if until > now and self.due[block] > now:
+                self.due[block] = now
+                self._push(block, now)
 
     def _busy(self, started: float, now: float) -> None:
         if self._window_start == NEVER:

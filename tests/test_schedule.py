@@ -106,7 +106,7 @@ def test_blocks_read_together_first_come_due_spread_over_their_class_period() ->
     assert [s.due[b] for b in (1, 2, 3, 4)] == [3.5, 6.0, 8.5, 11.0]
     read(s, 1, 3.5)
     assert s.due[1] == 13.5
-    s.lost()  # after a loss the first reads spread again
+    s.lost(15.0)  # after a loss the first reads spread again
     read(s, 2, 20.0)
     assert s.due[2] == 25.0
 
@@ -158,7 +158,7 @@ def test_a_read_after_the_stale_limit_is_late() -> None:
     assert not read(s, 0, 4.9)
     assert read(s, 0, 10.0)  # 5.1 s after the last read, limit 5 s
     assert s.late_reads == 1
-    s.lost()
+    s.lost(11.0)
     assert not read(s, 0, 60.0)  # an outage is not a refresh period
 
 
@@ -207,6 +207,20 @@ def test_a_client_waiting_for_the_block_on_the_line_does_not_have_it_read_twice(
     s.untry(0, 2.0)  # the link was lost under it: bumped again, it is read again
     s.bump([0])
     assert list(s.bumped) == [0]
+
+
+def test_after_a_loss_the_demanded_blocks_are_read_first() -> None:
+    # No value read before a loss is served after it (BlockCache.expire_before): a demanded block
+    # due later is due at the loss, before the blocks nobody reads.
+    s = schedule([F, S, S], slow=10.0)
+    s.begin(0.0)
+    s.demand([2], 0.0)
+    assert s.next(0.0) == 2
+    read(s, 2, 0.0)  # due at 10
+    assert s.next(5.0) == 0  # the fast block, wanted
+    s.lost(5.0)
+    assert s.next(5.0) == 2
+    assert s.due[1] == 0.0  # a block nobody reads keeps its place
 
 
 def test_background_interval_zero_reads_every_block_at_its_class_period() -> None:
