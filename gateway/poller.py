@@ -11,12 +11,14 @@ another's demanded blocks.
 
 Every block is one request on the driver's queue at poll priority, so a write waits at most
 for the one poll transaction already on the line.  A block that fails keeps its last value
-in the cache and ages; it goes to the back of the order (a failure never holds the line).  A
+in the cache and ages; it goes to the back of the order (a failure never holds the line), a
+demanded one whose value is still served is tried again one transaction later (``Schedule._retry``).  A
 block the controller refuses is tried again no sooner than ``min(slow_interval, 5 s)``.  While
 the link is down (the driver's own verdict: several failures in a row, not one) the poller probes
 it with one read every ``down_wait`` instead of spinning; the block a lost link interrupted is
-read first when it comes back.  Values read before a loss are not served after it until their
-block is read again (``BlockCache.expire_before``): the controller may have been replaced.
+read first when it comes back, then the demanded blocks (``Schedule.lost``).  Values read before a
+loss are not served after it until their block is read again (``BlockCache.expire_before``): the
+controller may have been replaced.
 
 A *round* is as many read attempts as the plan has blocks (``scans`` counts them); a round also
 ends when the link is lost.
@@ -443,7 +445,7 @@ class Poller:
                 self._end_round()
                 if self._lost_at is None:
                     self._lost_at = loop.time()
-                    schedule.lost()
+                    schedule.lost(self._lost_at)
                 self._answered(None)
                 if share is not None:
                     share.mark(self, False)  # a station that does not answer holds no one up
