@@ -46,7 +46,7 @@ block (the *needed* transactions/s, from each unit's schedule at the end of the 
 line's capacity, ``1 / transaction_time`` (the schedule's measured mean read transaction,
 ``/api/status`` ``schedule``).
 
-    python bench/freshness.py                      # every case, ~15 min
+    python bench/freshness.py                      # every case, ~22 min
     python bench/freshness.py --only slc,startup   # some cases
     python bench/freshness.py --only sparkplug,harsh --seconds 60   # the Sparkplug and harsh cases
     python bench/freshness.py --quick              # CI smoke: a few seconds per case, no plot
