@@ -7,6 +7,8 @@
 * config builders (``slc_link``, ``df1_link``, ``gateway_config``) and frame-length arithmetic
   from the protocol encoders (``slc_read_frames``, ``df1_read_frames`` ...).
 * CPU and memory probes of the current process (``cpu_seconds``, ``rss_mib``).
+* ``Broker``: Debian's mosquitto on a free loopback port, for the Sparkplug figures
+  (``mosquitto_path``; a bench without it says so loudly, ``mosquitto_required`` in CI).
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ import json
 import os
 import platform
 import resource
+import shutil
+import socket
 import subprocess
 import sys
 import time
@@ -313,6 +317,59 @@ def wait_until(predicate: Any, timeout: float, step: float = 0.05) -> bool:
             return True
         time.sleep(step)
     return predicate()
+
+
+# --------------------------------------------------------------------------------------------
+# the MQTT broker of the Sparkplug benchmarks
+
+
+def free_port() -> int:
+    """A loopback TCP port free now."""
+    with socket.socket() as sock:
+        sock.bind((HOST, 0))
+        return int(sock.getsockname()[1])
+
+
+def mosquitto_path() -> str | None:
+    """Debian's mosquitto (``apt-get install mosquitto``), or None: the caller says so loudly."""
+    return shutil.which("mosquitto") or next(
+        (p for p in ("/usr/sbin/mosquitto", "/usr/local/sbin/mosquitto") if os.access(p, os.X_OK)), None)
+
+
+def mosquitto_required() -> bool:
+    """CI (``.ci/run``) sets SLC_GATEWAY_REQUIRE_MOSQUITTO=1: a missing broker is a failure there."""
+    return os.environ.get("SLC_GATEWAY_REQUIRE_MOSQUITTO") == "1"
+
+
+class Broker:
+    """mosquitto on a free loopback port (``port``); ``start()`` waits until it listens, ``stop()`` ends it."""
+
+    def __init__(self, path: str, directory: Path) -> None:
+        self.path = path
+        self.port = free_port()
+        self.config = directory / "mosquitto.conf"
+        self.config.write_text(f"listener {self.port} {HOST}\nallow_anonymous true\npersistence false\n"
+                               "log_dest none\n", encoding="utf-8")
+        self.process: subprocess.Popen[bytes] | None = None
+
+    def start(self, patience: float = 10.0) -> None:
+        if self.process is None:
+            self.process = subprocess.Popen([self.path, "-c", str(self.config)], stdout=subprocess.DEVNULL,
+                                            stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + patience
+        while time.monotonic() < deadline and self.process.poll() is None:
+            try:
+                socket.create_connection((HOST, self.port), timeout=0.5).close()
+                return
+            except OSError:
+                time.sleep(0.05)
+        raise RuntimeError(f"mosquitto did not listen on {HOST}:{self.port} (exit {self.process.poll()})")
+
+    def stop(self) -> None:
+        if self.process is not None:
+            self.process.terminate()
+            self.process.wait(5)
+            self.process = None
 
 
 # --------------------------------------------------------------------------------------------

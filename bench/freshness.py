@@ -27,12 +27,28 @@ Cases (the targets of issue "Spend the line on what SCADA reads"):
 * ``peers``: the same workloads against the interop peers (SLC 150 at 9600 with answers held
   uniform(0, 50 / 100 ms); the DF1 peer paced at 19200 by the proxy, answers held 20-60 ms; the
   half-duplex peer at 19200, every answer held 20-60 ms: a slow turnaround rather than a scan);
+* ``sparkplug``: the ``slc`` case's SLC 150 and screen at 0-50 and 0-100 ms, with ``[sparkplug]`` off and
+  on side by side (a mosquitto the bench starts on a free loopback port, every other Sparkplug key its
+  default, ``check_interval`` included): publishing changes the reads with data by at most 1 point
+  (>= 99 % at 0-100 ms).  Without mosquitto the case says NOT MEASURED and the run fails (``--quick``:
+  only with SLC_GATEWAY_REQUIRE_MOSQUITTO=1, as CI sets);
+* ``harsh``: SLC 150 at 9600 answering within 0-250 ms, 1 reply in 4 garbled, 1 in 6 dropped, a power
+  cycle every 250 commands, ``stale_after = 4``; one client reads the 31 presets (holding 32-62)
+  continuously and writes one (FC6, a value in range) after every fifth read: >= 90 % with data when
+  the demanded set fits the line; writes acknowledged / 0x0B counted;
 * ``sweep``: reads with data against the controller's longest scan (0 = answers at once), per kind
-  (SLC 150, SLC 5/04 full duplex, the 3- and 8-station half-duplex lines), plotted to ``--png``
-  (``--compare`` earlier runs' ``--json`` files: their curves dashed).
+  (SLC 150, SLC 150 with ``[sparkplug]`` on, SLC 5/04 full duplex, the 3- and 8-station half-duplex
+  lines), plotted to ``--png`` (``--compare`` earlier runs' ``--json`` files: their curves dashed).
 
-    python bench/freshness.py                      # every case, ~15 min
+Beside every row, whether the set fits the line by the sizing rule of ``docs/guide/freshness.md``:
+``sum(1 / (stale_after + P))`` over the demanded blocks plus ``1 / (stale_after + B)`` for each other
+block (the *needed* transactions/s, from each unit's schedule at the end of the window) against the
+line's capacity, ``1 / transaction_time`` (the schedule's measured mean read transaction,
+``/api/status`` ``schedule``).
+
+    python bench/freshness.py                      # every case, ~22 min
     python bench/freshness.py --only slc,startup   # some cases
+    python bench/freshness.py --only sparkplug,harsh --seconds 60   # the Sparkplug and harsh cases
     python bench/freshness.py --quick              # CI smoke: a few seconds per case, no plot
 
 The plot needs matplotlib: ``pip install -e '.[bench]'`` (the ``bench`` extra of pyproject.toml).
@@ -42,6 +58,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
 import contextlib
 import functools
 import json
@@ -51,6 +68,7 @@ import statistics
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 import uuid
 from collections.abc import Awaitable, Callable, Iterator, Sequence
@@ -60,7 +78,18 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from _benchlib import DF1_MAP, df1_link, print_machine, result, slc_link, table
+from _benchlib import (
+    DF1_MAP,
+    Broker,
+    df1_link,
+    free_port,
+    mosquitto_path,
+    mosquitto_required,
+    print_machine,
+    result,
+    slc_link,
+    table,
+)
 
 from gateway.app import Gateway
 from gateway.config import parse_config
@@ -78,6 +107,18 @@ DF1_CHAR = 10 / 19200
 SCREEN = ((3, 0, 32, 1.0), (3, 32, 32, 2.0))
 ACC8 = ((3, 0, 8, 1.0),)
 SWEEP = (0.0, 0.05, 0.1, 0.2, 0.3)
+#: the sweep's curve of the SLC 150 simulator with ``[sparkplug]`` on
+SPARKPLUG_SWEEP_KIND = "SLC 150, 9600, Sparkplug on"
+#: the harsh case: answers within 0-250 ms, 1 reply in 4 garbled, 1 in 6 dropped, a power cycle every 250
+#: commands (the SLC 100/150 simulator's fault options, ``gateway/kinds/slc_ascii/sim.py`` ``FaultPlan``)
+HARSH_LONGEST = 0.25
+HARSH_FAULTS = {"garble": 4, "drop": 6, "power_cycle_every": 250}
+HARSH_STALE_AFTER = 4
+#: the presets the harsh case's client reads (holding 32-62) and writes, one after every WRITE_EVERY reads
+PRESETS = (32, 31)
+WRITE_EVERY = 5
+#: the links' counters (``gateway/link_health.py`` ``LineCounters``) a faulty line's row reports
+LINE_COUNTERS = ("transactions", "errors", "timeouts", "crc_errors", "retries", "reconnects")
 #: The sweep's curve of the independent SLC 150 peer (``../shared/interop``), answers held uniform(0, J).
 PEER_SWEEP_KIND = "interop SLC 150 peer, 9600"
 
@@ -113,6 +154,11 @@ class Client:
         if body[0] & 0x80:
             return body[1], b""
         return 0, body[2:]
+
+    async def write(self, unit: int, address: int, value: int) -> int:
+        """FC6 (its request has a read's shape: address, value): 0 when acknowledged, else the exception code."""
+        code, _ = await self.read(unit, 6, address, value)
+        return code
 
     def close(self) -> None:
         self.writer.close()
@@ -153,6 +199,46 @@ class Reader:
         return sum(code == 0 for code in codes), len(codes)
 
 
+@dataclass
+class PresetWriter(Reader):
+    """Reads ``count`` holding registers at ``address`` continuously (the next read as soon as the answer is
+    in) and after every ``write_every`` reads writes one of them (FC6, in turn, a value of 1-9999, in range
+    for a preset)."""
+
+    write_every: int = WRITE_EVERY
+    writes: list[tuple[float, int]] = field(default_factory=list)  #: (sent, s after the port opened; code)
+
+    async def run(self, port: int, opened: float, stop: asyncio.Event) -> None:
+        loop = asyncio.get_running_loop()
+        rng = random.Random(1)
+        client = await Client.connect(port)
+
+        async def answer(request: Callable[[Client], Awaitable[int]]) -> tuple[float, int]:
+            nonlocal client
+            sent = loop.time() - opened
+            try:
+                return sent, await request(client)
+            except TimeoutError:  # the client closed the connection: a new one for the next request
+                client = await Client.connect(port)
+                return sent, TIMEOUT
+
+        async def read(c: Client) -> int:
+            return (await c.read(self.unit, self.fc, self.address, self.count))[0]
+
+        try:
+            while not stop.is_set():
+                for _ in range(self.write_every):
+                    self.results.append(await answer(read))
+                address, value = self.address + len(self.writes) % self.count, rng.randint(1, 9999)
+                self.writes.append(await answer(lambda c, a=address, v=value: c.write(self.unit, a, v)))
+        finally:
+            client.close()
+
+    def write_codes(self, since: float = 0.0) -> collections.Counter[int]:
+        """Writes sent ``since`` s after the port opened, by answer (0 acknowledged, 0x0B, ..., TIMEOUT)."""
+        return collections.Counter(code for sent, code in self.writes if sent >= since)
+
+
 async def transactions(port: int, units: Sequence[int]) -> int:
     """Transactions so far, summed over ``units`` (input registers 1003-1004 of each)."""
     client = await Client.connect(port)
@@ -169,7 +255,7 @@ async def transactions(port: int, units: Sequence[int]) -> int:
 # ------------------------------------------------------------------------------------ gateways
 
 
-def config(links: str, connections: int = 16) -> Any:
+def config(links: str, connections: int = 16, sections: str = "") -> Any:
     return parse_config(f"""
 [modbus]
 listen = "{HOST}:0"
@@ -179,7 +265,19 @@ max_connections_per_address = {connections + 16}
 [logging]
 level = "ERROR"
 
+{sections}
+
 {links}""")
+
+
+def sparkplug_section(broker: Broker, directory: Path) -> str:
+    """``[sparkplug]`` publishing to ``broker``; every other key its default (``check_interval`` included)."""
+    return f"""[sparkplug]
+broker = "mqtt://{HOST}:{broker.port}"
+group_id = "bench"
+edge_node_id = "freshness"
+state_file = "{directory / 'sparkplug-bdseq.json'}"
+"""
 
 
 def instance() -> str:
@@ -190,9 +288,11 @@ def instance() -> str:
 Links = tuple[str, list[int], list[int]]
 
 
-def slc_links(scan: ScanTime | None, port: str = "") -> Links:
-    query = "&".join(["paced=1", "seed=1", instance()] + ([f"scan={scan.text()}"] if scan else []))
-    return slc_link("slc", port or f"sim://slc150?{query}", 1), [1], [1]
+def slc_links(scan: ScanTime | None, port: str = "", faults: dict[str, int] | None = None, **keys: object) -> Links:
+    """An SLC 150 (``faults``: the simulator's fault options; ``keys``: more keys of the link)."""
+    options = [f"{key}={value}" for key, value in (faults or {}).items()]
+    query = "&".join(["paced=1", "seed=1", instance(), *options] + ([f"scan={scan.text()}"] if scan else []))
+    return slc_link("slc", port or f"sim://slc150?{query}", 1, **keys), [1], [1]
 
 
 def df1_full_links(scan: ScanTime | None, port: str = "") -> Links:
@@ -231,6 +331,24 @@ class Figures:
     demanded_blocks: int
     #: reads without data: (s after the port opened, unit, address, count, code), the first few
     misses: list[tuple[float, int, int, int, int]] = field(default_factory=list)
+    #: the sizing rule at the window's end: (transactions/s the set needs, the schedules' mean read transaction s)
+    needed: float = float("nan")
+    tx_time: float = float("nan")
+    #: the blocks the schedules count as demanded at the window's end (clients' and any other reader's)
+    scheduled_demand: int = 0
+    #: with [sparkplug]: the node's state at the window's end and the messages it published in the window
+    sparkplug: tuple[str, int] | None = None
+    #: the links' counters from start to the window's end, summed over the units (LINE_COUNTERS)
+    line: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def capacity(self) -> float:
+        """The line's transactions/s when it only reads: 1 / the mean read transaction."""
+        return 1 / self.tx_time if self.tx_time > 0 else float("nan")
+
+    @property
+    def fits(self) -> bool:
+        return self.needed < self.capacity
 
     @property
     def share(self) -> float:
@@ -246,19 +364,45 @@ def demanded(gw: Gateway, readers: Sequence[Reader]) -> tuple[int, int]:
     return sum(len(plan.blocks) for plan in plans.values()), len(blocks)
 
 
-async def steady(links: Links, screen: Sequence[tuple[int, int, int, float]], seconds: float,
-                 warmup: float) -> Figures:
-    """Readers of ``screen`` on every unit read; the share with data after ``warmup``."""
+def sizing(gw: Gateway, now: float) -> tuple[float, float, int]:
+    """(transactions/s the demanded set needs by the guide's rule, the mean read transaction s, the demanded
+    blocks) of the polled units: ``sum(1 / (stale_after + P))`` over demanded blocks plus
+    ``1 / (stale_after + B)`` over the others."""
+    needed, times, count = 0.0, [], 0
+    for unit in gw.units:
+        schedule = unit.schedule
+        if schedule is None:
+            continue
+        wanted = set(schedule.demanded(now))
+        count += len(wanted)
+        needed += sum(1 / (schedule.stale_after + (schedule.period if i in wanted else schedule.background)[i])
+                      for i in range(len(schedule.scans)))
+        tx_time = schedule.budget(now).transaction_time
+        if tx_time is not None:
+            times.append(tx_time)
+    return needed, statistics.fmean(times) if times else float("nan"), count
+
+
+async def steady(links: Links, screen: Sequence[tuple[int, int, int, float]], seconds: float, warmup: float,
+                 sections: str = "", readers: Sequence[Reader] = ()) -> Figures:
+    """Readers of ``screen`` on every unit read (or ``readers``); the share with data after ``warmup``.
+    ``sections``: more config (``[sparkplug]``)."""
     text, units, read = links
-    readers = [Reader(unit, fc, address, count, period) for unit in read for fc, address, count, period in screen]
-    async with Gateway(config(text)) as gw:
+    readers = readers or [Reader(unit, fc, address, count, period) for unit in read
+                          for fc, address, count, period in screen]
+    async with Gateway(config(text, sections=sections)) as gw:
         loop = asyncio.get_running_loop()
         opened, stop = loop.time(), asyncio.Event()
         tasks = [asyncio.create_task(reader.run(gw.port, opened, stop)) for reader in readers]
         await asyncio.sleep(warmup)
+        published0 = sum(gw.sparkplug.sent.values()) if gw.sparkplug else 0
         tx0, t0 = await transactions(gw.port, units), loop.time()
         await asyncio.sleep(seconds)
         rate = (await transactions(gw.port, units) - tx0) / (loop.time() - t0)
+        needed, tx_time, scheduled = sizing(gw, loop.time())
+        line = {name: sum(getattr(unit.driver.counters, name) for unit in gw.units) for name in LINE_COUNTERS}
+        node = None if gw.sparkplug is None else (gw.sparkplug.session_state,
+                                                  sum(gw.sparkplug.sent.values()) - published0)
         stop.set()
         await asyncio.gather(*tasks)
         plan_blocks, demanded_blocks = demanded(gw, readers)
@@ -266,7 +410,7 @@ async def steady(links: Links, screen: Sequence[tuple[int, int, int, float]], se
     total = sum(reader.share(warmup)[1] for reader in readers)
     misses = sorted((sent, reader.unit, reader.address, reader.count, code) for reader in readers
                     for sent, code in reader.results if sent >= warmup and code != 0)
-    return Figures(good, total, rate, plan_blocks, demanded_blocks, misses)
+    return Figures(good, total, rate, plan_blocks, demanded_blocks, misses, needed, tx_time, scheduled, node, line)
 
 
 async def startup(links: Links, limit: float = 15.0) -> float:
@@ -351,12 +495,6 @@ class AnswerDelayProxy:
             writer.write(data)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind((HOST, 0))
-        return int(s.getsockname()[1])
-
-
 @contextlib.contextmanager
 def peer(script: str, *args: str) -> Iterator[int]:
     port = free_port()
@@ -408,14 +546,19 @@ async def median_of(rounds: int, measure: Callable[[], Awaitable[Figures]]) -> t
     return figs[len(figs) // 2], [fig.share for fig in figs]
 
 
+def fit(fig: Figures) -> str:
+    """The sizing rule's verdict: ``yes: needed / capacity`` transactions/s."""
+    return f"{'yes' if fig.fits else 'NO'}: {fig.needed:.1f} / {fig.capacity:.1f} ({fig.scheduled_demand} demanded)"
+
+
 def row(case: str, answers: str, fig: Figures, target: str, shares: Sequence[float] = ()) -> list[object]:
     each = f" (rounds {', '.join(f'{100 * share:.1f}' for share in shares)})" if len(shares) > 1 else ""
     return [case, answers, f"{100 * fig.share:.1f} %{each}", f"{fig.with_data}/{fig.reads}", fig.tx_per_s,
-            fig.plan_blocks, fig.demanded_blocks, target]
+            fig.plan_blocks, fig.demanded_blocks, fit(fig), target]
 
 
 HEADERS = ["case", "controller answers", "reads with data", "with data / reads", "line tx/s", "plan blocks",
-           "demanded blocks", "target"]
+           "demanded blocks", "fits (needed / capacity tx/s)", "target"]
 
 
 #: a sweep's points per kind: (longest scan s, share of reads with data, line transactions/s)
@@ -458,9 +601,119 @@ def plot(points: Points, path: Path, title: str, before: Points | None = None,
     print(f"plot written to {path}")
 
 
-async def main_async(args: argparse.Namespace) -> tuple[dict[str, object], Points]:
-    only = set(args.only.split(",")) if args.only else {"slc", "slc-acc8", "startup", "load50", "df1", "peers",
-                                                         "sweep"}
+CASES = ("slc", "slc-acc8", "startup", "load50", "df1", "peers", "sparkplug", "harsh", "sweep")
+#: what a case's row or figure says when mosquitto is missing: loud, never a pass
+NO_BROKER = "NOT MEASURED: MOSQUITTO NOT INSTALLED"
+
+
+def cases(args: argparse.Namespace) -> set[str]:
+    return set(args.only.split(",")) if args.only else set(CASES)
+
+
+def sweep_kinds(args: argparse.Namespace) -> list[str]:
+    """The sweep's simulated kinds (the SLC 150 with [sparkplug] on among them), as ``--quick`` and ``--kinds`` say."""
+    if args.quick:
+        return list(KINDS)[:1]
+    names = [*KINDS, SPARKPLUG_SWEEP_KIND]
+    return [k for k in names if not args.kinds or any(part in k for part in args.kinds.split(","))]
+
+
+def wants_broker(args: argparse.Namespace) -> bool:
+    only = cases(args)
+    return "sparkplug" in only or ("sweep" in only and SPARKPLUG_SWEEP_KIND in sweep_kinds(args))
+
+
+@contextlib.contextmanager
+def sparkplug_broker(wanted: bool) -> Iterator[str | None]:
+    """The ``[sparkplug]`` section of a mosquitto started for the run; None when not wanted, or (said loudly)
+    when mosquitto is not installed."""
+    if not wanted:
+        yield None
+        return
+    path = mosquitto_path()
+    if path is None:
+        for stream in (sys.stdout, sys.stderr):
+            print(f"!!! {NO_BROKER}: the sparkplug case and the sweep's Sparkplug curve need a broker "
+                  "(Debian package mosquitto: apt-get install mosquitto) !!!", file=stream, flush=True)
+        yield None
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        broker = Broker(path, Path(tmp))
+        broker.start()
+        try:
+            yield sparkplug_section(broker, Path(tmp))
+        finally:
+            broker.stop()
+
+
+def publishing(fig: Figures) -> bool:
+    """The edge node of a Sparkplug-on run was online at the window's end and published in it."""
+    return fig.sparkplug is not None and fig.sparkplug[0] == "online" and fig.sparkplug[1] > 0
+
+
+def node_note(fig: Figures) -> str:
+    """The edge node of a Sparkplug-on run: ``online, N messages``, or loudly why the run measured nothing."""
+    if fig.sparkplug is None:
+        return ""
+    state, published = fig.sparkplug
+    if not publishing(fig):
+        return f"NODE NOT PUBLISHING ({state}, {published} messages): NOT A MEASUREMENT"
+    return f"{state}, {published} messages"
+
+
+async def sparkplug_case(args: argparse.Namespace, sparkplug: str, longest: float, rows: list[list[object]],
+                         figures: dict[str, object]) -> None:
+    """The ``slc`` case at answers within 0-``longest`` with [sparkplug] off, then on: the rows side by side."""
+    ms, shares_by_mode = int(longest * 1000), {}
+    for mode, sections in (("off", ""), ("on", sparkplug)):
+        fig, shares = await median_of(args.rounds, lambda sections=sections: steady(
+            slc_links(scan_for(longest)), SCREEN, args.seconds, args.warmup, sections))
+        shares_by_mode[mode] = fig.share
+        note = node_note(fig)
+        if mode == "off":
+            target = f">= 99 %: {'met' if fig.share >= 0.99 else 'not met'}"
+        else:
+            delta = 100 * (fig.share - shares_by_mode["off"])
+            met = abs(delta) <= 1 and (fig.share >= 0.99 or longest < 0.1) and publishing(fig)
+            target = f"at most 1 point from off{', >= 99 %' if longest >= 0.1 else ''}: " \
+                     f"{'met' if met else 'NOT MET'} ({delta:+.1f} points)"
+            figures[f"sparkplug_delta_{ms}ms"] = delta
+            figures[f"sparkplug_met_{ms}ms"] = met
+        rows.append(row(f"SLC 150 9600, Sparkplug {mode}{f' ({note})' if note else ''}: holding 0-31 / 1 s, "
+                        "32-63 / 2 s", f"scan {longest / 2:g}-{longest:g} s", fig, target, shares))
+        figures[f"sparkplug_{mode}_{ms}ms"] = fig.share
+        print(rows[-1], flush=True)
+
+
+async def harsh_case(args: argparse.Namespace, rows: list[list[object]], figures: dict[str, object]) -> None:
+    """The presets read continuously and written on a harsh line, beside the line's capacity."""
+    writer = PresetWriter(1, 3, *PRESETS, period=0.0)
+    links = slc_links(scan_for(HARSH_LONGEST), faults=HARSH_FAULTS, stale_after=HARSH_STALE_AFTER)
+    fig = await steady(links, (), args.seconds, args.warmup, readers=[writer])
+    if fig.misses:
+        print(f"  reads without data: {misses(fig)}", flush=True)
+    met = fig.share >= 0.9 and fig.fits
+    faults = ", ".join(f"{key} {value}" for key, value in HARSH_FAULTS.items())
+    rows.append(row(f"SLC 150 9600, {faults} (1 in N), stale_after {HARSH_STALE_AFTER}: holding "
+                    f"{PRESETS[0]}-{sum(PRESETS) - 1} continuously, FC6 after every {WRITE_EVERY}th read",
+                    f"scan {HARSH_LONGEST / 2:g}-{HARSH_LONGEST:g} s", fig,
+                    f">= 90 % with a set that fits: {'met' if met else 'NOT MET'}"))
+    print(rows[-1], flush=True)
+    writes = writer.write_codes(args.warmup)
+    others = {code: n for code, n in writes.items() if code not in (0, STALE, TIMEOUT)}
+    print(f"harsh: read transaction {1000 * fig.tx_time:.0f} ms (capacity {fig.capacity:.2f} tx/s), "
+          f"{fig.scheduled_demand} demanded blocks of {fig.plan_blocks}, the set needs {fig.needed:.2f} tx/s: "
+          f"{'fits' if fig.fits else 'DOES NOT FIT'}; writes {writes.total()}: acknowledged {writes[0]}, "
+          f"0x0B {writes[STALE]}, timeouts {writes[TIMEOUT]}, other exceptions {others or 0}; the line from start: "
+          f"{', '.join(f'{key} {value}' for key, value in fig.line.items())}", flush=True)
+    figures.update(harsh_reads_with_data=fig.share, harsh_reads=fig.reads, harsh_tx_time_s=fig.tx_time,
+                   harsh_capacity=fig.capacity, harsh_needed=fig.needed, harsh_demanded=fig.scheduled_demand,
+                   harsh_fits=fig.fits, harsh_met=met, harsh_writes=writes.total(), harsh_writes_acked=writes[0],
+                   harsh_writes_0x0B=writes[STALE], **{f"harsh_line_{key}": value for key, value in fig.line.items()})
+
+
+async def main_async(args: argparse.Namespace, sparkplug: str | None = None) -> tuple[dict[str, object], Points]:
+    only = cases(args)
     seconds, warmup = args.seconds, args.warmup
     rows: list[list[object]] = []
     figures: dict[str, object] = {}
@@ -508,6 +761,14 @@ async def main_async(args: argparse.Namespace) -> tuple[dict[str, object], Point
             print(rows[-1], flush=True)
     elif "peers" in only:
         print(f"interop peers not found at {PEERS}: measuring the simulators only")
+    if "sparkplug" in only and sparkplug is None:
+        rows.append(["SLC 150 9600, Sparkplug on", NO_BROKER, "-", "-", "-", "-", "-", "-", NO_BROKER])
+        figures["sparkplug"] = NO_BROKER
+    elif "sparkplug" in only:
+        for longest in slc_cases:
+            await sparkplug_case(args, sparkplug, longest, rows, figures)
+    if "harsh" in only:
+        await harsh_case(args, rows, figures)
     print(table(HEADERS, rows))
     if "startup" in only:
         runs = [await startup(slc_links(None)) for _ in range(1 if args.quick else args.repeats)]
@@ -522,8 +783,11 @@ async def main_async(args: argparse.Namespace) -> tuple[dict[str, object], Point
         figures["load50_0x0B_after_3s"] = late_bad
     if "sweep" in only:
         sweep = (SWEEP[0], SWEEP[-1]) if args.quick else SWEEP
-        kinds = list(KINDS)[:1] if args.quick else [k for k in KINDS if not args.kinds or any(
-            part in k for part in args.kinds.split(","))]
+        kinds = sweep_kinds(args)
+        if SPARKPLUG_SWEEP_KIND in kinds and sparkplug is None:
+            print(f"!!! sweep: {SPARKPLUG_SWEEP_KIND}: {NO_BROKER} !!!", flush=True)
+            figures["sweep_sparkplug"] = NO_BROKER
+            kinds.remove(SPARKPLUG_SWEEP_KIND)
         # the independent SLC 150 peer, its every answer held uniform(0, J) by the proxy (the issue's own
         # measure of a controller that "answers within J")
         peer_sweep = not args.quick and PEERS.exists() and (not args.kinds or any(
@@ -534,16 +798,19 @@ async def main_async(args: argparse.Namespace) -> tuple[dict[str, object], Point
                 if name == PEER_SWEEP_KIND:
                     fig = await through_peer("slc_ascii_peer.py", ["--model", "150", "--baud", "9600"], 0.0, longest,
                                              0.0, slc_links, seconds, warmup)
+                elif name == SPARKPLUG_SWEEP_KIND:
+                    fig = await steady(slc_links(scan_for(longest)), SCREEN, seconds, warmup, sparkplug or "")
                 else:
                     fig = await steady(KINDS[name](scan_for(longest), ""), SCREEN, seconds, warmup)
                 points.setdefault(name, []).append((longest, fig.share, fig.tx_per_s))
-                sweep_rows.append([name, f"{1000 * longest:g}", f"{100 * fig.share:.1f} %", fig.tx_per_s,
-                                   fig.plan_blocks, fig.demanded_blocks])
+                sweep_rows.append([f"{name}{f' ({note})' if (note := node_note(fig)) else ''}", f"{1000 * longest:g}",
+                                   f"{100 * fig.share:.1f} %", fig.tx_per_s, fig.plan_blocks, fig.demanded_blocks,
+                                   fit(fig)])
                 if fig.misses:
                     print(f"  reads without data: {misses(fig)}", flush=True)
                 print(sweep_rows[-1], flush=True)
-        print(table(["kind", "longest scan ms", "reads with data", "line tx/s", "plan blocks", "demanded blocks"],
-                    sweep_rows))
+        print(table(["kind", "longest scan ms", "reads with data", "line tx/s", "plan blocks", "demanded blocks",
+                     "fits (needed / capacity tx/s)"], sweep_rows))
     return figures, points
 
 
@@ -555,8 +822,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="start-up runs (median; default 3)")
     parser.add_argument("--rounds", type=int, default=1, help="rounds of each SLC 150 case with a 99 %% target: "
                                                                "the median is reported, every round beside it")
-    parser.add_argument("--only", default="", help="comma-separated cases: slc, slc-acc8, startup, load50, df1, "
-                                                    "peers, sweep")
+    parser.add_argument("--only", default="", help=f"comma-separated cases: {', '.join(CASES)}")
     parser.add_argument("--kinds", default="", help="the sweep's and the df1 case's kinds whose name contains one "
                                                      "of these (comma-separated; default every kind)")
     parser.add_argument("--png", default=str(ROOT / "bench" / "freshness.png"), help="the sweep's plot")
@@ -583,7 +849,8 @@ def main() -> None:
         points = sweeps(args.plot_only)
     else:
         print_machine()
-        figures, points = asyncio.run(main_async(args))
+        with sparkplug_broker(wants_broker(args)) as sparkplug:
+            figures, points = asyncio.run(main_async(args, sparkplug))
     if args.json:
         Path(args.json).write_text(json.dumps({"figures": figures, "sweep": points}, indent=1))
     if args.png and points and not args.quick:
@@ -591,6 +858,8 @@ def main() -> None:
         plot(points, Path(args.png), args.title, before, (args.compare_label, args.label))
     if figures:
         result(**figures)
+    if NO_BROKER in figures.values() and (mosquitto_required() or not args.quick):
+        sys.exit(f"{NO_BROKER}: a Sparkplug figure was asked for and none was measured")
 
 
 if __name__ == "__main__":

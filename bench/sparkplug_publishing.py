@@ -41,9 +41,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
 import re
-import shutil
 import statistics
 import subprocess
 import sys
@@ -53,7 +51,21 @@ import time
 import urllib.request
 from pathlib import Path
 
-from _benchlib import DF1_MAP, HOST, PYTHON, REPO, SimFarm, df1_link, gateway_config, print_machine, result, table
+from _benchlib import (
+    DF1_MAP,
+    HOST,
+    PYTHON,
+    REPO,
+    Broker,
+    SimFarm,
+    df1_link,
+    gateway_config,
+    mosquitto_path,
+    mosquitto_required,
+    print_machine,
+    result,
+    table,
+)
 from modbus_serving import free_port, process_cpu, run_load, wait_status
 
 LINKS = 64
@@ -64,36 +76,13 @@ READ = (1, 3, 0, 100)  # unit, function, address, count
 
 def mosquitto() -> str | None:
     """The broker; without it the benchmark says so and stops (a failure with SLC_GATEWAY_REQUIRE_MOSQUITTO=1)."""
-    path = shutil.which("mosquitto") or ("/usr/sbin/mosquitto" if Path("/usr/sbin/mosquitto").exists() else None)
+    path = mosquitto_path()
     if path is None:
         print("MOSQUITTO NOT INSTALLED: this benchmark needs a broker (Debian package mosquitto)")
-        if os.environ.get("SLC_GATEWAY_REQUIRE_MOSQUITTO") == "1":
+        if mosquitto_required():
             raise SystemExit("mosquitto is required (SLC_GATEWAY_REQUIRE_MOSQUITTO=1)")
         result(skipped="no_mosquitto")
     return path
-
-
-class Broker:
-    """mosquitto on a fixed loopback port, stopped and started between windows."""
-
-    def __init__(self, path: str, directory: Path) -> None:
-        self.path = path
-        self.port = free_port()
-        self.config = directory / "mosquitto.conf"
-        self.config.write_text(f"listener {self.port} {HOST}\nallow_anonymous true\npersistence false\n"
-                               "log_dest none\n", encoding="utf-8")
-        self.process: subprocess.Popen[bytes] | None = None
-
-    def start(self) -> None:
-        if self.process is None:
-            self.process = subprocess.Popen([self.path, "-c", str(self.config)], stdout=subprocess.DEVNULL,
-                                            stderr=subprocess.DEVNULL)
-
-    def stop(self) -> None:
-        if self.process is not None:
-            self.process.terminate()
-            self.process.wait(5)
-            self.process = None
 
 
 class Subscriber(threading.Thread):
