@@ -3,7 +3,7 @@
 Every face of the gateway reads this module's answers and decides nothing of its own: the Modbus
 server (a value, or 0x0B), the status block (registers 1000, 1001 and 1011), ``/healthz``, the
 status page, ``/metrics`` and Sparkplug (a value, or ``is_null`` with its ``Quality``; DDEATH).
-``docs/guide/freshness.md`` states the rules for users; ``tests/test_freshness.py`` states them once
+``docs/guide/freshness.md`` states the rules for users; ``tests/test_freshness_verdict.py`` states them once
 more, from the guide, and checks every face against them on random histories.
 
 Inputs (nothing here reads a clock, a socket or a port: the caller passes ``now``):

@@ -10,8 +10,8 @@ H_TESTS="tests/modbus/test_handler.py tests/modbus/test_server.py tests/test_hos
 TARGET_TESTS="tests/kinds/df1/target/test_end_to_end.py tests/kinds/df1/target/test_persist_faults.py tests/kinds/df1/target/test_unit_floats.py"
 ADMISSION_TESTS="tests/modbus/test_admission.py tests/modbus/test_server.py tests/test_hostile_network.py"
 RESPONDER_TESTS="tests/protocols/df1/full_duplex/test_responder.py"
-UNIT_TESTS="tests/test_register_image.py tests/kinds/test_not_polled.py tests/test_write_timeout.py tests/test_freshness.py"
-FRESHNESS_TESTS="tests/test_freshness.py"
+UNIT_TESTS="tests/test_register_image.py tests/kinds/test_not_polled.py tests/test_write_timeout.py tests/test_freshness_verdict.py"
+FRESHNESS_TESTS="tests/test_freshness_verdict.py"
 SLC_PLAN_TESTS="tests/kinds/slc_ascii/test_plan.py tests/protocols/slc_ascii/test_memory_map.py tests/kinds/slc_ascii/test_driver.py"
 run() {
   name=$1; tests=$2; shift 2
