@@ -144,7 +144,7 @@ def test_every_face_says_what_the_rule_says(events: list[tuple[str, int, float]]
         elif kind in ("down", "up"):
             driver.available = ref.answers = kind == "up"
         elif kind == "lose":
-            unit.schedule.lost()
+            unit.schedule.lost(now)
             ref.lose(now)
         for b in (FAST, SLOW):
             expected = ref.fresh(b, now)
