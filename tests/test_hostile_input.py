@@ -73,7 +73,7 @@ PATH_UNAVAILABLE, TARGET_FAILED = 0x0A, 0x0B
 #: Modbus addresses the SLC 100/150 default map serves (module docstring of gateway.modbus.mapping).
 HOLDING = set(range(64))
 INPUT = set(range(32)) | set(range(66, 75)) | set(range(129, 137))
-STATUS = range(1000, 1011)
+STATUS = range(1000, 1012)  # the status block, 1000-1011
 COILS = set(range(701, 869))
 DISCRETE = (
     {g * 100 + r for g in range(7) for r in range(1, 19) if g * 100 + r >= 1}

@@ -53,7 +53,7 @@ MBPOLL_TEXT = {
 }
 
 STATUS_BASE = 1000
-STATUS_COUNT = 11
+STATUS_COUNT = 12  # 1000-1011 (docs/reference/status-block.md)
 
 
 # --------------------------------------------------------------------------------------------
@@ -377,6 +377,7 @@ async def test_pymodbus_reads_every_mapped_value(plant: Plant) -> None:
         assert status[2] == 0
         assert (status[3] << 16 | status[4]) > 0
         assert (status[5] << 16 | status[6]) == 0  # errors
+        assert status[11] == 0  # 1011: the link's state by the one verdict: up (fresh)
 
 
 async def test_mbpoll_reads_every_table(plant: Plant) -> None:
@@ -506,7 +507,7 @@ async def test_exceptions_each_proven_with_pymodbus(plant: Plant) -> None:
         assert exception_code(await client.read_holding_registers(64, count=1, device_id=MAIN)) == ILLEGAL_ADDRESS
         assert exception_code(await client.read_holding_registers(60, count=8, device_id=MAIN)) == ILLEGAL_ADDRESS
         assert exception_code(await client.read_input_registers(32, count=1, device_id=MAIN)) == ILLEGAL_ADDRESS
-        assert exception_code(await client.read_input_registers(1011, count=1, device_id=MAIN)) == ILLEGAL_ADDRESS
+        assert exception_code(await client.read_input_registers(1012, count=1, device_id=MAIN)) == ILLEGAL_ADDRESS
         assert exception_code(await client.read_discrete_inputs(19, count=1, device_id=MAIN)) == ILLEGAL_ADDRESS
         assert exception_code(await client.read_coils(869, count=1, device_id=MAIN)) == ILLEGAL_ADDRESS
         assert exception_code(await client.write_register(64, 1, device_id=MAIN)) == ILLEGAL_ADDRESS
@@ -557,6 +558,7 @@ async def test_exceptions_each_proven_with_pymodbus(plant: Plant) -> None:
         status = await read_registers(client, "input", STATUS_BASE, STATUS_COUNT, SILENT)
         assert status[0] == 0  # link down
         assert status[1] == 65535  # never read
+        assert status[11] == 2  # 1011: down
         assert (status[5] << 16 | status[6]) > 0  # errors counted
         writes_before = len(silent.applied_writes)
         assert exception_code(await client.write_register(3, 42, device_id=SILENT)) == TARGET_FAILED
