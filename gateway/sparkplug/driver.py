@@ -28,7 +28,7 @@ import os
 import struct
 import time
 from collections import Counter
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, Final
 
@@ -113,6 +113,28 @@ class _MqttClient(aiomqtt.Client):
     CONNECT, as MQTT 3.1.1 §3.1.2.10 means it; once written, paho's own rule applies unchanged.  (These are
     paho-mqtt 2.2.0's internals and aiomqtt 2.5.1's misc loop: both pinned in pyproject.toml.)"""
 
+    def __init__(self, *args: Any, will_of_connect: Callable[[], Publish], **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._will_of_connect = will_of_connect
+
+    def _client_connect(self) -> None:
+        """aiomqtt's connect (in its thread), with the will set when paho makes the CONNECT packet: after the TCP
+        connection is up, so that each CONNECT, and only a CONNECT, takes a bdSeq (paho-mqtt 2.2.0's
+        ``reconnect`` calls ``_send_connect`` right after ``_create_socket``)."""
+        paho = self._client
+        send_connect = paho._send_connect
+
+        def with_will(keepalive: int) -> Any:
+            will = self._will_of_connect()
+            paho.will_set(will.topic, will.payload, will.qos, will.retain)
+            return send_connect(keepalive)
+
+        paho._send_connect = with_will  # type: ignore[method-assign]
+        try:
+            super()._client_connect()
+        finally:
+            del paho._send_connect
+
     async def _misc_loop(self) -> None:
         paho = self._client
         while True:
@@ -186,6 +208,8 @@ class SparkplugNode:
         self._writing: set[asyncio.Task[None]] = set()
         self._who = Client(f"sparkplug DCMD via {config.broker}")
         self._offset = 0.0  # wall seconds - loop seconds
+        self._loop: asyncio.AbstractEventLoop | None = None  # set by run(): the connect thread calls into it
+        self._state_error = False  # the state file could not be written (logged once)
         #: per device: the listener this node added to its unit's cache (removed by :meth:`detach`)
         self._listeners = [self._listener(index) for index in range(len(self.devices))]
         for device, listener in zip(self.devices, self._listeners, strict=True):
@@ -221,26 +245,15 @@ class SparkplugNode:
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
+        self._loop = loop
         self._offset = time.time() - loop.time()
         delay = self.config.reconnect_min
-        down_logged = state_error = False
+        down_logged = False
         current_client.set(self._who)  # the DCMD writes' client, for the write queue and the audit log
         while True:
-            will = self.core.connecting(self._now_ms())
-            bd_seq = self.core.bd_seq or 0
-            try:
-                # fsync takes milliseconds, more on a busy disk: in a thread, the loop answers meanwhile
-                await asyncio.to_thread(save_bd_seq, self.config.state_file, bd_seq)
-                state_error = False
-            except OSError as exc:
-                if not state_error:
-                    state_error = True
-                    log.error("sparkplug: cannot keep bdSeq in %s (%s): a restart would reuse bdSeq %d; "
-                              "make its directory writable or set [sparkplug] state_file", self.config.state_file,
-                              exc, bd_seq)
             sessions = self.sessions
             try:
-                await self._session(will)
+                await self._session()
             except aiomqtt.MqttError as exc:
                 if self.sessions > sessions:  # it was up: lost (logged once, then retried quietly)
                     log.warning("sparkplug: MQTT session with %s lost (%s); reconnecting", self.config.broker, exc)
@@ -258,14 +271,41 @@ class SparkplugNode:
             if self.sessions == sessions:
                 delay = min(self.config.reconnect_max, delay * 2)
 
-    async def _session(self, will: Publish) -> None:
+    def _connect_packet_will(self) -> Publish:
+        """In the MQTT client's connect thread, once the TCP (and TLS) connection is up and its CONNECT is being
+        made: the next ``bdSeq`` and its NDEATH, the CONNECT's will.  Sparkplug 3.0 §5.4 / §6.4.25
+        (tck-id-topics-nbirth-bdseq-increment) counts MQTT CONNECT packets: an attempt refused before
+        its CONNECT takes none.  ``bdSeq`` is kept in ``state_file`` before the CONNECT leaves (fsync here, in
+        the thread: the event loop answers meanwhile)."""
+        if self._loop is None:
+            raise OSError("the edge node is not running")
+        future = asyncio.run_coroutine_threadsafe(self._next_will(), self._loop)
+        try:
+            will = future.result(_MQTT_TIMEOUT)
+        except TimeoutError:
+            future.cancel()
+            raise OSError("the event loop did not take the next bdSeq in time") from None
+        bd_seq = self.core.bd_seq or 0
+        try:
+            save_bd_seq(self.config.state_file, bd_seq)
+            self._state_error = False
+        except OSError as exc:
+            if not self._state_error:
+                self._state_error = True
+                log.error("sparkplug: cannot keep bdSeq in %s (%s): a restart would reuse bdSeq %d; make its "
+                          "directory writable or set [sparkplug] state_file", self.config.state_file, exc, bd_seq)
+        return will
+
+    async def _next_will(self) -> Publish:
+        return self.core.connecting(self._now_ms())
+
+    async def _session(self) -> None:
         config = self.config
         host, port = config.address
         client = _MqttClient(
-            host, port,
+            host, port, will_of_connect=self._connect_packet_will,
             identifier=config.client_id or f"slc-gateway-{config.group_id}-{config.edge_node_id}",
             username=config.username, password=config.password,
-            will=aiomqtt.Will(will.topic, will.payload, will.qos, will.retain),
             clean_session=True, keepalive=config.keepalive, protocol=aiomqtt.ProtocolVersion.V311,
             tls_context=config.ssl_context(), timeout=_MQTT_TIMEOUT,
         )
