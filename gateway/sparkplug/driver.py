@@ -116,6 +116,8 @@ class _MqttClient(aiomqtt.Client):
     def __init__(self, *args: Any, will_of_connect: Callable[[], Publish], **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._will_of_connect = will_of_connect
+        #: the connect thread is making the CONNECT (taking the bdSeq from the loop): not queued in paho yet
+        self._making_connect = False
 
     def _client_connect(self) -> None:
         """aiomqtt's connect (in its thread), with the will set when paho makes the CONNECT packet: after the TCP
@@ -127,18 +129,24 @@ class _MqttClient(aiomqtt.Client):
         def with_will(keepalive: int) -> Any:
             will = self._will_of_connect()
             paho.will_set(will.topic, will.payload, will.qos, will.retain)
-            return send_connect(keepalive)
+            try:
+                return send_connect(keepalive)
+            finally:
+                self._making_connect = False
 
         paho._send_connect = with_will  # type: ignore[method-assign]
+        self._making_connect = True
         try:
             super()._client_connect()
         finally:
+            self._making_connect = False
             del paho._send_connect
 
     async def _misc_loop(self) -> None:
         paho = self._client
         while True:
-            if paho._state is _ConnectionState.MQTT_CS_CONNECTING and paho.want_write():  # CONNECT not written yet
+            if paho._state is _ConnectionState.MQTT_CS_CONNECTING and (self._making_connect or paho.want_write()):
+                # the CONNECT is being made (the socket is already the loop's) or not written yet
                 with paho._msgtime_mutex:
                     paho._last_msg_out = paho._last_bytes_received = paho_clock()
             if paho.loop_misc() != MQTT_ERR_SUCCESS:
