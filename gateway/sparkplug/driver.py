@@ -39,9 +39,11 @@ from gateway.config.link import LinkBase
 from gateway.config.sparkplug import SparkplugConfig
 from gateway.errors import ModbusExceptionReply
 from gateway.sparkplug.devices import LinkDevice, build_devices
+from gateway.sparkplug.forward import Forwarder
 from gateway.sparkplug.mqtt import MQTT_TIMEOUT, Busy, MqttClient
 from gateway.sparkplug.node import EdgeNode, Publish, WriteCommand
 from gateway.sparkplug.payload import SparkplugType
+from gateway.sparkplug.store import ChangeStore, store_path
 from gateway.unit import Unit
 
 __all__ = ["SparkplugNode", "load_bd_seq", "save_bd_seq"]
@@ -86,7 +88,13 @@ class SparkplugNode:
         self.config = config
         self.devices: list[LinkDevice] = build_devices(links, units, demand=config.demand)
         self.core = EdgeNode(config.group_id, config.edge_node_id, [d.device for d in self.devices],
-                             primary_host_id=config.primary_host_id, bd_seq=load_bd_seq(config.state_file))
+                             primary_host_id=config.primary_host_id, bd_seq=load_bd_seq(config.state_file),
+                             store=config.store, window=int(1500 * config.keepalive))
+        #: store and forward (``[sparkplug] store``): the unsent changes on disk and their replay
+        self.forward = Forwarder(
+            self.core, ChangeStore(store_path(config.state_file), max_bytes=int(config.store_max_mb * 1e6),
+                                   max_age=int(config.store_max_age * 1000)),
+            replay_rate=config.replay_rate, now_ms=self._now_ms) if config.store else None
         #: DCMD writes the controller refused or that failed (also counted in ``core.refused``)
         self.write_failures = 0
         #: messages handed to the broker, by message type (NBIRTH, DDATA, ...)
@@ -149,14 +157,24 @@ class SparkplugNode:
         self._loop = loop
         self._offset = time.time() - loop.time()
         delay = self.config.reconnect_min
-        down_logged = False
         current_client.set(self._who)  # the DCMD writes' client, for the write queue and the audit log
+        async with asyncio.TaskGroup() as group:  # for the life of the node: values are watched (and stored) offline
+            if self.forward is not None:
+                await self.forward.open()
+                group.create_task(self.forward.keep())
+            group.create_task(self._watch())
+            await self._sessions(delay)
+
+    async def _sessions(self, delay: float) -> None:
+        down_logged = False
         while True:
             sessions = self.sessions
+            lost: int | None = None  # when a session that was up was found lost (its window is in doubt)
             try:
                 await self._session()
             except aiomqtt.MqttError as exc:
                 if self.sessions > sessions:  # it was up: lost (logged once, then retried quietly)
+                    lost = self._now_ms()
                     log.warning("sparkplug: MQTT session with %s lost (%s); reconnecting", self.config.broker, exc)
                     delay, down_logged = self.config.reconnect_min, False
                 elif not down_logged:
@@ -167,7 +185,7 @@ class SparkplugNode:
                 log.info("sparkplug: primary host %s went offline: NDEATH published, reconnecting",
                          self.config.primary_host_id)
                 delay = self.config.reconnect_min
-            self.core.disconnected()
+            self.core.disconnected(lost)
             await asyncio.sleep(delay)
             if self.sessions == sessions:
                 delay = min(self.config.reconnect_max, delay * 2)
@@ -225,7 +243,9 @@ class SparkplugNode:
                 await self._dbirths()
                 async with asyncio.TaskGroup() as group:
                     group.create_task(self._sender(client))
-                    group.create_task(self._watch())
+                    if self.forward is not None:
+                        await self.forward.session_up()
+                        group.create_task(self.forward.replay(self._send, self._drained))
                     await self._receive(client)
                     raise aiomqtt.MqttError("the broker closed the session")
             except* _HostOffline:
@@ -249,18 +269,24 @@ class SparkplugNode:
             _, late = await asyncio.wait(set(self._writing), timeout=max(d.unit.write_timeout for d in self.devices))
             for task in late:
                 task.cancel()  # its write, if queued, stays queued: applied at most once (Unit._queue_write)
-        if self._client is None or not self.config.ndeath_on_stop:
-            return
-        self._send(self.core.stopping(self._now_ms()))  # the core publishes nothing after it
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(2):
-                await self._outbox.join()
+        if self._client is not None and self.config.ndeath_on_stop:
+            self._send(self.core.stopping(self._now_ms()))  # the core publishes nothing after it
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(2):
+                    await self._outbox.join()
+        if self.forward is not None:
+            await self.forward.close()  # what is left of the unsent changes: committed
 
     # --- outgoing ------------------------------------------------------------------------------
 
     def _send(self, messages: list[Publish]) -> None:
         for message in messages:
             self._outbox.put_nowait(message)
+
+    async def _drained(self) -> None:
+        """Everything queued so far is written to the socket, and no pass is under way."""
+        await self._outbox.join()
+        await self._idle.wait()
 
     def _drain_outbox(self) -> None:
         """Messages of a session that ended are not sent in the next one."""

@@ -35,19 +35,21 @@ async def test_refused_attempts_take_no_bdseq_and_the_will_carries_the_nbirths(
                              keepalive=5, state_file=state_file, reconnect_min=0.05, reconnect_max=0.05)
     node = SparkplugNode(config, [], [])
     attempts = 0
+    target = 5
+    enough = asyncio.Event()
     session = node._session
 
     async def counted() -> None:
         nonlocal attempts
         attempts += 1
+        if attempts >= target:
+            enough.set()
         await session()
 
     node._session = counted  # type: ignore[method-assign]
     task = asyncio.create_task(node.run())
     try:
-        async with asyncio.timeout(30):
-            while attempts < 5:
-                await asyncio.sleep(0.05)
+        await asyncio.wait_for(enough.wait(), 30)
         assert attempts >= 5 and node.core.bd_seq is None and not state_file.exists()
         broker.start()
         async with SparkplugHost(HOST, broker.port) as host:
@@ -56,10 +58,8 @@ async def test_refused_attempts_take_no_bdseq_and_the_will_carries_the_nbirths(
             assert json.loads(state_file.read_text())["bdSeq"] == 0
             # the broker goes away; the node's attempts are refused again
             broker.stop()
-        before = attempts
-        async with asyncio.timeout(30):
-            while attempts < before + 5:
-                await asyncio.sleep(0.05)
+        target, enough = attempts + 5, asyncio.Event()
+        await asyncio.wait_for(enough.wait(), 30)
         broker.start()
         async with SparkplugHost(HOST, broker.port) as host:
             nbirth = await host.wait_for(lambda m: m.message_type == "NBIRTH", 20)
