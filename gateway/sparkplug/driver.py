@@ -46,13 +46,23 @@ from gateway.sparkplug.payload import SparkplugType
 from gateway.sparkplug.store import ChangeStore, store_path
 from gateway.unit import Unit
 
-__all__ = ["SparkplugNode", "load_bd_seq", "save_bd_seq"]
+__all__ = ["SparkplugNode", "load_bd_seq", "save_bd_seq", "window_ms"]
 
 log = logging.getLogger("gateway.sparkplug")
 
 #: messages handed to the MQTT client at once, at most: paho writes them in one loop step (40-60 µs of
 #: CPU each on the 2-core bench machine), so this bounds that step; a birth sequence queues one per device
 _BATCH: Final = 4
+
+
+def window_ms(keepalive: int) -> int:
+    """How long published DDATA stays in doubt (ms): the time paho takes to find a silent connection lost.
+
+    The issue asked for 1.5 x keepalive, the broker's limit (MQTT 3.1.1 §3.1.2.10).  The client finds the loss
+    later: it sends PINGREQ after ``keepalive`` without a packet from the broker and gives up ``keepalive``
+    after that, checked once a second, so up to 2 x keepalive + 1 s after the last packet received, which
+    can be any time before the cut (measured: tests/e2e/test_sparkplug_store.py, ``silent``)."""
+    return (2 * keepalive + 2) * 1000
 
 
 def load_bd_seq(path: Path) -> int | None:
@@ -89,7 +99,7 @@ class SparkplugNode:
         self.devices: list[LinkDevice] = build_devices(links, units, demand=config.demand)
         self.core = EdgeNode(config.group_id, config.edge_node_id, [d.device for d in self.devices],
                              primary_host_id=config.primary_host_id, bd_seq=load_bd_seq(config.state_file),
-                             store=config.store, window=int(1500 * config.keepalive))
+                             store=config.store, window=window_ms(config.keepalive))
         #: store and forward (``[sparkplug] store``): the unsent changes on disk and their replay
         self.forward = Forwarder(
             self.core, ChangeStore(store_path(config.state_file), max_bytes=int(config.store_max_mb * 1e6),

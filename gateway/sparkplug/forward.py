@@ -11,7 +11,7 @@ Modbus answers) never waits for SQLite.
   at a time, up to :data:`REPLAY_METRICS` per DDATA, marked historical, at most ``replay_rate`` messages a
   second, each only once everything queued before it is written (live DDATA goes first); its rows are
   removed once the MQTT client wrote it.  A message lost with the connection afterwards is still in the
-  core's window (1.5 x keepalive) and is stored again.
+  core's window (2 x keepalive + 2 s) and is stored again.
 """
 
 from __future__ import annotations

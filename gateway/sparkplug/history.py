@@ -6,10 +6,11 @@ No clock, no disk: the caller (``gateway.sparkplug.driver``) passes ``now`` (UTC
 * A :class:`Change` is one metric's value change (device and metric by name, so that a store written
   before a restart is read by the metric's name, whatever alias the new process gives it), with its
   original timestamp.
-* :class:`Window`: the changes published as live DDATA in the last ``span`` ms (1.5 x keepalive).
+* :class:`Window`: the changes published as live DDATA in the last ``span`` ms (2 x keepalive + 2 s:
+  ``gateway.sparkplug.driver.window_ms``).
   DDATA is QoS 0 (§6.4.22 tck-id-payloads-ddata-qos): a message handed to the MQTT client before the
   loss of the connection was noticed may be gone, and only the keepalive notices a silent loss (the
-  broker publishes the will after 1.5 x keepalive, MQTT 3.1.1 §3.1.2.10).  When the connection is
+  client finds a silent loss up to 2 x keepalive after the last packet it received).  When the connection is
   found lost, what the window holds is stored too: replayed, it may reach a host twice, marked
   historical the second time, with its original timestamp.
 * Replay (:func:`historical_metrics`): stored changes go out as DDATA whose metrics carry

@@ -204,7 +204,7 @@ class EdgeNode:
         self.storing = store
         #: changes not published, for the store (the caller takes them: :meth:`take_unsent`)
         self.unsent: list[Change] = []
-        #: the changes published in the last ``window`` ms (1.5 x keepalive): in doubt when the connection is lost
+        #: the changes published in the last ``window`` ms (2 x keepalive + 2 s): in doubt when the connection is lost
         self.window = Window(window)
         #: stored changes of metrics this node does not have (a store written before a config change)
         self.unknown_history = 0

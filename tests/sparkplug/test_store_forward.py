@@ -14,7 +14,7 @@ from gateway.sparkplug.node import STALE, Device, EdgeNode, MetricSpec, Publish,
 from gateway.sparkplug.payload import SparkplugType, decode
 
 T0 = 1_700_000_000_000
-KEEPALIVE_WINDOW = 45_000  # 1.5 x keepalive 30 s, ms
+KEEPALIVE_WINDOW = 45_000  # a window of 45 s (the driver: 2 x keepalive + 2 s)
 
 
 def make_node() -> EdgeNode:
