@@ -215,9 +215,10 @@ def main() -> None:
     args = parser.parse_args()
     print_machine()
     if args.part in ("store", "both"):
-        store_part(20_000 if args.quick else args.changes)
+        store_part(5_000 if args.quick else args.changes)
     if args.part in ("replay", "both"):
-        replay_part(args.links, 15.0 if args.quick else args.outage, 8.0 if args.quick else args.baseline)
+        replay_part(4 if args.quick else args.links, 10.0 if args.quick else args.outage,
+                    5.0 if args.quick else args.baseline)
 
 
 if __name__ == "__main__":
