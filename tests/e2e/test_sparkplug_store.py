@@ -199,7 +199,7 @@ def check_order_and_once(writer: Writer, hosts: list[Any]) -> None:
         for stream in (live, history):
             stamps = [ts for _, ts in stream]
             # per metric in timestamp order (a replay after a second outage may repeat older ones: duplicates)
-            assert all(a <= b or (v in dict(stream[:i])) for i, ((v, _), a, b) in
+            assert all(a <= b or (v in dict(stream[: i + 1])) for i, ((v, _), a, b) in
                        enumerate(zip(stream[1:], stamps, stamps[1:], strict=False))), f"{name}: out of order {stream}"
         # a value written and seen more than once was replayed: the copies after the first are historical
         for value in written:
