@@ -118,7 +118,15 @@ class WriteOutcomeUnknown(LinkTimeout):
     Raised by every driver for the same situation (SLC 100/150: no reply after the resend rules
     ran out; DF1: a lost reply and no read-back that settles it).  A ``LinkTimeout``, so code
     that only cares whether the controller answered need not know it; answered Modbus 0x0B.
+
+    ``shown``: what a read-back sent after the write gave, when it answered with another value
+    than the one written (DF1 full duplex only: there the read-back runs after the write, so data
+    equal to the value before the write proves the write was not applied; ``Unit`` retries it).
     """
+
+    def __init__(self, message: str = "", *, shown: bytes | None = None) -> None:
+        super().__init__(message)
+        self.shown = shown
 
 
 class ControllerRefused(RemoteError):

@@ -102,6 +102,10 @@ class _GatewayCollector:
         write_failures = _counter("write_failures", "Modbus writes that failed.", link)
         partial = _counter("partial_writes", "Modbus writes the controller refused part-way (logged).", link)
         busy = _counter("write_busy", "Modbus writes answered 0x06: the link's write queue was full.", link)
+        resent = _counter("write_commands_resent", "Write commands sent again: a read-back proved them not applied.",
+                          link)
+        unknown = _counter("write_commands_unknown", "Write commands whose outcome stayed unknown (applied at most "
+                           "once; logged).", link)
         latency = HistogramMetricFamily(PREFIX + "write_duration_seconds",
                                         "Modbus write requests from arrival to answer (success or exception).",
                                         labels=link)
@@ -125,11 +129,13 @@ class _GatewayCollector:
             write_failures.add_metric(labels, unit.write_failures)
             partial.add_metric(labels, unit.partial_writes)
             busy.add_metric(labels, unit.writes.busy_refusals)
+            resent.add_metric(labels, unit.write_tally.retried)
+            unknown.add_metric(labels, unit.write_tally.unknown)
             histogram = unit.write_latency
             latency.add_metric(labels, histogram.cumulative(), histogram.total)
             budget.add(unit, labels, now)
         static: list[Metric] = [link_up, connected, age, stale, *plain.values(), retries, byte_count, writes,
-                                write_failures, partial, busy, latency, *budget.families()]
+                                write_failures, partial, busy, resent, unknown, latency, *budget.families()]
         return static + _driver_families(units, {family.name for family in static})
 
     @staticmethod

@@ -72,7 +72,8 @@ from gateway.schedule import (
     DemandLog,
     Schedule,
 )
-from gateway.write_steps import WritableRange, WriteStep, in_writable, span, spans, target_of, translated
+from gateway.write_steps import WritableRange, WriteStep, WriteTally, in_writable, run_step, span, spans, target_of
+from gateway.write_steps import translated as translated
 from gateway.writes import WriteQueue
 
 __all__ = [
@@ -199,6 +200,8 @@ class Unit(ABC, Generic[R, B]):
         self.write_latency = LatencyHistogram()
         #: write requests the controller refused after part of them was applied
         self.partial_writes = 0
+        #: write commands sent again (proved not applied) and whose outcome stayed unknown
+        self.write_tally = WriteTally()
         driver.write_burst = write_burst
         driver.poll_burst = poll_burst
         self.writes = WriteQueue(driver, name, per_client=write_queue_per_client, per_link=write_queue_per_link)
@@ -536,7 +539,7 @@ class Unit(ABC, Generic[R, B]):
                 self._partial_write(table, done, step, exc)
                 raise exc
             try:
-                await translated(step.run())
+                await run_step(step, deadline, self._loop_time, self.proves_not_applied, self.write_tally, self.name)
             except ModbusExceptionReply as exc:
                 if done:
                     self._partial_write(table, done, step, exc)
@@ -548,6 +551,11 @@ class Unit(ABC, Generic[R, B]):
                 byte = byte | (1 << bit.bit) if on else byte & ~(1 << bit.bit)
                 self.cache.patch(bit.block, bit.offset, bytes([byte & 0xFF]))
             done.append(step)
+
+    def proves_not_applied(self, step: WriteStep, shown: bytes) -> bool:
+        """Whether ``shown`` (what a read-back after the step's command gave) proves it was not applied: the
+        kind decides (DF1 full duplex: the value from before the write); by default never."""
+        return False
 
     def _partial_write(self, table: Table, done: list[WriteStep], failed: WriteStep, exc: ModbusExceptionReply) -> None:
         self.partial_writes += 1

@@ -8,14 +8,18 @@ Generic: knows tables and points, no protocol.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
-from gateway.errors import GatewayError, ModbusExceptionReply, modbus_exception
+from gateway.errors import GatewayError, ModbusExceptionReply, WriteOutcomeUnknown, modbus_exception
 from gateway.modbus.mapping import BitPoint, RegisterPoint, Table
 
-__all__ = ["WritableRange", "WriteStep", "in_writable", "span", "spans", "target_of", "translated"]
+__all__ = ["WritableRange", "WriteStep", "WriteTally", "in_writable", "run_step", "span", "spans", "target_of",
+           "translated"]
+
+_log = logging.getLogger("gateway.unit")
 
 WritableRange = tuple[Table, int, int]  # table, first, last
 
@@ -75,3 +79,45 @@ async def translated(write: Awaitable[None]) -> None:
             raise  # already translated (e.g. a PCCC address problem: 0x02)
         raise reply from exc
 
+
+
+@dataclass(slots=True)
+class WriteTally:
+    """What the one write path counts: commands sent again because a read-back proved them not applied
+    (``retried``), and commands whose outcome stayed unknown (``unknown``)."""
+
+    retried: int = 0
+    unknown: int = 0
+
+
+async def run_step(step: WriteStep, deadline: float, clock: Callable[[], float],
+                   not_applied: Callable[[WriteStep, bytes], bool], tally: WriteTally, link: str) -> None:
+    """Run one command of a write; sent again, while ``clock()`` is before ``deadline`` (``write_timeout``),
+    as long as its outcome was unknown but a read-back proved it was not applied.
+
+    A read-back proves that only where it ran after the write and showed the value from before it
+    (``WriteOutcomeUnknown.shown`` equal to what the image held: ``not_applied``; DF1 full duplex).  A
+    command sent again is then still applied at most once.  An outcome that stays unknown is counted
+    and logged (it is answered 0x0B, as before).
+    """
+    while True:
+        try:
+            await translated(step.run())
+            return
+        except ModbusExceptionReply as exc:
+            cause = exc.__cause__
+            if not isinstance(cause, WriteOutcomeUnknown):
+                raise
+            if cause.shown is None or not not_applied(step, cause.shown):
+                tally.unknown += 1
+                _log.warning("link %s: write of %s: outcome unknown, applied at most once (%s)", link,
+                             span(step.first, step.last), cause)
+                raise
+            if clock() >= deadline:
+                raise ModbusExceptionReply(
+                    ModbusExceptionReply.GATEWAY_TARGET_FAILED,
+                    f"{cause}; a read-back proved it was not applied and write_timeout left no time to send it "
+                    "again: nothing written") from cause
+            tally.retried += 1
+            _log.info("link %s: write of %s not applied (a read-back after it showed the value before it): "
+                      "sending it again", link, span(step.first, step.last))

@@ -29,6 +29,7 @@ SCRIPTS = [
     "schedule_cost.py",
     "sparkplug_publishing.py",  # needs mosquitto (Debian package): CI installs it
     "sparkplug_cpu.py",  # the same
+    "sparkplug_store.py",  # the same
 ]
 
 

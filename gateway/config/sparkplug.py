@@ -79,6 +79,18 @@ class SparkplugConfig(Model):
     """Seconds between publishing the status block's metrics (when they changed)."""
     ndeath_on_stop: Literal[True, False] = True
     """Publish the NDEATH before a clean stop (false: the broker publishes the will when the connection closes)."""
+    store: Literal[True, False] = True
+    """Store and forward: keep the value changes the node could not publish (no MQTT session) on disk, in SQLite
+    beside state_file (<state_file stem>-store.sqlite), and send them after the births of the next session as DDATA
+    marked is_historical with their original timestamps (docs/guide/sparkplug.md#store-and-forward)."""
+    store_max_mb: float = Field(100.0, gt=0, le=1_000_000)
+    """The most the store may hold, MB (the SQLite pages in use); past it the oldest changes are dropped, counted and
+    logged."""
+    store_max_age: float = Field(86400.0, gt=0)
+    """Seconds a stored change is kept; older ones are dropped, counted and logged (default 24 h)."""
+    replay_rate: float = Field(50.0, gt=0, le=10_000)
+    """Historical DDATA messages per second, at most, while the store is replayed (each up to 64 changes of one
+    device); live DDATA always goes first."""
 
     @field_validator("broker")
     @classmethod

@@ -33,28 +33,36 @@ from pathlib import Path
 from typing import Any, Final
 
 import aiomqtt
-from paho.mqtt.client import MQTT_ERR_SUCCESS
-from paho.mqtt.client import time_func as paho_clock
-from paho.mqtt.enums import _ConnectionState
 
 from gateway.clients import Client, audit_write, current_client
 from gateway.config.link import LinkBase
 from gateway.config.sparkplug import SparkplugConfig
 from gateway.errors import ModbusExceptionReply
 from gateway.sparkplug.devices import LinkDevice, build_devices
+from gateway.sparkplug.forward import Forwarder
+from gateway.sparkplug.mqtt import MQTT_TIMEOUT, Busy, MqttClient
 from gateway.sparkplug.node import EdgeNode, Publish, WriteCommand
 from gateway.sparkplug.payload import SparkplugType
+from gateway.sparkplug.store import ChangeStore, store_path
 from gateway.unit import Unit
 
-__all__ = ["SparkplugNode", "load_bd_seq", "save_bd_seq"]
+__all__ = ["SparkplugNode", "load_bd_seq", "save_bd_seq", "window_ms"]
 
 log = logging.getLogger("gateway.sparkplug")
 
-#: the MQTT operations (connect, subscribe, publish) that take longer than this fail the session
-_MQTT_TIMEOUT: Final = 10.0
 #: messages handed to the MQTT client at once, at most: paho writes them in one loop step (40-60 µs of
 #: CPU each on the 2-core bench machine), so this bounds that step; a birth sequence queues one per device
 _BATCH: Final = 4
+
+
+def window_ms(keepalive: int) -> int:
+    """How long published DDATA stays in doubt (ms): the time paho takes to find a silent connection lost.
+
+    The issue asked for 1.5 x keepalive, the broker's limit (MQTT 3.1.1 §3.1.2.10).  The client finds the loss
+    later: it sends PINGREQ after ``keepalive`` without a packet from the broker and gives up ``keepalive``
+    after that, checked once a second, so up to 2 x keepalive + 1 s after the last packet received, which
+    can be any time before the cut (measured: tests/e2e/test_sparkplug_store.py, ``silent``)."""
+    return (2 * keepalive + 2) * 1000
 
 
 def load_bd_seq(path: Path) -> int | None:
@@ -79,79 +87,6 @@ def save_bd_seq(path: Path, bd_seq: int) -> None:
     os.replace(temporary, path)
 
 
-class _Busy:
-    """The CPU the node's own steps take on the event loop (``time.thread_time``): reading the image,
-    building births and DDATA.  The longest step bounds what it adds to a Modbus answer waiting
-    behind it.  The MQTT client's work (paho building packets, writing the socket) is not in it."""
-
-    __slots__ = ("longest", "seconds", "steps")
-
-    def __init__(self) -> None:
-        self.seconds = 0.0
-        self.longest = 0.0
-        self.steps = 0
-
-    def add(self, started: float) -> None:
-        spent = time.thread_time() - started
-        self.seconds += spent
-        self.steps += 1
-        self.longest = max(self.longest, spent)
-
-
-class _MqttClient(aiomqtt.Client):
-    """aiomqtt's client, whose keepalive clock starts when its CONNECT is written, not before.
-
-    paho (the client under aiomqtt) stamps "last message out" when a connect begins, before the TCP
-    connection, and its keepalive check (aiomqtt runs it once a second on the loop, the first time as
-    soon as the socket is handed to the loop, before the CONNECT is written) closes a connection that
-    has had no CONNACK for ``keepalive`` seconds since that stamp.  A connect that spends that long
-    before the loop takes the socket over (a busy loop at start-up, a loaded machine: the TCP connect
-    runs in a thread, the CONNECT is written by the loop) is closed before its CONNECT ever leaves,
-    silently: aiomqtt then waits out its whole ``timeout`` (10 s) for a CONNACK that cannot come, and
-    the next attempt takes the next bdSeq.  Here, while the CONNECT still waits in paho's queue, the
-    clock is restarted before each check: the keepalive measures the broker's silence after the
-    CONNECT, as MQTT 3.1.1 §3.1.2.10 means it; once written, paho's own rule applies unchanged.  (These are
-    paho-mqtt 2.2.0's internals and aiomqtt 2.5.1's misc loop: both pinned in pyproject.toml.)"""
-
-    async def _misc_loop(self) -> None:
-        paho = self._client
-        while True:
-            if paho._state is _ConnectionState.MQTT_CS_CONNECTING and paho.want_write():  # CONNECT not written yet
-                with paho._msgtime_mutex:
-                    paho._last_msg_out = paho._last_bytes_received = paho_clock()
-            if paho.loop_misc() != MQTT_ERR_SUCCESS:
-                return
-            await asyncio.sleep(1)
-
-    async def publish_in_order(self, messages: Sequence[Publish]) -> None:
-        """``messages`` to the broker in their order; returns once they are written to the socket.
-
-        The QoS 0 ones go into paho's queue together, written in one go when the socket takes them, and
-        only the last is waited for (aiomqtt's ``publish`` waits for each: a task and a few loop steps
-        apiece).  A QoS 1 one (the NDEATH of a clean stop) waits for its PUBACK, as aiomqtt publishes it."""
-        last: int | None = None
-        for message in messages:
-            if message.qos:
-                await self.publish(message.topic, message.payload, message.qos, message.retain)
-                last = None
-                continue
-            info = self._client.publish(message.topic, message.payload, 0, message.retain)
-            if info.rc != MQTT_ERR_SUCCESS:
-                raise aiomqtt.MqttCodeError(info.rc, "Could not publish message")
-            last = None if info.is_published() else info.mid
-        if last is None:
-            return
-        written = asyncio.Event()  # set by aiomqtt's on_publish: paho wrote that message (and those before it)
-        self._pending_publishes[last] = written
-        try:
-            async with asyncio.timeout(self.timeout):
-                await written.wait()
-        except TimeoutError:
-            raise aiomqtt.MqttError("Operation timed out") from None
-        finally:
-            self._pending_publishes.pop(last, None)
-
-
 class _HostOffline(Exception):
     """The primary host went offline: this session ends (§5.5)."""
 
@@ -163,13 +98,19 @@ class SparkplugNode:
         self.config = config
         self.devices: list[LinkDevice] = build_devices(links, units, demand=config.demand)
         self.core = EdgeNode(config.group_id, config.edge_node_id, [d.device for d in self.devices],
-                             primary_host_id=config.primary_host_id, bd_seq=load_bd_seq(config.state_file))
+                             primary_host_id=config.primary_host_id, bd_seq=load_bd_seq(config.state_file),
+                             store=config.store, window=window_ms(config.keepalive))
+        #: store and forward (``[sparkplug] store``): the unsent changes on disk and their replay
+        self.forward = Forwarder(
+            self.core, ChangeStore(store_path(config.state_file), max_bytes=int(config.store_max_mb * 1e6),
+                                   max_age=int(config.store_max_age * 1000)),
+            replay_rate=config.replay_rate, now_ms=self._now_ms) if config.store else None
         #: DCMD writes the controller refused or that failed (also counted in ``core.refused``)
         self.write_failures = 0
         #: messages handed to the broker, by message type (NBIRTH, DDATA, ...)
         self.sent: Counter[str] = Counter()
         #: CPU of the node's own steps on the loop (reading the image, building DDATA)
-        self.busy = _Busy()
+        self.busy = Busy()
         #: MQTT sessions established
         self.sessions = 0
         self._client: aiomqtt.Client | None = None
@@ -186,6 +127,8 @@ class SparkplugNode:
         self._writing: set[asyncio.Task[None]] = set()
         self._who = Client(f"sparkplug DCMD via {config.broker}")
         self._offset = 0.0  # wall seconds - loop seconds
+        self._loop: asyncio.AbstractEventLoop | None = None  # set by run(): the connect thread calls into it
+        self._state_error = False  # the state file could not be written (logged once)
         #: per device: the listener this node added to its unit's cache (removed by :meth:`detach`)
         self._listeners = [self._listener(index) for index in range(len(self.devices))]
         for device, listener in zip(self.devices, self._listeners, strict=True):
@@ -221,28 +164,27 @@ class SparkplugNode:
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
+        self._loop = loop
         self._offset = time.time() - loop.time()
         delay = self.config.reconnect_min
-        down_logged = state_error = False
         current_client.set(self._who)  # the DCMD writes' client, for the write queue and the audit log
+        async with asyncio.TaskGroup() as group:  # for the life of the node: values are watched (and stored) offline
+            if self.forward is not None:
+                await self.forward.open()
+                group.create_task(self.forward.keep())
+            group.create_task(self._watch())
+            await self._sessions(delay)
+
+    async def _sessions(self, delay: float) -> None:
+        down_logged = False
         while True:
-            will = self.core.connecting(self._now_ms())
-            bd_seq = self.core.bd_seq or 0
-            try:
-                # fsync takes milliseconds, more on a busy disk: in a thread, the loop answers meanwhile
-                await asyncio.to_thread(save_bd_seq, self.config.state_file, bd_seq)
-                state_error = False
-            except OSError as exc:
-                if not state_error:
-                    state_error = True
-                    log.error("sparkplug: cannot keep bdSeq in %s (%s): a restart would reuse bdSeq %d; "
-                              "make its directory writable or set [sparkplug] state_file", self.config.state_file,
-                              exc, bd_seq)
             sessions = self.sessions
+            lost: int | None = None  # when a session that was up was found lost (its window is in doubt)
             try:
-                await self._session(will)
+                await self._session()
             except aiomqtt.MqttError as exc:
                 if self.sessions > sessions:  # it was up: lost (logged once, then retried quietly)
+                    lost = self._now_ms()
                     log.warning("sparkplug: MQTT session with %s lost (%s); reconnecting", self.config.broker, exc)
                     delay, down_logged = self.config.reconnect_min, False
                 elif not down_logged:
@@ -253,21 +195,48 @@ class SparkplugNode:
                 log.info("sparkplug: primary host %s went offline: NDEATH published, reconnecting",
                          self.config.primary_host_id)
                 delay = self.config.reconnect_min
-            self.core.disconnected()
+            self.core.disconnected(lost)
             await asyncio.sleep(delay)
             if self.sessions == sessions:
                 delay = min(self.config.reconnect_max, delay * 2)
 
-    async def _session(self, will: Publish) -> None:
+    def _connect_packet_will(self) -> Publish:
+        """In the MQTT client's connect thread, once the TCP (and TLS) connection is up and its CONNECT is being
+        made: the next ``bdSeq`` and its NDEATH, the CONNECT's will.  Sparkplug 3.0 §5.4 / §6.4.25
+        (tck-id-topics-nbirth-bdseq-increment) counts MQTT CONNECT packets: an attempt refused before
+        its CONNECT takes none.  ``bdSeq`` is kept in ``state_file`` before the CONNECT leaves (fsync here, in
+        the thread: the event loop answers meanwhile)."""
+        if self._loop is None:
+            raise OSError("the edge node is not running")
+        future = asyncio.run_coroutine_threadsafe(self._next_will(), self._loop)
+        try:
+            will = future.result(MQTT_TIMEOUT)
+        except TimeoutError:
+            future.cancel()
+            raise OSError("the event loop did not take the next bdSeq in time") from None
+        bd_seq = self.core.bd_seq or 0
+        try:
+            save_bd_seq(self.config.state_file, bd_seq)
+            self._state_error = False
+        except OSError as exc:
+            if not self._state_error:
+                self._state_error = True
+                log.error("sparkplug: cannot keep bdSeq in %s (%s): a restart would reuse bdSeq %d; make its "
+                          "directory writable or set [sparkplug] state_file", self.config.state_file, exc, bd_seq)
+        return will
+
+    async def _next_will(self) -> Publish:
+        return self.core.connecting(self._now_ms())
+
+    async def _session(self) -> None:
         config = self.config
         host, port = config.address
-        client = _MqttClient(
-            host, port,
+        client = MqttClient(
+            host, port, will_of_connect=self._connect_packet_will,
             identifier=config.client_id or f"slc-gateway-{config.group_id}-{config.edge_node_id}",
             username=config.username, password=config.password,
-            will=aiomqtt.Will(will.topic, will.payload, will.qos, will.retain),
             clean_session=True, keepalive=config.keepalive, protocol=aiomqtt.ProtocolVersion.V311,
-            tls_context=config.ssl_context(), timeout=_MQTT_TIMEOUT,
+            tls_context=config.ssl_context(), timeout=MQTT_TIMEOUT,
         )
         async with client:
             self._client = client
@@ -284,7 +253,9 @@ class SparkplugNode:
                 await self._dbirths()
                 async with asyncio.TaskGroup() as group:
                     group.create_task(self._sender(client))
-                    group.create_task(self._watch())
+                    if self.forward is not None:
+                        await self.forward.session_up()
+                        group.create_task(self.forward.replay(self._send, self._drained))
                     await self._receive(client)
                     raise aiomqtt.MqttError("the broker closed the session")
             except* _HostOffline:
@@ -308,18 +279,24 @@ class SparkplugNode:
             _, late = await asyncio.wait(set(self._writing), timeout=max(d.unit.write_timeout for d in self.devices))
             for task in late:
                 task.cancel()  # its write, if queued, stays queued: applied at most once (Unit._queue_write)
-        if self._client is None or not self.config.ndeath_on_stop:
-            return
-        self._send(self.core.stopping(self._now_ms()))  # the core publishes nothing after it
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(2):
-                await self._outbox.join()
+        if self._client is not None and self.config.ndeath_on_stop:
+            self._send(self.core.stopping(self._now_ms()))  # the core publishes nothing after it
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(2):
+                    await self._outbox.join()
+        if self.forward is not None:
+            await self.forward.close()  # what is left of the unsent changes: committed
 
     # --- outgoing ------------------------------------------------------------------------------
 
     def _send(self, messages: list[Publish]) -> None:
         for message in messages:
             self._outbox.put_nowait(message)
+
+    async def _drained(self) -> None:
+        """Everything queued so far is written to the socket, and no pass is under way."""
+        await self._outbox.join()
+        await self._idle.wait()
 
     def _drain_outbox(self) -> None:
         """Messages of a session that ended are not sent in the next one."""
@@ -339,7 +316,7 @@ class SparkplugNode:
             if not self._passes:
                 self._idle.set()
 
-    async def _sender(self, client: _MqttClient) -> None:
+    async def _sender(self, client: MqttClient) -> None:
         """The outbox to the broker, in order: what a pass queued, in one go (at most ``_BATCH``)."""
         while True:
             batch = [await self._outbox.get()]

@@ -32,6 +32,15 @@ good is published as ``is_null`` with the ``Quality`` property (§6.4.9.1 "Quali
 0 BAD) and a ``Quality Reason`` string property saying why; the first good value after that carries
 ``Quality`` 192 (GOOD).  A device whose link goes down gets a DDEATH (§5.7 "Device Session
 Termination", tck-id-operational-behavior-device-ddeath); when it comes back, a DBIRTH.
+
+Store and forward (``store``; ``gateway.sparkplug.history``): while the node is not online (no MQTT
+session, or its births not out yet), :meth:`EdgeNode.flush` records each live device's changes as
+changes (:class:`~gateway.sparkplug.history.Change`) in :attr:`EdgeNode.unsent` instead of publishing them (the
+caller stores them); the changes published in the last ``window`` ms are added to them when the
+connection is found lost (:meth:`EdgeNode.disconnected`: QoS 0 DDATA handed to the client may be
+gone).  Online again, after the NBIRTH and every DBIRTH with the current values,
+:meth:`EdgeNode.historical` turns stored changes into DDATA whose metrics carry ``is_historical`` and
+their original timestamps (§6.4.6), with the session's ``seq`` (§6.4.22 tck-id-payloads-ddata-seq-inc).
 """
 
 from __future__ import annotations
@@ -44,6 +53,7 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from gateway.frozen import frozen
+from gateway.sparkplug.history import Change, Window
 from gateway.sparkplug.payload import (
     GOOD,
     STALE,
@@ -166,7 +176,8 @@ class EdgeNode:
     """The edge node's session, sequence and birth / death rules (the module docstring)."""
 
     def __init__(self, group_id: str, edge_node_id: str, devices: Sequence[Device], *,
-                 primary_host_id: str | None = None, bd_seq: int | None = None) -> None:
+                 primary_host_id: str | None = None, bd_seq: int | None = None, store: bool = False,
+                 window: int = 45_000) -> None:
         self.group_id = group_id
         self.edge_node_id = edge_node_id
         self.devices = list(devices)
@@ -189,6 +200,14 @@ class EdgeNode:
         self.received: Counter[str] = Counter()
         #: commands that changed nothing, by reason
         self.refused: Counter[str] = Counter()
+        #: store and forward: record what cannot be published (module docstring)
+        self.storing = store
+        #: changes not published, for the store (the caller takes them: :meth:`take_unsent`)
+        self.unsent: list[Change] = []
+        #: the changes published in the last ``window`` ms (2 x keepalive + 2 s): in doubt when the connection is lost
+        self.window = Window(window)
+        #: stored changes of metrics this node does not have (a store written before a config change)
+        self.unknown_history = 0
 
     # --- topics ------------------------------------------------------------------------------
 
@@ -235,8 +254,12 @@ class EdgeNode:
             device.born = False
         return self.births(now) if self.host_online else []
 
-    def disconnected(self) -> None:
-        """The MQTT session is gone (the broker publishes the will)."""
+    def disconnected(self, now: int | None = None) -> None:
+        """The MQTT session is gone (the broker publishes the will), found lost at ``now``: what was published in
+        the window before it is in doubt and goes to :attr:`unsent` (with ``store``).  None: ended cleanly."""
+        if now is not None and self.storing:
+            self.unsent.extend(self.window.lost(now))
+        self.window.clear()
         self.connected_now = False
         self.online = False
         self.unborn = []
@@ -251,6 +274,7 @@ class EdgeNode:
             return []
         self.online = False
         self.unborn = []
+        self.window.clear()  # the DISCONNECT follows what was published: nothing in doubt
         return [self._ndeath(now)]
 
     def _next_seq(self) -> int:
@@ -425,10 +449,16 @@ class EdgeNode:
         return [Publish(self.topic("DDEATH", device.name), encode(payload))]
 
     def flush(self, now: int, devices: Sequence[int] | None = None) -> list[Publish]:
-        """DDATA of every born device (of ``devices``) with the metrics changed since last published."""
-        if not self.online or self.unborn:
+        """DDATA of every born device (of ``devices``) with the metrics changed since last published; not
+        online, with ``store``: those changes into :attr:`unsent`."""
+        if not self.online:
+            if self.storing:
+                self._keep(devices)
+            return []
+        if self.unborn:  # the DBIRTHs under way carry the values as they are then
             return []
         out: list[Publish] = []
+        published: list[Change] = []
         for index in range(len(self.devices)) if devices is None else devices:
             device = self.devices[index]
             if not device.born:
@@ -442,16 +472,65 @@ class EdgeNode:
                     recovered = old is not None and old.value is None and sample.value is not None
                     changed.append(_metric(spec, sample, birth=False, recovered=recovered))
                     device.published[i] = sample
+                    published.append(_change(device.name, spec, sample))
             device.forced.clear()
             device.pending.clear()
             if changed:
                 changed.sort(key=lambda m: m.timestamp or 0)  # chronological (§5.16)
                 payload = Payload(now, tuple(changed), self._next_seq())
                 out.append(Publish(self.topic("DDATA", device.name), encode(payload)))
+        if self.storing:
+            self.window.add(now, published)
         return out
 
+    def _keep(self, devices: Sequence[int] | None) -> None:
+        """Offline: each live device's changes since last published (or kept) into :attr:`unsent`."""
+        for index in range(len(self.devices)) if devices is None else devices:
+            device = self.devices[index]
+            if not device.alive:
+                continue
+            for i in sorted(device.pending | device.forced):
+                spec, sample = device.specs[i], device.current[i]
+                if sample is not None and (i in device.forced or _changed(spec, sample, device.published[i])):
+                    self.unsent.append(_change(device.name, spec, sample))
+                    device.published[i] = sample
+            device.forced.clear()
+            device.pending.clear()
 
-def _metric(spec: MetricSpec, sample: Sample, *, birth: bool, recovered: bool = False) -> Metric:
+    def take_unsent(self) -> list[Change]:
+        """The changes recorded for the store since the last call."""
+        out, self.unsent = self.unsent, []
+        return out
+
+    def historical(self, index: int, changes: Sequence[Change], now: int) -> Publish | None:
+        """Stored changes of device ``index`` as one DDATA: ``is_historical`` metrics with their original
+        timestamps, in the order given (oldest first), the next ``seq``.  None when the device cannot take
+        data now (node not online, births under way, device not born) or no change names one of its metrics
+        (counted in :attr:`unknown_history`)."""
+        device = self.devices[index]
+        if not self.online or self.unborn or not device.born:
+            return None
+        metrics: list[Metric] = []
+        for change in changes:
+            i = device.by_name.get(change.metric)
+            if i is None:
+                self.unknown_history += 1
+                continue
+            sample = Sample(change.value, change.timestamp, change.quality, change.reason)
+            metrics.append(_metric(device.specs[i], sample, birth=False, historical=True))
+        if not metrics:
+            return None
+        self.window.add(now, changes)
+        payload = Payload(now, tuple(metrics), self._next_seq())
+        return Publish(self.topic("DDATA", device.name), encode(payload))
+
+
+def _change(device: str, spec: MetricSpec, sample: Sample) -> Change:
+    return Change(device, spec.name, sample.timestamp, sample.value, sample.quality, sample.reason)
+
+
+def _metric(spec: MetricSpec, sample: Sample, *, birth: bool, recovered: bool = False,
+            historical: bool = False) -> Metric:
     """A metric of a DBIRTH (name, alias, datatype) or of a DDATA (alias only)."""
     properties: Mapping[str, tuple[int, Value]] | None = None
     if sample.value is None:
@@ -468,5 +547,6 @@ def _metric(spec: MetricSpec, sample: Sample, *, birth: bool, recovered: bool = 
         value_type=spec.datatype,
         is_null=sample.value is None,
         properties=properties,
+        is_historical=historical,
     )
 

@@ -99,6 +99,8 @@ class Metric:
     properties: Mapping[str, tuple[int, Value]] | None = None
     #: the datatype ``value`` is encoded as when ``datatype`` is not sent (DATA messages, §6.4.6)
     value_type: int | None = None
+    #: not a real time / current value: sent after it was acquired (store and forward, §6.4.6 "is_historical")
+    is_historical: bool = False
 
 
 @frozen
@@ -261,6 +263,8 @@ def encode(payload: Payload) -> bytes:
             out.timestamp = metric.timestamp
         if metric.datatype is not None:
             out.datatype = metric.datatype
+        if metric.is_historical:
+            out.is_historical = True
         if metric.is_null:
             out.is_null = True  # and no value (§5.16 "Data Publish")
         elif metric.value is not None:
@@ -311,6 +315,7 @@ def decode(data: bytes) -> Payload:
             value=_oneof(m),
             is_null=m.is_null,
             properties=properties,
+            is_historical=m.is_historical,
         ))
     return Payload(
         timestamp=message.timestamp if message.HasField("timestamp") else None,

@@ -43,6 +43,7 @@ def status(node: SparkplugNode | None) -> dict[str, object] | None:
         "longest_step_seconds": round(node.busy.longest, 6),
         "devices_online": sum(1 for device in core.devices if device.born),
         "devices": len(core.devices),
+        "store": None if node.forward is None else node.forward.status(),
     }
 
 
@@ -80,3 +81,34 @@ def families(node: SparkplugNode | None) -> Iterator[Metric]:
     cpu.add_metric([], node.busy.seconds)
     longest.add_metric([], node.busy.longest)
     yield from (state, sessions, published, received, refused, born, cpu, longest)
+    if node.forward is not None:
+        yield from _store_families(node.forward.status())
+
+
+def _store_families(store: dict[str, object]) -> Iterator[Metric]:
+    """Store and forward: what the store holds, what was replayed and dropped."""
+    def number(key: str) -> float:
+        value = store[key]
+        return float(value) if isinstance(value, int | float) else 0.0
+
+    gauges = (
+        ("store_messages", "Value changes in the store and forward store (not published yet).", "messages"),
+        ("store_bytes", "Bytes the store's pages in use take.", "bytes"),
+    )
+    for name, text, key in gauges:
+        gauge = GaugeMetricFamily(_METRIC_PREFIX + name, text)
+        gauge.add_metric([], number(key))
+        yield gauge
+    oldest = GaugeMetricFamily(_METRIC_PREFIX + "store_oldest_timestamp_seconds",
+                               "UTC time of the oldest stored change (0: the store is empty).")
+    oldest.add_metric([], number("oldest_ms") / 1000)
+    yield oldest
+    counters = (
+        ("store_replayed", "Stored changes replayed as historical DDATA.", "replayed"),
+        ("store_dropped", "Stored changes dropped: the store was full (store_max_mb) or they were older than "
+                          "store_max_age.", "dropped"),
+    )
+    for name, text, key in counters:
+        counter = CounterMetricFamily(_METRIC_PREFIX + name, text)
+        counter.add_metric([], number(key))
+        yield counter

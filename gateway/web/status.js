@@ -146,6 +146,14 @@ function renderSummary(status) {
       " (bdSeq " + spb.bd_seq + "): " + spb.devices_online + "/" + spb.devices + " devices, " +
       number(spb.published) + " published, " + number(spb.commands) + " commands, " + number(spb.refused) +
       " refused"));
+    const store = spb.store;
+    if (store) {
+      const text = store.failed ? "store off: " + store.failed :
+        "store: " + number(store.messages) + " changes, " + number(store.bytes) + " bytes" +
+        (store.oldest ? ", oldest " + store.oldest : "") + ", " + number(store.replayed) + " replayed, " +
+        number(store.dropped) + " dropped";
+      summary.appendChild(el("span", store.failed || store.dropped ? "bad" : "", text));
+    }
   }
   summary.appendChild(el("span", "", "updated " + clock(status.time)));
   $("version").textContent = "· slc-gateway " + status.version;

@@ -12,6 +12,7 @@ what was written the write succeeded, otherwise SCADA gets 0x0B.  A write is nev
 
 from __future__ import annotations
 
+import math
 import struct
 from functools import partial
 from typing import Any, Protocol, TypeVar, Unpack
@@ -195,6 +196,33 @@ class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):
             return False
         limit = self.max_write_bytes - 2 * _expanded_fields(first.address)
         return sum(len(_step_bytes(step)) for step in group) + size <= limit
+
+    def proves_not_applied(self, step: WriteStep, shown: bytes) -> bool:
+        """A read-back after the step's write (full duplex: commands run in order, so it ran after the write)
+        that shows the value the image held before the write proves the write was not applied (issue 43,
+        item 6b).  Only where every point of the step has been read (the image holds a value from before)."""
+        if not isinstance(self.driver, Df1Driver):
+            return False  # half duplex: the slave may still hold the write in its queue
+        stamps, data = self.cache.stamps, self.cache.data
+        if step.bit_patches:
+            word, changed = int.from_bytes(shown, "little"), False
+            for bit, on in step.bit_patches:
+                if math.isinf(stamps[bit.block]) or bit.write is None:
+                    return False
+                was = bool(data[bit.block][bit.offset] >> bit.bit & 1)
+                if bool(word >> bit.write.bit & 1) != was:
+                    return False
+                changed |= was != on
+            return changed
+        held: list[tuple[RegisterPoint[Df1WordWrite], int]] = []
+        for point, _ in step.patches:
+            if math.isinf(stamps[point.block]):
+                return False
+            lsb, msb = point.offset + point.codec.lsb, point.codec.msb
+            block = data[point.block]
+            held.append((point, block[lsb] if msb is None else block[point.offset + msb] << 8 | block[lsb]))
+        before = _step_bytes(WriteStep(step.first, step.last, step.run, held))
+        return bool(held) and shown == before and before != _step_bytes(step)
 
     async def _write_words(self, address: SlcAddress, data: bytes) -> None:
         request = ProtectedTypedLogicalWrite(

@@ -145,6 +145,10 @@ class Verdict:
     reply: PcccReply | None = None
     verified: bool = False
     seconds: float = 0.0  #: from the start to the verdict, on the caller's clock
+    #: UNKNOWN after a read-back that answered with another value: the data it gave (what the
+    #: controller held after the write).  On a full-duplex link, where the read-back runs after the
+    #: write, data equal to the value before the write proves it was not applied (``gateway.unit``).
+    shown: bytes | None = None
 
 
 @frozen
@@ -284,12 +288,12 @@ class WriteVerdict:
                     f"the read-back was refused ({reply.error()})" if not reply.ok
                     else f"the read-back gave {reply.data.hex(' ')}, not the value written"
                 )
-                return self._unknown(now)
+                return self._unknown(now, shown=reply.data if reply.ok else None)
             case VerdictAction.UNKNOWN:
                 return self._unknown(now)
         return None  # IGNORE: _input never acts on it
 
-    def _unknown(self, now: float) -> Verdict:
+    def _unknown(self, now: float, *, shown: bytes | None = None) -> Verdict:
         if self.read_back is None:
             proof = ""
         elif self.read_backs >= self.max_read_backs and self._state is VerdictState.VERIFYING:
@@ -297,13 +301,13 @@ class WriteVerdict:
         else:
             proof = "; the read-back did not prove it applied"
         return self._verdict(
-            VerdictKind.UNKNOWN, now, f"{self._why}{proof}: the write may or may not have been applied"
+            VerdictKind.UNKNOWN, now, f"{self._why}{proof}: the write may or may not have been applied", shown=shown
         )
 
     def _verdict(self, kind: VerdictKind, now: float, reason: str = "", *, reply: PcccReply | None = None,
-                 verified: bool = False) -> Verdict:
+                 verified: bool = False, shown: bytes | None = None) -> Verdict:
         self._state = VerdictState.SETTLED
         seconds = now - self.started
         if reason:
             reason = f"{reason} (after {format_seconds(seconds)} s)"
-        return Verdict(kind, reason, reply, verified, seconds)
+        return Verdict(kind, reason, reply, verified, seconds, shown)

@@ -222,11 +222,11 @@ def transaction_result(link: PcccLink, event: TransactionEvent, label: str, fnc:
             link.last_sts = reply.sts
             reply.raise_for_status(command=label, fnc=fnc)
             raise AssertionError("unreachable: a refusal has STS != 0")
-        case OutcomeUnknown(reason=reason):
+        case OutcomeUnknown(reason=reason, shown=shown):
             link.counters.timeouts += 1
             message = f"link {link.name}: {label}: {reason}"
             link.note_result(False, message)
-            raise WriteOutcomeUnknown(message)
+            raise WriteOutcomeUnknown(message, shown=shown)
         case TransactionFailed(reason=reason):
             link.counters.timeouts += 1
             message = f"link {link.name}: {label}: {reason}"

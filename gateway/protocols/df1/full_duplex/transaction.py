@@ -118,10 +118,13 @@ class TransactionRefused:
 
 @frozen
 class OutcomeUnknown:
-    """A write that may or may not have been applied; ``reason`` says what was seen."""
+    """A write that may or may not have been applied; ``reason`` says what was seen.  ``shown``: the
+    data of a read-back that answered with another value than the one written (full duplex: the
+    read-back ran after the write, so what it shows is what the controller held after it)."""
 
     handle: int
     reason: str
+    shown: bytes | None = None
 
 
 @frozen
@@ -475,9 +478,9 @@ class Df1Transactions:
                 self._settle(TransactionRefused(txn.handle, reply))
             case Verdict(kind=VerdictKind.FAILED, reason=reason):
                 self._settle(TransactionFailed(txn.handle, reason))
-            case Verdict(reason=reason):
+            case Verdict(reason=reason, shown=shown):
                 self.counters.unknown += 1
-                self._settle(OutcomeUnknown(txn.handle, reason))
+                self._settle(OutcomeUnknown(txn.handle, reason, shown))
 
     def _send_command(self, txn: _Txn, now: float) -> None:
         tns = self._tns.allocate()

@@ -1,0 +1,108 @@
+"""The store of store and forward (gateway.sparkplug.store): real SQLite files in a temporary directory.
+
+Issue 43: item 1 (the store, its bounds: the oldest dropped, counted, the span kept for the log), item 3
+(oldest first per device), item 4 (what was committed survives SIGKILL).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+from gateway.sparkplug.history import Change
+from gateway.sparkplug.store import ChangeStore, store_path
+
+T0 = 1_700_000_000_000
+DAY = 86_400_000
+
+
+def change(k: int, device: str = "press", metric: str = "N7:0", ts: int | None = None) -> Change:
+    return Change(device, metric, T0 + k if ts is None else ts, k, 192)
+
+
+def opened(path: Path, max_bytes: int = 10**8, max_age: int = DAY) -> ChangeStore:
+    store = ChangeStore(path, max_bytes=max_bytes, max_age=max_age)
+    store.open()
+    return store
+
+
+def test_the_store_lives_beside_the_state_file() -> None:
+    assert store_path(Path("/var/lib/gw/sparkplug-bdseq.json")) == Path("/var/lib/gw/sparkplug-bdseq-store.sqlite")
+
+
+def test_batches_are_one_device_at_a_time_oldest_first_in_timestamp_order(tmp_path: Path) -> None:
+    store = opened(tmp_path / "s.sqlite")
+    store.add([change(1), change(2, "oven"), change(0, ts=T0 - 5), change(3)], T0)
+    assert (store.count, store.oldest) == (4, T0 + 1)
+    device, rows = store.next_batch(10) or ("", [])
+    assert device == "press" and [c.timestamp for _, c in rows] == [T0 - 5, T0 + 1, T0 + 3]
+    assert store.next_batch(10, skip=["press"]) is not None
+    store.remove([ident for ident, _ in rows])
+    assert (store.count, store.replayed) == (1, 3)
+    device, rows = store.next_batch(10) or ("", [])
+    assert device == "oven" and [c.value for _, c in rows] == [2]
+    assert store.next_batch(10, skip=["oven"]) is None
+
+
+def test_a_full_store_drops_the_oldest_counts_them_and_keeps_their_span(tmp_path: Path) -> None:
+    store = opened(tmp_path / "s.sqlite", max_bytes=64 * 1024)
+    for batch in range(40):
+        store.add([change(batch * 100 + k) for k in range(100)], T0)
+        assert store.bytes <= 64 * 1024
+    assert store.dropped > 0 and store.count + store.dropped == 4000
+    drops = store.take_drops()
+    assert drops.count == store.dropped and drops.first == T0 and drops.reason.startswith("store full")
+    assert drops.last is not None and drops.last < T0 + 4000 - store.count + 1
+    # what is left is the newest, oldest first
+    _, rows = store.next_batch(5) or ("", [])
+    assert [c.value for _, c in rows] == list(range(4000 - store.count, 4000 - store.count + 5))
+    assert store.take_drops().count == 0
+
+
+def test_changes_older_than_max_age_are_dropped_and_counted(tmp_path: Path) -> None:
+    store = opened(tmp_path / "s.sqlite", max_age=60_000)
+    store.add([change(0, ts=T0), change(1, ts=T0 + 50_000)], T0 + 50_000)
+    assert store.count == 2
+    store.add([], T0 + 100_000)
+    assert (store.count, store.dropped) == (1, 1)
+    assert store.take_drops().reason == "older than store_max_age"
+
+
+def test_what_was_committed_is_there_after_a_reopen(tmp_path: Path) -> None:
+    path = tmp_path / "s.sqlite"
+    store = opened(path)
+    store.add([change(k) for k in range(10)], T0)
+    store.close()
+    again = opened(path)
+    assert again.count == 10 and again.oldest == T0
+
+
+def test_what_was_committed_survives_sigkill(tmp_path: Path) -> None:
+    path = tmp_path / "s.sqlite"
+    script = textwrap.dedent(f"""
+        import os, signal
+        from pathlib import Path
+        from gateway.sparkplug.history import Change
+        from gateway.sparkplug.store import ChangeStore
+        store = ChangeStore(Path({str(path)!r}), max_bytes=10**8, max_age=10**12)
+        store.open()
+        for batch in range(5):
+            store.add([Change("press", "N7:0", {T0} + batch * 10 + k, k, 192) for k in range(10)], {T0})
+        os.kill(os.getpid(), signal.SIGKILL)
+    """)
+    done = subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).resolve().parents[2], check=False)
+    assert done.returncode == -signal.SIGKILL
+    store = opened(path)
+    assert store.count == 50
+
+
+def test_a_file_that_is_not_a_store_is_moved_aside(tmp_path: Path) -> None:
+    path = tmp_path / "s.sqlite"
+    path.write_bytes(os.urandom(8192))
+    store = opened(path)
+    assert store.count == 0
+    assert (tmp_path / "s.sqlite.corrupt").exists()
