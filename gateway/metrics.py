@@ -9,7 +9,7 @@ The metric families, their labels and help texts are listed in ``docs/reference/
 (labels ``link``, ``unit``), the line's budget of each polled link (``docs/guide/freshness.md``), the
 numbers a driver reports itself (``driver.metrics()``: ``link_<key>_total``, ``link_<key>``,
 ``link_<key>_seconds``), per Modbus server (label ``server``), the config file and its reloads
-(``gateway.reload``), and with ``[sparkplug]`` the edge node's session (``gateway.sparkplug.report``).
+(``gateway.reload``), and with ``[sparkplug]`` the edge node's session and its store (``slc_gateway_sparkplug_*``).
 
 Link state and data age are the one verdict's (``gateway.freshness``), read through the declared
 view of the gateway (``gateway.view``), Sparkplug's families included.
@@ -28,12 +28,12 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_l
 from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 
 from gateway.http import HttpError, Response
-from gateway.sparkplug.report import families as sparkplug_families
 from gateway.view import GatewayView
 
 if TYPE_CHECKING:
     from gateway.modbus.server import ModbusTcpServer
     from gateway.reload import ConfigStatus
+    from gateway.sparkplug.driver import SparkplugNode
     from gateway.unit import Unit
 
 __all__ = ["Prometheus"]
@@ -41,6 +41,7 @@ __all__ = ["Prometheus"]
 log = logging.getLogger("gateway.metrics")
 
 PREFIX: Final = "slc_gateway_"
+_SPARKPLUG: Final = PREFIX + "sparkplug_"
 
 
 # --------------------------------------------------------------------------------------------
@@ -74,7 +75,7 @@ class _GatewayCollector:
         yield from self._server_families(self._gateway.servers)
         if self._config is not None:
             yield from _config_families(self._config)
-        yield from sparkplug_families(self._gateway.sparkplug)
+        yield from _sparkplug_families(self._gateway.sparkplug)
 
     @staticmethod
     def _link_families(units: Sequence[Unit[Any, Any]], now: float) -> list[Metric]:
@@ -299,6 +300,77 @@ def _driver_families(units: Sequence[Unit[Any, Any]], taken: set[str]) -> list[M
             assert isinstance(family, CounterMetricFamily | GaugeMetricFamily)
             family.add_metric(labels, number)
     return list(families.values())
+
+
+# --------------------------------------------------------------------------------------------
+# Sparkplug
+
+
+def _sparkplug_families(node: SparkplugNode | None) -> Iterator[Metric]:
+    """``/metrics``: the session (gauges) and the messages and commands (counters)."""
+    if node is None:
+        return
+    state = GaugeMetricFamily(_SPARKPLUG + "session", "1 for the state the MQTT session is in "
+                              "(disconnected, connected: waiting for the primary host, online: births published).",
+                              labels=["state"])
+    sessions = CounterMetricFamily(_SPARKPLUG + "sessions", "MQTT sessions established (each a new bdSeq).")
+    published = CounterMetricFamily(_SPARKPLUG + "messages_published", "Sparkplug messages handed to the broker.",
+                                    labels=["type"])
+    received = CounterMetricFamily(_SPARKPLUG + "commands_received", "NCMD, DCMD and STATE messages received.",
+                                   labels=["type"])
+    refused = CounterMetricFamily(_SPARKPLUG + "commands_refused",
+                                  "Command metrics that changed nothing (unknown or read-only metric, bad "
+                                  "payload or value) and DCMD writes that failed.", labels=["reason"])
+    born = GaugeMetricFamily(_SPARKPLUG + "devices_online", "Devices (links) with a DBIRTH and no DDEATH since.")
+    cpu = CounterMetricFamily(_SPARKPLUG + "cpu_seconds", "CPU the edge node's own steps took on the event loop "
+                              "(reading the image, building DDATA; not the MQTT client's own work).")
+    longest = GaugeMetricFamily(_SPARKPLUG + "longest_step_seconds", "The longest of those steps (CPU): the most "
+                                "a Modbus answer can wait behind the edge node.")
+    current = node.session_state
+    for name in ("disconnected", "connected", "online"):
+        state.add_metric([name], 1.0 if name == current else 0.0)
+    sessions.add_metric([], node.sessions)
+    for verb, count in sorted(node.sent.items()):
+        published.add_metric([verb], count)
+    for verb, count in sorted(node.core.received.items()):
+        received.add_metric([verb], count)
+    for reason, count in sorted(node.core.refused.items()):
+        refused.add_metric([reason], count)
+    born.add_metric([], sum(1 for device in node.core.devices if device.born))
+    cpu.add_metric([], node.busy.seconds)
+    longest.add_metric([], node.busy.longest)
+    yield from (state, sessions, published, received, refused, born, cpu, longest)
+    if node.forward is not None:
+        yield from _store_families(node.forward.status())
+
+
+def _store_families(store: dict[str, object]) -> Iterator[Metric]:
+    """Store and forward: what the store holds, what was replayed and dropped."""
+    def number(key: str) -> float:
+        value = store[key]
+        return float(value) if isinstance(value, int | float) else 0.0
+
+    gauges = (
+        ("store_messages", "Value changes in the store and forward store (not published yet).", "messages"),
+        ("store_bytes", "Bytes the store's pages in use take.", "bytes"),
+    )
+    for name, text, key in gauges:
+        gauge = GaugeMetricFamily(_SPARKPLUG + name, text)
+        gauge.add_metric([], number(key))
+        yield gauge
+    oldest = GaugeMetricFamily(_SPARKPLUG + "store_oldest_timestamp_seconds",
+                               "UTC time of the oldest stored change (0: the store is empty).")
+    oldest.add_metric([], number("oldest_ms") / 1000)
+    yield oldest
+    counters = (
+        ("store_replayed", "Stored changes replayed as historical DDATA.", "replayed"),
+        ("store_dropped", "Stored changes dropped: the store was full (store_max_mb) or they were older than "
+                          "store_max_age.", "dropped"),
+    )
+    for name, text, key in counters:
+        counter = CounterMetricFamily(_SPARKPLUG + name, text)
+        counter.add_metric([], number(key))
+        yield counter
 
 
 class Prometheus:

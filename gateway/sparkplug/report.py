@@ -1,22 +1,18 @@
-"""The edge node on ``/api/status`` and ``/metrics``: its MQTT session, what it published, the commands.
+"""The edge node on ``/api/status``: its MQTT session, what it published, the commands, its store.
 
-``status(node)`` is the ``sparkplug`` member of ``/api/status`` (None without ``[sparkplug]``);
-``families(node)`` the Prometheus families (``slc_gateway_sparkplug_*``; none when ``node`` is None).
+``status(node)`` is the ``sparkplug`` member of ``/api/status`` (None without ``[sparkplug]``); the
+status page shows it.  The same numbers as Prometheus families are ``gateway.metrics``' (this module
+stays free of prometheus_client, so the status page does not pull it in).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from typing import TYPE_CHECKING, Final
-
-from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from gateway.sparkplug.driver import SparkplugNode
 
-__all__ = ["families", "status"]
-
-_METRIC_PREFIX: Final = "slc_gateway_sparkplug_"
+__all__ = ["status"]
 
 
 def status(node: SparkplugNode | None) -> dict[str, object] | None:
@@ -45,70 +41,3 @@ def status(node: SparkplugNode | None) -> dict[str, object] | None:
         "devices": len(core.devices),
         "store": None if node.forward is None else node.forward.status(),
     }
-
-
-def families(node: SparkplugNode | None) -> Iterator[Metric]:
-    """``/metrics``: the session (gauges) and the messages and commands (counters)."""
-    if node is None:
-        return
-    state = GaugeMetricFamily(_METRIC_PREFIX + "session", "1 for the state the MQTT session is in "
-                              "(disconnected, connected: waiting for the primary host, online: births published).",
-                              labels=["state"])
-    sessions = CounterMetricFamily(_METRIC_PREFIX + "sessions", "MQTT sessions established (each a new bdSeq).")
-    published = CounterMetricFamily(_METRIC_PREFIX + "messages_published", "Sparkplug messages handed to the broker.",
-                                    labels=["type"])
-    received = CounterMetricFamily(_METRIC_PREFIX + "commands_received", "NCMD, DCMD and STATE messages received.",
-                                   labels=["type"])
-    refused = CounterMetricFamily(_METRIC_PREFIX + "commands_refused",
-                                  "Command metrics that changed nothing (unknown or read-only metric, bad "
-                                  "payload or value) and DCMD writes that failed.", labels=["reason"])
-    born = GaugeMetricFamily(_METRIC_PREFIX + "devices_online", "Devices (links) with a DBIRTH and no DDEATH since.")
-    cpu = CounterMetricFamily(_METRIC_PREFIX + "cpu_seconds", "CPU the edge node's own steps took on the event loop "
-                              "(reading the image, building DDATA; not the MQTT client's own work).")
-    longest = GaugeMetricFamily(_METRIC_PREFIX + "longest_step_seconds", "The longest of those steps (CPU): the most "
-                                "a Modbus answer can wait behind the edge node.")
-    current = node.session_state
-    for name in ("disconnected", "connected", "online"):
-        state.add_metric([name], 1.0 if name == current else 0.0)
-    sessions.add_metric([], node.sessions)
-    for verb, count in sorted(node.sent.items()):
-        published.add_metric([verb], count)
-    for verb, count in sorted(node.core.received.items()):
-        received.add_metric([verb], count)
-    for reason, count in sorted(node.core.refused.items()):
-        refused.add_metric([reason], count)
-    born.add_metric([], sum(1 for device in node.core.devices if device.born))
-    cpu.add_metric([], node.busy.seconds)
-    longest.add_metric([], node.busy.longest)
-    yield from (state, sessions, published, received, refused, born, cpu, longest)
-    if node.forward is not None:
-        yield from _store_families(node.forward.status())
-
-
-def _store_families(store: dict[str, object]) -> Iterator[Metric]:
-    """Store and forward: what the store holds, what was replayed and dropped."""
-    def number(key: str) -> float:
-        value = store[key]
-        return float(value) if isinstance(value, int | float) else 0.0
-
-    gauges = (
-        ("store_messages", "Value changes in the store and forward store (not published yet).", "messages"),
-        ("store_bytes", "Bytes the store's pages in use take.", "bytes"),
-    )
-    for name, text, key in gauges:
-        gauge = GaugeMetricFamily(_METRIC_PREFIX + name, text)
-        gauge.add_metric([], number(key))
-        yield gauge
-    oldest = GaugeMetricFamily(_METRIC_PREFIX + "store_oldest_timestamp_seconds",
-                               "UTC time of the oldest stored change (0: the store is empty).")
-    oldest.add_metric([], number("oldest_ms") / 1000)
-    yield oldest
-    counters = (
-        ("store_replayed", "Stored changes replayed as historical DDATA.", "replayed"),
-        ("store_dropped", "Stored changes dropped: the store was full (store_max_mb) or they were older than "
-                          "store_max_age.", "dropped"),
-    )
-    for name, text, key in counters:
-        counter = CounterMetricFamily(_METRIC_PREFIX + name, text)
-        counter.add_metric([], number(key))
-        yield counter
