@@ -79,7 +79,7 @@ class Session:
 @pytest.fixture
 def broker(monkeypatch: pytest.MonkeyPatch) -> Broker:
     broker = Broker()
-    monkeypatch.setattr(driver_module, "_MqttClient", lambda *args, **kwargs: Session(broker))
+    monkeypatch.setattr(driver_module, "MqttClient", lambda *args, **kwargs: Session(broker))
     send = SparkplugNode._send
 
     def recording(node: SparkplugNode, messages: list[Publish]) -> None:
