@@ -126,6 +126,11 @@ count = 2
             await until(lambda: any(n == 1 and verb(m) == "DDATA" for n, m in broker.queued), 10,
                         what="a DDATA queued in the first session")
             assert broker.sessions[0].published == []  # the broker took none of it
+            # The sender took what was queued so far as one batch and is stuck writing it: a change now
+            # stays in the outbox (the old session's message the next session must not send).
+            sim.set_word("N7", 0, 5678)
+            await until(lambda: sum(n == 1 and verb(m) == "DDATA" for n, m in broker.queued) >= 2, 10,
+                        what="a second DDATA queued in the first session, behind the stuck batch")
             broker.sessions[0].lost.set()
             await until(lambda: len(broker.sessions) >= 2 and any(
                 verb(m) == "DDATA" for m in broker.sessions[1].published), 10, what="the second session's data")
