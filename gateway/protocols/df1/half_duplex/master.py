@@ -218,7 +218,8 @@ class HalfDuplexMaster:
             self._events.append(RequestFailed(request_id, station, FailReason.STATION_DEMOTED, False))
             return request_id
         frame = encode_master_message(station, message, self.line.checksum)
-        target.enqueue(MasterRequest(request_id, station, message, frame, urgent=urgent, queued_at=now))
+        target.enqueue(MasterRequest(request_id, station, message, frame, urgent=urgent,
+                                     write_mark=self._scheduler.write_time(now)))
         self._kick(now)
         return request_id
 
@@ -356,6 +357,7 @@ class HalfDuplexMaster:
             return
         request.poll_at = now + station.config.reply_wait
         request.reply_deadline = now + station.config.reply_timeout
+        request.write_mark = self._scheduler.write_time(now)
         station.awaiting.append(request)
 
     def _on_naked(self, now: float) -> None:

@@ -17,8 +17,11 @@ the line is free, which exchange comes next (:meth:`ExchangeScheduler.next_excha
   due (also for the read that holds its place under ``max_outstanding``), else the write itself;
   an unacknowledged copy of another station's message waits for it.  AG Figure 1.2 (the master
   checks for and sends its outgoing messages before it selects the next station to poll); KA
-  p. 11-9.  Work that has waited ``write_precedence`` goes before the next write, so writes never
-  starve the polls that keep every station's data fresh.
+  p. 11-9.  Work that writes have kept waiting ``write_precedence`` goes before the next write, so
+  writes never starve the polls that keep every station's data fresh.  What counts is the line
+  time the writes' exchanges took while that work waited (:meth:`ExchangeScheduler.write_time`),
+  not the time it waited: on a noisy line every read waits seconds for the answer timeouts of
+  other reads, and counting those made the writes lose their precedence nearly all the time.
 
 This module does no I/O.
 """
@@ -60,7 +63,9 @@ class MasterRequest:
     reply_deadline: float = 0.0
     expects_reply: bool = True  #: False: the reply to a slave's own command; done at its DLE ACK
     urgent: bool = False  #: a write (or its read-back): served before other stations' work
-    queued_at: float = 0.0  #: when it was submitted
+    #: the line's write time (:meth:`ExchangeScheduler.write_time`) when it was submitted, and again
+    #: when it was acknowledged (then it waits for its reply poll)
+    write_mark: float = 0.0
 
     def failed(self, reason: hd.FailReason, may_have_executed: bool) -> hd.RequestFailed:
         """The event that reports this request failed."""
@@ -220,6 +225,8 @@ class ExchangeScheduler:
         self.turn_polls = 0
         self.poll_again = False  #: poll the turn's station again (it sent a message, or a bad frame)
         self.wake: float | None = None  #: after :meth:`next_exchange` found nothing: when to ask again
+        self._write_time = 0.0  #: line time of the ended exchanges chosen for a write
+        self._write_since: float | None = None  #: the exchange on the line was chosen for a write, at that time
 
     def polled(self, number: int, *, again: bool) -> None:
         """``number`` is being polled (``again``: within its turn)."""
@@ -235,16 +242,24 @@ class ExchangeScheduler:
     def serve(self, station: StationRecord) -> None:
         self._rr = (self._order.index(station.number) + 1) % len(self._order)
 
+    def write_time(self, now: float) -> float:
+        """Seconds of line time the exchanges chosen for writes took since the line started (the one
+        on the line up to ``now``): from the choice of a write's exchange (the write, its station's
+        reply poll, and the copies of the write sent again) to the next choice of the free line."""
+        running = now - self._write_since if self._write_since is not None else 0.0
+        return self._write_time + running
+
     def held_back(self, now: float) -> bool:
-        """Other work has waited ``write_precedence`` for writes: it goes next (writes cannot starve
-        the polls that keep every station's data fresh)."""
-        since = now - self.line.write_precedence
+        """Other work has waited while writes had the line for ``write_precedence``: it goes next
+        (writes cannot starve the polls that keep every station's data fresh).  A queued command
+        counts from its submission, a command awaiting its reply from its DLE ACK (its poll due)."""
+        since = self.write_time(now) - self.line.write_precedence
         for station in self._stations:
             if not station.active:
                 continue
-            if any(not r.urgent and r.queued_at <= since for r in station.queue):
+            if any(not r.urgent and r.write_mark <= since for r in station.queue):
                 return True
-            if any(not r.urgent and r.poll_at <= since for r in station.awaiting):
+            if any(not r.urgent and r.poll_at <= now and r.write_mark <= since for r in station.awaiting):
                 return True
         return False
 
@@ -284,12 +299,16 @@ class ExchangeScheduler:
         background polls of active stations (an active station with traffic is polled for its
         replies anyway, and every poll restarts its ``poll_interval``).
         """
+        if self._write_since is not None:  # the write's exchange has ended: the line is free
+            self._write_time += now - self._write_since
+            self._write_since = None
         turn = self.turn_station
         again = self.poll_again
         self.poll_again = False
         station = self.urgent_waiting(now)
         if station is not None:
             self.serve(station)
+            self._write_since = now
             if any(r.poll_at <= now for r in station.awaiting):
                 return PollStation(station.number, again=self.turn_station == station.number)
             return SendRequest(station.queue.popleft())

@@ -41,10 +41,10 @@ READ = bytes([3, MASTER, 0x0F, 0x00, 0x34, 0x12, 0xA2, 0x02, 0x07, 0x89, 0x00, 0
 REPLY = bytes([MASTER, 3, 0x4F, 0x00, 0x34, 0x12, 0x2A, 0x00])
 
 
-def request(request_id: int, station: int, tns: int, *, urgent: bool = False, queued_at: float = 0.0,
+def request(request_id: int, station: int, tns: int, *, urgent: bool = False, write_mark: float = 0.0,
             expects_reply: bool = True) -> MasterRequest:
     message = bytes([station, MASTER, 0x0F, 0x00, tns & 0xFF, tns >> 8, 0xA2, 0x02, 0x07, 0x89, 0x00, 0x00])
-    return MasterRequest(request_id, station, message, frame=b"", urgent=urgent, queued_at=queued_at,
+    return MasterRequest(request_id, station, message, frame=b"", urgent=urgent, write_mark=write_mark,
                          expects_reply=expects_reply)
 
 
@@ -235,14 +235,40 @@ def test_a_write_goes_before_its_stations_queued_reads() -> None:
     assert list(stations[2].queue) == [write, read]
 
 
-def test_work_that_waited_write_precedence_goes_before_the_next_write() -> None:
+def test_work_that_writes_kept_waiting_write_precedence_goes_before_the_next_write() -> None:
     line = hd.LineConfig(Checksum.BCC, write_precedence=1.0)
     stations, scheduler = line_of(1, 2, line=line)
-    read = request(1, 1, 0x0001, queued_at=0.0)
+    read = request(1, 1, 0x0001, write_mark=scheduler.write_time(0.0))
     stations[1].enqueue(read)
-    write = request(2, 2, 0x0002, urgent=True, queued_at=1.5)
+    first = request(2, 2, 0x0002, urgent=True)
+    stations[2].enqueue(first)
+    assert take(stations, scheduler, 0.0) == SendRequest(first)
+    stations[2].awaiting.clear()  # its reply came
+    second = request(3, 2, 0x0003, urgent=True)
+    stations[2].enqueue(second)
+    assert take(stations, scheduler, 0.99) == SendRequest(second)  # the first write had the line 0.99 s
+    stations[2].awaiting.clear()
+    third = request(4, 2, 0x0004, urgent=True)
+    stations[2].enqueue(third)
+    assert scheduler.write_time(1.0) == pytest.approx(1.0)
+    assert take(stations, scheduler, 1.0) == SendRequest(read)  # writes had the line 1.0 s = write_precedence
+
+
+def test_work_kept_waiting_by_other_work_leaves_a_write_its_precedence() -> None:
+    """On a noisy line a read waits seconds for the answer timeouts of other reads: that is no wait
+    for writes, and the next write still goes first."""
+    line = hd.LineConfig(Checksum.BCC, write_precedence=1.0)
+    stations, scheduler = line_of(1, 2, 3, line=line)
+    busy = request(1, 3, 0x0001)
+    stations[3].enqueue(busy)
+    assert take(stations, scheduler, 0.0) == SendRequest(busy)
+    read = request(2, 1, 0x0002, write_mark=scheduler.write_time(0.0))
+    stations[1].enqueue(read)
+    write = request(3, 2, 0x0003, urgent=True, write_mark=scheduler.write_time(1.4))
     stations[2].enqueue(write)
-    assert take(stations, scheduler, 1.5) == SendRequest(read)  # waiting 1.5 s > write_precedence
+    assert take(stations, scheduler, 1.5) == SendRequest(write)  # the read waited 1.5 s, not for writes
+    assert scheduler.write_time(1.5) == 0.0
+    assert scheduler.write_time(1.6) == pytest.approx(0.1)  # the write's exchange is on the line
 
 
 def test_a_demoted_stations_slow_poll_is_not_starved_by_busy_stations() -> None:
