@@ -226,7 +226,7 @@ async def run_gateway(checksum: str, seconds: float, write_every: float, read_ev
     """The whole gateway under the fault mix: an HMI's writes and reads (module docstring)."""
     url = (f"sim://df1line?checksum={checksum}&stations={','.join(map(str, (*LIVE, ABSENT)))}&dead={ABSENT}"
            f"&corrupt=6&ignore=10&seed={seed}&char_time={SerialSettings(19200, 8, 'N', 1).char_time:.9f}"
-           f"&scan={scan:g}&instance=bench-{checksum}-{seed}")
+           f"{f'&scan={scan:g}' if scan > 0 else ''}&instance=bench-{checksum}-{seed}")
     line = get_simulator(url)
     config = parse_config(gateway_config(url, checksum))
     write_timeout = config.links[0].write_timeout
@@ -317,7 +317,8 @@ async def main() -> None:
     parser.add_argument("--write-every", type=float, default=0.4)
     parser.add_argument("--mode", choices=("line", "gateway"), default="line",
                         help="line: the line driver alone; gateway: the whole gateway, an HMI writing (FC6)")
-    parser.add_argument("--scan", type=float, default=0.06, help="--mode gateway: each station's program scan, s")
+    parser.add_argument("--scan", type=float, default=0.06,
+                        help="--mode gateway: each station's program scan, s (0: answers at once)")
     parser.add_argument("--read-every", type=float, default=0.5,
                         help="--mode gateway: seconds between the HMI's reads of a station (0: no reads)")
     args = parser.parse_args()

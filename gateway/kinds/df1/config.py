@@ -25,7 +25,7 @@ from gateway.kinds.df1.target.config import TargetFile, target_file_problems
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS
 from gateway.protocols.df1.address import parse_address
 from gateway.protocols.df1.framing import DEFAULT_ACK_TIMEOUT, DEFAULT_CHECKSUM
-from gateway.protocols.df1.half_duplex.events import DEMOTE_AFTER, HALF_DUPLEX_ACK_TIMEOUT
+from gateway.protocols.df1.half_duplex.events import DEMOTE_AFTER, HALF_DUPLEX_ACK_TIMEOUT, REPLY_WAIT
 from gateway.protocols.df1.pccc.limits import MAX_DATA_BYTES
 from gateway.protocols.df1.plc5_address import parse_plc5_address
 
@@ -309,9 +309,10 @@ class Df1LinkConfig(LinkBase):
     # Station keys (this link's station): the reply ``timeout`` above is from the ACK to the reply.
     poll_timeout: float = Field(0.5, gt=0, le=60)
     """Station key: wait for the answer to a poll (a message or DLE EOT)."""
-    reply_wait: float = Field(0.0, ge=0, le=60)
-    """Station key: after the ACK of a command, before the first poll for its reply (1747-RM001 p. 13-67, "Reply
-    Message Wait Time")."""
+    reply_wait: float = Field(REPLY_WAIT, ge=0, le=60)
+    """Station key: after the ACK of a command, and after each DLE EOT the station answers while its reply is not
+    ready, before the next poll for the reply (1747-RM001 p. 13-67, "Reply Message Wait Time"). While a write
+    waits for its reply the line stays free for that poll."""
     max_polls: int = Field(20, ge=1, le=1000)
     """Station key: DLE EOT answers tolerated while waiting for one reply."""
     poll_interval: float = Field(1.0, gt=0, le=3600)

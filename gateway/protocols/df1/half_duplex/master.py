@@ -13,7 +13,9 @@ What the core does
 * After the ACK the master waits ``reply_wait`` and polls the station (``DLE ENQ STN BCC``) until
   the reply comes: a slave message of the polled station that ``pccc.reply_matches`` the command
   (same TNS, CMD + 40 hex; DST / SRC are not compared, see there).  Each ``DLE EOT`` counts one
-  poll; after ``max_polls`` of them the request fails, and so it does at the first EOT after
+  poll and makes the next poll for the reply wait ``reply_wait`` again (a controller answers at the
+  end of its scan: polled at once, it would answer EOT after EOT, each poll one more chance of a
+  lost frame and a poll timeout); after ``max_polls`` of them the request fails, and so it does at the first EOT after
   ``reply_timeout`` from the ACK.  The deadline itself only makes the reply's poll due: while the
   line was busy with other stations the reply may be waiting in the slave, and only its EOT says
   it is not.  A reply is only ever matched against the requests of the station that was polled,
@@ -406,6 +408,8 @@ class HalfDuplexMaster:
             request.polls += 1
             if request.polls >= station.config.max_polls or now >= request.reply_deadline:
                 self._events.append(station.fail_awaiting(request, FailReason.NO_REPLY))
+            else:  # not ready yet: asked for again reply_wait later, as after the ACK
+                request.poll_at = max(request.poll_at, now + station.config.reply_wait)
         self._scheduler.poll_again = False
 
     def _on_message(self, now: float) -> None:

@@ -68,6 +68,7 @@ def make(
     *stations: int, checksum: Checksum = Checksum.BCC, line: Mapping[str, Any] | None = None, **station_kw: Any
 ) -> HalfDuplexMaster:
     config = replace(LineConfig(checksum), **(line or {}))
+    station_kw.setdefault("reply_wait", 0.0)  # the scripts poll for a reply at once; tests of the wait give it
     master = HalfDuplexMaster(config, [replace(StationConfig(s), **station_kw) for s in stations])
     master.start(0.0)
     return master
@@ -252,13 +253,18 @@ def test_reply_timeout_and_late_reply_is_stray() -> None:
     master.handle_timeout(0.4)
     now = 0.4
     found: list[MasterEvent] = []
-    while not found:  # polled again after every EOT until the reply timeout (1.0 after the ACK)
+    while not found:  # polled again reply_wait after every EOT until the reply timeout (1.0 after the ACK)
         assert master.data_to_send() == encode_poll(6)
         now += 0.15
         master.receive_data(EOT_SYMBOL, now)
         found = events(master)
+        if not found:
+            assert master.data_to_send() == b""
+            assert master.next_deadline() == pytest.approx(now + 0.4)
+            now += 0.4
+            master.handle_timeout(now)
     assert found == [RequestFailed(request, 6, FailReason.NO_REPLY, may_have_executed=True)]
-    assert now == pytest.approx(1.0)
+    assert now == pytest.approx(1.1)  # the first EOT after the reply timeout (polls at 0.4 and 0.95)
     later = master.next_deadline()
     assert later is not None
     master.handle_timeout(later)

@@ -223,7 +223,12 @@ def test_a_write_goes_before_other_stations_work() -> None:
     stations[1].enqueue(read)
     stations[2].enqueue(write)
     assert take(stations, scheduler, 0.0) == SendRequest(write)
-    assert take(stations, scheduler, 0.0) == SendRequest(read)
+    # its reply poll is due at 0.1: the line stays free for it (another exchange could hold it for
+    # an answer timeout), and the read goes when the write's reply has come
+    assert take(stations, scheduler, 0.0) is None
+    assert scheduler.wake == pytest.approx(0.1)
+    stations[2].awaiting.clear()
+    assert take(stations, scheduler, 0.1) == SendRequest(read)
 
 
 def test_a_write_goes_before_its_stations_queued_reads() -> None:
@@ -252,6 +257,27 @@ def test_work_that_writes_kept_waiting_write_precedence_goes_before_the_next_wri
     stations[2].enqueue(third)
     assert scheduler.write_time(1.0) == pytest.approx(1.0)
     assert take(stations, scheduler, 1.0) == SendRequest(read)  # writes had the line 1.0 s = write_precedence
+
+
+def test_the_work_writes_held_back_goes_first_then_the_writes_again() -> None:
+    """Not the round robin's next: station 3's read, queued when the writes had had the line for
+    1 s, has not waited for them and goes after the next write."""
+    line = hd.LineConfig(Checksum.BCC, write_precedence=1.0)
+    stations, scheduler = line_of(1, 2, 3, line=line)
+    write = request(1, 2, 0x0001, urgent=True)
+    stations[2].enqueue(write)
+    assert take(stations, scheduler, 0.0) == SendRequest(write)  # the round robin goes on at station 3
+    stations[2].awaiting.clear()
+    held = request(2, 1, 0x0002, write_mark=scheduler.write_time(0.0))
+    stations[1].enqueue(held)
+    fresh = request(3, 3, 0x0003, write_mark=scheduler.write_time(1.0))
+    stations[3].enqueue(fresh)
+    second = request(4, 2, 0x0004, urgent=True)
+    stations[2].enqueue(second)
+    assert take(stations, scheduler, 1.0) == SendRequest(held)
+    assert take(stations, scheduler, 1.0) == SendRequest(second)
+    stations[2].awaiting.clear()  # its reply came
+    assert take(stations, scheduler, 1.0) == SendRequest(fresh)
 
 
 def test_work_kept_waiting_by_other_work_leaves_a_write_its_precedence() -> None:
