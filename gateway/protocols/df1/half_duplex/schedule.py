@@ -222,7 +222,8 @@ class ExchangeScheduler:
         self.line: Final = line
         self._stations: Final = stations
         self._order: Final = stations.order
-        self._rr = 0
+        self._rr = 0  #: where the round robin of the other work goes on
+        self._rr_writes = 0  #: where the round robin of the stations with writes goes on
         self.turn_station: int | None = None  #: the station polled last, while it has messages
         self.turn_polls = 0
         self.poll_again = False  #: poll the turn's station again (it sent a message, or a bad frame)
@@ -237,12 +238,23 @@ class ExchangeScheduler:
             self.turn_polls = 0
         self.turn_polls += 1
 
-    def rotation(self) -> list[StationRecord]:
-        order = self._order[self._rr :] + self._order[: self._rr]
+    def rotation(self, writes: bool = False) -> list[StationRecord]:
+        """The stations in round-robin order, from where the round robin of writes (``writes``) or
+        of the other work goes on."""
+        at = self._rr_writes if writes else self._rr
+        order = self._order[at:] + self._order[:at]
         return [self._stations[number] for number in order]
 
-    def serve(self, station: StationRecord) -> None:
-        self._rr = (self._order.index(station.number) + 1) % len(self._order)
+    def serve(self, station: StationRecord, *, write: bool = False) -> None:
+        """``station`` had its turn: its round robin goes on after it.  A write's turn does not move
+        the round robin of the other work: writes go to the stations in their own order (an HMI
+        writing to stations 1, 2, 3 in turn), which would make that round robin skip the same
+        station again and again, its reads waiting out ``write_precedence``."""
+        after = (self._order.index(station.number) + 1) % len(self._order)
+        if write:
+            self._rr_writes = after
+        else:
+            self._rr = after
 
     def write_time(self, now: float) -> float:
         """Seconds of line time the exchanges chosen for writes took since the line started (the one
@@ -280,7 +292,7 @@ class ExchangeScheduler:
         has been held back too long (:meth:`held_back`)."""
         if self.held_back(now) is not None:
             return None
-        for station in self.rotation():
+        for station in self.rotation(writes=True):
             if station.number == besides or not station.active:
                 continue
             if not any(r.urgent for r in itertools.chain(station.queue, station.awaiting)):
@@ -326,7 +338,7 @@ class ExchangeScheduler:
             return SendRequest(owner.queue.popleft())
         station = self.urgent_waiting(now)
         if station is not None:
-            self.serve(station)
+            self.serve(station, write=True)
             self._write_since = now
             if any(r.poll_at <= now for r in station.awaiting):
                 return PollStation(station.number, again=self.turn_station == station.number)

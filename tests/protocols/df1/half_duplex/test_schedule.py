@@ -231,6 +231,33 @@ def test_a_write_goes_before_other_stations_work() -> None:
     assert take(stations, scheduler, 0.1) == SendRequest(read)
 
 
+def test_a_write_does_not_move_the_round_robin_of_the_other_work() -> None:
+    """An HMI writing to stations 1, 2, 3 in turn must not make the reads' round robin skip a station
+    (station 1's read waited out write_precedence behind writes to the other stations)."""
+    stations, scheduler = line_of(1, 2, 3)
+    reads = {n: request(n, n, n) for n in (1, 2, 3)}
+    for n, read in reads.items():
+        stations[n].enqueue(read)
+    write = request(4, 1, 0x0004, urgent=True)
+    stations[1].enqueue(write)
+    assert take(stations, scheduler, 0.0) == SendRequest(write)
+    stations[1].awaiting.clear()  # its reply came
+    assert [take(stations, scheduler, 0.0) for _ in range(3)] == [SendRequest(reads[n]) for n in (1, 2, 3)]
+
+
+def test_writes_at_two_stations_take_turns() -> None:
+    stations, scheduler = line_of(1, 2)
+    first, second, other = request(1, 1, 1, urgent=True), request(2, 1, 2, urgent=True), request(3, 2, 3, urgent=True)
+    stations[1].enqueue(first)
+    stations[1].enqueue(second)
+    stations[2].enqueue(other)
+    assert take(stations, scheduler, 0.0) == SendRequest(first)
+    stations[1].awaiting.clear()
+    assert take(stations, scheduler, 0.0) == SendRequest(other)
+    stations[2].awaiting.clear()
+    assert take(stations, scheduler, 0.0) == SendRequest(second)
+
+
 def test_a_write_goes_before_its_stations_queued_reads() -> None:
     stations, _ = line_of(2)
     read = request(1, 2, 0x0001)
