@@ -317,8 +317,9 @@ class Df1LinkConfig(LinkBase):
     poll_timeout: float = Field(_STATION_DEFAULTS.poll_timeout, gt=0, le=60)
     """Station key: wait for the answer to a poll (a message or DLE EOT)."""
     reply_wait: float = Field(_STATION_DEFAULTS.reply_wait, ge=0, le=60)
-    """Station key: after the ACK of a command, before the first poll for its reply (1747-RM001 p. 13-67, "Reply
-    Message Wait Time")."""
+    """Station key: after the ACK of a command, and after each DLE EOT the station answers while its reply is not
+    ready, before the next poll for the reply (1747-RM001 p. 13-67, "Reply Message Wait Time"). While a write
+    waits for its reply the line stays free for that poll."""
     max_polls: int = Field(_STATION_DEFAULTS.max_polls, ge=1, le=1000)
     """Station key: DLE EOT answers tolerated while waiting for one reply."""
     poll_interval: float = Field(_STATION_DEFAULTS.poll_interval, gt=0, le=3600)

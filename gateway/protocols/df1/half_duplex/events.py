@@ -17,6 +17,7 @@ __all__ = [
     "DEFAULT_MESSAGE_RESENDS",
     "DEMOTE_AFTER",
     "HALF_DUPLEX_ACK_TIMEOUT",
+    "REPLY_WAIT",
     "FailReason",
     "LineConfig",
     "MasterEvent",
@@ -53,6 +54,12 @@ DEMOTE_AFTER = 5
 HALF_DUPLEX_ACK_TIMEOUT: Final = 0.5
 #: Identical resends of a master message without its DLE ACK (the ``message_retries`` key's default).
 DEFAULT_MESSAGE_RESENDS: Final = 3
+#: A half-duplex master's wait after a slave's DLE ACK, and after each DLE EOT it answers while its reply
+#: is not ready, before it polls the slave for the reply: one 20 ms step of the SLC's "Reply Message Wait
+#: Time" (1747-RM001G p. 13-67).  A controller answers at the end of its program scan (tens of ms): polled
+#: at once, it answers DLE EOT again and again, and each poll is one more chance of a lost frame and its
+#: poll timeout (0.5 s), which a write cannot afford within its write_timeout.
+REPLY_WAIT: Final = 0.02
 
 
 @frozen
@@ -62,7 +69,7 @@ class StationConfig:
     station: int
     poll_timeout: float = 0.5  #: wait for the answer to a poll (RM p. 13-61: the ACK timeout)
     reply_timeout: float = 5.0  #: from the ACK of a command to its reply
-    reply_wait: float = 0.0  #: after the ACK, before the first poll for the reply (RM p. 13-67)
+    reply_wait: float = REPLY_WAIT  #: after the ACK or a DLE EOT, before the next poll for the reply
     max_polls: int = 20  #: DLE EOT answers tolerated while waiting for one reply
     demote_after: int = DEMOTE_AFTER  #: answerless polls / unacknowledged messages in a row before demotion
     poll_interval: float = 1.0  #: background poll period for slave-initiated messages

@@ -13,7 +13,9 @@ What the core does
 * After the ACK the master waits ``reply_wait`` and polls the station (``DLE ENQ STN BCC``) until
   the reply comes: a slave message of the polled station that ``pccc.reply_matches`` the command
   (same TNS, CMD + 40 hex; DST / SRC are not compared, see there).  Each ``DLE EOT`` counts one
-  poll; after ``max_polls`` of them the request fails, and so it does at the first EOT after
+  poll and makes the next poll for the reply wait ``reply_wait`` again (a controller answers at the
+  end of its scan: polled at once, it would answer EOT after EOT, each poll one more chance of a
+  lost frame and a poll timeout); after ``max_polls`` of them the request fails, and so it does at the first EOT after
   ``reply_timeout`` from the ACK.  The deadline itself only makes the reply's poll due: while the
   line was busy with other stations the reply may be waiting in the slave, and only its EOT says
   it is not.  A reply is only ever matched against the requests of the station that was polled,
@@ -218,7 +220,8 @@ class HalfDuplexMaster:
             self._events.append(RequestFailed(request_id, station, FailReason.STATION_DEMOTED, False))
             return request_id
         frame = encode_master_message(station, message, self.line.checksum)
-        target.enqueue(MasterRequest(request_id, station, message, frame, urgent=urgent, queued_at=now))
+        target.enqueue(MasterRequest(request_id, station, message, frame, urgent=urgent,
+                                     write_mark=self._scheduler.write_time(now)))
         self._kick(now)
         return request_id
 
@@ -356,6 +359,7 @@ class HalfDuplexMaster:
             return
         request.poll_at = now + station.config.reply_wait
         request.reply_deadline = now + station.config.reply_timeout
+        request.write_mark = self._scheduler.write_time(now)
         station.awaiting.append(request)
 
     def _on_naked(self, now: float) -> None:
@@ -404,6 +408,8 @@ class HalfDuplexMaster:
             request.polls += 1
             if request.polls >= station.config.max_polls or now >= request.reply_deadline:
                 self._events.append(station.fail_awaiting(request, FailReason.NO_REPLY))
+            else:  # not ready yet: asked for again reply_wait later, as after the ACK
+                request.poll_at = max(request.poll_at, now + station.config.reply_wait)
         self._scheduler.poll_again = False
 
     def _on_message(self, now: float) -> None:

@@ -15,10 +15,15 @@ the line is free, which exchange comes next (:meth:`ExchangeScheduler.next_excha
 * Writes first: a command submitted ``urgent`` (a write, or its read-back) is queued ahead of its
   station's other commands and goes before other stations' work - its station's reply poll when
   due (also for the read that holds its place under ``max_outstanding``), else the write itself;
-  an unacknowledged copy of another station's message waits for it.  AG Figure 1.2 (the master
-  checks for and sends its outgoing messages before it selects the next station to poll); KA
-  p. 11-9.  Work that has waited ``write_precedence`` goes before the next write, so writes never
-  starve the polls that keep every station's data fresh.
+  an unacknowledged copy of another station's message waits for it; while its reply poll is not
+  due yet (``reply_wait``) the line stays free for it, where another exchange could hold it for an
+  answer timeout.  AG Figure 1.2 (the master checks for and sends its outgoing messages before it
+  selects the next station to poll); KA p. 11-9.
+* Not for ever: work that writes have kept waiting ``write_precedence`` goes before the next write,
+  the longest held first, so writes never starve the polls that keep every station's data fresh.
+  What counts is the line time the writes' exchanges took while that work waited
+  (:meth:`ExchangeScheduler.write_time`), not the time it waited: on a noisy line every read waits
+  seconds for the answer timeouts of other reads, which is no wait for writes.
 
 This module does no I/O.
 """
@@ -60,7 +65,9 @@ class MasterRequest:
     reply_deadline: float = 0.0
     expects_reply: bool = True  #: False: the reply to a slave's own command; done at its DLE ACK
     urgent: bool = False  #: a write (or its read-back): served before other stations' work
-    queued_at: float = 0.0  #: when it was submitted
+    #: the line's write time (:meth:`ExchangeScheduler.write_time`) when it was submitted, and again
+    #: when it was acknowledged (then it waits for its reply poll)
+    write_mark: float = 0.0
 
     def failed(self, reason: hd.FailReason, may_have_executed: bool) -> hd.RequestFailed:
         """The event that reports this request failed."""
@@ -215,11 +222,14 @@ class ExchangeScheduler:
         self.line: Final = line
         self._stations: Final = stations
         self._order: Final = stations.order
-        self._rr = 0
+        self._rr = 0  #: where the round robin of the other work goes on
+        self._rr_writes = 0  #: where the round robin of the stations with writes goes on
         self.turn_station: int | None = None  #: the station polled last, while it has messages
         self.turn_polls = 0
         self.poll_again = False  #: poll the turn's station again (it sent a message, or a bad frame)
         self.wake: float | None = None  #: after :meth:`next_exchange` found nothing: when to ask again
+        self._write_time = 0.0  #: line time of the ended exchanges chosen for a write
+        self._write_since: float | None = None  #: the exchange on the line was chosen for a write, at that time
 
     def polled(self, number: int, *, again: bool) -> None:
         """``number`` is being polled (``again``: within its turn)."""
@@ -228,33 +238,61 @@ class ExchangeScheduler:
             self.turn_polls = 0
         self.turn_polls += 1
 
-    def rotation(self) -> list[StationRecord]:
-        order = self._order[self._rr :] + self._order[: self._rr]
+    def rotation(self, writes: bool = False) -> list[StationRecord]:
+        """The stations in round-robin order, from where the round robin of writes (``writes``) or
+        of the other work goes on."""
+        at = self._rr_writes if writes else self._rr
+        order = self._order[at:] + self._order[:at]
         return [self._stations[number] for number in order]
 
-    def serve(self, station: StationRecord) -> None:
-        self._rr = (self._order.index(station.number) + 1) % len(self._order)
+    def serve(self, station: StationRecord, *, write: bool = False) -> None:
+        """``station`` had its turn: its round robin goes on after it.  A write's turn does not move
+        the round robin of the other work: writes go to the stations in their own order (an HMI
+        writing to stations 1, 2, 3 in turn), which would make that round robin skip the same
+        station again and again, its reads waiting out ``write_precedence``."""
+        after = (self._order.index(station.number) + 1) % len(self._order)
+        if write:
+            self._rr_writes = after
+        else:
+            self._rr = after
 
-    def held_back(self, now: float) -> bool:
-        """Other work has waited ``write_precedence`` for writes: it goes next (writes cannot starve
-        the polls that keep every station's data fresh)."""
-        since = now - self.line.write_precedence
-        for station in self._stations:
+    def write_time(self, now: float) -> float:
+        """Seconds of line time the exchanges chosen for writes took since the line started (the one
+        on the line up to ``now``): from the choice of a write's exchange (the write, its station's
+        reply poll, and the copies of the write sent again) to the next choice of the free line."""
+        running = now - self._write_since if self._write_since is not None else 0.0
+        return self._write_time + running
+
+    def held_back(self, now: float) -> tuple[StationRecord, MasterRequest | None] | None:
+        """The work that writes have kept waiting longest, once writes had the line for
+        ``write_precedence`` while it waited: it goes next, before the next write (writes cannot
+        starve the polls that keep every station's data fresh).  ``(station, command)``: send the
+        command, its station's next, which the station can take (``max_outstanding``), waiting since
+        its submission; ``(station, None)``: poll the station for the reply to a command, due, waiting
+        since its DLE ACK.  None: no such work can move now."""
+        since = self.write_time(now) - self.line.write_precedence
+        found: tuple[float, StationRecord, MasterRequest | None] | None = None
+        for station in self.rotation():
             if not station.active:
                 continue
-            if any(not r.urgent and r.queued_at <= since for r in station.queue):
-                return True
-            if any(not r.urgent and r.poll_at <= since for r in station.awaiting):
-                return True
-        return False
+            for r in station.awaiting:
+                if not r.urgent and r.poll_at <= now and r.write_mark <= since and (
+                    found is None or r.write_mark < found[0]
+                ):
+                    found = (r.write_mark, station, None)
+            if station.queue and len(station.awaiting) < station.config.max_outstanding:
+                head = station.queue[0]
+                if not head.urgent and head.write_mark <= since and (found is None or head.write_mark < found[0]):
+                    found = (head.write_mark, station, head)
+        return None if found is None else (found[1], found[2])
 
     def urgent_waiting(self, now: float, besides: int | None = None) -> StationRecord | None:
         """The first station (round robin) with a write that can move now: its reply poll is due,
         or it is queued and the station can take it (``max_outstanding``).  None while other work
         has been held back too long (:meth:`held_back`)."""
-        if self.held_back(now):
+        if self.held_back(now) is not None:
             return None
-        for station in self.rotation():
+        for station in self.rotation(writes=True):
             if station.number == besides or not station.active:
                 continue
             if not any(r.urgent for r in itertools.chain(station.queue, station.awaiting)):
@@ -275,7 +313,8 @@ class ExchangeScheduler:
     def next_exchange(self, now: float) -> Exchange | None:
         """The next exchange, or None (then :attr:`wake` says when something falls due).
 
-        Priority: a write (:meth:`urgent_waiting`): its station's reply poll when due (its reply, or
+        Priority: work that writes have kept waiting too long (:meth:`held_back`); a write
+        (:meth:`urgent_waiting`): its station's reply poll when due (its reply, or
         the reply of the read that holds its place), else the write; the station of this turn again
         while it has messages; a reply to a slave's own message; then, round robin over the
         stations, a due poll for a reply, a due slow poll of a demoted station or a queued command
@@ -284,15 +323,33 @@ class ExchangeScheduler:
         background polls of active stations (an active station with traffic is polled for its
         replies anyway, and every poll restarts its ``poll_interval``).
         """
+        if self._write_since is not None:  # the write's exchange has ended: the line is free
+            self._write_time += now - self._write_since
+            self._write_since = None
         turn = self.turn_station
         again = self.poll_again
         self.poll_again = False
+        held = self.held_back(now)
+        if held is not None:
+            owner, command = held
+            self.serve(owner)
+            if command is None:
+                return PollStation(owner.number, again=turn == owner.number)
+            return SendRequest(owner.queue.popleft())
         station = self.urgent_waiting(now)
         if station is not None:
-            self.serve(station)
+            self.serve(station, write=True)
+            self._write_since = now
             if any(r.poll_at <= now for r in station.awaiting):
                 return PollStation(station.number, again=self.turn_station == station.number)
             return SendRequest(station.queue.popleft())
+        writing = [s for s in self._stations
+                   if s.active and any(r.urgent for r in itertools.chain(s.queue, s.awaiting))]
+        if replies := [r.poll_at for s in writing for r in s.awaiting]:
+            # A write waits for a reply not due yet (reply_wait): the line stays free for its poll,
+            # where other work could take it for an answer timeout.
+            self.wake = min(replies)
+            return None
         if again and turn is not None and self.turn_polls < self.line.max_messages_per_turn:
             return PollStation(turn, again=True)
         for station in self.rotation():

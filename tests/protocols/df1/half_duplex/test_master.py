@@ -68,6 +68,7 @@ def make(
     *stations: int, checksum: Checksum = Checksum.BCC, line: Mapping[str, Any] | None = None, **station_kw: Any
 ) -> HalfDuplexMaster:
     config = replace(LineConfig(checksum), **(line or {}))
+    station_kw.setdefault("reply_wait", 0.0)  # the scripts poll for a reply at once; tests of the wait give it
     master = HalfDuplexMaster(config, [replace(StationConfig(s), **station_kw) for s in stations])
     master.start(0.0)
     return master
@@ -252,13 +253,18 @@ def test_reply_timeout_and_late_reply_is_stray() -> None:
     master.handle_timeout(0.4)
     now = 0.4
     found: list[MasterEvent] = []
-    while not found:  # polled again after every EOT until the reply timeout (1.0 after the ACK)
+    while not found:  # polled again reply_wait after every EOT until the reply timeout (1.0 after the ACK)
         assert master.data_to_send() == encode_poll(6)
         now += 0.15
         master.receive_data(EOT_SYMBOL, now)
         found = events(master)
+        if not found:
+            assert master.data_to_send() == b""
+            assert master.next_deadline() == pytest.approx(now + 0.4)
+            now += 0.4
+            master.handle_timeout(now)
     assert found == [RequestFailed(request, 6, FailReason.NO_REPLY, may_have_executed=True)]
-    assert now == pytest.approx(1.0)
+    assert now == pytest.approx(1.1)  # the first EOT after the reply timeout (polls at 0.4 and 0.95)
     later = master.next_deadline()
     assert later is not None
     master.handle_timeout(later)
@@ -1033,6 +1039,24 @@ def test_the_grace_for_an_answer_in_progress_is_one_more_answer_timeout() -> Non
     assert master.counters(1).timeouts == 1
 
 
+def test_a_copy_without_its_ack_waits_for_a_write_though_reads_waited_long_for_answer_timeouts() -> None:
+    """An absent station's command without its ACK holds the line an ACK timeout per copy: the other
+    stations' reads wait longer than ``write_precedence`` for it, but not for writes, so a write
+    that comes meanwhile still goes before the next copy (it used to lose its precedence to them)."""
+    master = make(1, 2, 3, poll_interval=10.0, demote_after=10, line={"ack_timeout": 0.5, "write_precedence": 0.5})
+    after_start_polls(master)
+    read2, read3, write1 = command(2, 0x90), command(3, 0x91), command(1, 0x92, b"\xaa\x01")
+    master.submit(2, read2, 0.0)
+    copy = master.data_to_send()
+    assert copy == encode_master_message(2, read2, Checksum.BCC)
+    master.submit(3, read3, 0.0)
+    master.handle_timeout(0.5)  # no ACK from station 2; no write waits: the copy again
+    assert master.data_to_send() == copy
+    master.submit(1, write1, 0.6, urgent=True)
+    master.handle_timeout(1.0)  # no ACK again; station 3's read has waited 1.0 s > write_precedence
+    assert master.data_to_send() == encode_master_message(1, write1, Checksum.BCC)
+
+
 def test_a_write_goes_first_whenever_it_comes_while_other_work_is_fresh() -> None:
     """``write_precedence`` counts from when the other work was queued, not from the line's start."""
     master = make(1, 2, poll_interval=100.0)
@@ -1111,12 +1135,13 @@ def test_each_turn_of_a_station_gets_its_own_max_messages_per_turn() -> None:
 
 @pytest.mark.parametrize(("waited", "first"), [(0.5, "read"), (0.49, "write")])
 def test_work_that_has_waited_write_precedence_goes_before_the_next_write(waited: float, first: str) -> None:
-    """A queued read that has waited exactly ``write_precedence`` goes before the write."""
+    """A queued read that writes have kept waiting exactly ``write_precedence`` goes before the next
+    write (the first write waits for its ACK until then)."""
     master = make(1, 2, line={"write_precedence": 0.5}, poll_interval=100.0, reply_wait=0.0)
     after_start_polls(master)
     read2, write1 = command(2, 0x70), command(1, 0x71, b"\xaa\x01")
-    busy = command(1, 0x72)
-    master.submit(1, busy, 1.0)
+    busy = command(1, 0x72, b"\xaa\x01")
+    master.submit(1, busy, 1.0, urgent=True)
     master.data_to_send()
     master.submit(2, read2, 1.0)
     master.submit(1, write1, 1.0, urgent=True)
@@ -1135,8 +1160,8 @@ def test_a_demoted_station_is_passed_over_when_writes_and_waiting_work_are_weigh
     master.handle_timeout(0.1)  # no answer: demoted
     assert not master.is_active(1)
     after_start_polls(master, 0.1)
-    busy, read2, write3 = command(3, 0x80), command(2, 0x81), command(3, 0x82, b"\xaa\x01")
-    master.submit(3, busy, 1.0)
+    busy, read2, write3 = command(3, 0x80, b"\xaa\x01"), command(2, 0x81), command(3, 0x82, b"\xaa\x01")
+    master.submit(3, busy, 1.0, urgent=True)  # a write: the read waits for writes
     assert master.data_to_send() == encode_master_message(3, busy, Checksum.BCC)
     master.submit(2, read2, 1.0)
     master.submit(3, write3, 1.0, urgent=True)

@@ -41,10 +41,10 @@ READ = bytes([3, MASTER, 0x0F, 0x00, 0x34, 0x12, 0xA2, 0x02, 0x07, 0x89, 0x00, 0
 REPLY = bytes([MASTER, 3, 0x4F, 0x00, 0x34, 0x12, 0x2A, 0x00])
 
 
-def request(request_id: int, station: int, tns: int, *, urgent: bool = False, queued_at: float = 0.0,
+def request(request_id: int, station: int, tns: int, *, urgent: bool = False, write_mark: float = 0.0,
             expects_reply: bool = True) -> MasterRequest:
     message = bytes([station, MASTER, 0x0F, 0x00, tns & 0xFF, tns >> 8, 0xA2, 0x02, 0x07, 0x89, 0x00, 0x00])
-    return MasterRequest(request_id, station, message, frame=b"", urgent=urgent, queued_at=queued_at,
+    return MasterRequest(request_id, station, message, frame=b"", urgent=urgent, write_mark=write_mark,
                          expects_reply=expects_reply)
 
 
@@ -223,7 +223,39 @@ def test_a_write_goes_before_other_stations_work() -> None:
     stations[1].enqueue(read)
     stations[2].enqueue(write)
     assert take(stations, scheduler, 0.0) == SendRequest(write)
-    assert take(stations, scheduler, 0.0) == SendRequest(read)
+    # its reply poll is due at 0.1: the line stays free for it (another exchange could hold it for
+    # an answer timeout), and the read goes when the write's reply has come
+    assert take(stations, scheduler, 0.0) is None
+    assert scheduler.wake == pytest.approx(0.1)
+    stations[2].awaiting.clear()
+    assert take(stations, scheduler, 0.1) == SendRequest(read)
+
+
+def test_a_write_does_not_move_the_round_robin_of_the_other_work() -> None:
+    """An HMI writing to stations 1, 2, 3 in turn must not make the reads' round robin skip a station
+    (station 1's read waited out write_precedence behind writes to the other stations)."""
+    stations, scheduler = line_of(1, 2, 3)
+    reads = {n: request(n, n, n) for n in (1, 2, 3)}
+    for n, read in reads.items():
+        stations[n].enqueue(read)
+    write = request(4, 1, 0x0004, urgent=True)
+    stations[1].enqueue(write)
+    assert take(stations, scheduler, 0.0) == SendRequest(write)
+    stations[1].awaiting.clear()  # its reply came
+    assert [take(stations, scheduler, 0.0) for _ in range(3)] == [SendRequest(reads[n]) for n in (1, 2, 3)]
+
+
+def test_writes_at_two_stations_take_turns() -> None:
+    stations, scheduler = line_of(1, 2)
+    first, second, other = request(1, 1, 1, urgent=True), request(2, 1, 2, urgent=True), request(3, 2, 3, urgent=True)
+    stations[1].enqueue(first)
+    stations[1].enqueue(second)
+    stations[2].enqueue(other)
+    assert take(stations, scheduler, 0.0) == SendRequest(first)
+    stations[1].awaiting.clear()
+    assert take(stations, scheduler, 0.0) == SendRequest(other)
+    stations[2].awaiting.clear()
+    assert take(stations, scheduler, 0.0) == SendRequest(second)
 
 
 def test_a_write_goes_before_its_stations_queued_reads() -> None:
@@ -235,14 +267,61 @@ def test_a_write_goes_before_its_stations_queued_reads() -> None:
     assert list(stations[2].queue) == [write, read]
 
 
-def test_work_that_waited_write_precedence_goes_before_the_next_write() -> None:
+def test_work_that_writes_kept_waiting_write_precedence_goes_before_the_next_write() -> None:
     line = hd.LineConfig(Checksum.BCC, write_precedence=1.0)
     stations, scheduler = line_of(1, 2, line=line)
-    read = request(1, 1, 0x0001, queued_at=0.0)
+    read = request(1, 1, 0x0001, write_mark=scheduler.write_time(0.0))
     stations[1].enqueue(read)
-    write = request(2, 2, 0x0002, urgent=True, queued_at=1.5)
+    first = request(2, 2, 0x0002, urgent=True)
+    stations[2].enqueue(first)
+    assert take(stations, scheduler, 0.0) == SendRequest(first)
+    stations[2].awaiting.clear()  # its reply came
+    second = request(3, 2, 0x0003, urgent=True)
+    stations[2].enqueue(second)
+    assert take(stations, scheduler, 0.99) == SendRequest(second)  # the first write had the line 0.99 s
+    stations[2].awaiting.clear()
+    third = request(4, 2, 0x0004, urgent=True)
+    stations[2].enqueue(third)
+    assert scheduler.write_time(1.0) == pytest.approx(1.0)
+    assert take(stations, scheduler, 1.0) == SendRequest(read)  # writes had the line 1.0 s = write_precedence
+
+
+def test_the_work_writes_held_back_goes_first_then_the_writes_again() -> None:
+    """Not the round robin's next: station 3's read, queued when the writes had had the line for
+    1 s, has not waited for them and goes after the next write."""
+    line = hd.LineConfig(Checksum.BCC, write_precedence=1.0)
+    stations, scheduler = line_of(1, 2, 3, line=line)
+    write = request(1, 2, 0x0001, urgent=True)
     stations[2].enqueue(write)
-    assert take(stations, scheduler, 1.5) == SendRequest(read)  # waiting 1.5 s > write_precedence
+    assert take(stations, scheduler, 0.0) == SendRequest(write)  # the round robin goes on at station 3
+    stations[2].awaiting.clear()
+    held = request(2, 1, 0x0002, write_mark=scheduler.write_time(0.0))
+    stations[1].enqueue(held)
+    fresh = request(3, 3, 0x0003, write_mark=scheduler.write_time(1.0))
+    stations[3].enqueue(fresh)
+    second = request(4, 2, 0x0004, urgent=True)
+    stations[2].enqueue(second)
+    assert take(stations, scheduler, 1.0) == SendRequest(held)
+    assert take(stations, scheduler, 1.0) == SendRequest(second)
+    stations[2].awaiting.clear()  # its reply came
+    assert take(stations, scheduler, 1.0) == SendRequest(fresh)
+
+
+def test_work_kept_waiting_by_other_work_leaves_a_write_its_precedence() -> None:
+    """On a noisy line a read waits seconds for the answer timeouts of other reads: that is no wait
+    for writes, and the next write still goes first."""
+    line = hd.LineConfig(Checksum.BCC, write_precedence=1.0)
+    stations, scheduler = line_of(1, 2, 3, line=line)
+    busy = request(1, 3, 0x0001)
+    stations[3].enqueue(busy)
+    assert take(stations, scheduler, 0.0) == SendRequest(busy)
+    read = request(2, 1, 0x0002, write_mark=scheduler.write_time(0.0))
+    stations[1].enqueue(read)
+    write = request(3, 2, 0x0003, urgent=True, write_mark=scheduler.write_time(1.4))
+    stations[2].enqueue(write)
+    assert take(stations, scheduler, 1.5) == SendRequest(write)  # the read waited 1.5 s, not for writes
+    assert scheduler.write_time(1.5) == 0.0
+    assert scheduler.write_time(1.6) == pytest.approx(0.1)  # the write's exchange is on the line
 
 
 def test_a_demoted_stations_slow_poll_is_not_starved_by_busy_stations() -> None:
