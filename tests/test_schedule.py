@@ -166,6 +166,34 @@ def test_a_read_after_the_stale_limit_is_late() -> None:
     assert not read(s, 0, 60.0)  # an outage is not a refresh period
 
 
+def test_lateness_is_judged_against_the_limit_the_value_was_read_with() -> None:
+    # Nobody demands the block: it was read with the background limit, stale_after + B = 5 + 30, not
+    # the class period's 5 + 0.  A read 20 s later is on time (no "raise stale_after" warning); one
+    # 36 s later is late.
+    s = schedule([F], stale_after=5.0, background=30.0)
+    assert not read(s, 0, 0.0)
+    assert not read(s, 0, 20.0)
+    assert s.late_reads == 0
+    assert read(s, 0, 56.0)
+    assert s.late_reads == 1
+
+
+def test_a_held_block_comes_due_when_its_hold_ends_not_a_period_later() -> None:
+    # A refused block is held (not read) until 5; it is read at 5, when nothing else is due, whether
+    # demanded or not: its hold ends at 5, not 5 + P.
+    for demanded in (False, True):
+        s = schedule([S, S], slow=10.0, background=10.0)
+        s.begin(0.0)
+        if demanded:
+            s.demand([0, 1], 0.0)
+        read(s, 0, 0.0, ok=False)
+        s.hold(0, 5.0)
+        read(s, 1, 0.1)
+        assert s.next(4.9) is None
+        assert s.next(5.0) == 0, demanded
+        assert s.next_due(4.0) == 5.0
+
+
 def test_a_failed_read_of_a_demanded_block_is_tried_again_before_its_value_goes_stale() -> None:
     # slow_interval 10, stale_after 4: the value read at 0.5 is served until 14.5.  Its read at 10
     # fails: it is tried again one transaction (0.5 s) later, behind the block already urgent, not

@@ -79,3 +79,10 @@ run "42.7 sparkplug driver: a lost session's outbox not drained" "$SPARKPLUG_DRI
 # issue 42's staleness harms: the stale limit moved from status.py into the one verdict (gateway/freshness.py)
 run "42.s1 verdict: stale limit max -> min over the achieved periods" "$FRESHNESS_TESTS" gateway/freshness.py "return self.stale_after + max([achieved, *(schedule.period[i] for i in blocks)])" "return self.stale_after + min([achieved, *(schedule.period[i] for i in blocks)])"
 run "42.s2 verdict: slow class included in the stale limit" "$FRESHNESS_TESTS" gateway/freshness.py 'if scan.value == "fast"] or list(' 'if scan.value in ("fast", "slow")] or list('
+# issue 42's schedule harms
+SCHEDULE_TESTS="tests/test_schedule.py"
+run "42.s3 schedule: lateness judged against the initial limit" "$SCHEDULE_TESTS" gateway/schedule.py "late = now - last > self._stamped[block]" "late = now - last > self.stale_after + self.period[block]"
+run "42.s4 schedule: a refused block's hold ends one period late" "$SCHEDULE_TESTS" gateway/schedule.py "        self.due[block] = self.held_until[block] = until
+" "        self.held_until[block] = until
+        self.due[block] = until + self.period[block]
+"
