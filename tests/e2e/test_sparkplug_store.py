@@ -137,6 +137,24 @@ async def api_status(http: int) -> dict[str, Any]:
     return document
 
 
+async def store_settled(http: int, within: float = 20.0) -> dict[str, Any]:
+    """The store as ``/api/status`` shows it once the changes written so far are committed: its
+    count of stored and dropped changes the same over a second (commits come every 0.25 s; on a
+    loaded machine later), bounded by ``within``."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + within
+    last: tuple[object, object] | None = None
+    while True:
+        store: dict[str, Any] = (await api_status(http))["sparkplug"]["store"]
+        now = (store["messages"], store["dropped"])
+        if now == last and store["messages"]:
+            return store
+        if loop.time() > deadline:
+            raise AssertionError(f"the store did not settle within {within} s: {store}")
+        last = now
+        await asyncio.sleep(1.0)
+
+
 class Writer:
     """Modbus writes of known values to N7:1 of each device: the value changes the host must see."""
 
@@ -252,7 +270,7 @@ async def test_every_value_change_of_an_outage_reaches_the_host(broker: Broker, 
             broker.stop()
             if outage == "sigkill":
                 await writer.write_for(OUTAGE / 2)
-                await asyncio.sleep(1.0)  # committed (one batch: 0.25 s)
+                await store_settled(http)  # committed (one batch: 0.25 s; what is not yet may be lost)
                 process.send_signal(signal.SIGKILL)
                 process.wait(5)
                 process = start(path)
@@ -300,8 +318,7 @@ async def test_a_full_store_drops_the_oldest_says_so_and_live_data_goes_on(broke
                     reply = await client.write_registers(0, [(k * 40 + i) % 30000 for i in range(40)],
                                                          device_id=unit)
                     assert not reply.isError(), reply
-        await asyncio.sleep(1.0)
-        store = (await api_status(http))["sparkplug"]["store"]
+        store = await store_settled(http)
         assert store["dropped"] > 0 and store["bytes"] <= 0.03e6
         broker.start()
         async with host_on(broker.port) as second:
