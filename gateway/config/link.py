@@ -191,7 +191,7 @@ class LinkBase(Model):
     read_wait: float = Field(DEFAULT_READ_WAIT, ge=0, le=MAX_READ_WAIT)
     """Seconds a Modbus read of data not yet read or stale, on a link that is up, may wait for an immediate read of its
     blocks before answering 0x0B (0: answer at once). Other connections never wait."""
-    offline: Offline = Offline.EXCEPTION
+    offline: Offline = Field(Offline.EXCEPTION, strict=False)
     """What a Modbus read of data that is not fresh (stale, or the link down) gets: "exception" answers 0x0B (the
     SCADA shows the point bad), "hold" the last value read (a SCADA that shows no quality; register 1011 says stale),
     "zero" 0 (a PLC program or HMI that must never read an old value as current). Sparkplug and the status page show
