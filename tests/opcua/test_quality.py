@@ -12,7 +12,8 @@ from gateway.opcua.passwords import hash_password, verify_password
 from gateway.opcua.quality import Code, DemandBook, point_quality, revise_interval, write_status
 
 
-def expected(state: LinkState, known: bool, fresh: bool, read: bool, refused: bool, offline: Offline) -> tuple[str, bool]:
+def expected(state: LinkState, known: bool, fresh: bool, read: bool, refused: bool,
+             offline: Offline) -> tuple[str, bool]:
     """The guide's table, written out again."""
     if refused:
         return "BadDeviceFailure", False
