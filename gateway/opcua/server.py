@@ -455,6 +455,10 @@ class OpcUaServer:
         print_ = thumbprint(der)
         if print_ in self._trusted:
             return
+        self._trusted = trusted_thumbprints(self.config.trusted_clients)  # one an operator has just moved there
+        if print_ in self._trusted:
+            log.info("opcua: client certificate %s is trusted now (found in %s)", print_, self.config.trusted_clients)
+            return
         self.rejected_logins += 1
         if print_ not in self._rejected_logged:
             self._rejected_logged.add(print_)
