@@ -9,7 +9,8 @@ The metric families, their labels and help texts are listed in ``docs/reference/
 (labels ``link``, ``unit``), the line's budget of each polled link (``docs/guide/freshness.md``), the
 numbers a driver reports itself (``driver.metrics()``: ``link_<key>_total``, ``link_<key>``,
 ``link_<key>_seconds``), per Modbus server (label ``server``), the config file and its reloads
-(``gateway.reload``), and with ``[sparkplug]`` the edge node's session (``gateway.sparkplug.report``).
+(``gateway.reload``), and with ``[sparkplug]`` the edge node's session (``gateway.sparkplug.report``),
+with ``[opcua]`` the OPC UA server's sessions (``gateway.opcua.report``).
 
 ``/healthz`` answers 200 when every link's verdict is up (``gateway.freshness``: the controller
 answers and its fast-class data is younger than its stale limit, ``stale_limit_seconds``), 503
@@ -44,6 +45,7 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 from gateway.config import parse_listen
 from gateway.logutil import RepeatLog
 from gateway.modbus.admission import IPNetwork, format_address, host_allowed, peer_host
+from gateway.opcua.report import opcua_families
 from gateway.sparkplug.report import families as sparkplug_families
 from gateway.status import JSON_CONTENT_TYPE, StatusPage, public_error
 
@@ -120,6 +122,7 @@ class _GatewayCollector:
         if self._config is not None:
             yield from _config_families(self._config)
         yield from sparkplug_families(getattr(self._gateway, "sparkplug", None))
+        yield from opcua_families(getattr(self._gateway, "opcua", None))
 
     @staticmethod
     def _link_families(units: Sequence[Unit[Any, Any]], now: float) -> list[Metric]:

@@ -42,6 +42,7 @@ from gateway.freshness import Source
 from gateway.kinds import link_kind
 from gateway.logutil import redact_url
 from gateway.modbus.mapping import Table
+from gateway.opcua.report import opcua_status
 from gateway.sparkplug.report import status as sparkplug_status
 from gateway.tags import Tag, link_tags
 from gateway.transport import describe_url
@@ -244,7 +245,8 @@ class StatusPage:
         } for server in self.gateway.servers]
         document: dict[str, object] = {"version": __version__, "time": round(wall, 3), "links": rows,
                                        "up": up_count, "servers": servers,
-                                       "sparkplug": sparkplug_status(getattr(self.gateway, "sparkplug", None))}
+                                       "sparkplug": sparkplug_status(getattr(self.gateway, "sparkplug", None)),
+                                       "opcua": opcua_status(getattr(self.gateway, "opcua", None))}
         if self.config is not None:
             document["config"] = self.config.document()
         return document

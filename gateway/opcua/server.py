@@ -26,6 +26,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from collections import deque
 from collections.abc import Sequence
 from datetime import UTC
 from typing import Any, Final
@@ -173,6 +174,10 @@ class OpcUaServer:
         self.data_changes = 0
         self.writes = 0
         self.write_failures = 0
+        #: CPU seconds of the publishing passes (reading the images, handing changes to asyncua)
+        self.cpu_seconds = 0.0
+        #: (loop time, data_changes) at the last check passes: the publish rate over the last 10 s
+        self._rate: deque[tuple[float, int]] = deque(maxlen=int(10 / _CHECK_INTERVAL) + 1)
         self._trusted: set[str] = set()
         self._rejected_logged: set[str] = set()
         self._clients: dict[str | None, Client] = {}
@@ -219,8 +224,11 @@ class OpcUaServer:
             check = now >= next_check
             if check:
                 next_check = now + _CHECK_INTERVAL
+                self._rate.append((now, self.data_changes))
             for link in list(self.links.values()):
+                started = time.thread_time()
                 await self._pass(link, now, check)
+                self.cpu_seconds += time.thread_time() - started
                 await asyncio.sleep(0)  # one link at a time: Modbus answers go in between
 
     async def close(self) -> None:
@@ -476,7 +484,14 @@ class OpcUaServer:
         self.rejected_logins += 1
         log.warning("opcua: login refused: %s", why)
 
-    # --- what is shown --------------------------------------------------------------------------
+    # --- what is shown -------------------------------------------------------------------------
+
+    def publish_rate(self) -> float:
+        """Data changes handed to the subscriptions per second, over the last 10 s."""
+        if len(self._rate) < 2:
+            return 0.0
+        (first, before), (last, after) = self._rate[0], self._rate[-1]
+        return (after - before) / (last - first) if last > first else 0.0
 
     def counts(self) -> dict[str, int]:
         """Sessions, subscriptions and monitored items now."""

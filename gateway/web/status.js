@@ -147,6 +147,12 @@ function renderSummary(status) {
       number(spb.published) + " published, " + number(spb.commands) + " commands, " + number(spb.refused) +
       " refused"));
   }
+  const ua = status.opcua;
+  if (ua) {
+    summary.appendChild(el("span", "", "OPC UA: " + ua.sessions + " sessions, " + ua.subscriptions +
+      " subscriptions, " + number(ua.monitored_items) + " monitored items, " + ua.publish_rate +
+      " changes/s, " + number(ua.rejected_logins) + " rejected logins"));
+  }
   summary.appendChild(el("span", "", "updated " + clock(status.time)));
   $("version").textContent = "· slc-gateway " + status.version;
 }
