@@ -23,9 +23,12 @@ from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.modbus.mapping import Table
 from gateway.opcua.certs import ensure_certificate
+from gateway.opcua.points import point_value
 from gateway.sim import reset_simulators
 from gateway.unit import Source
 from tests.opcua.plant import USERS, Line, eventually, free_port, link_text, opcua_text
+
+DEMO = (Path(__file__).resolve().parents[2] / "config" / "demo.toml").read_text(encoding="utf-8")
 
 
 @pytest.fixture(autouse=True)
@@ -337,3 +340,49 @@ async def test_reload_adds_and_removes_link_folders_keeping_sessions(tmp_path: P
         assert await gw.apply(press_only)
         assert await folders() == {"press"}
         assert (await variable.read_data_value()).Value.Value == 2  # the same session, the same NodeId
+
+
+async def test_every_tag_of_the_demo_equals_modbus_at_the_same_moment(tmp_path: Path) -> None:
+    """Every variable of config/demo.toml, as the Read service answers it, against the Modbus read of its
+    registers in the same event-loop step (the ladders run: only the same moment compares), then the same
+    over the wire: every variable Good once its block was read."""
+    port = free_port()
+    demo = DEMO.replace('listen = "127.0.0.1:5020"', 'listen = "127.0.0.1:0"').replace(
+        'listen = "127.0.0.1:9108"', 'listen = "127.0.0.1:0"')
+    text = demo.replace("[[link]]", f'[opcua]\nlisten = "opc.tcp://127.0.0.1:{port}"\nsecurity = ["None"]\n\n'
+                        "[[link]]", 1)
+    async with Gateway(parse_config(text, base_dir=tmp_path)) as gw:
+        assert gw.opcua is not None
+        server = gw.opcua
+
+        def all_read() -> bool:
+            return all(unit.cache.stamps[b] != float("-inf") for unit in gw.units for b in range(len(unit.plan.blocks)))
+
+        await eventually(lambda: _true(all_read()), 60, 0.2)
+        compared = 0
+        for face in server.links.values():
+            unit = face.unit
+            for index, point in enumerate(face.points):
+                if point.block is None:
+                    continue
+                data_value = server._read_value(face.node_ids[index], ua.AttributeIds.Value)  # the Read service's
+                count = 1 if point.bits else point.width
+                if point.bits:
+                    modbus_bits = unit.read_bit_bytes(point.table, point.address, count, Source.PEEK)
+                    modbus: object = bool(modbus_bits[0] & 1)
+                else:
+                    modbus = point_value(point, unit.read_register_bytes(point.table, point.address, count,
+                                                                         Source.PEEK))
+                assert data_value.StatusCode.is_good(), (point.node_id, data_value.StatusCode)
+                assert data_value.Value.Value == modbus, point.node_id
+                compared += 1
+        assert compared >= 200
+        async with client(port) as c:  # over the wire: one Read of every variable, every one Good
+            ids = [node_id for face in server.links.values() for node_id in face.node_ids]
+            read = ua.ReadParameters(NodesToRead=[ua.ReadValueId(NodeId=i, AttributeId=ua.AttributeIds.Value)
+                                                  for i in ids])
+            values = await c.uaclient.read(read)
+            assert len(values) == len(ids)
+            bad = [(i.Identifier, v.StatusCode.name) for i, v in zip(ids, values, strict=True)
+                   if not v.StatusCode.is_good()]
+            assert bad == []
