@@ -50,11 +50,13 @@ from gateway.opcua.points import (
     OpcPoint,
     link_points,
     point_registers,
+    point_value,
     points_by_block,
     read_point,
     status_point_value,
 )
-from gateway.opcua.quality import Code, DemandBook, Reading, revise_interval, write_status
+from gateway.opcua.quality import Code, DemandBook, Reading, point_quality, revise_interval, write_status
+from gateway.schedule import NEVER
 from gateway.unit import Unit
 
 __all__ = ["OpcUaServer"]
@@ -63,6 +65,8 @@ log = logging.getLogger("gateway.opcua")
 
 #: seconds between the passes that look at what ages without a store (stale blocks, links down, status values)
 _CHECK_INTERVAL: Final = 0.5
+#: the longest session timeout granted (s): a client gone without closing its session holds its demand this long
+_SESSION_TIMEOUT: Final = 60.0
 _POLICIES: Final = {
     "None": ua.SecurityPolicyType.NoSecurity,
     "Basic256Sha256-Sign": ua.SecurityPolicyType.Basic256Sha256_Sign,
@@ -72,13 +76,15 @@ _VARIANTS: Final = {"Boolean": ua.VariantType.Boolean, "Int16": ua.VariantType.I
                     "UInt16": ua.VariantType.UInt16, "Int32": ua.VariantType.Int32,
                     "UInt32": ua.VariantType.UInt32, "Float": ua.VariantType.Float}
 _GOOD_STATUS: Final = Reading(Code.GOOD, True)
+#: what the value setter returns (asyncua ignores it)
+_NOTHING: Final = ua.DataValue()
 #: asyncua's default user of a write (its own, internal session)
 _ADMIN: Final = User(role=UserRole.Admin)
 
 
 def _keep(*_: object) -> ua.DataValue:
     """The value setter of the links' variables: what the server writes goes to the subscriptions only."""
-    return ua.DataValue()
+    return _NOTHING
 
 
 def _node_id(text: str, namespace: int) -> ua.NodeId:
@@ -104,10 +110,12 @@ class _Link:
         self.alive: set[int] = set()
         #: blocks stored or patched since the last pass
         self.dirty: set[int] = set()
-        #: per block: what its quality depended on at the last check (state, fresh, refused)
+        #: per block: what its quality depended on at the last pass that judged it
         self.block_keys: dict[int, tuple[object, ...]] = {}
         #: per point: the (status code, value) last published
         self.published: dict[int, tuple[Code, object]] = {}
+        #: per block: its bytes at the last pass that judged it
+        self.block_bytes: dict[int, bytes] = {}
         self.folder: Node | None = None
         self.listener = self._stored
 
@@ -191,6 +199,9 @@ class OpcUaServer:
         self._offset = time.time() - loop.time()
         uri = application_uri()
         server = Server(user_manager=_Users(self))
+        # a session whose connection is gone (asyncua keeps it, with its subscriptions, for the client to come
+        # back) is closed after at most this long: its monitored items stop demanding then
+        server.iserver.max_session_timeout_ms = _SESSION_TIMEOUT * 1000
         server.iserver.attribute_service = _Attributes(server.iserver.aspace, self)
         await server.init()
         await server.set_application_uri(uri)
@@ -363,42 +374,60 @@ class OpcUaServer:
         return found
 
     async def _pass(self, face: _Link, now: float, check: bool) -> None:
-        """Publish the changed values of ``face``'s monitored points (module docstring)."""
+        """Publish the changed values of ``face``'s monitored points (module docstring): one verdict per
+        link and one quality per block; a block whose bytes and quality did not change costs a comparison."""
         unit = face.unit
-        candidates: set[int] = set()
+        server = self._server
+        if server is None:
+            return
         if check:
             face.alive = self._watched(face)
             for index in face.book.due(face.alive, now):
                 point = face.points[index]
                 if point.block is not None:
                     unit.note_demand(point.table, point.address, 1 if point.bits else point.width)
-            verdict = unit.verdict(now)
-            poller = unit.poller
-            for block in face.by_block:
-                key = (verdict.state, unit.freshness.block_fresh(block, now), poller is not None and block in
-                       poller.refused)
-                if face.block_keys.get(block) != key:
-                    face.block_keys[block] = key
-                    face.dirty.add(block)
-            candidates.update(i for i in face.status_points if i in face.alive)
-        alive = face.alive
-        if face.dirty:
-            for block in face.dirty:
-                candidates.update(i for i in face.by_block.get(block, ()) if i in alive)
-            face.dirty.clear()
-        server = self._server
-        if server is None or not candidates:
+            face.dirty.update(face.by_block)  # what ages without a store: every block judged again
+        if not face.dirty:
             return
-        aspace = server.iserver.aspace
-        for index in sorted(candidates):
-            reading, value, read_at = self._value_now(face, index, now)
-            shown = (reading.code, value)
-            if face.published.get(index) == shown:
+        alive, images, cache = face.alive, unit.images, unit.cache
+        verdict = unit.verdict(now)
+        refused = unit.poller.refused if unit.poller is not None else {}
+        changes: list[tuple[int, Reading, object, float]] = []
+        for block in face.dirty:
+            members = [i for i in face.by_block.get(block, ()) if i in alive]
+            if not members:
                 continue
-            face.published[index] = shown
+            read_at = cache.stamps[block]
+            fresh = unit.freshness.block_fresh(block, now)
+            key = (verdict.state, verdict.since is not None, fresh, block in refused, read_at)
+            data = bytes(cache.data[block])
+            if face.block_keys.get(block) == key and face.block_bytes.get(block) == data:
+                continue
+            face.block_keys[block], face.block_bytes[block] = key, data
+            reading = point_quality(state=verdict.state, known=key[1], fresh=fresh, read=read_at != NEVER,
+                                    refused=key[3], offline=unit.offline)
+            stamp = now if read_at == NEVER else read_at
+            for index in members:
+                point = face.points[index]
+                raw = images.held(point.table, point.address, 1 if point.bits else point.width, None) \
+                    if reading.carries_value else None
+                shown = (reading.code, raw)
+                if face.published.get(index) == shown:
+                    continue
+                face.published[index] = shown
+                changes.append((index, reading, None if raw is None else point_value(point, raw), stamp))
+        face.dirty.clear()
+        if check:
+            values = unit.status_values(now)
+            for index in face.status_points:
+                if index in alive and face.published.get(index) != (Code.GOOD, values[face.points[index].status_key]):
+                    face.published[index] = (Code.GOOD, values[face.points[index].status_key])
+                    changes.append((index, _GOOD_STATUS, values[face.points[index].status_key], now))
+        aspace = server.iserver.aspace
+        for index, reading, value, stamp in changes:
             self.data_changes += 1
             await aspace.write_attribute_value(face.node_ids[index], ua.AttributeIds.Value,
-                                               self._data_value(face.points[index], reading, value, read_at, now))
+                                               self._data_value(face.points[index], reading, value, stamp, now))
 
     # --- writes ---------------------------------------------------------------------------------
 
