@@ -75,6 +75,9 @@ async def subscribe(url: str, links: int) -> None:
             nonlocal count
             count += 1
 
+        def status_change_notification(self, status: object) -> None:
+            print(json.dumps({"status_change": str(status)}), file=sys.stderr, flush=True)
+
     async with Client(url, timeout=60) as client:
         ns = await client.get_namespace_index("urn:slc-gateway")
         subscription = await client.create_subscription(PUBLISHING_MS, Handler())
@@ -291,12 +294,12 @@ def main() -> None:
             wait_for(lambda: listening(ua_port), 120)  # the address space is built after the Modbus listener
             for r in range(rounds):
                 for mode in (("off", "on") if r % 2 == 0 else ("on", "off")):
-                    if mode == "on":
+                    if mode == "on" and subscriber.process is None:
                         subscribe_seconds.append(subscriber.start())
-                        wait_for(lambda: server_figures(metrics_port)[2] == links * len(TAGS), 30)
-                    else:
+                        wait_for(lambda: server_figures(metrics_port)[2] == links * len(TAGS), 60)
+                    elif mode == "off":
                         subscriber.stop()
-                        wait_for(lambda: server_figures(metrics_port)[2] == 0, 30)
+                        wait_for(lambda: server_figures(metrics_port)[2] == 0, 60)
                     time.sleep(1.5)
                     for load, rate in loads.items():
                         rows[load][mode].append(measure(port, gateway.pid, metrics_port, subscriber,

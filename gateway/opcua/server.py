@@ -65,6 +65,8 @@ log = logging.getLogger("gateway.opcua")
 
 #: seconds between the passes that look at what ages without a store (stale blocks, links down, status values)
 _CHECK_INTERVAL: Final = 0.5
+#: the check passes between two looks for the monitored items that are gone (a new one is known at once)
+_WATCH_EVERY: Final = 4
 #: the longest session timeout granted (s): a client gone without closing its session holds its demand this long
 _SESSION_TIMEOUT: Final = 60.0
 _POLICIES: Final = {
@@ -104,23 +106,54 @@ class _Link:
         self.points: list[OpcPoint] = link_points(link, unit)
         self.node_ids = [_node_id(point.node_id, namespace) for point in self.points]
         self.by_block = points_by_block(self.points)
+        #: per block: its points as runs of consecutive addresses of one table, each read at once
+        self.runs = {block: _runs(self.points, members) for block, members in self.by_block.items()}
         self.status_points = [i for i, point in enumerate(self.points) if point.block is None]
         self.book = DemandBook()
         #: points with a monitored item (found every check pass; a new item adds its point at once)
         self.alive: set[int] = set()
+        #: the blocks of those points
+        self.live_blocks: set[int | None] = set()
+        #: check passes so far (the monitored items are looked for every _WATCH_EVERY of them)
+        self.checks = 0
         #: blocks stored or patched since the last pass
         self.dirty: set[int] = set()
         #: per block: what its quality depended on at the last pass that judged it
         self.block_keys: dict[int, tuple[object, ...]] = {}
         #: per point: the (status code, value) last published
         self.published: dict[int, tuple[Code, object]] = {}
-        #: per block: its bytes at the last pass that judged it
-        self.block_bytes: dict[int, bytes] = {}
+        #: per run (block, its position): the bytes the last pass read of it
+        self.run_bytes: dict[tuple[int, int], bytes] = {}
         self.folder: Node | None = None
         self.listener = self._stored
 
     def _stored(self, block: int, _now: float | None) -> None:
         self.dirty.add(block)
+
+
+class _Run:
+    """Consecutive addresses ``first``.. (``count``) of one table of one block, and its points: (index, where
+    its value starts in a read of the run: a byte offset, or a bit number, and how many bytes)."""
+
+    __slots__ = ("bits", "count", "first", "members", "table")
+
+    def __init__(self, point: OpcPoint) -> None:
+        self.table, self.first, self.count, self.bits = point.table, point.address, 0, point.bits
+        self.members: list[tuple[int, int, int]] = []
+
+
+def _runs(points: Sequence[OpcPoint], members: Sequence[int]) -> list[_Run]:
+    runs: list[_Run] = []
+    run: _Run | None = None
+    for index in sorted(members, key=lambda i: (points[i].table.value, points[i].address)):
+        point = points[index]
+        if run is None or point.table is not run.table or point.address != run.first + run.count:
+            run = _Run(point)
+            runs.append(run)
+        offset = point.address - run.first
+        run.members.append((index, offset if run.bits else 2 * offset, 0 if run.bits else 2 * point.width))
+        run.count += 1 if run.bits else point.width
+    return runs
 
 
 class _Users(UserManager):
@@ -359,6 +392,7 @@ class OpcUaServer:
             result.RevisedSamplingInterval = interval
             face.book.watch(index, interval / 1000.0, now)
             face.alive.add(index)
+            face.live_blocks.add(block)
 
     def _watched(self, face: _Link) -> set[int]:
         """The points of ``face`` that have a monitored item now."""
@@ -381,7 +415,10 @@ class OpcUaServer:
         if server is None:
             return
         if check:
-            face.alive = self._watched(face)
+            face.checks += 1
+            if face.checks % _WATCH_EVERY == 1:
+                face.alive = self._watched(face)
+                face.live_blocks = {face.points[i].block for i in face.alive}
             for index in face.book.due(face.alive, now):
                 point = face.points[index]
                 if point.block is not None:
@@ -394,28 +431,33 @@ class OpcUaServer:
         refused = unit.poller.refused if unit.poller is not None else {}
         changes: list[tuple[int, Reading, object, float]] = []
         for block in face.dirty:
-            members = [i for i in face.by_block.get(block, ()) if i in alive]
-            if not members:
+            if block not in face.live_blocks:
                 continue
+            runs = face.runs.get(block, ())
             read_at = cache.stamps[block]
             fresh = unit.freshness.block_fresh(block, now)
-            key = (verdict.state, verdict.since is not None, fresh, block in refused, read_at)
-            data = bytes(cache.data[block])
-            if face.block_keys.get(block) == key and face.block_bytes.get(block) == data:
-                continue
-            face.block_keys[block], face.block_bytes[block] = key, data
-            reading = point_quality(state=verdict.state, known=key[1], fresh=fresh, read=read_at != NEVER,
-                                    refused=key[3], offline=unit.offline)
+            key = (verdict.state, verdict.since is not None, fresh, block in refused, read_at != NEVER)
+            judged = face.block_keys.get(block) == key
+            face.block_keys[block] = key
+            reading = point_quality(state=verdict.state, known=key[1], fresh=fresh, read=key[4], refused=key[3],
+                                    offline=unit.offline)
             stamp = now if read_at == NEVER else read_at
-            for index in members:
-                point = face.points[index]
-                raw = images.held(point.table, point.address, 1 if point.bits else point.width, None) \
-                    if reading.carries_value else None
-                shown = (reading.code, raw)
-                if face.published.get(index) == shown:
+            for position, run in enumerate(runs):
+                data = images.held(run.table, run.first, run.count, None)
+                last = face.run_bytes.get((block, position))
+                if judged and last == data:
                     continue
-                face.published[index] = shown
-                changes.append((index, reading, None if raw is None else point_value(point, raw), stamp))
+                face.run_bytes[(block, position)] = data
+                for index, at, size in run.members:
+                    if index not in alive:
+                        continue
+                    raw = (data[at // 8] >> at % 8 & 1).to_bytes(1, "little") if run.bits else data[at : at + size]
+                    shown = (reading.code, raw if reading.carries_value else None)
+                    if face.published.get(index) == shown:
+                        continue
+                    face.published[index] = shown
+                    changes.append((index, reading, point_value(face.points[index], raw) if reading.carries_value
+                                    else None, stamp))
         face.dirty.clear()
         if check:
             values = unit.status_values(now)
@@ -424,10 +466,10 @@ class OpcUaServer:
                     face.published[index] = (Code.GOOD, values[face.points[index].status_key])
                     changes.append((index, _GOOD_STATUS, values[face.points[index].status_key], now))
         aspace = server.iserver.aspace
-        for index, reading, value, stamp in changes:
+        for index, reading, shown_value, stamp in changes:
             self.data_changes += 1
             await aspace.write_attribute_value(face.node_ids[index], ua.AttributeIds.Value,
-                                               self._data_value(face.points[index], reading, value, stamp, now))
+                                               self._data_value(face.points[index], reading, shown_value, stamp, now))
 
     # --- writes ---------------------------------------------------------------------------------
 

@@ -275,6 +275,24 @@ async def test_write_applied_exactly_once_under_line_faults(tmp_path: Path) -> N
     assert applied == {"N7:5": 1, "N7:6": 1, "N7:7": 1}
 
 
+async def test_a_write_without_a_verdict_is_bad_timeout_never_good(tmp_path: Path, lines: tuple[Line, Line]) -> None:
+    press, oven = lines
+    port = free_port()
+    keys = {"down_after_failures": 1000, "down_after_seconds": 600, "write_timeout": 0.5}
+    async with Gateway(config(tmp_path, port, press, oven, press_keys=keys)), client(port, "operator") as c:
+        variable = await node(c, "press.N7:5")
+        await good(variable)
+        quiet = press.sim.options
+        press.sim.options = dataclasses.replace(quiet, lose_in=1)  # the controller hears nothing; the link stays up
+        started = asyncio.get_running_loop().time()
+        with pytest.raises(UaStatusCodeError) as caught:
+            await variable.write_value(ua.DataValue(ua.Variant(555, ua.VariantType.Int16)))
+        assert caught.value.code == ua.StatusCodes.BadTimeout
+        assert asyncio.get_running_loop().time() - started >= 0.5
+        press.sim.options = quiet
+    assert press.sim.applied_writes == [] and press.sim.word("N7", 5) == 5
+
+
 async def test_security_certificates_users_and_anonymous(tmp_path: Path, lines: tuple[Line, Line]) -> None:
     press, oven = lines
     port = free_port()
