@@ -131,6 +131,15 @@ class _Link:
         self.dirty.add(block)
 
 
+class _Published(ua.DataValue):
+    """A value the server made: never changed after it is made, so asyncua's copy of it for each
+    monitored item (``copy.deepcopy`` of every field, datetimes included: most of its cost of a data
+    change) can be the value itself.  Encoded as the DataValue it is."""
+
+    def __deepcopy__(self, _memo: object) -> _Published:
+        return self
+
+
 class _Run:
     """Consecutive addresses ``first``.. (``count``) of one table of one block, and its points: (index, where
     its value starts in a read of the run: a byte offset, or a bit number, and how many bytes)."""
@@ -358,7 +367,7 @@ class OpcUaServer:
     def _data_value(self, point: OpcPoint, reading: Reading, value: object, read_at: float,
                     now: float) -> ua.DataValue:
         variant = ua.Variant(value, _VARIANTS[point.data_type]) if value is not None else ua.Variant()
-        return ua.DataValue(Value=variant, StatusCode=_status_code(reading.code), SourceTimestamp=self._stamp(read_at),
+        return _Published(Value=variant, StatusCode=_status_code(reading.code), SourceTimestamp=self._stamp(read_at),
                             ServerTimestamp=self._stamp(now))
 
     def _read_value(self, node_id: ua.NodeId, _attribute: ua.AttributeIds) -> ua.DataValue:
