@@ -29,6 +29,7 @@ SCRIPTS = [
     "schedule_cost.py",
     "sparkplug_publishing.py",  # needs mosquitto (Debian package): CI installs it
     "sparkplug_cpu.py",  # the same
+    "opcua.py",  # 8 links x 150 tags monitored by asyncua's client, and a bare asyncua server
 ]
 
 

@@ -433,6 +433,9 @@ class OpcUaServer:
                 if point.block is not None:
                     unit.note_demand(point.table, point.address, 1 if point.bits else point.width)
             face.dirty.update(face.by_block)  # what ages without a store: every block judged again
+        if not face.live_blocks and not (check and face.alive):
+            face.dirty.clear()  # nobody monitors this link's data: nothing to judge
+            return
         if not face.dirty:
             return
         alive, images, cache = face.alive, unit.images, unit.cache
