@@ -8,7 +8,9 @@
   as demand once per its sampling interval; a point whose monitored items are all gone (the
   subscription deleted, the session closed) stops demanding at once.
 * :func:`revise_interval`: the sampling interval a monitored item is given: what the line achieves
-  for its block, never less than the block's class period.
+  for its block, never less than the block's class period nor the server's pass period
+  (:func:`pass_period`: a quarter of the subscription's publishing interval, from ``publish_interval``
+  to 0.5 s).
 
 Status codes are named as OPC UA Part 4 §7.34 and Part 8 name them (:class:`Code`); the server module
 turns a name into asyncua's number.
@@ -24,7 +26,7 @@ from gateway.errors import ModbusExceptionReply
 from gateway.freshness import LinkState, Offline
 from gateway.frozen import frozen
 
-__all__ = ["Code", "DemandBook", "Reading", "point_quality", "revise_interval", "write_status"]
+__all__ = ["Code", "DemandBook", "Reading", "pass_period", "point_quality", "revise_interval", "write_status"]
 
 
 class Code(StrEnum):
@@ -109,17 +111,25 @@ def write_status(exc: ModbusExceptionReply | None, *, elapsed: float, write_time
     }.get(code, Code.DEVICE_FAILURE)
 
 
-def revise_interval(requested: float, publishing: float, period: float | None, achieved: float | None) -> float:
+def revise_interval(requested: float, publishing: float, period: float | None, achieved: float | None,
+                    passes: float = 0.0) -> float:
     """The sampling interval (ms) given to a monitored item of a block.
 
     ``requested``: what the client asked (ms; 0 or less: the subscription's ``publishing`` interval, as
     Part 4 §5.12.1.2 says for -1); ``period``: the block's class period (s; None: not polled, its peer
-    pushes); ``achieved``: the refresh period the line achieves for it (s; None: not measured yet).
-    The item is sampled no faster than its block is read.
+    pushes); ``achieved``: the refresh period the line achieves for it (s; None: not measured yet);
+    ``passes``: the seconds between the server's publishing passes for this subscription.
+    The item is sampled no faster than its block is read, nor than the server looks at it.
     """
     wanted = requested if requested > 0 else publishing
-    floor = max(period or 0.0, achieved or 0.0) * 1000.0
+    floor = max(period or 0.0, achieved or 0.0, passes) * 1000.0
     return max(wanted, floor) if math.isfinite(floor) else wanted
+
+
+def pass_period(publish_interval: float, publishing: float, longest: float) -> float:
+    """Seconds between the publishing passes for subscriptions whose shortest publishing interval is
+    ``publishing`` (ms; 0: none): a quarter of it, at least ``publish_interval``, at most ``longest``."""
+    return max(publish_interval, min(publishing / 4000.0, longest))
 
 
 class DemandBook:

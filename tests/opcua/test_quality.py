@@ -9,7 +9,7 @@ import pytest
 from gateway.errors import ModbusExceptionReply
 from gateway.freshness import LinkState, Offline
 from gateway.opcua.passwords import hash_password, verify_password
-from gateway.opcua.quality import Code, DemandBook, point_quality, revise_interval, write_status
+from gateway.opcua.quality import Code, DemandBook, pass_period, point_quality, revise_interval, write_status
 
 
 def expected(state: LinkState, known: bool, fresh: bool, read: bool, refused: bool,
@@ -75,6 +75,11 @@ def test_revised_sampling_interval_is_never_faster_than_the_line() -> None:
     assert revise_interval(5000, 1000, 0.5, 2.0) == 5000  # slower than asked: as asked
     assert revise_interval(-1, 1000, 0.0, None) == 1000  # -1: the publishing interval
     assert revise_interval(250, 1000, None, None) == 250  # not polled: as asked
+    assert revise_interval(100, 1000, 0.0, None, passes=0.25) == 250  # the server looks every 0.25 s
+    assert pass_period(0.1, 1000, 0.5) == 0.25  # a quarter of the publishing interval
+    assert pass_period(0.1, 200, 0.5) == 0.1  # at least publish_interval
+    assert pass_period(0.1, 10000, 0.5) == 0.5  # at most the check interval
+    assert pass_period(0.1, 0, 0.5) == 0.1  # no subscription
 
 
 def test_demand_book_notes_each_point_at_its_interval_and_forgets_the_gone() -> None:
