@@ -26,7 +26,8 @@ from gateway.schedule import NEVER
 from gateway.tags import link_tags
 from gateway.unit import Unit
 
-__all__ = ["DATA_TYPES", "OPCUA_NAMESPACE", "OpcPoint", "link_points", "point_registers", "point_value", "read_point"]
+__all__ = ["DATA_TYPES", "OPCUA_NAMESPACE", "OpcPoint", "PointRun", "link_points", "point_registers", "point_runs",
+           "point_value", "read_point"]
 
 #: the namespace of the links' nodes
 OPCUA_NAMESPACE: Final = "urn:slc-gateway"
@@ -159,3 +160,29 @@ def points_by_block(points: Sequence[OpcPoint]) -> dict[int, list[int]]:
         if point.block is not None:
             found.setdefault(point.block, []).append(index)
     return found
+
+
+class PointRun:
+    """Consecutive addresses ``first``.. (``count``) of one table of one block, and its points: (index, where
+    its value starts in a read of the run: a byte offset, or a bit number, and how many bytes)."""
+
+    __slots__ = ("bits", "count", "first", "members", "table")
+
+    def __init__(self, point: OpcPoint) -> None:
+        self.table, self.first, self.count, self.bits = point.table, point.address, 0, point.bits
+        self.members: list[tuple[int, int, int]] = []
+
+
+def point_runs(points: Sequence[OpcPoint], members: Sequence[int]) -> list[PointRun]:
+    """The points ``members`` of ``points`` (one block) as runs of consecutive addresses, each read at once."""
+    runs: list[PointRun] = []
+    run: PointRun | None = None
+    for index in sorted(members, key=lambda i: (points[i].table.value, points[i].address)):
+        point = points[index]
+        if run is None or point.table is not run.table or point.address != run.first + run.count:
+            run = PointRun(point)
+            runs.append(run)
+        offset = point.address - run.first
+        run.members.append((index, offset if run.bits else 2 * offset, 0 if run.bits else 2 * point.width))
+        run.count += 1 if run.bits else point.width
+    return runs

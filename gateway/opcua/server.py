@@ -50,6 +50,7 @@ from gateway.opcua.points import (
     OpcPoint,
     link_points,
     point_registers,
+    point_runs,
     point_value,
     points_by_block,
     read_point,
@@ -115,7 +116,7 @@ class _Link:
         self.node_ids = [_node_id(point.node_id, namespace) for point in self.points]
         self.by_block = points_by_block(self.points)
         #: per block: its points as runs of consecutive addresses of one table, each read at once
-        self.runs = {block: _runs(self.points, members) for block, members in self.by_block.items()}
+        self.runs = {block: point_runs(self.points, members) for block, members in self.by_block.items()}
         self.status_points = [i for i, point in enumerate(self.points) if point.block is None]
         self.book = DemandBook()
         #: points with a monitored item (found every check pass; a new item adds its point at once)
@@ -146,31 +147,6 @@ class _Published(ua.DataValue):
 
     def __deepcopy__(self, _memo: object) -> _Published:
         return self
-
-
-class _Run:
-    """Consecutive addresses ``first``.. (``count``) of one table of one block, and its points: (index, where
-    its value starts in a read of the run: a byte offset, or a bit number, and how many bytes)."""
-
-    __slots__ = ("bits", "count", "first", "members", "table")
-
-    def __init__(self, point: OpcPoint) -> None:
-        self.table, self.first, self.count, self.bits = point.table, point.address, 0, point.bits
-        self.members: list[tuple[int, int, int]] = []
-
-
-def _runs(points: Sequence[OpcPoint], members: Sequence[int]) -> list[_Run]:
-    runs: list[_Run] = []
-    run: _Run | None = None
-    for index in sorted(members, key=lambda i: (points[i].table.value, points[i].address)):
-        point = points[index]
-        if run is None or point.table is not run.table or point.address != run.first + run.count:
-            run = _Run(point)
-            runs.append(run)
-        offset = point.address - run.first
-        run.members.append((index, offset if run.bits else 2 * offset, 0 if run.bits else 2 * point.width))
-        run.count += 1 if run.bits else point.width
-    return runs
 
 
 class _Users(UserManager):

@@ -145,11 +145,15 @@ async def test_node_opcua_browses_reads_subscribes_and_writes(tmp_path: Path) ->
             assert len(list((tmp_path / "rejected").iterdir())) == 1
             # the link stopped: Bad_NoCommunication, through a subscription
             stopped = asyncio.create_task(run_client(node, **common, security="None", steps=[
-                {"op": "subscribe", "node": "press.N7:2", "seconds": 6, "publishing": 100},
+                {"op": "subscribe", "node": "press.N7:2", "seconds": 7, "publishing": 100},
             ]))
-            await asyncio.sleep(1.5)
+            for _ in range(200):  # the client (a node process) has subscribed
+                if gw.opcua is not None and gw.opcua.counts()["monitored_items"] >= 1:
+                    break
+                await asyncio.sleep(0.05)
+            await asyncio.sleep(0.5)
             await press.off()
-            await asyncio.sleep(3.5)
+            await asyncio.sleep(3.0)
             await press.on()
             seen = [c["status"] for c in (await stopped)["steps"][0]]
             assert seen[0] == "Good" and "BadNoCommunication" in seen and seen[-1] == "Good", seen
