@@ -61,7 +61,7 @@ if TYPE_CHECKING:
     from gateway.cache import BlockCache
     from gateway.image import Images
 
-__all__ = ["OFFLINE_POLICIES", "Freshness", "LinkState", "LinkView", "Offline", "Source", "LinkVerdict"]
+__all__ = ["OFFLINE_POLICIES", "Freshness", "LinkState", "LinkVerdict", "LinkView", "Offline", "Source"]
 
 
 class LinkState(StrEnum):

@@ -48,7 +48,7 @@ from typing import ClassVar, Generic, NotRequired, TypedDict, TypeVar
 from gateway.cache import BlockCache
 from gateway.clients import current_client
 from gateway.errors import ControllerRefused, GatewayError, ModbusExceptionReply, StaleRead
-from gateway.freshness import Freshness, Offline, Source, LinkVerdict
+from gateway.freshness import Freshness, LinkVerdict, Offline, Source
 from gateway.image import ImageMiss, Images
 from gateway.latency import LATENCY_BUCKETS, LatencyHistogram
 from gateway.line_driver import UnitDriver
