@@ -98,3 +98,48 @@ async def _get(url: str) -> str:
             return body.decode()
 
     return await asyncio.to_thread(fetch)
+
+
+async def test_sigterm_closes_the_sessions_and_the_process_exits(tmp_path: Path) -> None:
+    """``slc-gateway run`` with [opcua] and a client in session: SIGTERM ends the process with status 0 within a
+    few seconds, the client's connection closed by the server, the endpoint gone."""
+    import asyncio
+    import os
+    import signal
+
+    from asyncua import Client
+
+    press = await Line.start(seed=4)
+    port = free_port()
+    config = tmp_path / "gateway.toml"
+    config.write_text(opcua_text(port, tmp_path, security=["None"]) + link_text("press", 1, press), encoding="utf-8")
+    log_file = tmp_path / "gateway.log"
+    with log_file.open("wb") as out:  # a file: a pipe nobody reads would fill and block the gateway's log
+        process = await asyncio.create_subprocess_exec(sys.executable, "-m", "gateway", "run", str(config),
+                                                       stdout=asyncio.subprocess.DEVNULL, stderr=out)
+    try:
+        client = Client(f"opc.tcp://127.0.0.1:{port}", timeout=5)
+        for _ in range(200):  # the address space is built after the Modbus listener
+            try:
+                await client.connect()
+                break
+            except (TimeoutError, OSError):
+                await asyncio.sleep(0.1)
+        else:
+            pytest.fail("the OPC UA endpoint did not come up")
+        subscription = await client.create_subscription(100, None)
+        assert subscription.subscription_id
+        os.kill(process.pid, signal.SIGTERM)
+        status = await asyncio.wait_for(process.wait(), 15)
+        assert status == 0
+        with pytest.raises((ConnectionError, OSError, asyncio.TimeoutError)):
+            await Client(f"opc.tcp://127.0.0.1:{port}", timeout=2).connect()
+        assert "opcua: server stopped" in log_file.read_text(encoding="utf-8")
+        with pytest.raises(Exception):  # noqa: B017 (the server closed this session's connection)
+            await client.get_namespace_array()
+    finally:
+        if process.returncode is None:
+            process.kill()
+            await process.wait()
+        await press.off()
+        reset_simulators()
