@@ -24,6 +24,7 @@ from gateway.metrics import Prometheus
 from gateway.modbus.admission import RolePolicy
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Table
 from gateway.modbus.server import ModbusTcpServer, make_tls_context
+from gateway.opcua.server import OpcUaServer
 from gateway.reload import ConfigSource, ConfigStatus, LoadedConfig, line_changes, lines_of, restart_needed
 from gateway.sparkplug.driver import SparkplugNode
 from gateway.status import StatusPage
@@ -110,7 +111,8 @@ class GatewayBackend:
 #: The command-line options that override a config's listeners (``slc-gateway run``), by the listener's name.
 LISTEN_FLAGS: Final = {"modbus": "--listen", "metrics": "--metrics-listen"}
 #: The config key of each listener, by its name.
-LISTEN_KEYS: Final = {"modbus": "[modbus] listen", "modbus-tls": "[modbus.tls] listen", "metrics": "[metrics] listen"}
+LISTEN_KEYS: Final = {"modbus": "[modbus] listen", "modbus-tls": "[modbus.tls] listen", "metrics": "[metrics] listen",
+               "opcua": "[opcua] listen"}
 
 
 def listen_error(name: str, listen: str, exc: OSError) -> ConfigError:
@@ -223,6 +225,8 @@ class Gateway:
             )
         self._group: asyncio.TaskGroup | None = None
         self._sparkplug_task: asyncio.Task[None] | None = None
+        #: the OPC UA server ([opcua]), None when not configured
+        self.opcua = OpcUaServer(config.opcua, config.link, self.units) if config.opcua else None
         self._started = asyncio.Event()
         self._reloader: asyncio.Task[None] | None = None
         self._stopping: list[LineRun] = []
@@ -248,6 +252,8 @@ class Gateway:
             (server.name, listen[server.name], server.start) for server in self.servers]
         if self.metrics is not None and config.metrics is not None:
             found.append(("metrics", config.metrics.listen, self.metrics.start))
+        if self.opcua is not None and config.opcua is not None:
+            found.append(("opcua", config.opcua.listen, self.opcua.start))
         return found
 
     async def run(self, stop: asyncio.Event | None = None) -> None:
@@ -260,6 +266,8 @@ class Gateway:
                 await asyncio.gather(*(server.close() for server in self.servers))
                 if self.metrics is not None:
                     await self.metrics.close()
+                if self.opcua is not None:
+                    await self.opcua.close()
                 raise listen_error(name, listen, exc) from None
         try:
             async with asyncio.TaskGroup() as group:
@@ -269,6 +277,8 @@ class Gateway:
                 for server in self.servers:
                     group.create_task(server.serve_forever(), name=f"{server.name}-server")
                 self._start_sparkplug()
+                if self.opcua is not None:
+                    group.create_task(self.opcua.run(), name="opcua")
                 self._started.set()
                 await stop.wait()
                 await self._shutdown()
@@ -288,6 +298,8 @@ class Gateway:
             self._reloader.cancel()
         await asyncio.gather(*(server.close() for server in self.servers))
         await self._stop_sparkplug()  # NDEATH before the links close (their DDEATHs would be noise)
+        if self.opcua is not None:
+            await self.opcua.close()  # its sessions closed, before the links close
         for line in lines:
             for task in line.tasks:
                 task.cancel()
@@ -396,6 +408,8 @@ class Gateway:
                 self.lines[key].start(self._group)
         if changes.started or changes.stopped:
             await self._renew_sparkplug()
+            if self.opcua is not None:
+                await self.opcua.relink(config.link, self.units)
         needed = restart_needed(old, config)
         status = self.config_status
         status.sha256, status.loaded_at, status.restart_needed = sha256, time.time(), tuple(needed)

@@ -104,6 +104,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "kepware with several units: a directory, one file unit-N.csv per unit (a Kepware device)")
     p.add_argument("--unit", type=int, metavar="N", help="only the links of Modbus unit N (a Kepware device)")
 
+    sub.add_parser("hash-password", help="read a password on standard input, print its salted scrypt hash for an "
+                   "[[opcua.user]] password_hash")
+
     p = sub.add_parser("simulate", help="serve a simulated controller over TCP, a pseudo-terminal or a serial port")
     p.add_argument("model", choices=model_names())
     where = p.add_mutually_exclusive_group()
@@ -182,6 +185,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _check_config(args.config)
         if command == "export-tags":
             return _export_tags(args.config, args.format, args.output, args.unit)
+        if command == "hash-password":
+            return _hash_password()
         if command == "simulate":
             return asyncio.run(_simulate(args))
         from gateway import tools
@@ -195,6 +200,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     except KeyboardInterrupt:
         return 130
+
+
+def _hash_password() -> int:
+    """The password on standard input (its first line; prompted, not echoed, on a terminal) as a hash."""
+    from gateway.opcua.passwords import hash_password
+
+    if sys.stdin.isatty():
+        import getpass
+
+        password = getpass.getpass("password: ")
+    else:
+        password = sys.stdin.readline().rstrip("\r\n")
+    if not password:
+        print("slc-gateway hash-password: no password on standard input", file=sys.stderr)
+        return 1
+    print(hash_password(password))
+    return 0
 
 
 def _checked_listen(option: str, listen: str) -> str:

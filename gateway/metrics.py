@@ -9,7 +9,8 @@ The metric families, their labels and help texts are listed in ``docs/reference/
 (labels ``link``, ``unit``), the line's budget of each polled link (``docs/guide/freshness.md``), the
 numbers a driver reports itself (``driver.metrics()``: ``link_<key>_total``, ``link_<key>``,
 ``link_<key>_seconds``), per Modbus server (label ``server``), the config file and its reloads
-(``gateway.reload``), and with ``[sparkplug]`` the edge node's session and its store (``slc_gateway_sparkplug_*``).
+(``gateway.reload``), with ``[sparkplug]`` the edge node's session and its store (``slc_gateway_sparkplug_*``),
+and with ``[opcua]`` the OPC UA server's sessions (``slc_gateway_opcua_*``).
 
 Link state and data age are the one verdict's (``gateway.freshness``), read through the declared
 view of the gateway (``gateway.view``), Sparkplug's families included.
@@ -32,6 +33,7 @@ from gateway.view import GatewayView
 
 if TYPE_CHECKING:
     from gateway.modbus.server import ModbusTcpServer
+    from gateway.opcua.server import OpcUaServer
     from gateway.reload import ConfigStatus
     from gateway.sparkplug.driver import SparkplugNode
     from gateway.unit import Unit
@@ -42,6 +44,7 @@ log = logging.getLogger("gateway.metrics")
 
 PREFIX: Final = "slc_gateway_"
 _SPARKPLUG: Final = PREFIX + "sparkplug_"
+_OPCUA: Final = PREFIX + "opcua_"
 
 
 # --------------------------------------------------------------------------------------------
@@ -76,6 +79,7 @@ class _GatewayCollector:
         if self._config is not None:
             yield from _config_families(self._config)
         yield from _sparkplug_families(self._gateway.sparkplug)
+        yield from _opcua_families(self._gateway.opcua)
 
     @staticmethod
     def _link_families(units: Sequence[Unit[Any, Any]], now: float) -> list[Metric]:
@@ -370,6 +374,41 @@ def _store_families(store: dict[str, object]) -> Iterator[Metric]:
     for name, text, key in counters:
         counter = CounterMetricFamily(_SPARKPLUG + name, text)
         counter.add_metric([], number(key))
+        yield counter
+
+
+# --------------------------------------------------------------------------------------------
+# OPC UA
+
+
+def _opcua_families(server: OpcUaServer | None) -> Iterator[Metric]:
+    """``/metrics``: sessions, subscriptions and monitored items (gauges); data changes, writes, refusals."""
+    if server is None:
+        return
+    counts = server.counts()
+    gauges = {
+        "sessions": "OPC UA sessions open.",
+        "subscriptions": "OPC UA subscriptions.",
+        "monitored_items": "Monitored items of every subscription.",
+    }
+    for key, text in gauges.items():
+        gauge = GaugeMetricFamily(_OPCUA + key, text)
+        gauge.add_metric([], counts[key])
+        yield gauge
+    counters = {
+        "data_changes": ("Value or status changes handed to the subscriptions (the publish rate is its rate).",
+                         server.data_changes),
+        "writes": ("Writes of a variable that went to the write path.", server.writes),
+        "write_failures": ("Writes the controller did not confirm (refused, timed out, link down).",
+                           server.write_failures),
+        "rejected_logins": ("Sessions refused: a wrong user name or password, an untrusted client certificate.",
+                            server.rejected_logins),
+        "cpu_seconds": ("CPU of the server's publishing passes on the event loop (asyncua's own encoding not "
+                        "included).", server.cpu_seconds),
+    }
+    for key, (text, value) in counters.items():
+        counter = CounterMetricFamily(_OPCUA + key, text)
+        counter.add_metric([], value)
         yield counter
 
 

@@ -43,6 +43,7 @@ from gateway.http import JSON_CONTENT_TYPE, Response, Routes
 from gateway.kinds import link_kind
 from gateway.logutil import public_error
 from gateway.modbus.mapping import Table
+from gateway.opcua.report import opcua_status
 from gateway.sparkplug.report import status as sparkplug_status
 from gateway.tags import Tag, link_tags
 from gateway.transport import describe_url
@@ -226,7 +227,8 @@ class StatusPage:
         } for server in self.gateway.servers]
         document: dict[str, object] = {"version": __version__, "time": round(wall, 3), "links": rows,
                                        "up": up_count, "servers": servers,
-                                       "sparkplug": sparkplug_status(self.gateway.sparkplug)}
+                                       "sparkplug": sparkplug_status(self.gateway.sparkplug),
+                                       "opcua": opcua_status(self.gateway.opcua)}
         if self.config is not None:
             document["config"] = self.config.document()
         return document

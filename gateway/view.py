@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 if TYPE_CHECKING:
     from gateway.modbus.server import ModbusTcpServer
+    from gateway.opcua.server import OpcUaServer
     from gateway.sparkplug.driver import SparkplugNode
     from gateway.unit import Unit
 
@@ -31,3 +32,7 @@ class GatewayView(Protocol):
     @property
     def sparkplug(self) -> SparkplugNode | None:
         """The Sparkplug B edge node (``[sparkplug]``), None when not configured."""
+
+    @property
+    def opcua(self) -> OpcUaServer | None:
+        """The OPC UA server (``[opcua]``), None when not configured."""

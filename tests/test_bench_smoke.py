@@ -30,6 +30,7 @@ SCRIPTS = [
     "sparkplug_publishing.py",  # needs mosquitto (Debian package): CI installs it
     "sparkplug_cpu.py",  # the same
     "sparkplug_store.py",  # the same
+    "opcua.py",  # 8 links x 150 tags monitored by asyncua's client, and a bare asyncua server
 ]
 
 

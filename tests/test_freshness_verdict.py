@@ -121,7 +121,7 @@ def test_every_face_says_what_the_rule_says(events: list[tuple[str, int, float]]
                       background_interval=background, demand_hold=hold, driver=driver)
     assert unit.schedule is not None
     ref = Reference(stale_after, fast, slow, background)
-    view: Any = SimpleNamespace(units=[unit], servers=[], sparkplug=None)
+    view: Any = SimpleNamespace(units=[unit], servers=[], sparkplug=None, opcua=None)
     page = StatusPage(view)
     now = 100.0
     for kind, block, step in events:

@@ -351,6 +351,9 @@ def metrics_reference() -> str:
         "With `[sparkplug]`, the edge node's session has its own families (`slc_gateway_sparkplug_*`): "
         "[Sparkplug status and metrics](../guide/sparkplug.md#status-and-metrics).",
         "",
+        "With `[opcua]`, the OPC UA server has its own families (`slc_gateway_opcua_*`): "
+        "[OPC UA status and metrics](../guide/opcua.md#status-and-metrics).",
+        "",
         "A test checks that every metric the Grafana dashboard (`deploy/grafana/slc-gateway.json`) queries is "
         "exported by a running gateway ([monitoring](../guide/monitoring.md)).",
     ]

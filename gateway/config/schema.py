@@ -29,6 +29,7 @@ from gateway.config._common import (
     show,
 )
 from gateway.config.links import LinkConfig, TaggedLink
+from gateway.config.opcua import OpcUaConfig
 from gateway.config.sparkplug import SparkplugConfig
 from gateway.config.writer import table_lines
 from gateway.streams import MISSING_PORT_HINT
@@ -229,6 +230,8 @@ class GatewayConfig(Model):
     """[logging]."""
     sparkplug: SparkplugConfig | None = None
     """[sparkplug]: publish every link as a device of a Sparkplug B edge node over MQTT (off when absent)."""
+    opcua: OpcUaConfig | None = None
+    """[opcua]: serve every link as a folder of variables of an OPC UA server (off when absent)."""
     link: tuple[TaggedLink, ...] = Field(strict=False)
     """[[link]]: one serial link to one controller, served as one Modbus unit id. At least one."""
 
@@ -316,6 +319,13 @@ class GatewayConfig(Model):
                 f"[metrics] listens on {self.metrics.listen} with no allow list: anyone who can reach it "
                 "reads /metrics and /healthz (set allow = [the scraper's network])"
             )
+        opcua = self.opcua
+        if opcua is not None and "None" in opcua.security and opcua.writers and not _is_loopback(opcua.address[0]):
+            found.append(
+                f"[opcua] offers the None endpoint on {opcua.listen} with users who write "
+                f"({', '.join(opcua.writers)}): their passwords and writes cross the network unencrypted "
+                '(offer security = ["Basic256Sha256-SignAndEncrypt"] only, or listen on 127.0.0.1)'
+            )
         return found
 
     def describe(self) -> str:
@@ -339,6 +349,12 @@ class GatewayConfig(Model):
         else:
             lines += table_lines("[sparkplug]", self.sparkplug.model_copy(
                 update={"password": None if self.sparkplug.password is None else "***"}))
+        if self.opcua is None:
+            lines += ["# [opcua] not configured: no OPC UA server", ""]
+        else:
+            lines += table_lines("[opcua]", self.opcua, skip=("user",))
+            for user in self.opcua.user:
+                lines += table_lines("[[opcua.user]]", user.model_copy(update={"password_hash": "***"}))
         for link in self.link:
             lines += link.describe_lines()
         return "\n".join(lines).rstrip("\n") + "\n"

@@ -155,6 +155,12 @@ function renderSummary(status) {
       summary.appendChild(el("span", store.failed || store.dropped ? "bad" : "", text));
     }
   }
+  const ua = status.opcua;
+  if (ua) {
+    summary.appendChild(el("span", "", "OPC UA: " + ua.sessions + " sessions, " + ua.subscriptions +
+      " subscriptions, " + number(ua.monitored_items) + " monitored items, " + ua.publish_rate +
+      " changes/s, " + number(ua.rejected_logins) + " rejected logins"));
+  }
   summary.appendChild(el("span", "", "updated " + clock(status.time)));
   $("version").textContent = "· slc-gateway " + status.version;
 }

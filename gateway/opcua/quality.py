@@ -1,0 +1,167 @@
+"""What an OPC UA client is told, decided without asyncua: sans-I/O, the caller passes ``now``.
+
+* :func:`point_quality`: a variable's status code from the one verdict (``gateway.freshness``: the
+  link's state, the block's freshness), whether its block was ever read, whether the controller
+  refuses it, and the link's ``offline`` policy (docs/guide/opcua.md, "Quality and time").
+* :func:`write_status`: a write's status code from the Modbus answer the write path gave.
+* :class:`DemandBook`: the monitored items' demand: each point with a live monitored item is noted
+  as demand once per its sampling interval; a point whose monitored items are all gone (the
+  subscription deleted, the session closed) stops demanding at once.
+* :func:`revise_interval`: the sampling interval a monitored item is given: what the line achieves
+  for its block, never less than the block's class period nor the server's pass period
+  (:func:`pass_period`: a quarter of the subscription's publishing interval, from ``publish_interval``
+  to 0.5 s).
+
+Status codes are named as OPC UA Part 4 §7.34 and Part 8 name them (:class:`Code`); the server module
+turns a name into asyncua's number.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from enum import StrEnum
+
+from gateway.errors import ModbusExceptionReply
+from gateway.freshness import LinkState, Offline
+from gateway.frozen import frozen
+
+__all__ = ["Code", "DemandBook", "Reading", "pass_period", "point_quality", "revise_interval", "write_status"]
+
+
+class Code(StrEnum):
+    """The status codes this server gives (their OPC UA names)."""
+
+    GOOD = "Good"
+    WAITING = "BadWaitingForInitialData"
+    NO_COMMUNICATION = "BadNoCommunication"
+    LAST_USABLE = "UncertainLastUsableValue"
+    DEVICE_FAILURE = "BadDeviceFailure"
+    NOT_WRITABLE = "BadNotWritable"
+    OUT_OF_RANGE = "BadOutOfRange"
+    TYPE_MISMATCH = "BadTypeMismatch"
+    TIMEOUT = "BadTimeout"
+    COMMUNICATION_ERROR = "BadCommunicationError"
+    USER_DENIED = "BadUserAccessDenied"
+    BUSY = "BadResourceUnavailable"
+
+
+@frozen
+class Reading:
+    """A variable's status code, and whether its value goes with it (Good, or the last usable value)."""
+
+    code: Code
+    carries_value: bool
+
+
+_GOOD = Reading(Code.GOOD, True)
+_HELD = Reading(Code.LAST_USABLE, True)
+_WAITING = Reading(Code.WAITING, False)
+_NO_COMMUNICATION = Reading(Code.NO_COMMUNICATION, False)
+_REFUSED = Reading(Code.DEVICE_FAILURE, False)
+
+
+def point_quality(*, state: LinkState, known: bool, fresh: bool, read: bool, refused: bool,
+                  offline: Offline) -> Reading:
+    """A variable's quality now.
+
+    ``state``: the link's verdict; ``known``: the link has had a verdict (a link that has not answered
+    yet since start is not known down); ``fresh``: its block is fresh (``Freshness.block_fresh``);
+    ``read``: its block was read at least once; ``refused``: the controller refuses the block.
+
+    * the controller refuses the block: Bad_DeviceFailure;
+    * the link is down: Bad_NoCommunication (before the link's first verdict and the block's first read:
+      Bad_WaitingForInitialData);
+    * the block was never read: Bad_WaitingForInitialData;
+    * fresh: Good;
+    * stale: ``hold``: Uncertain_LastUsableValue with the last value; ``exception`` and ``zero``:
+      Bad_NoCommunication (a Bad status carries no value in OPC UA: there is no zero to give).
+    """
+    if refused:
+        return _REFUSED
+    if state is LinkState.DOWN:
+        return _NO_COMMUNICATION if known or read else _WAITING
+    if not read:
+        return _WAITING
+    if fresh:
+        return _GOOD
+    return _HELD if offline is Offline.HOLD else _NO_COMMUNICATION
+
+
+def write_status(exc: ModbusExceptionReply | None, *, elapsed: float, write_timeout: float, link_up: bool) -> Code:
+    """A write's status from the write path's answer (None: the controller confirmed it).
+
+    0x0B at ``write_timeout`` is Bad_Timeout (outcome unknown or withdrawn: the audit log says which),
+    0x0B before it Bad_CommunicationError (the link is down or went down under it); 0x02 (read only,
+    not in ``writable``) Bad_NotWritable; 0x03 (a value the controller cannot hold) Bad_OutOfRange;
+    0x06 (the write queue is full) Bad_ResourceUnavailable; 0x04 (the controller refused) Bad_DeviceFailure.
+    """
+    if exc is None:
+        return Code.GOOD
+    code = exc.code
+    if code == ModbusExceptionReply.GATEWAY_TARGET_FAILED:
+        if link_up and elapsed >= write_timeout * 0.999:
+            return Code.TIMEOUT
+        return Code.COMMUNICATION_ERROR
+    return {
+        ModbusExceptionReply.ILLEGAL_DATA_ADDRESS: Code.NOT_WRITABLE,
+        ModbusExceptionReply.ILLEGAL_DATA_VALUE: Code.OUT_OF_RANGE,
+        ModbusExceptionReply.SERVER_DEVICE_BUSY: Code.BUSY,
+        ModbusExceptionReply.GATEWAY_PATH_UNAVAILABLE: Code.COMMUNICATION_ERROR,
+    }.get(code, Code.DEVICE_FAILURE)
+
+
+def revise_interval(requested: float, publishing: float, period: float | None, achieved: float | None,
+                    passes: float = 0.0) -> float:
+    """The sampling interval (ms) given to a monitored item of a block.
+
+    ``requested``: what the client asked (ms; 0 or less: the subscription's ``publishing`` interval, as
+    Part 4 §5.12.1.2 says for -1); ``period``: the block's class period (s; None: not polled, its peer
+    pushes); ``achieved``: the refresh period the line achieves for it (s; None: not measured yet);
+    ``passes``: the seconds between the server's publishing passes for this subscription.
+    The item is sampled no faster than its block is read, nor than the server looks at it.
+    """
+    wanted = requested if requested > 0 else publishing
+    floor = max(period or 0.0, achieved or 0.0, passes) * 1000.0
+    return max(wanted, floor) if math.isfinite(floor) else wanted
+
+
+def pass_period(publish_interval: float, publishing: float, longest: float) -> float:
+    """Seconds between the publishing passes for subscriptions whose shortest publishing interval is
+    ``publishing`` (ms; 0: none): a quarter of it, at least ``publish_interval``, at most ``longest``."""
+    return max(publish_interval, min(publishing / 4000.0, longest))
+
+
+class DemandBook:
+    """Monitored items' demand by point (an index the server chose): sans-I/O (module docstring)."""
+
+    def __init__(self) -> None:
+        #: per point: its shortest sampling interval (s), and when its demand is next noted
+        self._interval: dict[int, float] = {}
+        self._next: dict[int, float] = {}
+
+    def watch(self, point: int, interval: float, now: float) -> None:
+        """A monitored item of ``point`` was created (``interval``: its revised sampling interval, s)."""
+        current = self._interval.get(point)
+        self._interval[point] = interval if current is None else min(current, interval)
+        self._next[point] = now  # demanded at once: its first value is wanted now
+
+    def due(self, alive: Iterable[int], now: float) -> list[int]:
+        """The points of ``alive`` (those with a monitored item now) whose demand is due at ``now``;
+        every point not in ``alive`` is forgotten (nobody holds its items any more)."""
+        living = set(alive)
+        for gone in [point for point in self._interval if point not in living]:
+            del self._interval[gone], self._next[gone]
+        found: list[int] = []
+        for point in living:
+            interval = self._interval.get(point)
+            if interval is None:  # an item the book was not told of (created before a reload): at once
+                self._interval[point] = interval = 0.0
+                self._next[point] = now
+            if self._next[point] <= now:
+                found.append(point)
+                self._next[point] = now + interval
+        return sorted(found)
+
+    def __len__(self) -> int:
+        return len(self._interval)

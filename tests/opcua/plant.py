@@ -1,0 +1,109 @@
+"""Simulated SLC 5/04 lines and a gateway config with [opcua], for the OPC UA tests (asyncua's and node-opcua's)."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import uuid
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlencode
+
+from gateway.kinds.df1.sim.slc500 import Slc500Simulator
+from gateway.opcua.passwords import hash_password
+from gateway.sim import get_simulator
+from gateway.sim.serve import close_tcp, serve_tcp
+
+HOST = "127.0.0.1"
+#: the users of every test config: (name, password, role)
+USERS = (("operator", "op-secret", "write"), ("viewer", "view-secret", "read"))
+#: the maps of every link: (table, start, address, count, type)
+MAPS = (
+    ("holding", 0, "N7:0", 8, "int16"),
+    ("holding", 100, "F8:0", 2, "float32"),
+    ("coil", 0, "B3:0/0", 4, "bool"),
+    ("input", 0, "N7:50", 2, "int16"),
+)
+
+
+@dataclass
+class Line:
+    """A simulated SLC 5/04 behind a TCP port that can be switched off and on."""
+
+    sim: Slc500Simulator
+    port: int = 0
+    server: asyncio.Server | None = None
+
+    @classmethod
+    async def start(cls, **options: Any) -> Line:
+        url = "sim://slc504?" + urlencode({"ladder": "0", **options, "instance": uuid.uuid4().hex})
+        sim = get_simulator(url)
+        assert isinstance(sim, Slc500Simulator)
+        line = cls(sim)
+        await line.on()
+        return line
+
+    async def on(self) -> None:
+        self.server = await serve_tcp(self.sim, HOST, self.port)
+        self.port = self.server.sockets[0].getsockname()[1]
+
+    async def off(self) -> None:
+        if self.server is not None:
+            await close_tcp(self.server)
+            self.server = None
+
+    @property
+    def url(self) -> str:
+        return f"socket://{HOST}:{self.port}"
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind((HOST, 0))
+        port: int = probe.getsockname()[1]
+        return port
+
+
+def link_text(name: str, unit: int, line: Line, **keys: Any) -> str:
+    settings = {"timeout": 0.05, "stale_after": 1.0, "down_after_failures": 3, "down_after_seconds": 1.0,
+                "write_timeout": 3.0, **keys}
+    text = f'[[link]]\nname = "{name}"\nprotocol = "df1"\nport = "{line.url}"\nunit = {unit}\n'
+    text += "".join(f"{k} = {_toml(v)}\n" for k, v in settings.items())
+    for table, start, address, count, kind in MAPS:
+        text += (f'[[link.map]]\ntable = "{table}"\nstart = {start}\naddress = "{address}"\ncount = {count}\n'
+                 f'type = "{kind}"\n')
+    return text
+
+
+def _toml(value: Any) -> str:
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml(v) for v in value) + "]"
+    return str(value)
+
+
+def opcua_text(port: int, directory: Path, **keys: Any) -> str:
+    """``[modbus]`` on a free port and ``[opcua]`` on ``port`` with the test users, files under ``directory``."""
+    options = {"listen": f"opc.tcp://{HOST}:{port}", "security": ["None", "Basic256Sha256-SignAndEncrypt"],
+               "certificate": str(directory / "server" / "cert.der"),
+               "private_key": str(directory / "server" / "key.pem"),
+               "trusted_clients": str(directory / "trusted"), "publish_interval": 0.05, **keys}
+    text = '[modbus]\nlisten = "127.0.0.1:0"\n\n[opcua]\n' + "".join(f"{k} = {_toml(v)}\n" for k, v in options.items())
+    for name, password, role in USERS:
+        text += f'[[opcua.user]]\nname = "{name}"\nrole = "{role}"\npassword_hash = "{hash_password(password)}"\n'
+    return text + "\n"
+
+
+async def eventually(check: Callable[[], Awaitable[bool]], seconds: float = 10.0, step: float = 0.05) -> None:
+    """Wait until ``check()`` is true (AssertionError after ``seconds``)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + seconds
+    while not await check():
+        if loop.time() > deadline:
+            raise AssertionError(f"not true within {seconds} s")
+        await asyncio.sleep(step)
