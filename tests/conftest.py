@@ -13,6 +13,7 @@ from hypothesis import Phase, settings
 # The built-in kinds register their sim:// models when the registry is imported (the app, the CLI
 # and the tools import it); tests that open simulators directly need them too.
 import gateway.kinds  # noqa: F401
+from gateway.sim import reset_simulators
 
 # `make mutation` runs the tests with --hypothesis-profile=mutation: the same examples for every
 # mutant (derandomize, no example database) and no shrinking (a mutant is killed by the first
@@ -20,6 +21,14 @@ import gateway.kinds  # noqa: F401
 settings.register_profile(
     "mutation", derandomize=True, database=None, phases=[Phase.explicit, Phase.generate], print_blob=False
 )
+
+
+@pytest.fixture
+def forget_simulators() -> Iterator[None]:
+    """Forget every in-process simulator after the test (``sim://`` URLs name the same device while it
+    lives).  A module uses it with ``pytestmark = pytest.mark.usefixtures("forget_simulators")``."""
+    yield
+    reset_simulators()
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
