@@ -31,6 +31,26 @@ def forget_simulators() -> Iterator[None]:
     reset_simulators()
 
 
+#: Modules whose tests start processes (the gateway, its tools, a broker, mbpoll, a browser) and run in
+#: real time: marked ``process`` (``-m "not process"`` for a quick run; CI runs them all).
+PROCESS_MODULES = frozenset({
+    "test_cli.py", "test_cli_df1.py", "test_cli_df1_half.py", "test_cli_paths.py", "test_cli_reload.py",
+    "test_bench_smoke.py", "test_bench_half_duplex.py", "test_df1_target_processes.py", "test_packaging.py",
+    "test_sparkplug_kill.py", "test_sparkplug_host.py", "test_status_page_browser.py", "test_df1py3_initiator.py",
+})
+#: Modules that build or run the container image or make network namespaces: marked ``container``.
+CONTAINER_MODULES = frozenset({"test_container_image.py", "test_access_control_netns.py"})
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        name = item.path.name
+        if name in PROCESS_MODULES:
+            item.add_marker(pytest.mark.process)
+        elif name in CONTAINER_MODULES:
+            item.add_marker(pytest.mark.container)
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption(
         "--soak",

@@ -1,7 +1,7 @@
 """Waiting in a test until the state under test shows a condition: polled, with a bound.
 
 The one place for it: ``until`` in a test on the event loop (its ``step`` is loop time, so under
-the virtual clock of ``tests/clock.py`` it costs no real time), ``until_sync`` in a test that
+the virtual clock, ``@pytest.mark.looptime``, it costs no real time), ``until_sync`` in a test that
 drives a process or a thread and waits in real time.
 """
 

@@ -522,6 +522,7 @@ async def test_start_fails_with_link_down_when_nothing_listens() -> None:
 # Program transfer across power cycles (issue 9): restart from block 0 within a bound
 
 
+@pytest.mark.looptime
 @pytest.mark.parametrize("pointer", ["restart", "keep"])
 async def test_upload_and_download_survive_a_power_cycle_midway(pointer: str) -> None:
     url = f"sim://slc150?power_cycle_every=200&ladder=0&variant=transfer_after_power_up={pointer}"
@@ -744,6 +745,7 @@ async def test_a_port_with_its_own_parity_sends_the_characters_as_they_are(tmp_p
     assert not any(byte & 0x80 for byte in sent)
 
 
+@pytest.mark.looptime
 async def test_a_mode_change_gets_the_slow_reply_time() -> None:
     # "The exceptions are edit commands and mode changes": a mode change answered after the
     # normal reply time but within the slow one is no timeout
@@ -832,6 +834,7 @@ async def test_max_resyncs_bounds_the_id_00_resyncs_of_a_read() -> None:
     assert sim.counters.retransmits == 1
 
 
+@pytest.mark.looptime
 async def test_the_characters_time_on_the_line_is_added_to_the_reply_time() -> None:
     # docs/reference/config.md, timeout: "the characters' time on the line at baudrate is added".
     # 600 baud 7E1: 10 bits, 16.7 ms a character.  A read (#05...: 18 characters) answered 0.4 s
@@ -868,6 +871,7 @@ async def test_the_wait_follows_the_reply_times_seen_on_a_paced_line() -> None:
         assert driver.counters.timeouts >= 1
 
 
+@pytest.mark.looptime
 async def test_each_commands_reply_time_adds_the_characters_of_its_frame_and_of_the_longest_reply(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
