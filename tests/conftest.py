@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import sys
 from collections.abc import Iterator
+from typing import Any
 
 import pytest
 from hypothesis import Phase, settings
+from looptime._internal import loops as looptime_loops
 
 # The built-in kinds register their sim:// models when the registry is imported (the app, the CLI
 # and the tools import it); tests that open simulators directly need them too.
@@ -49,6 +52,25 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.process)
         elif name in CONTAINER_MODULES:
             item.add_marker(pytest.mark.container)
+
+
+def _looptime_ceil(self: Any, seconds: float | None) -> int | None:
+    """looptime's seconds -> whole microseconds, rounded up instead of to the nearest.
+
+    When every task waits, looptime moves its clock by the wait to the next timer in whole
+    microseconds.  Rounded to the nearest, a timer at ``now + timeout`` (0.29000000000000004 after
+    0.28 + 0.01) is reached at 0.29: asyncio calls it (due within its resolution), but a driver that
+    checks ``loop.time() >= deadline`` before it acts (the SLC 100/150 transaction loop) sees the
+    deadline not yet come, waits again, and the clock never moves.  Rounded up, the clock reaches
+    the deadline (at most 1 us past it), as a real clock would.  looptime is pinned (``test`` extra),
+    this private method with it."""
+    if seconds is None:
+        return None
+    reciprocal: int = self._LoopTimeEventLoop__resolution_reciprocal
+    return math.ceil(seconds * reciprocal)
+
+
+looptime_loops.LoopTimeEventLoop._LoopTimeEventLoop__time2int = _looptime_ceil  # type: ignore[attr-defined]
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
