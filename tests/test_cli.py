@@ -20,6 +20,8 @@ from pathlib import Path
 import pytest
 from cli_support import cli, fails, ok, ok_json, start_simulator, stop
 
+from tests.net import free_port
+
 
 def tcp_simulator(model: str) -> Iterator[str]:
     process, line = start_simulator(model, "--listen", "127.0.0.1:0", "--no-ladder")
@@ -62,13 +64,6 @@ def pty_slc150() -> Iterator[str]:
         yield match.group(1)
     finally:
         stop(process)
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-    return port
 
 
 # ---------------------------------------------------------------------------------------------

@@ -16,8 +16,11 @@ import subprocess
 from pathlib import Path
 
 from cli_support import CLI, TIMEOUT, cli, fails, ok_json, start_simulator, stop
-from test_cli import free_port, pty_slc150  # noqa: F401 (a fixture)
-from test_cli_reload import ModbusSocket, until
+from test_cli import pty_slc150  # noqa: F401 (a fixture)
+from test_cli_reload import ModbusSocket
+
+from tests.net import free_port
+from tests.waiting import until_sync
 
 #: An SLC 150's reply to "read 8 bytes at 00A3" (its device type 15H and FRN 47), the simulator's
 #: answer to the request below (the frame of test_cli.test_simulate_stops_on_sigterm_with_a_client_connected)
@@ -129,11 +132,12 @@ def test_run_waits_for_a_missing_port_to_appear(pty_slc150: str, tmp_path: Path)
     with log.open("w") as err:
         process = subprocess.Popen([*CLI, "run", str(config)], stdout=subprocess.DEVNULL, stderr=err, text=True)
     try:
-        until(lambda: "no such serial port" in log.read_text(), "the link reported down")
+        until_sync(lambda: "no such serial port" in log.read_text(), 15.0, what="the link reported down")
         assert f'port {port} does not exist (yet): run keeps trying to open it until it appears' in log.read_text()
         port.symlink_to(pty_slc150)  # the adapter plugged in
         client = ModbusSocket(modbus)
-        until(lambda: isinstance(client.read_holding(1, 0, 4), list), "unit 1 served once the port appeared")
+        until_sync(lambda: isinstance(client.read_holding(1, 0, 4), list), 15.0,
+                   what="unit 1 served once the port appeared")
     finally:
         process.terminate()
         assert process.wait(timeout=15) == 0, log.read_text()

@@ -14,14 +14,15 @@ import signal
 import socket
 import struct
 import subprocess
-import time
 import urllib.request
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from cli_support import CLI, cli, fails
-from test_cli import free_port
+
+from tests.net import free_port
+from tests.waiting import until_sync
 
 PATH_UNAVAILABLE = 0x0A
 
@@ -55,13 +56,6 @@ class ModbusSocket:
         return data
 
 
-def until(check: Callable[[], object], what: str, within: float = 15.0) -> None:
-    deadline = time.monotonic() + within
-    while not check():
-        assert time.monotonic() < deadline, f"not within {within} s: {what}"
-        time.sleep(0.05)
-
-
 def link(name: str, protocol: str, port: str, unit: int, extra: str = "") -> str:
     return f'[[link]]\nname = "{name}"\nprotocol = "{protocol}"\nport = "{port}"\nunit = {unit}\n{extra}\n'
 
@@ -81,7 +75,8 @@ def gateway(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], Path, Path,
         process = subprocess.Popen([*CLI, "run", str(config), "--pid-file", str(pid_file)],
                                    stdout=subprocess.DEVNULL, stderr=err, text=True)
     try:
-        until(lambda: pid_file.exists() and "serving Modbus TCP" in log.read_text(), "the gateway serving")
+        until_sync(lambda: pid_file.exists() and "serving Modbus TCP" in log.read_text(), 15.0,
+                   what="the gateway serving")
         yield process, config, log, modbus, metrics
     finally:
         process.terminate()
@@ -106,7 +101,7 @@ def test_sighup_adds_a_link_and_a_broken_file_changes_nothing(
 ) -> None:
     process, config, log, modbus, metrics = gateway
     client = ModbusSocket(modbus)
-    until(lambda: isinstance(client.read_holding(1, 0, 4), list), "unit 1 served")
+    until_sync(lambda: isinstance(client.read_holding(1, 0, 4), list), 15.0, what="unit 1 served")
     assert client.read_holding(2, 0, 4) == PATH_UNAVAILABLE
     first = config.read_text()
 
@@ -116,7 +111,8 @@ def test_sighup_adds_a_link_and_a_broken_file_changes_nothing(
     result = cli("reload", "--pid-file", str(tmp_path / "gateway.pid"))
     assert result.returncode == 0, result.stderr
     assert f"asked process {process.pid} to reload its config file" in result.stderr
-    until(lambda: isinstance(client.read_holding(2, 0, 4), list), "the new unit 2 served on the same connection")
+    until_sync(lambda: isinstance(client.read_holding(2, 0, 4), list), 15.0,
+               what="the new unit 2 served on the same connection")
     assert "links: 1 added (df1), 1 line unchanged" in log.read_text()
     short = hashlib.sha256(second.encode()).hexdigest()[:12]
 
@@ -128,7 +124,7 @@ def test_sighup_adds_a_link_and_a_broken_file_changes_nothing(
     config.write_text(broken.read_text())
     os.kill(process.pid, signal.SIGHUP)  # as systemctl reload and docker kill -s HUP send it
     reason = reason.replace(str(broken), str(config))
-    until(lambda: f"reload: {reason}" in log.read_text(), "the failure logged")
+    until_sync(lambda: f"reload: {reason}" in log.read_text(), 15.0, what="the failure logged")
     assert isinstance(client.read_holding(1, 0, 4), list) and isinstance(client.read_holding(2, 0, 4), list)
 
     status = get_json(metrics, "/api/status")["config"]

@@ -63,6 +63,7 @@ from gateway.protocols.slc_ascii import commands as slc_commands
 from gateway.protocols.slc_ascii import framing as slc_framing
 from gateway.protocols.slc_ascii.memory_map import is_readable
 from gateway.sim import reset_simulators
+from tests.net import mbap
 
 HOST = "127.0.0.1"
 UNIT = 1  # the read-only SLC 150 behind the threaded gateway
@@ -145,10 +146,6 @@ class GatewayThread:
     def server(self) -> Any:
         assert self.gw is not None
         return self.gw.servers[0]
-
-
-def mbap(tid: int, unit: int, pdu: bytes, protocol: int = 0, length: int | None = None) -> bytes:
-    return struct.pack(">HHHB", tid, protocol, len(pdu) + 1 if length is None else length, unit) + pdu
 
 
 def read_frame(sock: socket.socket) -> tuple[int, int, bytes]:

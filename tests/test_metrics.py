@@ -21,6 +21,7 @@ from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.http import HttpServer
 from gateway.modbus.mapping import STATUS_BASE
+from tests.waiting import until
 
 HOST = "127.0.0.1"
 
@@ -88,14 +89,6 @@ async def http(port: int, request: bytes) -> Response:
 
 async def get(port: int, path: str) -> Response:
     return await http(port, f"GET {path} HTTP/1.1\r\nHost: {HOST}:{port}\r\nAccept: */*\r\n\r\n".encode())
-
-
-async def until(predicate: Callable[[], object], within: float = 5.0) -> None:
-    async with asyncio.timeout(within):
-        while True:
-            if predicate():
-                return
-            await asyncio.sleep(0.02)
 
 
 async def until_health(port: int, check: Callable[[Response], bool], within: float = 5.0) -> Response:

@@ -190,6 +190,7 @@ async def test_one_message_per_change_with_the_real_driver(caplog: pytest.LogCap
     assert [line.split(":")[1].strip() for line in lines] == ["up (sim", "down", "up (sim"], lines
 
 
+@pytest.mark.looptime
 async def test_stagger_delays_the_first_poll(script: Script) -> None:
     poller = Poller("p", blocks(1), BlockCache([2]), script, fast_interval=0.01, stagger=0.15)
     loop = asyncio.get_running_loop()

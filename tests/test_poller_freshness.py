@@ -110,6 +110,7 @@ async def test_values_read_before_a_loss_are_not_served_after_it_until_read_agai
     assert len(unit.read_register_bytes(Table.HOLDING, 1, 1)) == 2
 
 
+@pytest.mark.looptime
 async def test_a_line_that_cannot_keep_up_says_so_once_with_what_to_change(caplog: pytest.LogCaptureFixture) -> None:
     # stale_after 0.2 s; 120 blocks of 4 ms each take about 0.5 s: the plan cannot be refreshed in time
     unit, controller = make_unit(stale_after=0.2, background_interval=0.0)

@@ -7,6 +7,8 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Awaitable, Callable
 
+import pytest
+
 from gateway.cache import BlockCache
 from gateway.errors import LinkDown
 from gateway.modbus.mapping import Block, Scan
@@ -93,6 +95,7 @@ async def test_a_wait_ends_when_the_link_is_lost() -> None:
         await asyncio.gather(task, return_exceptions=True)
 
 
+@pytest.mark.looptime
 async def test_stations_sharing_a_line_one_stations_background_yields_to_anothers_urgent_reads() -> None:
     """Two pollers on one line: A has a demanded fast block, B nobody reads.  B's wanted reads wait
     while A's urgent read is on the line; B's blocks still come within their background period."""

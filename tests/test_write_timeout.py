@@ -24,6 +24,9 @@ from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
 from gateway.kinds.slc_ascii.unit import SlcAsciiUnit
 from gateway.sim import get_simulator, reset_simulators
 
+#: Policy on the virtual clock (looptime): every timeout and sleep here is loop time, no real I/O.
+pytestmark = pytest.mark.looptime
+
 URL = "sim://slc150?ladder=0&variant=reply_time=slow_changes&slow_delay=1.0&instance=write-timeout"
 PRESET_905 = 36  # holding register: preset of 905, controller word 0x48
 

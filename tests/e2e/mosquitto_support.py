@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.net import free_port
+
 HOST = "127.0.0.1"
 #: started as root, mosquitto would drop to its own user, who cannot read the test's private directory
 RUN_AS = "user root\n" if os.geteuid() == 0 else ""
@@ -36,13 +38,6 @@ def mosquitto_path() -> str:
         pytest.skip("MOSQUITTO NOT INSTALLED: the Sparkplug tests need a real broker (Debian package mosquitto); "
                     "set SLC_GATEWAY_REQUIRE_MOSQUITTO=1 to fail instead")
     return path
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind((HOST, 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 class Broker:

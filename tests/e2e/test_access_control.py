@@ -35,17 +35,15 @@ from gateway import healthcheck
 from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
-from gateway.sim import get_simulator, reset_simulators
+from gateway.sim import get_simulator
+from tests.net import mbap
 
 HOST = "127.0.0.1"
 ILLEGAL_ADDRESS = 0x02
 ROLE_OID = "1.3.6.1.4.1.50316.802.1"  # Modbus/TCP Security role extension (MB-TCP-Security-v36, R-21)
 
 
-@pytest.fixture(autouse=True)
-def _forget_simulators() -> Any:
-    yield
-    reset_simulators()
+pytestmark = pytest.mark.usefixtures("forget_simulators")
 
 
 def sim_url() -> str:
@@ -87,10 +85,6 @@ async def until_ready(client: AsyncModbusTcpClient | AsyncModbusTlsClient, unit:
 
 def code(reply: Any) -> int | None:
     return reply.exception_code if reply.isError() else None
-
-
-def mbap(tid: int, unit: int, pdu: bytes) -> bytes:
-    return struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu
 
 
 READ_HOLDING_0 = struct.pack(">BHH", 3, 0, 2)

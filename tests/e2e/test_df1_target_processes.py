@@ -28,17 +28,11 @@ from gateway.protocols.df1.framing import NEED_DATA, Checksum
 from gateway.protocols.df1.full_duplex.datalink import Df1DataLink
 from gateway.protocols.df1.full_duplex.transaction import Df1Transactions, TransactionDone
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalWrite
+from tests.net import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 PEER = ROOT / "tests" / "peers" / "plc_msg_peer.py"
 HOST = "127.0.0.1"
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind((HOST, 0))
-        port: int = sock.getsockname()[1]
-        return port
 
 
 def target_config(path: Path, port: int, modbus: int, extra: str = "") -> Path:

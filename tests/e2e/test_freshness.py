@@ -12,7 +12,7 @@ import asyncio
 import random
 import struct
 import uuid
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 import pytest
@@ -21,9 +21,10 @@ from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.errors import StaleRead
 from gateway.modbus.mapping import Block, Table
-from gateway.sim import get_simulator, reset_simulators
+from gateway.sim import get_simulator
 from gateway.unit import Unit
 from tests.e2e.modbus_support import HOST, connect, exception_code
+from tests.net import mbap
 from tests.waiting import until
 
 TARGET_FAILED = 0x0B
@@ -55,19 +56,12 @@ def uniform_delay(bound: float, seed: int = 29) -> Callable[[ReadBlock], ReadBlo
     return wrap
 
 
-@pytest.fixture(autouse=True)
-def _forget_simulators() -> Iterator[None]:
-    yield
-    reset_simulators()
+pytestmark = pytest.mark.usefixtures("forget_simulators")
 
 
 def block_of(unit: Unit[Any, Any], table: Table, address: int) -> int:
     points = unit.plan.registers(table) if table in (Table.HOLDING, Table.INPUT) else unit.plan.bits(table)
     return points[address].block
-
-
-def mbap(tid: int, pdu: bytes) -> bytes:
-    return struct.pack(">HHHB", tid, 0, len(pdu) + 1, 1) + pdu
 
 
 async def read_reply(reader: asyncio.StreamReader) -> tuple[int, bytes]:
@@ -186,10 +180,10 @@ async def test_a_wait_is_bounded_and_holds_up_no_other_connection_and_keeps_its_
         other_reader, other_writer = await asyncio.open_connection(HOST, gw.port)
         try:
             sent = loop.time()
-            writer.write(mbap(1, struct.pack(">BHH", 2, 951, 32)) + mbap(2, struct.pack(">BHH", 3, 0, 8)))
+            writer.write(mbap(1, 1, struct.pack(">BHH", 2, 951, 32)) + mbap(2, 1, struct.pack(">BHH", 3, 0, 8)))
             await writer.drain()
             await asyncio.sleep(0.05)
-            other_writer.write(mbap(9, struct.pack(">BHH", 3, 0, 8)))
+            other_writer.write(mbap(9, 1, struct.pack(">BHH", 3, 0, 8)))
             await other_writer.drain()
             tid, pdu = await asyncio.wait_for(read_reply(other_reader), 1.0)
             other_answered = loop.time() - sent

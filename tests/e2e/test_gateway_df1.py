@@ -41,7 +41,7 @@ from pymodbus.client import AsyncModbusTcpClient
 from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.kinds.df1.sim.slc500 import Slc500Simulator
-from gateway.sim import get_simulator, reset_simulators
+from gateway.sim import get_simulator
 
 HOST = "127.0.0.1"
 MAIN, READ_ONLY = 1, 2
@@ -94,10 +94,7 @@ class Plant:
         return self.gw.port
 
 
-@pytest.fixture(autouse=True)
-def _forget_simulators() -> Iterator[None]:
-    yield
-    reset_simulators()
+pytestmark = pytest.mark.usefixtures("forget_simulators")
 
 
 def sim_url(**options: Any) -> str:

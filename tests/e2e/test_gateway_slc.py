@@ -23,7 +23,7 @@ import re
 import struct
 import time
 import uuid
-from collections.abc import AsyncIterator, Awaitable, Callable, Iterator, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import urlencode
@@ -35,8 +35,9 @@ from pymodbus.client import AsyncModbusTcpClient
 from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
-from gateway.sim import create_simulator, get_simulator, reset_simulators
+from gateway.sim import create_simulator, get_simulator
 from gateway.sim.serve import serve_tcp
+from tests.net import mbap
 
 HOST = "127.0.0.1"
 MAIN, READ_ONLY, SILENT, LIMITED = 1, 2, 3, 4  # the unit ids of the plant fixture
@@ -181,10 +182,7 @@ class Plant:
         return self.gw.servers[0].counters.requests.get(function_code, 0)
 
 
-@pytest.fixture(autouse=True)
-def _forget_simulators() -> Iterator[None]:
-    yield
-    reset_simulators()
+pytestmark = pytest.mark.usefixtures("forget_simulators")
 
 
 @pytest.fixture(params=["sim", "tcp"])
@@ -307,10 +305,6 @@ def assert_mbpoll_exception(result: MbpollResult, code: int) -> None:
 
 # --------------------------------------------------------------------------------------------
 # Raw MBAP (pipelining)
-
-
-def mbap(tid: int, unit: int, pdu: bytes) -> bytes:
-    return struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu
 
 
 async def read_frame(reader: asyncio.StreamReader) -> tuple[int, int, bytes]:

@@ -6,7 +6,7 @@ import asyncio
 import socket
 import subprocess
 import sys
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
@@ -15,7 +15,6 @@ from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.healthcheck import POLICY_LINK, POLICY_SERVING, check
 from gateway.healthcheck import run_healthcheck as main
-from gateway.sim import reset_simulators
 
 ROOT = Path(__file__).resolve().parents[2]
 HOST = "127.0.0.1"
@@ -40,10 +39,7 @@ retries = 0
 """
 
 
-@pytest.fixture(autouse=True)
-def _forget_simulators() -> Iterator[None]:
-    yield
-    reset_simulators()
+pytestmark = pytest.mark.usefixtures("forget_simulators")
 
 
 @pytest.fixture

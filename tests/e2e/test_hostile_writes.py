@@ -16,7 +16,7 @@ import json
 import logging
 import struct
 import uuid
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from typing import Any
 from urllib.parse import urlencode
 
@@ -27,16 +27,13 @@ from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.kinds.df1.sim.slc500 import Slc500Simulator
 from gateway.kinds.slc_ascii.sim import SlcAsciiSimulator
-from gateway.sim import get_simulator, reset_simulators
+from gateway.sim import get_simulator
 
 HOST = "127.0.0.1"
 ILLEGAL_ADDRESS, DEVICE_FAILURE, SERVER_BUSY, TARGET_FAILED = 0x02, 0x04, 0x06, 0x0B
 
 
-@pytest.fixture(autouse=True)
-def _forget_simulators() -> Iterator[None]:
-    yield
-    reset_simulators()
+pytestmark = pytest.mark.usefixtures("forget_simulators")
 
 
 def slc_url(**options: Any) -> str:

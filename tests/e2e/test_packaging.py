@@ -21,7 +21,6 @@ import re
 import shlex
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -36,6 +35,7 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from gateway.cli import main as cli_main
+from tests.net import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 HOST = "127.0.0.1"
@@ -178,13 +178,6 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Installed:
 
 # --------------------------------------------------------------------------------------------
 # Helpers for running the installed gateway
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind((HOST, 0))
-        port: int = sock.getsockname()[1]
-        return port
 
 
 @dataclass

@@ -17,7 +17,7 @@ import asyncio
 import hashlib
 import logging
 import uuid
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,7 +29,8 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
 from gateway.reload import ConfigSource
-from gateway.sim import get_simulator, reset_simulators
+from gateway.sim import get_simulator
+from tests.waiting import until
 
 PATH_UNAVAILABLE = 0x0A  # Modbus: no such unit behind the gateway
 A, B, C = 1, 2, 3  # unit ids
@@ -93,10 +94,7 @@ class Plant:
         return next(unit for unit in self.gw.units if unit.name == name)
 
 
-@pytest.fixture(autouse=True)
-def _forget_simulators() -> Iterator[None]:
-    yield
-    reset_simulators()
+pytestmark = pytest.mark.usefixtures("forget_simulators")
 
 
 URL_A, URL_B = sim_url(seed=1), sim_url(seed=2, delay=0.2)  # B: every reply 0.2 s late
@@ -125,14 +123,6 @@ async def plant(tmp_path: Path) -> AsyncIterator[Plant]:
             assert gw.servers[0].counters.connections_dropped == 0  # the reader's connection, kept
         finally:
             task.cancel()
-
-
-async def until(predicate: Callable[[], object], within: float = 5.0) -> None:
-    async with asyncio.timeout(within):
-        while True:
-            if predicate():
-                return
-            await asyncio.sleep(0.005)
 
 
 async def ready(client: AsyncModbusTcpClient, unit: int, address: int = 0, count: int = 4) -> list[int]:

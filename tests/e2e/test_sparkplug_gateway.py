@@ -21,7 +21,7 @@ import time
 import urllib.request
 import uuid
 from collections import Counter
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -33,7 +33,7 @@ from mosquitto_support import HOST, Broker, broker, import_host  # noqa: F401 (t
 from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.kinds.df1.sim.slc500 import Slc500Simulator
-from gateway.sim import get_simulator, reset_simulators
+from gateway.sim import get_simulator
 from gateway.sim.serve import close_tcp, serve_tcp
 
 GROUP, NODE = "plant1", "gw1"
@@ -41,10 +41,7 @@ FAULTS = {"corrupt": 10, "drop": 15, "withhold_ack": 10, "duplicate": 10, "noise
 SparkplugHost = import_host()
 
 
-@pytest.fixture(autouse=True)
-def _forget_simulators() -> Iterator[None]:
-    yield
-    reset_simulators()
+pytestmark = pytest.mark.usefixtures("forget_simulators")
 
 
 @dataclass

@@ -35,7 +35,9 @@ from typing import Any
 
 import pytest
 from modbus_support import connect
-from mosquitto_support import HOST, Broker, broker, free_port, import_host  # noqa: F401 (the fixture)
+from mosquitto_support import HOST, Broker, broker, import_host  # noqa: F401 (the fixture)
+
+from tests.net import free_port
 
 GROUP, NODE = "plant1", "saf"
 KEEPALIVE = 5

@@ -14,10 +14,11 @@ import uuid
 from pathlib import Path
 
 import pytest
-from mosquitto_support import HOST, RUN_AS, Broker, free_port, import_host, mosquitto_path
+from mosquitto_support import HOST, RUN_AS, Broker, import_host, mosquitto_path
 
 from gateway.app import Gateway
 from gateway.config import parse_config
+from tests.net import free_port
 
 SparkplugHost = import_host()
 

@@ -20,7 +20,6 @@ import json
 import os
 import re
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -33,6 +32,8 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from tests.cli_support import start_simulator, stop
+from tests.net import free_port
+from tests.waiting import until_sync
 
 ROOT = Path(__file__).resolve().parents[2]
 HOST = "127.0.0.1"
@@ -63,23 +64,9 @@ def browser_or_skip() -> tuple[str, str]:
     return chromium, driver
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind((HOST, 0))
-        port: int = sock.getsockname()[1]
-        return port
-
-
 def wait_for(what: str, check: Callable[[], T | None], within: float) -> T:
     """Poll ``check`` until it returns something; fail naming ``what`` after ``within`` seconds."""
-    end = time.monotonic() + within
-    while True:
-        result = check()
-        if result is not None and result is not False:
-            return result
-        if time.monotonic() > end:
-            pytest.fail(f"{what}: not within {within:g} s")
-        time.sleep(0.1)
+    return until_sync(check, within, step=0.1, what=what)
 
 
 def api(port: int, path: str) -> Any:

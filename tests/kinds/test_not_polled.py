@@ -38,6 +38,7 @@ from gateway.sim.models import SimModel
 from gateway.sim.serve import SimDevice
 from gateway.streams import SerialSettings
 from gateway.unit import Unit, UnitOptions
+from tests.waiting import until
 
 # --- the kind's package --------------------------------------------------------------------------
 
@@ -231,14 +232,6 @@ async def client(feed_kind: LinkKind[FeedLinkConfig]) -> AsyncIterator[tuple[Gat
             modbus.close()
 
 
-async def _until(check: object, what: str) -> None:
-    for _ in range(300):
-        if callable(check) and await check():
-            return
-        await asyncio.sleep(0.01)
-    raise AssertionError(what)
-
-
 async def test_a_kind_that_is_not_polled_is_served_over_modbus(client: tuple[Gateway, AsyncModbusTcpClient]) -> None:
     gw, modbus = client
     peer = get_simulator("sim://feed")
@@ -249,7 +242,7 @@ async def test_a_kind_that_is_not_polled_is_served_over_modbus(client: tuple[Gat
         reply = await modbus.read_holding_registers(3, count=1, device_id=9)
         return not reply.isError() and list(reply.registers) == [333]
 
-    await _until(pushed, "the value the peer set never reached Modbus")
+    await until(pushed, 3.0, step=0.01, what="the value the peer set never reached Modbus")
     first = await modbus.read_holding_registers(0, count=1, device_id=9)
     assert list(first.registers) == [111]
     never = await modbus.read_holding_registers(1, count=1, device_id=9)
@@ -263,7 +256,7 @@ async def test_a_kind_that_is_not_polled_is_served_over_modbus(client: tuple[Gat
     async def answered() -> bool:
         return len(peer.answers) >= 4
 
-    await _until(answered, "the peer's gets were not answered")
+    await until(answered, 3.0, step=0.01, what="the peer's gets were not answered")
     assert peer.answers == [b"K 0", b"K 3", b"V 5 555", b"X 1"]
     peer.silent = True
 
@@ -271,6 +264,6 @@ async def test_a_kind_that_is_not_polled_is_served_over_modbus(client: tuple[Gat
         reply = await modbus.read_holding_registers(0, count=1, device_id=9)
         return reply.isError() and reply.exception_code == 0x0B
 
-    await _until(stale, "values did not go stale after the peer fell silent for stale_after")
+    await until(stale, 3.0, step=0.01, what="values did not go stale after the peer fell silent for stale_after")
     status = await modbus.read_input_registers(1000, count=11, device_id=9)
     assert status.registers[0] == 1 and status.registers[3:5] == [0, 4]  # link up, 4 messages

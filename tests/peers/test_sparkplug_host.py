@@ -44,6 +44,7 @@ from sparkplug_host import (
     make_metric,
     now_ms,
 )
+from tests.net import free_port
 
 MOSQUITTO = "/usr/sbin/mosquitto"
 HOST_PY = Path(__file__).resolve().parent / "sparkplug_host.py"
@@ -53,12 +54,6 @@ WAIT = 5.0
 # ------------------------------------------------------------------------------------------------
 # mosquitto
 # ------------------------------------------------------------------------------------------------
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
 
 @pytest.fixture
 def broker(tmp_path: Path) -> Iterator[int]:
@@ -73,7 +68,7 @@ def broker(tmp_path: Path) -> Iterator[int]:
         if os.environ.get("SLC_GATEWAY_REQUIRE_MOSQUITTO") == "1":
             pytest.fail(f"{reason}, and SLC_GATEWAY_REQUIRE_MOSQUITTO=1")
         pytest.skip(f"{reason}; set SLC_GATEWAY_REQUIRE_MOSQUITTO=1 to fail instead")
-    port = _free_port()
+    port = free_port()
     conf = tmp_path / "mosquitto.conf"
     conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n"
                     f"log_dest file {tmp_path / 'mosquitto.log'}\n")

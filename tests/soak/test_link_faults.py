@@ -20,6 +20,7 @@ from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.line_driver import LineDriver
 from gateway.sim import create_simulator
 from gateway.sim.serve import serve_tcp
+from tests.waiting import until
 
 from .proxy import FaultProxy
 
@@ -51,14 +52,6 @@ def driver_for(line: Line, **options: Any) -> LineDriver:
     if line.sim.__class__.__name__ == "SlcAsciiSimulator":
         return SlcAsciiDriver(line.proxy.url, timeout=0.1, retries=2, **options)
     return Df1Driver(line.proxy.url, timeout=0.2, retries=2, **options)
-
-
-async def until(predicate: Any, within: float = 5.0) -> None:
-    async with asyncio.timeout(within):
-        while True:
-            if predicate():
-                return
-            await asyncio.sleep(0.01)
 
 
 async def test_no_reconnect_storm_when_the_device_server_hangs_up(line: Line) -> None:

@@ -29,7 +29,7 @@ from gateway.protocols.df1.address import FileType
 from gateway.protocols.df1.framing import Checksum
 from gateway.protocols.df1.half_duplex.events import StationConfig
 from gateway.protocols.df1.pccc import ProtectedTypedLogicalRead
-from gateway.sim import get_simulator, open_sim_stream, parse_sim_url, reset_simulators, variants_of
+from gateway.sim import get_simulator, open_sim_stream, parse_sim_url, variants_of
 from gateway.sim.models import sim_models
 from gateway.sim.serve import serve_tcp
 from gateway.streams import SerialSettings
@@ -37,10 +37,7 @@ from gateway.streams import SerialSettings
 LINE_URL = "sim://df1line?stations=1,2,3,4&dead=4&corrupt=6&ignore=10&checksum=bcc&ladder=0"
 
 
-@pytest.fixture(autouse=True)
-def _forget_simulators() -> Iterator[None]:
-    yield
-    reset_simulators()
+pytestmark = pytest.mark.usefixtures("forget_simulators")
 
 
 def test_the_df1_kind_lists_both_models() -> None:

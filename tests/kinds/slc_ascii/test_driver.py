@@ -58,6 +58,7 @@ async def quiet() -> AsyncIterator[tuple[SlcAsciiDriver, SlcAsciiSimulator]]:
 # THE acceptance test
 
 
+@pytest.mark.looptime
 async def test_heavy_fault_injection_gives_correct_values_and_exactly_once_writes() -> None:
     await heavy_fault_run(fault_seed=1, op_seed=20240501)
 
@@ -185,6 +186,7 @@ async def test_replies_later_than_the_timeout_never_apply_a_write_twice() -> Non
     assert sim.counters.power_cycles > 3
 
 
+@pytest.mark.looptime
 async def test_non_idempotent_upload_survives_lost_and_garbled_replies() -> None:
     # #0100 moves the controller to the next block: a lost reply must be fetched with ;Z, never resent.
     url = "sim://slc150?garble=4&drop=6&seed=3&ladder=0"
@@ -221,6 +223,7 @@ async def _write_through_power_cycles(url: str, values: range) -> tuple[SlcAscii
     return driver, acknowledged, unknown
 
 
+@pytest.mark.looptime
 async def test_a_write_meeting_a_power_cycle_is_unknown_and_the_next_command_resyncs_with_id_00() -> None:
     # The controller power-cycles before every 4th command frame and answers it ;I00.  That ;I00
     # cannot tell a write that never ran from one whose copy ran before the power cycle (the line's
@@ -240,6 +243,7 @@ async def test_a_write_meeting_a_power_cycle_is_unknown_and_the_next_command_res
     assert sim.counters.id_mismatches == 2 * len(unknown)  # the first copy and the second
 
 
+@pytest.mark.looptime
 async def test_id_resyncs_count_resyncs_not_id_mismatch_replies() -> None:
     # Under the retained reading a write after a power cycle meets ;I twice (its first copy and
     # its second, both with the previous ID: no proof either way), ends unknown, and the command
@@ -316,6 +320,7 @@ async def test_counters_on_a_clean_line(quiet: tuple[SlcAsciiDriver, SlcAsciiSim
     assert c.reconnects == 0
 
 
+@pytest.mark.looptime
 async def test_counters_follow_dropped_and_garbled_replies() -> None:
     url = "sim://slc150?drop=4&garble=4&seed=11&ladder=0"
     sim = simulator(url)
@@ -522,6 +527,7 @@ async def test_start_fails_with_link_down_when_nothing_listens() -> None:
 # Program transfer across power cycles (issue 9): restart from block 0 within a bound
 
 
+@pytest.mark.looptime
 @pytest.mark.parametrize("pointer", ["restart", "keep"])
 async def test_upload_and_download_survive_a_power_cycle_midway(pointer: str) -> None:
     url = f"sim://slc150?power_cycle_every=200&ladder=0&variant=transfer_after_power_up={pointer}"
@@ -542,6 +548,7 @@ async def test_upload_and_download_survive_a_power_cycle_midway(pointer: str) ->
     assert [w for w in sim.applied_writes if w[0] == "program"] == [("program", 0, len(program))]
 
 
+@pytest.mark.looptime
 async def test_a_download_that_cannot_complete_names_the_block() -> None:
     url = "sim://slc150?power_cycle_every=60&ladder=0"
     sim = simulator(url)
@@ -568,6 +575,7 @@ def test_line_quality_of_a_new_link_is_all_zero_and_has_no_naks() -> None:
     assert driver.line_quality() == LineQuality(check_errors=0, timeouts=0, naks=None, retransmits=0, resyncs=0)
 
 
+@pytest.mark.looptime
 async def test_line_quality_counts_each_silent_wait_and_each_z() -> None:
     url = "sim://slc150?ladder=0"
     sim = simulator(url)
@@ -595,6 +603,7 @@ async def test_line_quality_counts_replies_with_a_bad_checksum() -> None:
     assert quality.retransmits is not None and quality.retransmits >= 1  # a bad reply is asked for again
 
 
+@pytest.mark.looptime
 async def test_line_quality_counts_the_id_resyncs_after_the_first() -> None:
     # as test_a_write_meeting_a_power_cycle_is_unknown_and_the_next_command_resyncs_with_id_00:
     # one resync after each unknown write that another command followed
@@ -744,6 +753,7 @@ async def test_a_port_with_its_own_parity_sends_the_characters_as_they_are(tmp_p
     assert not any(byte & 0x80 for byte in sent)
 
 
+@pytest.mark.looptime
 async def test_a_mode_change_gets_the_slow_reply_time() -> None:
     # "The exceptions are edit commands and mode changes": a mode change answered after the
     # normal reply time but within the slow one is no timeout
@@ -759,6 +769,7 @@ async def test_a_mode_change_gets_the_slow_reply_time() -> None:
     assert [w[2] for w in sim.applied_writes if w[0] == "mode"] == [Mode.PROGRAM]
 
 
+@pytest.mark.looptime
 async def test_a_write_budget_asks_again_until_it_is_spent() -> None:
     # write_budget: ;Z while a further wait fits in it, in place of the retries count
     url = "sim://slc150?ladder=0"
@@ -832,6 +843,7 @@ async def test_max_resyncs_bounds_the_id_00_resyncs_of_a_read() -> None:
     assert sim.counters.retransmits == 1
 
 
+@pytest.mark.looptime
 async def test_the_characters_time_on_the_line_is_added_to_the_reply_time() -> None:
     # docs/reference/config.md, timeout: "the characters' time on the line at baudrate is added".
     # 600 baud 7E1: 10 bits, 16.7 ms a character.  A read (#05...: 18 characters) answered 0.4 s
@@ -848,6 +860,7 @@ async def test_the_characters_time_on_the_line_is_added_to_the_reply_time() -> N
         assert driver.counters.retries == 0
 
 
+@pytest.mark.looptime
 async def test_the_wait_follows_the_reply_times_seen_on_a_paced_line() -> None:
     # The core's rule (gateway/protocols/slc_ascii/sender.py): after 8 replies the wait for a
     # command of the normal reply time is 2 x the slowest reply seen (at least 0.05 s), at most
@@ -868,6 +881,7 @@ async def test_the_wait_follows_the_reply_times_seen_on_a_paced_line() -> None:
         assert driver.counters.timeouts >= 1
 
 
+@pytest.mark.looptime
 async def test_each_commands_reply_time_adds_the_characters_of_its_frame_and_of_the_longest_reply(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

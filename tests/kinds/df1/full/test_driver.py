@@ -19,7 +19,7 @@ import struct
 import time
 import uuid
 from collections import Counter
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -45,7 +45,7 @@ from gateway.protocols.df1.pccc import (
     Request,
     WordRangeRead,
 )
-from gateway.sim import create_simulator, get_simulator, reset_simulators
+from gateway.sim import create_simulator, get_simulator
 from gateway.sim.serve import SimStream, close_tcp, serve_tcp
 from gateway.sim.variants import variant_matrix
 from gateway.streams import SerialSettings
@@ -55,10 +55,7 @@ N, F, B = FileType.INTEGER, FileType.FLOAT, FileType.BIT
 _seeds = itertools.count(1000)
 
 
-@pytest.fixture(autouse=True)
-def _forget_simulators() -> Iterator[None]:
-    yield
-    reset_simulators()
+pytestmark = pytest.mark.usefixtures("forget_simulators")
 
 
 @dataclass

@@ -59,6 +59,7 @@ def link_lines(caplog: pytest.LogCaptureFixture, name: str) -> list[str]:
     return [r.getMessage() for r in caplog.records if r.name == "gateway.link" and f"link {name}:" in r.getMessage()]
 
 
+@pytest.mark.looptime
 async def test_a_station_goes_down_after_n_failures_in_a_row_not_one(caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.INFO, "gateway.link")
     sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1, 2)))
@@ -92,6 +93,7 @@ async def test_a_station_goes_down_after_n_failures_in_a_row_not_one(caplog: pyt
     assert s1.state_changes == 1
 
 
+@pytest.mark.looptime
 async def test_a_lost_port_makes_every_station_down_at_once(caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.INFO, "gateway.link")
     sim = MultidropLine(LineOptions(checksum=Checksum.BCC, stations=(1, 2)))

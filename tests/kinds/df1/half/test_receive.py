@@ -10,7 +10,6 @@ MSG writes, SCADA reading the ranges over Modbus TCP.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -25,13 +24,9 @@ from gateway.kinds.df1.sim.df1_multidrop import MultidropLine
 from gateway.modbus.mapping import Table
 from gateway.protocols.df1.half_duplex.slave_messages import RegisterTable, SlaveWrite
 from gateway.protocols.df1.pccc import LogicalBinaryAddress, WordRangeWrite, encode_command
-from gateway.sim import get_simulator, reset_simulators
+from gateway.sim import get_simulator
 
-
-@pytest.fixture(autouse=True)
-def _forget_simulators() -> Iterator[None]:
-    yield
-    reset_simulators()
+pytestmark = pytest.mark.usefixtures("forget_simulators")
 
 
 # --- config ----------------------------------------------------------------------------------

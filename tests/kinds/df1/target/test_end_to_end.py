@@ -3,7 +3,6 @@ the values checked over Modbus and back, under frame corruption, lost ACKs and N
 
 from __future__ import annotations
 
-import asyncio
 import struct
 from collections import Counter
 from collections.abc import AsyncIterator, Callable
@@ -20,6 +19,7 @@ from gateway.kinds.df1.sim.plc_msg import PlcMsgSimulator
 from gateway.kinds.df1.target.build import build_target
 from gateway.kinds.df1.target.unit import TargetUnit
 from gateway.sim import get_simulator, reset_simulators
+from tests.waiting import until
 
 FILES = """
 [[link.file]]
@@ -83,19 +83,11 @@ async def target() -> AsyncIterator[tuple[Gateway, AsyncModbusTcpClient, PlcMsgS
         reset_simulators()
 
 
-async def _until(check: Callable[[], bool], what: str, seconds: float = 20.0) -> None:
-    for _ in range(int(seconds / 0.01)):
-        if check():
-            return
-        await asyncio.sleep(0.01)
-    raise AssertionError(f"no {what} within {seconds:g} s")
-
-
 async def test_msgs_complete_under_faults_and_none_runs_twice(
     target: tuple[Gateway, AsyncModbusTcpClient, PlcMsgSimulator, Counter[int]],
 ) -> None:
     gw, modbus, plc, runs = target
-    await _until(lambda: plc.counters.done >= 150, "150 MSGs")
+    await until(lambda: plc.counters.done >= 150, 20.0, step=0.01, what="150 MSGs")
     faults = plc.counters.faults
     assert faults["corrupt"] and faults["lose_ack"] and faults["nak_reply"] and faults["duplicate"], faults
     assert plc.counters.failed == 0 and plc.counters.refused == 0, list(plc.log)[-5:]
@@ -125,15 +117,17 @@ async def test_a_modbus_write_is_what_the_plcs_next_read_gets(
     assert list((await modbus.read_holding_registers(10, count=10, device_id=5)).registers) == setpoints
     expected = b"".join(v.to_bytes(2, "little") for v in setpoints)
     plc.replies.clear()
-    await _until(lambda: plc.replies.get("SLC typed logical read N7:10-19") == expected, "the PLC's read")
-    await _until(lambda: plc.replies.get("PLC-5 word range read N7:10-14") == expected[:10], "the PLC-5 read")
+    await until(lambda: plc.replies.get("SLC typed logical read N7:10-19") == expected, 20.0, step=0.01,
+                what="the PLC's read")
+    await until(lambda: plc.replies.get("PLC-5 word range read N7:10-14") == expected[:10], 20.0, step=0.01,
+                what="the PLC-5 read")
 
 
 async def test_status_block_shows_the_plc_side(
     target: tuple[Gateway, AsyncModbusTcpClient, PlcMsgSimulator, Counter[int]],
 ) -> None:
     gw, modbus, plc, _runs = target
-    await _until(lambda: plc.counters.done >= 20, "20 MSGs")
+    await until(lambda: plc.counters.done >= 20, 20.0, step=0.01, what="20 MSGs")
     status = await modbus.read_input_registers(1000, count=11, device_id=5)
     link_up, age, last_sts = status.registers[0:3]
     messages = status.registers[3] << 16 | status.registers[4]
@@ -173,7 +167,7 @@ async def test_persist_brings_the_table_back_with_its_write_times(tmp_path: Path
     text = config("sim://plc-msg?every=0.005&cycle=0.01", f'persist = "{tmp_path / "plc.db"}"')
     async with Gateway(parse_config(text)) as gw:
         plc = get_simulator("sim://plc-msg?every=0.005&cycle=0.01")
-        await _until(lambda: plc.counters.done >= 30, "30 MSGs")
+        await until(lambda: plc.counters.done >= 30, 20.0, step=0.01, what="30 MSGs")
         modbus = AsyncModbusTcpClient("127.0.0.1", port=gw.port)
         await modbus.connect()
         assert not (await modbus.write_registers(50, [4242, 4343], device_id=5)).isError()
