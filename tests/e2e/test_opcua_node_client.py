@@ -15,7 +15,6 @@ import json
 import os
 import shutil
 from collections import Counter
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -27,17 +26,14 @@ from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.modbus.mapping import Table
 from gateway.opcua.certs import ensure_certificate
-from gateway.sim import reset_simulators
 from gateway.unit import Source
-from tests.opcua.plant import Line, free_port, link_text, opcua_text
+from tests.net import free_port
+from tests.opcua.plant import Line, link_text, opcua_text
 
 CLIENT_DIR = Path(__file__).parent / "opcua_client"
 
 
-@pytest.fixture(autouse=True)
-def _forget_simulators() -> Iterator[None]:
-    yield
-    reset_simulators()
+pytestmark = pytest.mark.usefixtures("forget_simulators")
 
 
 def node_client() -> str:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import socket
 import uuid
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -57,13 +56,6 @@ class Line:
     @property
     def url(self) -> str:
         return f"socket://{HOST}:{self.port}"
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind((HOST, 0))
-        port: int = probe.getsockname()[1]
-        return port
 
 
 def link_text(name: str, unit: int, line: Line, **keys: Any) -> str:

@@ -15,7 +15,8 @@ from gateway.config import parse_config
 from gateway.errors import ConfigError
 from gateway.opcua.passwords import verify_password
 from gateway.sim import reset_simulators
-from tests.opcua.plant import Line, free_port, link_text, opcua_text
+from tests.net import free_port
+from tests.opcua.plant import Line, link_text, opcua_text
 
 LINK = ('[[link]]\nname = "press"\nprotocol = "df1"\nport = "sim://slc504"\nunit = 1\n'
         '[[link.map]]\ntable = "holding"\nstart = 0\naddress = "N7:0"\ncount = 4\n')

@@ -11,7 +11,7 @@ import dataclasses
 import shutil
 import struct
 from collections import Counter
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -24,17 +24,14 @@ from gateway.config import parse_config
 from gateway.modbus.mapping import Table
 from gateway.opcua.certs import ensure_certificate
 from gateway.opcua.points import point_value
-from gateway.sim import reset_simulators
 from gateway.unit import Source
-from tests.opcua.plant import USERS, Line, eventually, free_port, link_text, opcua_text
+from tests.net import free_port
+from tests.opcua.plant import USERS, Line, eventually, link_text, opcua_text
 
 DEMO = (Path(__file__).resolve().parents[2] / "config" / "demo.toml").read_text(encoding="utf-8")
 
 
-@pytest.fixture(autouse=True)
-def _forget_simulators() -> Iterator[None]:
-    yield
-    reset_simulators()
+pytestmark = pytest.mark.usefixtures("forget_simulators")
 
 
 @pytest.fixture
