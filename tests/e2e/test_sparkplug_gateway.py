@@ -25,16 +25,13 @@ from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
-from urllib.parse import urlencode
 
 import pytest
 from mosquitto_support import HOST, Broker, broker, import_host  # noqa: F401 (the fixture)
 
 from gateway.app import Gateway
 from gateway.config import parse_config
-from gateway.kinds.df1.sim.slc500 import Slc500Simulator
-from gateway.sim import get_simulator
-from gateway.sim.serve import close_tcp, serve_tcp
+from tests.switched_line import Line
 
 GROUP, NODE = "plant1", "gw1"
 FAULTS = {"corrupt": 10, "drop": 15, "withhold_ack": 10, "duplicate": 10, "noise": 10}
@@ -42,37 +39,6 @@ SparkplugHost = import_host()
 
 
 pytestmark = pytest.mark.usefixtures("forget_simulators")
-
-
-@dataclass
-class Line:
-    """A simulated SLC 5/04 behind a TCP port that can be switched off and on."""
-
-    sim: Slc500Simulator
-    port: int = 0
-    server: asyncio.Server | None = None
-
-    @classmethod
-    async def start(cls, **options: Any) -> Line:
-        url = "sim://slc504?" + urlencode({"ladder": "0", **options, "instance": uuid.uuid4().hex})
-        sim = get_simulator(url)
-        assert isinstance(sim, Slc500Simulator)
-        line = cls(sim)
-        await line.on()
-        return line
-
-    async def on(self) -> None:
-        self.server = await serve_tcp(self.sim, HOST, self.port)
-        self.port = self.server.sockets[0].getsockname()[1]
-
-    async def off(self) -> None:
-        if self.server is not None:
-            await close_tcp(self.server)
-            self.server = None
-
-    @property
-    def url(self) -> str:
-        return f"socket://{HOST}:{self.port}"
 
 
 def link_text(name: str, unit: int, line: Line, **keys: Any) -> str:
