@@ -23,6 +23,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -549,3 +550,10 @@ async def run_bare_host(port: int, df1: bool, warmup: float, duration: float) ->
     end = time.perf_counter()
     transport.close()
     return host.window(start, end)
+
+
+def fetch(port: int, path: str) -> str:
+    """The text of ``http://127.0.0.1:<port><path>`` (the gateway's /metrics or /api/status)."""
+    with urllib.request.urlopen(f"http://{HOST}:{port}{path}", timeout=5) as reply:
+        text: str = reply.read().decode()
+        return text

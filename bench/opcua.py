@@ -40,10 +40,9 @@ import subprocess
 import sys
 import tempfile
 import time
-import urllib.request
 from pathlib import Path
 
-from _benchlib import HOST, PYTHON, REPO, SimFarm, df1_link, gateway_config, print_machine, result, table
+from _benchlib import HOST, PYTHON, REPO, SimFarm, df1_link, fetch, gateway_config, print_machine, result, table
 from modbus_serving import free_port, process_cpu, run_load, wait_status
 
 LINKS = 64
@@ -165,12 +164,6 @@ class Subscriber:
                 self.process.kill()
                 self.process.wait()
             self.process = None
-
-
-def fetch(port: int, path: str) -> str:
-    with urllib.request.urlopen(f"http://{HOST}:{port}{path}", timeout=5) as reply:
-        text: str = reply.read().decode()
-        return text
 
 
 def server_figures(metrics_port: int) -> tuple[float, float, float]:

@@ -48,7 +48,6 @@ import sys
 import tempfile
 import threading
 import time
-import urllib.request
 from pathlib import Path
 
 from _benchlib import (
@@ -59,6 +58,7 @@ from _benchlib import (
     Broker,
     SimFarm,
     df1_link,
+    fetch,
     gateway_config,
     mosquitto_path,
     mosquitto_required,
@@ -113,12 +113,6 @@ class Subscriber(threading.Thread):
                         self.count += 1
             except aiomqtt.MqttError:
                 await asyncio.sleep(0.1)  # the broker is stopped between windows
-
-
-def fetch(port: int, path: str) -> str:
-    with urllib.request.urlopen(f"http://{HOST}:{port}{path}", timeout=5) as reply:
-        text: str = reply.read().decode()
-        return text
 
 
 def node_figures(metrics_port: int) -> tuple[float, float, float]:
