@@ -70,14 +70,18 @@ class Routes:
     def __init__(self) -> None:
         self._exact: dict[str, Handler] = {}
         self._patterns: list[tuple[re.Pattern[str], Handler]] = []
+        #: the paths as the start-up log line names them (a pattern by its label)
+        self._names: list[str] = []
 
-    def add(self, path: str | re.Pattern[str], handler: Handler) -> None:
+    def add(self, path: str | re.Pattern[str], handler: Handler, label: str = "") -> None:
+        """``handler`` answers ``path`` (a pattern: every path it matches whole, named ``label``)."""
         if isinstance(path, str):
             if path in self._exact:
                 raise ValueError(f"{path} has a handler already")
             self._exact[path] = handler
         else:
             self._patterns.append((path, handler))
+        self._names.append(label or (path if isinstance(path, str) else path.pattern))
 
     def find(self, path: str) -> Handler | None:
         handler = self._exact.get(path)
@@ -87,7 +91,7 @@ class Routes:
 
     def described(self) -> str:
         """The paths served, for the start-up log line."""
-        return ", ".join([*self._exact, *(p.pattern for p, _ in self._patterns)])
+        return ", ".join(self._names)
 
 
 class HttpServer:

@@ -155,7 +155,7 @@ class StatusPage:
         """Its paths in the HTTP listener's table (``gateway.http``): the page's files and the API."""
         for path in (*_FILES, "/api/status"):
             routes.add(path, self.route)
-        routes.add(_UNIT_PATH, self.route)
+        routes.add(_UNIT_PATH, self.route, label="/api/units/{unit}/{table}")
 
     def route(self, path: str, query: str) -> Response:
         """The response to a GET of ``path`` (one of those :meth:`add_routes` gave the listener)."""
