@@ -284,8 +284,13 @@ async def test_every_value_change_of_an_outage_reaches_the_host(broker: Broker, 
             proxy.close_all()
             broker.stop()
             if outage == "sigkill":
+                before = sum(len(values) for values in writer.written.values())
                 await writer.write_for(OUTAGE / 2)
-                await store_settled(http)  # committed (one batch: 0.25 s; what is not yet may be lost)
+                written = sum(len(values) for values in writer.written.values()) - before
+                # committed (one batch, 0.25 s, is what a SIGKILL may lose; on a loaded machine a batch
+                # comes later): every change of the outage so far in the store, and nothing more coming
+                await store_until(http, lambda store: store["messages"] >= written)
+                await store_settled(http)
                 process.send_signal(signal.SIGKILL)
                 process.wait(5)
                 process = start(path)
@@ -333,8 +338,8 @@ async def test_a_full_store_drops_the_oldest_says_so_and_live_data_goes_on(broke
                     reply = await client.write_registers(0, [(k * 40 + i) % 30000 for i in range(40)],
                                                          device_id=unit)
                     assert not reply.isError(), reply
-        store = await store_until(http, lambda store: store["dropped"] > 0)
-        assert store["bytes"] <= 0.03e6, store
+        # dropped, and back within store_max_mb (read while a commit trims, the store can be over it)
+        await store_until(http, lambda store: store["dropped"] > 0 and store["bytes"] <= 0.03e6)
         broker.start()
         async with host_on(broker.port) as second:
             proxy.mode = "pass"
