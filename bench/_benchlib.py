@@ -24,7 +24,7 @@ import subprocess
 import sys
 import time
 import urllib.request
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -557,3 +557,12 @@ def fetch(port: int, path: str) -> str:
     with urllib.request.urlopen(f"http://{HOST}:{port}{path}", timeout=5) as reply:
         text: str = reply.read().decode()
         return text
+
+
+def wait_for(predicate: Callable[[], object], timeout: float, what: str, step: float = 0.2) -> None:
+    """Poll ``predicate`` every ``step`` seconds until it holds; exit the bench naming ``what`` after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise SystemExit(f"{what} did not reach the expected state in time")
+        time.sleep(step)

@@ -42,7 +42,19 @@ import tempfile
 import time
 from pathlib import Path
 
-from _benchlib import HOST, PYTHON, REPO, SimFarm, df1_link, fetch, gateway_config, print_machine, result, table
+from _benchlib import (
+    HOST,
+    PYTHON,
+    REPO,
+    SimFarm,
+    df1_link,
+    fetch,
+    gateway_config,
+    print_machine,
+    result,
+    table,
+    wait_for,
+)
 from modbus_serving import free_port, process_cpu, run_load, wait_status
 
 LINKS = 64
@@ -187,13 +199,6 @@ def listening(port: int) -> bool:
         return False
 
 
-def wait_for(predicate: object, timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():  # type: ignore[operator]
-        if time.monotonic() > deadline:
-            raise SystemExit("the server did not reach the expected state in time")
-        time.sleep(0.2)
-
 
 def measure(port: int, pid: int, metrics_port: int, subscriber: Subscriber, connections: int, duration: float,
             warmup: float, rate: float) -> dict[str, float]:
@@ -284,15 +289,16 @@ def main() -> None:
         subscriber = Subscriber(f"opc.tcp://{HOST}:{ua_port}", links)
         try:
             wait_status(port, 60)
-            wait_for(lambda: listening(ua_port), 120)  # the address space is built after the Modbus listener
+            # the address space is built after the Modbus listener
+            wait_for(lambda: listening(ua_port), 120, "the server")
             for r in range(rounds):
                 for mode in (("off", "on") if r % 2 == 0 else ("on", "off")):
                     if mode == "on" and subscriber.process is None:
                         subscribe_seconds.append(subscriber.start())
-                        wait_for(lambda: server_figures(metrics_port)[2] == links * len(TAGS), 60)
+                        wait_for(lambda: server_figures(metrics_port)[2] == links * len(TAGS), 60, "the server")
                     elif mode == "off":
                         subscriber.stop()
-                        wait_for(lambda: server_figures(metrics_port)[2] == 0, 60)
+                        wait_for(lambda: server_figures(metrics_port)[2] == 0, 60, "the server")
                     time.sleep(1.5)
                     for load, rate in loads.items():
                         rows[load][mode].append(measure(port, gateway.pid, metrics_port, subscriber,

@@ -65,6 +65,7 @@ from _benchlib import (
     print_machine,
     result,
     table,
+    wait_for,
 )
 from modbus_serving import free_port, process_cpu, run_load, wait_status
 
@@ -132,13 +133,6 @@ def node_state(metrics_port: int) -> dict[str, object]:
     return state
 
 
-def wait_for(predicate: object, timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():  # type: ignore[operator]
-        if time.monotonic() > deadline:
-            raise SystemExit("the edge node did not reach the expected state in time")
-        time.sleep(0.1)
-
 
 def config(farm: SimFarm, links: int, port: int, metrics_port: int, broker_port: int, state: Path) -> str:
     text = gateway_config([df1_link(f"plc{i:02d}", url, i + 1, DF1_MAP, baudrate=19200, timeout=0.3)
@@ -154,10 +148,10 @@ def prepare(mode: str, metrics_port: int, broker: Broker, links: int) -> None:
     if mode == "on":
         broker.start()
         wait_for(lambda: node_state(metrics_port)["state"] == "online"
-                 and node_state(metrics_port)["devices_online"] == links, 30)
+                 and node_state(metrics_port)["devices_online"] == links, 30, "the edge node", step=0.1)
     else:
         broker.stop()
-        wait_for(lambda: node_state(metrics_port)["state"] == "disconnected", 10)
+        wait_for(lambda: node_state(metrics_port)["state"] == "disconnected", 10, "the edge node", step=0.1)
     time.sleep(0.5)
 
 

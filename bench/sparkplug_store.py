@@ -35,9 +35,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from _benchlib import HOST, PYTHON, REPO, SimFarm, percentile, print_machine, result, table
+from _benchlib import HOST, PYTHON, REPO, SimFarm, percentile, print_machine, result, table, wait_for
 from modbus_serving import free_port
-from sparkplug_publishing import Broker, config, mosquitto, node_state, wait_for
+from sparkplug_publishing import Broker, config, mosquitto, node_state
 
 from gateway.sparkplug.history import Change
 from gateway.sparkplug.payload import decode
@@ -160,7 +160,8 @@ def replay_part(links: int, outage: float, baseline: float) -> None:
         gateway = subprocess.Popen([PYTHON, "-m", "gateway", "run", str(path)], cwd=REPO, stdout=subprocess.DEVNULL,
                                    stderr=subprocess.DEVNULL)
         try:
-            wait_for(lambda: _quiet(lambda: node_state(metrics_port)["state"] == "online"), 60)
+            wait_for(lambda: _quiet(lambda: node_state(metrics_port)["state"] == "online"), 60, "the edge node",
+                     step=0.1)
             time.sleep(3)
             start = time.time()
             time.sleep(baseline)
@@ -170,9 +171,11 @@ def replay_part(links: int, outage: float, baseline: float) -> None:
             stored = node_state(metrics_port)["store"]
             broker.start()
             replay_start = time.time()
-            wait_for(lambda: _quiet(lambda: node_state(metrics_port)["state"] == "online"), 60)
+            wait_for(lambda: _quiet(lambda: node_state(metrics_port)["state"] == "online"), 60, "the edge node",
+                     step=0.1)
             wait_for(lambda: _quiet(lambda: node_state(metrics_port)["store"]["messages"] == 0
-                                    and node_state(metrics_port)["store"]["replayed"] > 0), 600)
+                                    and node_state(metrics_port)["store"]["replayed"] > 0), 600, "the edge node",
+                     step=0.1)
             replay_end = time.time()
             during = latency(subscriber.live, replay_start + 1, replay_end)
             messages = sum(1 for at, _ in subscriber.historical if replay_start <= at <= replay_end)

@@ -34,11 +34,12 @@ def start_simulator(*args: str) -> tuple[subprocess.Popen[str], str]:
     return process, line
 
 
-def stop(process: subprocess.Popen[str]) -> None:
+def stop(process: subprocess.Popen[Any], wait: float = 5.0) -> None:
+    """SIGTERM, ``wait`` seconds for a clean exit, then SIGKILL; the process's pipes closed."""
     if process.poll() is None:
         process.terminate()
         try:
-            process.wait(timeout=5)
+            process.wait(timeout=wait)
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait(timeout=5)

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from cli_support import stop
 from mosquitto_support import HOST, Broker, broker, import_host  # noqa: F401 (the fixture)
 
 GROUP, NODE = "plant1", "killed"
@@ -100,12 +101,7 @@ async def test_sigkill_gives_the_will_ndeath_within_the_keepalive(broker: Broker
         try:
             again = await born(host, process, path, since=ndeath.index)
         finally:
-            process.send_signal(signal.SIGTERM)
-            try:
-                process.wait(10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+            stop(process, wait=10)
         # the next bdSeq (§5.4), counted on from the state file the killed process left (a fresh start
         # would begin at 0 again): the restarted process's first CONNECT is its session
         assert again.metric("bdSeq").value == (nbirth.metric("bdSeq").value + 1) % 256

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from cli_support import stop
 from modbus_support import connect
 from mosquitto_support import HOST, Broker, broker, import_host  # noqa: F401 (the fixture)
 
@@ -116,16 +117,6 @@ def start(path: Path) -> subprocess.Popen[bytes]:
                                stderr=log, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     log.close()
     return process
-
-
-def stop(process: subprocess.Popen[bytes]) -> None:
-    if process.poll() is None:
-        process.send_signal(signal.SIGTERM)
-        try:
-            process.wait(10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
 
 
 def fetch(http: int, path: str) -> bytes:
@@ -314,7 +305,7 @@ async def test_every_value_change_of_an_outage_reaches_the_host(broker: Broker, 
         store = (await api_status(http))["sparkplug"]["store"]
         assert store["failed"] is None and store["replayed"] > 0 and store["dropped"] == 0
     finally:
-        stop(process)
+        stop(process, wait=10)
         await proxy.stop()
 
 
@@ -354,5 +345,5 @@ async def test_a_full_store_drops_the_oldest_says_so_and_live_data_goes_on(broke
         metrics = (await asyncio.to_thread(fetch, http, "/metrics")).decode()
         assert "slc_gateway_sparkplug_store_dropped_total" in metrics
     finally:
-        stop(process)
+        stop(process, wait=10)
         await proxy.stop()
