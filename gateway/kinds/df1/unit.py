@@ -7,7 +7,9 @@ problem answers 0x02, another refusal 0x04, no answer 0x0B.
 
 When a write's frame may have reached the controller but its reply never came, the driver's
 transaction core (``gateway.protocols.df1.full_duplex.transaction``) reads the target back: if it holds
-what was written the write succeeded, otherwise SCADA gets 0x0B.  A write is never sent twice.
+what was written the write succeeded, otherwise SCADA gets 0x0B.  A write is sent again only where
+the read-back proved it was not applied (:meth:`PcccUnit.proves_not_applied`, the one rule for the
+SLC 500 and the PLC-5), so it is still applied at most once.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from gateway.kinds.df1.full.driver import Df1Driver, check_reply_size
 from gateway.kinds.df1.half.receive import ReceiveWindow
 from gateway.kinds.df1.plan import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, shared_plan_df1
 from gateway.line_driver import UnitDriver
-from gateway.modbus.mapping import BitPoint, Block, Half, Plan, RegisterPoint, Table, WordWrite
+from gateway.modbus.mapping import BitPoint, BitWrite, Block, Half, Plan, RegisterPoint, Table, WordWrite
 from gateway.protocols.df1.address import FileType, SlcAddress
 from gateway.protocols.df1.pccc import (
     PcccError,
@@ -116,6 +118,55 @@ class PcccUnit(Unit[R, B]):
     def last_fault_number(self) -> int:
         return self.driver.last_sts
 
+    def proves_not_applied(self, step: WriteStep, shown: bytes) -> bool:
+        """Whether ``shown``, what a read-back after the step's write gave (the words the write names:
+        ``gateway.protocols.df1.write_verdict.read_back_for``), proves the write was not applied: it shows
+        the value the image held before the write (issue 43, item 6b).  The one rule, SLC 500 and PLC-5:
+
+        * full duplex only: the controller runs commands in order, so the read-back ran after the write.
+          On half duplex the slave may still hold the write in its queue: never a proof;
+        * only points the image has read (it holds a value from before);
+        * a word write (typed logical write, PLC-5 word range write, several words in one): the bytes
+          read back equal those the image held, and differ from those written;
+        * a bit write (masked write, PLC-5 read-modify-write): one command changes all its bits or none,
+          so the written bits of the word read back all hold their value from before and one of them
+          differs from the value written; the word's other bits are the ladder's and are not compared.
+        """
+        if not isinstance(self.driver, Df1Driver):
+            return False  # half duplex
+        stamps = self.cache.stamps
+        points: list[RegisterPoint[R] | BitPoint[B]] = [point for point, _ in step.patches]
+        points += [bit for bit, _ in step.bit_patches]
+        if not points or any(math.isinf(stamps[p.block]) for p in points):
+            return False
+        return self._bits_show_before(step, shown) if step.bit_patches else self._words_show_before(step, shown)
+
+    def _words_show_before(self, step: WriteStep, shown: bytes) -> bool:
+        """Whether the words read back are those the image held before the write, not those written."""
+        data = self.cache.data
+        held: list[tuple[RegisterPoint[R], int]] = []
+        for point, _ in step.patches:
+            lsb, msb = point.offset + point.codec.lsb, point.codec.msb
+            block = data[point.block]
+            held.append((point, block[lsb] if msb is None else block[point.offset + msb] << 8 | block[lsb]))
+        written = _step_bytes(step)
+        before = _step_bytes(WriteStep(step.first, step.last, step.run, held))
+        return shown == before and before != written
+
+    def _bits_show_before(self, step: WriteStep, shown: bytes) -> bool:
+        """Whether the written bits of the word read back all hold the image's value from before the write,
+        and one of them differs from the value written."""
+        word, changed = int.from_bytes(shown, "little"), False
+        for bit, on in step.bit_patches:
+            target = bit.write
+            if len(shown) != 2 or not isinstance(target, BitWrite):
+                return False
+            was = bool(self.cache.data[bit.block][bit.offset] >> bit.bit & 1)
+            if bool(word >> target.bit & 1) != was:
+                return False
+            changed |= was != on
+        return changed
+
 
 class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):
     """An SLC 500 (or a PLC-5 that accepts SLC commands) with typed logical reads and writes."""
@@ -196,33 +247,6 @@ class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):
             return False
         limit = self.max_write_bytes - 2 * _expanded_fields(first.address)
         return sum(len(_step_bytes(step)) for step in group) + size <= limit
-
-    def proves_not_applied(self, step: WriteStep, shown: bytes) -> bool:
-        """A read-back after the step's write (full duplex: commands run in order, so it ran after the write)
-        that shows the value the image held before the write proves the write was not applied (issue 43,
-        item 6b).  Only where every point of the step has been read (the image holds a value from before)."""
-        if not isinstance(self.driver, Df1Driver):
-            return False  # half duplex: the slave may still hold the write in its queue
-        stamps, data = self.cache.stamps, self.cache.data
-        if step.bit_patches:
-            word, changed = int.from_bytes(shown, "little"), False
-            for bit, on in step.bit_patches:
-                if math.isinf(stamps[bit.block]) or bit.write is None:
-                    return False
-                was = bool(data[bit.block][bit.offset] >> bit.bit & 1)
-                if bool(word >> bit.write.bit & 1) != was:
-                    return False
-                changed |= was != on
-            return changed
-        held: list[tuple[RegisterPoint[Df1WordWrite], int]] = []
-        for point, _ in step.patches:
-            if math.isinf(stamps[point.block]):
-                return False
-            lsb, msb = point.offset + point.codec.lsb, point.codec.msb
-            block = data[point.block]
-            held.append((point, block[lsb] if msb is None else block[point.offset + msb] << 8 | block[lsb]))
-        before = _step_bytes(WriteStep(step.first, step.last, step.run, held))
-        return bool(held) and shown == before and before != _step_bytes(step)
 
     async def _write_words(self, address: SlcAddress, data: bytes) -> None:
         request = ProtectedTypedLogicalWrite(
