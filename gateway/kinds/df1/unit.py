@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import struct
 from functools import partial
-from typing import Any, Protocol, TypeVar, Unpack
+from typing import Any, Final, Protocol, TypeVar, Unpack
 
 from gateway.errors import ControllerRefused, ModbusExceptionReply
 from gateway.kinds.df1.config import Processor
@@ -36,6 +36,7 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalWrite,
     Sts,
 )
+from gateway.protocols.df1.plc5_address import Plc5Address
 from gateway.unit import Source, Unit, UnitOptions, WriteStep
 
 R = TypeVar("R")
@@ -126,6 +127,11 @@ class PcccUnit(Unit[R, B]):
         * full duplex only: the controller runs commands in order, so the read-back ran after the write.
           On half duplex the slave may still hold the write in its queue: never a proof;
         * only points the image has read (it holds a value from before);
+        * only in the files that only the program and the gateway write, N, B and F
+          (:data:`_PROGRAM_FILES`): the processor rewrites timer, counter and control words as their
+          instructions run, the I/O image at every I/O scan and the status file on its own, so the value
+          from before there proves nothing;
+        * a float only where every controller keeps it bit for bit (:func:`_kept_exactly`);
         * a word write (typed logical write, PLC-5 word range write, several words in one): the bytes
           read back equal those the image held, and differ from those written;
         * a bit write (masked write, PLC-5 read-modify-write): one command changes all its bits or none,
@@ -137,7 +143,7 @@ class PcccUnit(Unit[R, B]):
         stamps = self.cache.stamps
         points: list[RegisterPoint[R] | BitPoint[B]] = [point for point, _ in step.patches]
         points += [bit for bit, _ in step.bit_patches]
-        if not points or any(math.isinf(stamps[p.block]) for p in points):
+        if not points or any(math.isinf(stamps[p.block]) or not _in_program_file(p.write) for p in points):
             return False
         return self._bits_show_before(step, shown) if step.bit_patches else self._words_show_before(step, shown)
 
@@ -150,6 +156,9 @@ class PcccUnit(Unit[R, B]):
             block = data[point.block]
             held.append((point, block[lsb] if msb is None else block[point.offset + msb] << 8 | block[lsb]))
         written = _step_bytes(step)
+        if step.patches[0][0].codec.half is not None and not all(
+                _kept_exactly(raw) for (raw,) in struct.iter_unpack("<I", written)):
+            return False
         before = _step_bytes(WriteStep(step.first, step.last, step.run, held))
         return shown == before and before != written
 
@@ -298,6 +307,27 @@ class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):
 
 #: Files whose elements are one word or one float, packed: consecutive elements are consecutive bytes.
 _PLAIN_FILES = frozenset({FileType.INTEGER, FileType.BIT, FileType.FLOAT})
+
+
+#: The data files only the program and the gateway write (integer, bit, float): the only ones where a
+#: read-back showing the value from before a write proves it was not applied (``PcccUnit.proves_not_applied``).
+_PROGRAM_FILES: Final = frozenset({"N", "B", "F"})
+
+
+def _in_program_file(target: object) -> bool:
+    """Whether a point's write target is a word or a bit of one of :data:`_PROGRAM_FILES` (SLC 500 or PLC-5)."""
+    address = target.address if isinstance(target, WordWrite | BitWrite) else None
+    if isinstance(address, SlcAddress):
+        return address.file_type.letter in _PROGRAM_FILES
+    return isinstance(address, Plc5Address) and address.file_type in _PROGRAM_FILES
+
+
+def _kept_exactly(raw: int) -> bool:
+    """Whether an IEEE 754 single (its 32 bits) is kept bit for bit by any controller: +0.0 or a normal
+    finite number.  A subnormal, -0.0, an infinity or a NaN may be stored as another pattern (flushed to
+    zero, made canonical), which could equal the value from before the write and fake a proof."""
+    exponent = raw >> 23 & 0xFF
+    return raw == 0 or 0 < exponent < 0xFF
 
 
 def _expanded_fields(address: SlcAddress) -> int:

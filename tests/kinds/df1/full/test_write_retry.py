@@ -5,8 +5,8 @@ previous value, and the gateway answered "may or may not have been applied".  On
 after the write (the controller runs commands in order), so the value from before the write proves the write was
 not applied: the one write path (``gateway.unit`` -> ``gateway.write_steps.run_step``) sends it again within
 ``write_timeout``, and the controller applies it exactly once.  Where nothing proves it (the gateway holds no value
-from before, the read-back shows a third value, half duplex), the outcome stays unknown: 0x0B, counted and logged,
-never sent again.
+from before, the read-back shows a third value, the processor itself rewrites the word, a float a controller may
+store as another pattern, half duplex), the outcome stays unknown: 0x0B, counted and logged, never sent again.
 
 The same rule for the SLC 500 (typed logical write, masked write) and the PLC-5 (word range write,
 read-modify-write): ``PcccUnit.proves_not_applied``.
@@ -179,6 +179,30 @@ async def test_a_read_back_showing_neither_the_old_nor_the_new_value_stays_unkno
         sim.set_word("N7", 20, 99)  # the ladder changed it since: the read-back shows 99
         await unknown_and_never_resent(unit, sim, 30, [1234], caplog)
         assert sim.word("N7", 20) == 99
+
+
+@models
+async def test_a_word_the_processor_rewrites_itself_stays_unknown(model: str, caplog: pytest.LogCaptureFixture) -> None:
+    """T4:1.PRE shows its old value after the lost write, but a timer's words are the processor's too: no proof."""
+    sim = simulator(lost_writes=1, model=model)
+    sim.set_word("T4", 1, 500, sub=1)
+    async with unit_on(sim, write_timeout=5.0) as unit:
+        await read_all(unit)
+        await unknown_and_never_resent(unit, sim, 50, [600], caplog)
+        assert sim.word("T4", 1, sub=1) == 500
+
+
+@models
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -0.0, 1e-45])
+async def test_a_float_a_controller_may_keep_as_another_pattern_stays_unknown(
+        model: str, value: float, caplog: pytest.LogCaptureFixture) -> None:
+    """A NaN, an infinity, -0.0 or a subnormal may be stored as another pattern (+0.0 for -0.0 or a subnormal
+    flushed to zero): a read-back showing the old value proves nothing."""
+    sim = simulator(lost_writes=1, model=model)
+    sim.set_float("F8", 2, 0.0)
+    async with unit_on(sim, write_timeout=5.0) as unit:
+        await read_all(unit)
+        await unknown_and_never_resent(unit, sim, 40, float_registers(value), caplog)
 
 
 async def test_a_write_lost_every_time_ends_at_write_timeout_as_not_written() -> None:
