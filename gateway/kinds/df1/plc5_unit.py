@@ -14,7 +14,8 @@ MicroLogix only (a PLC-5 may answer them STS 10; ``gateway.kinds.df1.sim.plc5`` 
 Every write is a write by :func:`gateway.protocols.df1.pccc.is_write`: the exactly-once verdict and the read-back of a
 write whose reply was lost (``gateway.protocols.df1.full_duplex.transaction.read_back_for``: a word range read of
 the same words) apply as for the SLC unit, and so does the one rule for sending again a write the read-back proved
-not applied (:meth:`~gateway.kinds.df1.unit.PcccUnit.proves_not_applied`: full duplex, N / B / F files only).
+not applied (:meth:`~gateway.kinds.df1.unit.PcccUnit.proves_not_applied`: full duplex, N / B / F files and
+presets only).
 
 Addresses are the forms users type (``N7:0``, ``B3/5``, ``B3:0/5``, ``T4:1.ACC``, ``T4:1/DN``,
 ``F8:2``, ``I:010`` octal), parsed by :mod:`gateway.protocols.df1.plc5_address`; the read plan is

@@ -127,10 +127,12 @@ class PcccUnit(Unit[R, B]):
         * full duplex only: the controller runs commands in order, so the read-back ran after the write.
           On half duplex the slave may still hold the write in its queue: never a proof;
         * only points the image has read (it holds a value from before);
-        * only in the files that only the program and the gateway write, N, B and F
-          (:data:`_PROGRAM_FILES`): the processor rewrites timer, counter and control words as their
-          instructions run, the I/O image at every I/O scan and the status file on its own, so the value
-          from before there proves nothing;
+        * only in words that only the program and the gateway write (:func:`_program_only`): the N, B and F
+          files, and the preset of a timer or counter (``.PRE``) and the length of a control (``.LEN``).
+          The processor rewrites a timer's or counter's accumulator and control word, a control's position
+          and control word as their instructions run (a TON on a false rung zeroes ``.ACC`` every scan), the
+          I/O image at every I/O scan and the status file on its own, so the value from before there proves
+          nothing;
         * a float only where every controller keeps it bit for bit (:func:`_kept_exactly`);
         * a word write (typed logical write, PLC-5 word range write, several words in one): the bytes
           read back equal those the image held, and differ from those written;
@@ -143,7 +145,7 @@ class PcccUnit(Unit[R, B]):
         stamps = self.cache.stamps
         points: list[RegisterPoint[R] | BitPoint[B]] = [point for point, _ in step.patches]
         points += [bit for bit, _ in step.bit_patches]
-        if not points or any(math.isinf(stamps[p.block]) or not _in_program_file(p.write) for p in points):
+        if not points or any(math.isinf(stamps[p.block]) or not _program_only(p.write) for p in points):
             return False
         return self._bits_show_before(step, shown) if step.bit_patches else self._words_show_before(step, shown)
 
@@ -309,17 +311,27 @@ class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):
 _PLAIN_FILES = frozenset({FileType.INTEGER, FileType.BIT, FileType.FLOAT})
 
 
-#: The data files only the program and the gateway write (integer, bit, float): the only ones where a
-#: read-back showing the value from before a write proves it was not applied (``PcccUnit.proves_not_applied``).
+#: The data files only the program and the gateway write (integer, bit, float), and the structure files
+#: whose word 1 (a timer's or counter's ``.PRE``, a control's ``.LEN``: 1747-6.15 / 1770-6.5.16 p. 13-13) is
+#: only the program's and the gateway's: the words where a read-back showing the value from before a write
+#: proves it was not applied (``PcccUnit.proves_not_applied``).
 _PROGRAM_FILES: Final = frozenset({"N", "B", "F"})
+_PRESET_FILES: Final = frozenset({"T", "C", "R"})
+_PRESET_WORD: Final = 1
 
 
-def _in_program_file(target: object) -> bool:
-    """Whether a point's write target is a word or a bit of one of :data:`_PROGRAM_FILES` (SLC 500 or PLC-5)."""
+def _program_only(target: object) -> bool:
+    """Whether a point's write target (SLC 500 or PLC-5) is a word, or a bit of a word, that only the program and
+    the gateway write: one of :data:`_PROGRAM_FILES`, or word :data:`_PRESET_WORD` of :data:`_PRESET_FILES`."""
     address = target.address if isinstance(target, WordWrite | BitWrite) else None
+    word: int | None
     if isinstance(address, SlcAddress):
-        return address.file_type.letter in _PROGRAM_FILES
-    return isinstance(address, Plc5Address) and address.file_type in _PROGRAM_FILES
+        letter, word = address.file_type.letter, address.sub_element
+    elif isinstance(address, Plc5Address):
+        letter, word = address.file_type, address.sub_element
+    else:
+        return False
+    return letter in _PROGRAM_FILES or (letter in _PRESET_FILES and word == _PRESET_WORD)
 
 
 def _kept_exactly(raw: int) -> bool:

@@ -44,6 +44,7 @@ ITEMS = [
     MapItem("holding", 30, "N7:20", 3),
     MapItem("holding", 40, "F8:2", 1, "float32"),
     MapItem("holding", 50, "T4:1.PRE", 1),
+    MapItem("holding", 51, "T4:2.ACC", 1),
     MapItem("coil", 0, "B3:1/0", 4),
 ]
 #: The controller models, and the names their applied-writes logs give a word write and a bit write.
@@ -183,13 +184,28 @@ async def test_a_read_back_showing_neither_the_old_nor_the_new_value_stays_unkno
 
 @models
 async def test_a_word_the_processor_rewrites_itself_stays_unknown(model: str, caplog: pytest.LogCaptureFixture) -> None:
-    """T4:1.PRE shows its old value after the lost write, but a timer's words are the processor's too: no proof."""
+    """T4:2.ACC shows its old value after the lost write, but a timer's accumulator is the processor's too (a TON
+    on a false rung zeroes it every scan): no proof."""
+    sim = simulator(lost_writes=1, model=model)
+    sim.set_word("T4", 2, 0, sub=2)
+    async with unit_on(sim, write_timeout=5.0) as unit:
+        await read_all(unit)
+        await unknown_and_never_resent(unit, sim, 51, [600], caplog)
+        assert sim.word("T4", 2, sub=2) == 0
+
+
+@models
+async def test_a_preset_proven_not_applied_is_sent_again_once(model: str) -> None:
+    """A timer's .PRE is written only by the program and the gateway (the processor never changes it): a read-back
+    showing the preset from before proves the write was not applied."""
     sim = simulator(lost_writes=1, model=model)
     sim.set_word("T4", 1, 500, sub=1)
     async with unit_on(sim, write_timeout=5.0) as unit:
         await read_all(unit)
-        await unknown_and_never_resent(unit, sim, 50, [600], caplog)
-        assert sim.word("T4", 1, sub=1) == 500
+        await unit.write_registers(50, [600])
+        assert sim.word("T4", 1, sub=1) == 600
+        assert [entry[:2] for entry in sim.applied_writes] == [(MODELS[model][1], "T4:1.PRE")]
+        assert (unit.write_tally.retried, unit.write_tally.unknown) == (1, 0)
 
 
 @models
