@@ -398,6 +398,9 @@ class SparkplugNode:
                 for index in range(len(self.devices)):
                     if self._dirty[index]:
                         started = time.thread_time()
+                        # a store means the controller answered: the device is judged up now, not at the
+                        # next check, or the changes until then would be neither published nor kept
+                        self._link(index, now)
                         self._changed(index, now)
                         self._send(self.core.flush(self._wall_ms(now), (index,)))
                         self.busy.add(started)
@@ -406,15 +409,23 @@ class SparkplugNode:
     async def _links(self, now: float) -> None:
         """Links gone down (DDEATH) or come back (DBIRTH, with its values as they are now), one device a step."""
         for index, device in enumerate(self.devices):
-            up = device.unit.verdict(now).up
-            if up == device.device.alive:
+            if device.unit.verdict(now).up == device.device.alive:
                 continue
             await asyncio.sleep(0)
             started = time.thread_time()
-            if up and self.core.online and not self.core.unborn:
-                self._refresh(now, index)
-            self._send(self.core.link(index, up, self._wall_ms(now)))
+            self._link(index, now)
             self.busy.add(started)
+
+    def _link(self, index: int, now: float) -> None:
+        """Device ``index``'s link as the verdict has it at ``now``: DBIRTH (with its values as they are now) or
+        DDEATH when it changed (the core decides what is published)."""
+        device = self.devices[index]
+        up = device.unit.verdict(now).up
+        if up == device.device.alive:
+            return
+        if up and self.core.online and not self.core.unborn:
+            self._refresh(now, index)
+        self._send(self.core.link(index, up, self._wall_ms(now)))
 
     async def _dbirths(self) -> None:
         """The DBIRTHs of a birth sequence, one device a step, each with its values as they are now."""

@@ -11,7 +11,11 @@ message (a broker that stopped reading) until it is lost.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import json
+import sqlite3
 import uuid
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +28,7 @@ from gateway.config import parse_config
 from gateway.sim import get_simulator, reset_simulators
 from gateway.sparkplug.driver import SparkplugNode
 from gateway.sparkplug.node import Publish
+from gateway.sparkplug.store import store_path
 from tests.waiting import until
 
 
@@ -139,5 +144,81 @@ count = 2
             first_session = [m for n, m in broker.queued if n == 1]
             assert not [m for m in second if any(m is old for old in first_session)]
             assert [verb(m) for m in second[:2]] == ["NBIRTH", "DBIRTH"]
+    finally:
+        reset_simulators()
+
+
+class RefusingBroker:
+    """A stand-in for ``_MqttClient`` whose broker is away: every connection is refused."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        return None
+
+    async def __aenter__(self) -> RefusingBroker:
+        raise aiomqtt.MqttError("[Errno 111] Connection refused")
+
+    async def __aexit__(self, *exc: object) -> None:
+        return None
+
+
+def stored_values(path: Path, metric: str) -> list[int]:
+    """The values of ``metric`` committed to the store file, oldest first (a reader beside the node's writer: WAL)."""
+    if not path.exists():
+        return []
+    with contextlib.closing(sqlite3.connect(path)) as db:
+        try:
+            rows = db.execute("SELECT sample FROM change WHERE metric = ? ORDER BY id", (metric,)).fetchall()
+        except sqlite3.OperationalError:  # the node has not created its table yet
+            return []
+    return [json.loads(sample)[0] for (sample,) in rows]
+
+
+def kept(path: Path, metric: str, value: int) -> bool:
+    return value in stored_values(path, metric)
+
+
+async def test_a_change_is_kept_as_soon_as_its_link_answers_not_at_the_next_check(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """Issue 43: a gateway started while the broker is away stores every change from the first answer of a
+    link on.  The node judged a link up only at its periodic check (``check_interval``), and until then kept
+    no change of it: each value the controller had before that check but the last was lost (a restart in
+    the middle of an outage lost the first writes made after it)."""
+    monkeypatch.setattr(driver_module, "MqttClient", RefusingBroker)
+    # every answer 0.3 s late: the node's first check (at its start) comes before the link's first answer,
+    # and with check_interval = 60 there is no other in this test
+    url = f"sim://slc504?ladder=0&delay=0.3&instance={uuid.uuid4().hex}"
+    config = parse_config(f"""
+[modbus]
+listen = "127.0.0.1:0"
+
+[sparkplug]
+broker = "mqtt://127.0.0.1:1"
+group_id = "plant"
+edge_node_id = "gw"
+state_file = "{tmp_path / 'bdseq.json'}"
+check_interval = 60
+reconnect_min = 0.05
+reconnect_max = 0.1
+
+[[link]]
+name = "press"
+protocol = "df1"
+port = "{url}"
+unit = 1
+timeout = 2
+[[link.map]]
+table = "holding"
+start = 0
+address = "N7:0"
+count = 2
+""")
+    store = store_path(tmp_path / "bdseq.json")
+    sim = get_simulator(url)
+    try:
+        async with asyncio.timeout(30), Gateway(config):
+            for value in (11, 12, 13):
+                sim.set_word("N7", 0, value)
+                await until(partial(kept, store, "N7:0", value), 8, what=f"N7:0 = {value} kept in the store")
+        assert stored_values(store, "N7:0")[-3:] == [11, 12, 13]
     finally:
         reset_simulators()
