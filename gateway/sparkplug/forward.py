@@ -17,6 +17,7 @@ Modbus answers) never waits for SQLite.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections.abc import Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -37,6 +38,10 @@ REPLAY_METRICS: Final = 64
 
 P = ParamSpec("P")
 T = TypeVar("T")
+
+
+class _Closed(Exception):
+    """The store was closed (the node is stopping): the replay ends."""
 
 
 def _when(ms: int | None) -> str:
@@ -63,6 +68,15 @@ class Forwarder:
     async def _call(self, function: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T:
         loop = asyncio.get_running_loop()
         return await loop.run_in_executor(self._executor, lambda: function(*args, **kwargs))
+
+    async def _replay_call(self, function: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T:
+        """A store call of the replay: under the lock :meth:`close` takes, so it never reaches a closed store
+        (a node replaced by a reload closes its store while its session's replay may be between two calls);
+        :class:`_Closed` once it is closed."""
+        async with self._lock:
+            if self._closed or self.failed:
+                raise _Closed
+            return await self._call(function, *args, **kwargs)
 
     async def open(self) -> None:
         try:
@@ -119,6 +133,10 @@ class Forwarder:
 
     async def replay(self, send: Callable[[list[Publish]], None], drained: Callable[[], Awaitable[None]]) -> None:
         """Replay the store in this session (module docstring); returns only when cancelled or closed."""
+        with contextlib.suppress(_Closed):
+            await self._replay(send, drained)
+
+    async def _replay(self, send: Callable[[list[Publish]], None], drained: Callable[[], Awaitable[None]]) -> None:
         interval = 1.0 / self.replay_rate
         core, store = self.core, self.store
         while not self._closed and not self.failed:
@@ -128,7 +146,7 @@ class Forwarder:
                 continue
             await drained()  # live DDATA first
             skip = [device.name for device in core.devices if not device.born]
-            batch = await self._call(store.next_batch, REPLAY_METRICS, skip)
+            batch = await self._replay_call(store.next_batch, REPLAY_METRICS, skip)
             if batch is None:  # only devices that are down now: wait for them
                 await asyncio.sleep(1.0)
                 continue
@@ -141,13 +159,13 @@ class Forwarder:
                 if index is None or (core.online and not core.unborn and core.devices[index].born):
                     # a device or metrics this node no longer has (the store is older than the config)
                     core.unknown_history += len(rows) if index is None else 0
-                    await self._call(store.remove, ids, replayed=False)
+                    await self._replay_call(store.remove, ids, replayed=False)
                 else:
                     await asyncio.sleep(interval)
                 continue
             send([message])
             await drained()  # written to the socket: from now on the core's window covers it
-            await self._call(store.remove, ids)
+            await self._replay_call(store.remove, ids)
             await asyncio.sleep(interval)
 
     async def close(self) -> None:
