@@ -144,6 +144,10 @@ class Plc:
                     return False  # the gateway is gone
             except TimeoutError:
                 data = b""
+            except ConnectionResetError:
+                # the gateway is gone, its socket reset (a kill with our bytes unread): whatever it had sent is
+                # lost with the reset, so this write counts as not acknowledged (it may still have been applied)
+                return False
             now = time.monotonic()
             if data:
                 self.core.receive_data(data, now)
