@@ -389,13 +389,16 @@ def sizing(gw: Gateway, now: float) -> tuple[float, float, int]:
 
 
 async def steady(links: Links, screen: Sequence[tuple[int, int, int, float]], seconds: float, warmup: float,
-                 sections: str = "", readers: Sequence[Reader] = ()) -> Figures:
+                 sections: str = "", readers: Sequence[Reader] = (),
+                 faces: Callable[[Gateway], contextlib.AbstractAsyncContextManager[object]] | None = None) -> Figures:
     """Readers of ``screen`` on every unit read (or ``readers``); the share with data after ``warmup``.
-    ``sections``: more config (``[sparkplug]``)."""
+    ``sections``: more config (``[sparkplug]``); ``faces``: the other faces' clients, for the gateway's life
+    (``bench/faces.py``)."""
     text, units, read = links
     readers = readers or [Reader(unit, fc, address, count, period) for unit in read
                           for fc, address, count, period in screen]
-    async with Gateway(config(text, sections=sections)) as gw:
+    async with Gateway(config(text, sections=sections)) as gw, (
+            faces(gw) if faces is not None else contextlib.nullcontext()):
         loop = asyncio.get_running_loop()
         opened, stop = loop.time(), asyncio.Event()
         tasks = [asyncio.create_task(reader.run(gw.port, opened, stop)) for reader in readers]

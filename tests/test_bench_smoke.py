@@ -31,6 +31,7 @@ SCRIPTS = [
     "sparkplug_cpu.py",  # the same
     "sparkplug_store.py",  # the same
     "opcua.py",  # 8 links x 150 tags monitored by asyncua's client, and a bare asyncua server
+    "faces.py",  # every face on (Sparkplug, OPC UA, the page) beside Modbus only: needs mosquitto
 ]
 
 
