@@ -143,7 +143,7 @@ class _Users(UserManager):
         if username is None:
             if server.config.anonymous == "none":
                 server.refuse_login("an anonymous session (anonymous = \"none\")")
-                return None
+                raise ServiceError(ua.StatusCodes.BadIdentityTokenRejected)
             return User(role=UserRole.User, name=None)
         user = self._users.get(username)
         if user is None or not verify_password(password or "", user.password_hash):
@@ -232,6 +232,9 @@ class OpcUaServer:
         for link, unit in self._pairs:
             await self._add_link(link, unit)
         await server.start()
+        # the endpoints were made at start from the tokens offered (no anonymous one under anonymous = "none");
+        # from now on asyncua lets an anonymous token through to _Users, which refuses it and counts it
+        server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken])
         log.info("opcua: serving %d links on %s (%s)", len(self.links), config.listen, ", ".join(config.security))
 
     async def run(self) -> None:

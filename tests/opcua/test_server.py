@@ -336,7 +336,8 @@ async def test_security_certificates_users_and_anonymous(tmp_path: Path, lines: 
             async with wrong:
                 pass
         assert caught.value.code == ua.StatusCodes.BadUserAccessDenied
-        assert gw.opcua is not None and gw.opcua.rejected_logins == 2  # the stranger's certificate, the password
+        # the stranger's certificate, the anonymous session, the password: each a rejected login
+        assert gw.opcua is not None and gw.opcua.rejected_logins == 3
 
 
 async def test_reload_adds_and_removes_link_folders_keeping_sessions(tmp_path: Path, lines: tuple[Line, Line]) -> None:
@@ -406,3 +407,4 @@ async def test_every_tag_of_the_demo_equals_modbus_at_the_same_moment(tmp_path: 
             bad = [(i.Identifier, v.StatusCode.name) for i, v in zip(ids, values, strict=True)
                    if not v.StatusCode.is_good()]
             assert bad == []
+
