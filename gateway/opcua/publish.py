@@ -26,7 +26,7 @@ from typing import Any
 
 from gateway.freshness import LinkState, LinkVerdict
 from gateway.opcua.points import OpcPoint, point_runs, point_value, points_by_block
-from gateway.opcua.quality import Code, DemandBook, point_quality
+from gateway.opcua.quality import Code, DemandBook, Reading, point_quality
 from gateway.schedule import NEVER
 from gateway.unit import Unit
 
@@ -55,8 +55,8 @@ class LinkWatch:
         self.live_blocks: set[int | None] = set()
         #: blocks stored or patched since the last pass
         self.dirty: set[int] = set()
-        #: per block: what its quality depended on at the last pass that judged it
-        self.block_keys: dict[int, tuple[object, ...]] = {}
+        #: per block: what its quality depended on at the last pass that judged it, and that quality
+        self.judgments: dict[int, tuple[tuple[object, ...], Reading]] = {}
         #: per point with a monitored item: the (status code, value: its bytes; a status value) last published
         self.published: dict[int, tuple[Code, object]] = {}
         #: per run (block, its position): the bytes the last pass read of it
@@ -112,7 +112,7 @@ class LinkWatch:
         """Judge ``blocks``; the link's verdict is taken at a check pass, and at a pass between them only while
         the link is down or not known yet (a store then may be its first answer): a link that goes down is
         shown so by the next check pass, one that answers again by the next pass."""
-        unit, dirty, live = self.unit, self.dirty, self.live_blocks
+        unit, dirty, live, judgments = self.unit, self.dirty, self.live_blocks, self.judgments
         alive, images, stamps, published, run_bytes = self.alive, unit.images, unit.cache.stamps, self.published, \
             self.run_bytes
         verdict = self._verdict
@@ -126,12 +126,16 @@ class LinkWatch:
             read_at = stamps[block]
             fresh = unit.freshness.block_fresh(block, now)
             key = (verdict.state is LinkState.DOWN, known, fresh, block in refused, read_at != NEVER)
-            judged = self.block_keys.get(block) == key
-            if judged and block not in dirty:
-                continue  # the same quality, the same bytes
-            self.block_keys[block] = key
-            reading = point_quality(state=verdict.state, known=known, fresh=fresh, read=key[4], refused=key[3],
-                                    offline=unit.offline)
+            prior = judgments.get(block)
+            judged = prior is not None and prior[0] == key
+            if prior is not None and judged:
+                if block not in dirty:
+                    continue  # the same quality, the same bytes
+                reading = prior[1]
+            else:
+                reading = point_quality(state=verdict.state, known=known, fresh=fresh, read=key[4], refused=key[3],
+                                        offline=unit.offline)
+                judgments[block] = (key, reading)
             carries, code = reading.carries_value, reading.code
             if judged and not carries:
                 continue  # the same status, and it carries no value: nothing to show

@@ -10,7 +10,7 @@
   demanding at once.
 * :func:`revise_interval`: the sampling interval a monitored item is given: what the line achieves
   for its block, never less than the block's class period nor the server's pass period
-  (:func:`pass_period`: a quarter of the subscription's publishing interval, from ``publish_interval``
+  (:func:`pass_period`: half the subscription's publishing interval, from ``publish_interval``
   to 0.5 s).
 
 Status codes are named as OPC UA Part 4 §7.34 and Part 8 name them (:class:`Code`); the server module
@@ -129,8 +129,10 @@ def revise_interval(requested: float, publishing: float, period: float | None, a
 
 def pass_period(publish_interval: float, publishing: float, longest: float) -> float:
     """Seconds between the publishing passes for subscriptions whose shortest publishing interval is
-    ``publishing`` (ms; 0: none): a quarter of it, at least ``publish_interval``, at most ``longest``."""
-    return max(publish_interval, min(publishing / 4000.0, longest))
+    ``publishing`` (ms; 0: none): half of it, at least ``publish_interval``, at most ``longest``.  Each
+    pass judges every block stored since the last one: passes further apart cost less for the same values,
+    and a subscription is sent values at most half its interval old, besides the read's age."""
+    return max(publish_interval, min(publishing / 2000.0, longest))
 
 
 class DemandBook:

@@ -259,9 +259,9 @@ class OpcUaServer:
                     yielded = time.perf_counter()
 
     def _pass_period(self) -> float:
-        """Seconds to the next publishing pass: ``publish_interval``, or a quarter of the shortest publishing
-        interval of the subscriptions when that is longer (a 1 s subscription is sent what the last 0.25 s
-        brought: the reads of a block in that time are judged once)."""
+        """Seconds to the next publishing pass: ``publish_interval``, or half the shortest publishing interval
+        of the subscriptions when that is longer (a 1 s subscription is sent what the last 0.5 s brought: the
+        reads of a block in that time are judged once; every pass is then a check pass)."""
         server = self._server
         subscriptions = server.iserver.subscription_service.subscriptions if server is not None else {}
         shortest = min((sub.data.RevisedPublishingInterval for sub in subscriptions.values()), default=0.0)

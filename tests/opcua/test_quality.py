@@ -75,9 +75,10 @@ def test_revised_sampling_interval_is_never_faster_than_the_line() -> None:
     assert revise_interval(5000, 1000, 0.5, 2.0) == 5000  # slower than asked: as asked
     assert revise_interval(-1, 1000, 0.0, None) == 1000  # -1: the publishing interval
     assert revise_interval(250, 1000, None, None) == 250  # not polled: as asked
-    assert revise_interval(100, 1000, 0.0, None, passes=0.25) == 250  # the server looks every 0.25 s
-    assert pass_period(0.1, 1000, 0.5) == 0.25  # a quarter of the publishing interval
-    assert pass_period(0.1, 200, 0.5) == 0.1  # at least publish_interval
+    assert revise_interval(100, 1000, 0.0, None, passes=0.5) == 500  # the server looks every 0.5 s
+    assert pass_period(0.1, 1000, 0.5) == 0.5  # half the publishing interval
+    assert pass_period(0.1, 500, 0.5) == 0.25
+    assert pass_period(0.1, 100, 0.5) == 0.1  # at least publish_interval
     assert pass_period(0.1, 10000, 0.5) == 0.5  # at most the check interval
     assert pass_period(0.1, 0, 0.5) == 0.1  # no subscription
 
