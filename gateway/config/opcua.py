@@ -77,7 +77,7 @@ class OpcUaConfig(Model):
     user: tuple[OpcUaUser, ...] = Field((), strict=False)
     """[[opcua.user]]: the users that log in with a name and password."""
     publish_interval: float = Field(0.1, gt=0, le=10)
-    """Seconds between the server's passes over the images for monitored items (at least; a quarter of the shortest
+    """Seconds between the server's passes over the images for monitored items (at least; half the shortest
     publishing interval of the subscriptions when that is longer, at most 0.5 s): what was read meanwhile is
     published in that pass, and a monitored item's sampling interval is never shorter."""
 

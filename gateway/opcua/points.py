@@ -166,11 +166,34 @@ class PointRun:
     """Consecutive addresses ``first``.. (``count``) of one table of one block, and its points: (index, where
     its value starts in a read of the run: a byte offset, or a bit number, and how many bytes)."""
 
-    __slots__ = ("bits", "count", "first", "members", "table")
+    __slots__ = ("bits", "count", "first", "members", "owner", "table")
 
     def __init__(self, point: OpcPoint) -> None:
         self.table, self.first, self.count, self.bits = point.table, point.address, 0, point.bits
         self.members: list[tuple[int, int, int]] = []
+        #: per byte of a register run's read (per bit of a bit run's): the position of its member in ``members``
+        self.owner: list[int] = []
+
+    def changed(self, old: bytes, new: bytes) -> list[int]:
+        """The positions in ``members`` of the points whose bytes differ between two reads of the run, in
+        order: one integer comparison for the run, then a step per changed point (not per point)."""
+        owner, found = self.owner, []
+        if self.bits:
+            diff = int.from_bytes(old, "little") ^ int.from_bytes(new, "little")
+            while diff:
+                low = diff & -diff
+                found.append(owner[low.bit_length() - 1])
+                diff ^= low
+            return found
+        size = len(new)
+        diff = int.from_bytes(old, "big") ^ int.from_bytes(new, "big")
+        members = self.members
+        while diff:
+            position = owner[size - 1 - (diff.bit_length() - 1) // 8]
+            found.append(position)
+            _, at, width = members[position]
+            diff &= (1 << 8 * (size - at - width)) - 1  # this point and those before it are done
+        return found
 
 
 def point_runs(points: Sequence[OpcPoint], members: Sequence[int]) -> list[PointRun]:
@@ -184,5 +207,6 @@ def point_runs(points: Sequence[OpcPoint], members: Sequence[int]) -> list[Point
             runs.append(run)
         offset = point.address - run.first
         run.members.append((index, offset if run.bits else 2 * offset, 0 if run.bits else 2 * point.width))
+        run.owner.extend([len(run.members) - 1] * (1 if run.bits else 2 * point.width))
         run.count += 1 if run.bits else point.width
     return runs

@@ -4,12 +4,13 @@
   link's state, the block's freshness), whether its block was ever read, whether the controller
   refuses it, and the link's ``offline`` policy (docs/guide/opcua.md, "Quality and time").
 * :func:`write_status`: a write's status code from the Modbus answer the write path gave.
-* :class:`DemandBook`: the monitored items' demand: each point with a live monitored item is noted
-  as demand once per its sampling interval; a point whose monitored items are all gone (the
-  subscription deleted, the session closed) stops demanding at once.
+* :class:`DemandBook`: the monitored items' demand: each block with a live monitored item on one of
+  its points is noted as demand once per the shortest sampling interval of those items; a block
+  whose monitored items are all gone (the subscription deleted, the session closed) stops
+  demanding at once.
 * :func:`revise_interval`: the sampling interval a monitored item is given: what the line achieves
   for its block, never less than the block's class period nor the server's pass period
-  (:func:`pass_period`: a quarter of the subscription's publishing interval, from ``publish_interval``
+  (:func:`pass_period`: half the subscription's publishing interval, from ``publish_interval``
   to 0.5 s).
 
 Status codes are named as OPC UA Part 4 §7.34 and Part 8 name them (:class:`Code`); the server module
@@ -19,7 +20,7 @@ turns a name into asyncua's number.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from enum import StrEnum
 
 from gateway.errors import ModbusExceptionReply
@@ -128,40 +129,71 @@ def revise_interval(requested: float, publishing: float, period: float | None, a
 
 def pass_period(publish_interval: float, publishing: float, longest: float) -> float:
     """Seconds between the publishing passes for subscriptions whose shortest publishing interval is
-    ``publishing`` (ms; 0: none): a quarter of it, at least ``publish_interval``, at most ``longest``."""
-    return max(publish_interval, min(publishing / 4000.0, longest))
+    ``publishing`` (ms; 0: none): half of it, at least ``publish_interval``, at most ``longest``.  Each
+    pass judges every block stored since the last one: passes further apart cost less for the same values,
+    and a subscription is sent values at most half its interval old, besides the read's age."""
+    return max(publish_interval, min(publishing / 2000.0, longest))
 
 
 class DemandBook:
-    """Monitored items' demand by point (an index the server chose): sans-I/O (module docstring)."""
+    """Monitored items' demand, noted per block: sans-I/O (module docstring).
 
-    def __init__(self) -> None:
-        #: per point: its shortest sampling interval (s), and when its demand is next noted
+    The server numbers its points and tells the book each point's block (``blocks``); demand is
+    noted for a block (one key, as a Modbus read of the block would), at the shortest sampling
+    interval of the items on its points, so that 150 monitored points of one block cost one note,
+    not 150.  A block none of whose points has a monitored item any more is forgotten at once."""
+
+    def __init__(self, blocks: Mapping[int, int]) -> None:
+        #: point -> its block
+        self._blocks = blocks
+        #: per point with a live item: its shortest sampling interval (s)
         self._interval: dict[int, float] = {}
+        #: per block with a live item: the shortest interval of its points' items, and when it is next noted
+        self._block_interval: dict[int, float] = {}
         self._next: dict[int, float] = {}
 
     def watch(self, point: int, interval: float, now: float) -> None:
         """A monitored item of ``point`` was created (``interval``: its revised sampling interval, s)."""
         current = self._interval.get(point)
         self._interval[point] = interval if current is None else min(current, interval)
-        self._next[point] = now  # demanded at once: its first value is wanted now
+        block = self._blocks.get(point)
+        if block is None:
+            return
+        current = self._block_interval.get(block)
+        self._block_interval[block] = interval if current is None else min(current, interval)
+        self._next[block] = now  # demanded at once: its first value is wanted now
 
-    def due(self, alive: Iterable[int], now: float) -> list[int]:
-        """The points of ``alive`` (those with a monitored item now) whose demand is due at ``now``;
-        every point not in ``alive`` is forgotten (nobody holds its items any more)."""
+    def settle(self, alive: Iterable[int], now: float) -> None:
+        """The points that have a monitored item now: the others are forgotten (nobody holds their items
+        any more), and each block's interval is the shortest of its living points'.  A living point the
+        book was not told of (an item created before a reload) is demanded at once, then every pass."""
         living = set(alive)
-        for gone in [point for point in self._interval if point not in living]:
-            del self._interval[gone], self._next[gone]
+        intervals = self._interval
+        for gone in [point for point in intervals if point not in living]:
+            del intervals[gone]
+        for point in living - intervals.keys():
+            intervals[point] = 0.0
+            block = self._blocks.get(point)
+            if block is not None:
+                self._next[block] = now
+        shortest: dict[int, float] = {}
+        for point, interval in intervals.items():
+            block = self._blocks.get(point)
+            if block is not None and interval < shortest.get(block, math.inf):
+                shortest[block] = interval
+        self._block_interval = shortest
+        self._next = {block: self._next.get(block, now) for block in shortest}
+
+    def due(self, now: float) -> list[int]:
+        """The blocks whose demand is due at ``now`` (each then next due its interval later)."""
         found: list[int] = []
-        for point in living:
-            interval = self._interval.get(point)
-            if interval is None:  # an item the book was not told of (created before a reload): at once
-                self._interval[point] = interval = 0.0
-                self._next[point] = now
-            if self._next[point] <= now:
-                found.append(point)
-                self._next[point] = now + interval
+        upcoming = self._next
+        for block, interval in self._block_interval.items():
+            if upcoming[block] <= now:
+                found.append(block)
+                upcoming[block] = now + interval
         return sorted(found)
 
     def __len__(self) -> int:
+        """The points with a monitored item the book knows of."""
         return len(self._interval)

@@ -1,18 +1,22 @@
 """The OPC UA server on asyncua (LGPL-3.0, used as a library, unmodified): the one module that imports it.
 
-A thin loop around the sans-I/O parts (``gateway.opcua.quality``, ``gateway.opcua.points``):
+A thin loop around the sans-I/O parts (``gateway.opcua.quality``, ``gateway.opcua.points``,
+``gateway.opcua.publish``):
 
 * **Address space**: ``Objects/<link>/<tag>`` and ``Objects/<link>/_Status/<key>``, NodeIds
   ``ns=<urn:slc-gateway>;s=<link>.<tag>`` (``gateway.opcua.points``).  Read-only points have
   AccessLevel CurrentRead only.
 * **Read service**: each variable's value is computed when read (asyncua's value callback): its
   block is noted as demand, as a Modbus read's is, and its status code comes from the one verdict.
-* **Subscriptions**: every ``publish_interval`` the server looks at the blocks stored since the last
-  pass (the unit's cache tells it, as it tells the Sparkplug node) and, every ``_CHECK_INTERVAL``,
-  at what ages without a store (links down, blocks going stale); a monitored variable whose value
-  or status code changed is written into asyncua's address space, which queues the change for
-  the subscriptions.  It reads by peeking (no demand); a monitored item's demand is noted at its
-  sampling interval (``DemandBook``), which is revised up to what the line achieves for its block.
+  A variable nobody monitors costs nothing between Reads: asyncua holds no value of it.
+* **Subscriptions**: every pass (``pass_period``) the server looks at the blocks stored since the
+  last one (the unit's cache tells it, as it tells the Sparkplug node) and, every ``_CHECK_INTERVAL``,
+  at what ages without a store (links down, blocks going stale) (``LinkWatch``); a monitored
+  variable whose value or status code changed is handed, as one DataValue, to its monitored items
+  (asyncua's data change callbacks of the node), which queue it for their subscriptions.  It reads
+  by peeking (no demand); the monitored items' demand is noted per block at their sampling interval
+  (``DemandBook``), which is revised up to what the line achieves for the block.  A pass lets other
+  work in (Modbus answers) each time it has held the event loop ``_SLICE``.
 * **Writes** take the unit's write path (``Unit.write_registers`` / ``write_bits``: the queue shared
   with Modbus and Sparkplug, ``write_timeout``, at most once); Good only once the controller confirmed.
 * **Security**: the endpoints of ``security``; on Sign and SignAndEncrypt the client's certificate
@@ -36,7 +40,7 @@ from asyncua.common.callback import CallbackType, ServerItemCallback
 from asyncua.common.node import Node
 from asyncua.common.utils import ServiceError
 from asyncua.crypto.permission_rules import User, UserRole
-from asyncua.server.address_space import AddressSpace, AttributeService
+from asyncua.server.address_space import AddressSpace, AttributeService, AttributeValue
 from asyncua.server.user_managers import UserManager
 
 from gateway.clients import Client, audit_write, current_client
@@ -45,27 +49,9 @@ from gateway.config.opcua import OpcUaConfig
 from gateway.errors import ModbusExceptionReply
 from gateway.opcua.certs import application_uri, ensure_certificate, thumbprint, trusted_thumbprints
 from gateway.opcua.passwords import verify_password
-from gateway.opcua.points import (
-    OPCUA_NAMESPACE,
-    OpcPoint,
-    link_points,
-    point_registers,
-    point_runs,
-    point_value,
-    points_by_block,
-    read_point,
-    status_point_value,
-)
-from gateway.opcua.quality import (
-    Code,
-    DemandBook,
-    Reading,
-    pass_period,
-    point_quality,
-    revise_interval,
-    write_status,
-)
-from gateway.schedule import NEVER
+from gateway.opcua.points import OPCUA_NAMESPACE, OpcPoint, link_points, point_registers, read_point, status_point_value
+from gateway.opcua.publish import LinkWatch
+from gateway.opcua.quality import Code, Reading, pass_period, revise_interval, write_status
 from gateway.unit import Unit
 
 __all__ = ["OpcUaServer"]
@@ -74,8 +60,8 @@ log = logging.getLogger("gateway.opcua")
 
 #: seconds between the passes that look at what ages without a store (stale blocks, links down, status values)
 _CHECK_INTERVAL: Final = 0.5
-#: the check passes between two looks for the monitored items that are gone (a new one is known at once)
-_WATCH_EVERY: Final = 4
+#: the longest the publishing pass holds the event loop before it lets other work (Modbus answers) in (s)
+_SLICE: Final = 0.0005
 #: the longest session timeout granted (s): a client gone without closing its session holds its demand this long
 _SESSION_TIMEOUT: Final = 60.0
 _POLICIES: Final = {
@@ -106,38 +92,30 @@ def _status_code(code: Code) -> ua.StatusCode:
     return ua.StatusCode(ua.UInt32(getattr(ua.StatusCodes, code.value)))
 
 
-class _Link:
-    """One link's folder: its unit, variables, the blocks stored since the last pass, what was published."""
+#: each code's StatusCode, made once (asyncua never changes a StatusCode it is given)
+_STATUS_CODES: Final = {code: _status_code(code) for code in Code}
+
+
+class _Link(LinkWatch):
+    """One link's folder: its variables as asyncua knows them, and what the passes published of them."""
 
     def __init__(self, link: LinkBase, unit: Unit[Any, Any], namespace: int) -> None:
+        super().__init__(unit, link_points(link, unit))
         self.name = link.name
-        self.unit = unit
-        self.points: list[OpcPoint] = link_points(link, unit)
         self.node_ids = [_node_id(point.node_id, namespace) for point in self.points]
-        self.by_block = points_by_block(self.points)
-        #: per block: its points as runs of consecutive addresses of one table, each read at once
-        self.runs = {block: point_runs(self.points, members) for block, members in self.by_block.items()}
-        self.status_points = [i for i, point in enumerate(self.points) if point.block is None]
-        self.book = DemandBook()
-        #: points with a monitored item (found every check pass; a new item adds its point at once)
-        self.alive: set[int] = set()
-        #: the blocks of those points
-        self.live_blocks: set[int | None] = set()
-        #: check passes so far (the monitored items are looked for every _WATCH_EVERY of them)
-        self.checks = 0
-        #: blocks stored or patched since the last pass
-        self.dirty: set[int] = set()
-        #: per block: what its quality depended on at the last pass that judged it
-        self.block_keys: dict[int, tuple[object, ...]] = {}
-        #: per point: the (status code, value) last published
-        self.published: dict[int, tuple[Code, object]] = {}
-        #: per run (block, its position): the bytes the last pass read of it
-        self.run_bytes: dict[tuple[int, int], bytes] = {}
+        #: per point: its variant type
+        self.variants = [_VARIANTS[point.data_type] for point in self.points]
+        #: per point: asyncua's record of its Value attribute (set when the node is added): a monitored item
+        #: of it is a data change callback there
+        self.values: list[AttributeValue] = []
+        #: the server's count of monitored items gone when this link last looked for its own
+        self.looked = -1
         self.folder: Node | None = None
-        self.listener = self._stored
+        self.listener = self.stored
 
-    def _stored(self, block: int, _now: float | None) -> None:
-        self.dirty.add(block)
+    def look(self, now: float) -> None:
+        """Find the points that have a monitored item now."""
+        self.watch((index for index, value in enumerate(self.values) if value.datachange_callbacks), now)
 
 
 class _Published(ua.DataValue):
@@ -165,7 +143,7 @@ class _Users(UserManager):
         if username is None:
             if server.config.anonymous == "none":
                 server.refuse_login("an anonymous session (anonymous = \"none\")")
-                return None
+                raise ServiceError(ua.StatusCodes.BadIdentityTokenRejected)
             return User(role=UserRole.User, name=None)
         user = self._users.get(username)
         if user is None or not verify_password(password or "", user.password_hash):
@@ -215,6 +193,10 @@ class OpcUaServer:
         self._trusted: set[str] = set()
         self._rejected_logged: set[str] = set()
         self._clients: dict[str | None, Client] = {}
+        #: the subscriptions at the last check pass, and a count of monitored items gone (items deleted,
+        #: subscriptions gone): a link looks for its monitored items again when it changes
+        self._subscriptions: set[int] = set()
+        self._items_gone = 0
 
     # --- lifecycle -----------------------------------------------------------------------------
 
@@ -245,10 +227,14 @@ class OpcUaServer:
             self._trusted = trusted_thumbprints(config.trusted_clients)
         self._namespace = await server.register_namespace(OPCUA_NAMESPACE)
         server.subscribe_server_callback(CallbackType.ItemSubscriptionCreated, self._items_created)
+        server.subscribe_server_callback(CallbackType.ItemSubscriptionDeleted, self._items_deleted)
         self._server = server
         for link, unit in self._pairs:
             await self._add_link(link, unit)
         await server.start()
+        # the endpoints were made at start from the tokens offered (no anonymous one under anonymous = "none");
+        # from now on asyncua lets an anonymous token through to _Users, which refuses it and counts it
+        server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken])
         log.info("opcua: serving %d links on %s (%s)", len(self.links), config.listen, ", ".join(config.security))
 
     async def run(self) -> None:
@@ -262,16 +248,20 @@ class OpcUaServer:
             if check:
                 next_check = now + _CHECK_INTERVAL
                 self._rate.append((now, self.data_changes))
+                self._count_gone()
+            yielded = time.perf_counter()
             for link in list(self.links.values()):
                 started = time.thread_time()
                 await self._pass(link, now, check)
                 self.cpu_seconds += time.thread_time() - started
-                await asyncio.sleep(0)  # one link at a time: Modbus answers go in between
+                if time.perf_counter() - yielded > _SLICE:
+                    await asyncio.sleep(0)  # Modbus answers go in between
+                    yielded = time.perf_counter()
 
     def _pass_period(self) -> float:
-        """Seconds to the next publishing pass: ``publish_interval``, or a quarter of the shortest publishing
-        interval of the subscriptions when that is longer (a 1 s subscription is sent what the last 0.25 s
-        brought: the reads of a block in that time are judged once)."""
+        """Seconds to the next publishing pass: ``publish_interval``, or half the shortest publishing interval
+        of the subscriptions when that is longer (a 1 s subscription is sent what the last 0.5 s brought: the
+        reads of a block in that time are judged once; every pass is then a check pass)."""
         server = self._server
         subscriptions = server.iserver.subscription_service.subscriptions if server is not None else {}
         shortest = min((sub.data.RevisedPublishingInterval for sub in subscriptions.values()), default=0.0)
@@ -322,9 +312,11 @@ class OpcUaServer:
                 await node.set_writable()
             aspace.set_attribute_value_callback(node_id, ua.AttributeIds.Value, self._read_value)
             aspace.set_attribute_value_setter(node_id, ua.AttributeIds.Value, _keep)  # its value is computed
+            face.values.append(aspace[node_id].attributes[ua.AttributeIds.Value])
             self._by_node[point.node_id] = (face, index)
         face.folder = folder
         unit.cache.listeners.append(face.listener)
+        face.look(asyncio.get_running_loop().time())
         self.links[link.name] = face
 
     async def _remove_link(self, face: _Link) -> None:
@@ -360,8 +352,8 @@ class OpcUaServer:
     def _data_value(self, point: OpcPoint, reading: Reading, value: object, read_at: float,
                     now: float) -> ua.DataValue:
         variant = ua.Variant(value, _VARIANTS[point.data_type]) if value is not None else ua.Variant()
-        return _Published(Value=variant, StatusCode=_status_code(reading.code), SourceTimestamp=self._stamp(read_at),
-                            ServerTimestamp=self._stamp(now))
+        return _Published(Value=variant, StatusCode=_STATUS_CODES[reading.code], SourceTimestamp=self._stamp(read_at),
+                          ServerTimestamp=self._stamp(now))
 
     def _read_value(self, node_id: ua.NodeId, _attribute: ua.AttributeIds) -> ua.DataValue:
         """A Read of a variable (and a new monitored item's first value): demand, as a Modbus read."""
@@ -393,89 +385,46 @@ class OpcUaServer:
             interval = revise_interval(item.RequestedParameters.SamplingInterval, publishing, period, achieved,
                                        pass_period(self.config.publish_interval, publishing, _CHECK_INTERVAL))
             result.RevisedSamplingInterval = interval
-            face.book.watch(index, interval / 1000.0, now)
-            face.alive.add(index)
-            face.live_blocks.add(block)
+            face.created(index, interval / 1000.0, now)
 
-    def _watched(self, face: _Link) -> set[int]:
-        """The points of ``face`` that have a monitored item now."""
+    def _count_gone(self) -> None:
+        """Count the subscriptions gone since the last check pass (a session closed, a subscription deleted or
+        expired): the links look for their monitored items again (a deleted item is counted when deleted)."""
         server = self._server
-        if server is None:
-            return set()
-        nodes = server.iserver.aspace
-        found: set[int] = set()
-        for index, node_id in enumerate(face.node_ids):
-            data = nodes.get(node_id)
-            if data is not None and data.attributes[ua.AttributeIds.Value].datachange_callbacks:
-                found.add(index)
-        return found
+        subscriptions = set(server.iserver.subscription_service.subscriptions) if server is not None else set()
+        if subscriptions != self._subscriptions:
+            self._subscriptions = subscriptions
+            self._items_gone += 1
+
+    async def _items_deleted(self, _event: ServerItemCallback, _dispatcher: Any) -> None:
+        self._items_gone += 1
 
     async def _pass(self, face: _Link, now: float, check: bool) -> None:
-        """Publish the changed values of ``face``'s monitored points (module docstring): one verdict per
-        link and one quality per block; a block whose bytes and quality did not change costs a comparison."""
-        unit = face.unit
-        server = self._server
-        if server is None:
-            return
+        """Hand the changed values of ``face``'s monitored points to their monitored items (``LinkWatch``)."""
         if check:
-            face.checks += 1
-            if face.checks % _WATCH_EVERY == 1:
-                face.alive = self._watched(face)
-                face.live_blocks = {face.points[i].block for i in face.alive}
-            for index in face.book.due(face.alive, now):
-                point = face.points[index]
-                if point.block is not None:
-                    unit.note_demand(point.table, point.address, 1 if point.bits else point.width)
-            face.dirty.update(face.by_block)  # what ages without a store: every block judged again
-        if not face.live_blocks and not (check and face.alive):
-            face.dirty.clear()  # nobody monitors this link's data: nothing to judge
+            if face.looked != self._items_gone:
+                face.looked = self._items_gone
+                face.look(now)
+            face.note_demand(now)
+        changes = face.changes(now, check)
+        if not changes:
             return
-        if not face.dirty:
-            return
-        alive, images, cache = face.alive, unit.images, unit.cache
-        verdict = unit.verdict(now)
-        refused = unit.poller.refused if unit.poller is not None else {}
-        changes: list[tuple[int, Reading, object, float]] = []
-        for block in face.dirty:
-            if block not in face.live_blocks:
-                continue
-            runs = face.runs.get(block, ())
-            read_at = cache.stamps[block]
-            fresh = unit.freshness.block_fresh(block, now)
-            key = (verdict.state, verdict.since is not None, fresh, block in refused, read_at != NEVER)
-            judged = face.block_keys.get(block) == key
-            face.block_keys[block] = key
-            reading = point_quality(state=verdict.state, known=key[1], fresh=fresh, read=key[4], refused=key[3],
-                                    offline=unit.offline)
-            stamp = now if read_at == NEVER else read_at
-            for position, run in enumerate(runs):
-                data = images.held(run.table, run.first, run.count, None)
-                last = face.run_bytes.get((block, position))
-                if judged and last == data:
-                    continue
-                face.run_bytes[(block, position)] = data
-                for index, at, size in run.members:
-                    if index not in alive:
-                        continue
-                    raw = (data[at // 8] >> at % 8 & 1).to_bytes(1, "little") if run.bits else data[at : at + size]
-                    shown = (reading.code, raw if reading.carries_value else None)
-                    if face.published.get(index) == shown:
-                        continue
-                    face.published[index] = shown
-                    changes.append((index, reading, point_value(face.points[index], raw) if reading.carries_value
-                                    else None, stamp))
-        face.dirty.clear()
-        if check:
-            values = unit.status_values(now)
-            for index in face.status_points:
-                if index in alive and face.published.get(index) != (Code.GOOD, values[face.points[index].status_key]):
-                    face.published[index] = (Code.GOOD, values[face.points[index].status_key])
-                    changes.append((index, _GOOD_STATUS, values[face.points[index].status_key], now))
-        aspace = server.iserver.aspace
-        for index, reading, shown_value, stamp in changes:
-            self.data_changes += 1
-            await aspace.write_attribute_value(face.node_ids[index], ua.AttributeIds.Value,
-                                               self._data_value(face.points[index], reading, shown_value, stamp, now))
+        self.data_changes += len(changes)
+        server_at = self._stamp(now)
+        stamped, source_at = now, server_at
+        for index, code, value, read_at in changes:
+            if read_at != stamped:
+                stamped, source_at = read_at, self._stamp(read_at)
+            variant = ua.Variant(value, face.variants[index]) if value is not None else ua.Variant()
+            data_value = _Published(Value=variant, StatusCode=_STATUS_CODES[code], SourceTimestamp=source_at,
+                                    ServerTimestamp=server_at)
+            # what asyncua's AddressSpace.write_attribute_value does after its checks (the node is known, of
+            # the right type, its value computed by _read_value): each monitored item of the node is told
+            for handle, callback in list(face.values[index].datachange_callbacks.items()):
+                try:
+                    await callback(handle, data_value)
+                except Exception:
+                    log.exception("opcua: a monitored item of %s failed", face.points[index].node_id)
 
     # --- writes ---------------------------------------------------------------------------------
 
@@ -493,7 +442,7 @@ class OpcUaServer:
         """A Write of a variable's value through the unit's write path; Good only once confirmed."""
         point = face.points[index]
         if not point.writable or point.block is None or not self._can_write(user):
-            return _status_code(Code.NOT_WRITABLE)
+            return _STATUS_CODES[Code.NOT_WRITABLE]
         value = data.Value.Value if data.Value is not None else None
         registers: list[int] = []
         try:
@@ -503,9 +452,9 @@ class OpcUaServer:
             else:
                 registers = point_registers(point, value)
         except TypeError:
-            return _status_code(Code.TYPE_MISMATCH)
+            return _STATUS_CODES[Code.TYPE_MISMATCH]
         except ValueError:
-            return _status_code(Code.OUT_OF_RANGE)
+            return _STATUS_CODES[Code.OUT_OF_RANGE]
         unit = face.unit
         loop = asyncio.get_running_loop()
         self.writes += 1
@@ -530,7 +479,7 @@ class OpcUaServer:
         if failure is not None:
             self.write_failures += 1
             log.warning("opcua: write %s = %r not applied: %s (%s)", point.node_id, value, failure, code.value)
-        return _status_code(code)
+        return _STATUS_CODES[code]
 
     # --- security -------------------------------------------------------------------------------
 

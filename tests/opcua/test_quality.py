@@ -75,28 +75,59 @@ def test_revised_sampling_interval_is_never_faster_than_the_line() -> None:
     assert revise_interval(5000, 1000, 0.5, 2.0) == 5000  # slower than asked: as asked
     assert revise_interval(-1, 1000, 0.0, None) == 1000  # -1: the publishing interval
     assert revise_interval(250, 1000, None, None) == 250  # not polled: as asked
-    assert revise_interval(100, 1000, 0.0, None, passes=0.25) == 250  # the server looks every 0.25 s
-    assert pass_period(0.1, 1000, 0.5) == 0.25  # a quarter of the publishing interval
-    assert pass_period(0.1, 200, 0.5) == 0.1  # at least publish_interval
+    assert revise_interval(100, 1000, 0.0, None, passes=0.5) == 500  # the server looks every 0.5 s
+    assert pass_period(0.1, 1000, 0.5) == 0.5  # half the publishing interval
+    assert pass_period(0.1, 500, 0.5) == 0.25
+    assert pass_period(0.1, 100, 0.5) == 0.1  # at least publish_interval
     assert pass_period(0.1, 10000, 0.5) == 0.5  # at most the check interval
     assert pass_period(0.1, 0, 0.5) == 0.1  # no subscription
 
 
-def test_demand_book_notes_each_point_at_its_interval_and_forgets_the_gone() -> None:
-    book = DemandBook()
+def test_demand_book_notes_each_block_at_its_items_shortest_interval_and_forgets_the_gone() -> None:
+    book = DemandBook({3: 0, 4: 0, 5: 1, 6: 1})  # point -> its block
     book.watch(3, 1.0, now=10.0)
     book.watch(5, 0.25, now=10.0)
-    assert book.due({3, 5}, 10.0) == [3, 5]  # at once
-    assert book.due({3, 5}, 10.2) == []
-    assert book.due({3, 5}, 10.25) == [5]
-    assert book.due({3, 5}, 11.0) == [3, 5]
-    book.watch(3, 0.5, now=11.1)  # a faster item of the same point: the shortest interval wins
-    assert book.due({3, 5}, 11.1) == [3]
-    assert book.due({3, 5}, 11.6) == [3, 5]
-    assert book.due({5}, 12.0) == [5]  # 3's subscription is gone: it stops demanding
+    assert book.due(10.0) == [0, 1]  # at once
+    assert book.due(10.2) == []
+    assert book.due(10.25) == [1]
+    assert book.due(11.0) == [0, 1]
+    book.watch(4, 0.5, now=11.1)  # a faster item of the same block: the shortest interval wins, at once
+    assert book.due(11.1) == [0]
+    assert book.due(11.6) == [0, 1]
+    book.settle({3, 5}, 11.7)  # 4's item is gone: its block is back at 3's interval
+    assert book.due(12.1) == [0, 1]
+    assert book.due(12.6) == [1]  # block 0 not before 13.1
+    book.settle({5}, 12.7)  # 3's subscription is gone: block 0 stops demanding
     assert len(book) == 1
-    assert book.due(set(), 13.0) == []
-    assert len(book) == 0
+    assert book.due(14.0) == [1]
+    book.settle({6}, 14.1)  # an item the book was not told of (made before a reload): at once, then every pass
+    assert book.due(14.1) == [1]
+    assert book.due(14.2) == [1]
+    book.settle(set(), 15.0)
+    assert len(book) == 0 and book.due(16.0) == []
+
+
+def test_a_run_finds_its_changed_points_by_one_comparison() -> None:
+    from gateway.modbus.mapping import Table
+    from gateway.opcua.points import OpcPoint, point_runs
+
+    def point(table: Table, address: int, kind: str) -> OpcPoint:
+        return OpcPoint("l", f"p{address}", f"p{address}", table, address, kind, False, True, 0, "", "")
+
+    words = [point(Table.HOLDING, 0, "int16"), point(Table.HOLDING, 1, "float32"), point(Table.HOLDING, 3, "int16"),
+             point(Table.HOLDING, 4, "int32")]
+    run, = point_runs(words, range(4))
+    old = bytes(12)
+    for changed_bytes, expected_members in (([], []), ([0], [0]), ([1], [0]), ([2], [1]), ([5], [1]), ([2, 5], [1]),
+                                            ([6], [2]), ([11], [3]), ([0, 4, 8], [0, 1, 3]), (range(12), [0, 1, 2, 3])):
+        new = bytearray(old)
+        for at in changed_bytes:
+            new[at] = 0xA5
+        assert run.changed(old, bytes(new)) == expected_members, changed_bytes
+    bits = [point(Table.COIL, n, "bool") for n in range(12)]
+    run, = point_runs(bits, range(12))
+    assert run.changed(b"\x00\x00", b"\x05\x08") == [0, 2, 11]
+    assert run.changed(b"\x05\x08", b"\x05\x08") == []
 
 
 def test_password_hashes() -> None:

@@ -198,13 +198,18 @@ async def test_demand_of_reads_and_monitored_items(tmp_path: Path, lines: tuple[
         assert result.RevisedSamplingInterval >= max(1.0, floor * 0.5)
         face = gw.opcua.links["press"]
         await eventually(lambda: _true(len(face.book) == 1))
+
+        def of_its_block() -> int:  # its block's demand is noted (once a block, not once a point)
+            return sum(1 for table, address, count in noted
+                       if unit.images.blocks_in(table, address, count) == (block,))
+
         noted.clear()
-        await eventually(lambda: _true(noted.count((Table.HOLDING, 102, 2)) >= 2), 5)  # demanded again and again
+        await eventually(lambda: _true(of_its_block() >= 2), 5)  # demanded again and again
         await subscription.delete()
         await eventually(lambda: _true(len(face.book) == 0))  # nobody holds it: no more demand
         noted.clear()
         await asyncio.sleep(1.2)
-        assert (Table.HOLDING, 102, 2) not in noted
+        assert of_its_block() == 0
 
 
 async def test_writes_take_the_write_path(tmp_path: Path, lines: tuple[Line, Line]) -> None:
@@ -331,7 +336,8 @@ async def test_security_certificates_users_and_anonymous(tmp_path: Path, lines: 
             async with wrong:
                 pass
         assert caught.value.code == ua.StatusCodes.BadUserAccessDenied
-        assert gw.opcua is not None and gw.opcua.rejected_logins == 2  # the stranger's certificate, the password
+        # the stranger's certificate, the anonymous session, the password: each a rejected login
+        assert gw.opcua is not None and gw.opcua.rejected_logins == 3
 
 
 async def test_reload_adds_and_removes_link_folders_keeping_sessions(tmp_path: Path, lines: tuple[Line, Line]) -> None:
@@ -401,3 +407,72 @@ async def test_every_tag_of_the_demo_equals_modbus_at_the_same_moment(tmp_path: 
             bad = [(i.Identifier, v.StatusCode.name) for i, v in zip(ids, values, strict=True)
                    if not v.StatusCode.is_good()]
             assert bad == []
+
+
+async def test_the_sign_only_endpoint_takes_a_session(tmp_path: Path, lines: tuple[Line, Line]) -> None:
+    """``Basic256Sha256-Sign``: signed, not encrypted; the trusted client's session reads and writes (the
+    password is encrypted with the policy, the channel only signed)."""
+    press, oven = lines
+    port = free_port()
+    cert, key = tmp_path / "client" / "cert.der", tmp_path / "client" / "key.pem"
+    ensure_certificate(cert, key, "urn:test:signing-client")
+    (tmp_path / "trusted").mkdir()
+    shutil.copy(cert, tmp_path / "trusted" / "client.der")
+    async with Gateway(config(tmp_path, port, press, oven, security=["Basic256Sha256-Sign"])) as gw:
+        c = client(port, "operator")
+        c.application_uri = "urn:test:signing-client"
+        await c.set_security_string(f"Basic256Sha256,Sign,{cert},{key}")
+        async with c:
+            endpoints = {(e.SecurityPolicyUri.split("#")[-1], e.SecurityMode.name) for e in await c.get_endpoints()}
+            assert endpoints == {("Basic256Sha256", "Sign")}
+            variable = await node(c, "press.N7:6")
+            assert (await good(variable)).Value.Value == 6
+            await variable.write_value(ua.DataValue(ua.Variant(66, ua.VariantType.Int16)))
+        assert press.sim.word("N7", 6) == 66
+        plain = client(port, "operator")  # no None endpoint is offered
+        with pytest.raises(ua.UaError, match="No matching endpoints"):
+            async with plain:
+                pass
+        assert gw.opcua is not None and gw.opcua.rejected_logins == 0
+
+
+async def test_opcua_and_modbus_writes_of_one_register_are_applied_in_arrival_order(
+        tmp_path: Path) -> None:
+    """The one write path: an OPC UA write queued before a Modbus write of the same register is applied
+    before it, though the Modbus connection, never served yet, would be served first between clients."""
+    from pymodbus.client import AsyncModbusTcpClient
+
+    press = await Line.start(seed=1, delay=0.3)  # every transaction holds the line 0.3 s: the writes queue
+    oven = await Line.start(seed=2)
+    port = free_port()
+    try:
+        async with Gateway(config(tmp_path, port, press, oven)) as gw, client(port, "operator") as first, \
+                client(port, "operator") as second:
+            assert gw.opcua is not None
+            server = gw.opcua
+            await good(await node(first, "press.N7:5"))
+            modbus = AsyncModbusTcpClient("127.0.0.1", port=gw.port, timeout=10, retries=0)
+            assert await modbus.connect()
+            try:
+                written: list[asyncio.Task[Any]] = []
+
+                async def received(count: int) -> None:  # the server took it: it is in the write queue
+                    await eventually(lambda: _true(server.writes == count), 5, 0.005)
+
+                for c, value in ((first, 1111), (second, 3333)):  # two sessions: asyncua answers one at a time
+                    variable = await node(c, "press.N7:5")
+                    written.append(asyncio.create_task(
+                        variable.write_value(ua.DataValue(ua.Variant(value, ua.VariantType.Int16)))))
+                    await received(len(written))
+                reply = await modbus.write_registers(5, [2222], device_id=1)
+                assert not reply.isError()
+                await asyncio.gather(*written)
+            finally:
+                modbus.close()
+        order = [struct.unpack("<h", data[-2:])[0] for _, element, data in press.sim.applied_writes
+                 if element == "N7:5"]
+        assert order == [1111, 3333, 2222]
+        assert press.sim.word("N7", 5) == 2222
+    finally:
+        await press.off()
+        await oven.off()
