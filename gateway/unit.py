@@ -51,7 +51,7 @@ from gateway.errors import ControllerRefused, GatewayError, ModbusExceptionReply
 from gateway.freshness import Freshness, LinkVerdict, Offline, Source
 from gateway.image import ImageMiss, Images
 from gateway.latency import LATENCY_BUCKETS, LatencyHistogram
-from gateway.line_driver import UnitDriver
+from gateway.line_driver import LineLease, UnitDriver
 from gateway.modbus.mapping import (
     STATUS_BASE,
     STATUS_REGISTERS,
@@ -246,15 +246,18 @@ class Unit(ABC, Generic[R, B]):
     @abstractmethod
     async def read_block(self, block: Block) -> bytes: ...
 
-    @abstractmethod
-    async def _write_register(self, target: R, value: int) -> None: ...
+    # The write hooks run one command on ``line``, the write session's lease: they pass it to
+    # their driver's request (``LineDriver.submit(op, line=line)``).
 
-    async def _write_pair(self, target: R, raw: int) -> None:
+    @abstractmethod
+    async def _write_register(self, target: R, value: int, line: LineLease) -> None: ...
+
+    async def _write_pair(self, target: R, raw: int, line: LineLease) -> None:
         """Write the 32 bits of a value held in two registers (both at once: a float)."""
         raise ModbusExceptionReply(ILLEGAL_ADDRESS, "this unit has no 32-bit registers")
 
     @abstractmethod
-    async def _write_bit(self, target: B, value: bool) -> None: ...
+    async def _write_bit(self, target: B, value: bool, line: LineLease) -> None: ...
 
     @property
     @abstractmethod
@@ -530,7 +533,8 @@ class Unit(ABC, Generic[R, B]):
             f"link {self.name}: no verdict within write_timeout ({seconds}): outcome unknown, applied at most "
             "once (the audit log gives the outcome)")
 
-    async def _run_steps(self, table: Table, steps: list[WriteStep], deadline: float) -> None:
+    async def _run_steps(self, table: Table, steps: list[WriteStep], deadline: float, line: LineLease) -> None:
+        """The write job (``gateway.writes``): the steps in order on ``line``, the session's lease."""
         done: list[WriteStep] = []
         for step in steps:
             if done and self._loop_time() >= deadline:
@@ -539,7 +543,8 @@ class Unit(ABC, Generic[R, B]):
                 self._partial_write(table, done, step, exc)
                 raise exc
             try:
-                await run_step(step, deadline, self._loop_time, self.proves_not_applied, self.write_tally, self.name)
+                await run_step(step, line, deadline, self._loop_time, self.proves_not_applied, self.write_tally,
+                               self.name)
             except ModbusExceptionReply as exc:
                 if done:
                     self._partial_write(table, done, step, exc)

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 from gateway.errors import GatewayError, ModbusExceptionReply, WriteOutcomeUnknown, modbus_exception
+from gateway.line_driver import LineLease
 from gateway.modbus.mapping import BitPoint, RegisterPoint, Table
 
 __all__ = ["WritableRange", "WriteStep", "WriteTally", "in_writable", "run_step", "span", "spans", "target_of",
@@ -35,11 +36,12 @@ def in_writable(writable: Sequence[WritableRange], table: Table, address: int, c
 
 @dataclass(slots=True)
 class WriteStep:
-    """One controller command of a write request: Modbus addresses first..last."""
+    """One controller command of a write request: Modbus addresses first..last; ``run(line)`` sends
+    it on the line of the write session's lease."""
 
     first: int
     last: int
-    run: Callable[[], Awaitable[None]]
+    run: Callable[[LineLease], Awaitable[None]]
     patches: list[tuple[RegisterPoint[Any], int]] = field(default_factory=list)
     bit_patches: list[tuple[BitPoint[Any], bool]] = field(default_factory=list)
 
@@ -90,9 +92,9 @@ class WriteTally:
     unknown: int = 0
 
 
-async def run_step(step: WriteStep, deadline: float, clock: Callable[[], float],
+async def run_step(step: WriteStep, line: LineLease, deadline: float, clock: Callable[[], float],
                    not_applied: Callable[[WriteStep, bytes], bool], tally: WriteTally, link: str) -> None:
-    """Run one command of a write; sent again, while ``clock()`` is before ``deadline`` (``write_timeout``),
+    """Run one command of a write on ``line``; sent again, while ``clock()`` is before ``deadline`` (``write_timeout``),
     as long as its outcome was unknown but a read-back proved it was not applied.
 
     A read-back proves that only where it ran after the write and showed the value from before it
@@ -102,7 +104,7 @@ async def run_step(step: WriteStep, deadline: float, clock: Callable[[], float],
     """
     while True:
         try:
-            await translated(step.run())
+            await translated(step.run(line))
             return
         except ModbusExceptionReply as exc:
             cause = exc.__cause__
