@@ -64,7 +64,8 @@ from gateway.protocols.df1.plc5_address import (
     parse_plc5_address,
     plc5_element_words,
 )
-from gateway.unit import UnitOptions, WriteStep
+from gateway.unit import UnitOptions
+from gateway.unit_writes import WriteStep
 
 __all__ = [
     "PLC5_MAX_READ_BYTES",

@@ -34,7 +34,8 @@ from gateway.protocols.df1.pccc import (
     ProtectedTypedLogicalWrite,
     Sts,
 )
-from gateway.unit import Source, Unit, UnitOptions, WriteStep
+from gateway.unit import Source, Unit, UnitOptions
+from gateway.unit_writes import WriteStep
 
 R = TypeVar("R")
 B = TypeVar("B")

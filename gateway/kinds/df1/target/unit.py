@@ -30,7 +30,8 @@ from gateway.line_driver import LineLease
 from gateway.modbus.mapping import BitPoint, Block, Plan, PointLabel, RegisterPoint, Scan, Table
 from gateway.protocols.df1.pccc.target_table import DataTable, ElementRef, TableFile
 from gateway.schedule import NEVER
-from gateway.unit import Unit, UnitOptions, WriteStep
+from gateway.unit import Unit, UnitOptions
+from gateway.unit_writes import WriteStep
 
 __all__ = ["TargetBit", "TargetElement", "TargetUnit", "load_table", "target_plan", "target_point_labels"]
 

@@ -3,9 +3,9 @@
 The N7:20 case of the issue: a DCMD on a DF1 full-duplex line with faults was not applied, the read-back gave the
 previous value, and the gateway answered "may or may not have been applied".  On full duplex the read-back runs
 after the write (the controller runs commands in order), so the value from before the write proves the write was
-not applied: the one write path (``gateway.unit`` -> ``gateway.write_steps.run_step``) sends it again within
-``write_timeout``, and the controller applies it exactly once.  Where nothing proves it (the gateway holds no value
-from before), the outcome stays unknown: 0x0B, counted and logged, never sent again.
+not applied: the one write path (``gateway.unit_writes``, ``UnitWrites._run_steps`` -> ``run_step``) sends it
+again within ``write_timeout``, and the controller applies it exactly once.  Where nothing proves it (the gateway
+holds no value from before), the outcome stays unknown: 0x0B, counted and logged, never sent again.
 
 No mocks: a ``Df1Unit`` on the full-duplex driver talking to the SLC 500 simulator through a ``SimStream``; the
 simulator loses the first write frame whole (``lose_in``, only that one).
