@@ -22,7 +22,6 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gateway.app import GatewayBackend
 from gateway.clients import Client, current_client
 from gateway.errors import ControllerRefused, ModbusExceptionReply, StaleRead
 from gateway.kinds.df1 import plan as df1_plan
@@ -32,6 +31,7 @@ from gateway.kinds.slc_ascii.plan import slc_ascii_plan
 from gateway.kinds.slc_ascii.unit import SlcAsciiUnit
 from gateway.line_driver import LineLease
 from gateway.link_health import LineCounters
+from gateway.modbus.backend import GatewayBackend
 from gateway.modbus.mapping import (
     STATUS_BASE,
     BitPoint,
