@@ -16,12 +16,13 @@ from typing import Any, Final
 from gateway.config import GatewayConfig, TlsConfig, parse_listen
 from gateway.config._common import show
 from gateway.config.link import LinkBase
-from gateway.errors import ConfigError, GatewayError, ModbusExceptionReply
+from gateway.errors import ConfigError, GatewayError
 from gateway.health import Health
 from gateway.http import HttpServer, Routes
 from gateway.kinds import LinkKind, LinkRunner, link_kind, link_kinds
 from gateway.metrics import Prometheus
 from gateway.modbus.admission import RolePolicy
+from gateway.modbus.backend import GatewayBackend
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Table
 from gateway.modbus.server import ModbusTcpServer, make_tls_context
 from gateway.opcua.server import OpcUaServer
@@ -31,7 +32,7 @@ from gateway.status import StatusPage
 from gateway.transport import describe_url, set_trace_limits
 from gateway.unit import Unit
 
-__all__ = ["LISTEN_FLAGS", "Gateway", "GatewayBackend", "LineRun", "build_units", "describe_map", "listen_error",
+__all__ = ["LISTEN_FLAGS", "Gateway", "LineRun", "build_units", "describe_map", "listen_error",
            "run_gateway"]
 
 log = logging.getLogger("gateway")
@@ -61,51 +62,6 @@ def _kind(protocol: str) -> LinkKind[Any]:
         return link_kind(protocol)
     except KeyError:
         raise ConfigError(f"unknown protocol {protocol!r}: known are {', '.join(link_kinds())}") from None
-
-
-class GatewayBackend:
-    """The Modbus server's backend: dispatch by unit id."""
-
-    def __init__(self, units: Sequence[Unit[Any, Any]]) -> None:
-        self.units = {unit.unit_id: unit for unit in units}
-
-    def has_unit(self, unit: int) -> bool:
-        return unit in self.units
-
-    def _unit(self, unit: int) -> Unit[Any, Any]:
-        try:
-            return self.units[unit]
-        except KeyError:
-            raise ModbusExceptionReply(ModbusExceptionReply.GATEWAY_PATH_UNAVAILABLE) from None
-
-    def read_now(self, unit: int, function_code: int, address: int, count: int) -> bytes:
-        """FC1-FC4 from the unit's images: the reply's data bytes (the server's fast path)."""
-        target = self.units.get(unit)
-        if target is None:
-            raise ModbusExceptionReply(ModbusExceptionReply.GATEWAY_PATH_UNAVAILABLE)
-        if function_code == 3:
-            return target.read_register_bytes(Table.HOLDING, address, count)
-        if function_code == 4:
-            return target.read_register_bytes(Table.INPUT, address, count)
-        return target.read_bit_bytes(Table.COIL if function_code == 1 else Table.DISCRETE, address, count)
-
-    async def read_coils(self, unit: int, address: int, count: int) -> Sequence[bool]:
-        return self._unit(unit).read_bits(Table.COIL, address, count)
-
-    async def read_discrete_inputs(self, unit: int, address: int, count: int) -> Sequence[bool]:
-        return self._unit(unit).read_bits(Table.DISCRETE, address, count)
-
-    async def read_holding_registers(self, unit: int, address: int, count: int) -> Sequence[int]:
-        return self._unit(unit).read_registers(Table.HOLDING, address, count)
-
-    async def read_input_registers(self, unit: int, address: int, count: int) -> Sequence[int]:
-        return self._unit(unit).read_registers(Table.INPUT, address, count)
-
-    async def write_coils(self, unit: int, address: int, values: Sequence[bool]) -> None:
-        await self._unit(unit).write_bits(address, values)
-
-    async def write_registers(self, unit: int, address: int, values: Sequence[int]) -> None:
-        await self._unit(unit).write_registers(address, values)
 
 
 #: The command-line options that override a config's listeners (``slc-gateway run``), by the listener's name.

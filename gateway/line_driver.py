@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import contextvars
 import enum
 import heapq
 import itertools
@@ -24,7 +23,7 @@ from contextlib import AbstractAsyncContextManager
 from pathlib import Path
 from typing import Any, Protocol, TypedDict, TypeVar
 
-from gateway.errors import GatewayError, LinkDown, LinkError, LinkTimeout, format_seconds
+from gateway.errors import GatewayError, LinkDown, LinkError, LinkTimeout, LocalError, format_seconds
 from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LineCounters, LineQuality, LinkHealth
 from gateway.transport import ByteStream, SerialSettings, describe_url, open_stream
 
@@ -32,6 +31,7 @@ __all__ = [
     "LineCounters",  # defined in gateway.link_health, with the rule it counts for
     "LineDriver",
     "LineDriverOptions",
+    "LineLease",
     "OpenStream",
     "Priority",
     "UnitDriver",
@@ -48,20 +48,45 @@ _STABLE_CONNECTION = 5.0
 OpenStream = Callable[..., Awaitable[ByteStream]]
 
 
-class _Session:
-    """A run of writes holding the line (``LineDriver.write_session``)."""
+class LineLease:
+    """The line as one run of writes has it: a write job's argument (``async def job(line)``).
 
-    __slots__ = ("driver", "extend", "held", "writes")
+    The write queue (``gateway.writes``) takes it from :meth:`UnitDriver.write_session` and hands
+    it to each job it runs; the job hands it down, step by step, to its driver's requests
+    (``LineDriver.submit(op, line=...)``), which then run on the line the session holds.  This one
+    holds nothing: a station's handle on a half-duplex line gives it (the line's master core orders
+    every request), and so does a unit with no line (the DF1 target's table).
+    :meth:`LineDriver.write_session` gives a held one, with the burst accounting.
+    """
+
+    __slots__ = ()
+
+    def extend_burst(self) -> None:
+        """The next write may follow the burst before the polls it owes (a held line's, from
+        ``LineDriver.write_session``); a lease that holds no line has no burst."""
+
+
+class _HeldLine(LineLease):
+    """The line held by ``LineDriver.write_session``: its state between two writes of the run."""
+
+    __slots__ = ("driver", "extend", "held", "open", "writes")
 
     def __init__(self, driver: LineDriver) -> None:
         self.driver = driver
+        #: the line is taken now (between bursts it is lent to the polls)
         self.held = False
+        #: the session is on: a request with a lease whose session ended is refused
+        self.open = True
+        #: write transactions in a row since the line was last taken
         self.writes = 0
+        #: the next write may follow the burst (``extend_burst``)
         self.extend = False
 
-
-#: The write session of the current task, if any: its requests run on the line it holds.
-_SESSION: contextvars.ContextVar[_Session | None] = contextvars.ContextVar("gateway_write_session", default=None)
+    def extend_burst(self) -> None:
+        """For the write of a client with nothing else queued, so a flood ahead of it does not
+        make it wait for a round of polls too; the polls still come after it, ``poll_burst``
+        for every ``write_burst`` writes, so the share of the line writes take is unchanged."""
+        self.extend = True
 
 
 class Priority(enum.IntEnum):
@@ -180,9 +205,8 @@ class UnitDriver(Protocol):
     @property
     def connected(self) -> bool: ...
 
-    def write_session(self) -> AbstractAsyncContextManager[None]: ...
-
-    def extend_burst(self) -> None: ...
+    def write_session(self) -> AbstractAsyncContextManager[LineLease]:
+        """Hold the line for a run of writes; the lease it yields goes to each write job."""
 
     async def first_attempt(self) -> None:
         """Until the first attempt to open the port is over (opened or failed)."""
@@ -386,16 +410,19 @@ class LineDriver(LinkHealth):
 
     # --- requests ---------------------------------------------------------------------------
 
-    async def submit(self, op: Callable[[], Awaitable[T]], priority: Priority = Priority.POLL) -> T:
+    async def submit(
+        self, op: Callable[[], Awaitable[T]], priority: Priority = Priority.POLL, line: LineLease | None = None
+    ) -> T:
         """Run ``op`` with exclusive use of the line; fails at once with ``LinkDown`` when down.
 
-        Writes run in a task of their own, shielded: a write on the line goes on to its answer
-        even when its caller gives up (a SCADA client that disconnects, a request cancelled),
-        so the controller is never left with a write half done by us.
+        ``line``: the lease of a write session of this driver (:meth:`write_session`, passed down
+        by the write job): ``op`` runs on the line the session holds, by its burst accounting.
+        Without one, writes run in a task of their own, shielded: a write on the line goes on to
+        its answer even when its caller gives up (a SCADA client that disconnects, a request
+        cancelled), so the controller is never left with a write half done by us.
         """
-        session = _SESSION.get()
-        if session is not None and session.driver is self:
-            return await self._run_in_session(session, op)
+        if line is not None:
+            return await self._run_held(self._own(line), op)
         self._check_connected()
         await self._line.acquire(int(priority))
         if priority is Priority.WRITE:
@@ -426,57 +453,54 @@ class LineDriver(LinkHealth):
             raise LinkError(f"link {self.name}: internal error: {exc!r}") from exc
 
     @contextlib.asynccontextmanager
-    async def write_session(self) -> AsyncIterator[None]:
-        """Hold the line for a run of writes: ``submit`` calls of this task run on it at once.
+    async def write_session(self) -> AsyncIterator[LineLease]:
+        """Hold the line for a run of writes: requests given the lease it yields run on it at once.
 
         The session takes the line at write priority and keeps it from one write to the next,
         so queued writes go ahead of polls; but after ``write_burst`` transactions in a row it
         lets waiting poll transactions have the line (``poll_burst`` of them, fewer if the poller
         stops asking), so the data age stays bounded under any write load: writes take at most
         ``write_burst * write / (write_burst * write + poll_burst * poll)`` of the line time.  A
-        write is never interrupted: the line changes hands only between two.
+        write is never interrupted: the line changes hands only between two.  The lease's
+        ``extend_burst`` lets the next write follow the burst before the polls it owes.
         """
         self._check_connected()
-        session = _Session(self)
+        lease = _HeldLine(self)
         await self._line.acquire(int(Priority.WRITE))
-        session.held = True
-        token = _SESSION.set(session)
+        lease.held = True
         try:
-            yield
+            yield lease
         finally:
-            _SESSION.reset(token)
-            if session.held:
-                session.held = False
+            lease.open = False
+            if lease.held:
+                lease.held = False
                 self._line.release()
 
-    def extend_burst(self) -> None:
-        """In a write session: the next write may follow the burst before the polls it owes.
+    def _own(self, line: LineLease) -> _HeldLine:
+        """``line`` as a lease of this driver's open write session; ``LocalError`` for any other."""
+        if not (isinstance(line, _HeldLine) and line.driver is self and line.open):
+            raise LocalError(f"link {self.name}: a request on a line lease that is not of this link's open "
+                             "write session: nothing sent")
+        return line
 
-        For the write of a client with nothing else queued, so a flood ahead of it does not
-        make it wait for a round of polls too; the polls still come after it, ``poll_burst``
-        for every ``write_burst`` writes, so the share of the line writes take is unchanged.
-        """
-        session = _SESSION.get()
-        if session is not None and session.driver is self:
-            session.extend = True
-
-    async def _run_in_session(self, session: _Session, op: Callable[[], Awaitable[T]]) -> T:
-        limit = self.write_burst + session.extend
-        session.extend = False
-        if session.held and session.writes >= limit and self._line.waiting:
-            owed = -(-self.poll_burst * session.writes // self.write_burst)
-            session.held = False
-            session.writes = 0
+    async def _run_held(self, lease: _HeldLine, op: Callable[[], Awaitable[T]]) -> T:
+        """Run ``op`` in the write session of ``lease``: the burst accounting (:meth:`write_session`)."""
+        limit = self.write_burst + lease.extend
+        lease.extend = False
+        if lease.held and lease.writes >= limit and self._line.waiting:
+            owed = -(-self.poll_burst * lease.writes // self.write_burst)
+            lease.held = False
+            lease.writes = 0
             target = self._line.grants + owed
             self._line.release()  # to the waiting poll
             # Let the poller's next requests have the line too, as many as the writes owe; the
             # last one's release hands the line back here (queued at write priority meanwhile).
             await self._line.wait_grants(target)
-        if not session.held:
+        if not lease.held:
             self._check_connected()
             await self._line.acquire(int(Priority.WRITE))  # LinkDown when the link fails meanwhile
-            session.held = True
-        session.writes += 1
+            lease.held = True
+        lease.writes += 1
         return await self._run_op(op)
 
     def send(self, data: bytes) -> None:

@@ -7,7 +7,7 @@ two halves of one value) is one tag at its first register, with its word order. 
 status block (input registers from 1000) is listed too.
 
 Access follows the unit's own rules: a point with a write target, outside ``read_only``, inside
-``writable`` (:func:`gateway.unit.in_writable`) is read-write; everything else is read-only.
+``writable`` (:func:`gateway.unit_writes.in_writable`) is read-write; everything else is read-only.
 
 Formats (:data:`FORMATS`): ``csv`` (header :data:`CSV_HEADER`), ``json`` (a list of objects) and
 ``kepware``, the Kepware tag CSV layout (:func:`kepware_rows`): one file is one Kepware device, so
@@ -30,7 +30,7 @@ from gateway.errors import GatewayError
 from gateway.frozen import frozen
 from gateway.kinds import link_kind, unit_options
 from gateway.modbus.mapping import STATUS_BASE, STATUS_REGISTERS, Half, PointLabel, RegisterPoint, Table
-from gateway.unit import in_writable
+from gateway.unit_writes import in_writable
 
 __all__ = ["CSV_HEADER", "FORMATS", "KepwareDevice", "Tag", "config_tags", "kepware_devices", "link_tags", "reference",
            "render"]

@@ -5,7 +5,9 @@ queued here the moment it arrives: the server starts one task per request in arr
 nothing awaits before the queue, so queue order is arrival order, across all connections.
 One worker per link runs the jobs one at a time inside a write session of the driver
 (``LineDriver.write_session``): writes go ahead of polls, and after ``write_burst`` write
-transactions in a row ``poll_burst`` poll transactions get the line.
+transactions in a row ``poll_burst`` poll transactions get the line.  A job is
+``async def job(line)``: it gets the session's lease (``gateway.line_driver.LineLease``) as its
+argument and hands it to its driver's requests, which run on the line the session holds.
 
 Order.  Jobs of one client run in arrival order, always.  Between clients the worker serves
 the least recently served first (round robin; a client with nothing queued counts as never
@@ -31,13 +33,14 @@ from collections.abc import Awaitable, Callable, Hashable
 from dataclasses import dataclass, field
 
 from gateway.errors import LinkError, ModbusExceptionReply, modbus_exception
-from gateway.line_driver import UnitDriver, retrieve_outcome
+from gateway.line_driver import LineLease, UnitDriver, retrieve_outcome
 
 __all__ = ["WriteQueue"]
 
 log = logging.getLogger("gateway.writes")
 
-Job = Callable[[], Awaitable[None]]
+#: A write job: run on the line of the session's lease, which it gets as its argument.
+Job = Callable[[LineLease], Awaitable[None]]
 
 
 @dataclass(eq=False, slots=True)
@@ -148,11 +151,11 @@ class WriteQueue:
         try:
             while self._waiting:
                 try:
-                    async with self.driver.write_session():
+                    async with self.driver.write_session() as line:
                         while (entry := self._pick()) is not None:
                             if self._newcomer:
-                                self.driver.extend_burst()
-                            await self._run(entry)
+                                line.extend_burst()
+                            await self._run(entry, line)
                 except LinkError as exc:
                     # No line for writes (the link is down): every waiting job fails at once.
                     error = modbus_exception(exc)  # 0x0B
@@ -168,9 +171,9 @@ class WriteQueue:
                         entry.future.set_exception(error)
 
     @staticmethod
-    async def _run(entry: _Entry) -> None:
+    async def _run(entry: _Entry, line: LineLease) -> None:
         try:
-            await entry.job()
+            await entry.job(line)
         except asyncio.CancelledError:
             if not entry.future.done():
                 entry.future.cancel()

@@ -37,7 +37,7 @@ from gateway.errors import (
 )
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.sim import get_simulator
-from gateway.write_steps import translated as _translated
+from gateway.unit_writes import translated as _translated
 
 ILLEGAL_ADDRESS, ILLEGAL_VALUE, DEVICE_FAILURE, TARGET_FAILED = 0x02, 0x03, 0x04, 0x0B
 

@@ -210,6 +210,7 @@ GENERIC = (
     "gateway.image",
     "gateway.line_driver",
     "gateway.metrics",
+    "gateway.modbus.backend",
     "gateway.modbus.handler",
     "gateway.modbus.mapping",
     "gateway.poller",
@@ -242,6 +243,13 @@ def test_generic_modules_import_no_protocol() -> None:
         for module in GENERIC
     }
     assert {module: targets for module, targets in found.items() if targets} == {}
+
+
+def test_nothing_climbs_to_the_app() -> None:
+    """The app is the top floor: it wires the others, and only the command line imports it (the Modbus
+    server's backend is on the Modbus floor, ``gateway.modbus.backend``, beside ``mbap``)."""
+    graph = import_graph(ROOT, "gateway")
+    assert sorted(module for module, targets in graph.items() if "gateway.app" in targets) == ["gateway.cli"]
 
 
 def test_protocol_names_are_spelt_out_in_at_most_three_modules() -> None:

@@ -22,7 +22,6 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gateway.app import GatewayBackend
 from gateway.clients import Client, current_client
 from gateway.errors import ControllerRefused, ModbusExceptionReply, StaleRead
 from gateway.kinds.df1 import plan as df1_plan
@@ -30,7 +29,9 @@ from gateway.kinds.slc_ascii import plan as slc_plan
 from gateway.kinds.slc_ascii.driver import SlcAsciiDriver
 from gateway.kinds.slc_ascii.plan import slc_ascii_plan
 from gateway.kinds.slc_ascii.unit import SlcAsciiUnit
+from gateway.line_driver import LineLease
 from gateway.link_health import LineCounters
+from gateway.modbus.backend import GatewayBackend
 from gateway.modbus.mapping import (
     STATUS_BASE,
     BitPoint,
@@ -242,10 +243,10 @@ class ClockedUnit(Unit):
     async def read_block(self, block: Block) -> bytes:
         raise AssertionError("not polled")
 
-    async def _write_register(self, target: object, value: int) -> None:
+    async def _write_register(self, target: object, value: int, line: LineLease) -> None:
         raise AssertionError("not written")
 
-    async def _write_bit(self, target: object, value: bool) -> None:
+    async def _write_bit(self, target: object, value: bool, line: LineLease) -> None:
         raise AssertionError("not written")
 
     @property
@@ -604,11 +605,8 @@ class FakeDriver:
         self.connected = True
 
     @contextlib.asynccontextmanager
-    async def write_session(self) -> AsyncIterator[None]:
-        yield
-
-    def extend_burst(self) -> None:
-        pass
+    async def write_session(self) -> AsyncIterator[LineLease]:
+        yield LineLease()
 
     async def first_attempt(self) -> None:
         pass
@@ -644,10 +642,10 @@ class MemoryUnit(Unit[str, str]):
             raise ControllerRefused(f"{target} is protected")
         self.applied.append((target, value))
 
-    async def _write_register(self, target: str, value: int) -> None:
+    async def _write_register(self, target: str, value: int, line: LineLease) -> None:
         await self._command(target, value)
 
-    async def _write_bit(self, target: str, value: bool) -> None:
+    async def _write_bit(self, target: str, value: bool, line: LineLease) -> None:
         await self._command(target, int(value))
 
     def _refused_by_image(self, point: RegisterPoint[str]) -> str | None:
@@ -661,7 +659,7 @@ class MemoryUnit(Unit[str, str]):
 class PairUnit(MemoryUnit):
     """A unit whose controller takes a 32-bit value in one command."""
 
-    async def _write_pair(self, target: str, raw: int) -> None:
+    async def _write_pair(self, target: str, raw: int, line: LineLease) -> None:
         await self._command(target, raw)
 
 

@@ -1,4 +1,4 @@
-"""The per-link write queue and the driver's write session, without a network or a controller."""
+"""The per-link write queue and the driver's write session (its lease), without a network or a controller."""
 
 from __future__ import annotations
 
@@ -10,9 +10,21 @@ from typing import Any
 
 import pytest
 
-from gateway.errors import GatewayError, LinkDown, ModbusExceptionReply
-from gateway.line_driver import LineDriver, Priority
+from gateway.errors import GatewayError, LinkDown, LocalError, ModbusExceptionReply
+from gateway.line_driver import LineDriver, LineLease, Priority
 from gateway.writes import WriteQueue
+
+
+class FakeLease(LineLease):
+    """A lease that counts the bursts extended on it, in its driver."""
+
+    __slots__ = ("driver",)
+
+    def __init__(self, driver: FakeSessionDriver) -> None:
+        self.driver = driver
+
+    def extend_burst(self) -> None:
+        self.driver.extended += 1
 
 
 class FakeSessionDriver:
@@ -22,16 +34,16 @@ class FakeSessionDriver:
         self.down = False
         self.sessions = 0
         self.extended = 0
-
-    def extend_burst(self) -> None:
-        self.extended += 1
+        self.leases: list[LineLease] = []
 
     @contextlib.asynccontextmanager
-    async def write_session(self) -> AsyncIterator[None]:
+    async def write_session(self) -> AsyncIterator[LineLease]:
         if self.down:
             raise LinkDown("link fake is down")
         self.sessions += 1
-        yield
+        lease = FakeLease(self)
+        self.leases.append(lease)
+        yield lease
 
 
 def queue(**kwargs: int) -> tuple[WriteQueue, FakeSessionDriver, list[str]]:
@@ -40,11 +52,22 @@ def queue(**kwargs: int) -> tuple[WriteQueue, FakeSessionDriver, list[str]]:
 
 
 def job(log: list[str], name: str, delay: float = 0.0) -> Any:
-    async def run() -> None:
+    async def run(line: LineLease) -> None:
         await asyncio.sleep(delay)
         log.append(name)
 
     return run
+
+
+async def test_each_job_gets_the_lease_of_the_session_it_runs_in() -> None:
+    q, driver, _ = queue()
+    got: list[LineLease] = []
+
+    async def run(line: LineLease) -> None:
+        got.append(line)
+
+    await asyncio.gather(*(q.submit(c, frozenset({c}), run) for c in "abc"))
+    assert driver.sessions == 1 and got == driver.leases * 3
 
 
 async def test_one_clients_jobs_run_in_arrival_order() -> None:
@@ -92,7 +115,7 @@ async def test_bounds_answer_0x06_at_once_and_queue_nothing() -> None:
 async def test_a_job_failure_is_its_callers_answer_and_the_queue_goes_on() -> None:
     q, _, log = queue()
 
-    async def refused() -> None:
+    async def refused(line: LineLease) -> None:
         raise ModbusExceptionReply(0x04, "refused")
 
     bad = q.submit("a", frozenset({1}), refused)
@@ -130,12 +153,12 @@ class LineDriver(LineDriver):
 
     def abort(self, exc: GatewayError) -> None: ...
 
-    async def transaction(self, name: str, priority: Priority) -> None:
+    async def transaction(self, name: str, priority: Priority, line: LineLease | None = None) -> None:
         async def op() -> None:
             self.line_log.append(name)
             await asyncio.sleep(0.002)
 
-        await self.submit(op, priority)
+        await self.submit(op, priority, line)
 
 
 @pytest.mark.parametrize(("write_burst", "poll_burst"), [(1, 1), (1, 2), (3, 1), (2, 3)])
@@ -152,9 +175,9 @@ async def test_a_write_session_lets_polls_through_after_each_burst(write_burst: 
 
     poll_task = asyncio.create_task(poller())
     await asyncio.sleep(0.01)
-    async with driver.write_session():
+    async with driver.write_session() as line:
         for n in range(12):
-            await driver.transaction(f"W{n}", Priority.WRITE)
+            await driver.transaction(f"W{n}", Priority.WRITE, line)
     stop.set()
     await poll_task
     kinds = "".join(name[0] for name in driver.line_log)
@@ -177,11 +200,11 @@ async def test_an_extended_burst_still_owes_its_polls() -> None:
 
     poll_task = asyncio.create_task(poller())
     await asyncio.sleep(0.01)
-    async with driver.write_session():
+    async with driver.write_session() as line:
         for n in range(4):
             if n == 1:
-                driver.extend_burst()
-            await driver.transaction(f"W{n}", Priority.WRITE)
+                line.extend_burst()
+            await driver.transaction(f"W{n}", Priority.WRITE, line)
     stop.set()
     await poll_task
     kinds = "".join(name[0] for name in driver.line_log)
@@ -199,10 +222,40 @@ async def test_the_queue_extends_the_burst_for_a_client_with_nothing_else_queued
 
 async def test_without_waiting_polls_a_session_keeps_the_line() -> None:
     driver = LineDriver()
-    async with driver.write_session():
+    async with driver.write_session() as line:
         for n in range(5):
-            await driver.transaction(f"W{n}", Priority.WRITE)
+            await driver.transaction(f"W{n}", Priority.WRITE, line)
     assert driver.line_log == [f"W{n}" for n in range(5)]
+
+
+async def test_a_request_without_the_lease_waits_for_the_session_like_any_other() -> None:
+    """Only a request given the lease runs on the session's line; another write waits for the line
+    (within the burst: after it, the session lends the line to whoever waits)."""
+    driver = LineDriver()
+    driver.write_burst = 10
+    async with driver.write_session() as line:
+        other = asyncio.create_task(driver.transaction("other", Priority.WRITE))
+        for n in range(3):
+            await driver.transaction(f"W{n}", Priority.WRITE, line)
+            await asyncio.sleep(0)
+        assert not other.done()
+    await other
+    assert driver.line_log == ["W0", "W1", "W2", "other"]
+
+
+async def test_a_lease_of_another_link_or_of_an_ended_session_is_refused_and_nothing_is_sent() -> None:
+    driver, other = LineDriver(), LineDriver()
+    async with other.write_session() as foreign:
+        with pytest.raises(LocalError, match="not of this link's open write session"):
+            await driver.transaction("W", Priority.WRITE, foreign)
+    with pytest.raises(LocalError):
+        await other.transaction("W", Priority.WRITE, foreign)  # its session is over
+    with pytest.raises(LocalError):
+        await driver.transaction("W", Priority.WRITE, LineLease())  # holds no line
+    assert driver.line_log == other.line_log == []
+    async with driver.write_session() as line:  # the line was released each time
+        await driver.transaction("W", Priority.WRITE, line)
+    assert driver.line_log == ["W"]
 
 
 async def test_a_session_on_a_lost_link_fails_its_writes_with_link_down() -> None:
@@ -223,7 +276,7 @@ async def test_default_bounds_are_8_writes_per_connection_and_32_per_link() -> N
     q, _, log = queue()
     gate = asyncio.Event()
 
-    async def held() -> None:
+    async def held(line: LineLease) -> None:
         await gate.wait()
 
     running = q.submit("x", frozenset(), held)
@@ -245,7 +298,7 @@ async def test_bounds_of_one_are_allowed_and_hold(per_client: int, per_link: int
     q, _, log = queue(per_client=per_client, per_link=per_link)
     gate = asyncio.Event()
 
-    async def held() -> None:
+    async def held(line: LineLease) -> None:
         await gate.wait()
 
     running = q.submit("x", frozenset(), held)
@@ -273,7 +326,7 @@ async def test_stopping_the_gateway_fails_the_waiting_writes_with_0x0B_and_runs_
     q, _, log = queue()
     gate = asyncio.Event()
 
-    async def held() -> None:
+    async def held(line: LineLease) -> None:
         await gate.wait()
 
     running = q.submit("a", frozenset({1}), held)
@@ -303,7 +356,7 @@ async def test_three_clients_take_turns_and_a_client_whose_queue_emptied_counts_
     log.clear()
     gate = asyncio.Event()
 
-    async def held() -> None:
+    async def held(line: LineLease) -> None:
         await gate.wait()
         log.append("held")
 
@@ -321,7 +374,7 @@ async def test_an_overlapping_write_waits_for_an_earlier_one_behind_another_clie
     q, _, log = queue()
     gate = asyncio.Event()
 
-    async def held() -> None:
+    async def held(line: LineLease) -> None:
         await gate.wait()
         log.append("held")
 
@@ -341,7 +394,7 @@ async def test_a_job_that_fails_after_its_caller_gave_up_is_not_reported_as_neve
 ) -> None:
     q, _, _ = queue()
 
-    async def fails() -> None:
+    async def fails(line: LineLease) -> None:
         raise ModbusExceptionReply(0x04, "refused")
 
     future = q.submit("a", frozenset({1}), fails)
@@ -362,7 +415,7 @@ async def test_a_client_whose_queue_emptied_is_a_newcomer_again_whatever_it_was_
     log.clear()
     gate = asyncio.Event()
 
-    async def held() -> None:
+    async def held(line: LineLease) -> None:
         await gate.wait()
 
     futures = [q.submit("c", frozenset({"c"}), held)]
@@ -384,7 +437,7 @@ async def test_a_withdrawn_write_is_cancelled_and_never_runs_and_the_others_do()
     q, _, log = queue()
     gate = asyncio.Event()
 
-    async def held() -> None:
+    async def held(line: LineLease) -> None:
         await gate.wait()
         log.append("held")
 
@@ -409,7 +462,7 @@ async def test_a_withdrawn_write_frees_its_place_in_the_bounds() -> None:
     q, _, log = queue(per_client=2, per_link=2)
     gate = asyncio.Event()
 
-    async def held() -> None:
+    async def held(line: LineLease) -> None:
         await gate.wait()
 
     running = q.submit("z", frozenset({"z"}), held)
@@ -432,7 +485,7 @@ async def test_a_client_whose_last_waiting_write_was_withdrawn_is_a_newcomer_aga
     q, driver, log = queue()
     gate = asyncio.Event()
 
-    async def held() -> None:
+    async def held(line: LineLease) -> None:
         await gate.wait()
         log.append("held")
 
@@ -454,7 +507,7 @@ async def test_drain_returns_when_every_job_taken_has_run() -> None:
     await q.drain()  # nothing taken: at once
     gate = asyncio.Event()
 
-    async def held() -> None:
+    async def held(line: LineLease) -> None:
         await gate.wait()
         log.append("held")
 
@@ -473,7 +526,7 @@ async def test_a_cancelled_drain_leaves_the_jobs_running() -> None:
     q, _, log = queue()
     gate = asyncio.Event()
 
-    async def held() -> None:
+    async def held(line: LineLease) -> None:
         await gate.wait()
         log.append("held")
 

@@ -26,7 +26,8 @@ from gateway.frozen import frozen
 from gateway.line_driver import LineDriverOptions, OpenStream
 from gateway.modbus.mapping import Plan, PointLabel, Table
 from gateway.sim.models import SimModel
-from gateway.unit import Unit, UnitOptions, WritableRange
+from gateway.unit import Unit, UnitOptions
+from gateway.unit_writes import WritableRange
 
 __all__ = [
     "Built",

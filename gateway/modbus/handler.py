@@ -65,6 +65,7 @@ from pymodbus.pdu.bit_message import ReadCoilsResponse, ReadDiscreteInputsRespon
 from gateway.clients import audit_write
 from gateway.errors import ModbusExceptionReply, StaleRead
 from gateway.modbus import mbap
+from gateway.modbus.mapping import FUNCTION_TABLES
 from gateway.modbus.mbap import (
     BIT_READS,
     COIL_OFF,
@@ -257,10 +258,10 @@ class RequestHandler:
                 return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
             address, value = _ADDRESS_COUNT.unpack_from(pdu, 1)
             if function_code == FunctionCode.WRITE_SINGLE_REGISTER:
-                return self._write(tid, unit, pdu, "holding", address, (value,), self.backend.write_registers)
+                return self._write(tid, unit, pdu, address, (value,), self.backend.write_registers)
             if value != COIL_ON and value != COIL_OFF:
                 return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
-            return self._write(tid, unit, pdu, "coil", address, (value == COIL_ON,), self.backend.write_coils)
+            return self._write(tid, unit, pdu, address, (value == COIL_ON,), self.backend.write_coils)
 
         if function_code in MULTIPLE_WRITES:
             if size < 6:
@@ -279,8 +280,8 @@ class RequestHandler:
             if decoded is None:  # not expected after the checks above
                 return self._exception(tid, unit, function_code, ILLEGAL_DATA_VALUE)
             if coils:
-                return self._write(tid, unit, pdu[:5], "coil", address, decoded.bits[:count], self.backend.write_coils)
-            return self._write(tid, unit, pdu[:5], "holding", address, decoded.registers, self.backend.write_registers)
+                return self._write(tid, unit, pdu[:5], address, decoded.bits[:count], self.backend.write_coils)
+            return self._write(tid, unit, pdu[:5], address, decoded.registers, self.backend.write_registers)
 
         return self._exception(tid, unit, function_code, ILLEGAL_FUNCTION)
 
@@ -345,12 +346,13 @@ class RequestHandler:
         tid: int,
         unit: int,
         echo: bytes,
-        table: str,
         address: int,
         values: Sequence[bool] | Sequence[int],
         write: Callable[[int, int, Any], Awaitable[None]],
     ) -> bytes:
-        """``write`` (``backend.write_coils`` or ``write_registers``), audited; the reply echoes ``echo``."""
+        """``write`` (``backend.write_coils`` or ``write_registers``), audited (with the table its function
+        code writes, ``FUNCTION_TABLES``); the reply echoes ``echo``."""
+        table = FUNCTION_TABLES[echo[0]].value
         try:
             await write(unit, address, values)
         except ModbusExceptionReply as reply:

@@ -1,4 +1,5 @@
-"""Modbus address <-> controller memory: the plan types, pure data, computed once per link.
+"""Modbus address <-> controller memory: the plan types, pure data, computed once per link; the table
+of each function code (:data:`FUNCTION_TABLES`).
 
 A *plan* lists the blocks the poller reads (each one controller transaction) and, for every
 Modbus address of every table, the *point* that says where its value lives inside a block and
@@ -17,11 +18,13 @@ from __future__ import annotations
 import enum
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Generic, TypeVar
+from typing import Final, Generic, TypeVar
 
 from gateway.frozen import frozen
+from gateway.modbus.mbap import FunctionCode
 
 __all__ = [
+    "FUNCTION_TABLES",
     "STATUS_BASE",
     "STATUS_REGISTERS",
     "BitPoint",
@@ -59,6 +62,21 @@ class Table(enum.Enum):
     def writable(self) -> bool:
         """Whether Modbus writes this table (holding registers and coils; the other two are read-only)."""
         return self in (Table.HOLDING, Table.COIL)
+
+
+#: The table each function code served reads or writes (Modbus Application Protocol V1.1b3,
+#: 6.1-6.12), its one place: the backend (``gateway.modbus.backend``) serves that table, and the
+#: handler's audit line of a write names it.
+FUNCTION_TABLES: Final[dict[int, Table]] = {
+    FunctionCode.READ_COILS: Table.COIL,
+    FunctionCode.READ_DISCRETE_INPUTS: Table.DISCRETE,
+    FunctionCode.READ_HOLDING_REGISTERS: Table.HOLDING,
+    FunctionCode.READ_INPUT_REGISTERS: Table.INPUT,
+    FunctionCode.WRITE_SINGLE_COIL: Table.COIL,
+    FunctionCode.WRITE_SINGLE_REGISTER: Table.HOLDING,
+    FunctionCode.WRITE_MULTIPLE_COILS: Table.COIL,
+    FunctionCode.WRITE_MULTIPLE_REGISTERS: Table.HOLDING,
+}
 
 
 class Scan(enum.Enum):

@@ -31,7 +31,7 @@ from gateway.config import parse_config
 from gateway.config.link import LinkBase, Parity, SerialDefaults
 from gateway.errors import GatewayError
 from gateway.kinds import Built, LinkKind, register_link_kind, unit_options, unregister_link_kind
-from gateway.line_driver import LineDriver
+from gateway.line_driver import LineDriver, LineLease
 from gateway.modbus.mapping import Block, Codec, Plan, RegisterPoint, Scan
 from gateway.sim import get_simulator, reset_simulators
 from gateway.sim.models import SimModel
@@ -163,12 +163,12 @@ class FeedUnit(Unit[ValueTarget, None]):
     async def read_block(self, block: Block) -> bytes:
         raise AssertionError("a unit that is not polled is never asked to read")
 
-    async def _write_register(self, target: ValueTarget, value: int) -> None:
+    async def _write_register(self, target: ValueTarget, value: int, line: LineLease) -> None:
         # the peer's next G gets it; the image is patched by the generic write path
         self.driver.values[target.index] = value
         self.store(target.index, value.to_bytes(2, "big"), asyncio.get_running_loop().time())
 
-    async def _write_bit(self, target: None, value: bool) -> None:
+    async def _write_bit(self, target: None, value: bool, line: LineLease) -> None:
         raise AssertionError("the feed map has no coils")
 
     @property

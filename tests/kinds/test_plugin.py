@@ -36,7 +36,7 @@ from gateway.kinds import (
     unit_options,
     unregister_link_kind,
 )
-from gateway.line_driver import LineDriver, Priority
+from gateway.line_driver import LineDriver, LineLease
 from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, RegisterPoint, Scan
 from gateway.sim import get_simulator, model_names, reset_simulators
 from gateway.sim.models import SimModel
@@ -159,7 +159,8 @@ class EchoDriver(LineDriver):
         if self._reply is not None and not self._reply.done():
             self._reply.set_exception(exc)
 
-    async def transact(self, command: bytes, expect: int, priority: Priority = Priority.POLL) -> bytes:
+    async def transact(self, command: bytes, expect: int, line: LineLease | None = None) -> bytes:
+        """One command and its answer: a poll, or with ``line`` (a write session's lease) a write."""
         async def op() -> bytes:
             self._buffer.clear()
             self._reply = asyncio.get_running_loop().create_future()
@@ -173,7 +174,7 @@ class EchoDriver(LineDriver):
             self.note_result(True)
             return reply
 
-        return await self.submit(op, priority)
+        return await self.submit(op, line=line)
 
 
 class EchoUnit(Unit[WordWrite, BitWrite]):
@@ -185,14 +186,14 @@ class EchoUnit(Unit[WordWrite, BitWrite]):
     async def read_block(self, block: Block) -> bytes:
         return await self.driver.transact(bytes([ord("R"), 0, WORDS + 1]), block.size)
 
-    async def _write_register(self, target: WordWrite, value: int) -> None:
+    async def _write_register(self, target: WordWrite, value: int, line: LineLease) -> None:
         command = bytes([ord("W"), target.word]) + value.to_bytes(2, "big")
-        if await self.driver.transact(command, 4, Priority.WRITE) != command:
+        if await self.driver.transact(command, 4, line) != command:
             raise GatewayError("the echo differs")
 
-    async def _write_bit(self, target: BitWrite, value: bool) -> None:
+    async def _write_bit(self, target: BitWrite, value: bool, line: LineLease) -> None:
         command = bytes([ord("B"), target.word, target.bit, int(value)])
-        if await self.driver.transact(command, 4, Priority.WRITE) != command:
+        if await self.driver.transact(command, 4, line) != command:
             raise GatewayError("the echo differs")
 
     @property

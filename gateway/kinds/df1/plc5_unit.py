@@ -49,6 +49,7 @@ from gateway.kinds.df1.plan import (
     optimal_blocks,
 )
 from gateway.kinds.df1.unit import PcccDriver, PcccUnit, _step_bytes, _word_target
+from gateway.line_driver import LineLease
 from gateway.modbus.mapping import BitPoint, Block, Codec, Plan, PointLabel, RegisterPoint, Scan, Table
 from gateway.protocols.df1.pccc import (
     LogicalBinaryAddress,
@@ -65,7 +66,8 @@ from gateway.protocols.df1.plc5_address import (
     parse_plc5_address,
     plc5_element_words,
 )
-from gateway.unit import UnitOptions, WriteStep
+from gateway.unit import UnitOptions
+from gateway.unit_writes import WriteStep
 
 __all__ = [
     "PLC5_MAX_READ_BYTES",
@@ -262,14 +264,14 @@ class Plc5Unit(PcccUnit[Plc5WordWrite, Plc5BitWrite]):
             raise InvalidRequest(f"read {block.label}: the PLC-5 answered {len(data)} bytes, not {2 * read.words}")
         return data
 
-    async def _write_words(self, address: Plc5Address, data: bytes) -> None:
-        await self._execute(WordRangeWrite(_logical_address(address), data), f"write {address}")
+    async def _write_words(self, address: Plc5Address, data: bytes, line: LineLease) -> None:
+        await self._execute(WordRangeWrite(_logical_address(address), data), f"write {address}", line)
 
-    async def _write_register(self, target: Plc5WordWrite, value: int) -> None:
-        await self._write_words(target.address, value.to_bytes(2, "little"))
+    async def _write_register(self, target: Plc5WordWrite, value: int, line: LineLease) -> None:
+        await self._write_words(target.address, value.to_bytes(2, "little"), line)
 
-    async def _write_pair(self, target: Plc5WordWrite, raw: int) -> None:
-        await self._write_words(target.address, struct.pack("<I", raw))  # low word first, as read
+    async def _write_pair(self, target: Plc5WordWrite, raw: int, line: LineLease) -> None:
+        await self._write_words(target.address, struct.pack("<I", raw), line)  # low word first, as read
 
     def _register_steps(self, checked: list[tuple[int, RegisterPoint[Plc5WordWrite], int]]) -> list[WriteStep]:
         """Consecutive words (or floats) of one N / B / F / I / O / S file in one word range write."""
@@ -326,17 +328,17 @@ class Plc5Unit(PcccUnit[Plc5WordWrite, Plc5BitWrite]):
             for run in runs
         ]
 
-    async def _write_bits(self, address: Plc5Address, bits: list[tuple[int, bool]]) -> None:
+    async def _write_bits(self, address: Plc5Address, bits: list[tuple[int, bool]], line: LineLease) -> None:
         forced = set_bits = 0
         for bit, on in bits:
             forced |= 1 << bit
             set_bits |= (1 << bit) if on else 0
         request = ReadModifyWriteRequest(((_logical_address(address), 0xFFFF & ~forced | set_bits, set_bits),))
         label = f"write {address}/" + ",".join(str(b) for b, _ in bits)
-        await self._execute(request, label)
+        await self._execute(request, label, line)
 
-    async def _write_bit(self, target: Plc5BitWrite, value: bool) -> None:
-        await self._write_bits(target.address, [(target.bit, value)])
+    async def _write_bit(self, target: Plc5BitWrite, value: bool, line: LineLease) -> None:
+        await self._write_bits(target.address, [(target.bit, value)], line)
 
 
 def _bit_target(point: BitPoint[Plc5BitWrite]) -> Plc5BitWrite:

@@ -24,7 +24,7 @@ from gateway.kinds.df1.config import Processor
 from gateway.kinds.df1.full.driver import Df1Driver, check_reply_size
 from gateway.kinds.df1.half.receive import ReceiveWindow
 from gateway.kinds.df1.plan import Df1BitWrite, Df1Read, Df1WordWrite, MapItem, shared_plan_df1
-from gateway.line_driver import UnitDriver
+from gateway.line_driver import LineLease, UnitDriver
 from gateway.modbus.mapping import BitPoint, BitWrite, Block, Half, Plan, RegisterPoint, Table, WordWrite
 from gateway.protocols.df1.address import FileType, SlcAddress
 from gateway.protocols.df1.pccc import (
@@ -37,7 +37,8 @@ from gateway.protocols.df1.pccc import (
     Sts,
 )
 from gateway.protocols.df1.plc5_address import Plc5Address
-from gateway.unit import Source, Unit, UnitOptions, WriteStep
+from gateway.unit import Source, Unit, UnitOptions
+from gateway.unit_writes import WriteStep
 
 R = TypeVar("R")
 B = TypeVar("B")
@@ -72,7 +73,8 @@ class PcccDriver(UnitDriver, Protocol):
 
     last_sts: int
 
-    async def execute(self, request: Any, name: str = "") -> PcccReply: ...
+    async def execute(self, request: Any, name: str = "", line: LineLease | None = None) -> PcccReply:
+        """The reply to ``request``; ``line``: a write's lease of the unit's write session."""
 
 
 class PcccUnit(Unit[R, B]):
@@ -103,10 +105,10 @@ class PcccUnit(Unit[R, B]):
             for first, n, inside in window.split(address, count)
         )
 
-    async def _execute(self, request: Any, label: str) -> None:
-        """Run a write command; a PCCC refusal becomes its Modbus exception."""
+    async def _execute(self, request: Any, label: str, line: LineLease) -> None:
+        """Run a write command on ``line``; a PCCC refusal becomes its Modbus exception."""
         try:
-            await self.driver.execute(request, label)
+            await self.driver.execute(request, label, line)
         except PcccError as exc:
             raise pccc_exception(exc) from exc
 
@@ -207,20 +209,20 @@ class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):
         reply = await self.driver.execute(request, f"read {block.label}")
         return check_reply_size(reply, read.size, f"read {block.label}")
 
-    async def _write(self, request: Any, address: SlcAddress) -> None:
-        await self._execute(request, f"write {address}")
+    async def _write(self, request: Any, address: SlcAddress, line: LineLease) -> None:
+        await self._execute(request, f"write {address}", line)
 
-    async def _write_register(self, target: Df1WordWrite, value: int) -> None:
+    async def _write_register(self, target: Df1WordWrite, value: int, line: LineLease) -> None:
         a = target.address
         data = value.to_bytes(2, "little")
         request = ProtectedTypedLogicalWrite(a.file_type, a.file_number, a.element, a.sub_element, data)
-        await self._write(request, a)
+        await self._write(request, a, line)
 
-    async def _write_pair(self, target: Df1WordWrite, raw: int) -> None:
+    async def _write_pair(self, target: Df1WordWrite, raw: int, line: LineLease) -> None:
         a = target.address
         data = struct.pack("<I", raw)
         request = ProtectedTypedLogicalWrite(a.file_type, a.file_number, a.element, a.sub_element, data)
-        await self._write(request, a)
+        await self._write(request, a, line)
 
     def _register_steps(self, checked: list[tuple[int, RegisterPoint[Df1WordWrite], int]]) -> list[WriteStep]:
         """Consecutive words (or floats) of one file in one typed logical write, up to the size limit.
@@ -259,11 +261,11 @@ class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):
         limit = self.max_write_bytes - 2 * _expanded_fields(first.address)
         return sum(len(_step_bytes(step)) for step in group) + size <= limit
 
-    async def _write_words(self, address: SlcAddress, data: bytes) -> None:
+    async def _write_words(self, address: SlcAddress, data: bytes, line: LineLease) -> None:
         request = ProtectedTypedLogicalWrite(
             address.file_type, address.file_number, address.element, address.sub_element, data
         )
-        await self._write(request, address)
+        await self._write(request, address, line)
 
     def _bit_steps(self, checked: list[tuple[int, BitPoint[Df1BitWrite], bool]]) -> list[WriteStep]:
         """Consecutive coils of one word in one masked write (CMD 0F, FNC AB: only the bits of the
@@ -290,7 +292,7 @@ class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):
                 step.run = partial(self._write_bits, bit_targets[0].address, bits)
         return steps
 
-    async def _write_bits(self, a: SlcAddress, bits: list[tuple[int, bool]]) -> None:
+    async def _write_bits(self, a: SlcAddress, bits: list[tuple[int, bool]], line: LineLease) -> None:
         mask = 0
         value = 0
         for bit, on in bits:
@@ -298,14 +300,14 @@ class Df1Unit(PcccUnit[Df1WordWrite, Df1BitWrite]):
             value |= (1 << bit) if on else 0
         data = value.to_bytes(2, "little")
         request = ProtectedTypedLogicalMaskedWrite(a.file_type, a.file_number, a.element, a.sub_element, mask, data)
-        await self._write(request, a)
+        await self._write(request, a, line)
 
-    async def _write_bit(self, target: Df1BitWrite, value: bool) -> None:
+    async def _write_bit(self, target: Df1BitWrite, value: bool, line: LineLease) -> None:
         a = target.address
         mask = 1 << target.bit
         data = (mask if value else 0).to_bytes(2, "little")
         request = ProtectedTypedLogicalMaskedWrite(a.file_type, a.file_number, a.element, a.sub_element, mask, data)
-        await self._write(request, a)
+        await self._write(request, a, line)
 
 #: Files whose elements are one word or one float, packed: consecutive elements are consecutive bytes.
 _PLAIN_FILES = frozenset({FileType.INTEGER, FileType.BIT, FileType.FLOAT})

@@ -24,7 +24,7 @@ from gateway.errors import (
     WriteOutcomeUnknown,
 )
 from gateway.kinds.slc_ascii.config import SLC_ASCII_DEFAULTS
-from gateway.line_driver import LineDriver, LineDriverOptions, Priority
+from gateway.line_driver import LineDriver, LineDriverOptions, LineLease, Priority
 from gateway.link_health import LineQuality
 from gateway.protocols.slc_ascii import commands as cmds
 from gateway.protocols.slc_ascii import memory_map as mm
@@ -217,15 +217,18 @@ class SlcAsciiDriver(LineDriver):
             log.warning("link %s: %s", self.name, fault)
         self.last_fault = fault
 
-    async def execute(self, command: Command, priority: Priority | None = None) -> Answer:
+    async def execute(
+        self, command: Command, priority: Priority | None = None, line: LineLease | None = None
+    ) -> Answer:
         """Send ``command`` and return its answer (``Ack`` or ``DataReply``).
 
         Raises ``ControllerRefused`` (;E), ``LinkTimeout``, ``LinkDown`` or ``ProtocolError``.
-        Writes default to the write priority, everything else to the poll priority.
+        Writes default to the write priority, everything else to the poll priority; with ``line``
+        (a write session's lease) the command runs on the line the session holds.
         """
         if priority is None:
             priority = Priority.WRITE if command.is_write else Priority.POLL
-        return await self.submit(lambda: self._run_command(command), priority)
+        return await self.submit(lambda: self._run_command(command), priority, line)
 
     # --- typed operations -------------------------------------------------------------------
 
@@ -234,17 +237,18 @@ class SlcAsciiDriver(LineDriver):
         answer = await self.execute(cmds.read_bytes(address, count), priority)
         return cmds.parse_read_reply(address, count, _data(answer).body_hex)
 
-    async def write_word(self, address: int, value: int) -> None:
-        await self.execute(cmds.write_word(address, value))
+    async def write_word(self, address: int, value: int, line: LineLease | None = None) -> None:
+        await self.execute(cmds.write_word(address, value), line=line)
 
     async def write_byte(self, address: int, value: int) -> None:
         await self.execute(cmds.write_byte(address, value))
 
-    async def update_byte(self, address: int, bit: int, value: bool) -> int:
+    async def update_byte(self, address: int, bit: int, value: bool, line: LineLease | None = None) -> int:
         """Set one bit of a relay byte: read the byte fresh, write it back at once.
 
         Both transactions run back to back on the line, ahead of any poll; the ladder could still
         change another bit of the same byte between the read and the write (one scan at most).
+        ``line``: as for :meth:`execute`.
         """
 
         async def op() -> int:
@@ -254,7 +258,7 @@ class SlcAsciiDriver(LineDriver):
             await self._run_command(cmds.write_byte(address, new))
             return new
 
-        return await self.submit(op, Priority.WRITE)
+        return await self.submit(op, Priority.WRITE, line)
 
     async def set_mode(self, mode: Mode) -> None:
         await self.execute(cmds.set_mode(mode))

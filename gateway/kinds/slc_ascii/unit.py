@@ -9,6 +9,7 @@ from gateway.kinds.contract import Built, line_options, unit_options
 from gateway.kinds.slc_ascii.config import SlcAsciiLinkConfig
 from gateway.kinds.slc_ascii.driver import ID_RESYNC, SlcAsciiDriver
 from gateway.kinds.slc_ascii.plan import U16_BE_MASKED, SlcBitWrite, SlcWordWrite, byte_read, slc_ascii_plan
+from gateway.line_driver import LineLease
 from gateway.modbus.mapping import Block, RegisterPoint
 from gateway.unit import Unit, UnitOptions
 
@@ -34,11 +35,11 @@ class SlcAsciiUnit(Unit[SlcWordWrite, SlcBitWrite]):
             return "protected in the controller (protect bit set)"
         return None
 
-    async def _write_register(self, target: SlcWordWrite, value: int) -> None:
-        await self.driver.write_word(target.address, value)
+    async def _write_register(self, target: SlcWordWrite, value: int, line: LineLease) -> None:
+        await self.driver.write_word(target.address, value, line)
 
-    async def _write_bit(self, target: SlcBitWrite, value: bool) -> None:
-        await self.driver.update_byte(target.address, target.bit, value)
+    async def _write_bit(self, target: SlcBitWrite, value: bool, line: LineLease) -> None:
+        await self.driver.update_byte(target.address, target.bit, value, line)
 
     @property
     def kind_counter(self) -> int:

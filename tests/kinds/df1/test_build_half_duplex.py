@@ -82,8 +82,9 @@ async def test_two_lines_from_config_over_tcp() -> None:
         assert time.monotonic() - started < 2.0
         for name in ("s2", "p6"):
             unit = units[name]
-            for step in unit._register_steps(unit.check_register_write(3, [999])):
-                await step.run()
+            async with unit.driver.write_session() as line:
+                for step in unit._register_steps(unit.check_register_write(3, [999])):
+                    await step.run(line)
         for _ in range(100):
             driver = units["s2"].driver
             assert isinstance(driver, Df1Station)

@@ -169,11 +169,12 @@ def test_is_write_has_one_authority() -> None:
     """A command that changes the controller (CMD 0F): typed logical write AA, masked write AB, two
     field write A9, set processor mode 80 (SLC 500 PCCC command notes); word range write 00,
     typed write 67, read-modify-write 26 (1770-6.5.16 ch. 7).  Reads, file info, diagnostic
-    status and echo do not.  The drivers take no ``write=`` of their own: they ask ``is_write``."""
+    status and echo do not.  The drivers take no ``write=`` of their own: they ask ``is_write`` (``line``
+    is a write session's lease, which says nothing of what the request is)."""
     writes = {(cls.CMD, cls.FNC) for cls in get_args(Request) if is_write(object.__new__(cls))}
     assert writes == {(0x0F, 0xAA), (0x0F, 0xAB), (0x0F, 0xA9), (0x0F, 0x80), (0x0F, 0x00), (0x0F, 0x67), (0x0F, 0x26)}
     for driver in (Df1Driver, Df1Station):
-        assert list(inspect.signature(driver.execute).parameters) == ["self", "request", "name"], driver
+        assert list(inspect.signature(driver.execute).parameters) == ["self", "request", "name", "line"], driver
 
 
 def test_polled_or_not_is_the_unit_classes() -> None:

@@ -105,15 +105,17 @@ async def refresh(unit: Plc5Unit) -> None:
 
 
 async def write_registers(unit: Plc5Unit, address: int, values: list[int]) -> None:
-    for step in unit._register_steps(unit.check_register_write(address, values)):
-        await step.run()
+    async with unit.driver.write_session() as line:
+        for step in unit._register_steps(unit.check_register_write(address, values)):
+            await step.run(line)
 
 
 async def write_coils(unit: Plc5Unit, address: int, values: list[bool]) -> int:
     points = unit.plan.coils
     steps = unit._bit_steps([(address + i, points[address + i], v) for i, v in enumerate(values)])
-    for step in steps:
-        await step.run()
+    async with unit.driver.write_session() as line:
+        for step in steps:
+            await step.run(line)
     return len(steps)
 
 
@@ -340,10 +342,10 @@ async def test_the_write_bit_primitive_changes_one_bit() -> None:
     """The unit's one-coil write (``Unit._write_bit``): one RMW of the word, only that bit changes."""
     sim = make_sim("refuse")
     sim.set_word("B3", 1, 0x8001)
-    async with plc5_unit(sim) as unit:
-        await unit._write_bit(Plc5BitWrite(parse_plc5_address("B3:1"), 4), True)
+    async with plc5_unit(sim) as unit, unit.driver.write_session() as line:
+        await unit._write_bit(Plc5BitWrite(parse_plc5_address("B3:1"), 4), True, line)
         assert sim.word("B3", 1) == 0x8011
-        await unit._write_bit(Plc5BitWrite(parse_plc5_address("B3:1"), 15), False)
+        await unit._write_bit(Plc5BitWrite(parse_plc5_address("B3:1"), 15), False, line)
         assert sim.word("B3", 1) == 0x0011
     assert [kind for kind, _w, _d in sim.applied_writes] == ["read_modify_write"] * 2
 

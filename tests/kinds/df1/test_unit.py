@@ -35,6 +35,7 @@ from gateway.errors import ControllerRefused, ModbusExceptionReply, ProtocolErro
 from gateway.kinds.df1.full.driver import Df1Driver
 from gateway.kinds.df1.plan import MapItem
 from gateway.kinds.df1.unit import Df1Unit, pccc_exception
+from gateway.line_driver import LineLease
 from gateway.link_health import LineCounters
 from gateway.modbus.mapping import Table
 from gateway.protocols.df1.pccc import (
@@ -89,7 +90,7 @@ class RecordingDriver:
         self.write_burst = 1
         self.poll_burst = 2
 
-    async def execute(self, request: Any, name: str = "") -> PcccReply:
+    async def execute(self, request: Any, name: str = "", line: LineLease | None = None) -> PcccReply:
         self.sent.append((request, name))
         n = len(self.sent)
         sts, ext_sts = self.refuse.get(n, (0, None))
@@ -102,11 +103,8 @@ class RecordingDriver:
         return [request for request, _ in self.sent]
 
     @contextlib.asynccontextmanager
-    async def write_session(self) -> AsyncIterator[None]:
-        yield
-
-    def extend_burst(self) -> None:
-        pass
+    async def write_session(self) -> AsyncIterator[LineLease]:
+        yield LineLease()
 
     async def first_attempt(self) -> None:
         pass

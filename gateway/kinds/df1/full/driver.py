@@ -23,7 +23,7 @@ from typing import Final, Protocol, Unpack
 from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import GatewayError, LinkTimeout, ProtocolError, WriteOutcomeUnknown
 from gateway.kinds.df1.config import DF1_DEFAULTS
-from gateway.line_driver import LineDriver, LineDriverOptions, Priority
+from gateway.line_driver import LineDriver, LineDriverOptions, LineLease, Priority
 from gateway.link_health import LineCounters, LineQuality
 from gateway.protocols.df1.framing import DEFAULT_CHECKSUM, NEED_DATA, Checksum
 from gateway.protocols.df1.full_duplex.datalink import Df1DataLink
@@ -186,13 +186,14 @@ class Df1Driver(LineDriver):
             self._waiting.pop(handle, None)
         return transaction_result(self, event, name, getattr(request, "FNC", None))
 
-    async def execute(self, request: Request, name: str = "") -> PcccReply:
+    async def execute(self, request: Request, name: str = "", line: LineLease | None = None) -> PcccReply:
         """Send ``request`` and return the (successful) reply.  Writes (:func:`pccc_is_write`, the one
-        authority) jump ahead of polls."""
+        authority) jump ahead of polls; with ``line`` (a write session's lease) it runs on the line
+        the session holds."""
         label = name or type(request).__name__
         is_write = pccc_is_write(request)
         priority = Priority.WRITE if is_write else Priority.POLL
-        return await self.submit(lambda: self._run(request, label, is_write), priority)
+        return await self.submit(lambda: self._run(request, label, is_write), priority, line)
 
     async def probe(self) -> DiagnosticStatusInfo:
         reply = await self.execute(DiagnosticStatus(), "diagnostic status")

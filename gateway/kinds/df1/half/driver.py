@@ -51,7 +51,7 @@ from typing import Final, Unpack
 from gateway.config.link import DEFAULT_RETRIES
 from gateway.errors import GatewayError, LinkDown
 from gateway.kinds.df1.full.driver import DF1_SETTINGS, transaction_result
-from gateway.line_driver import LineDriver, LineDriverOptions, run_to_the_end
+from gateway.line_driver import LineDriver, LineDriverOptions, LineLease, run_to_the_end
 from gateway.link_health import DEFAULT_DOWN_AFTER, DownAfter, LineQuality, LinkHealth
 from gateway.protocols.df1.framing import DEFAULT_CHECKSUM, NEED_DATA, Checksum
 from gateway.protocols.df1.full_duplex.transaction import (
@@ -200,9 +200,10 @@ class Df1Station(LinkHealth):
 
     # --- requests ---------------------------------------------------------------------------
 
-    async def execute(self, request: PcccRequestLike, name: str = "") -> PcccReply:
+    async def execute(self, request: PcccRequestLike, name: str = "", line: LineLease | None = None) -> PcccReply:
         """Send ``request`` to this station and return the (successful) reply (module docstring); a
-        write is what :func:`pccc_is_write` says it is."""
+        write is what :func:`pccc_is_write` says it is.  ``line``, the lease of :meth:`write_session`,
+        holds nothing here: the line's master core orders every request."""
         label = name or type(request).__name__
         is_write = pccc_is_write(request)
         if not is_write:
@@ -225,17 +226,15 @@ class Df1Station(LinkHealth):
     # --- the write-session API of LineDriver (gateway.writes uses it) ------------------------
 
     @contextlib.asynccontextmanager
-    async def write_session(self) -> AsyncIterator[None]:
+    async def write_session(self) -> AsyncIterator[LineLease]:
         """A run of writes.  On a half-duplex line the core owns the order (each station's commands
         in turn, round robin between stations, polls between them), so a session only checks that
-        the line is up.  ``write_burst`` / ``poll_burst`` are not used: a half-duplex link refuses those
-        keys (``Df1LinkConfig.unused_keys``), so the unit sets their defaults here."""
+        the line is up, and its lease holds nothing (no burst accounting).  ``write_burst`` /
+        ``poll_burst`` are not used: a half-duplex link refuses those keys
+        (``Df1LinkConfig.unused_keys``), so the unit sets their defaults here."""
         if not self.line.connected:
             raise LinkDown(f"link {self.name} is down: {self.line.last_error or 'not connected'}")
-        yield
-
-    def extend_burst(self) -> None:
-        """No burst accounting on a half-duplex line (see :meth:`write_session`)."""
+        yield LineLease()
 
     async def probe(self) -> DiagnosticStatusInfo:
         reply = await self.execute(DiagnosticStatus(), "diagnostic status")

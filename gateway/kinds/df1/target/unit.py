@@ -26,10 +26,12 @@ from gateway.kinds.df1.plan import F32_HIGH, F32_LOW, U16_LE
 from gateway.kinds.df1.target.config import TargetFile
 from gateway.kinds.df1.target.driver import TargetRunner
 from gateway.kinds.df1.target.store import StoredElement, TargetStore
+from gateway.line_driver import LineLease
 from gateway.modbus.mapping import BitPoint, Block, Plan, PointLabel, RegisterPoint, Scan, Table
 from gateway.protocols.df1.pccc.target_table import DataTable, ElementRef, TableFile
 from gateway.schedule import NEVER
-from gateway.unit import Unit, UnitOptions, WriteStep
+from gateway.unit import Unit, UnitOptions
+from gateway.unit_writes import WriteStep
 
 __all__ = ["TargetBit", "TargetElement", "TargetUnit", "load_table", "target_plan", "target_point_labels"]
 
@@ -218,12 +220,14 @@ class TargetUnit(Unit[TargetElement, TargetBit]):
         return target.address
 
     async def _queue_write(self, table: Table, steps: list[WriteStep], footprint: frozenset[Hashable]) -> None:
-        """Apply the whole request at once (module doc): no line to wait for, no queue."""
+        """Apply the whole request at once (module doc): no line to wait for, no queue (the steps'
+        lease holds nothing)."""
         self.write_requests += 1
         started = self._loop_time()
+        line = LineLease()
         try:
             for step in steps:
-                await step.run()
+                await step.run(line)
         except ModbusExceptionReply:
             self.write_failures += 1
             raise
@@ -239,7 +243,7 @@ class TargetUnit(Unit[TargetElement, TargetBit]):
             values.setdefault(target, {})[half] = value
         first, last = checked[0][0], checked[-1][0]
 
-        async def run() -> None:
+        async def run(line: LineLease) -> None:
             self._apply_words(values)
 
         return [WriteStep(first, last, run)]
@@ -253,7 +257,7 @@ class TargetUnit(Unit[TargetElement, TargetBit]):
             changes[(target.file, target.element)] = (mask | 1 << target.bit, value | (on << target.bit))
         first, last = checked[0][0], checked[-1][0]
 
-        async def run() -> None:
+        async def run(line: LineLease) -> None:
             self._apply_bits(changes)
 
         return [WriteStep(first, last, run)]
@@ -303,10 +307,10 @@ class TargetUnit(Unit[TargetElement, TargetBit]):
     async def read_block(self, block: Block) -> bytes:
         raise GatewayError(f"link {self.name}: a target link is not polled")
 
-    async def _write_register(self, target: TargetElement, value: int) -> None:
+    async def _write_register(self, target: TargetElement, value: int, line: LineLease) -> None:
         raise GatewayError("target writes go through _register_steps")
 
-    async def _write_bit(self, target: TargetBit, value: bool) -> None:
+    async def _write_bit(self, target: TargetBit, value: bool, line: LineLease) -> None:
         raise GatewayError("target writes go through _bit_steps")
 
     @property

@@ -3,10 +3,11 @@
 The N7:20 case of the issue: a DCMD on a DF1 full-duplex line with faults was not applied, the read-back gave the
 previous value, and the gateway answered "may or may not have been applied".  On full duplex the read-back runs
 after the write (the controller runs commands in order), so the value from before the write proves the write was
-not applied: the one write path (``gateway.unit`` -> ``gateway.write_steps.run_step``) sends it again within
-``write_timeout``, and the controller applies it exactly once.  Where nothing proves it (the gateway holds no value
-from before, the read-back shows a third value, the processor itself rewrites the word, a float a controller may
-store as another pattern, half duplex), the outcome stays unknown: 0x0B, counted and logged, never sent again.
+not applied: the one write path (``gateway.unit_writes``, ``UnitWrites._run_steps`` -> ``run_step``) sends it
+again within ``write_timeout``, and the controller applies it exactly once.  Where nothing proves it (the gateway
+holds no value from before, the read-back shows a third value, the processor itself rewrites the word, a float a
+controller may store as another pattern, half duplex), the outcome stays unknown: 0x0B, counted and logged, never
+sent again.
 
 The same rule for the SLC 500 (typed logical write, masked write) and the PLC-5 (word range write,
 read-modify-write): ``PcccUnit.proves_not_applied``.

@@ -107,9 +107,9 @@ async def test_refusal_is_a_pccc_error_and_rts_follows_the_core() -> None:
         with pytest.raises(PcccError, match="EXT STS 0x06"):
             await handle.execute(ProtectedTypedLogicalRead(N, 9, 0, 0, 2), "read N9:0")
         assert handle.last_sts == 0xF0 and handle.available
-        async with handle.write_session():  # the unit's write path (gateway.writes)
-            handle.extend_burst()
-            await handle.execute(ProtectedTypedLogicalWrite(N, 7, 9, 0, b"\x99\x00"), "write N7:9")
+        async with handle.write_session() as lease:  # the unit's write path (gateway.writes)
+            lease.extend_burst()
+            await handle.execute(ProtectedTypedLogicalWrite(N, 7, 9, 0, b"\x99\x00"), "write N7:9", lease)
         assert line.controllers[1].word("N7", 9) == 0x99
         await asyncio.sleep(0.1)  # the line goes quiet between polls: RTS off after rts_off_delay
     finally:

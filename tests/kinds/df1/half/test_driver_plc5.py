@@ -62,11 +62,12 @@ async def test_plc5_stations_on_a_noisy_half_duplex_line(variant: str, checksum:
             for n, unit in units.items():
                 assert unit.read_registers(Table.HOLDING, 0, 4) == [1000 * n + k for k in range(4)]
         for n, unit in units.items():
-            for step in unit._register_steps(unit.check_register_write(1, [n, n + 1])):
-                await step.run()
             points = unit.plan.coils
-            for step in unit._bit_steps([(n, points[n], True), (n + 1, points[n + 1], True)]):
-                await step.run()
+            async with unit.driver.write_session() as lease:
+                for step in unit._register_steps(unit.check_register_write(1, [n, n + 1])):
+                    await step.run(lease)
+                for step in unit._bit_steps([(n, points[n], True), (n + 1, points[n + 1], True)]):
+                    await step.run(lease)
     finally:
         await driver.station(1).close()
     for n in (1, 2, 3):
