@@ -22,8 +22,9 @@ mbpoll:
 	  elif command -v sudo >/dev/null 2>&1; then sudo apt-get update -qq && sudo apt-get install -y -qq mbpoll openssl >/dev/null; \
 	  else echo "mbpoll not installed: its end-to-end tests will be skipped"; fi; }
 
-# Two workers (pytest-xdist), a test file stays on one worker; the 25 slowest tests printed at the end.
-PYTEST_WORKERS ?= 2
+# Three workers (pytest-xdist) on the 2-core machine: most tests wait on processes, brokers and sockets, so a
+# third worker fills the cores they leave idle; a test file stays on one worker; the 25 slowest printed at the end.
+PYTEST_WORKERS ?= 3
 test: $(VENV)/.installed mbpoll
 	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadfile --durations=25 $(PYTEST_ARGS)
 

@@ -39,7 +39,9 @@ def forget_simulators() -> Iterator[None]:
 PROCESS_MODULES = frozenset({
     "test_cli.py", "test_cli_df1.py", "test_cli_df1_half.py", "test_cli_paths.py", "test_cli_reload.py",
     "test_bench_smoke.py", "test_bench_half_duplex.py", "test_df1_target_processes.py", "test_packaging.py",
-    "test_sparkplug_kill.py", "test_sparkplug_host.py", "test_status_page_browser.py", "test_df1py3_initiator.py",
+    "test_sparkplug_kill.py", "test_sparkplug_host.py", "test_sparkplug_store.py",
+    "test_sparkplug_store_silent.py", "test_sparkplug_store_sigkill.py", "test_status_page_browser.py",
+    "test_df1py3_initiator.py",
 })
 #: Modules that build or run the container image or make network namespaces: marked ``container``.
 CONTAINER_MODULES = frozenset({"test_container_image.py", "test_access_control_netns.py"})

@@ -61,7 +61,7 @@ def window_ms(keepalive: int) -> int:
     The issue asked for 1.5 x keepalive, the broker's limit (MQTT 3.1.1 §3.1.2.10).  The client finds the loss
     later: it sends PINGREQ after ``keepalive`` without a packet from the broker and gives up ``keepalive``
     after that, checked once a second, so up to 2 x keepalive + 1 s after the last packet received, which
-    can be any time before the cut (measured: tests/e2e/test_sparkplug_store.py, ``silent``)."""
+    can be any time before the cut (measured: tests/e2e/test_sparkplug_store_silent.py)."""
     return (2 * keepalive + 2) * 1000
 
 
