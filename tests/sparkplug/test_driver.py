@@ -95,9 +95,9 @@ def broker(monkeypatch: pytest.MonkeyPatch) -> Broker:
     return broker
 
 
-async def test_what_a_lost_session_queued_is_not_published_in_the_next_one(broker: Broker, tmp_path: Path) -> None:
-    url = f"sim://slc504?ladder=0&instance={uuid.uuid4().hex}"
-    config = parse_config(f"""
+def press_config(url: str, tmp_path: Path, *, check_interval: float, timeout: float) -> Any:
+    """A gateway polling one SLC 5/04 (``url``, N7:0-1) with ``[sparkplug]`` to a broker the test stands in for."""
+    return parse_config(f"""
 [modbus]
 listen = "127.0.0.1:0"
 
@@ -106,7 +106,7 @@ broker = "mqtt://127.0.0.1:1"
 group_id = "plant"
 edge_node_id = "gw"
 state_file = "{tmp_path / 'bdseq.json'}"
-check_interval = 0.05
+check_interval = {check_interval}
 reconnect_min = 0.05
 reconnect_max = 0.1
 
@@ -115,13 +115,18 @@ name = "press"
 protocol = "df1"
 port = "{url}"
 unit = 1
-timeout = 0.05
+timeout = {timeout}
 [[link.map]]
 table = "holding"
 start = 0
 address = "N7:0"
 count = 2
 """)
+
+
+async def test_what_a_lost_session_queued_is_not_published_in_the_next_one(broker: Broker, tmp_path: Path) -> None:
+    url = f"sim://slc504?ladder=0&instance={uuid.uuid4().hex}"
+    config = press_config(url, tmp_path, check_interval=0.05, timeout=0.05)
     sim = get_simulator(url)
     try:
         async with asyncio.timeout(20), Gateway(config):
@@ -187,31 +192,7 @@ async def test_a_change_is_kept_as_soon_as_its_link_answers_not_at_the_next_chec
     # every answer 0.3 s late: the node's first check (at its start) comes before the link's first answer,
     # and with check_interval = 60 there is no other in this test
     url = f"sim://slc504?ladder=0&delay=0.3&instance={uuid.uuid4().hex}"
-    config = parse_config(f"""
-[modbus]
-listen = "127.0.0.1:0"
-
-[sparkplug]
-broker = "mqtt://127.0.0.1:1"
-group_id = "plant"
-edge_node_id = "gw"
-state_file = "{tmp_path / 'bdseq.json'}"
-check_interval = 60
-reconnect_min = 0.05
-reconnect_max = 0.1
-
-[[link]]
-name = "press"
-protocol = "df1"
-port = "{url}"
-unit = 1
-timeout = 2
-[[link.map]]
-table = "holding"
-start = 0
-address = "N7:0"
-count = 2
-""")
+    config = press_config(url, tmp_path, check_interval=60, timeout=2)
     store = store_path(tmp_path / "bdseq.json")
     sim = get_simulator(url)
     try:
