@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import asyncio
 
-from gateway.link_health import DownAfter, LinkHealth
+from gateway.link_health import DownAfter, LineQuality, LinkHealth
 
 
 class Link(LinkHealth):
@@ -84,3 +84,11 @@ async def test_down_after_seconds_without_an_answer_while_transactions_fail() ->
         await asyncio.sleep(0.01)
     link.note_result(False, "timeout")
     assert not link.available and link.state_changes == 2
+
+
+async def test_a_bare_links_line_quality_is_its_check_errors_and_timeouts_only() -> None:
+    """The counters every link has; NAKs, retransmissions and resyncs are a kind's (None: not counted)."""
+    link = Link(DownAfter())
+    link.counters.crc_errors = 4
+    link.counters.timeouts = 7
+    assert link.line_quality() == LineQuality(check_errors=4, timeouts=7, naks=None, retransmits=None, resyncs=None)

@@ -132,3 +132,23 @@ async def test_stations_sharing_a_line_one_stations_background_yields_to_another
     # half of the line (about 50 reads) round robin would give it
     assert 4 <= after <= 20, (after, len(a_reads))
     assert len(a_reads) > 3 * after
+
+
+async def test_every_read_that_waits_is_counted_and_one_for_no_block_is_done_at_once() -> None:
+    """``read_waits`` (the status page's "reads that waited") counts each ``wait_for``."""
+
+    async def read(block: Block) -> bytes:
+        await asyncio.sleep(0.005)
+        return b"\0"
+
+    poller = Poller("p", plan(2, 0), BlockCache([1] * 2), read, stagger=0)
+    nothing = poller.wait_for([])
+    assert nothing.done()
+    task = asyncio.create_task(poller.run())
+    try:
+        await asyncio.wait_for(poller.wait_for([0]), 1.0)
+        await asyncio.wait_for(poller.wait_for([1, 0]), 1.0)
+        assert poller.read_waits == 3
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
