@@ -299,3 +299,73 @@ def test_the_core_is_sans_io() -> None:
         imported |= {node.module.split(".")[0] for node in ast.walk(tree)
                      if isinstance(node, ast.ImportFrom) and node.module}
         assert not imported & forbidden, (name, imported & forbidden)
+
+
+def test_every_command_and_refusal_is_counted_by_type_and_reason() -> None:
+    """``received`` and ``refused`` are the metrics' ``commands_received{type}`` and
+    ``commands_refused{reason}`` counters: each message and each refused metric counts one."""
+    node = make_node(primary="scada")
+    online(node)
+    for _ in range(2):
+        node.host_state(state(True, 100), T0)
+        node.host_state(b"{nope", T0)
+        node.host_state(state(True, 99), T0)  # older than the last online one
+        node.node_command(b"\xff\xff", T0)
+        node.node_command(encode(Payload(T0, (Metric(name="Node Control/Other", datatype=11, value=True),))), T0)
+        node.device_command("nope", dcmd(Metric(alias=5, value=True, value_type=SparkplugType.Boolean)))
+        node.device_command("press", b"\xff\xff")
+        node.device_command("press", dcmd(
+            Metric(name="N7:99", datatype=SparkplugType.Int16, value=1),
+            Metric(alias=4, value=0, value_type=SparkplugType.UInt16),
+            Metric(alias=2, is_null=True)))
+    assert node.received == {"STATE": 6, "NCMD": 4, "DCMD": 6}
+    assert node.refused == {"bad STATE payload": 2, "old STATE": 2, "bad payload": 4, "unknown node metric": 2,
+                            "unknown device": 2, "unknown metric": 2, "read-only metric": 2, "no value": 2}
+
+
+def test_a_refused_metric_of_a_dcmd_does_not_stop_the_ones_after_it() -> None:
+    node = make_node()
+    online(node)
+    good = Metric(alias=2, value=7, value_type=SparkplugType.Int16)
+    commands = node.device_command("press", dcmd(
+        Metric(name="N7:99", datatype=SparkplugType.Int16, value=1), good,  # unknown
+        Metric(alias=4, value=0, value_type=SparkplugType.UInt16), good,  # read-only
+        Metric(alias=2, is_null=True), good,  # no value
+        Metric(alias=2, value="x", value_type=SparkplugType.String), good))  # wrong type
+    assert [(c.device, c.metric, c.value) for c in commands] == [(0, 0, 7)] * 4
+
+
+@pytest.mark.parametrize("payload", [
+    {"online": True, "timestamp": True},  # a boolean is not a timestamp (JSON true is no integer)
+    {"online": 1, "timestamp": 5},  # online must be a boolean
+    {"online": True, "timestamp": 5.5},
+    {"online": True},
+])
+def test_a_state_payload_of_the_wrong_shape_is_refused(payload: dict[str, object]) -> None:
+    node = make_node(primary="scada")
+    node.connecting(T0)
+    node.connected(T0)
+    assert node.host_state(json.dumps(payload).encode(), T0) == ([], False)
+    assert node.refused == {"bad STATE payload": 1}
+    assert node.node_command(rebirth_request(), T0) == []  # the host is not online: still waiting
+
+
+def test_the_primary_hosts_state_decides_births_and_rebirths() -> None:
+    node = make_node(primary="scada")
+    # before the MQTT session is up, an online STATE publishes nothing (births come with connected())
+    assert node.host_state(state(True, 5), T0) == ([], False)
+    node.connecting(T0)
+    assert node.connected(T0) == []
+    assert node.host_state(state(False, 6), T0) == ([], False)  # offline before the births: keep waiting
+    assert node.node_command(rebirth_request(), T0) == []  # no rebirth for a host that is offline
+    out, disconnect = node.host_state(state(True, 7), T0)
+    assert verbs(out) == ["NBIRTH"] and not disconnect
+    assert node.host_state(state(True, 8), T0) == ([], False)  # online again while online: nothing new
+    assert verbs(node.node_command(rebirth_request(), T0)) == ["NBIRTH"]  # the host is online: a rebirth
+
+
+def test_a_node_stopped_once_publishes_no_second_ndeath() -> None:
+    node = make_node()
+    online(node)
+    assert verbs(node.stopping(T0)) == ["NDEATH"]
+    assert node.stopping(T0 + 1) == []
