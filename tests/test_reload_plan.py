@@ -108,3 +108,11 @@ def test_the_config_status_is_what_the_reload_guide_shows() -> None:
     nothing = ConfigStatus(None, 0.0)  # a config that came from no file
     assert nothing.short_sha256 is None and nothing.document()["sha256"] is None
     assert (nothing.reloads, nothing.reload_failures, nothing.last_failure, nothing.restart_needed) == (0, 0, None, ())
+
+
+def test_the_summary_counts_unchanged_lines_in_the_plural_but_one() -> None:
+    old = parse_config(FILE)
+    assert line_changes(old.link, old.link).summary() == "links: 2 lines unchanged"
+    new = parse_config(FILE.replace("/dev/ttyUSB0", "/dev/ttyUSB1").replace("Radio:4001", "radio:4002")
+                       .replace("radio:4001", "radio:4002").replace("station = 2\n", "station = 3\n"))
+    assert line_changes(old.link, new.link).summary().endswith(", 0 lines unchanged")
