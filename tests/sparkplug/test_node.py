@@ -6,6 +6,7 @@ Expected values are the Sparkplug 3.0 specification's (section in each test), no
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 
@@ -369,3 +370,70 @@ def test_a_node_stopped_once_publishes_no_second_ndeath() -> None:
     online(node)
     assert verbs(node.stopping(T0)) == ["NDEATH"]
     assert node.stopping(T0 + 1) == []
+
+
+def test_every_birth_and_death_carries_its_time() -> None:
+    """Payload and metric timestamps (§6.4.5, §6.4.6): the NBIRTH's and NDEATH's bdSeq and the rebirth
+    flag at the time of the message; bdSeq with alias 1 in the NBIRTH, none in the NDEATH, the rebirth
+    flag none (§5.17; the reading of docs/guide/sparkplug.md)."""
+    node = make_node()
+    node.link(0, True, T0)
+    ndeath = decode(node.connecting(T0 + 1).payload)
+    assert ndeath.timestamp == T0 + 1
+    assert [(m.name, m.alias, m.timestamp, m.value) for m in ndeath.metrics] == [("bdSeq", None, T0 + 1, 0)]
+    (nbirth,) = node.connected(T0 + 2)
+    payload = decode(nbirth.payload)
+    assert payload.timestamp == T0 + 2
+    assert [(m.name, m.alias, m.timestamp) for m in payload.metrics] == [
+        ("bdSeq", 1, T0 + 2), ("Node Control/Rebirth", None, T0 + 2)]
+    dbirth = node.next_birth(T0 + 3)
+    assert dbirth is not None and decode(dbirth.payload).timestamp == T0 + 3
+    (ddeath,) = node.link(0, False, T0 + 4)
+    assert decode(ddeath.payload).timestamp == T0 + 4 and decode(ddeath.payload).metrics == ()
+    (ndeath_publish,) = node.stopping(T0 + 5)
+    assert decode(ndeath_publish.payload).timestamp == T0 + 5
+    assert decode(ndeath_publish.payload).metrics[0].timestamp == T0 + 5
+
+
+def test_a_dbirth_metric_not_read_yet_is_null_stale_and_says_so() -> None:
+    node = make_node()
+    (_nbirth, press, _oven) = online(node, T0 + 7)
+    metrics = decode(press.payload).metrics
+    assert all(m.is_null and m.timestamp == T0 + 7 for m in metrics)
+    assert metrics[0].properties == {"Quality": (3, 500), "Quality Reason": (12, "not read yet")}
+
+
+def test_a_null_without_a_reason_says_no_value() -> None:
+    node = make_node()
+    node.observe(0, 0, Sample(3, T0))
+    online(node)
+    node.observe(0, 0, Sample(None, T0 + 1, 0))
+    (ddata,) = node.flush(T0 + 1)
+    assert decode(ddata.payload).metrics[0].properties == {"Quality": (3, 0), "Quality Reason": (12, "no value")}
+
+
+def test_what_counts_as_a_change() -> None:
+    """§5.16 report by exception: a value, its quality, or why it is null; NaN stays NaN; deadband only
+    when set, and a change of exactly the deadband is not past it."""
+    node = make_node()
+    for value in (1, 2):
+        node.observe(0, 0, Sample(value, T0))
+    online(node)
+
+    def published(device: int, metric: int, sample: Sample) -> list[object]:
+        node.observe(device, metric, sample)
+        return [m.value if not m.is_null else m.properties for out in node.flush(sample.timestamp)
+                for m in decode(out.payload).metrics]
+
+    assert published(0, 0, Sample(None, T0 + 1, 500, "a")) == [{"Quality": (3, 500), "Quality Reason": (12, "a")}]
+    assert published(0, 0, Sample(None, T0 + 2, 500, "a")) == []  # the same null: nothing
+    assert published(0, 0, Sample(None, T0 + 3, 500, "b")) == [{"Quality": (3, 500), "Quality Reason": (12, "b")}]
+    assert published(0, 0, Sample(None, T0 + 4, 0, "b")) != []  # the quality changed
+    assert published(0, 0, Sample(5, T0 + 5)) == [5]
+    assert published(0, 0, Sample(6, T0 + 6)) == [6]  # no deadband: any change
+    assert published(0, 0, Sample(6, T0 + 7)) == []
+    assert published(0, 1, Sample(10.0, T0 + 8)) == [10.0]
+    assert published(0, 1, Sample(10.5, T0 + 9)) == []  # exactly the deadband (0.5): not past it
+    assert published(0, 1, Sample(math.nan, T0 + 10)) != []
+    assert published(0, 1, Sample(math.nan, T0 + 11)) == []  # NaN again: unchanged
+    assert published(0, 1, Sample(10.0, T0 + 12)) == [10.0]  # and back: past any deadband too
