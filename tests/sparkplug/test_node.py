@@ -10,6 +10,7 @@ import math
 
 import pytest
 
+from gateway.sparkplug.history import Change
 from gateway.sparkplug.node import Device, EdgeNode, MetricSpec, Publish, Sample
 from gateway.sparkplug.payload import Metric, Payload, SparkplugType, decode, encode
 
@@ -437,3 +438,119 @@ def test_what_counts_as_a_change() -> None:
     assert published(0, 1, Sample(math.nan, T0 + 10)) != []
     assert published(0, 1, Sample(math.nan, T0 + 11)) == []  # NaN again: unchanged
     assert published(0, 1, Sample(10.0, T0 + 12)) == [10.0]  # and back: past any deadband too
+
+
+def storing_node() -> EdgeNode:
+    press = Device("press", [MetricSpec("N7:0", 2, SparkplugType.Int16), MetricSpec("N7:1", 3, SparkplugType.Int16)])
+    oven = Device("oven", [MetricSpec("B3:0/0", 5, SparkplugType.Boolean)])
+    return EdgeNode(GROUP, NODE, [press, oven], store=True)
+
+
+def test_a_flush_of_some_devices_leaves_the_others_changes_for_later() -> None:
+    node = make_node()
+    online(node)
+    node.observe(0, 0, Sample(1, T0 + 1))
+    node.observe(1, 0, Sample(True, T0 + 1))
+    assert verbs(node.flush(T0 + 2, [1])) == ["DDATA/oven"]
+    assert verbs(node.flush(T0 + 3)) == ["DDATA/press"]
+
+
+def test_a_dead_device_does_not_stop_the_flush_of_the_others() -> None:
+    node = make_node()
+    online(node)
+    node.link(0, False, T0 + 1)
+    node.observe(0, 0, Sample(1, T0 + 2))
+    node.observe(1, 0, Sample(True, T0 + 2))
+    assert verbs(node.flush(T0 + 3)) == ["DDATA/oven"]
+
+
+def test_a_forced_metric_never_read_does_not_stop_the_others() -> None:
+    node = make_node()
+    online(node)
+    node.force(0, 0)  # nothing read: nothing to publish for it
+    node.observe(0, 2, Sample(1, T0 + 1))
+    (ddata,) = node.flush(T0 + 2)
+    # its DBIRTH said null (not read yet): the first good value carries Quality 192
+    assert [(m.alias, m.value, m.properties) for m in decode(ddata.payload).metrics] == [(4, 1, {"Quality": (3, 192)})]
+
+
+def test_birth_metrics_and_ordinary_changes_carry_no_quality() -> None:
+    """``Quality`` goes with a null, and 192 with the first good value after one (§6.4.9.1): not with
+    every value."""
+    node = make_node()
+    node.observe(0, 0, Sample(1, T0))
+    (_nbirth, press, _oven) = online(node)
+    assert decode(press.payload).metrics[0].properties is None
+    node.observe(0, 0, Sample(2, T0 + 1))
+    (ddata,) = node.flush(T0 + 1)
+    assert decode(ddata.payload).metrics[0].properties is None
+
+
+def test_offline_changes_are_kept_for_the_devices_flushed_with_their_reasons() -> None:
+    node = storing_node()
+    node.link(0, True, T0)
+    node.link(1, True, T0)
+    node.observe(0, 0, Sample(None, T0 + 1, 500, "no fresh data"))
+    node.observe(1, 0, Sample(True, T0 + 1))
+    assert node.flush(T0 + 2, [1]) == []  # not online: kept, not published
+    assert node.take_unsent() == [Change("oven", "B3:0/0", T0 + 1, True, 192, "")]
+    assert node.flush(T0 + 3) == []
+    assert node.take_unsent() == [Change("press", "N7:0", T0 + 1, None, 500, "no fresh data")]
+
+
+def test_a_dead_device_does_not_stop_the_others_changes_being_kept() -> None:
+    node = storing_node()
+    node.link(1, True, T0)  # press is down
+    node.observe(0, 0, Sample(1, T0 + 1))
+    node.observe(1, 0, Sample(True, T0 + 1))
+    node.flush(T0 + 2)
+    assert [c.device for c in node.take_unsent()] == ["oven"]
+
+
+def history_node() -> EdgeNode:
+    node = storing_node()
+    node.link(0, True, T0)
+    node.link(1, True, T0)
+    node.connecting(T0)
+    with_dbirths(node, node.connected(T0))
+    return node
+
+
+def test_history_is_ddata_by_alias_marked_historical_with_original_times() -> None:
+    node = history_node()
+    changes = [Change("press", "N7:9", T0 - 9, 1, 192), Change("press", "N7:1", T0 - 8, None, 500, "stale"),
+               Change("press", "gone", T0 - 7, 1, 192), Change("press", "N7:0", T0 - 6, 4, 192)]
+    out = node.historical(0, changes, T0 + 1)
+    assert out is not None and verbs([out]) == ["DDATA/press"]
+    metrics = decode(out.payload).metrics
+    assert [(m.name, m.alias, m.datatype, m.timestamp, m.is_historical) for m in metrics] == [
+        (None, 3, None, T0 - 8, True), (None, 2, None, T0 - 6, True)]
+    assert metrics[0].properties == {"Quality": (3, 500), "Quality Reason": (12, "stale")}
+    assert node.unknown_history == 2  # N7:9 and gone: not metrics of the device
+
+
+def test_no_history_while_births_are_under_way_or_after_stopping() -> None:
+    node = storing_node()
+    node.link(0, True, T0)
+    node.link(1, True, T0)
+    node.connecting(T0)
+    node.connected(T0)
+    assert node.next_birth(T0) is not None  # press is born, oven not yet
+    change = [Change("press", "N7:0", T0 - 6, 4, 192)]
+    assert node.historical(0, change, T0) is None
+    while node.next_birth(T0) is not None:
+        pass
+    assert node.historical(0, change, T0) is not None
+    node.stopping(T0)
+    assert node.historical(0, change, T0) is None
+
+
+def test_a_lost_session_publishes_nothing_until_the_next() -> None:
+    node = make_node(primary="scada")
+    online(node)
+    node.host_state(state(True, 1), T0)
+    node.disconnected(T0 + 1)
+    node.observe(0, 0, Sample(7, T0 + 2))
+    assert node.flush(T0 + 2) == []
+    assert node.host_state(state(True, 2), T0 + 3) == ([], False)  # no session: no births
+    assert node.stopping(T0 + 4) == []
