@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 from test_register_image import FakeDriver, MemoryUnit
 
 from gateway.errors import ModbusExceptionReply
-from gateway.freshness import LinkState, Offline, Source
+from gateway.freshness import Freshness, LinkState, Offline, Source
 from gateway.health import health
 from gateway.link_health import LineQuality
 from gateway.modbus.mapping import Table
@@ -230,3 +230,12 @@ def test_a_peek_is_no_demand_and_a_served_read_is() -> None:
     assert unit.demand.take() == {(Table.HOLDING, 0, 1): 5.0}
     unit.note_demand(Table.COIL, 0, 3)  # a face that peeks but demands ([sparkplug] demand = true)
     assert unit.demand.take() == {(Table.COIL, 0, 3): 5.0}
+
+
+def test_a_value_is_fresh_up_to_its_deadline_inclusive() -> None:
+    """Fresh when read at most its limit ago: at the deadline the image stamped on it, still fresh."""
+    link = SimpleNamespace(available=True, state_since=0.0)
+    freshness = Freshness(stale_after=5.0, schedule=None, link=link, blocks=1)
+    freshness.watch(SimpleNamespace(newest=99.0), SimpleNamespace(block_deadline=[100.0]))  # type: ignore[arg-type]
+    assert freshness.block_fresh(0, 100.0)
+    assert not freshness.block_fresh(0, 100.001)
