@@ -239,3 +239,29 @@ def test_a_value_is_fresh_up_to_its_deadline_inclusive() -> None:
     freshness.watch(SimpleNamespace(newest=99.0), SimpleNamespace(block_deadline=[100.0]))  # type: ignore[arg-type]
     assert freshness.block_fresh(0, 100.0)
     assert not freshness.block_fresh(0, 100.001)
+
+
+def test_the_verdict_says_since_when_the_link_is_in_its_state() -> None:
+    """``since`` (the module docstring, docs/guide/freshness.md): down and up since the link's last
+    change; stale since the oldest value passed the limit (``stale_after`` for a unit not polled), or
+    since the link came up if that was later; up after stale since the verdict found it fresh again.
+    Stale at and over the limit."""
+    link = SimpleNamespace(available=False, state_since=3.0)
+    cache = SimpleNamespace(newest=0.0)
+    freshness = Freshness(stale_after=5.0, schedule=None, link=link, blocks=1)
+    freshness.watch(cache, SimpleNamespace(block_deadline=[0.0]))  # type: ignore[arg-type]
+
+    def verdict(now: float) -> tuple[LinkState, float | None]:
+        result = freshness.verdict(now)
+        return result.state, result.since
+
+    assert verdict(4.0) == (LinkState.DOWN, 3.0)
+    link.available, link.state_since, cache.newest = True, 10.0, 12.0
+    assert verdict(14.0) == (LinkState.UP, 10.0)
+    assert verdict(17.0) == (LinkState.STALE, 17.0)  # age 5: at the limit
+    assert verdict(20.0) == (LinkState.STALE, 17.0)  # still since the value passed the limit
+    link.state_since = 30.0  # the link went down and came back at 30, the data older still
+    assert verdict(32.0) == (LinkState.STALE, 30.0)
+    cache.newest = 31.0
+    assert verdict(33.0) == (LinkState.UP, 33.0)  # fresh again: since the verdict found it so
+    assert verdict(34.0) == (LinkState.UP, 33.0)
