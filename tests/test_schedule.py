@@ -524,3 +524,34 @@ def test_the_budget_names_its_classes() -> None:
     assert budget.refresh == {"fast": 1.0, "slow": 9.0, "demanded": None, "all": 9.0}
     assert set(budget.age_bound) == {"fast", "slow", "demanded"}
     assert budget.line_use is None  # no full window (10 s) measured yet
+
+
+def test_a_failed_read_as_its_demand_ends_is_not_tried_again_early() -> None:
+    s = schedule([S, S], slow=10.0, hold=10.0, background=30.0)
+    for block in (0, 1, 0, 1):
+        read(s, block, 0.0)
+    s.demand([0], 0.0)  # demanded until 10, not at 10
+    read(s, 0, 10.0, ok=False)
+    assert s.due[0] == 20.0  # to the back: a whole period
+
+
+def test_a_retry_that_would_come_at_the_stale_limit_is_not_made() -> None:
+    """Tried again one transaction later only while that comes *before* the value's stale limit."""
+    s = schedule([S, S], slow=10.0, stale_after=5.0, hold=100.0)
+    s.demand([0, 1], 0.0)
+    for block in (0, 1, 0, 1):
+        read(s, block, 0.0, took=1.0)  # every transaction takes 1 s; each block read at 1, its limit 1 + 15
+    read(s, 0, 14.0, took=1.0, ok=False)  # failed at 15: a retry at 16 is at the limit
+    assert s.due[0] == 24.0
+    read(s, 1, 13.0, took=1.0, ok=False)  # block 1 (read at 1, limit 16) failed at 14: retry at 15
+    assert s.due[1] == 15.0
+
+
+def test_the_age_bound_of_a_demanded_block_is_its_class_period_else_its_background() -> None:
+    s = schedule([F, S], fast=1.0, slow=10.0, background=30.0, hold=10.0)
+    read(s, 0, 0.0, took=0.5)
+    read(s, 1, 0.5, took=0.5)  # transactions of 0.5 s: one round of both blocks takes 1 s
+    s.demand([1], 0.0)  # demanded until 10
+    assert s.age_bound([1], 5.0) == 11.0  # P + a round
+    assert s.age_bound([1], 10.0) == 31.0  # the demand is over: B + a round
+    assert s.age_bound([0], 5.0) == 31.0
