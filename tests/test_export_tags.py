@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import csv
+import dataclasses
 import io
 import json
 from pathlib import Path
@@ -599,3 +600,23 @@ def test_the_word_order_warning_names_twelve_values_and_counts_the_rest() -> Non
     assert ("this one is low-first ('First word low' on), so these 2 high-first values read wrong: a.H0, a.H1;"
             in warning)
     assert "more" not in warning
+
+
+def test_tags_of_one_unit_are_its_links_only() -> None:
+    links = parse_config(MAPS).link
+    assert {tag.link for tag in config_tags(links, unit=3)} == {"press-3"}
+    assert {tag.link for tag in config_tags(links)} == {"press-1", "press-3", "line-5"}
+
+
+def test_a_point_its_kind_does_not_label_is_named_by_table_and_address(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A kind without labels: a point is ``<table>:<address>``, a bit ``bool``, a 32-bit value ``uint32``,
+    a register ``uint16``."""
+    (link,) = [link for link in parse_config(MAPS).link if link.name == "press-3"]
+    unlabelled = dataclasses.replace(link_kind(link.protocol), point_labels=None)
+    monkeypatch.setattr("gateway.tags.link_kind", lambda protocol: unlabelled)
+    tags = {tag.name: (tag.type_text, tag.access) for tag in link_tags(link)}
+    assert tags["press-3/holding:0"] == ("uint16", "read-write")
+    assert tags["press-3/holding:200"] == ("uint32 high-first", "read-write")  # F8:0, a float, unlabelled
+    assert tags["press-3/coil:15"] == ("bool", "read-write")
+    assert tags["press-3/discrete:2"] == ("bool", "read")
+    assert tags["press-3/status.link_up"] == ("uint16", "read")
