@@ -116,3 +116,4 @@ def test_the_summary_counts_unchanged_lines_in_the_plural_but_one() -> None:
     new = parse_config(FILE.replace("/dev/ttyUSB0", "/dev/ttyUSB1").replace("Radio:4001", "radio:4002")
                        .replace("radio:4001", "radio:4002").replace("station = 2\n", "station = 3\n"))
     assert line_changes(old.link, new.link).summary().endswith(", 0 lines unchanged")
+
