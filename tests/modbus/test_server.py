@@ -813,3 +813,71 @@ async def test_fuzz_keeps_serving(
     assert await exchange(server, read_request(7, 4, 6, 1)) == (7, UNIT, bytes([4, 2, 0, 42]))
     problems = [record for record in caplog.records if record.levelno >= logging.ERROR]
     assert problems == []
+
+
+# -- drops summarised by their cause -----------------------------------------------------------------
+#
+# A drop is logged once per cause and interval, then counted in one summary line per cause
+# ("<server>: <cause>: N more in the last 60 s, from <addresses>"), whatever each drop's details.
+
+
+def _summaries(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records if " more in the last " in r.getMessage()]
+
+
+async def test_incomplete_frames_timed_out_are_summarised_by_that_cause(
+        backend: DictBackend, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, logger="gateway.modbus.server")
+    modbus = ModbusTcpServer(backend, HOST, 0, frame_timeout=0.1)
+    await modbus.start()
+    try:
+        for _ in range(2):
+            reader, writer = await connect(modbus)
+            writer.write(read_request(1, 3, 0, 1)[:5])
+            assert await closed_by_peer(reader)
+            await close_writer(writer)
+    finally:
+        await modbus.close()
+    assert _summaries(caplog) == ["modbus: incomplete frames timed out: 1 more in the last 60 s, from 127.0.0.1 (1)"]
+
+
+async def test_failed_tls_handshakes_are_summarised_by_that_cause(
+        backend: DictBackend, certificates: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Two handshakes failing for different reasons (no client certificate, an untrusted one): one cause."""
+    caplog.set_level(logging.WARNING, logger="gateway.modbus.server")
+    modbus = await _tls_server(backend, certificates)
+    try:
+        for cert in (None, "rogue"):
+            with pytest.raises((ssl.SSLError, ConnectionError, asyncio.IncompleteReadError)):
+                reader, writer = await connect(modbus, _client_context(certificates, cert))
+                try:
+                    writer.write(read_request(1, 3, 0, 1))
+                    await read_reply(reader)
+                finally:
+                    await close_writer(writer)
+            await wait_until(lambda: modbus.connection_count == 0)
+    finally:
+        await modbus.close()
+    assert _summaries(caplog) == ["modbus: TLS handshakes failed: 1 more in the last 60 s, from 127.0.0.1 (1)"]
+
+
+async def test_connections_closed_to_make_room_are_summarised_by_that_cause(
+        backend: DictBackend, caplog: pytest.LogCaptureFixture) -> None:
+    """max_connections 1: each new connection evicts the one before, which sent nothing (stalled)."""
+    caplog.set_level(logging.WARNING, logger="gateway.modbus.server")
+    modbus = ModbusTcpServer(backend, HOST, 0, max_connections=1, frame_timeout=0.2)  # stalled after 0.1 s
+    await modbus.start()
+    writers = []
+    try:
+        for _ in range(3):
+            await asyncio.sleep(0.15)
+            _reader, writer = await connect(modbus)
+            writers.append(writer)
+            await wait_until(lambda: modbus.connection_count == 1)
+        assert modbus.counters.connections_dropped == 2
+    finally:
+        for writer in writers:
+            await close_writer(writer)
+        await modbus.close()
+    assert _summaries(caplog) == [
+        "modbus: connections closed to make room: 1 more in the last 60 s, from 127.0.0.1 (1)"]
