@@ -199,3 +199,44 @@ async def test_a_dropped_connection_is_logged_with_the_server_and_the_peer(
         writer.close()
     (line,) = [r.getMessage() for r in caplog.records if "closing connection" in r.getMessage()]
     assert line.startswith(f"modbus: closing connection from {host}:{port}: bad MBAP header (protocol id 7")
+
+
+async def test_the_frame_clock_restarts_for_each_new_incomplete_frame(backend: ImageBackend) -> None:
+    """frame_timeout 0.4 s: frame A's first bytes at 0, the rest of A and B's first bytes at 0.25; B is
+    timed from 0.25 (dropped at about 0.65), not from A's start."""
+    modbus = ModbusTcpServer(backend, HOST, 0, frame_timeout=0.4)
+    await modbus.start()
+    loop = asyncio.get_running_loop()
+    reader, writer = await asyncio.open_connection(HOST, modbus.port)
+    try:
+        a, b = read_request(1, 7), read_request(2, 8)
+        start = loop.time()
+        writer.write(a[:3])
+        await asyncio.sleep(0.25)
+        writer.write(a[3:] + b[:3])
+        assert await read_reply(reader) == (1, [1007])
+        await asyncio.sleep(max(0.0, start + 0.5 - loop.time()))
+        if loop.time() - start < 0.6:  # (a loaded machine may have slept past B's deadline)
+            assert modbus.connection_count == 1  # B's clock started at 0.25: not timed out at 0.5
+        assert await asyncio.wait_for(reader.read(), 2.0) == b""  # but it does time out
+    finally:
+        writer.close()
+        await modbus.close()
+
+
+async def test_a_connection_is_not_idle_while_a_request_is_in_flight(backend: ImageBackend) -> None:
+    """idle_timeout 0.3 s: a read that waits 0.4 s for its data, then another request at once: served."""
+    modbus = ModbusTcpServer(backend, HOST, 0, idle_timeout=0.3)
+    await modbus.start()
+    reader, writer = await asyncio.open_connection(HOST, modbus.port)
+    try:
+        writer.write(read_request(1, STALE))
+        await asyncio.wait_for(backend.waiting.wait(), 5.0)
+        await asyncio.sleep(0.4)
+        backend.fresh.set()
+        assert await read_reply(reader) == (1, [1100])
+        writer.write(read_request(2, 7))
+        assert await read_reply(reader) == (2, [1007])
+    finally:
+        writer.close()
+        await modbus.close()
