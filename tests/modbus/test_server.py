@@ -881,3 +881,51 @@ async def test_connections_closed_to_make_room_are_summarised_by_that_cause(
         await modbus.close()
     assert _summaries(caplog) == [
         "modbus: connections closed to make room: 1 more in the last 60 s, from 127.0.0.1 (1)"]
+
+
+async def test_a_loopback_client_let_in_for_reads_stays_read_only_with_a_certificate(
+        backend: DictBackend, certificates: Path) -> None:
+    """``loopback_reads`` lets a loopback peer outside ``allow`` in for reads only: a client certificate
+    (whose role would write) does not give it writes (0x01)."""
+    context = make_tls_context(
+        certificates / "server.pem", certificates / "server.key", client_ca=str(certificates / "ca.pem"))
+    modbus = ModbusTcpServer(backend, HOST, 0, ssl_context=context, allow=[ipaddress.ip_network("10.0.0.0/8")],
+                             loopback_reads=True)
+    await modbus.start()
+    try:
+        reader, writer = await connect(modbus, _client_context(certificates))
+        writer.write(frame(1, bytes([6, 0, 10, 0, 7])))  # FC6: holding 10 = 7
+        assert await read_reply(reader) == (1, UNIT, bytes([0x86, 0x01]))
+        writer.write(read_request(2, 3, 10, 1))
+        assert (await read_reply(reader))[2][0] == 3  # reads are served
+        await close_writer(writer)
+        assert 10 not in backend.holding
+    finally:
+        await modbus.close()
+
+
+async def test_a_tls_connection_without_room_after_its_handshake_is_refused_counted_and_named(
+        backend: DictBackend, certificates: Path, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, logger="gateway.modbus.server")
+    context = make_tls_context(
+        certificates / "server.pem", certificates / "server.key", client_ca=str(certificates / "ca.pem"))
+    modbus = ModbusTcpServer(backend, HOST, 0, ssl_context=context, max_connections=1)
+    await modbus.start()
+    try:
+        reader, writer = await connect(modbus, _client_context(certificates))
+        writer.write(read_request(1, 3, 0, 1))
+        await read_reply(reader)  # served: not a connection to close for room
+        for refused_so_far in (1, 2):
+            with pytest.raises((ssl.SSLError, ConnectionError, asyncio.IncompleteReadError)):
+                second_reader, second_writer = await connect(modbus, _client_context(certificates))
+                try:
+                    second_writer.write(read_request(2, 3, 0, 1))
+                    await read_reply(second_reader)
+                finally:
+                    await close_writer(second_writer)
+            await wait_until(lambda n=refused_so_far: modbus.counters.connections_refused == n)  # type: ignore[misc]
+        await close_writer(writer)
+    finally:
+        await modbus.close()
+    refused = [r.getMessage() for r in caplog.records if "handshake done but" in r.getMessage()]
+    assert refused and "127.0.0.1" in refused[0]
