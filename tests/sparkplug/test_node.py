@@ -554,3 +554,11 @@ def test_a_lost_session_publishes_nothing_until_the_next() -> None:
     assert node.flush(T0 + 2) == []
     assert node.host_state(state(True, 2), T0 + 3) == ([], False)  # no session: no births
     assert node.stopping(T0 + 4) == []
+
+
+def test_a_device_coming_up_in_a_lost_session_gets_no_dbirth() -> None:
+    node = make_node()
+    online(node)
+    node.link(0, False, T0 + 1)
+    node.disconnected(T0 + 2)
+    assert node.link(0, True, T0 + 3) == []  # its DBIRTH comes with the next session's births
