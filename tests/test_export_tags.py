@@ -511,6 +511,8 @@ def test_the_kepware_format_is_one_unit_in_the_documented_columns() -> None:
     with pytest.raises(GatewayError) as refused:
         render(_maps_tags(), "kepware")
     assert "units 1, 3, 5" in str(refused.value)
+    with pytest.raises(GatewayError):  # two units are two devices too
+        render([tag for tag in _maps_tags() if tag.unit in (1, 3)], "kepware")
 
 
 def test_kepware_rows_say_each_32_bit_values_word_order_against_the_devices() -> None:
@@ -518,7 +520,8 @@ def test_kepware_rows_say_each_32_bit_values_word_order_against_the_devices() ->
     ('First word low' off), and the low-first ones say that they read wrong."""
     rows = {row[0]: row for row in kepware_rows([tag for tag in _maps_tags() if tag.unit == 3])}
     assert rows["press_3.F8_0"][-1] == "map entry F8:0 x3, float32, fast scan (high-first words: 'First word low' off)"
-    assert rows["press_3.F8_3"][-1].endswith(" (low-first words: reads wrong with 'First word low' off)")
+    assert rows["press_3.F8_3"][-1] == ("map entry F8:3 x2, float32, fast scan (low-first words: reads wrong "
+                                        "with 'First word low' off)")
     assert rows["press_3.N7_0"][-1] == "map entry N7:0 x20, int16, fast scan"  # 16 bits: no word order
     assert rows["press_3.status_transactions"][-1].endswith("(high-first words: 'First word low' off)")
     assert rows["press_3.status_transactions"][2] == "DWord" and rows["press_3.N7_20"][2] == "Word"
@@ -535,6 +538,7 @@ def test_a_kepware_name_has_only_letters_digits_and_underscores() -> None:
     assert kepware_name(_tag("B3:0/15", 0, link="l")) == "l.B3_0_15"
     assert kepware_name(_tag("::x::", 0, link="--")) == "tag.x"  # underscores at the ends dropped
     assert kepware_name(_tag(":", 0, link="a")) == "a.tag"  # nothing left: "tag"
+    assert kepware_name(_tag("X1X", 0, link="XaX")) == "XaX.X1X"  # only underscores are stripped
 
 
 def test_the_same_kepware_name_twice_gets_its_table() -> None:
@@ -595,6 +599,8 @@ def test_the_word_order_warning_names_twelve_values_and_counts_the_rest() -> Non
     assert "this one is high-first ('First word low' off), so these 14 low-first values read wrong: " in warning
     assert ", ".join(f"a.L{k}" for k in range(12)) + " and 2 more;" in warning
     assert "a.L12" not in warning
+    (device,) = kepware_devices(high[:13] + low[:12])  # exactly twelve: every one named, no "more"
+    assert "and 0 more" not in device.warning() and "a.L11;" in device.warning()
     (device,) = kepware_devices(high[:2] + low[:3])
     warning = device.warning()
     assert ("this one is low-first ('First word low' on), so these 2 high-first values read wrong: a.H0, a.H1;"

@@ -264,3 +264,21 @@ async def test_a_first_round_that_fails_is_the_first_change_of_availability_and_
     await run_until_cancelled(poller, 0.5)
     assert not poller.available and poller.availability_changes == 1
     assert poller.last_error_at is not None and 0 < poller.last_error_at
+
+
+async def test_a_refused_block_is_no_loss_of_the_link() -> None:
+    """The controller answers (it refuses one block): the other blocks' values are not expired."""
+    line = Line()
+    line.error = lambda index: ControllerRefused("protected", command="read") if index == 1 else None
+    cache = RecordingCache([2] * 3)
+    poller = Poller("p", blocks(3), cache, line, fast_interval=0.001, slow_interval=0.01, down_wait=DOWN_WAIT,
+                    stagger=0, responding=lambda: True)
+    task = asyncio.create_task(poller.run())
+    try:
+        await until(lambda: len(line.failed) >= 3)
+        count = len(line.times)
+        await until(lambda: len(line.times) >= count + 6)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    assert cache.expired == []
