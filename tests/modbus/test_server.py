@@ -894,8 +894,10 @@ async def test_a_loopback_client_let_in_for_reads_stays_read_only_with_a_certifi
     await modbus.start()
     try:
         reader, writer = await connect(modbus, _client_context(certificates))
-        writer.write(frame(1, bytes([6, 0, 10, 0, 7])))  # FC6: holding 10 = 7
-        assert await read_reply(reader) == (1, UNIT, bytes([0x86, 0x01]))
+        for tid in (1, 3):
+            writer.write(frame(tid, bytes([6, 0, 10, 0, 7])))  # FC6: holding 10 = 7
+            assert await read_reply(reader) == (tid, UNIT, bytes([0x86, 0x01]))
+        assert modbus.counters.requests.get(6) == 2  # refused requests are requests too (by function code)
         writer.write(read_request(2, 3, 10, 1))
         assert (await read_reply(reader))[2][0] == 3  # reads are served
         await close_writer(writer)
