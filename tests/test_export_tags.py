@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import csv
+import dataclasses
 import io
 import json
 from pathlib import Path
@@ -14,9 +15,21 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import Gateway
 from gateway.config import load_config, parse_config
+from gateway.errors import GatewayError
 from gateway.kinds import link_kind
 from gateway.modbus.mapping import STATUS_BASE, Plan, Table
-from gateway.tags import CSV_HEADER, KEPWARE_HEADER, config_tags, kepware_rows, link_tags, reference, render
+from gateway.tags import (
+    CSV_HEADER,
+    KEPWARE_HEADER,
+    Tag,
+    config_tags,
+    kepware_devices,
+    kepware_name,
+    kepware_rows,
+    link_tags,
+    reference,
+    render,
+)
 from tests.cli_support import cli, fails, ok
 from tests.e2e.modbus_support import connect, exception_code
 
@@ -439,3 +452,177 @@ def test_a_32_bit_value_is_read_write_only_when_writable_holds_both_its_register
     assert [tags[f"oven/F8:{n}"].access for n in range(3)] == access
     kepware = {row[0]: row[4] for row in kepware_rows(list(tags.values()))}
     assert [kepware[f"oven.F8_{n}"] for n in range(3)] == ["RW" if a == "read-write" else "RO" for a in access]
+
+
+# --- the formats, in process (the CLI tests above run them in a subprocess) -------------------------
+
+
+def _maps_tags() -> list[Tag]:
+    return config_tags(parse_config(MAPS).link)
+
+
+def test_the_csv_format_is_one_row_per_tag_under_its_header() -> None:
+    tags = _maps_tags()
+    text = render(tags, "csv")
+    assert text.endswith("\n") and "\r" not in text  # one line a row, Unix line ends
+    rows = list(csv.reader(io.StringIO(text)))
+    assert tuple(rows[0]) == ("name", "unit", "table", "address", "reference", "type", "access", "description")
+    assert len(rows) == len(tags) + 1
+    by_name = {row[0]: row[1:7] for row in rows[1:]}
+    assert by_name["press-3/F8:0"] == ["3", "holding", "200", "400201", "float32 high-first", "read-write"]
+    assert by_name["press-3/N7:0"] == ["3", "holding", "0", "400001", "int16", "read-write"]
+    assert by_name["press-1/701@discrete"] == ["1", "discrete", "701", "100702", "bool", "read"]
+    assert by_name["line-5/status.transactions"] == ["5", "input", "1003", "301004", "uint32 high-first", "read"]
+    assert rows[1][7] == tags[0].description != ""
+
+
+def test_the_json_format_is_a_list_of_objects_one_per_tag() -> None:
+    tags = _maps_tags()
+    text = render(tags, "json")
+    assert text.endswith("]\n")
+    document = json.loads(text)
+    assert len(document) == len(tags)
+    by_name = {item["name"]: item for item in document}
+    assert by_name["press-3/F8:0"] == {
+        "name": "press-3/F8:0", "link": "press-3", "unit": 3, "table": "holding", "address": 200,
+        "reference": "400201", "type": "float32", "word_order": "high-first", "registers": 2,
+        "access": "read-write", "description": "map entry F8:0 x3, float32, fast scan"}
+    n7 = by_name["press-3/N7:0"]
+    assert (n7["type"], n7["word_order"], n7["registers"], n7["access"]) == ("int16", None, 1, "read-write")
+    bit = by_name["press-3/T4:2/DN"]
+    assert (bit["table"], bit["type"], bit["word_order"], bit["registers"], bit["access"]) == (
+        "discrete", "bool", None, None, "read")
+
+
+def test_the_kepware_format_is_one_unit_in_the_documented_columns() -> None:
+    unit3 = [tag for tag in _maps_tags() if tag.unit == 3]
+    text = render(unit3, "kepware")
+    lines = text.split("\r\n")  # CRLF records, as the Windows tool writes them
+    assert lines[-1] == "" and len(lines) == len(unit3) + 2
+    rows = list(csv.reader(io.StringIO(text)))
+    assert tuple(rows[0]) == KEPWARE_COLUMNS
+    records = {row[0]: dict(zip(KEPWARE_COLUMNS, row, strict=True)) for row in rows[1:]}
+    f80 = records["press_3.F8_0"]
+    assert [f80[c] for c in ("Address", "Data Type", "Respect Data Type", "Client Access")] == [
+        "400201", "Float", "1", "RW"]
+    # every column but these is blank: the server's default
+    given = {"Tag Name", "Address", "Data Type", "Respect Data Type", "Client Access", "Description"}
+    assert all(value == "" for record in records.values() for column, value in record.items() if column not in given)
+    with pytest.raises(GatewayError) as refused:
+        render(_maps_tags(), "kepware")
+    assert "units 1, 3, 5" in str(refused.value)
+    with pytest.raises(GatewayError):  # two units are two devices too
+        render([tag for tag in _maps_tags() if tag.unit in (1, 3)], "kepware")
+
+
+def test_kepware_rows_say_each_32_bit_values_word_order_against_the_devices() -> None:
+    """Unit 3 has three high-first floats and two low-first ones: the device is high-first
+    ('First word low' off), and the low-first ones say that they read wrong."""
+    rows = {row[0]: row for row in kepware_rows([tag for tag in _maps_tags() if tag.unit == 3])}
+    assert rows["press_3.F8_0"][-1] == "map entry F8:0 x3, float32, fast scan (high-first words: 'First word low' off)"
+    assert rows["press_3.F8_3"][-1] == ("map entry F8:3 x2, float32, fast scan (low-first words: reads wrong "
+                                        "with 'First word low' off)")
+    assert rows["press_3.N7_0"][-1] == "map entry N7:0 x20, int16, fast scan"  # 16 bits: no word order
+    assert rows["press_3.status_transactions"][-1].endswith("(high-first words: 'First word low' off)")
+    assert rows["press_3.status_transactions"][2] == "DWord" and rows["press_3.N7_20"][2] == "Word"
+    assert rows["press_3.N7_0"][4] == "RW" and rows["press_3.T4_2_DN"][4] == "RO"
+
+
+def _tag(name: str, address: int, word_order: str = "", *, unit: int = 1, link: str = "a",
+         table: Table = Table.HOLDING, type_: str = "float32") -> Tag:
+    return Tag(f"{link}/{name}", link, unit, table, address, type_ if word_order else "int16", word_order, False, "d")
+
+
+def test_a_kepware_name_has_only_letters_digits_and_underscores() -> None:
+    assert kepware_name(_tag("N7:10", 0, link="press-1")) == "press_1.N7_10"
+    assert kepware_name(_tag("B3:0/15", 0, link="l")) == "l.B3_0_15"
+    assert kepware_name(_tag("::x::", 0, link="--")) == "tag.x"  # underscores at the ends dropped
+    assert kepware_name(_tag(":", 0, link="a")) == "a.tag"  # nothing left: "tag"
+    assert kepware_name(_tag("X1X", 0, link="XaX")) == "XaX.X1X"  # only underscores are stripped
+
+
+def test_the_same_kepware_name_twice_gets_its_table() -> None:
+    """A controller bit served as a coil and as a discrete input: one name each."""
+    tags = [_tag("B3:0/1", 1, table=Table.COIL), _tag("B3:0/1", 1, table=Table.DISCRETE)]
+    assert [row[0] for row in kepware_rows(tags)] == ["a.B3_0_1", "a.B3_0_1_discrete"]
+
+
+def test_a_type_kepware_has_no_name_for_is_a_word() -> None:
+    (row,) = kepware_rows([_tag("x", 0, "high-first", type_="int64")])
+    assert row[2] == "Word"
+
+
+def test_a_kepware_devices_word_order_is_most_of_its_own_32_bit_values() -> None:
+    high = [_tag(f"H{k}", 10 + 2 * k, "high-first") for k in range(3)]
+    low = [_tag(f"L{k}", 50 + 2 * k, "low-first") for k in range(2)]
+    status = [_tag(f"status.{k}", STATUS_BASE + 3 + 2 * k, "high-first", table=Table.INPUT) for k in range(4)]
+    (device,) = kepware_devices(high + low)
+    assert (device.word_order, device.setting, device.misread) == ("high-first", "'First word low' off", tuple(low))
+    # the status block's counters (high-first) do not count while the unit has 32-bit values of its own
+    (device,) = kepware_devices(low + status)
+    assert (device.word_order, device.setting) == ("low-first", "'First word low' on")
+    assert device.misread == tuple(status)
+    (device,) = kepware_devices(high[:2] + low + status)  # a tie: Kepware's default, first word low
+    assert device.word_order == "low-first" and device.misread == tuple(high[:2] + status)
+    (device,) = kepware_devices([_tag("n", 0), *status])  # none of its own: the status block decides
+    assert device.word_order == "high-first" and device.misread == ()
+    (device,) = kepware_devices([_tag("n", 0)])  # no 32-bit value at all: the default
+    assert device.word_order == "low-first" and device.misread == () and device.warning() == ""
+
+
+def test_the_status_block_is_the_input_registers_from_1000() -> None:
+    own_low = _tag("L", 0, "low-first")
+    own_high = _tag("H", 2, "high-first")
+    at_base = _tag("status.x", STATUS_BASE, "high-first", table=Table.INPUT)
+    below = _tag("I", STATUS_BASE - 2, "high-first", table=Table.INPUT)
+    holding = _tag("N", STATUS_BASE, "high-first", table=Table.HOLDING)
+    # input 1000 is the status block's: one own value each way is a tie (low-first)
+    assert kepware_devices([own_low, own_high, at_base])[0].word_order == "low-first"
+    # input 998 and holding 1000 are the unit's own: two high-first against one low-first
+    assert kepware_devices([own_low, own_high, below])[0].word_order == "high-first"
+    assert kepware_devices([own_low, own_high, holding])[0].word_order == "high-first"
+
+
+def test_kepware_devices_are_the_units_in_order_with_their_links() -> None:
+    tags = [_tag("a", 0, unit=4, link="x"), _tag("b", 0, unit=2, link="y"), _tag("c", 1, unit=4, link="z"),
+            _tag("d", 2, unit=4, link="x")]
+    devices = kepware_devices(tags)
+    assert [(d.unit, d.links, len(d.tags)) for d in devices] == [(4, ("x", "z"), 3), (2, ("y",), 1)]
+
+
+def test_the_word_order_warning_names_twelve_values_and_counts_the_rest() -> None:
+    high = [_tag(f"H{k}", 2 * k, "high-first") for k in range(15)]
+    low = [_tag(f"L{k}", 100 + 2 * k, "low-first") for k in range(14)]
+    (device,) = kepware_devices(high + low)
+    warning = device.warning()
+    assert warning.startswith("unit 1: 32-bit values in both word orders")
+    assert "this one is high-first ('First word low' off), so these 14 low-first values read wrong: " in warning
+    assert ", ".join(f"a.L{k}" for k in range(12)) + " and 2 more;" in warning
+    assert "a.L12" not in warning
+    (device,) = kepware_devices(high[:13] + low[:12])  # exactly twelve: every one named, no "more"
+    assert "and 0 more" not in device.warning() and "a.L11;" in device.warning()
+    (device,) = kepware_devices(high[:2] + low[:3])
+    warning = device.warning()
+    assert ("this one is low-first ('First word low' on), so these 2 high-first values read wrong: a.H0, a.H1;"
+            in warning)
+    assert "more" not in warning
+
+
+def test_tags_of_one_unit_are_its_links_only() -> None:
+    links = parse_config(MAPS).link
+    assert {tag.link for tag in config_tags(links, unit=3)} == {"press-3"}
+    assert {tag.link for tag in config_tags(links)} == {"press-1", "press-3", "line-5"}
+
+
+def test_a_point_its_kind_does_not_label_is_named_by_table_and_address(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A kind without labels: a point is ``<table>:<address>``, a bit ``bool``, a 32-bit value ``uint32``,
+    a register ``uint16``."""
+    (link,) = [link for link in parse_config(MAPS).link if link.name == "press-3"]
+    unlabelled = dataclasses.replace(link_kind(link.protocol), point_labels=None)
+    monkeypatch.setattr("gateway.tags.link_kind", lambda protocol: unlabelled)
+    tags = {tag.name: (tag.type_text, tag.access) for tag in link_tags(link)}
+    assert tags["press-3/holding:0"] == ("uint16", "read-write")
+    assert tags["press-3/holding:200"] == ("uint32 high-first", "read-write")  # F8:0, a float, unlabelled
+    assert tags["press-3/coil:15"] == ("bool", "read-write")
+    assert tags["press-3/discrete:2"] == ("bool", "read")
+    assert tags["press-3/status.link_up"] == ("uint16", "read")

@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 from test_register_image import FakeDriver, MemoryUnit
 
 from gateway.errors import ModbusExceptionReply
-from gateway.freshness import LinkState, Offline, Source
+from gateway.freshness import Freshness, LinkState, Offline, Source
 from gateway.health import health
 from gateway.link_health import LineQuality
 from gateway.modbus.mapping import Table
@@ -230,3 +230,38 @@ def test_a_peek_is_no_demand_and_a_served_read_is() -> None:
     assert unit.demand.take() == {(Table.HOLDING, 0, 1): 5.0}
     unit.note_demand(Table.COIL, 0, 3)  # a face that peeks but demands ([sparkplug] demand = true)
     assert unit.demand.take() == {(Table.COIL, 0, 3): 5.0}
+
+
+def test_a_value_is_fresh_up_to_its_deadline_inclusive() -> None:
+    """Fresh when read at most its limit ago: at the deadline the image stamped on it, still fresh."""
+    link = SimpleNamespace(available=True, state_since=0.0)
+    freshness = Freshness(stale_after=5.0, schedule=None, link=link, blocks=1)
+    freshness.watch(SimpleNamespace(newest=99.0), SimpleNamespace(block_deadline=[100.0]))  # type: ignore[arg-type]
+    assert freshness.block_fresh(0, 100.0)
+    assert not freshness.block_fresh(0, 100.001)
+
+
+def test_the_verdict_says_since_when_the_link_is_in_its_state() -> None:
+    """``since`` (the module docstring, docs/guide/freshness.md): down and up since the link's last
+    change; stale since the oldest value passed the limit (``stale_after`` for a unit not polled), or
+    since the link came up if that was later; up after stale since the verdict found it fresh again.
+    Stale at and over the limit."""
+    link = SimpleNamespace(available=False, state_since=3.0)
+    cache = SimpleNamespace(newest=0.0)
+    freshness = Freshness(stale_after=5.0, schedule=None, link=link, blocks=1)
+    freshness.watch(cache, SimpleNamespace(block_deadline=[0.0]))  # type: ignore[arg-type]
+
+    def verdict(now: float) -> tuple[LinkState, float | None]:
+        result = freshness.verdict(now)
+        return result.state, result.since
+
+    assert verdict(4.0) == (LinkState.DOWN, 3.0)
+    link.available, link.state_since, cache.newest = True, 10.0, 12.0
+    assert verdict(14.0) == (LinkState.UP, 10.0)
+    assert verdict(17.0) == (LinkState.STALE, 17.0)  # age 5: at the limit
+    assert verdict(20.0) == (LinkState.STALE, 17.0)  # still since the value passed the limit
+    link.state_since = 30.0  # the link went down and came back at 30, the data older still
+    assert verdict(32.0) == (LinkState.STALE, 30.0)
+    cache.newest = 31.0
+    assert verdict(33.0) == (LinkState.UP, 33.0)  # fresh again: since the verdict found it so
+    assert verdict(34.0) == (LinkState.UP, 33.0)

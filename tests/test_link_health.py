@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import asyncio
 
-from gateway.link_health import DownAfter, LinkHealth
+import pytest
+
+from gateway.link_health import DownAfter, LineQuality, LinkHealth
 
 
 class Link(LinkHealth):
@@ -84,3 +86,27 @@ async def test_down_after_seconds_without_an_answer_while_transactions_fail() ->
         await asyncio.sleep(0.01)
     link.note_result(False, "timeout")
     assert not link.available and link.state_changes == 2
+
+
+async def test_a_bare_links_line_quality_is_its_check_errors_and_timeouts_only() -> None:
+    """The counters every link has; NAKs, retransmissions and resyncs are a kind's (None: not counted)."""
+    link = Link(DownAfter())
+    link.counters.crc_errors = 4
+    link.counters.timeouts = 7
+    assert link.line_quality() == LineQuality(check_errors=4, timeouts=7, naks=None, retransmits=None, resyncs=None)
+
+
+@pytest.mark.looptime
+async def test_the_state_says_since_when_and_up_clears_the_error() -> None:
+    loop = asyncio.get_running_loop()
+    link = Link(DownAfter(failures=1000, seconds=5.0))
+    link.note_result(True)
+    assert link.state_since == loop.time()
+    await asyncio.sleep(5.0)  # exactly down_after_seconds without an answer: down
+    link.note_result(False, "timeout")
+    assert not link.available and link.state_since == loop.time() and link.last_error == "timeout"
+    link.note_result(False)  # a failure that gives no reason keeps the last one
+    assert link.last_error == "timeout"
+    await asyncio.sleep(1.0)
+    link.note_result(True)
+    assert link.available and link.state_since == loop.time() and link.last_error == ""

@@ -9,7 +9,8 @@ only: a loaded machine makes fewer probes, never more), never against a wall-clo
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Callable
+import logging
+from collections.abc import AsyncIterator, Awaitable, Callable
 
 import pytest
 
@@ -17,6 +18,7 @@ from gateway.cache import BlockCache
 from gateway.errors import ControllerRefused, GatewayError, LinkTimeout
 from gateway.modbus.mapping import Block, Scan
 from gateway.poller import Poller
+from gateway.schedule import NEVER
 from tests.waiting import until
 
 DOWN_WAIT = 0.05
@@ -152,3 +154,131 @@ async def test_only_the_block_read_again_leaves_the_refused() -> None:
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
+
+
+# --- refusals, failures and rounds, on the loop's fake clock (looptime) ----------------------------------
+
+
+@pytest.mark.looptime
+async def test_refused_blocks_are_logged_three_by_name_then_once_and_retried_every_five_seconds(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Program mode refuses every read: three blocks named, one line for the rest, nothing more; each
+    block tried again ``min(slow_interval, 5 s)`` after its refusal; a refusal is not a lost link and
+    no read for the freshness of the block."""
+    line = Line()
+    line.error = lambda index: ControllerRefused("program mode", command="read")
+    cache = RecordingCache([2] * 6)
+    poller = Poller("p", blocks(6), cache, line, fast_interval=0.0, slow_interval=10.0, down_wait=DOWN_WAIT,
+                    stagger=0, responding=lambda: True)
+    caplog.set_level(logging.WARNING, "gateway.poller")
+    task = asyncio.create_task(poller.run())
+    await asyncio.sleep(12.0)
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    lines = [r.getMessage() for r in caplog.records if "refuse" in r.getMessage()]
+    assert lines == [f"link p: the controller refuses to read block {i}: program mode" for i in range(3)] + [
+        "link p: more blocks refused; not logging each"]
+    assert len(line.times) == 18 and poller.block_errors == 18  # each block at 0, 5 and 10 s
+    assert set(poller.refused) == set(range(6))
+    assert cache.expired == []  # not a lost link
+    assert all(at == NEVER for at in poller.schedule.read_at)
+
+
+@pytest.mark.looptime
+async def test_a_wait_for_two_blocks_ends_when_both_were_read_refused_or_failed() -> None:
+    line = Line()
+    answered: list[int] = []
+
+    async def read(block: Block) -> bytes:
+        await asyncio.sleep(0.1)
+        try:
+            return await line(block)
+        finally:
+            answered.append(int(block.request))  # type: ignore[call-overload]
+
+    for error in (ControllerRefused("refused", command="read"), LinkTimeout("lost reply"), None):
+        line.error = lambda index, error=error: error if index == 0 else None  # type: ignore[misc]
+        answered.clear()
+        poller = Poller("p", blocks(4), BlockCache([2] * 4), read, fast_interval=0.0, down_wait=DOWN_WAIT,
+                        stagger=0, responding=lambda: True)
+        task = asyncio.create_task(poller.run())
+        try:
+            await asyncio.sleep(1.0)
+            asked = len(answered)
+            await asyncio.wait_for(poller.wait_for([0, 3]), 5.0)
+            assert {0, 3} <= set(answered[asked:]), (error, answered[asked:])  # not done after the first only
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+
+@pytest.mark.looptime
+async def test_a_block_that_fails_is_no_read_for_its_freshness() -> None:
+    line = Line()
+    line.error = lambda index: LinkTimeout("lost reply") if index == 1 else None
+    poller = Poller("p", blocks(3), BlockCache([2] * 3), slow(line), fast_interval=0.0, down_wait=DOWN_WAIT, stagger=0,
+                    responding=lambda: True)
+    await run_until_cancelled(poller, 1.0)
+    assert poller.schedule.read_at[1] == NEVER and poller.schedule.read_at[0] > 0
+    assert poller.block_errors == len(line.failed) > 1
+
+
+def slow(line: Line) -> Callable[[Block], Awaitable[bytes]]:
+    """``line``, each read taking 10 ms (on the fake clock a read that takes no time never lets it move)."""
+    async def read(block: Block) -> bytes:
+        await asyncio.sleep(0.01)
+        return await line(block)
+    return read
+
+
+async def run_until_cancelled(poller: Poller, seconds: float) -> None:
+    task = asyncio.create_task(poller.run())
+    await asyncio.sleep(seconds)
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+
+
+@pytest.mark.looptime
+async def test_a_round_is_as_many_reads_as_blocks() -> None:
+    rounds: list[tuple[int, int]] = []
+    poller: Poller | None = None
+
+    async def read(block: Block) -> bytes:
+        assert poller is not None
+        rounds.append((len(rounds), poller.scans))
+        await asyncio.sleep(0.01)
+        return b"\x00\x01"
+
+    poller = Poller("p", blocks(3), BlockCache([2] * 3), read, fast_interval=0.0, stagger=0)
+    await run_until_cancelled(poller, 1.0)
+    assert len(rounds) > 30
+    assert all(scans == reads // 3 for reads, scans in rounds), rounds[:12]
+
+
+@pytest.mark.looptime
+async def test_a_first_round_that_fails_is_the_first_change_of_availability_and_says_when() -> None:
+    line = Line()
+    line.error = lambda index: GatewayError("garbled reply")
+    poller = Poller("p", blocks(2), BlockCache([2] * 2), slow(line), fast_interval=0.0, down_wait=DOWN_WAIT, stagger=0,
+                    responding=lambda: True)
+    await run_until_cancelled(poller, 0.5)
+    assert not poller.available and poller.availability_changes == 1
+    assert poller.last_error_at is not None and 0 < poller.last_error_at
+
+
+async def test_a_refused_block_is_no_loss_of_the_link() -> None:
+    """The controller answers (it refuses one block): the other blocks' values are not expired."""
+    line = Line()
+    line.error = lambda index: ControllerRefused("protected", command="read") if index == 1 else None
+    cache = RecordingCache([2] * 3)
+    poller = Poller("p", blocks(3), cache, line, fast_interval=0.001, slow_interval=0.01, down_wait=DOWN_WAIT,
+                    stagger=0, responding=lambda: True)
+    task = asyncio.create_task(poller.run())
+    try:
+        await until(lambda: len(line.failed) >= 3)
+        count = len(line.times)
+        await until(lambda: len(line.times) >= count + 6)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    assert cache.expired == []

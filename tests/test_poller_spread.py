@@ -5,6 +5,7 @@ waiting read asks for before anything else (``docs/guide/freshness.md``)."""
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import Awaitable, Callable
 
 import pytest
@@ -13,6 +14,7 @@ from gateway.cache import BlockCache
 from gateway.errors import LinkDown
 from gateway.modbus.mapping import Block, Scan
 from gateway.poller import LineShare, Poller
+from gateway.schedule import Schedule
 from tests.waiting import until
 
 
@@ -132,3 +134,63 @@ async def test_stations_sharing_a_line_one_stations_background_yields_to_another
     # half of the line (about 50 reads) round robin would give it
     assert 4 <= after <= 20, (after, len(a_reads))
     assert len(a_reads) > 3 * after
+
+
+async def test_every_read_that_waits_is_counted_and_one_for_no_block_is_done_at_once() -> None:
+    """``read_waits`` (the status page's "reads that waited") counts each ``wait_for``."""
+
+    async def read(block: Block) -> bytes:
+        await asyncio.sleep(0.005)
+        return b"\0"
+
+    poller = Poller("p", plan(2, 0), BlockCache([1] * 2), read, stagger=0)
+    nothing = poller.wait_for([])
+    assert nothing.done()
+    task = asyncio.create_task(poller.run())
+    try:
+        await asyncio.wait_for(poller.wait_for([0]), 1.0)
+        await asyncio.wait_for(poller.wait_for([1, 0]), 1.0)
+        assert poller.read_waits == 3
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+
+def test_the_line_share_marks_each_poller_and_others_are_the_rest() -> None:
+    share = LineShare()
+    a, b = object(), object()
+    share.mark(a, True)
+    assert not share.others(a) and share.others(b)  # a's own urgent reads hold nobody up but others
+    share.mark(b, True)
+    share.mark(a, False)
+    assert share.others(a) and not share.others(b)
+    share.mark(b, False)
+    assert not share.others(a) and not share.others(b)
+
+
+@pytest.mark.looptime
+@pytest.mark.parametrize("demanded", [False, True])
+async def test_a_line_that_cannot_keep_up_is_warned_of_once_over_many_rounds(
+        demanded: bool, caplog: pytest.LogCaptureFixture) -> None:
+    """Every read comes after its stale limit (0.1 s + P, P = 0 s, reads of 0.05 s, 4 blocks): one warning
+    for as long as that lasts, naming the demanded blocks when clients read them."""
+
+    async def read(block: Block) -> bytes:
+        await asyncio.sleep(0.05)
+        return b"\0"
+
+    schedule = Schedule([Scan.FAST] * 4, fast_interval=0.0, slow_interval=10.0, stale_after=0.1,
+                        background_interval=0.0, demand_hold=1000.0)
+    poller = Poller("p", plan(4, 0), BlockCache([1] * 4), read, stagger=0, schedule=schedule)
+    if demanded:
+        schedule.demand([0, 1, 2], asyncio.get_running_loop().time())
+    caplog.set_level(logging.WARNING, "gateway.poller")
+    await run_for(poller, 10.0)  # about 50 rounds
+    lines = [r.getMessage() for r in caplog.records if "refreshes its" in r.getMessage()]
+    if demanded:
+        assert lines == ["link p refreshes its 3 demanded blocks every 0.2 s; stale_after is 0.1 s: "
+                         "raise stale_after, or read fewer addresses"]
+    else:
+        assert lines == ["link p refreshes its 4 blocks every 0.2 s; stale_after is 0.1 s: "
+                         "raise stale_after, or map fewer addresses"]
+    assert poller.behind is not None

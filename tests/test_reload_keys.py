@@ -248,3 +248,13 @@ async def test_every_live_key_is_applied_by_a_reload(section: str, key: str, cer
     assert await gateway.apply(changed(section, key, certificates))
     assert gateway.config_status.restart_needed == ()
     assert change.seen(gateway) == change.expected
+
+
+def test_a_section_within_a_section_adds_to_what_needs_a_restart(certificates: Path) -> None:
+    """``[modbus.tls]`` added and ``[modbus] listen`` changed: both named (neither hides the other)."""
+    ascii_link = '[[link]]\nname = "press"\nprotocol = "slc-ascii"\nport = "/dev/ttyUSB0"\nunit = 9\n'
+    tls = (f'[modbus.tls]\nlisten = "0.0.0.0:8020"\ncert = "{certificates / "one.pem"}"\n'
+           f'key = "{certificates / "one.key"}"\n')
+    old = parse_config('[modbus]\nlisten = "0.0.0.0:5020"\n' + ascii_link)
+    new = parse_config('[modbus]\nlisten = "0.0.0.0:5021"\n' + tls + ascii_link)
+    assert restart_needed(old, new) == ['[modbus] listen ("0.0.0.0:5020" -> "0.0.0.0:5021")', "[modbus.tls] added"]

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import hashlib
+import time
+from pathlib import Path
+
 from pydantic import Field
 
 from gateway.config import GatewayConfig, parse_config
 from gateway.config._common import Model
-from gateway.reload import line_changes, restart_needed
+from gateway.reload import ConfigSource, ConfigStatus, line_changes, restart_needed
 
 
 def station(name: str, unit: int, number: int, port: str = "socket://Radio:4001", extra: str = "") -> str:
@@ -73,3 +77,43 @@ def test_a_section_reload_does_not_know_needs_a_restart() -> None:
     assert restart_needed(with_it, _WithASection(link=links, sparkplug=_Sparkplug(host="::1"))) == [
         "[sparkplug] changed"]
     assert restart_needed(with_it, with_it) == []
+
+
+def test_a_config_source_loads_its_file_with_the_command_lines_changes(tmp_path: Path) -> None:
+    """``ConfigSource.load``: the file's config with ``adjust`` applied, the SHA-256 of its bytes
+    (``sha256sum`` shows the same digits), the Unix time it was read."""
+    path = tmp_path / "gateway.toml"
+    path.write_text(ASCII, encoding="utf-8")
+    before = time.time()
+    loaded = ConfigSource(path).load()
+    assert loaded.config == parse_config(ASCII)  # no adjustment: the file as given
+    assert loaded.sha256 == hashlib.sha256(ASCII.encode()).hexdigest()
+    assert before <= loaded.loaded_at <= time.time()
+    moved = ConfigSource(path, lambda config: config.model_copy(update={"link": []})).load()
+    assert moved.config.link == [] and moved.sha256 == loaded.sha256
+
+
+def test_the_config_status_is_what_the_reload_guide_shows() -> None:
+    """``/api/status``'s ``config`` object (docs/guide/reload.md): the first 12 hex digits, the load
+    time rounded to the millisecond, the counts, the last failure and what needs a restart."""
+    status = ConfigStatus("4041052c30b1" + "9" * 52, 1764341234.51234, reloads=3, reload_failures=1)
+    assert status.short_sha256 == "4041052c30b1"
+    assert status.document() == {"sha256": "4041052c30b1", "loaded_at": 1764341234.512, "reloads": 3,
+                                 "reload_failures": 1, "last_failure": None, "restart_needed": []}
+    status.last_failure = "gateway.toml:3: bad"
+    status.restart_needed = ("[modbus] listen (a -> b)",)
+    document = status.document()
+    assert document["last_failure"] == "gateway.toml:3: bad"
+    assert document["restart_needed"] == ["[modbus] listen (a -> b)"]
+    nothing = ConfigStatus(None, 0.0)  # a config that came from no file
+    assert nothing.short_sha256 is None and nothing.document()["sha256"] is None
+    assert (nothing.reloads, nothing.reload_failures, nothing.last_failure, nothing.restart_needed) == (0, 0, None, ())
+
+
+def test_the_summary_counts_unchanged_lines_in_the_plural_but_one() -> None:
+    old = parse_config(FILE)
+    assert line_changes(old.link, old.link).summary() == "links: 2 lines unchanged"
+    new = parse_config(FILE.replace("/dev/ttyUSB0", "/dev/ttyUSB1").replace("Radio:4001", "radio:4002")
+                       .replace("radio:4001", "radio:4002").replace("station = 2\n", "station = 3\n"))
+    assert line_changes(old.link, new.link).summary().endswith(", 0 lines unchanged")
+

@@ -462,3 +462,96 @@ def test_the_order_is_the_rule(scans: list[Scan], steps: list[tuple[str, int, fl
                 s.done(pick, now, now + 0.01, action == "read")
         assert s.next(now) == rule(s, now)
         assert s.next_due(now) == (now if s.bumped else min(s.due))
+
+
+# --- edges of the rule (mutation testing) -------------------------------------------------------
+
+
+def test_after_a_read_that_never_reached_the_controller_no_block_is_on_the_line() -> None:
+    s = schedule([F, F, F])
+    s.started(0, 1.0)
+    s.untry(0, 1.0)
+    s.bump([1, 0])  # nothing is on the line: a client waits for the read of either
+    assert list(s.bumped) == [1, 0]
+
+
+def test_a_block_is_urgent_at_its_deadline_and_demanded_until_its_hold_ends() -> None:
+    s = schedule([S, S], slow=10.0, background=30.0, hold=60.0)
+    for block in (0, 1, 0, 1):  # read twice: the first read after start comes due early (spread over P)
+        read(s, block, 0.0)
+    s.demand([0], 0.0)
+    assert s.is_urgent(0, 10.0) and not s.is_urgent(0, 9.9)  # demanded: at its due time, P after its read
+    assert not s.is_urgent(1, 10.0) and s.is_urgent(1, 30.0)  # nobody reads it: B after its read
+    s2 = schedule([S], slow=10.0, background=100.0, hold=60.0)
+    read(s2, 0, 0.0)
+    read(s2, 0, 0.0)
+    s2.demand([0], 0.0)  # demanded until 60 (not at 60)
+    assert s2.is_urgent(0, 59.9)
+    assert not s2.is_urgent(0, 60.0)  # demand over: urgent only B (100) after its read
+
+
+def test_a_loss_when_a_demand_ends_leaves_that_block_in_its_place() -> None:
+    s = schedule([S, S], slow=10.0, hold=5.0)
+    s.begin(0.0)
+    for block in (0, 1, 0, 1):  # read twice: due a whole P after the second read
+        read(s, block, 0.0)
+    s.demand([0], 0.0)  # demanded until 5
+    s.demand([1], 1.0)  # demanded until 6
+    s.lost(5.0)
+    assert s.due[0] == 10.0  # no longer demanded at the loss: its place kept
+    assert s.due[1] == 5.0  # demanded: due at the loss
+
+
+def test_a_held_block_nobody_reads_is_urgent_a_background_period_after_it_counts_as_read() -> None:
+    """A held block counts as read one class period before its hold ends (so it is wanted when the hold
+    ends): nobody reading it, it is urgent ``B - P`` after the hold ends, not ``B + P``."""
+    s = schedule([S, S], slow=10.0, background=30.0)
+    read(s, 0, 0.0, ok=False)
+    s.hold(0, 5.0)
+    assert s.urgent_at(0) == 25.0
+    assert not s.is_urgent(0, 24.9) and s.is_urgent(0, 25.0)
+
+
+def test_the_budget_names_its_classes() -> None:
+    s = schedule([F, S, S], fast=1.0, slow=10.0, background=0.0)
+    for t in range(3):  # the fast block read every 1 s, the slow ones every 10 s
+        read(s, 0, float(t))
+    read(s, 1, 0.0)
+    read(s, 1, 9.0)
+    read(s, 2, 0.0)
+    read(s, 2, 9.0)
+    budget = s.budget(9.0)
+    assert budget.refresh == {"fast": 1.0, "slow": 9.0, "demanded": None, "all": 9.0}
+    assert set(budget.age_bound) == {"fast", "slow", "demanded"}
+    assert budget.line_use is None  # no full window (10 s) measured yet
+
+
+def test_a_failed_read_as_its_demand_ends_is_not_tried_again_early() -> None:
+    s = schedule([S, S], slow=10.0, hold=10.0, background=30.0)
+    for block in (0, 1, 0, 1):
+        read(s, block, 0.0)
+    s.demand([0], 0.0)  # demanded until 10, not at 10
+    read(s, 0, 10.0, ok=False)
+    assert s.due[0] == 20.0  # to the back: a whole period
+
+
+def test_a_retry_that_would_come_at_the_stale_limit_is_not_made() -> None:
+    """Tried again one transaction later only while that comes *before* the value's stale limit."""
+    s = schedule([S, S], slow=10.0, stale_after=5.0, hold=100.0)
+    s.demand([0, 1], 0.0)
+    for block in (0, 1, 0, 1):
+        read(s, block, 0.0, took=1.0)  # every transaction takes 1 s; each block read at 1, its limit 1 + 15
+    read(s, 0, 14.0, took=1.0, ok=False)  # failed at 15: a retry at 16 is at the limit
+    assert s.due[0] == 24.0
+    read(s, 1, 13.0, took=1.0, ok=False)  # block 1 (read at 1, limit 16) failed at 14: retry at 15
+    assert s.due[1] == 15.0
+
+
+def test_the_age_bound_of_a_demanded_block_is_its_class_period_else_its_background() -> None:
+    s = schedule([F, S], fast=1.0, slow=10.0, background=30.0, hold=10.0)
+    read(s, 0, 0.0, took=0.5)
+    read(s, 1, 0.5, took=0.5)  # transactions of 0.5 s: one round of both blocks takes 1 s
+    s.demand([1], 0.0)  # demanded until 10
+    assert s.age_bound([1], 5.0) == 11.0  # P + a round
+    assert s.age_bound([1], 10.0) == 31.0  # the demand is over: B + a round
+    assert s.age_bound([0], 5.0) == 31.0

@@ -165,8 +165,9 @@ def _changed(spec: MetricSpec, new: Sample, old: Sample | None) -> bool:
     if new.value is None or old.value is None:
         return new.reason != old.reason
     a, b = new.value, old.value
-    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
-        return False
+    if isinstance(a, float) and isinstance(b, float) and (math.isnan(a) or math.isnan(b)):
+        # NaN equals nothing, and is within no deadband of anything: changed unless both are NaN
+        return math.isnan(a) != math.isnan(b)
     if spec.deadband > 0 and isinstance(a, int | float) and isinstance(b, int | float) and not isinstance(a, bool):
         return abs(a - b) > spec.deadband
     return a != b

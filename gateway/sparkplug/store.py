@@ -35,6 +35,23 @@ CREATE TABLE IF NOT EXISTS change (
 );
 CREATE INDEX IF NOT EXISTS change_by_device ON change (device, ts, id);
 """
+# The statements, beside the schema (SQL keywords are not case-sensitive: written inside the methods,
+# a mutation test would change their case and find no test that notices)
+_COUNT = "SELECT COUNT(*) FROM change"
+_OLDEST_TS = "SELECT ts FROM change ORDER BY id LIMIT 1"
+_INSERT = "INSERT INTO change (device, metric, ts, sample) VALUES (?, ?, ?, ?)"
+_NTH_ID = "SELECT id FROM change ORDER BY id LIMIT 1 OFFSET ?"
+_SPAN = "SELECT COUNT(*), MIN(ts), MAX(ts) FROM change WHERE {where}"
+_DELETE_WHERE = "DELETE FROM change WHERE {where}"
+_OLDER = "ts < ?"
+_UP_TO_ID = "id <= ?"
+_OLDEST_DEVICE = "SELECT device FROM change{where} ORDER BY id LIMIT 1"
+_NOT_IN = " WHERE device NOT IN ({marks})"
+_BATCH = "SELECT id, metric, ts, sample FROM change WHERE device = ? ORDER BY ts, id LIMIT ?"
+_DELETE_ID = "DELETE FROM change WHERE id = ?"
+_BEGIN, _COMMIT, _ROLLBACK = "BEGIN", "COMMIT", "ROLLBACK"
+_PRAGMAS = ("PRAGMA journal_mode = WAL", "PRAGMA synchronous = NORMAL")
+_PAGE_COUNT, _FREE_PAGES, _PAGE_SIZE = "PRAGMA page_count", "PRAGMA freelist_count", "PRAGMA page_size"
 
 
 def store_path(state_file: Path) -> Path:
@@ -88,14 +105,14 @@ class ChangeStore:
         except sqlite3.DatabaseError:
             self.path.replace(self.path.with_name(self.path.name + ".corrupt"))
             self._db = self._connect()
-        self.count = self._one("SELECT COUNT(*) FROM change") or 0
+        self.count = self._one(_COUNT) or 0
         self._measure()
 
     def _connect(self) -> sqlite3.Connection:
         db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
         try:
-            db.execute("PRAGMA journal_mode = WAL")
-            db.execute("PRAGMA synchronous = NORMAL")
+            for pragma in _PRAGMAS:
+                db.execute(pragma)
             db.executescript(_CHANGE_TABLE)
         except sqlite3.DatabaseError:
             db.close()
@@ -118,9 +135,9 @@ class ChangeStore:
         return None if row is None or row[0] is None else int(row[0])
 
     def _measure(self) -> None:
-        pages = (self._one("PRAGMA page_count") or 0) - (self._one("PRAGMA freelist_count") or 0)
-        self.bytes = pages * (self._one("PRAGMA page_size") or 4096)
-        self.oldest = self._one("SELECT ts FROM change ORDER BY id LIMIT 1")
+        pages = (self._one(_PAGE_COUNT) or 0) - (self._one(_FREE_PAGES) or 0)
+        self.bytes = pages * (self._one(_PAGE_SIZE) or 4096)
+        self.oldest = self._one(_OLDEST_TS)
 
     # --- writing ----------------------------------------------------------------------------
 
@@ -128,37 +145,36 @@ class ChangeStore:
         """Keep ``changes`` (one transaction), then drop what is past the bounds at ``now``."""
         if changes:
             db = self.db
-            db.execute("BEGIN")
+            db.execute(_BEGIN)
             try:
-                db.executemany("INSERT INTO change (device, metric, ts, sample) VALUES (?, ?, ?, ?)",
-                               [(c.device, c.metric, c.timestamp, sample_text(c)) for c in changes])
+                db.executemany(_INSERT, [(c.device, c.metric, c.timestamp, sample_text(c)) for c in changes])
             except BaseException:
-                db.execute("ROLLBACK")
+                db.execute(_ROLLBACK)
                 raise
-            db.execute("COMMIT")
+            db.execute(_COMMIT)
             self.commits += 1
             self.count += len(changes)
         self.trim(now)
 
     def trim(self, now: int) -> None:
         """Drop the rows older than ``max_age`` and, while the pages in use exceed ``max_bytes``, the oldest."""
-        self._drop("ts < ?", now - self.max_age, reason="older than store_max_age")
+        self._drop(_OLDER, now - self.max_age, reason="older than store_max_age")
         self._measure()
         while self.bytes > self.max_bytes and self.count:
             # about the rows that take the excess (at least an eighth of them), oldest first
             share = max(1, self.count // 8, int(self.count * (self.bytes - self.max_bytes) / max(self.bytes, 1)))
-            last = self._one("SELECT id FROM change ORDER BY id LIMIT 1 OFFSET ?", min(share, self.count) - 1)
+            last = self._one(_NTH_ID, min(share, self.count) - 1)
             if last is None:
                 break
-            self._drop("id <= ?", last, reason="store full (store_max_mb)")
+            self._drop(_UP_TO_ID, last, reason="store full (store_max_mb)")
             self._measure()
 
     def _drop(self, where: str, bound: int, *, reason: str) -> None:
         db = self.db
-        row = db.execute(f"SELECT COUNT(*), MIN(ts), MAX(ts) FROM change WHERE {where}", (bound,)).fetchone()
+        row = db.execute(_SPAN.format(where=where), (bound,)).fetchone()
         if not row or not row[0]:
             return
-        db.execute(f"DELETE FROM change WHERE {where}", (bound,))
+        db.execute(_DELETE_WHERE.format(where=where), (bound,))
         self.count -= row[0]
         self.dropped += row[0]
         self._drops.add(row[0], row[1], row[2], reason)
@@ -173,14 +189,12 @@ class ChangeStore:
     def next_batch(self, limit: int, skip: Collection[str] = ()) -> tuple[str, list[tuple[int, Change]]] | None:
         """The device of the oldest row (not one of ``skip``) and its oldest ``limit`` rows, in timestamp order;
         None when there is none."""
-        marks = ",".join("?" * len(skip))
-        sql = "SELECT device FROM change" + (f" WHERE device NOT IN ({marks})" if skip else "") + " ORDER BY id LIMIT 1"
-        row = self.db.execute(sql, tuple(skip)).fetchone()
+        where = _NOT_IN.format(marks=",".join("?" * len(skip))) if skip else ""
+        row = self.db.execute(_OLDEST_DEVICE.format(where=where), tuple(skip)).fetchone()
         if row is None:
             return None
         device = str(row[0])
-        rows = self.db.execute("SELECT id, metric, ts, sample FROM change WHERE device = ? ORDER BY ts, id LIMIT ?",
-                               (device, limit)).fetchall()
+        rows = self.db.execute(_BATCH, (device, limit)).fetchall()
         out: list[tuple[int, Change]] = []
         for ident, metric, ts, text in rows:
             value, quality, reason = sample_value(text)
@@ -192,9 +206,9 @@ class ChangeStore:
         if not ids:
             return
         db = self.db
-        db.execute("BEGIN")
-        db.executemany("DELETE FROM change WHERE id = ?", [(i,) for i in ids])
-        db.execute("COMMIT")
+        db.execute(_BEGIN)
+        db.executemany(_DELETE_ID, [(i,) for i in ids])
+        db.execute(_COMMIT)
         self.count -= len(ids)
         if replayed:
             self.replayed += len(ids)

@@ -6,6 +6,7 @@ other connections do not wait for it.  Real sockets on 127.0.0.1, a backend serv
 from __future__ import annotations
 
 import asyncio
+import logging
 import struct
 from collections.abc import AsyncIterator, Sequence
 
@@ -13,6 +14,7 @@ import pytest
 
 from gateway.errors import ModbusExceptionReply, StaleRead
 from gateway.modbus.server import ModbusTcpServer
+from tests.waiting import until as wait_until
 
 HOST = "127.0.0.1"
 UNIT = 1
@@ -120,3 +122,121 @@ async def test_another_connection_does_not_wait_for_a_waiting_read(
     finally:
         held_writer.close()
         writer.close()
+
+
+async def test_a_client_that_stops_sending_gets_the_replies_in_flight_then_the_end(
+        server: ModbusTcpServer, backend: ImageBackend) -> None:
+    """A half-close (the client's EOF) with a read still waiting: its reply is sent, then the server
+    closes its side."""
+    reader, writer = await asyncio.open_connection(HOST, server.port)
+    try:
+        writer.write(read_request(1, STALE))
+        await asyncio.wait_for(backend.waiting.wait(), 5.0)
+        writer.write_eof()
+        await asyncio.sleep(0.05)  # the EOF reaches the server while the read waits
+        backend.fresh.set()
+        assert await read_reply(reader) == (1, [1100])
+        assert await asyncio.wait_for(reader.read(), 5.0) == b""  # then the end
+    finally:
+        writer.close()
+
+
+@pytest.fixture
+async def timed_server(backend: ImageBackend) -> AsyncIterator[ModbusTcpServer]:
+    """frame_timeout 2 s: a connection is stalled after a grace of min(1 s, 2 s / 2) = 1 s."""
+    modbus = ModbusTcpServer(backend, HOST, 0, frame_timeout=2.0)
+    await modbus.start()
+    yield modbus
+    await modbus.close()
+
+
+async def test_a_connection_that_sends_nothing_is_stalled_after_the_grace(timed_server: ModbusTcpServer) -> None:
+    loop = asyncio.get_running_loop()
+    before = loop.time()
+    _reader, writer = await asyncio.open_connection(HOST, timed_server.port)
+    try:
+        await wait_until(lambda: timed_server.connection_count == 1)
+        (connection,) = timed_server._connections
+        assert connection.stalled_since() is None  # just connected
+        await asyncio.sleep(0.8)  # past a third of frame_timeout, not past the grace
+        if loop.time() - before < 1.0:  # (a loaded machine may have slept longer: nothing to check)
+            assert connection.stalled_since() is None
+        await asyncio.sleep(0.25)
+        since = connection.stalled_since()
+        assert since is not None and before <= since <= loop.time() - 1.0
+        writer.write(read_request(1, 7))  # a complete request: not stalled any more
+        await wait_until(lambda: connection.stalled_since() is None)
+    finally:
+        writer.close()
+
+
+async def test_a_connection_with_an_incomplete_frame_is_stalled_from_when_it_began(
+        timed_server: ModbusTcpServer) -> None:
+    loop = asyncio.get_running_loop()
+    _reader, writer = await asyncio.open_connection(HOST, timed_server.port)
+    try:
+        await wait_until(lambda: timed_server.connection_count == 1)
+        (connection,) = timed_server._connections
+        await asyncio.sleep(0.3)
+        began = loop.time()
+        writer.write(read_request(1, 7)[:3])  # the first bytes of the stream, and no more
+        await asyncio.sleep(1.1)
+        since = connection.stalled_since()
+        assert since is not None and since >= began  # not since the connection was made
+    finally:
+        writer.close()
+
+
+async def test_a_dropped_connection_is_logged_with_the_server_and_the_peer(
+        server: ModbusTcpServer, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, logger="gateway.modbus.server")
+    reader, writer = await asyncio.open_connection(HOST, server.port)
+    host, port = writer.get_extra_info("sockname")[:2]
+    try:
+        writer.write(struct.pack(">HHHB", 1, 7, 6, UNIT) + bytes(5))  # protocol id 7
+        assert await asyncio.wait_for(reader.read(), 5.0) == b""
+    finally:
+        writer.close()
+    (line,) = [r.getMessage() for r in caplog.records if "closing connection" in r.getMessage()]
+    assert line.startswith(f"modbus: closing connection from {host}:{port}: bad MBAP header (protocol id 7")
+
+
+async def test_the_frame_clock_restarts_for_each_new_incomplete_frame(backend: ImageBackend) -> None:
+    """frame_timeout 0.4 s: frame A's first bytes at 0, the rest of A and B's first bytes at 0.25; B is
+    timed from 0.25 (dropped at about 0.65), not from A's start."""
+    modbus = ModbusTcpServer(backend, HOST, 0, frame_timeout=0.4)
+    await modbus.start()
+    loop = asyncio.get_running_loop()
+    reader, writer = await asyncio.open_connection(HOST, modbus.port)
+    try:
+        a, b = read_request(1, 7), read_request(2, 8)
+        start = loop.time()
+        writer.write(a[:3])
+        await asyncio.sleep(0.25)
+        writer.write(a[3:] + b[:3])
+        assert await read_reply(reader) == (1, [1007])
+        await asyncio.sleep(max(0.0, start + 0.5 - loop.time()))
+        if loop.time() - start < 0.6:  # (a loaded machine may have slept past B's deadline)
+            assert modbus.connection_count == 1  # B's clock started at 0.25: not timed out at 0.5
+        assert await asyncio.wait_for(reader.read(), 2.0) == b""  # but it does time out
+    finally:
+        writer.close()
+        await modbus.close()
+
+
+async def test_a_connection_is_not_idle_while_a_request_is_in_flight(backend: ImageBackend) -> None:
+    """idle_timeout 0.3 s: a read that waits 0.4 s for its data, then another request at once: served."""
+    modbus = ModbusTcpServer(backend, HOST, 0, idle_timeout=0.3)
+    await modbus.start()
+    reader, writer = await asyncio.open_connection(HOST, modbus.port)
+    try:
+        writer.write(read_request(1, STALE))
+        await asyncio.wait_for(backend.waiting.wait(), 5.0)
+        await asyncio.sleep(0.4)
+        backend.fresh.set()
+        assert await read_reply(reader) == (1, [1100])
+        writer.write(read_request(2, 7))
+        assert await read_reply(reader) == (2, [1007])
+    finally:
+        writer.close()
+        await modbus.close()

@@ -813,3 +813,121 @@ async def test_fuzz_keeps_serving(
     assert await exchange(server, read_request(7, 4, 6, 1)) == (7, UNIT, bytes([4, 2, 0, 42]))
     problems = [record for record in caplog.records if record.levelno >= logging.ERROR]
     assert problems == []
+
+
+# -- drops summarised by their cause -----------------------------------------------------------------
+#
+# A drop is logged once per cause and interval, then counted in one summary line per cause
+# ("<server>: <cause>: N more in the last 60 s, from <addresses>"), whatever each drop's details.
+
+
+def _summaries(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records if " more in the last " in r.getMessage()]
+
+
+async def test_incomplete_frames_timed_out_are_summarised_by_that_cause(
+        backend: DictBackend, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, logger="gateway.modbus.server")
+    modbus = ModbusTcpServer(backend, HOST, 0, frame_timeout=0.1)
+    await modbus.start()
+    try:
+        for _ in range(2):
+            reader, writer = await connect(modbus)
+            writer.write(read_request(1, 3, 0, 1)[:5])
+            assert await closed_by_peer(reader)
+            await close_writer(writer)
+    finally:
+        await modbus.close()
+    assert _summaries(caplog) == ["modbus: incomplete frames timed out: 1 more in the last 60 s, from 127.0.0.1 (1)"]
+
+
+async def test_failed_tls_handshakes_are_summarised_by_that_cause(
+        backend: DictBackend, certificates: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Two handshakes failing for different reasons (no client certificate, an untrusted one): one cause."""
+    caplog.set_level(logging.WARNING, logger="gateway.modbus.server")
+    modbus = await _tls_server(backend, certificates)
+    try:
+        for cert in (None, "rogue"):
+            with pytest.raises((ssl.SSLError, ConnectionError, asyncio.IncompleteReadError)):
+                reader, writer = await connect(modbus, _client_context(certificates, cert))
+                try:
+                    writer.write(read_request(1, 3, 0, 1))
+                    await read_reply(reader)
+                finally:
+                    await close_writer(writer)
+            await wait_until(lambda: modbus.connection_count == 0)
+    finally:
+        await modbus.close()
+    assert _summaries(caplog) == ["modbus: TLS handshakes failed: 1 more in the last 60 s, from 127.0.0.1 (1)"]
+
+
+async def test_connections_closed_to_make_room_are_summarised_by_that_cause(
+        backend: DictBackend, caplog: pytest.LogCaptureFixture) -> None:
+    """max_connections 1: each new connection evicts the one before, which sent nothing (stalled)."""
+    caplog.set_level(logging.WARNING, logger="gateway.modbus.server")
+    modbus = ModbusTcpServer(backend, HOST, 0, max_connections=1, frame_timeout=0.2)  # stalled after 0.1 s
+    await modbus.start()
+    writers = []
+    try:
+        for _ in range(3):
+            await asyncio.sleep(0.15)
+            _reader, writer = await connect(modbus)
+            writers.append(writer)
+            await wait_until(lambda: modbus.connection_count == 1)
+        assert modbus.counters.connections_dropped == 2
+    finally:
+        for writer in writers:
+            await close_writer(writer)
+        await modbus.close()
+    assert _summaries(caplog) == [
+        "modbus: connections closed to make room: 1 more in the last 60 s, from 127.0.0.1 (1)"]
+
+
+async def test_a_loopback_client_let_in_for_reads_stays_read_only_with_a_certificate(
+        backend: DictBackend, certificates: Path) -> None:
+    """``loopback_reads`` lets a loopback peer outside ``allow`` in for reads only: a client certificate
+    (whose role would write) does not give it writes (0x01)."""
+    context = make_tls_context(
+        certificates / "server.pem", certificates / "server.key", client_ca=str(certificates / "ca.pem"))
+    modbus = ModbusTcpServer(backend, HOST, 0, ssl_context=context, allow=[ipaddress.ip_network("10.0.0.0/8")],
+                             loopback_reads=True)
+    await modbus.start()
+    try:
+        reader, writer = await connect(modbus, _client_context(certificates))
+        for tid in (1, 3):
+            writer.write(frame(tid, bytes([6, 0, 10, 0, 7])))  # FC6: holding 10 = 7
+            assert await read_reply(reader) == (tid, UNIT, bytes([0x86, 0x01]))
+        assert modbus.counters.requests.get(6) == 2  # refused requests are requests too (by function code)
+        writer.write(read_request(2, 3, 10, 1))
+        assert (await read_reply(reader))[2][0] == 3  # reads are served
+        await close_writer(writer)
+        assert 10 not in backend.holding
+    finally:
+        await modbus.close()
+
+
+async def test_a_tls_connection_without_room_after_its_handshake_is_refused_counted_and_named(
+        backend: DictBackend, certificates: Path, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, logger="gateway.modbus.server")
+    context = make_tls_context(
+        certificates / "server.pem", certificates / "server.key", client_ca=str(certificates / "ca.pem"))
+    modbus = ModbusTcpServer(backend, HOST, 0, ssl_context=context, max_connections=1)
+    await modbus.start()
+    try:
+        reader, writer = await connect(modbus, _client_context(certificates))
+        writer.write(read_request(1, 3, 0, 1))
+        await read_reply(reader)  # served: not a connection to close for room
+        for refused_so_far in (1, 2):
+            with pytest.raises((ssl.SSLError, ConnectionError, asyncio.IncompleteReadError)):
+                second_reader, second_writer = await connect(modbus, _client_context(certificates))
+                try:
+                    second_writer.write(read_request(2, 3, 0, 1))
+                    await read_reply(second_reader)
+                finally:
+                    await close_writer(second_writer)
+            await wait_until(lambda n=refused_so_far: modbus.counters.connections_refused == n)  # type: ignore[misc]
+        await close_writer(writer)
+    finally:
+        await modbus.close()
+    refused = [r.getMessage() for r in caplog.records if "handshake done but" in r.getMessage()]
+    assert refused and "127.0.0.1" in refused[0]

@@ -6,9 +6,11 @@ Expected values are the Sparkplug 3.0 specification's (section in each test), no
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 
+from gateway.sparkplug.history import Change
 from gateway.sparkplug.node import Device, EdgeNode, MetricSpec, Publish, Sample
 from gateway.sparkplug.payload import Metric, Payload, SparkplugType, decode, encode
 
@@ -299,3 +301,264 @@ def test_the_core_is_sans_io() -> None:
         imported |= {node.module.split(".")[0] for node in ast.walk(tree)
                      if isinstance(node, ast.ImportFrom) and node.module}
         assert not imported & forbidden, (name, imported & forbidden)
+
+
+def test_every_command_and_refusal_is_counted_by_type_and_reason() -> None:
+    """``received`` and ``refused`` are the metrics' ``commands_received{type}`` and
+    ``commands_refused{reason}`` counters: each message and each refused metric counts one."""
+    node = make_node(primary="scada")
+    online(node)
+    for _ in range(2):
+        node.host_state(state(True, 100), T0)
+        node.host_state(b"{nope", T0)
+        node.host_state(state(True, 99), T0)  # older than the last online one
+        node.node_command(b"\xff\xff", T0)
+        node.node_command(encode(Payload(T0, (Metric(name="Node Control/Other", datatype=11, value=True),))), T0)
+        node.device_command("nope", dcmd(Metric(alias=5, value=True, value_type=SparkplugType.Boolean)))
+        node.device_command("press", b"\xff\xff")
+        node.device_command("press", dcmd(
+            Metric(name="N7:99", datatype=SparkplugType.Int16, value=1),
+            Metric(alias=4, value=0, value_type=SparkplugType.UInt16),
+            Metric(alias=2, is_null=True)))
+    assert node.received == {"STATE": 6, "NCMD": 4, "DCMD": 6}
+    assert node.refused == {"bad STATE payload": 2, "old STATE": 2, "bad payload": 4, "unknown node metric": 2,
+                            "unknown device": 2, "unknown metric": 2, "read-only metric": 2, "no value": 2}
+
+
+def test_a_refused_metric_of_a_dcmd_does_not_stop_the_ones_after_it() -> None:
+    node = make_node()
+    online(node)
+    good = Metric(alias=2, value=7, value_type=SparkplugType.Int16)
+    commands = node.device_command("press", dcmd(
+        Metric(name="N7:99", datatype=SparkplugType.Int16, value=1), good,  # unknown
+        Metric(alias=4, value=0, value_type=SparkplugType.UInt16), good,  # read-only
+        Metric(alias=2, is_null=True), good,  # no value
+        Metric(alias=2, value="x", value_type=SparkplugType.String), good))  # wrong type
+    assert [(c.device, c.metric, c.value) for c in commands] == [(0, 0, 7)] * 4
+
+
+@pytest.mark.parametrize("payload", [
+    {"online": True, "timestamp": True},  # a boolean is not a timestamp (JSON true is no integer)
+    {"online": 1, "timestamp": 5},  # online must be a boolean
+    {"online": True, "timestamp": 5.5},
+    {"online": True},
+])
+def test_a_state_payload_of_the_wrong_shape_is_refused(payload: dict[str, object]) -> None:
+    node = make_node(primary="scada")
+    node.connecting(T0)
+    node.connected(T0)
+    assert node.host_state(json.dumps(payload).encode(), T0) == ([], False)
+    assert node.refused == {"bad STATE payload": 1}
+    assert node.node_command(rebirth_request(), T0) == []  # the host is not online: still waiting
+
+
+def test_the_primary_hosts_state_decides_births_and_rebirths() -> None:
+    node = make_node(primary="scada")
+    # before the MQTT session is up, an online STATE publishes nothing (births come with connected())
+    assert node.host_state(state(True, 5), T0) == ([], False)
+    node.connecting(T0)
+    assert node.connected(T0) == []
+    assert node.host_state(state(False, 6), T0) == ([], False)  # offline before the births: keep waiting
+    assert node.node_command(rebirth_request(), T0) == []  # no rebirth for a host that is offline
+    out, disconnect = node.host_state(state(True, 7), T0)
+    assert verbs(out) == ["NBIRTH"] and not disconnect
+    assert node.host_state(state(True, 8), T0) == ([], False)  # online again while online: nothing new
+    assert verbs(node.node_command(rebirth_request(), T0)) == ["NBIRTH"]  # the host is online: a rebirth
+
+
+def test_a_node_stopped_once_publishes_no_second_ndeath() -> None:
+    node = make_node()
+    online(node)
+    assert verbs(node.stopping(T0)) == ["NDEATH"]
+    assert node.stopping(T0 + 1) == []
+
+
+def test_every_birth_and_death_carries_its_time() -> None:
+    """Payload and metric timestamps (§6.4.5, §6.4.6): the NBIRTH's and NDEATH's bdSeq and the rebirth
+    flag at the time of the message; bdSeq with alias 1 in the NBIRTH, none in the NDEATH, the rebirth
+    flag none (§5.17; the reading of docs/guide/sparkplug.md)."""
+    node = make_node()
+    node.link(0, True, T0)
+    ndeath = decode(node.connecting(T0 + 1).payload)
+    assert ndeath.timestamp == T0 + 1
+    assert [(m.name, m.alias, m.timestamp, m.value) for m in ndeath.metrics] == [("bdSeq", None, T0 + 1, 0)]
+    (nbirth,) = node.connected(T0 + 2)
+    payload = decode(nbirth.payload)
+    assert payload.timestamp == T0 + 2
+    assert [(m.name, m.alias, m.timestamp) for m in payload.metrics] == [
+        ("bdSeq", 1, T0 + 2), ("Node Control/Rebirth", None, T0 + 2)]
+    dbirth = node.next_birth(T0 + 3)
+    assert dbirth is not None and decode(dbirth.payload).timestamp == T0 + 3
+    (ddeath,) = node.link(0, False, T0 + 4)
+    assert decode(ddeath.payload).timestamp == T0 + 4 and decode(ddeath.payload).metrics == ()
+    (ndeath_publish,) = node.stopping(T0 + 5)
+    assert decode(ndeath_publish.payload).timestamp == T0 + 5
+    assert decode(ndeath_publish.payload).metrics[0].timestamp == T0 + 5
+
+
+def test_a_dbirth_metric_not_read_yet_is_null_stale_and_says_so() -> None:
+    node = make_node()
+    (_nbirth, press, _oven) = online(node, T0 + 7)
+    metrics = decode(press.payload).metrics
+    assert all(m.is_null and m.timestamp == T0 + 7 for m in metrics)
+    assert metrics[0].properties == {"Quality": (3, 500), "Quality Reason": (12, "not read yet")}
+
+
+def test_a_null_without_a_reason_says_no_value() -> None:
+    node = make_node()
+    node.observe(0, 0, Sample(3, T0))
+    online(node)
+    node.observe(0, 0, Sample(None, T0 + 1, 0))
+    (ddata,) = node.flush(T0 + 1)
+    assert decode(ddata.payload).metrics[0].properties == {"Quality": (3, 0), "Quality Reason": (12, "no value")}
+
+
+def test_what_counts_as_a_change() -> None:
+    """§5.16 report by exception: a value, its quality, or why it is null; NaN stays NaN; deadband only
+    when set, and a change of exactly the deadband is not past it."""
+    node = make_node()
+    for value in (1, 2):
+        node.observe(0, 0, Sample(value, T0))
+    online(node)
+
+    def published(device: int, metric: int, sample: Sample) -> list[object]:
+        node.observe(device, metric, sample)
+        return [m.value if not m.is_null else m.properties for out in node.flush(sample.timestamp)
+                for m in decode(out.payload).metrics]
+
+    assert published(0, 0, Sample(None, T0 + 1, 500, "a")) == [{"Quality": (3, 500), "Quality Reason": (12, "a")}]
+    assert published(0, 0, Sample(None, T0 + 2, 500, "a")) == []  # the same null: nothing
+    assert published(0, 0, Sample(None, T0 + 3, 500, "b")) == [{"Quality": (3, 500), "Quality Reason": (12, "b")}]
+    assert published(0, 0, Sample(None, T0 + 4, 0, "b")) != []  # the quality changed
+    assert published(0, 0, Sample(5, T0 + 5)) == [5]
+    assert published(0, 0, Sample(6, T0 + 6)) == [6]  # no deadband: any change
+    assert published(0, 0, Sample(6, T0 + 7)) == []
+    assert published(0, 1, Sample(10.0, T0 + 8)) == [10.0]
+    assert published(0, 1, Sample(10.5, T0 + 9)) == []  # exactly the deadband (0.5): not past it
+    assert published(0, 1, Sample(math.nan, T0 + 10)) != []
+    assert published(0, 1, Sample(math.nan, T0 + 11)) == []  # NaN again: unchanged
+    assert published(0, 1, Sample(10.0, T0 + 12)) == [10.0]  # and back: past any deadband too
+
+
+def storing_node() -> EdgeNode:
+    press = Device("press", [MetricSpec("N7:0", 2, SparkplugType.Int16), MetricSpec("N7:1", 3, SparkplugType.Int16)])
+    oven = Device("oven", [MetricSpec("B3:0/0", 5, SparkplugType.Boolean)])
+    return EdgeNode(GROUP, NODE, [press, oven], store=True)
+
+
+def test_a_flush_of_some_devices_leaves_the_others_changes_for_later() -> None:
+    node = make_node()
+    online(node)
+    node.observe(0, 0, Sample(1, T0 + 1))
+    node.observe(1, 0, Sample(True, T0 + 1))
+    assert verbs(node.flush(T0 + 2, [1])) == ["DDATA/oven"]
+    assert verbs(node.flush(T0 + 3)) == ["DDATA/press"]
+
+
+def test_a_dead_device_does_not_stop_the_flush_of_the_others() -> None:
+    node = make_node()
+    online(node)
+    node.link(0, False, T0 + 1)
+    node.observe(0, 0, Sample(1, T0 + 2))
+    node.observe(1, 0, Sample(True, T0 + 2))
+    assert verbs(node.flush(T0 + 3)) == ["DDATA/oven"]
+
+
+def test_a_forced_metric_never_read_does_not_stop_the_others() -> None:
+    node = make_node()
+    online(node)
+    node.force(0, 0)  # nothing read: nothing to publish for it
+    node.observe(0, 2, Sample(1, T0 + 1))
+    (ddata,) = node.flush(T0 + 2)
+    # its DBIRTH said null (not read yet): the first good value carries Quality 192
+    assert [(m.alias, m.value, m.properties) for m in decode(ddata.payload).metrics] == [(4, 1, {"Quality": (3, 192)})]
+
+
+def test_birth_metrics_and_ordinary_changes_carry_no_quality() -> None:
+    """``Quality`` goes with a null, and 192 with the first good value after one (§6.4.9.1): not with
+    every value."""
+    node = make_node()
+    node.observe(0, 0, Sample(1, T0))
+    (_nbirth, press, _oven) = online(node)
+    assert decode(press.payload).metrics[0].properties is None
+    node.observe(0, 0, Sample(2, T0 + 1))
+    (ddata,) = node.flush(T0 + 1)
+    assert decode(ddata.payload).metrics[0].properties is None
+
+
+def test_offline_changes_are_kept_for_the_devices_flushed_with_their_reasons() -> None:
+    node = storing_node()
+    node.link(0, True, T0)
+    node.link(1, True, T0)
+    node.observe(0, 0, Sample(None, T0 + 1, 500, "no fresh data"))
+    node.observe(1, 0, Sample(True, T0 + 1))
+    assert node.flush(T0 + 2, [1]) == []  # not online: kept, not published
+    assert node.take_unsent() == [Change("oven", "B3:0/0", T0 + 1, True, 192, "")]
+    assert node.flush(T0 + 3) == []
+    assert node.take_unsent() == [Change("press", "N7:0", T0 + 1, None, 500, "no fresh data")]
+
+
+def test_a_dead_device_does_not_stop_the_others_changes_being_kept() -> None:
+    node = storing_node()
+    node.link(1, True, T0)  # press is down
+    node.observe(0, 0, Sample(1, T0 + 1))
+    node.observe(1, 0, Sample(True, T0 + 1))
+    node.flush(T0 + 2)
+    assert [c.device for c in node.take_unsent()] == ["oven"]
+
+
+def history_node() -> EdgeNode:
+    node = storing_node()
+    node.link(0, True, T0)
+    node.link(1, True, T0)
+    node.connecting(T0)
+    with_dbirths(node, node.connected(T0))
+    return node
+
+
+def test_history_is_ddata_by_alias_marked_historical_with_original_times() -> None:
+    node = history_node()
+    changes = [Change("press", "N7:9", T0 - 9, 1, 192), Change("press", "N7:1", T0 - 8, None, 500, "stale"),
+               Change("press", "gone", T0 - 7, 1, 192), Change("press", "N7:0", T0 - 6, 4, 192)]
+    out = node.historical(0, changes, T0 + 1)
+    assert out is not None and verbs([out]) == ["DDATA/press"]
+    metrics = decode(out.payload).metrics
+    assert [(m.name, m.alias, m.datatype, m.timestamp, m.is_historical) for m in metrics] == [
+        (None, 3, None, T0 - 8, True), (None, 2, None, T0 - 6, True)]
+    assert metrics[0].properties == {"Quality": (3, 500), "Quality Reason": (12, "stale")}
+    assert node.unknown_history == 2  # N7:9 and gone: not metrics of the device
+
+
+def test_no_history_while_births_are_under_way_or_after_stopping() -> None:
+    node = storing_node()
+    node.link(0, True, T0)
+    node.link(1, True, T0)
+    node.connecting(T0)
+    node.connected(T0)
+    assert node.next_birth(T0) is not None  # press is born, oven not yet
+    change = [Change("press", "N7:0", T0 - 6, 4, 192)]
+    assert node.historical(0, change, T0) is None
+    while node.next_birth(T0) is not None:
+        pass
+    assert node.historical(0, change, T0) is not None
+    node.stopping(T0)
+    assert node.historical(0, change, T0) is None
+
+
+def test_a_lost_session_publishes_nothing_until_the_next() -> None:
+    node = make_node(primary="scada")
+    online(node)
+    node.host_state(state(True, 1), T0)
+    node.disconnected(T0 + 1)
+    node.observe(0, 0, Sample(7, T0 + 2))
+    assert node.flush(T0 + 2) == []
+    assert node.host_state(state(True, 2), T0 + 3) == ([], False)  # no session: no births
+    assert node.stopping(T0 + 4) == []
+
+
+def test_a_device_coming_up_in_a_lost_session_gets_no_dbirth() -> None:
+    node = make_node()
+    online(node)
+    node.link(0, False, T0 + 1)
+    node.disconnected(T0 + 2)
+    assert node.link(0, True, T0 + 3) == []  # its DBIRTH comes with the next session's births

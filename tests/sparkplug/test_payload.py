@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pytest
 
-from gateway.sparkplug.payload import Metric, Payload, PayloadError, SparkplugType, decode, encode, typed
+from gateway.sparkplug.payload import _PAYLOAD, Metric, Payload, PayloadError, SparkplugType, decode, encode, typed
 
 #: datatype -> (minimum, maximum), written out from the types' definitions (§6.4.16)
 LIMITS = {
@@ -85,3 +85,46 @@ def test_a_boolean_is_not_an_integer_and_an_integer_not_a_boolean() -> None:
         typed(SparkplugType.UInt16, True)
     with pytest.raises(PayloadError):
         typed(SparkplugType.Boolean, 1)
+
+
+@pytest.mark.parametrize(("datatype", "value"), [
+    (SparkplugType.Double, 1.25), (SparkplugType.Float, 0.5), (SparkplugType.Boolean, True),
+    (SparkplugType.String, "text"), (SparkplugType.Text, "more"), (SparkplugType.Bytes, b"\x00\xff"),
+    (SparkplugType.File, b"%PDF"), (SparkplugType.Int16, 7),
+], ids=lambda v: getattr(v, "name", ""))
+def test_every_plain_datatype_survives_the_wire(datatype: SparkplugType, value: object) -> None:
+    (metric,) = decode(encode(Payload(0, [Metric(name="m", datatype=datatype, value=value)]))).metrics  # type: ignore[arg-type]
+    assert metric.value == value and type(metric.value) is type(value)
+
+
+def test_a_message_or_metric_without_a_timestamp_has_none() -> None:
+    payload = decode(encode(Payload(None, [Metric(name="m", datatype=SparkplugType.Int16, value=1)])))
+    assert payload.timestamp is None and payload.metrics[0].timestamp is None
+    payload = decode(encode(Payload(0, [Metric(name="m", timestamp=0, datatype=SparkplugType.Int16, value=1)])))
+    assert payload.timestamp == 0 and payload.metrics[0].timestamp == 0
+
+
+def test_a_property_set_with_more_keys_than_values_is_read_pair_by_pair() -> None:
+    """A host's malformed property set does not make its message unreadable."""
+    message = _PAYLOAD()
+    metric = message.metrics.add()
+    metric.name, metric.datatype, metric.int_value = "m", SparkplugType.Int16, 3
+    metric.properties.keys.extend(["Quality", "extra"])
+    metric.properties.values.add(type=SparkplugType.Int32, int_value=192)
+    (decoded,) = decode(message.SerializeToString()).metrics
+    assert decoded.value == 3
+    assert decoded.properties == {"Quality": (SparkplugType.Int32, 192)}
+
+
+def test_a_float_metric_takes_a_number_as_a_float_and_nothing_else() -> None:
+    for datatype in (SparkplugType.Float, SparkplugType.Double):
+        assert typed(datatype, 1) == 1.0 and type(typed(datatype, 1)) is float
+        for wrong in (True, "1.5", b"\x00"):
+            with pytest.raises(PayloadError):
+                typed(datatype, wrong)
+
+
+def test_a_refused_integer_is_named_as_received() -> None:
+    for raw in (1 << 32, (1 << 32) + 5):
+        with pytest.raises(PayloadError, match=f"^{raw} does not fit Int16"):
+            typed(SparkplugType.Int16, raw)

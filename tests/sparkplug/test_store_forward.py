@@ -7,6 +7,7 @@ message after the NBIRTH, 255 then 0 (§6.4.22 tck-id-payloads-ddata-seq-inc), b
 
 from __future__ import annotations
 
+import json
 import math
 
 from gateway.sparkplug.history import Change, Window, sample_text, sample_value
@@ -194,3 +195,26 @@ def test_stored_samples_round_trip_every_kind_of_value() -> None:
         assert sample_value(sample_text(change)) == (value, change.quality, change.reason)
     got = sample_value(sample_text(Change("d", "m", 1, math.nan, 192)))[0]
     assert isinstance(got, float) and math.isnan(got)
+
+
+def test_window_holds_what_was_published_exactly_its_span_ago() -> None:
+    """"The changes published in the last ``span`` ms": one published exactly ``span`` ms before is in doubt."""
+    window = Window(1_000)
+    a, b = Change("d", "m", 1, 1, 192), Change("d", "m", 2, 2, 192)
+    window.add(0, [a])
+    window.add(1_000, [b])
+    assert len(window) == 2
+    assert window.lost(1_000) == [a, b]
+    window.add(0, [a])
+    assert window.lost(1_001) == []
+
+
+def test_stored_samples_are_standard_json() -> None:
+    """NaN and the infinities are kept as strings: the store's text is JSON any reader takes."""
+    def refuse(constant: str) -> object:
+        raise AssertionError(f"{constant} is not JSON")
+
+    for value in (math.nan, math.inf, -math.inf, 1.5):
+        text = sample_text(Change("d", "m", 1, value, 192))
+        assert json.loads(text, parse_constant=refuse)[1:] == [192, ""]
+    assert json.loads(sample_text(Change("d", "m", 1, 1.5, 192)))[0] == 1.5  # a finite float as itself
