@@ -47,9 +47,9 @@ _OLDER = "ts < ?"
 _UP_TO_ID = "id <= ?"
 _OLDEST_DEVICE = "SELECT device FROM change{where} ORDER BY id LIMIT 1"
 _NOT_IN = " WHERE device NOT IN ({marks})"
-_BATCH = "SELECT id, metric, ts, sample FROM change WHERE device = ? ORDER BY ts, id LIMIT ?"
+_DEVICE_ROWS = "SELECT id, metric, ts, sample FROM change WHERE device = ? ORDER BY ts, id LIMIT ?"
 _DELETE_ID = "DELETE FROM change WHERE id = ?"
-_BEGIN, _COMMIT, _ROLLBACK = "BEGIN", "COMMIT", "ROLLBACK"
+_SQL_BEGIN, _SQL_COMMIT, _SQL_ROLLBACK = "BEGIN", "COMMIT", "ROLLBACK"
 _PRAGMAS = ("PRAGMA journal_mode = WAL", "PRAGMA synchronous = NORMAL")
 _PAGE_COUNT, _FREE_PAGES, _PAGE_SIZE = "PRAGMA page_count", "PRAGMA freelist_count", "PRAGMA page_size"
 
@@ -145,13 +145,13 @@ class ChangeStore:
         """Keep ``changes`` (one transaction), then drop what is past the bounds at ``now``."""
         if changes:
             db = self.db
-            db.execute(_BEGIN)
+            db.execute(_SQL_BEGIN)
             try:
                 db.executemany(_INSERT, [(c.device, c.metric, c.timestamp, sample_text(c)) for c in changes])
             except BaseException:
-                db.execute(_ROLLBACK)
+                db.execute(_SQL_ROLLBACK)
                 raise
-            db.execute(_COMMIT)
+            db.execute(_SQL_COMMIT)
             self.commits += 1
             self.count += len(changes)
         self.trim(now)
@@ -194,7 +194,7 @@ class ChangeStore:
         if row is None:
             return None
         device = str(row[0])
-        rows = self.db.execute(_BATCH, (device, limit)).fetchall()
+        rows = self.db.execute(_DEVICE_ROWS, (device, limit)).fetchall()
         out: list[tuple[int, Change]] = []
         for ident, metric, ts, text in rows:
             value, quality, reason = sample_value(text)
@@ -206,9 +206,9 @@ class ChangeStore:
         if not ids:
             return
         db = self.db
-        db.execute(_BEGIN)
+        db.execute(_SQL_BEGIN)
         db.executemany(_DELETE_ID, [(i,) for i in ids])
-        db.execute(_COMMIT)
+        db.execute(_SQL_COMMIT)
         self.count -= len(ids)
         if replayed:
             self.replayed += len(ids)
