@@ -684,6 +684,17 @@ def _client_context(certificates: Path, cert: str | None = "client") -> ssl.SSLC
     return context
 
 
+async def _refused_at_first_read(modbus: ModbusTcpServer, certificates: Path, cert: str | None) -> None:
+    """A TLS client with ``cert`` is refused: at the handshake or, TLS 1.3, at its first read."""
+    with pytest.raises((ssl.SSLError, ConnectionError, asyncio.IncompleteReadError)):
+        reader, writer = await connect(modbus, _client_context(certificates, cert))
+        try:
+            writer.write(read_request(1, 3, 0, 1))
+            await read_reply(reader)
+        finally:
+            await close_writer(writer)
+
+
 async def _tls_server(
     backend: DictBackend, certificates: Path, allow: Sequence[ipaddress.IPv4Network] | None = None
 ) -> ModbusTcpServer:
@@ -728,13 +739,7 @@ async def test_tls_refuses_client_without_trusted_certificate(
     try:
         # TLS 1.3: the client may finish its side of the handshake before the server checks
         # its certificate, so the refusal shows at the first read.
-        with pytest.raises((ssl.SSLError, ConnectionError, asyncio.IncompleteReadError)):
-            reader, writer = await connect(modbus, _client_context(certificates, cert))
-            try:
-                writer.write(read_request(1, 3, 0, 1))
-                await read_reply(reader)
-            finally:
-                await close_writer(writer)
+        await _refused_at_first_read(modbus, certificates, cert)
         assert backend.calls == []
         await wait_until(lambda: modbus.connection_count == 0)
         assert modbus.counters.connections_dropped == 1
@@ -848,13 +853,7 @@ async def test_failed_tls_handshakes_are_summarised_by_that_cause(
     modbus = await _tls_server(backend, certificates)
     try:
         for cert in (None, "rogue"):
-            with pytest.raises((ssl.SSLError, ConnectionError, asyncio.IncompleteReadError)):
-                reader, writer = await connect(modbus, _client_context(certificates, cert))
-                try:
-                    writer.write(read_request(1, 3, 0, 1))
-                    await read_reply(reader)
-                finally:
-                    await close_writer(writer)
+            await _refused_at_first_read(modbus, certificates, cert)
             await wait_until(lambda: modbus.connection_count == 0)
     finally:
         await modbus.close()
